@@ -1,0 +1,349 @@
+//! The generic kinematic domain: "the state moves by the action", for any robot whose model is
+//! that simple. `f̂(s, a) = clip(s + a)` to the state bounds; Euclidean distance; optional
+//! axis-aligned box obstacles for the approximate collision check; a goal is a state with a radius.
+
+use super::{Domain, DomainError, Problem, Space, euclidean};
+use rand::{Rng, RngCore};
+
+/// An axis-aligned box that planned edges may not pass through.
+#[derive(Debug, Clone, PartialEq)]
+pub struct BoxObstacle {
+    /// Lower corner.
+    pub low: Vec<f64>,
+    /// Upper corner.
+    pub high: Vec<f64>,
+}
+
+impl BoxObstacle {
+    fn contains(&self, p: &[f64]) -> bool {
+        p.iter()
+            .zip(self.low.iter().zip(&self.high))
+            .all(|(x, (lo, hi))| *x >= *lo && *x <= *hi)
+    }
+}
+
+/// The parameters of a kinematic domain, as given by a client.
+#[derive(Debug, Clone, PartialEq)]
+pub struct KinematicParams {
+    /// Lower bounds of the state (also fixes the dimension `n`).
+    pub state_low: Vec<f64>,
+    /// Upper bounds of the state.
+    pub state_high: Vec<f64>,
+    /// Lower bounds of the action (each ≤ 0, so that the robot can stand still).
+    pub action_low: Vec<f64>,
+    /// Upper bounds of the action (each ≥ 0).
+    pub action_high: Vec<f64>,
+    /// Obstacles for the approximate collision check.
+    pub obstacles: Vec<BoxObstacle>,
+    /// A state within this Euclidean distance of the goal state has arrived.
+    pub goal_radius: f64,
+}
+
+impl Default for KinematicParams {
+    /// A unit square, moves of at most 0.1 per axis, no obstacles, goal radius 0.05.
+    fn default() -> Self {
+        Self {
+            state_low: vec![0.0, 0.0],
+            state_high: vec![1.0, 1.0],
+            action_low: vec![-0.1, -0.1],
+            action_high: vec![0.1, 0.1],
+            obstacles: Vec::new(),
+            goal_radius: 0.05,
+        }
+    }
+}
+
+/// The kinematic domain (see the module docs).
+#[derive(Debug, Clone)]
+pub struct Kinematic {
+    params: KinematicParams,
+    state_space: Space,
+    action_space: Space,
+}
+
+/// Points checked along each edge by the approximate collision check.
+const COLLISION_SAMPLES: usize = 8;
+
+impl Kinematic {
+    /// Largest accepted state dimension.
+    pub const MAX_DIM: usize = 32;
+
+    /// Checks the parameters and builds the domain. Errors name the parameter.
+    pub fn new(params: KinematicParams) -> Result<Self, DomainError> {
+        let n = params.state_low.len();
+        if n == 0 || n > Self::MAX_DIM {
+            return Err(DomainError::new(format!(
+                "state_low: the dimension must be between 1 and {}, got {n}",
+                Self::MAX_DIM
+            )));
+        }
+        for (name, v) in [
+            ("state_high", &params.state_high),
+            ("action_low", &params.action_low),
+            ("action_high", &params.action_high),
+        ] {
+            if v.len() != n {
+                return Err(DomainError::new(format!(
+                    "{name}: expected {n} components like state_low, got {}",
+                    v.len()
+                )));
+            }
+        }
+        for (name, v) in [
+            ("state_low", &params.state_low),
+            ("state_high", &params.state_high),
+            ("action_low", &params.action_low),
+            ("action_high", &params.action_high),
+        ] {
+            if v.iter().any(|x| !x.is_finite()) {
+                return Err(DomainError::new(format!("{name}: every bound must be finite")));
+            }
+        }
+        for i in 0..n {
+            if params.state_low[i] >= params.state_high[i] {
+                return Err(DomainError::new(format!(
+                    "state_high: component {i} must exceed state_low's"
+                )));
+            }
+            if params.action_low[i] > 0.0 || params.action_high[i] < 0.0 {
+                return Err(DomainError::new(format!(
+                    "action_low/action_high: component {i} must satisfy action_low ≤ 0 ≤ action_high"
+                )));
+            }
+            if params.action_low[i] == params.action_high[i] {
+                return Err(DomainError::new(format!(
+                    "action_high: component {i} must exceed action_low's"
+                )));
+            }
+        }
+        for (k, o) in params.obstacles.iter().enumerate() {
+            if o.low.len() != n || o.high.len() != n {
+                return Err(DomainError::new(format!(
+                    "obstacles[{k}]: low and high need {n} components"
+                )));
+            }
+            if o.low.iter().chain(&o.high).any(|x| !x.is_finite())
+                || o.low.iter().zip(&o.high).any(|(l, h)| l > h)
+            {
+                return Err(DomainError::new(format!(
+                    "obstacles[{k}]: bounds must be finite with low ≤ high"
+                )));
+            }
+        }
+        if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
+            return Err(DomainError::new("goal_radius: must be a positive number"));
+        }
+        let names = |prefix: &str| (0..n).map(|i| format!("{prefix}{i}")).collect::<Vec<_>>();
+        let state_space = Space {
+            names: names("x"),
+            low: params.state_low.clone(),
+            high: params.state_high.clone(),
+            values: None,
+        };
+        let action_space = Space {
+            names: names("dx"),
+            low: params.action_low.clone(),
+            high: params.action_high.clone(),
+            values: None,
+        };
+        Ok(Self {
+            params,
+            state_space,
+            action_space,
+        })
+    }
+
+    /// The parameters this domain was built from.
+    pub fn params(&self) -> &KinematicParams {
+        &self.params
+    }
+
+    /// Whether the point lies inside an obstacle.
+    pub fn in_collision(&self, p: &[f64]) -> bool {
+        self.params.obstacles.iter().any(|o| o.contains(p))
+    }
+
+    fn sample_free(&self, rng: &mut dyn RngCore) -> Vec<f64> {
+        // Rejection sampling; obstacles covering the whole box would loop, so give up after a while
+        // and return the last draw.
+        let mut s = self.sample_state(rng);
+        for _ in 0..1000 {
+            if !self.in_collision(&s) {
+                break;
+            }
+            s = self.sample_state(rng);
+        }
+        s
+    }
+}
+
+impl Domain for Kinematic {
+    fn kind(&self) -> &'static str {
+        "kinematic"
+    }
+
+    fn state_space(&self) -> &Space {
+        &self.state_space
+    }
+
+    fn action_space(&self) -> &Space {
+        &self.action_space
+    }
+
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let mut next: Vec<f64> = s.iter().zip(a).map(|(x, d)| x + d).collect();
+        self.state_space.clamp(&mut next);
+        next
+    }
+
+    fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64 {
+        euclidean(predicted, observed)
+    }
+
+    fn default_d_max(&self) -> f64 {
+        0.1
+    }
+
+    fn feature_dim(&self) -> usize {
+        2 * self.state_space.dim()
+    }
+
+    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        self.state_space
+            .to_unit(s)
+            .chain(self.action_space.to_unit(a))
+            .collect()
+    }
+
+    fn feature_names(&self) -> Vec<String> {
+        self.state_space
+            .names
+            .iter()
+            .chain(&self.action_space.names)
+            .cloned()
+            .collect()
+    }
+
+    fn validate_goal(&self, goal: &[f64]) -> Result<(), DomainError> {
+        self.state_space.check(goal)
+    }
+
+    fn is_goal(&self, s: &[f64], goal: &[f64]) -> bool {
+        euclidean(s, goal) <= self.params.goal_radius
+    }
+
+    fn edge_allowed(&self, s: &[f64], _a: &[f64], s_pred: &[f64]) -> bool {
+        if euclidean(s, s_pred) < 1e-12 {
+            return false;
+        }
+        let mut p = vec![0.0; s.len()];
+        (1..=COLLISION_SAMPLES).all(|k| {
+            let t = k as f64 / COLLISION_SAMPLES as f64;
+            for (i, pi) in p.iter_mut().enumerate() {
+                *pi = s[i] + t * (s_pred[i] - s[i]);
+            }
+            !self.in_collision(&p)
+        })
+    }
+
+    fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
+        (0..self.state_space.dim())
+            .map(|i| rng.random_range(self.state_space.low[i]..=self.state_space.high[i]))
+            .collect()
+    }
+
+    fn goal_target(&self, goal: &[f64], _rng: &mut dyn RngCore) -> Vec<f64> {
+        goal.to_vec()
+    }
+
+    fn state_metric(&self, a: &[f64], b: &[f64]) -> f64 {
+        euclidean(a, b)
+    }
+
+    /// The displacement to the target, shrunk uniformly until it fits the action bounds.
+    fn steer(&self, s: &[f64], target: &[f64], _rng: &mut dyn RngCore) -> Vec<f64> {
+        let delta: Vec<f64> = s.iter().zip(target).map(|(x, t)| t - x).collect();
+        let mut scale: f64 = 1.0;
+        for (i, d) in delta.iter().enumerate() {
+            let limit = if *d > 0.0 {
+                self.action_space.high[i]
+            } else {
+                -self.action_space.low[i]
+            };
+            if d.abs() > limit {
+                scale = scale.min(limit / d.abs());
+            }
+        }
+        delta.iter().map(|d| d * scale).collect()
+    }
+
+    fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
+        (0..self.action_space.dim())
+            .map(|i| rng.random_range(self.action_space.low[i]..=self.action_space.high[i]))
+            .collect()
+    }
+
+    fn rollout_length(&self) -> usize {
+        20
+    }
+
+    fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem {
+        let start = self.sample_free(rng);
+        let mut goal = self.sample_free(rng);
+        for _ in 0..1000 {
+            if euclidean(&start, &goal) > 2.0 * self.params.goal_radius {
+                break;
+            }
+            goal = self.sample_free(rng);
+        }
+        Problem { start, goal }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn model_adds_the_action_and_clips() {
+        let k = Kinematic::new(KinematicParams::default()).unwrap();
+        let p = k.predict(&[0.95, 0.5], &[0.1, -0.05]);
+        assert!((p[0] - 1.0).abs() < 1e-12 && (p[1] - 0.45).abs() < 1e-12);
+    }
+
+    #[test]
+    fn steering_respects_the_action_bounds() {
+        let k = Kinematic::new(KinematicParams::default()).unwrap();
+        let mut rng = rand::rng();
+        let a = k.steer(&[0.0, 0.0], &[1.0, 0.5], &mut rng);
+        assert!((a[0] - 0.1).abs() < 1e-12 && (a[1] - 0.05).abs() < 1e-12);
+    }
+
+    #[test]
+    fn obstacles_block_edges() {
+        let params = KinematicParams {
+            obstacles: vec![BoxObstacle {
+                low: vec![0.4, 0.0],
+                high: vec![0.45, 1.0],
+            }],
+            ..Default::default()
+        };
+        let k = Kinematic::new(params).unwrap();
+        assert!(!k.edge_allowed(&[0.38, 0.5], &[0.1, 0.0], &[0.48, 0.5]));
+        assert!(k.edge_allowed(&[0.2, 0.5], &[0.1, 0.0], &[0.3, 0.5]));
+    }
+
+    #[test]
+    fn rejects_inconsistent_parameters() {
+        let bad = KinematicParams {
+            action_low: vec![0.1, -0.1],
+            ..Default::default()
+        };
+        assert!(Kinematic::new(bad).is_err());
+        let bad = KinematicParams {
+            state_high: vec![1.0],
+            ..Default::default()
+        };
+        assert!(Kinematic::new(bad).is_err());
+    }
+}

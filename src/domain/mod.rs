@@ -1,0 +1,219 @@
+//! Domains: state and action spaces, the given (inaccurate) dynamics model `f̂`, the distance `d`,
+//! the MDE feature map `φ`, the planning constraints, the goal test and the samplers.
+//!
+//! A [`Domain`] is everything the learner and the planner know about a world. The *true* dynamics of
+//! the built-in worlds live in `crate::sim` and are never seen by the planner.
+//!
+//! Every vector is a plain `&[f64]`: states are `s ∈ R^n`, actions `a ∈ R^m`, goals are
+//! domain-specific vectors (a cell for the gridworld, a state for the kinematic domain, a target
+//! volume for the water plant).
+
+mod gridworld;
+mod kinematic;
+
+pub use gridworld::{DEFAULT_MAP, IcyGridworld};
+pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
+
+use rand::RngCore;
+
+/// A box-bounded vector space, with its discrete values when it has them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Space {
+    /// One name per component, e.g. `["x", "y"]`.
+    pub names: Vec<String>,
+    /// Lower bound of each component.
+    pub low: Vec<f64>,
+    /// Upper bound of each component.
+    pub high: Vec<f64>,
+    /// For discrete spaces, the allowed vectors (e.g. the gridworld's four moves); `None` when
+    /// continuous.
+    pub values: Option<Vec<Vec<f64>>>,
+}
+
+impl Space {
+    /// Number of components.
+    pub fn dim(&self) -> usize {
+        self.names.len()
+    }
+
+    /// Checks dimension, finiteness, bounds and (for discrete spaces) membership of `v`.
+    ///
+    /// The error says which component is wrong and why, for the caller to put behind a field name.
+    pub fn check(&self, v: &[f64]) -> Result<(), DomainError> {
+        if v.len() != self.dim() {
+            return Err(DomainError::new(format!(
+                "expected {} components ({}), got {}",
+                self.dim(),
+                self.names.join(", "),
+                v.len()
+            )));
+        }
+        for (i, x) in v.iter().enumerate() {
+            if !x.is_finite() {
+                return Err(DomainError::new(format!(
+                    "component {i} ({}) is not a finite number",
+                    self.names[i]
+                )));
+            }
+            if *x < self.low[i] - BOUND_TOLERANCE || *x > self.high[i] + BOUND_TOLERANCE {
+                return Err(DomainError::new(format!(
+                    "component {i} ({}) = {x} is outside [{}, {}]",
+                    self.names[i], self.low[i], self.high[i]
+                )));
+            }
+        }
+        if let Some(values) = &self.values {
+            if !values.iter().any(|val| val.iter().zip(v).all(|(p, q)| (p - q).abs() < 1e-9)) {
+                return Err(DomainError::new(format!(
+                    "{v:?} is not one of the allowed values {values:?}"
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    /// Scales `v` into the unit box by the bounds (components with zero width map to 0).
+    pub fn to_unit<'a>(&'a self, v: &'a [f64]) -> impl Iterator<Item = f64> + 'a {
+        v.iter().zip(self.low.iter().zip(&self.high)).map(|(x, (lo, hi))| {
+            let w = hi - lo;
+            if w > 0.0 { (x - lo) / w } else { 0.0 }
+        })
+    }
+
+    /// Clamps `v` component-wise into the bounds.
+    pub fn clamp(&self, v: &mut [f64]) {
+        for (x, (lo, hi)) in v.iter_mut().zip(self.low.iter().zip(&self.high)) {
+            *x = x.clamp(*lo, *hi);
+        }
+    }
+}
+
+/// Slack allowed on bounds when validating observed values (sensor rounding).
+pub const BOUND_TOLERANCE: f64 = 1e-9;
+
+/// A domain-level validation failure: what is wrong with a value, in words.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{0}")]
+pub struct DomainError(pub String);
+
+impl DomainError {
+    /// Wraps a reason.
+    pub fn new(reason: impl Into<String>) -> Self {
+        Self(reason.into())
+    }
+}
+
+/// A planning problem: where to start and what counts as arriving.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem {
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Domain-specific goal vector (see [`Domain::validate_goal`]).
+    pub goal: Vec<f64>,
+}
+
+/// Everything the learner and the planner know about a world.
+///
+/// Implementations must be cheap to call: the planner calls `predict`, `features`,
+/// `edge_allowed` and `steer` thousands of times per proposal.
+pub trait Domain: Send + Sync + std::fmt::Debug {
+    /// The `kind` tag of this domain (`"icy_gridworld"`, `"kinematic"`, `"water_plant"`).
+    fn kind(&self) -> &'static str;
+
+    /// The state space.
+    fn state_space(&self) -> &Space;
+
+    /// The action space.
+    fn action_space(&self) -> &Space;
+
+    /// The given, inaccurate dynamics model `ŝ' = f̂(s, a)`.
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64>;
+
+    /// The distance `d(ŝ', s') ≥ 0` between a predicted and an observed state.
+    fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64;
+
+    /// The deviation label of an executed transition: `d(f̂(s, a), s')`.
+    fn deviation(&self, s: &[f64], a: &[f64], s_next: &[f64]) -> f64 {
+        self.distance(&self.predict(s, a), s_next)
+    }
+
+    /// The default tolerance `d_max`.
+    fn default_d_max(&self) -> f64;
+
+    /// Dimension of the MDE feature vector `φ(s, a)`.
+    fn feature_dim(&self) -> usize;
+
+    /// The MDE feature vector `φ(s, a)`, every component in `[0, 1]`.
+    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64>;
+
+    /// Names of the feature components (for reports and plots).
+    fn feature_names(&self) -> Vec<String>;
+
+    /// Checks that `s` is a state of this domain.
+    fn validate_state(&self, s: &[f64]) -> Result<(), DomainError> {
+        self.state_space().check(s)
+    }
+
+    /// Checks that an observed next state is acceptable (dimension and finiteness; robots may be
+    /// pushed slightly outside the nominal bounds, so bounds are not enforced by default).
+    fn validate_observed_state(&self, s: &[f64]) -> Result<(), DomainError> {
+        let space = self.state_space();
+        if s.len() != space.dim() {
+            return Err(DomainError::new(format!(
+                "expected {} components ({}), got {}",
+                space.dim(),
+                space.names.join(", "),
+                s.len()
+            )));
+        }
+        match s.iter().position(|x| !x.is_finite()) {
+            Some(i) => Err(DomainError::new(format!(
+                "component {i} ({}) is not a finite number",
+                space.names[i]
+            ))),
+            None => Ok(()),
+        }
+    }
+
+    /// Checks that `a` is an action of this domain.
+    fn validate_action(&self, a: &[f64]) -> Result<(), DomainError> {
+        self.action_space().check(a)
+    }
+
+    /// Checks that `goal` is a goal of this domain.
+    fn validate_goal(&self, goal: &[f64]) -> Result<(), DomainError>;
+
+    /// The goal test `g(s)`.
+    fn is_goal(&self, s: &[f64], goal: &[f64]) -> bool;
+
+    /// The planning constraints on an edge `s --a--> ŝ'` other than the precondition: bounds,
+    /// the approximate collision check, the form of the action. An edge that makes no progress
+    /// (`ŝ' = s`) is not allowed.
+    fn edge_allowed(&self, s: &[f64], a: &[f64], s_pred: &[f64]) -> bool;
+
+    /// A state to grow the tree towards, drawn uniformly over the state space.
+    fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64>;
+
+    /// A state to grow the tree towards when the planner takes its goal bias.
+    fn goal_target(&self, goal: &[f64], rng: &mut dyn RngCore) -> Vec<f64>;
+
+    /// Distance used to find the nearest tree node to a target.
+    fn state_metric(&self, a: &[f64], b: &[f64]) -> f64;
+
+    /// An action from `s` towards `target` (the RRT's steering function).
+    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64>;
+
+    /// A random action from `s`, from the same sampler the planner uses (the `random` strategy).
+    fn sample_action(&self, s: &[f64], rng: &mut dyn RngCore) -> Vec<f64>;
+
+    /// Number of steps of a `random`-strategy rollout.
+    fn rollout_length(&self) -> usize;
+
+    /// A random planning problem from the domain's distribution of problems.
+    fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem;
+}
+
+/// Euclidean distance between two equally long vectors.
+pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt()
+}
