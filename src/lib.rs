@@ -1,2 +1,28 @@
-//! precond: learns where an inaccurate dynamics model can be trusted.
+//! # precond
+//!
+//! A long-running HTTP/JSON service that learns the *model precondition* of an inaccurate
+//! dynamics model — the region of state-action space where its predictions stay within a
+//! tolerance — by active learning (LaGrassa, Lee, Kroemer: *Task-Oriented Active Learning of
+//! Model Preconditions for Inaccurate Dynamics Models*).
+//!
+//! ## Module map
+//!
+//! The numeric core knows nothing of HTTP, SQL or JSON:
+//! - [`domain`]: the [`domain::Domain`] trait (spaces, model `f̂`, distance, features,
+//!   constraints, samplers) and the built-in worlds' models.
+//!
+//! The service around it:
+//! - [`settings`]: an experiment's settings, their defaults and their validation.
+//! - [`store`]: SQLite (sqlx): every query, rows ↔ values, atomic idempotent ingest.
+//! - [`live`]: live experiments in memory (built domain, current model).
+//! - [`http`]: the axum router, handlers per resource, extractors, serving with graceful shutdown.
+//! - [`error`]: the one error type and its JSON shape.
+//! - [`cli`]: the command line (`precond serve`, ...).
+
+pub mod cli;
 pub mod domain;
+pub mod error;
+pub mod http;
+pub mod live;
+pub mod settings;
+pub mod store;

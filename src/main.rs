@@ -1,1 +1,8 @@
-fn main() {}
+//! The `precond` binary: parse the command line and run it.
+
+use clap::Parser;
+
+#[tokio::main]
+async fn main() -> anyhow::Result<()> {
+    precond::cli::run(precond::cli::Cli::parse()).await
+}

@@ -96,7 +96,9 @@ impl Kinematic {
             ("action_high", &params.action_high),
         ] {
             if v.iter().any(|x| !x.is_finite()) {
-                return Err(DomainError::new(format!("{name}: every bound must be finite")));
+                return Err(DomainError::new(format!(
+                    "{name}: every bound must be finite"
+                )));
             }
         }
         for i in 0..n {

@@ -63,7 +63,10 @@ impl Space {
             }
         }
         if let Some(values) = &self.values {
-            if !values.iter().any(|val| val.iter().zip(v).all(|(p, q)| (p - q).abs() < 1e-9)) {
+            if !values
+                .iter()
+                .any(|val| val.iter().zip(v).all(|(p, q)| (p - q).abs() < 1e-9))
+            {
                 return Err(DomainError::new(format!(
                     "{v:?} is not one of the allowed values {values:?}"
                 )));
@@ -74,10 +77,12 @@ impl Space {
 
     /// Scales `v` into the unit box by the bounds (components with zero width map to 0).
     pub fn to_unit<'a>(&'a self, v: &'a [f64]) -> impl Iterator<Item = f64> + 'a {
-        v.iter().zip(self.low.iter().zip(&self.high)).map(|(x, (lo, hi))| {
-            let w = hi - lo;
-            if w > 0.0 { (x - lo) / w } else { 0.0 }
-        })
+        v.iter()
+            .zip(self.low.iter().zip(&self.high))
+            .map(|(x, (lo, hi))| {
+                let w = hi - lo;
+                if w > 0.0 { (x - lo) / w } else { 0.0 }
+            })
     }
 
     /// Clamps `v` component-wise into the bounds.
@@ -215,5 +220,9 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
 
 /// Euclidean distance between two equally long vectors.
 pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
-    a.iter().zip(b).map(|(p, q)| (p - q) * (p - q)).sum::<f64>().sqrt()
+    a.iter()
+        .zip(b)
+        .map(|(p, q)| (p - q) * (p - q))
+        .sum::<f64>()
+        .sqrt()
 }

@@ -1,0 +1,175 @@
+//! The HTTP/JSON API: one [`AppState`], one route table, one error shape.
+//!
+//! The router is built from [`routes`], the same table the contract test compares with
+//! `api/openapi.yaml`, so a route cannot exist in one and not the other.
+
+mod experiments;
+pub mod extract;
+mod health;
+mod trajectories;
+
+use crate::error::Error;
+use crate::live::Registry;
+use crate::store::Store;
+use axum::Router;
+use axum::extract::{DefaultBodyLimit, Request};
+use axum::http::{Method, StatusCode};
+use axum::middleware::{self, Next};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{MethodRouter, get, post};
+use extract::BodyLimit;
+use std::future::Future;
+use std::sync::Arc;
+use tokio::net::TcpListener;
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::trace::TraceLayer;
+
+pub use trajectories::{TrajectoryRequest, TransitionRequest};
+
+/// Limits and knobs of the HTTP layer.
+#[derive(Debug, Clone)]
+pub struct HttpConfig {
+    /// Largest accepted request body in bytes.
+    pub max_body_bytes: usize,
+}
+
+impl Default for HttpConfig {
+    fn default() -> Self {
+        Self {
+            max_body_bytes: 4 * 1024 * 1024,
+        }
+    }
+}
+
+/// What every handler can reach.
+#[derive(Debug, Clone)]
+pub struct AppState {
+    /// The database.
+    pub store: Store,
+    /// Live experiments (built domains, current models).
+    pub experiments: Arc<Registry>,
+    /// HTTP settings.
+    pub config: Arc<HttpConfig>,
+}
+
+impl AppState {
+    /// State over an opened store.
+    pub fn new(store: Store, config: HttpConfig) -> Self {
+        Self {
+            store,
+            experiments: Arc::new(Registry::default()),
+            config: Arc::new(config),
+        }
+    }
+}
+
+/// One row of the route table.
+pub struct Route {
+    /// HTTP method.
+    pub method: Method,
+    /// Path in axum's syntax (`{id}` parameters), the same as in the OpenAPI document.
+    pub path: &'static str,
+    /// The handler.
+    pub handler: MethodRouter<AppState>,
+}
+
+fn route(method: Method, path: &'static str, handler: MethodRouter<AppState>) -> Route {
+    Route {
+        method,
+        path,
+        handler,
+    }
+}
+
+/// Every route the service answers.
+pub fn routes() -> Vec<Route> {
+    use Method as M;
+    vec![
+        route(M::GET, "/healthz", get(health::get_health)),
+        route(M::GET, "/readyz", get(health::get_readiness)),
+        route(
+            M::POST,
+            "/v1/experiments",
+            post(experiments::create_experiment),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments",
+            get(experiments::list_experiments),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}",
+            get(experiments::get_experiment),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/trajectories",
+            post(trajectories::create_trajectory),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/trajectories/{tid}",
+            get(trajectories::get_trajectory),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/transitions",
+            get(trajectories::list_transitions),
+        ),
+    ]
+}
+
+/// The application: routes, fallbacks, body limit, tracing and the panic net.
+pub fn app(state: AppState) -> Router {
+    let limit = state.config.max_body_bytes;
+    let mut router = Router::new();
+    for r in routes() {
+        router = router.route(r.path, r.handler);
+    }
+    router
+        .fallback(route_not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(middleware::from_fn(
+            move |mut req: Request, next: Next| async move {
+                req.extensions_mut().insert(BodyLimit(limit));
+                next.run(req).await
+            },
+        ))
+        .layer(DefaultBodyLimit::max(limit))
+        .layer(CatchPanicLayer::custom(panic_response))
+        .layer(TraceLayer::new_for_http())
+        .with_state(state)
+}
+
+async fn route_not_found(method: Method, uri: axum::http::Uri) -> Error {
+    Error::NotFound(format!("no route for {method} {}", uri.path()))
+}
+
+async fn method_not_allowed() -> Error {
+    Error::MethodNotAllowed
+}
+
+fn panic_response(_: Box<dyn std::any::Any + Send + 'static>) -> Response {
+    tracing::error!("a handler panicked");
+    let e = Error::Internal(anyhow::anyhow!("handler panicked"));
+    (StatusCode::INTERNAL_SERVER_ERROR, axum::Json(e.body())).into_response()
+}
+
+/// Serves the API on `listener` until `shutdown` resolves, then lets in-flight requests finish
+/// and closes the store.
+pub async fn serve(
+    listener: TcpListener,
+    state: AppState,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> anyhow::Result<()> {
+    let store = state.store.clone();
+    let addr = listener.local_addr()?;
+    tracing::info!(%addr, "serving");
+    axum::serve(listener, app(state))
+        .with_graceful_shutdown(shutdown)
+        .await?;
+    store.close().await;
+    tracing::info!("stopped");
+    Ok(())
+}

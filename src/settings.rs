@@ -1,0 +1,382 @@
+//! An experiment's settings: the domain with its parameters, `d_max`, the seed, the MDE settings
+//! and the learning settings. Requests give any subset; every omitted field takes the documented
+//! default, and the resolved settings are what is stored and shown.
+//!
+//! These are the service's vocabulary (serde, validated once at the door); the numeric core gets
+//! plain domain values built from them.
+
+use crate::domain::{
+    BoxObstacle, DEFAULT_MAP, Domain, DomainError, IcyGridworld, Kinematic, KinematicParams,
+};
+use crate::error::Error;
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// Which world, with its parameters. The tag is `kind`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum DomainSpec {
+    /// The icy gridworld; `map` rows are strings of `.` (free), `#` (obstacle), `~` (ice), row
+    /// `y` first-to-last, character `x` left-to-right. Default: the documented 12×12 map.
+    IcyGridworld {
+        /// The layout.
+        #[serde(default = "default_map")]
+        map: Vec<String>,
+    },
+    /// The generic kinematic domain: `f̂(s, a) = clip(s + a)`.
+    Kinematic {
+        /// Lower state bounds (fixes the dimension). Default `[0, 0]`.
+        #[serde(default = "kinematic_defaults::state_low")]
+        state_low: Vec<f64>,
+        /// Upper state bounds. Default `[1, 1]`.
+        #[serde(default = "kinematic_defaults::state_high")]
+        state_high: Vec<f64>,
+        /// Lower action bounds (each ≤ 0). Default `[-0.1, -0.1]`.
+        #[serde(default = "kinematic_defaults::action_low")]
+        action_low: Vec<f64>,
+        /// Upper action bounds (each ≥ 0). Default `[0.1, 0.1]`.
+        #[serde(default = "kinematic_defaults::action_high")]
+        action_high: Vec<f64>,
+        /// Axis-aligned box obstacles for the approximate collision check. Default none.
+        #[serde(default)]
+        obstacles: Vec<ObstacleSpec>,
+        /// Goal radius (Euclidean). Default 0.05.
+        #[serde(default = "kinematic_defaults::goal_radius")]
+        goal_radius: f64,
+    },
+}
+
+/// An axis-aligned box.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObstacleSpec {
+    /// Lower corner.
+    pub low: Vec<f64>,
+    /// Upper corner.
+    pub high: Vec<f64>,
+}
+
+fn default_map() -> Vec<String> {
+    DEFAULT_MAP.iter().map(|r| r.to_string()).collect()
+}
+
+mod kinematic_defaults {
+    use crate::domain::KinematicParams;
+    pub fn state_low() -> Vec<f64> {
+        KinematicParams::default().state_low
+    }
+    pub fn state_high() -> Vec<f64> {
+        KinematicParams::default().state_high
+    }
+    pub fn action_low() -> Vec<f64> {
+        KinematicParams::default().action_low
+    }
+    pub fn action_high() -> Vec<f64> {
+        KinematicParams::default().action_high
+    }
+    pub fn goal_radius() -> f64 {
+        KinematicParams::default().goal_radius
+    }
+}
+
+impl Default for DomainSpec {
+    fn default() -> Self {
+        Self::IcyGridworld { map: default_map() }
+    }
+}
+
+impl DomainSpec {
+    /// Builds the domain; a failure is a validation error on `domain.<field>`.
+    pub fn build(&self) -> Result<Arc<dyn Domain>, Error> {
+        let wrap = |e: DomainError| {
+            // Kinematic errors start with the parameter name ("goal_radius: ..."); gridworld
+            // errors are about the map.
+            match e.0.split_once(": ") {
+                Some((field, reason)) if !field.contains(' ') => {
+                    Error::validation(format!("domain.{field}"), reason)
+                }
+                _ => Error::validation("domain.map", e.0),
+            }
+        };
+        Ok(match self {
+            Self::IcyGridworld { map } => Arc::new(IcyGridworld::new(map).map_err(wrap)?),
+            Self::Kinematic {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+                obstacles,
+                goal_radius,
+            } => Arc::new(
+                Kinematic::new(KinematicParams {
+                    state_low: state_low.clone(),
+                    state_high: state_high.clone(),
+                    action_low: action_low.clone(),
+                    action_high: action_high.clone(),
+                    obstacles: obstacles
+                        .iter()
+                        .map(|o| BoxObstacle {
+                            low: o.low.clone(),
+                            high: o.high.clone(),
+                        })
+                        .collect(),
+                    goal_radius: *goal_radius,
+                })
+                .map_err(wrap)?,
+            ),
+        })
+    }
+}
+
+/// How the MDE's observation noise is modelled.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum NoiseSetting {
+    /// Input-dependent noise, the most likely heteroscedastic GP (the paper's choice; default).
+    #[default]
+    Heteroscedastic,
+    /// One noise variance for the whole space.
+    Homoscedastic,
+}
+
+/// The model deviation estimator's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct MdeSettings {
+    /// Noise model. Default `heteroscedastic`.
+    pub noise: NoiseSetting,
+    /// Constant prior mean of the deviation. Default 0 (unexplored regions look trustworthy but
+    /// uncertain, which drives exploration).
+    pub prior_mean: f64,
+    /// Extra seeded optimiser starts beyond the first when fitting hyperparameters. Default 2;
+    /// at most 20.
+    pub restarts: usize,
+}
+
+impl Default for MdeSettings {
+    fn default() -> Self {
+        Self {
+            noise: NoiseSetting::Heteroscedastic,
+            prior_mean: 0.0,
+            restarts: 2,
+        }
+    }
+}
+
+/// Which candidate a proposal hands out.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum StrategySetting {
+    /// Argmin of the acquisition over goal-reaching candidates (the method; default).
+    #[default]
+    Active,
+    /// A uniformly random goal-reaching candidate.
+    GoalConditioned,
+    /// A random-action rollout from the start, not conditioned on the goal.
+    Random,
+}
+
+/// How step utilities are aggregated into a trajectory's utility.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum AggregationSetting {
+    /// `h_max = max_t γ^t α_step(t)` (default).
+    #[default]
+    Max,
+    /// `h_sum = Σ_t γ^t α_step(t)`.
+    Sum,
+}
+
+/// The active-learning settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct LearningSettings {
+    /// Default strategy of proposals. Default `active`.
+    pub strategy: StrategySetting,
+    /// Executed trajectories per iteration; the MDE is refit after each batch. Default 5.
+    pub batch_size: u32,
+    /// Planned iterations `J` of the β schedule. Default 20.
+    pub iterations: u32,
+    /// Candidate trajectories per proposal. Default 20.
+    pub n_candidates: u32,
+    /// RRT extension budget per search. Default 5000.
+    pub max_extensions: u32,
+    /// Exploration weight `c` in `α_step = μ − c σ`. Default 1.
+    pub c: f64,
+    /// Discount `γ` of the aggregation. Default 0.9.
+    pub gamma: f64,
+    /// Aggregation `h`. Default `max`.
+    pub aggregation: AggregationSetting,
+    /// β schedule amplitude `k1`. Default 2.
+    pub k1: f64,
+    /// β schedule steepness `k2`. Default 0.5.
+    pub k2: f64,
+    /// β used by test-time plans. Default 2 (about 98 % confidence).
+    pub test_beta: f64,
+    /// Seconds an open proposal stays leased to its client. Default 600.
+    pub proposal_ttl_seconds: u32,
+}
+
+impl Default for LearningSettings {
+    fn default() -> Self {
+        Self {
+            strategy: StrategySetting::Active,
+            batch_size: 5,
+            iterations: 20,
+            n_candidates: 20,
+            max_extensions: 5000,
+            c: 1.0,
+            gamma: 0.9,
+            aggregation: AggregationSetting::Max,
+            k1: 2.0,
+            k2: 0.5,
+            test_beta: 2.0,
+            proposal_ttl_seconds: 600,
+        }
+    }
+}
+
+/// An experiment's settings as a client posts them; every field optional.
+#[derive(Debug, Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExperimentRequest {
+    /// Free-form name. Default `""`.
+    #[serde(default)]
+    pub name: String,
+    /// The domain. Default: the icy gridworld with its default map.
+    #[serde(default)]
+    pub domain: DomainSpec,
+    /// Deviation tolerance. Default: the domain's (0.1 for the built-in worlds).
+    pub d_max: Option<f64>,
+    /// Seed of every random choice the service makes for this experiment. Default 0.
+    #[serde(default)]
+    pub seed: u64,
+    /// MDE settings.
+    #[serde(default)]
+    pub mde: MdeSettings,
+    /// Learning settings.
+    #[serde(default)]
+    pub learning: LearningSettings,
+}
+
+/// An experiment's fully resolved, validated settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExperimentSettings {
+    /// Free-form name.
+    pub name: String,
+    /// The domain.
+    pub domain: DomainSpec,
+    /// Deviation tolerance.
+    pub d_max: f64,
+    /// Seed.
+    pub seed: u64,
+    /// MDE settings.
+    pub mde: MdeSettings,
+    /// Learning settings.
+    pub learning: LearningSettings,
+}
+
+/// Upper bounds that keep one request's work bounded.
+pub mod limits {
+    /// Most candidates per proposal.
+    pub const MAX_CANDIDATES: u32 = 200;
+    /// Largest extension budget.
+    pub const MAX_EXTENSIONS: u32 = 200_000;
+    /// Largest batch size.
+    pub const MAX_BATCH_SIZE: u32 = 10_000;
+    /// Most optimiser restarts.
+    pub const MAX_RESTARTS: usize = 20;
+    /// Longest name.
+    pub const MAX_NAME_LEN: usize = 200;
+}
+
+impl ExperimentRequest {
+    /// Validates every field and resolves defaults. Returns the domain it built on the way.
+    pub fn resolve(self) -> Result<(ExperimentSettings, Arc<dyn Domain>), Error> {
+        use limits::*;
+        let domain = self.domain.build()?;
+        if self.name.chars().count() > MAX_NAME_LEN {
+            return Err(Error::validation(
+                "name",
+                format!("at most {MAX_NAME_LEN} characters"),
+            ));
+        }
+        let d_max = self.d_max.unwrap_or_else(|| domain.default_d_max());
+        positive("d_max", d_max)?;
+        let m = &self.mde;
+        finite("mde.prior_mean", m.prior_mean)?;
+        if m.restarts > MAX_RESTARTS {
+            return Err(Error::validation(
+                "mde.restarts",
+                format!("at most {MAX_RESTARTS}"),
+            ));
+        }
+        let l = &self.learning;
+        in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;
+        in_range("learning.iterations", l.iterations, 1, 100_000)?;
+        in_range("learning.n_candidates", l.n_candidates, 1, MAX_CANDIDATES)?;
+        in_range(
+            "learning.max_extensions",
+            l.max_extensions,
+            1,
+            MAX_EXTENSIONS,
+        )?;
+        in_range(
+            "learning.proposal_ttl_seconds",
+            l.proposal_ttl_seconds,
+            1,
+            7 * 24 * 3600,
+        )?;
+        finite("learning.c", l.c)?;
+        if l.c < 0.0 {
+            return Err(Error::validation("learning.c", "must be ≥ 0"));
+        }
+        if !(l.gamma > 0.0 && l.gamma <= 1.0) {
+            return Err(Error::validation("learning.gamma", "must be in (0, 1]"));
+        }
+        finite("learning.k1", l.k1)?;
+        if l.k1 < 0.0 {
+            return Err(Error::validation("learning.k1", "must be ≥ 0"));
+        }
+        positive("learning.k2", l.k2)?;
+        finite("learning.test_beta", l.test_beta)?;
+        Ok((
+            ExperimentSettings {
+                name: self.name,
+                domain: self.domain,
+                d_max,
+                seed: self.seed,
+                mde: self.mde,
+                learning: self.learning,
+            },
+            domain,
+        ))
+    }
+}
+
+fn finite(field: &str, v: f64) -> Result<(), Error> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(Error::validation(field, "must be a finite number"))
+    }
+}
+
+fn positive(field: &str, v: f64) -> Result<(), Error> {
+    if v.is_finite() && v > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::validation(field, "must be a positive finite number"))
+    }
+}
+
+fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), Error> {
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(Error::validation(
+            field,
+            format!("must be between {lo} and {hi}, got {v}"),
+        ))
+    }
+}

@@ -1,0 +1,93 @@
+//! The SQLite store: every sqlx query and the mapping between rows and the service's values, in
+//! one place.
+//!
+//! SQLite serialises writers, so the store keeps two pools over the same file: a pool of readers
+//! and a single-connection writer. Every write transaction goes through the writer, which makes
+//! read-then-write transactions (idempotency checks, counters) free of `SQLITE_BUSY` upgrades.
+//! The file is in WAL mode, so readers never wait for the writer.
+
+mod experiments;
+mod trajectories;
+
+pub use experiments::Experiment;
+pub use trajectories::{
+    IdempotencyKey, IngestOutcome, NewTransition, StoredTrajectory, Transition,
+};
+
+use anyhow::Context;
+use sqlx::SqlitePool;
+use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
+use std::str::FromStr;
+use std::time::Duration;
+
+/// Handle to the database; cheap to clone.
+#[derive(Debug, Clone)]
+pub struct Store {
+    read: SqlitePool,
+    write: SqlitePool,
+}
+
+impl Store {
+    /// Opens (creating if missing) the database at `url` (`sqlite://path` or a plain path), in WAL
+    /// mode, and applies the embedded migrations.
+    pub async fn open(url: &str) -> anyhow::Result<Self> {
+        let url = if url.starts_with("sqlite:") {
+            url.to_string()
+        } else {
+            format!("sqlite://{url}")
+        };
+        let options = SqliteConnectOptions::from_str(&url)
+            .with_context(|| format!("invalid database URL {url:?}"))?
+            .create_if_missing(true)
+            .journal_mode(SqliteJournalMode::Wal)
+            .synchronous(SqliteSynchronous::Normal)
+            .foreign_keys(true)
+            .busy_timeout(Duration::from_secs(10));
+        let write = SqlitePoolOptions::new()
+            .max_connections(1)
+            .connect_with(options.clone())
+            .await
+            .with_context(|| format!("opening {url}"))?;
+        sqlx::migrate!("./migrations")
+            .run(&write)
+            .await
+            .context("applying migrations")?;
+        let read = SqlitePoolOptions::new()
+            .max_connections(8)
+            .connect_with(options.read_only(true))
+            .await
+            .with_context(|| format!("opening {url} for reading"))?;
+        Ok(Self { read, write })
+    }
+
+    /// Whether the database answers a trivial query.
+    pub async fn ping(&self) -> Result<(), sqlx::Error> {
+        sqlx::query("SELECT 1")
+            .execute(&self.read)
+            .await
+            .map(|_| ())
+    }
+
+    /// Closes both pools, waiting for in-flight queries; the WAL is checkpointed on close.
+    pub async fn close(&self) {
+        self.read.close().await;
+        self.write.close().await;
+    }
+}
+
+/// The current time as an RFC 3339 UTC string, the store's time format.
+pub fn now() -> String {
+    time::OffsetDateTime::now_utc()
+        .format(&time::format_description::well_known::Rfc3339)
+        .unwrap_or_default()
+}
+
+/// Encodes a vector as a JSON array for a TEXT column.
+fn encode_vec(v: &[f64]) -> String {
+    serde_json::to_string(v).unwrap_or_else(|_| "[]".into())
+}
+
+/// Decodes a TEXT column written by [`encode_vec`].
+fn decode_vec(s: &str) -> Result<Vec<f64>, sqlx::Error> {
+    serde_json::from_str(s).map_err(|e| sqlx::Error::Decode(Box::new(e)))
+}

@@ -1,0 +1,273 @@
+//! Trajectories and their transitions; atomic, idempotent ingest.
+
+use super::{Store, decode_vec, encode_vec, now};
+use serde_json::Value;
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+/// One transition to store, with the label the server computed.
+#[derive(Debug, Clone)]
+pub struct NewTransition {
+    /// State.
+    pub s: Vec<f64>,
+    /// Action.
+    pub a: Vec<f64>,
+    /// Observed next state.
+    pub s_next: Vec<f64>,
+    /// The model's prediction `f̂(s, a)`.
+    pub s_pred: Vec<f64>,
+    /// `d(f̂(s, a), s_next)`.
+    pub deviation: f64,
+}
+
+/// A stored transition.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Transition {
+    /// Identifier; ascending in ingest order.
+    pub id: i64,
+    /// The trajectory it belongs to.
+    pub trajectory_id: i64,
+    /// Position in the trajectory, from 0.
+    pub step: i64,
+    /// State.
+    pub s: Vec<f64>,
+    /// Action.
+    pub a: Vec<f64>,
+    /// Observed next state.
+    pub s_next: Vec<f64>,
+    /// Predicted next state.
+    pub s_pred: Vec<f64>,
+    /// Deviation label.
+    pub deviation: f64,
+}
+
+/// A stored trajectory with its transitions.
+#[derive(Debug, Clone)]
+pub struct StoredTrajectory {
+    /// Identifier.
+    pub id: i64,
+    /// Owning experiment.
+    pub experiment_id: i64,
+    /// The proposal it executed, if any.
+    pub proposal_id: Option<i64>,
+    /// Whether the robot stopped before the end.
+    pub partial: bool,
+    /// Ingest time (RFC 3339).
+    pub created_at: String,
+    /// Its transitions in order.
+    pub transitions: Vec<Transition>,
+}
+
+/// What an ingest did.
+#[derive(Debug)]
+pub enum IngestOutcome {
+    /// Stored; the response body that was also recorded under the idempotency key.
+    Created(Value),
+    /// The idempotency key was seen with the same request: the first response, nothing stored.
+    Replayed {
+        /// The first response's status.
+        status: u16,
+        /// The first response's body.
+        body: Value,
+    },
+    /// The idempotency key was seen with a different request; nothing stored.
+    KeyReused,
+}
+
+/// An idempotency key and the canonical request it guards.
+#[derive(Debug, Clone, Copy)]
+pub struct IdempotencyKey<'a> {
+    /// The client's key.
+    pub key: &'a str,
+    /// Canonical JSON of the request.
+    pub request: &'a str,
+}
+
+fn transition_from_row(row: &SqliteRow) -> Result<Transition, sqlx::Error> {
+    Ok(Transition {
+        id: row.try_get("id")?,
+        trajectory_id: row.try_get("trajectory_id")?,
+        step: row.try_get("step")?,
+        s: decode_vec(row.try_get("s")?)?,
+        a: decode_vec(row.try_get("a")?)?,
+        s_next: decode_vec(row.try_get("s_next")?)?,
+        s_pred: decode_vec(row.try_get("s_pred")?)?,
+        deviation: row.try_get("deviation")?,
+    })
+}
+
+const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
+
+impl Store {
+    /// Stores one trajectory and all its transitions in one transaction, or nothing.
+    ///
+    /// With an idempotency key, a retry of the same request replays the first response and a
+    /// different request under the same key is refused. `respond` builds the response body from
+    /// the stored trajectory and the experiment's trajectory count after it; the body is
+    /// recorded with the key in the same transaction.
+    #[tracing::instrument(skip(self, transitions, idempotency, respond), fields(n = transitions.len()))]
+    pub async fn ingest_trajectory(
+        &self,
+        experiment_id: i64,
+        proposal_id: Option<i64>,
+        partial: bool,
+        transitions: &[NewTransition],
+        idempotency: Option<IdempotencyKey<'_>>,
+        respond: impl FnOnce(&StoredTrajectory, i64) -> Value,
+    ) -> Result<IngestOutcome, sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        if let Some(k) = idempotency {
+            let seen = sqlx::query(
+                "SELECT request, status, response FROM idempotency_keys
+                 WHERE experiment_id = ? AND key = ?",
+            )
+            .bind(experiment_id)
+            .bind(k.key)
+            .fetch_optional(&mut *tx)
+            .await?;
+            if let Some(row) = seen {
+                let request: String = row.try_get("request")?;
+                if request != k.request {
+                    return Ok(IngestOutcome::KeyReused);
+                }
+                let status: i64 = row.try_get("status")?;
+                let body: String = row.try_get("response")?;
+                let body =
+                    serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+                return Ok(IngestOutcome::Replayed {
+                    status: status as u16,
+                    body,
+                });
+            }
+        }
+        let created_at = now();
+        let trajectory_id: i64 = sqlx::query_scalar(
+            "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at)
+             VALUES (?, ?, ?, ?, ?) RETURNING id",
+        )
+        .bind(experiment_id)
+        .bind(proposal_id)
+        .bind(partial)
+        .bind(transitions.len() as i64)
+        .bind(&created_at)
+        .fetch_one(&mut *tx)
+        .await?;
+        let mut stored = Vec::with_capacity(transitions.len());
+        for (step, t) in transitions.iter().enumerate() {
+            let id: i64 = sqlx::query_scalar(
+                "INSERT INTO transitions
+                   (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+            )
+            .bind(experiment_id)
+            .bind(trajectory_id)
+            .bind(step as i64)
+            .bind(encode_vec(&t.s))
+            .bind(encode_vec(&t.a))
+            .bind(encode_vec(&t.s_next))
+            .bind(encode_vec(&t.s_pred))
+            .bind(t.deviation)
+            .fetch_one(&mut *tx)
+            .await?;
+            stored.push(Transition {
+                id,
+                trajectory_id,
+                step: step as i64,
+                s: t.s.clone(),
+                a: t.a.clone(),
+                s_next: t.s_next.clone(),
+                s_pred: t.s_pred.clone(),
+                deviation: t.deviation,
+            });
+        }
+        let n_trajectories: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = ?")
+                .bind(experiment_id)
+                .fetch_one(&mut *tx)
+                .await?;
+        let trajectory = StoredTrajectory {
+            id: trajectory_id,
+            experiment_id,
+            proposal_id,
+            partial,
+            created_at,
+            transitions: stored,
+        };
+        let body = respond(&trajectory, n_trajectories);
+        if let Some(k) = idempotency {
+            sqlx::query(
+                "INSERT INTO idempotency_keys (experiment_id, key, request, status, response, created_at)
+                 VALUES (?, ?, ?, 201, ?, ?)",
+            )
+            .bind(experiment_id)
+            .bind(k.key)
+            .bind(k.request)
+            .bind(body.to_string())
+            .bind(&trajectory.created_at)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(IngestOutcome::Created(body))
+    }
+
+    /// One trajectory of an experiment with its transitions, or `None`.
+    #[tracing::instrument(skip(self))]
+    pub async fn trajectory(
+        &self,
+        experiment_id: i64,
+        trajectory_id: i64,
+    ) -> Result<Option<StoredTrajectory>, sqlx::Error> {
+        let Some(row) = sqlx::query(
+            "SELECT id, experiment_id, proposal_id, partial, created_at FROM trajectories
+             WHERE experiment_id = ? AND id = ?",
+        )
+        .bind(experiment_id)
+        .bind(trajectory_id)
+        .fetch_optional(&self.read)
+        .await?
+        else {
+            return Ok(None);
+        };
+        let transitions = sqlx::query(&format!(
+            "SELECT {TRANSITION_COLUMNS} FROM transitions WHERE trajectory_id = ? ORDER BY step"
+        ))
+        .bind(trajectory_id)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(transition_from_row)
+        .collect::<Result<_, _>>()?;
+        Ok(Some(StoredTrajectory {
+            id: row.try_get("id")?,
+            experiment_id: row.try_get("experiment_id")?,
+            proposal_id: row.try_get("proposal_id")?,
+            partial: row.try_get("partial")?,
+            created_at: row.try_get("created_at")?,
+            transitions,
+        }))
+    }
+
+    /// Transitions of an experiment with `id > after`, in id order, at most `limit` (all when
+    /// `None`).
+    #[tracing::instrument(skip(self))]
+    pub async fn transitions(
+        &self,
+        experiment_id: i64,
+        after: i64,
+        limit: Option<i64>,
+    ) -> Result<Vec<Transition>, sqlx::Error> {
+        sqlx::query(&format!(
+            "SELECT {TRANSITION_COLUMNS} FROM transitions
+             WHERE experiment_id = ? AND id > ? ORDER BY id LIMIT ?"
+        ))
+        .bind(experiment_id)
+        .bind(after)
+        .bind(limit.unwrap_or(-1))
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(transition_from_row)
+        .collect()
+    }
+}
