@@ -107,9 +107,14 @@ impl Kinematic {
                     "state_high: component {i} must exceed state_low's"
                 )));
             }
-            if params.action_low[i] > 0.0 || params.action_high[i] < 0.0 {
+            if params.action_low[i] > 0.0 {
                 return Err(DomainError::new(format!(
-                    "action_low/action_high: component {i} must satisfy action_low ≤ 0 ≤ action_high"
+                    "action_low: component {i} must be ≤ 0 so that the robot can stand still"
+                )));
+            }
+            if params.action_high[i] < 0.0 {
+                return Err(DomainError::new(format!(
+                    "action_high: component {i} must be ≥ 0 so that the robot can stand still"
                 )));
             }
             if params.action_low[i] == params.action_high[i] {

@@ -11,7 +11,7 @@
 mod gridworld;
 mod kinematic;
 
-pub use gridworld::{DEFAULT_MAP, IcyGridworld};
+pub use gridworld::{Cell, DEFAULT_MAP, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
 
 use rand::RngCore;
@@ -62,15 +62,14 @@ impl Space {
                 )));
             }
         }
-        if let Some(values) = &self.values {
-            if !values
+        if let Some(values) = &self.values
+            && !values
                 .iter()
                 .any(|val| val.iter().zip(v).all(|(p, q)| (p - q).abs() < 1e-9))
-            {
-                return Err(DomainError::new(format!(
-                    "{v:?} is not one of the allowed values {values:?}"
-                )));
-            }
+        {
+            return Err(DomainError::new(format!(
+                "{v:?} is not one of the allowed values {values:?}"
+            )));
         }
         Ok(())
     }

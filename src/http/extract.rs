@@ -44,7 +44,18 @@ where
 pub struct BodyLimit(pub usize);
 
 /// Parses JSON, mapping syntax errors to 400 and data errors to 422 with the field path.
+///
+/// The body must be a JSON object: serde would otherwise read a struct from an array in field
+/// order, which no client means.
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, Error> {
+    if bytes.iter().find(|b| !b.is_ascii_whitespace()) != Some(&b'{') {
+        return Err(
+            match serde_json::from_slice::<serde::de::IgnoredAny>(bytes) {
+                Ok(_) => Error::validation("body", "must be a JSON object"),
+                Err(e) => Error::BadRequest(format!("malformed JSON: {e}")),
+            },
+        );
+    }
     let mut de = serde_json::Deserializer::from_slice(bytes);
     let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
         let path = e.path().to_string();

@@ -247,6 +247,23 @@ pub struct TransitionsQuery {
 pub const DEFAULT_PAGE: i64 = 100;
 /// Largest JSON page size.
 pub const MAX_PAGE: i64 = 1000;
+/// Largest explicit CSV page size.
+pub const MAX_CSV_ROWS: i64 = 1_000_000_000;
+
+/// CSV when the client accepts `text/csv` and not JSON (a client that accepts both gets JSON).
+fn wants_csv(headers: &HeaderMap) -> bool {
+    headers
+        .get_all(header::ACCEPT)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .fold((false, false), |(csv, json), v| {
+            (
+                csv || v.contains("text/csv"),
+                json || v.contains("application/json"),
+            )
+        })
+        == (true, false)
+}
 
 /// `GET /v1/experiments/{id}/transitions`: a page of transitions as JSON, or CSV when the client
 /// sends `Accept: text/csv`.
@@ -257,12 +274,9 @@ pub async fn list_transitions(
     headers: HeaderMap,
 ) -> Result<Response, Error> {
     let live = state.experiments.get(&state.store, id).await?;
-    let csv = headers
-        .get(header::ACCEPT)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.contains("text/csv"));
+    let csv = wants_csv(&headers);
     if let Some(limit) = query.limit {
-        let max = if csv { i64::MAX } else { MAX_PAGE };
+        let max = if csv { MAX_CSV_ROWS } else { MAX_PAGE };
         if limit < 1 || limit > max {
             return Err(Error::validation(
                 "limit",

@@ -1,0 +1,116 @@
+use crate::helpers::*;
+use serde_json::json;
+
+#[tokio::test]
+async fn health_and_readiness_answer() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    assert_eq!(app.get("/healthz").await, (200, json!({"status": "ok"})));
+    assert_eq!(app.get("/readyz").await, (200, json!({"status": "ready"})));
+}
+
+#[tokio::test]
+async fn an_empty_request_resolves_every_default() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let (status, e) = app.post("/v1/experiments", &json!({})).await;
+    assert_eq!(status, 201, "{e}");
+    assert_eq!(e["domain"]["kind"], "icy_gridworld");
+    assert_eq!(e["domain"]["map"].as_array().unwrap().len(), 12);
+    assert_eq!(e["d_max"], 0.1);
+    assert_eq!(e["mde"]["noise"], "heteroscedastic");
+    assert_eq!(e["learning"]["strategy"], "active");
+    assert_eq!(e["learning"]["batch_size"], 5);
+    assert_eq!(e["learning"]["k2"], 0.5);
+    assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
+    assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
+    let (status, listed) = app.get("/v1/experiments").await;
+    assert_eq!(status, 200);
+    assert_eq!(listed["items"][0]["id"], e["id"]);
+    let (status, one) = app.get(&format!("/v1/experiments/{}", e["id"])).await;
+    assert_eq!(status, 200);
+    assert_eq!(one["learning"], e["learning"]);
+}
+
+#[tokio::test]
+async fn a_kinematic_experiment_shows_its_spaces() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let (status, e) = app
+        .post(
+            "/v1/experiments",
+            &json!({"domain": {"kind": "kinematic", "state_low": [0, 0, 0], "state_high": [1, 2, 3],
+                    "action_low": [-0.1, -0.1, -0.1], "action_high": [0.1, 0.1, 0.1]}}),
+        )
+        .await;
+    assert_eq!(status, 201, "{e}");
+    assert_eq!(e["state_space"]["high"], json!([1.0, 2.0, 3.0]));
+    assert!(e["action_space"].get("values").is_none());
+    assert_eq!(e["feature_names"].as_array().unwrap().len(), 6);
+}
+
+#[tokio::test]
+async fn bad_settings_name_the_field() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let cases = [
+        (json!({"learning": {"gamma": 2.0}}), "learning.gamma"),
+        (
+            json!({"learning": {"batch_size": 0}}),
+            "learning.batch_size",
+        ),
+        (json!({"d_max": -1}), "d_max"),
+        (json!({"mde": {"noise": "loud"}}), "mde.noise"),
+        (json!({"learning": {"bogus": 1}}), "learning.bogus"),
+        (
+            json!({"domain": {"kind": "icy_gridworld", "map": ["..", "."]}}),
+            "domain.map",
+        ),
+        (
+            json!({"domain": {"kind": "kinematic", "goal_radius": 0}}),
+            "domain.goal_radius",
+        ),
+        (json!({"domain": {"kind": "moon"}}), "domain"),
+    ];
+    for (body, field) in cases {
+        let (status, err) = app.post("/v1/experiments", &body).await;
+        assert_eq!(status, 422, "{body} -> {err}");
+        assert_eq!(code(&err), "validation_failed");
+        let got = err["error"]["details"]["field"].as_str().unwrap();
+        assert!(
+            got.starts_with(field),
+            "{body}: field {got}, expected {field}"
+        );
+    }
+    let (_, listed) = app.get("/v1/experiments").await;
+    assert!(
+        listed["items"].as_array().unwrap().is_empty(),
+        "nothing stored"
+    );
+}
+
+#[tokio::test]
+async fn unknown_things_are_404_in_the_error_shape() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    for path in [
+        "/v1/experiments/42",
+        "/v1/experiments/abc",
+        "/nope",
+        "/v1/experiments/42/transitions",
+    ] {
+        let (status, err) = app.get(path).await;
+        assert_eq!(status, 404, "{path}");
+        assert_eq!(code(&err), "not_found", "{path}");
+        assert!(err["error"]["message"].is_string());
+    }
+    let r = app
+        .client
+        .delete(app.url("/v1/experiments"))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 405);
+    let body: serde_json::Value = r.json().await.unwrap();
+    assert_eq!(code(&body), "method_not_allowed");
+}

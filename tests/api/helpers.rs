@@ -1,0 +1,152 @@
+//! Test harness: a real server on a real socket over a real SQLite file in a temp dir.
+
+use precond::http::{AppState, HttpConfig, serve};
+use precond::store::Store;
+use serde_json::{Value, json};
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+/// A running server and a client for it.
+pub struct TestApp {
+    pub addr: SocketAddr,
+    pub client: reqwest::Client,
+    pub db_path: PathBuf,
+    shutdown: Option<oneshot::Sender<()>>,
+    handle: Option<JoinHandle<anyhow::Result<()>>>,
+}
+
+/// A temp dir that lives as long as the test.
+pub fn temp_db() -> (tempfile::TempDir, PathBuf) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("precond.db");
+    (dir, path)
+}
+
+/// Starts a server on the database file at `db_path` (bind first, then spawn: no sleeps).
+pub async fn spawn_app(db_path: &Path) -> TestApp {
+    spawn_app_with(db_path, HttpConfig::default()).await
+}
+
+/// Same, with HTTP settings.
+pub async fn spawn_app_with(db_path: &Path, config: HttpConfig) -> TestApp {
+    let store = Store::open(db_path.to_str().unwrap())
+        .await
+        .expect("open store");
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    let (tx, rx) = oneshot::channel::<()>();
+    let handle = tokio::spawn(serve(listener, AppState::new(store, config), async {
+        let _ = rx.await;
+    }));
+    TestApp {
+        addr,
+        client: reqwest::Client::new(),
+        db_path: db_path.to_path_buf(),
+        shutdown: Some(tx),
+        handle: Some(handle),
+    }
+}
+
+impl TestApp {
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{}", self.addr, path)
+    }
+
+    /// Graceful shutdown; waits until the server has stopped and closed the store.
+    pub async fn stop(mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+        if let Some(h) = self.handle.take() {
+            h.await.unwrap().unwrap();
+        }
+    }
+
+    /// Stops this server and starts a new one on the same file.
+    pub async fn restart(self) -> TestApp {
+        let path = self.db_path.clone();
+        self.stop().await;
+        spawn_app(&path).await
+    }
+
+    pub async fn get(&self, path: &str) -> (u16, Value) {
+        let r = self.client.get(self.url(path)).send().await.unwrap();
+        let status = r.status().as_u16();
+        (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn post(&self, path: &str, body: &Value) -> (u16, Value) {
+        let r = self
+            .client
+            .post(self.url(path))
+            .json(body)
+            .send()
+            .await
+            .unwrap();
+        let status = r.status().as_u16();
+        (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {
+        let r = self
+            .client
+            .post(self.url(path))
+            .header("content-type", "application/json")
+            .body(body)
+            .send()
+            .await
+            .unwrap();
+        let status = r.status().as_u16();
+        (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    /// Creates an experiment and returns its id.
+    pub async fn create_experiment(&self, body: Value) -> i64 {
+        let (status, body) = self.post("/v1/experiments", &body).await;
+        assert_eq!(status, 201, "{body}");
+        body["id"].as_i64().unwrap()
+    }
+
+    /// All transitions of an experiment, following the cursor.
+    pub async fn all_transitions(&self, id: i64) -> Vec<Value> {
+        let mut out = Vec::new();
+        let mut after = 0;
+        loop {
+            let (status, page) = self
+                .get(&format!(
+                    "/v1/experiments/{id}/transitions?after={after}&limit=7"
+                ))
+                .await;
+            assert_eq!(status, 200, "{page}");
+            out.extend(page["items"].as_array().unwrap().iter().cloned());
+            match page["next"].as_i64() {
+                Some(next) => after = next,
+                None => return out,
+            }
+        }
+    }
+}
+
+impl Drop for TestApp {
+    fn drop(&mut self) {
+        if let Some(tx) = self.shutdown.take() {
+            let _ = tx.send(());
+        }
+    }
+}
+
+/// A gridworld trajectory as the true world would produce it on the default map: from (x0, y)
+/// moving right `n` times on a row without ice or obstacles.
+pub fn free_row_trajectory(x0: i64, y: i64, n: i64) -> Value {
+    let transitions: Vec<Value> = (0..n)
+        .map(|k| json!({"s": [x0 + k, y], "a": [1, 0], "s_next": [x0 + k + 1, y]}))
+        .collect();
+    json!({ "transitions": transitions })
+}
+
+/// The error code of an error body.
+pub fn code(body: &Value) -> &str {
+    body["error"]["code"].as_str().unwrap_or("<none>")
+}

@@ -1,0 +1,278 @@
+use crate::helpers::*;
+use precond::http::HttpConfig;
+use serde_json::{Value, json};
+use std::collections::HashSet;
+
+#[tokio::test]
+async fn ingest_labels_transitions_and_survives_a_restart() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({"name": "restart"})).await;
+    // On ice at (3, 2) the x-move [1, 0] ends at (2, 2): the model said (4, 2), deviation 2.
+    let body = json!({"transitions": [
+        {"s": [3, 2], "a": [1, 0], "s_next": [2, 2]},
+        {"s": [2, 2], "a": [0, 1], "s_next": [2, 3]},
+        {"s": [2, 3], "a": [0, 1], "s_next": [2, 4]}
+    ]});
+    let (status, created) = app
+        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
+        .await;
+    assert_eq!(status, 201, "{created}");
+    assert_eq!(created["deviations"], json!([2.0, 0.0, 0.0]));
+    assert_eq!(created["n_transitions"], 3);
+    assert_eq!(created["iteration"], 0);
+    let tid = created["id"].as_i64().unwrap();
+    for k in 0..5 {
+        let (status, _) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &free_row_trajectory(0, 0, 1 + k),
+            )
+            .await;
+        assert_eq!(status, 201);
+    }
+    let before = app.all_transitions(id).await;
+    assert_eq!(before.len(), 3 + 1 + 2 + 3 + 4 + 5);
+    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(experiment["n_trajectories"], 6);
+    assert_eq!(experiment["iteration"], 1);
+
+    let app = app.restart().await;
+    let after = app.all_transitions(id).await;
+    assert_eq!(before, after, "every transition and label is still there");
+    let (status, t) = app
+        .get(&format!("/v1/experiments/{id}/trajectories/{tid}"))
+        .await;
+    assert_eq!(status, 200);
+    let steps = t["transitions"].as_array().unwrap();
+    assert_eq!(steps.len(), 3);
+    assert_eq!(steps[0]["s_pred"], json!([4.0, 2.0]));
+    assert_eq!(steps[0]["deviation"], 2.0);
+    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(experiment["n_transitions"], 18);
+    app.stop().await;
+}
+
+#[tokio::test]
+async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
+    let body = free_row_trajectory(0, 0, 3);
+    let send = |b: Value| {
+        app.client
+            .post(&url)
+            .header("Idempotency-Key", "run-7")
+            .json(&b)
+            .send()
+    };
+    let first = send(body.clone()).await.unwrap();
+    assert_eq!(first.status().as_u16(), 201);
+    let first: Value = first.json().await.unwrap();
+    let again = send(body.clone()).await.unwrap();
+    assert_eq!(again.status().as_u16(), 201);
+    assert_eq!(again.headers()["idempotent-replayed"], "true");
+    let again: Value = again.json().await.unwrap();
+    assert_eq!(first, again);
+    let other = send(free_row_trajectory(0, 1, 3)).await.unwrap();
+    assert_eq!(other.status().as_u16(), 409);
+    assert_eq!(code(&other.json().await.unwrap()), "conflict");
+    assert_eq!(app.all_transitions(id).await.len(), 3);
+}
+
+#[tokio::test]
+async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let path = format!("/v1/experiments/{id}/trajectories");
+    let good = json!({"s": [0, 0], "a": [1, 0], "s_next": [1, 0]});
+    let cases = [
+        (
+            json!({"transitions": [good, {"s": [1, 0, 0], "a": [1, 0], "s_next": [2, 0]}]}),
+            "transitions[1].s",
+        ),
+        (
+            json!({"transitions": [{"s": [0, 0], "a": [1, 1], "s_next": [1, 0]}]}),
+            "transitions[0].a",
+        ),
+        (
+            json!({"transitions": [{"s": [0, 0], "a": [1, 0], "s_next": [1]}]}),
+            "transitions[0].s_next",
+        ),
+        (
+            json!({"transitions": [{"s": [0.5, 0], "a": [1, 0], "s_next": [1, 0]}]}),
+            "transitions[0].s",
+        ),
+        (
+            json!({"transitions": [{"s": [0, 0], "a": [1, 0], "s_next": [1, 0], "t": 3}]}),
+            "transitions[0].t",
+        ),
+        (
+            json!({"transitions": [{"s": [0, 0], "a": [1, 0], "s_next": [1, null]}]}),
+            "transitions[0].s_next[1]",
+        ),
+        (json!({"transitions": []}), "transitions"),
+        (json!({"trajectory": []}), "trajectory"),
+        (
+            json!({"transitions": [good], "proposal_id": 99}),
+            "proposal_id",
+        ),
+    ];
+    for (body, field) in cases {
+        let (status, err) = app.post(&path, &body).await;
+        assert_eq!(status, 422, "{body} -> {err}");
+        assert_eq!(code(&err), "validation_failed");
+        assert_eq!(err["error"]["details"]["field"], field, "{body}");
+        assert!(
+            !err["error"]["details"]["reason"]
+                .as_str()
+                .unwrap()
+                .is_empty()
+        );
+    }
+    // Numbers JSON cannot hold as a finite f64 are refused too.
+    let (status, err) = app
+        .post_raw(
+            &path,
+            r#"{"transitions": [{"s": [0, 0], "a": [1, 0], "s_next": [1e999, 0]}]}"#,
+        )
+        .await;
+    assert!(status == 400 || status == 422, "{status} {err}");
+    let (status, err) = app.post_raw(&path, r#"{"transitions": [{"s": [0, 0"#).await;
+    assert_eq!(status, 400, "{err}");
+    assert_eq!(code(&err), "bad_request");
+    let (status, err) = app.post_raw(&path, "not json").await;
+    assert_eq!((status, code(&err)), (400, "bad_request"));
+    let (status, err) = app
+        .post(
+            "/v1/experiments/999/trajectories",
+            &json!({"transitions": [good]}),
+        )
+        .await;
+    assert_eq!((status, code(&err)), (404, "not_found"));
+    assert!(
+        app.all_transitions(id).await.is_empty(),
+        "nothing was stored"
+    );
+}
+
+#[tokio::test]
+async fn an_oversized_body_is_413() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with(
+        &db,
+        HttpConfig {
+            max_body_bytes: 2048,
+        },
+    )
+    .await;
+    let id = app.create_experiment(json!({})).await;
+    let (status, err) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &free_row_trajectory(0, 0, 100),
+        )
+        .await;
+    assert_eq!(status, 413, "{err}");
+    assert_eq!(code(&err), "payload_too_large");
+    assert!(app.all_transitions(id).await.is_empty());
+}
+
+#[tokio::test]
+async fn transitions_come_as_csv_when_asked() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    app.post(
+        &format!("/v1/experiments/{id}/trajectories"),
+        &free_row_trajectory(0, 0, 2),
+    )
+    .await;
+    let r = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .header("accept", "text/csv")
+        .send()
+        .await
+        .unwrap();
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/csv")
+    );
+    let text = r.text().await.unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(
+        lines[0],
+        "id,trajectory_id,step,s.x,s.y,a.dx,a.dy,s_next.x,s_next.y,s_pred.x,s_pred.y,deviation"
+    );
+    assert_eq!(lines.len(), 3);
+    assert_eq!(lines[2], "2,1,1,1,0,1,0,2,0,2,0,0");
+}
+
+#[tokio::test]
+async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
+    let mut tasks = Vec::new();
+    for client in 0..16i64 {
+        let url = url.clone();
+        let http = reqwest::Client::new();
+        tasks.push(tokio::spawn(async move {
+            let mut ids = Vec::new();
+            for k in 0..5i64 {
+                // Row y = client % 12 has neither ice nor obstacles at y ∈ {0, 1, 4, 5, 7, 8, 10, 11}.
+                let y = [0, 1, 4, 5, 7, 8, 10, 11][(client % 8) as usize];
+                let body = free_row_trajectory(k, y, 1 + (client + k) % 4);
+                let key = format!("client-{client}-traj-{k}");
+                // Every request is sent twice, as a client that lost the first response would.
+                let mut seen = None;
+                for _ in 0..2 {
+                    let r = http
+                        .post(&url)
+                        .header("Idempotency-Key", &key)
+                        .json(&body)
+                        .send()
+                        .await
+                        .unwrap();
+                    assert_eq!(r.status().as_u16(), 201);
+                    let v: Value = r.json().await.unwrap();
+                    if let Some(prev) = &seen {
+                        assert_eq!(prev, &v);
+                    }
+                    seen = Some(v);
+                }
+                let v = seen.unwrap();
+                ids.push((
+                    v["id"].as_i64().unwrap(),
+                    v["n_transitions"].as_i64().unwrap(),
+                ));
+            }
+            ids
+        }));
+    }
+    let mut trajectory_ids = HashSet::new();
+    let mut expected_transitions = 0;
+    for t in tasks {
+        for (tid, n) in t.await.unwrap() {
+            assert!(
+                trajectory_ids.insert(tid),
+                "trajectory {tid} handed out twice"
+            );
+            expected_transitions += n;
+        }
+    }
+    assert_eq!(trajectory_ids.len(), 80);
+    let all = app.all_transitions(id).await;
+    assert_eq!(all.len() as i64, expected_transitions);
+    let unique: HashSet<i64> = all.iter().map(|t| t["id"].as_i64().unwrap()).collect();
+    assert_eq!(unique.len(), all.len());
+    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(experiment["n_trajectories"], 80);
+    assert_eq!(experiment["iteration"], 16);
+}
