@@ -19,10 +19,13 @@
 //! - [`error`]: the one error type and its JSON shape.
 //! - [`cli`]: the command line (`precond serve`, ...).
 
+pub mod bench;
 pub mod cli;
 pub mod domain;
 pub mod error;
 pub mod http;
 pub mod live;
+pub mod planning;
 pub mod settings;
+pub mod sim;
 pub mod store;

@@ -10,9 +10,11 @@
 
 mod gridworld;
 mod kinematic;
+pub mod water_plant;
 
 pub use gridworld::{Cell, DEFAULT_MAP, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
+pub use water_plant::WaterPlant;
 
 use rand::RngCore;
 
@@ -182,6 +184,13 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// Checks that `a` is an action of this domain.
     fn validate_action(&self, a: &[f64]) -> Result<(), DomainError> {
         self.action_space().check(a)
+    }
+
+    /// Checks that `a` may be executed from `s`, beyond each being valid on its own (e.g. the
+    /// water plant's "translate or rotate, not both"). Called after [`Domain::validate_state`]
+    /// and [`Domain::validate_action`] have passed. Default: no further condition.
+    fn validate_step(&self, _s: &[f64], _a: &[f64]) -> Result<(), DomainError> {
+        Ok(())
     }
 
     /// Checks that `goal` is a goal of this domain.

@@ -110,6 +110,9 @@ pub fn label_transitions(
                 .validate_action(&t.a)
                 .map_err(|e| Error::validation(field("a"), e.0))?;
             domain
+                .validate_step(&t.s, &t.a)
+                .map_err(|e| Error::validation(field("a"), e.0))?;
+            domain
                 .validate_observed_state(&t.s_next)
                 .map_err(|e| Error::validation(field("s_next"), e.0))?;
             let s_pred = domain.predict(&t.s, &t.a);

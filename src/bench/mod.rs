@@ -1,0 +1,3 @@
+//! Benchmarks that print timings (run through `examples/` or the service's `bench` subcommand).
+
+pub mod planning;

@@ -1,0 +1,94 @@
+//! The planner: candidate trajectories grown by an RRT inside the current model precondition,
+//! the trajectory-level acquisition function, the β schedule, and the strategies that turn a
+//! planning problem into a proposal (DESIGN.md §1).
+//!
+//! - [`schedule`]: `β_j` over the learning iterations.
+//! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
+//! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
+//! - [`rrt`](mod@rrt): one RRT run (and the test-time [`plan`]), the planner settings, trajectories.
+//! - [`strategy`]: candidate generation and the `active` / `goal_conditioned` / `random`
+//!   strategies behind [`propose`].
+//! - [`synthetic`]: cheap deviation models with known answers, for tests, benchmarks and demos.
+//!
+//! The module knows nothing of HTTP, SQL or JSON. The deviation model is reached only through
+//! [`DeviationModel`], so the GP (or any stand-in) plugs in from outside. Every random choice
+//! derives from a `u64` seed: the same inputs and seed give the same result.
+
+pub mod acquisition;
+pub mod cache;
+pub mod rrt;
+pub mod schedule;
+pub mod strategy;
+pub mod synthetic;
+
+#[cfg(test)]
+mod tests;
+
+pub use acquisition::{AcquisitionSettings, Aggregation, aggregate, alpha_step};
+pub use cache::ModelCache;
+pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, rrt};
+pub use schedule::{BetaSchedule, beta_schedule};
+pub use strategy::{CandidateScore, Proposal, Strategy, propose};
+
+/// A model deviation estimator as the planner sees it: μ and σ (σ includes noise) of the
+/// deviation for feature vectors φ(s,a).
+pub trait DeviationModel: Sync {
+    /// `features` is row-major, `n = features.len() / dim` points of dimension `dim`; returns
+    /// (mu, sigma) per point.
+    ///
+    /// The planner asks for many points at once where it can, and never asks twice for the same
+    /// feature vector within one proposal (see [`ModelCache`]).
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)>;
+}
+
+/// Why the planner could not answer.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum PlanningError {
+    /// A planner, acquisition or schedule setting is out of range.
+    #[error("{field}: {reason}")]
+    InvalidSettings {
+        /// The setting's name, e.g. `"goal_bias"`.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// An input of the planning problem (start, goal, β, d_max) is not acceptable.
+    #[error("{field}: {reason}")]
+    InvalidInput {
+        /// `"start"`, `"goal"`, `"beta"` or `"d_max"`.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: String,
+    },
+    /// No candidate reached the goal inside the precondition (for `random`: not even one step
+    /// from the start was possible).
+    #[error("no plan inside the model precondition within {extensions} extensions")]
+    NoPlan {
+        /// Extensions (attempted edges) spent before giving up.
+        extensions: usize,
+    },
+    /// The deviation model broke its contract (a bug in the model, not in the request).
+    #[error("the deviation model returned {got} predictions for {expected} points")]
+    ModelOutput {
+        /// Points asked for.
+        expected: usize,
+        /// Predictions returned.
+        got: usize,
+    },
+}
+
+impl PlanningError {
+    pub(crate) fn settings(field: &'static str, reason: impl Into<String>) -> Self {
+        Self::InvalidSettings {
+            field,
+            reason: reason.into(),
+        }
+    }
+
+    pub(crate) fn input(field: &'static str, reason: impl Into<String>) -> Self {
+        Self::InvalidInput {
+            field,
+            reason: reason.into(),
+        }
+    }
+}

@@ -1,0 +1,349 @@
+//! From a planning problem to a proposal: candidate generation and the three strategies of the
+//! paper's comparison.
+//!
+//! **Candidates.** Up to `n_candidates` RRT runs, run `i` (from 0) seeded with stream `i + 1` of
+//! the proposal seed (stream 0 is the strategy's own choices), all sharing one [`ModelCache`] so
+//! the deviation model answers each distinct `φ(s, a)` once per proposal. Goal-reaching
+//! trajectories are kept if their action sequence is new (two runs often find the same path in
+//! a discrete domain), so there may be fewer candidates than runs. Each run has its own budget
+//! of `max_extensions`; once `max_failed_runs` runs have failed before any succeeded, the
+//! proposal gives up with [`PlanningError::NoPlan`]. `extensions` reports the sum over all runs.
+//!
+//! **Strategies.**
+//! - `active`: the candidate with the smallest acquisition value `α` (the first on ties).
+//! - `goal_conditioned`: a uniformly random candidate (its `α` is still reported).
+//! - `random`: a rollout of `Domain::rollout_length()` steps from the start with actions from
+//!   `Domain::sample_action`, ignoring the goal. Each step must satisfy the domain's constraints
+//!   and the precondition under `β`: up to `random_action_tries` actions are sampled per step
+//!   (each counts as an extension); when none fits the rollout stops there. It fails with
+//!   `NoPlan` only when not even the first step is possible.
+
+use super::acquisition::AcquisitionSettings;
+use super::cache::ModelCache;
+use super::rrt::{PlannerSettings, Trajectory, check_problem, grow, seeded_rng};
+use super::{DeviationModel, PlanningError};
+use crate::domain::Domain;
+use rand::Rng;
+use std::collections::HashSet;
+use std::fmt;
+use std::str::FromStr;
+
+/// How a proposal chooses the trajectory to execute.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Strategy {
+    /// Goal-reaching candidates, argmin of the acquisition function: the method. The default.
+    #[default]
+    Active,
+    /// A uniformly random goal-reaching candidate, no acquisition.
+    GoalConditioned,
+    /// A random-action rollout from the start, not conditioned on the goal.
+    Random,
+}
+
+impl Strategy {
+    /// The setting's name: `"active"`, `"goal_conditioned"` or `"random"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Active => "active",
+            Self::GoalConditioned => "goal_conditioned",
+            Self::Random => "random",
+        }
+    }
+}
+
+impl fmt::Display for Strategy {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for Strategy {
+    type Err = PlanningError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "active" => Ok(Self::Active),
+            "goal_conditioned" => Ok(Self::GoalConditioned),
+            "random" => Ok(Self::Random),
+            other => Err(PlanningError::settings(
+                "strategy",
+                format!("{other:?} is not one of \"active\", \"goal_conditioned\", \"random\""),
+            )),
+        }
+    }
+}
+
+/// A scored candidate, as reported with a proposal.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CandidateScore {
+    /// Its acquisition value `α`.
+    pub alpha: f64,
+    /// Its number of actions.
+    pub length: usize,
+}
+
+/// The trajectory a strategy chose for the robot to execute, with the evidence.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Proposal {
+    /// The strategy that chose it.
+    pub strategy: Strategy,
+    /// The chosen trajectory (predicted states, actions, per-step μ and σ).
+    pub trajectory: Trajectory,
+    /// `α_step` of each of its actions.
+    pub alpha_step: Vec<f64>,
+    /// Its acquisition value `α`.
+    pub alpha: f64,
+    /// All candidates in the order they were found (for `random`, the rollout alone).
+    pub candidates: Vec<CandidateScore>,
+    /// Index of the chosen trajectory in `candidates`.
+    pub chosen_index: usize,
+    /// Extensions spent, over all runs (for `random`, actions tried).
+    pub extensions: usize,
+    /// RRT runs made (for `random`, 1).
+    pub runs: usize,
+    /// Distinct points sent to the deviation model.
+    pub model_points: usize,
+    /// Calls made to the deviation model (each with a batch of points).
+    pub model_calls: usize,
+}
+
+/// Proposes the trajectory to execute next for the problem `start → goal` under the current
+/// `β` and `d_max` (see the module docs). The same inputs and `seed` give the same proposal.
+#[allow(clippy::too_many_arguments)]
+pub fn propose(
+    strategy: Strategy,
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    start: &[f64],
+    goal: &[f64],
+    beta: f64,
+    d_max: f64,
+    planner: &PlannerSettings,
+    acquisition: &AcquisitionSettings,
+    seed: u64,
+) -> Result<Proposal, PlanningError> {
+    planner.check()?;
+    acquisition.check()?;
+    check_problem(domain, start, Some(goal), beta, d_max)?;
+    let mut cache = ModelCache::new(mde, domain.feature_dim());
+    let mut own_rng = seeded_rng(seed, 0);
+    let problem = Problem {
+        domain,
+        start,
+        goal,
+        beta,
+        d_max,
+    };
+    if strategy == Strategy::Random {
+        let (trajectory, extensions) = problem.rollout(&mut cache, planner, &mut own_rng)?;
+        let (alpha_step, alpha) = acquisition.score(&trajectory);
+        return Ok(Proposal {
+            strategy,
+            candidates: vec![CandidateScore {
+                alpha,
+                length: trajectory.len(),
+            }],
+            trajectory,
+            alpha_step,
+            alpha,
+            chosen_index: 0,
+            extensions,
+            runs: 1,
+            model_points: cache.points(),
+            model_calls: cache.calls(),
+        });
+    }
+    if domain.is_goal(start, goal) {
+        return Err(PlanningError::input(
+            "goal",
+            "the start already satisfies the goal: there is nothing to plan",
+        ));
+    }
+    let found = problem.candidates(&mut cache, planner, seed)?;
+    let scored: Vec<(Vec<f64>, f64)> = found
+        .trajectories
+        .iter()
+        .map(|t| acquisition.score(t))
+        .collect();
+    let chosen_index = match strategy {
+        Strategy::Active => argmin(scored.iter().map(|(_, alpha)| *alpha)),
+        _ => own_rng.random_range(0..found.trajectories.len()),
+    };
+    let candidates = found
+        .trajectories
+        .iter()
+        .zip(&scored)
+        .map(|(t, (_, alpha))| CandidateScore {
+            alpha: *alpha,
+            length: t.len(),
+        })
+        .collect();
+    let (alpha_step, alpha) = scored[chosen_index].clone();
+    let mut trajectories = found.trajectories;
+    let trajectory = trajectories.swap_remove(chosen_index);
+    Ok(Proposal {
+        strategy,
+        trajectory,
+        alpha_step,
+        alpha,
+        candidates,
+        chosen_index,
+        extensions: found.extensions,
+        runs: found.runs,
+        model_points: cache.points(),
+        model_calls: cache.calls(),
+    })
+}
+
+/// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.
+fn argmin(values: impl Iterator<Item = f64>) -> usize {
+    let mut best: Option<(usize, f64)> = None;
+    for (i, v) in values.enumerate() {
+        if best.is_none_or(|(_, b)| v.total_cmp(&b).is_lt()) {
+            best = Some((i, v));
+        }
+    }
+    best.map_or(0, |(i, _)| i)
+}
+
+/// The checked planning problem shared by the strategies.
+struct Problem<'a> {
+    domain: &'a dyn Domain,
+    start: &'a [f64],
+    goal: &'a [f64],
+    beta: f64,
+    d_max: f64,
+}
+
+/// The distinct goal-reaching trajectories of one proposal's runs.
+struct Candidates {
+    trajectories: Vec<Trajectory>,
+    extensions: usize,
+    runs: usize,
+}
+
+impl Problem<'_> {
+    fn candidates(
+        &self,
+        cache: &mut ModelCache<'_>,
+        planner: &PlannerSettings,
+        seed: u64,
+    ) -> Result<Candidates, PlanningError> {
+        let mut found = Candidates {
+            trajectories: Vec::new(),
+            extensions: 0,
+            runs: 0,
+        };
+        let mut seen: HashSet<Vec<u64>> = HashSet::new();
+        let mut failed = 0;
+        for run in 0..planner.n_candidates {
+            let mut rng = seeded_rng(seed, run as u64 + 1);
+            let outcome = grow(
+                self.domain,
+                cache,
+                self.start,
+                self.goal,
+                self.beta,
+                self.d_max,
+                planner,
+                &mut rng,
+            )?;
+            found.runs += 1;
+            found.extensions += outcome.extensions;
+            match outcome.trajectory {
+                Some(t) => {
+                    let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
+                    if seen.insert(key.collect()) {
+                        found.trajectories.push(t);
+                    }
+                }
+                None => {
+                    failed += 1;
+                    if found.trajectories.is_empty() && failed >= planner.max_failed_runs {
+                        break;
+                    }
+                }
+            }
+        }
+        if found.trajectories.is_empty() {
+            return Err(PlanningError::NoPlan {
+                extensions: found.extensions,
+            });
+        }
+        Ok(found)
+    }
+
+    fn rollout(
+        &self,
+        cache: &mut ModelCache<'_>,
+        planner: &PlannerSettings,
+        rng: &mut dyn rand::RngCore,
+    ) -> Result<(Trajectory, usize), PlanningError> {
+        let domain = self.domain;
+        let mut t = Trajectory {
+            states: vec![self.start.to_vec()],
+            actions: Vec::new(),
+            mu: Vec::new(),
+            sigma: Vec::new(),
+        };
+        let mut extensions = 0;
+        'steps: for _ in 0..domain.rollout_length() {
+            let s = t
+                .states
+                .last()
+                .expect("a trajectory has a first state")
+                .clone();
+            for _ in 0..planner.random_action_tries {
+                extensions += 1;
+                let a = domain.sample_action(&s, rng);
+                let next = domain.predict(&s, &a);
+                if !domain.edge_allowed(&s, &a, &next) {
+                    continue;
+                }
+                let (mu, sigma) = cache.predict(&domain.features(&s, &a))?[0];
+                if mu + self.beta * sigma < self.d_max {
+                    t.states.push(next);
+                    t.actions.push(a);
+                    t.mu.push(mu);
+                    t.sigma.push(sigma);
+                    continue 'steps;
+                }
+            }
+            break;
+        }
+        if t.is_empty() {
+            return Err(PlanningError::NoPlan { extensions });
+        }
+        Ok((t, extensions))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn argmin_takes_the_first_smallest() {
+        assert_eq!(argmin([0.3, -0.1, 0.2, -0.1].into_iter()), 1);
+        assert_eq!(argmin([5.0].into_iter()), 0);
+        assert_eq!(argmin([2.0, 1.0, 0.5].into_iter()), 2);
+    }
+
+    #[test]
+    fn strategy_names_round_trip() {
+        for s in [
+            Strategy::Active,
+            Strategy::GoalConditioned,
+            Strategy::Random,
+        ] {
+            assert_eq!(s.as_str().parse::<Strategy>(), Ok(s));
+        }
+        assert!(matches!(
+            "greedy".parse::<Strategy>(),
+            Err(PlanningError::InvalidSettings {
+                field: "strategy",
+                ..
+            })
+        ));
+    }
+}

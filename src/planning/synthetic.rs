@@ -1,0 +1,100 @@
+//! Cheap deviation models with known answers, for tests, benchmarks and demos — stand-ins for
+//! the GP where what matters is the planner, not the learning.
+
+use super::DeviationModel;
+use crate::domain::{Domain, IcyGridworld};
+
+/// The same `(μ, σ)` everywhere.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ConstantModel {
+    /// Mean deviation.
+    pub mu: f64,
+    /// Standard deviation (noise included).
+    pub sigma: f64,
+}
+
+impl DeviationModel for ConstantModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        vec![(self.mu, self.sigma); features.len() / dim.max(1)]
+    }
+}
+
+/// What a well-trained MDE knows about an icy gridworld: the x-moves from ice cells deviate
+/// (`μ = 2`, the robot ends two cells from where the model said), everything else does not
+/// (`μ = 0`); `σ` is the same small value everywhere. Obstacles are not modelled.
+#[derive(Debug, Clone)]
+pub struct IceModel {
+    width: usize,
+    height: usize,
+    ice: Vec<bool>,
+    sigma: f64,
+}
+
+impl IceModel {
+    /// The model for `grid`'s ice cells, with `σ = sigma` everywhere.
+    pub fn new(grid: &IcyGridworld, sigma: f64) -> Self {
+        let ice = grid
+            .map()
+            .iter()
+            .flat_map(|row| row.chars().map(|c| c == '~').collect::<Vec<_>>())
+            .collect();
+        Self {
+            width: grid.width(),
+            height: grid.height(),
+            ice,
+            sigma,
+        }
+    }
+
+    /// Whether the cell `[x, y]` is ice.
+    pub fn is_ice(&self, x: usize, y: usize) -> bool {
+        x < self.width && y < self.height && self.ice[y * self.width + x]
+    }
+}
+
+impl DeviationModel for IceModel {
+    /// Decodes `φ = (x, y, dx, dy)` scaled to the unit box (see `IcyGridworld::features`).
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim.max(1))
+            .map(|f| {
+                let x = (f[0] * (self.width - 1) as f64).round() as usize;
+                let y = (f[1] * (self.height - 1) as f64).round() as usize;
+                let dx = 2.0 * f[2] - 1.0;
+                let mu = if dx.abs() > 0.5 && self.is_ice(x, y) {
+                    2.0
+                } else {
+                    0.0
+                };
+                (mu, self.sigma)
+            })
+            .collect()
+    }
+}
+
+/// The true icy-gridworld step (a stand-in for `crate::sim::gridworld` in this module's tests
+/// and benchmark): on ice the x-moves are reversed; a move off the grid or into an obstacle
+/// leaves the robot where it is.
+pub fn icy_true_step(grid: &IcyGridworld, s: &[f64], a: &[f64]) -> Vec<f64> {
+    let cell = |x: i64, y: i64| -> Option<char> {
+        if x < 0 || y < 0 {
+            return None;
+        }
+        grid.map().get(y as usize)?.chars().nth(x as usize)
+    };
+    let (x, y) = (s[0] as i64, s[1] as i64);
+    let mut dx = a[0] as i64;
+    let dy = a[1] as i64;
+    if cell(x, y) == Some('~') {
+        dx = -dx;
+    }
+    match cell(x + dx, y + dy) {
+        Some('.') | Some('~') => vec![(x + dx) as f64, (y + dy) as f64],
+        _ => s.to_vec(),
+    }
+}
+
+/// The deviation label `d(f̂(s, a), s')` of the true step.
+pub fn icy_true_deviation(grid: &IcyGridworld, s: &[f64], a: &[f64]) -> f64 {
+    grid.deviation(s, a, &icy_true_step(grid, s, a))
+}

@@ -1,0 +1,671 @@
+//! Planner-level tests: invariants of every planned edge, the icy gridworld, the strategies.
+
+use super::synthetic::{ConstantModel, IceModel};
+use super::*;
+use crate::domain::{BoxObstacle, Domain, IcyGridworld, Kinematic, KinematicParams};
+use proptest::prelude::{Just, ProptestConfig, any, prop_assert, prop_oneof, proptest};
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+/// A bump of deviation around a point of the state features; `σ` constant.
+struct BumpModel {
+    centre: [f64; 2],
+    height: f64,
+    sigma: f64,
+}
+
+impl DeviationModel for BumpModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim)
+            .map(|f| {
+                let r2 = (f[0] - self.centre[0]).powi(2) + (f[1] - self.centre[1]).powi(2);
+                (self.height * (-r2 / 0.02).exp(), self.sigma)
+            })
+            .collect()
+    }
+}
+
+/// μ grows with the x feature, σ shrinks with it: candidates get different α.
+struct SlopeModel;
+
+impl DeviationModel for SlopeModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim)
+            .map(|f| (0.05 * f[0] + 0.01 * f[1], 0.02 + 0.03 * (1.0 - f[0])))
+            .collect()
+    }
+}
+
+/// Counts calls and points, answering like the wrapped model.
+struct Counting<'a> {
+    inner: &'a dyn DeviationModel,
+    calls: AtomicUsize,
+    points: AtomicUsize,
+}
+
+impl DeviationModel for Counting<'_> {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.calls.fetch_add(1, Ordering::Relaxed);
+        self.points
+            .fetch_add(features.len() / dim, Ordering::Relaxed);
+        self.inner.predict(features, dim)
+    }
+}
+
+fn walled_kinematic() -> Kinematic {
+    // A wall at x ∈ [0.45, 0.5] with a gap at y ∈ [0.4, 0.6].
+    Kinematic::new(KinematicParams {
+        obstacles: vec![
+            BoxObstacle {
+                low: vec![0.45, 0.0],
+                high: vec![0.5, 0.4],
+            },
+            BoxObstacle {
+                low: vec![0.45, 0.6],
+                high: vec![0.5, 1.0],
+            },
+        ],
+        ..Default::default()
+    })
+    .unwrap()
+}
+
+fn small_settings() -> PlannerSettings {
+    PlannerSettings {
+        max_extensions: 2000,
+        n_candidates: 5,
+        ..Default::default()
+    }
+}
+
+/// Every step satisfies the constraints and the precondition under `beta`, with the μ, σ the
+/// model gives, and the states chain through the model from the start.
+fn assert_valid(
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    t: &Trajectory,
+    start: &[f64],
+    beta: f64,
+    d_max: f64,
+) {
+    assert_eq!(t.states.len(), t.actions.len() + 1);
+    assert_eq!(t.mu.len(), t.actions.len());
+    assert_eq!(t.sigma.len(), t.actions.len());
+    assert_eq!(t.states[0], start);
+    for (i, a) in t.actions.iter().enumerate() {
+        let (s, next) = (&t.states[i], &t.states[i + 1]);
+        assert!(domain.validate_action(a).is_ok(), "step {i}: action {a:?}");
+        assert_eq!(&domain.predict(s, a), next, "step {i} does not chain");
+        assert!(
+            domain.edge_allowed(s, a, next),
+            "step {i} breaks a constraint"
+        );
+        let (mu, sigma) = mde.predict(&domain.features(s, a), domain.feature_dim())[0];
+        assert_eq!((mu, sigma), (t.mu[i], t.sigma[i]), "step {i}: stored μ, σ");
+        assert!(
+            mu + beta * sigma < d_max,
+            "step {i} is outside the precondition"
+        );
+    }
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, ..ProptestConfig::default() })]
+
+    #[test]
+    fn every_gridworld_edge_is_allowed_and_inside(
+        seed in any::<u64>(),
+        beta in -2.0f64..3.0,
+        problem_seed in any::<u64>(),
+        batch in 1usize..20,
+        strategy in prop_oneof![
+            Just(Strategy::Active), Just(Strategy::GoalConditioned), Just(Strategy::Random)
+        ],
+    ) {
+        let grid = IcyGridworld::default_layout();
+        let mde = IceModel::new(&grid, 0.02);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(problem_seed);
+        let p = grid.sample_problem(&mut rng);
+        let settings = PlannerSettings { extension_batch: batch, ..small_settings() };
+        let result = propose(strategy, &grid, &mde, &p.start, &p.goal, beta, 0.1,
+            &settings, &AcquisitionSettings::default(), seed);
+        match result {
+            Ok(prop) => {
+                assert_valid(&grid, &mde, &prop.trajectory, &p.start, beta, 0.1);
+                if strategy != Strategy::Random {
+                    prop_assert!(grid.is_goal(prop.trajectory.states.last().unwrap(), &p.goal));
+                }
+            }
+            Err(PlanningError::NoPlan { .. }) => {}
+            Err(e) => panic!("unexpected error {e}"),
+        }
+        let out = plan(&grid, &mde, &p.start, &p.goal, beta, 0.1, &settings, seed).unwrap();
+        if let Some(t) = out.trajectory {
+            assert_valid(&grid, &mde, &t, &p.start, beta, 0.1);
+        }
+    }
+
+    #[test]
+    fn every_kinematic_edge_is_allowed_and_inside(
+        seed in any::<u64>(),
+        beta in -1.0f64..3.0,
+        problem_seed in any::<u64>(),
+        batch in 1usize..40,
+    ) {
+        let domain = walled_kinematic();
+        let mde = BumpModel { centre: [0.25, 0.5], height: 0.5, sigma: 0.02 };
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(problem_seed);
+        let p = domain.sample_problem(&mut rng);
+        let settings = PlannerSettings { extension_batch: batch, ..small_settings() };
+        let mut run_rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+        let out = rrt(&domain, &mde, &p.start, &p.goal, beta, 0.1, &settings, &mut run_rng).unwrap();
+        prop_assert!(out.extensions <= settings.max_extensions);
+        if let Some(t) = out.trajectory {
+            assert_valid(&domain, &mde, &t, &p.start, beta, 0.1);
+            prop_assert!(domain.is_goal(t.states.last().unwrap(), &p.goal));
+        }
+    }
+}
+
+use rand::SeedableRng;
+
+#[test]
+fn a_test_beta_plan_never_takes_an_x_move_from_ice() {
+    let grid = IcyGridworld::default_layout();
+    let mde = IceModel::new(&grid, 0.01);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+    let mut found = 0;
+    for seed in 0..40 {
+        let p = grid.sample_problem(&mut rng);
+        let out = plan(
+            &grid,
+            &mde,
+            &p.start,
+            &p.goal,
+            2.0,
+            0.1,
+            &PlannerSettings::default(),
+            seed,
+        )
+        .unwrap();
+        let Some(t) = out.trajectory else { continue };
+        found += 1;
+        for (s, a) in t.states.iter().zip(&t.actions) {
+            let on_ice = mde.is_ice(s[0] as usize, s[1] as usize);
+            assert!(!(on_ice && a[0] != 0.0), "x-move {a:?} from ice cell {s:?}");
+        }
+    }
+    assert_eq!(found, 40, "every cell is reachable without x-moves on ice");
+}
+
+#[test]
+fn without_the_ice_knowledge_the_plan_crosses_the_ice() {
+    // The control for the test above: along an ice row the direct path is all x-moves on ice.
+    let grid = IcyGridworld::default_layout();
+    let (start, goal) = ([2.0, 2.0], [9.0, 2.0]);
+    let trusting = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let t = plan(
+        &grid,
+        &trusting,
+        &start,
+        &goal,
+        2.0,
+        0.1,
+        &PlannerSettings::default(),
+        3,
+    )
+    .unwrap()
+    .trajectory
+    .unwrap();
+    assert!(t.actions.iter().any(|a| a[0] != 0.0));
+    let knowing = IceModel::new(&grid, 0.01);
+    let t = plan(
+        &grid,
+        &knowing,
+        &start,
+        &goal,
+        2.0,
+        0.1,
+        &PlannerSettings::default(),
+        3,
+    )
+    .unwrap()
+    .trajectory
+    .unwrap();
+    assert!(t.len() > 7, "the plan must leave the ice row to move in x");
+}
+
+#[test]
+fn active_picks_the_argmin_of_the_candidates() {
+    let grid = IcyGridworld::default_layout();
+    let acq = AcquisitionSettings::default();
+    for seed in 0..5 {
+        let p = propose(
+            Strategy::Active,
+            &grid,
+            &SlopeModel,
+            &[0.0, 0.0],
+            &[11.0, 11.0],
+            0.0,
+            0.1,
+            &PlannerSettings::default(),
+            &acq,
+            seed,
+        )
+        .unwrap();
+        assert!(p.candidates.len() > 1);
+        let min = p
+            .candidates
+            .iter()
+            .map(|c| c.alpha)
+            .fold(f64::INFINITY, f64::min);
+        assert_eq!(p.alpha, min);
+        assert_eq!(p.candidates[p.chosen_index].alpha, p.alpha);
+        assert_eq!(p.candidates[p.chosen_index].length, p.trajectory.len());
+        let (steps, alpha) = acq.score(&p.trajectory);
+        assert_eq!((steps, alpha), (p.alpha_step.clone(), p.alpha));
+        assert!(grid.is_goal(p.trajectory.states.last().unwrap(), &[11.0, 11.0]));
+    }
+}
+
+#[test]
+fn goal_conditioned_picks_some_goal_reaching_candidate() {
+    let grid = IcyGridworld::default_layout();
+    let acq = AcquisitionSettings::default();
+    let mut not_argmin = 0;
+    for seed in 0..10 {
+        let p = propose(
+            Strategy::GoalConditioned,
+            &grid,
+            &SlopeModel,
+            &[0.0, 0.0],
+            &[11.0, 11.0],
+            0.0,
+            0.1,
+            &PlannerSettings::default(),
+            &acq,
+            seed,
+        )
+        .unwrap();
+        assert!(grid.is_goal(p.trajectory.states.last().unwrap(), &[11.0, 11.0]));
+        assert_eq!(p.candidates[p.chosen_index].alpha, p.alpha);
+        assert_eq!(acq.score(&p.trajectory).1, p.alpha);
+        let min = p
+            .candidates
+            .iter()
+            .map(|c| c.alpha)
+            .fold(f64::INFINITY, f64::min);
+        if p.alpha > min {
+            not_argmin += 1;
+        }
+    }
+    assert!(not_argmin > 0, "a random choice is not always the argmin");
+}
+
+#[test]
+fn random_ignores_the_goal() {
+    let grid = IcyGridworld::default_layout();
+    let mde = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let settings = PlannerSettings::default();
+    let acq = AcquisitionSettings::default();
+    let start = [5.0, 5.0];
+    let a = propose(
+        Strategy::Random,
+        &grid,
+        &mde,
+        &start,
+        &[5.0, 4.0],
+        2.0,
+        0.1,
+        &settings,
+        &acq,
+        11,
+    )
+    .unwrap();
+    let b = propose(
+        Strategy::Random,
+        &grid,
+        &mde,
+        &start,
+        &[0.0, 11.0],
+        2.0,
+        0.1,
+        &settings,
+        &acq,
+        11,
+    )
+    .unwrap();
+    assert_eq!(
+        a.trajectory, b.trajectory,
+        "the goal does not change the rollout"
+    );
+    assert_eq!(
+        a.trajectory.len(),
+        grid.rollout_length(),
+        "no early stop when every move is fine"
+    );
+    assert_eq!((a.candidates.len(), a.chosen_index, a.runs), (1, 0, 1));
+    assert_valid(&grid, &mde, &a.trajectory, &start, 2.0, 0.1);
+}
+
+#[test]
+fn random_stops_early_where_no_move_is_trusted() {
+    // From [2, 2] (ice), only the y-moves are inside; with a tiny try budget the rollout may stop,
+    // but it never takes an x-move on ice and fails only if the first step is impossible.
+    let grid = IcyGridworld::default_layout();
+    let mde = IceModel::new(&grid, 0.01);
+    let acq = AcquisitionSettings::default();
+    for seed in 0..20 {
+        let settings = PlannerSettings {
+            random_action_tries: 2,
+            ..Default::default()
+        };
+        match propose(
+            Strategy::Random,
+            &grid,
+            &mde,
+            &[2.0, 2.0],
+            &[0.0, 0.0],
+            2.0,
+            0.1,
+            &settings,
+            &acq,
+            seed,
+        ) {
+            Ok(p) => {
+                assert!(p.trajectory.len() <= grid.rollout_length());
+                assert_valid(&grid, &mde, &p.trajectory, &[2.0, 2.0], 2.0, 0.1);
+            }
+            Err(PlanningError::NoPlan { extensions }) => assert_eq!(extensions, 2),
+            Err(e) => panic!("unexpected error {e}"),
+        }
+    }
+}
+
+#[test]
+fn no_plan_when_nothing_is_trusted() {
+    let grid = IcyGridworld::default_layout();
+    let distrust = ConstantModel {
+        mu: 1.0,
+        sigma: 0.1,
+    };
+    let settings = PlannerSettings {
+        max_extensions: 300,
+        ..Default::default()
+    };
+    let acq = AcquisitionSettings::default();
+    for strategy in [Strategy::Active, Strategy::GoalConditioned] {
+        let err = propose(
+            strategy,
+            &grid,
+            &distrust,
+            &[0.0, 0.0],
+            &[3.0, 0.0],
+            0.0,
+            0.1,
+            &settings,
+            &acq,
+            1,
+        )
+        .unwrap_err();
+        assert_eq!(
+            err,
+            PlanningError::NoPlan { extensions: 300 },
+            "one failed run is final"
+        );
+    }
+    let err = propose(
+        Strategy::Random,
+        &grid,
+        &distrust,
+        &[0.0, 0.0],
+        &[3.0, 0.0],
+        0.0,
+        0.1,
+        &settings,
+        &acq,
+        1,
+    )
+    .unwrap_err();
+    assert_eq!(
+        err,
+        PlanningError::NoPlan {
+            extensions: settings.random_action_tries
+        }
+    );
+    let patient = PlannerSettings {
+        max_failed_runs: 3,
+        ..settings
+    };
+    let err = propose(
+        Strategy::Active,
+        &grid,
+        &distrust,
+        &[0.0, 0.0],
+        &[3.0, 0.0],
+        0.0,
+        0.1,
+        &patient,
+        &acq,
+        1,
+    )
+    .unwrap_err();
+    assert_eq!(err, PlanningError::NoPlan { extensions: 900 });
+    let out = plan(
+        &grid,
+        &distrust,
+        &[0.0, 0.0],
+        &[3.0, 0.0],
+        0.0,
+        0.1,
+        &settings,
+        1,
+    )
+    .unwrap();
+    assert_eq!(
+        (out.trajectory, out.extensions, out.tree_size),
+        (None, 300, 1)
+    );
+}
+
+#[test]
+fn kinematic_edges_never_cross_the_wall() {
+    let domain = walled_kinematic();
+    let mde = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let acq = AcquisitionSettings::default();
+    let (start, goal) = ([0.1, 0.1], [0.9, 0.9]);
+    for seed in 0..4 {
+        let p = propose(
+            Strategy::Active,
+            &domain,
+            &mde,
+            &start,
+            &goal,
+            2.0,
+            0.1,
+            &PlannerSettings::default(),
+            &acq,
+            seed,
+        )
+        .unwrap();
+        let t = &p.trajectory;
+        assert_valid(&domain, &mde, t, &start, 2.0, 0.1);
+        assert!(domain.is_goal(t.states.last().unwrap(), &goal));
+        for w in t.states.windows(2) {
+            for k in 0..=100 {
+                let u = k as f64 / 100.0;
+                let q = [
+                    w[0][0] + u * (w[1][0] - w[0][0]),
+                    w[0][1] + u * (w[1][1] - w[0][1]),
+                ];
+                assert!(
+                    !domain.in_collision(&q),
+                    "edge {:?} → {:?} hits the wall",
+                    w[0],
+                    w[1]
+                );
+            }
+        }
+        // It has to go through the gap.
+        assert!(
+            t.states
+                .iter()
+                .any(|s| s[0] > 0.44 && s[0] < 0.51 && (0.4..=0.6).contains(&s[1]))
+        );
+    }
+}
+
+#[test]
+fn same_seed_same_proposal() {
+    let grid = IcyGridworld::default_layout();
+    let mde = IceModel::new(&grid, 0.05);
+    let acq = AcquisitionSettings::default();
+    let settings = PlannerSettings::default();
+    for strategy in [
+        Strategy::Active,
+        Strategy::GoalConditioned,
+        Strategy::Random,
+    ] {
+        let run = |seed| {
+            propose(
+                strategy,
+                &grid,
+                &mde,
+                &[0.0, 0.0],
+                &[11.0, 11.0],
+                0.5,
+                0.2,
+                &settings,
+                &acq,
+                seed,
+            )
+            .unwrap()
+        };
+        assert_eq!(run(42), run(42));
+        assert_ne!(run(42).trajectory, run(43).trajectory);
+    }
+    let domain = walled_kinematic();
+    let mde = BumpModel {
+        centre: [0.3, 0.5],
+        height: 0.5,
+        sigma: 0.02,
+    };
+    let run = |seed| {
+        plan(
+            &domain,
+            &mde,
+            &[0.1, 0.5],
+            &[0.9, 0.5],
+            1.0,
+            0.1,
+            &settings,
+            seed,
+        )
+        .unwrap()
+    };
+    assert_eq!(run(5), run(5));
+}
+
+#[test]
+fn the_model_sees_each_gridworld_pair_once_per_proposal_in_batches() {
+    let grid = IcyGridworld::default_layout();
+    let inner = IceModel::new(&grid, 0.02);
+    let mde = Counting {
+        inner: &inner,
+        calls: AtomicUsize::new(0),
+        points: AtomicUsize::new(0),
+    };
+    let p = propose(
+        Strategy::Active,
+        &grid,
+        &mde,
+        &[0.0, 0.0],
+        &[11.0, 11.0],
+        2.0,
+        0.1,
+        &PlannerSettings::default(),
+        &AcquisitionSettings::default(),
+        9,
+    )
+    .unwrap();
+    let (calls, points) = (mde.calls.into_inner(), mde.points.into_inner());
+    assert_eq!(points, p.model_points);
+    assert!(
+        points <= 12 * 12 * 4,
+        "{points} points for 576 distinct pairs"
+    );
+    assert!(
+        calls * 4 < p.extensions,
+        "{calls} calls for {} extensions",
+        p.extensions
+    );
+}
+
+#[test]
+fn inputs_and_settings_are_checked_by_name() {
+    let grid = IcyGridworld::default_layout();
+    let mde = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let acq = AcquisitionSettings::default();
+    let s = PlannerSettings::default();
+    let field = |r: Result<Proposal, PlanningError>| match r {
+        Err(
+            PlanningError::InvalidInput { field, .. }
+            | PlanningError::InvalidSettings { field, .. },
+        ) => field,
+        other => panic!("expected a field error, got {other:?}"),
+    };
+    let go = |start: &[f64], goal: &[f64], beta, d_max, s: &PlannerSettings| {
+        propose(
+            Strategy::Active,
+            &grid,
+            &mde,
+            start,
+            goal,
+            beta,
+            d_max,
+            s,
+            &acq,
+            0,
+        )
+    };
+    assert_eq!(field(go(&[0.5, 0.0], &[3.0, 3.0], 0.0, 0.1, &s)), "start");
+    assert_eq!(field(go(&[0.0, 0.0], &[3.0], 0.0, 0.1, &s)), "goal");
+    assert_eq!(field(go(&[0.0, 0.0], &[0.0, 0.0], 0.0, 0.1, &s)), "goal");
+    assert_eq!(
+        field(go(&[0.0, 0.0], &[3.0, 3.0], f64::NAN, 0.1, &s)),
+        "beta"
+    );
+    assert_eq!(field(go(&[0.0, 0.0], &[3.0, 3.0], 0.0, 0.0, &s)), "d_max");
+    let bad = PlannerSettings {
+        goal_bias: 1.5,
+        ..s.clone()
+    };
+    assert_eq!(
+        field(go(&[0.0, 0.0], &[3.0, 3.0], 0.0, 0.1, &bad)),
+        "goal_bias"
+    );
+    let bad = PlannerSettings {
+        max_extensions: 0,
+        ..s.clone()
+    };
+    assert_eq!(
+        field(go(&[0.0, 0.0], &[3.0, 3.0], 0.0, 0.1, &bad)),
+        "max_extensions"
+    );
+    // A test-time plan from the goal itself is found, and empty.
+    let out = plan(&grid, &mde, &[3.0, 3.0], &[3.0, 3.0], 2.0, 0.1, &s, 0).unwrap();
+    assert_eq!(out.trajectory.map(|t| t.len()), Some(0));
+}
