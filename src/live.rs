@@ -1,15 +1,23 @@
-//! Live experiments: the in-memory side of stored experiments — the built domain (and, once
-//! fitted, the current model) — loaded from the store on first use and kept for the process's
-//! life.
+//! Live experiments: the in-memory side of stored experiments — the built domain and the MDE
+//! version that answers queries — loaded from the store on first use, kept for the process's life.
+//!
+//! Fits run on the blocking pool, never on the async workers, one at a time per experiment; the
+//! new version is stored, then swapped in atomically. Queries keep using the previous version
+//! until then, so no request ever waits on a fit.
 
 use crate::domain::Domain;
 use crate::error::Error;
-use crate::settings::ExperimentSettings;
-use crate::store::Store;
+use crate::gp::{GpModel, NoiseMode};
+use crate::mde::{Estimator, FitRecord, ServedModel, gp_params, training_data};
+use crate::planning::beta_schedule;
+use crate::settings::{ExperimentSettings, NoiseSetting};
+use crate::store::{Store, StoredModel, Transition};
+use anyhow::Context;
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
+use std::time::Instant;
 
-/// One experiment's settings and the domain built from them.
+/// One experiment's settings, domain and current model.
 #[derive(Debug)]
 pub struct LiveExperiment {
     /// Identifier.
@@ -18,15 +26,218 @@ pub struct LiveExperiment {
     pub settings: ExperimentSettings,
     /// The domain built from `settings.domain`.
     pub domain: Arc<dyn Domain>,
+    model: RwLock<Arc<ServedModel>>,
+    fit_lock: tokio::sync::Mutex<()>,
+}
+
+/// Why a fit is made.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FitTrigger {
+    /// A batch of trajectories completed: fit unless a model already covers that batch.
+    Batch,
+    /// A client asked: fit now on everything stored.
+    Forced,
+}
+
+impl LiveExperiment {
+    /// A live experiment answering from the prior.
+    pub fn new(id: i64, settings: ExperimentSettings, domain: Arc<dyn Domain>) -> Self {
+        let prior = ServedModel::prior(domain.feature_dim(), settings.mde.prior_mean);
+        Self {
+            id,
+            settings,
+            domain,
+            model: RwLock::new(Arc::new(prior)),
+            fit_lock: tokio::sync::Mutex::new(()),
+        }
+    }
+
+    /// The version answering queries now.
+    pub fn model(&self) -> Arc<ServedModel> {
+        self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    fn swap_model(&self, model: Arc<ServedModel>) {
+        *self.model.write().unwrap_or_else(|p| p.into_inner()) = model;
+    }
+
+    /// The learning iteration after `n_trajectories` executed trajectories.
+    pub fn iteration(&self, n_trajectories: i64) -> i64 {
+        n_trajectories / i64::from(self.settings.learning.batch_size)
+    }
+
+    /// `β_j` of the learning schedule at iteration `j`.
+    pub fn training_beta(&self, iteration: i64) -> f64 {
+        let l = &self.settings.learning;
+        beta_schedule(iteration.max(0) as usize, l.iterations as usize, l.k1, l.k2)
+    }
+
+    fn noise_mode(&self) -> NoiseMode {
+        match self.settings.mde.noise {
+            NoiseSetting::Heteroscedastic => NoiseMode::Heteroscedastic,
+            NoiseSetting::Homoscedastic => NoiseMode::Homoscedastic,
+        }
+    }
+
+    /// Row-major features and labels of `transitions`.
+    fn training_set(&self, transitions: &[Transition]) -> (Vec<f64>, Vec<f64>) {
+        let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
+        let mut labels = Vec::with_capacity(transitions.len());
+        for t in transitions {
+            features.extend(self.domain.features(&t.s, &t.a));
+            labels.push(t.deviation);
+        }
+        (features, labels)
+    }
+
+    /// Fits a new version on every stored transition, stores it and swaps it in. With
+    /// [`FitTrigger::Batch`], does nothing when the current version already covers the latest
+    /// complete batch. Returns the version answering afterwards.
+    pub async fn refit(
+        self: &Arc<Self>,
+        store: &Store,
+        trigger: FitTrigger,
+    ) -> Result<Arc<ServedModel>, Error> {
+        let _one_fit_at_a_time = self.fit_lock.lock().await;
+        let current = self.model();
+        let n_trajectories = store
+            .experiment(self.id)
+            .await?
+            .map(|e| e.n_trajectories)
+            .unwrap_or(0);
+        if trigger == FitTrigger::Batch {
+            let covered = current.fit.as_ref().map_or(0, |f| f.n_trajectories);
+            if self.iteration(n_trajectories) <= self.iteration(covered) {
+                return Ok(current);
+            }
+        }
+        let transitions = store.transitions(self.id, 0, None).await?;
+        if transitions.is_empty() {
+            return Err(Error::Conflict(
+                "nothing to fit: the experiment has no transitions yet".into(),
+            ));
+        }
+        let version = current.version + 1;
+        let (features, labels) = self.training_set(&transitions);
+        let dim = self.domain.feature_dim();
+        let params = gp_params(
+            self.noise_mode(),
+            self.settings.mde.prior_mean,
+            self.settings.mde.restarts,
+            fit_seed(self.settings.seed, version),
+        )
+        .check()
+        .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
+        let started = Instant::now();
+        let gp = tokio::task::spawn_blocking(move || {
+            let (x, y) = training_data(features, labels, dim);
+            GpModel::fit(&x, &y, &params)
+        })
+        .await
+        .context("fit task")?
+        .map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
+        let fit = FitRecord {
+            fit_seconds: started.elapsed().as_secs_f64(),
+            fitted_at: crate::store::now(),
+            n_trajectories,
+        };
+        let stored = StoredModel {
+            version,
+            n_train: gp.n_train() as i64,
+            n_trajectories,
+            state: gp.state(),
+            fit_seconds: fit.fit_seconds,
+            fitted_at: fit.fitted_at.clone(),
+        };
+        store
+            .insert_model(self.id, &stored, gp.hyperparameters())
+            .await?;
+        let served = Arc::new(ServedModel {
+            version,
+            estimator: Estimator::Gp(Box::new(gp)),
+            fit: Some(fit),
+        });
+        self.swap_model(served.clone());
+        tracing::info!(
+            experiment = self.id,
+            version,
+            n_train = stored.n_train,
+            seconds = stored.fit_seconds,
+            "model fitted"
+        );
+        Ok(served)
+    }
+
+    /// Starts a [`FitTrigger::Batch`] refit in the background; failures are logged.
+    pub fn schedule_refit(self: &Arc<Self>, store: &Store) {
+        let live = self.clone();
+        let store = store.clone();
+        tokio::spawn(async move {
+            if let Err(e) = live.refit(&store, FitTrigger::Batch).await {
+                tracing::error!(experiment = live.id, error = %e, "background refit failed");
+            }
+        });
+    }
+
+    /// Rebuilds a stored version from its hyperparameters and training data, without
+    /// re-optimising.
+    async fn restore(&self, store: &Store, stored: StoredModel) -> Result<ServedModel, Error> {
+        let transitions = store.transitions(self.id, 0, Some(stored.n_train)).await?;
+        if transitions.len() as i64 != stored.n_train {
+            return Err(Error::Internal(anyhow::anyhow!(
+                "model {} of experiment {} was fitted on {} transitions but {} are stored",
+                stored.version,
+                self.id,
+                stored.n_train,
+                transitions.len()
+            )));
+        }
+        let (features, labels) = self.training_set(&transitions);
+        let dim = self.domain.feature_dim();
+        let state = stored.state.clone();
+        let gp = tokio::task::spawn_blocking(move || {
+            let (x, y) = training_data(features, labels, dim);
+            GpModel::from_state(&x, &y, &state)
+        })
+        .await
+        .context("restore task")?
+        .map_err(|e| Error::Internal(anyhow::anyhow!("rebuilding the stored MDE: {e}")))?;
+        Ok(ServedModel {
+            version: stored.version,
+            estimator: Estimator::Gp(Box::new(gp)),
+            fit: Some(FitRecord {
+                fit_seconds: stored.fit_seconds,
+                fitted_at: stored.fitted_at,
+                n_trajectories: stored.n_trajectories,
+            }),
+        })
+    }
+}
+
+/// The seed of fit `version` of an experiment seeded `seed` (SplitMix64 of both).
+pub fn fit_seed(seed: u64, version: i64) -> u64 {
+    let mut z = seed ^ (version as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
 }
 
 /// Every experiment this process has touched.
 #[derive(Debug, Default)]
 pub struct Registry {
     experiments: RwLock<HashMap<i64, Arc<LiveExperiment>>>,
+    loading: tokio::sync::Mutex<()>,
 }
 
 impl Registry {
+    fn cached(&self, id: i64) -> Option<Arc<LiveExperiment>> {
+        self.experiments
+            .read()
+            .unwrap_or_else(|p| p.into_inner())
+            .get(&id)
+            .cloned()
+    }
+
     /// Adds a just-created experiment.
     pub fn insert(&self, live: LiveExperiment) -> Arc<LiveExperiment> {
         let live = Arc::new(live);
@@ -37,30 +248,35 @@ impl Registry {
         live
     }
 
-    /// The live experiment `id`, loading it from the store if needed; 404 if it does not exist.
+    /// The live experiment `id`, loading it (and its latest model) from the store if needed;
+    /// 404 if it does not exist. A batch that completed but was never fitted (the server stopped
+    /// first) is fitted in the background.
     pub async fn get(&self, store: &Store, id: i64) -> Result<Arc<LiveExperiment>, Error> {
-        if let Some(live) = self
-            .experiments
-            .read()
-            .unwrap_or_else(|p| p.into_inner())
-            .get(&id)
-        {
-            return Ok(live.clone());
+        if let Some(live) = self.cached(id) {
+            return Ok(live);
+        }
+        let _one_load_at_a_time = self.loading.lock().await;
+        if let Some(live) = self.cached(id) {
+            return Ok(live);
         }
         let stored = store
             .experiment(id)
             .await?
             .ok_or_else(|| Error::NotFound(format!("no experiment {id}")))?;
         let domain = stored.settings.domain.build().map_err(|e| {
-            Error::Internal(anyhow::anyhow!(
-                "stored experiment {id} no longer builds: {e}"
-            ))
+            Error::Internal(anyhow::anyhow!("stored experiment {id} no longer builds: {e}"))
         })?;
-        let live = LiveExperiment {
-            id,
-            settings: stored.settings,
-            domain,
-        };
-        Ok(self.insert(live))
+        let live = LiveExperiment::new(id, stored.settings, domain);
+        let mut covered = 0;
+        if let Some(model) = store.latest_model(id).await? {
+            covered = model.n_trajectories;
+            let served = live.restore(store, model).await?;
+            live.swap_model(Arc::new(served));
+        }
+        let live = self.insert(live);
+        if live.iteration(stored.n_trajectories) > live.iteration(covered) {
+            live.schedule_refit(store);
+        }
+        Ok(live)
     }
 }

@@ -380,3 +380,36 @@ fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), Error> {
         ))
     }
 }
+
+impl From<StrategySetting> for crate::planning::Strategy {
+    fn from(s: StrategySetting) -> Self {
+        match s {
+            StrategySetting::Active => Self::Active,
+            StrategySetting::GoalConditioned => Self::GoalConditioned,
+            StrategySetting::Random => Self::Random,
+        }
+    }
+}
+
+impl LearningSettings {
+    /// The planner's settings.
+    pub fn planner(&self) -> crate::planning::PlannerSettings {
+        crate::planning::PlannerSettings {
+            max_extensions: self.max_extensions as usize,
+            n_candidates: self.n_candidates as usize,
+            ..Default::default()
+        }
+    }
+
+    /// The acquisition settings.
+    pub fn acquisition(&self) -> crate::planning::AcquisitionSettings {
+        crate::planning::AcquisitionSettings {
+            c: self.c,
+            gamma: self.gamma,
+            aggregation: match self.aggregation {
+                AggregationSetting::Max => crate::planning::Aggregation::Max,
+                AggregationSetting::Sum => crate::planning::Aggregation::Sum,
+            },
+        }
+    }
+}

@@ -2,7 +2,7 @@
 
 use super::AppState;
 use super::extract::{ApiJson, ApiPath};
-use crate::domain::{Domain, Space};
+use crate::domain::Space;
 use crate::error::Error;
 use crate::live::LiveExperiment;
 use crate::settings::{DomainSpec, ExperimentRequest, LearningSettings, MdeSettings};
@@ -68,10 +68,14 @@ pub struct ExperimentResponse {
     pub n_transitions: i64,
     /// Current learning iteration (completed batches).
     pub iteration: i64,
+    /// The MDE version answering queries (0: the prior).
+    pub model_version: i64,
 }
 
 impl ExperimentResponse {
-    fn new(e: Experiment, domain: &dyn Domain) -> Self {
+    fn new(e: Experiment, live: &LiveExperiment) -> Self {
+        let domain = live.domain.as_ref();
+        let model_version = live.model().version;
         let s = e.settings;
         Self {
             id: e.id,
@@ -88,6 +92,7 @@ impl ExperimentResponse {
             created_at: e.created_at,
             n_trajectories: e.n_trajectories,
             n_transitions: e.n_transitions,
+            model_version,
         }
     }
 }
@@ -99,19 +104,13 @@ pub async fn create_experiment(
 ) -> Result<(StatusCode, Json<ExperimentResponse>), Error> {
     let (settings, domain) = request.resolve()?;
     let stored = state.store.insert_experiment(&settings).await?;
-    state.experiments.insert(LiveExperiment {
-        id: stored.id,
-        settings,
-        domain: domain.clone(),
-    });
-    tracing::info!(
-        experiment = stored.id,
-        kind = domain.kind(),
-        "experiment created"
-    );
+    let live = state
+        .experiments
+        .insert(LiveExperiment::new(stored.id, settings, domain.clone()));
+    tracing::info!(experiment = stored.id, kind = domain.kind(), "experiment created");
     Ok((
         StatusCode::CREATED,
-        Json(ExperimentResponse::new(stored, domain.as_ref())),
+        Json(ExperimentResponse::new(stored, &live)),
     ))
 }
 
@@ -122,7 +121,7 @@ pub async fn list_experiments(
     let mut items = Vec::new();
     for e in state.store.experiments().await? {
         let live = state.experiments.get(&state.store, e.id).await?;
-        items.push(ExperimentResponse::new(e, live.domain.as_ref()));
+        items.push(ExperimentResponse::new(e, &live));
     }
     Ok(Json(serde_json::json!({ "items": items })))
 }
@@ -138,5 +137,5 @@ pub async fn get_experiment(
         .experiment(id)
         .await?
         .ok_or_else(|| Error::NotFound(format!("no experiment {id}")))?;
-    Ok(Json(ExperimentResponse::new(e, live.domain.as_ref())))
+    Ok(Json(ExperimentResponse::new(e, &live)))
 }

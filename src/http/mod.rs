@@ -6,6 +6,8 @@
 mod experiments;
 pub mod extract;
 mod health;
+mod model;
+mod proposals;
 mod trajectories;
 
 use crate::error::Error;
@@ -117,6 +119,38 @@ pub fn routes() -> Vec<Route> {
             "/v1/experiments/{id}/transitions",
             get(trajectories::list_transitions),
         ),
+        route(M::GET, "/v1/experiments/{id}/model", get(model::get_model)),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/model/refit",
+            post(model::refit_model),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/precondition",
+            post(model::query_precondition),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/precondition",
+            get(model::get_precondition),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/proposals",
+            post(proposals::create_proposal),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/proposals/{pid}",
+            get(proposals::get_proposal),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/proposals/{pid}/abandon",
+            post(proposals::abandon_proposal),
+        ),
+        route(M::POST, "/v1/experiments/{id}/plans", post(proposals::create_plan)),
     ]
 }
 

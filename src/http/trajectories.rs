@@ -161,14 +161,9 @@ pub async fn create_trajectory(
     let live = state.experiments.get(&state.store, id).await?;
     let key = idempotency_key(&headers)?;
     let labelled = label_transitions(&live, &request.transitions)?;
-    if let Some(pid) = request.proposal_id {
-        return Err(Error::validation(
-            "proposal_id",
-            format!("no proposal {pid} in experiment {id}"),
-        ));
-    }
     let canonical = serde_json::to_string(&request).map_err(anyhow::Error::from)?;
     let batch_size = i64::from(live.settings.learning.batch_size);
+    let model_version = live.model().version;
     let outcome = state
         .store
         .ingest_trajectory(
@@ -189,6 +184,8 @@ pub async fn create_trajectory(
                     "n_transitions": t.transitions.len(),
                     "deviations": t.transitions.iter().map(|x| x.deviation).collect::<Vec<_>>(),
                     "iteration": n_trajectories / batch_size,
+                    "model_version": model_version,
+                    "n_trajectories": n_trajectories,
                     "created_at": t.created_at,
                 })
             },
@@ -197,6 +194,10 @@ pub async fn create_trajectory(
     match outcome {
         IngestOutcome::Created(body) => {
             tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
+            let n_trajectories = body["n_trajectories"].as_i64().unwrap_or(0);
+            if n_trajectories % batch_size == 0 {
+                live.schedule_refit(&state.store);
+            }
             Ok((StatusCode::CREATED, Json(body)).into_response())
         }
         IngestOutcome::Replayed { status, body } => {
@@ -210,6 +211,17 @@ pub async fn create_trajectory(
         IngestOutcome::KeyReused => Err(Error::Conflict(
             "this Idempotency-Key was already used with a different request".into(),
         )),
+        IngestOutcome::ProposalNotFound => Err(Error::validation(
+            "proposal_id",
+            format!(
+                "no proposal {} in experiment {id}",
+                request.proposal_id.unwrap_or_default()
+            ),
+        )),
+        IngestOutcome::ProposalAlreadyExecuted => Err(Error::Conflict(format!(
+            "proposal {} was already executed: its trajectory is stored",
+            request.proposal_id.unwrap_or_default()
+        ))),
     }
 }
 

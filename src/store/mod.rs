@@ -7,9 +7,13 @@
 //! The file is in WAL mode, so readers never wait for the writer.
 
 mod experiments;
+mod models;
+mod proposals;
 mod trajectories;
 
 pub use experiments::Experiment;
+pub use models::StoredModel;
+pub use proposals::{NewProposal, StoredProposal};
 pub use trajectories::{
     IdempotencyKey, IngestOutcome, NewTransition, StoredTrajectory, Transition,
 };

@@ -1,5 +1,6 @@
 //! Trajectories and their transitions; atomic, idempotent ingest.
 
+use super::proposals::{LinkOutcome, link_trajectory};
 use super::{Store, decode_vec, encode_vec, now};
 use serde_json::Value;
 use sqlx::Row;
@@ -72,6 +73,10 @@ pub enum IngestOutcome {
     },
     /// The idempotency key was seen with a different request; nothing stored.
     KeyReused,
+    /// `proposal_id` names no proposal of this experiment; nothing stored.
+    ProposalNotFound,
+    /// The proposal's trajectory was already posted; nothing stored.
+    ProposalAlreadyExecuted,
 }
 
 /// An idempotency key and the canonical request it guards.
@@ -138,6 +143,13 @@ impl Store {
                     status: status as u16,
                     body,
                 });
+            }
+        }
+        if let Some(pid) = proposal_id {
+            match link_trajectory(&mut tx, experiment_id, pid).await? {
+                LinkOutcome::Linked => {}
+                LinkOutcome::NotFound => return Ok(IngestOutcome::ProposalNotFound),
+                LinkOutcome::AlreadyExecuted => return Ok(IngestOutcome::ProposalAlreadyExecuted),
             }
         }
         let created_at = now();

@@ -1,0 +1,274 @@
+//! The Matérn ν=5/2 ARD kernel and the dense matrices built from it.
+//!
+//! `k(x, x') = s² (1 + √5 r + 5/3 r²) exp(−√5 r)`, with `r² = Σ_k ((x_k − x'_k) / ℓ_k)²`.
+//!
+//! Its derivative with respect to a log length scale has no singularity at `r = 0`:
+//! `∂k/∂log ℓ_k = 5/3 s² (1 + √5 r) exp(−√5 r) · ((x_k − x'_k) / ℓ_k)²`; the factor in front of the
+//! squared scaled difference is what [`build_train`] stores as `G`.
+//!
+//! Matrices are plain column-major `Vec<f64>` (column stride = number of rows), so they can be
+//! split between threads by columns and viewed as faer matrices without copies. Only the lower
+//! triangle of symmetric matrices is ever written or read.
+
+use std::sync::OnceLock;
+
+use nalgebra::DMatrix;
+
+/// `√5`.
+pub(crate) const SQRT5: f64 = 2.236_067_977_499_79;
+
+/// Training or query inputs, column-major `n × d` (dimension `k` is the contiguous slice
+/// `cols[k*n .. (k+1)*n]`), exactly nalgebra's layout.
+#[derive(Clone, Debug)]
+pub(crate) struct Inputs {
+    /// Number of points.
+    pub n: usize,
+    /// Input dimension.
+    pub d: usize,
+    /// The coordinates, column-major.
+    pub cols: Vec<f64>,
+}
+
+impl Inputs {
+    /// Copies a nalgebra matrix whose rows are points.
+    pub fn from_matrix(x: &DMatrix<f64>) -> Self {
+        Inputs { n: x.nrows(), d: x.ncols(), cols: x.as_slice().to_vec() }
+    }
+
+    /// The points at `idx`, in that order.
+    pub fn subset(&self, idx: &[usize]) -> Inputs {
+        let m = idx.len();
+        let mut cols = Vec::with_capacity(m * self.d);
+        for k in 0..self.d {
+            let col = &self.cols[k * self.n..(k + 1) * self.n];
+            cols.extend(idx.iter().map(|&i| col[i]));
+        }
+        Inputs { n: m, d: self.d, cols }
+    }
+
+    /// The coordinates divided by the length scales (`x_k / ℓ_k`), column-major.
+    pub fn scaled(&self, length_scales: &[f64]) -> Vec<f64> {
+        let mut out = self.cols.clone();
+        for (k, &l) in length_scales.iter().enumerate() {
+            let inv = 1.0 / l;
+            out[k * self.n..(k + 1) * self.n].iter_mut().for_each(|v| *v *= inv);
+        }
+        out
+    }
+}
+
+/// Matérn 5/2 covariance for a squared scaled distance `r2`, signal variance `s2`.
+#[inline]
+pub(crate) fn matern52(r2: f64, s2: f64) -> f64 {
+    let t = SQRT5 * r2.sqrt();
+    s2 * (1.0 + t + (5.0 / 3.0) * r2) * (-t).exp()
+}
+
+/// Worker threads for a job of `work` elementary kernel evaluations (1 below ~2·10⁵, where
+/// spawning costs more than it saves).
+pub(crate) fn threads_for(work: usize) -> usize {
+    static AVAILABLE: OnceLock<usize> = OnceLock::new();
+    let avail = *AVAILABLE.get_or_init(|| std::thread::available_parallelism().map_or(1, |p| p.get()).min(16));
+    if work < 200_000 { 1 } else { avail }
+}
+
+/// Column boundaries `0 = b_0 < … < b_parts = n` that split the lower triangle of an `n × n`
+/// matrix into `parts` pieces of about equal area. Depends only on `n` and `parts`.
+pub(crate) fn triangle_blocks(n: usize, parts: usize) -> Vec<usize> {
+    let parts = parts.max(1).min(n.max(1));
+    let total = n as f64 * (n as f64 + 1.0) / 2.0;
+    let mut bounds = vec![0usize];
+    let mut c = 0usize;
+    let mut area = 0.0;
+    for p in 1..parts {
+        let target = total * p as f64 / parts as f64;
+        while c < n && area + (n - c) as f64 <= target {
+            area += (n - c) as f64;
+            c += 1;
+        }
+        if c > *bounds.last().unwrap_or(&0) {
+            bounds.push(c);
+        }
+    }
+    bounds.push(n);
+    bounds.dedup();
+    bounds
+}
+
+/// Splits a column-major `n × n` buffer into the column ranges of `bounds`.
+fn split_columns<'a>(mut buf: &'a mut [f64], n: usize, bounds: &[usize]) -> Vec<&'a mut [f64]> {
+    let mut out = Vec::with_capacity(bounds.len());
+    for w in bounds.windows(2) {
+        let (head, tail) = buf.split_at_mut((w[1] - w[0]) * n);
+        out.push(head);
+        buf = tail;
+    }
+    out
+}
+
+/// Fills the lower triangle (diagonal included) of the training covariance
+/// `a = s² R + diag(diag_add)` and, when `g` is given, the strict lower triangle of
+/// `G_ij = 5/3 s² (1 + √5 r_ij) exp(−√5 r_ij)`.
+///
+/// `xs` are the length-scale-scaled inputs (`n × d`, column-major). Parallel over balanced
+/// column blocks; every element is computed independently, so the result does not depend on the
+/// number of threads.
+pub(crate) fn build_train(xs: &[f64], n: usize, d: usize, s2: f64, diag_add: &[f64], a: &mut [f64], g: Option<&mut [f64]>) {
+    let threads = threads_for(n * n / 2 * (d + 4));
+    let bounds = triangle_blocks(n, threads);
+    let a_parts = split_columns(a, n, &bounds);
+    let mut g_parts: Vec<Option<&mut [f64]>> = match g {
+        Some(g) => split_columns(g, n, &bounds).into_iter().map(Some).collect(),
+        None => (0..bounds.len() - 1).map(|_| None).collect(),
+    };
+    let work = |c0: usize, a_part: &mut [f64], mut g_part: Option<&mut [f64]>| {
+        let mut r2 = vec![0.0; n];
+        let ncols = a_part.len() / n;
+        for jc in 0..ncols {
+            let c = c0 + jc;
+            let r2 = &mut r2[c..n];
+            r2.iter_mut().for_each(|v| *v = 0.0);
+            for k in 0..d {
+                let col = &xs[k * n + c..(k + 1) * n];
+                let xc = col[0];
+                for (acc, &v) in r2.iter_mut().zip(col) {
+                    let t = v - xc;
+                    *acc += t * t;
+                }
+            }
+            let acol = &mut a_part[jc * n + c..(jc + 1) * n];
+            match g_part.as_deref_mut() {
+                Some(gp) => {
+                    let gcol = &mut gp[jc * n + c..(jc + 1) * n];
+                    for ((av, gv), &q) in acol.iter_mut().zip(gcol.iter_mut()).zip(r2.iter()) {
+                        let t = SQRT5 * q.sqrt();
+                        let e = s2 * (-t).exp();
+                        *av = (1.0 + t + (5.0 / 3.0) * q) * e;
+                        *gv = (5.0 / 3.0) * (1.0 + t) * e;
+                    }
+                }
+                None => {
+                    for (av, &q) in acol.iter_mut().zip(r2.iter()) {
+                        let t = SQRT5 * q.sqrt();
+                        *av = s2 * (1.0 + t + (5.0 / 3.0) * q) * (-t).exp();
+                    }
+                }
+            }
+            acol[0] = s2 + diag_add[c];
+        }
+    };
+    if bounds.len() == 2 {
+        let a0 = a_parts.into_iter().next().unwrap_or_default();
+        work(0, a0, g_parts.pop().flatten());
+        return;
+    }
+    std::thread::scope(|scope| {
+        for ((w, a_part), g_part) in bounds.windows(2).zip(a_parts).zip(g_parts) {
+            let c0 = w[0];
+            let work = &work;
+            scope.spawn(move || work(c0, a_part, g_part));
+        }
+    });
+}
+
+/// Cross covariance `K*` between training inputs `xs` (`n × d`, scaled) and query inputs `qs`
+/// (`m × d`, scaled), written column-major `n × m` into `out` (query `j` is column `j`).
+pub(crate) fn build_cross(xs: &[f64], n: usize, qs: &[f64], m: usize, d: usize, s2: f64, out: &mut [f64]) {
+    let threads = threads_for(n * m * (d + 4)).min(m.max(1));
+    let work = |j0: usize, part: &mut [f64]| {
+        for (jj, col) in part.chunks_exact_mut(n).enumerate() {
+            let j = j0 + jj;
+            col.iter_mut().for_each(|v| *v = 0.0);
+            for k in 0..d {
+                let q = qs[k * m + j];
+                for (acc, &v) in col.iter_mut().zip(&xs[k * n..(k + 1) * n]) {
+                    let t = v - q;
+                    *acc += t * t;
+                }
+            }
+            for v in col.iter_mut() {
+                *v = matern52(*v, s2);
+            }
+        }
+    };
+    if threads <= 1 {
+        work(0, out);
+        return;
+    }
+    let per = m.div_ceil(threads);
+    std::thread::scope(|scope| {
+        for (t, part) in out.chunks_mut(per * n).enumerate() {
+            let work = &work;
+            scope.spawn(move || work(t * per, part));
+        }
+    });
+}
+
+/// `Σ_{i>j} W_ij G_ij ((x_ik − x_jk)/ℓ_k)²` for every dimension `k`, where
+/// `W_ij = α_i α_j − (K⁻¹)_ij` and `kinv`, `g` hold lower triangles (column-major `n × n`).
+///
+/// This is `½ tr(W ∂K/∂log ℓ_k)`, the LML gradient w.r.t. the log length scales. The sum runs
+/// over 16 fixed column blocks whose partial sums are added in order, so it is bit-identical for
+/// any number of threads.
+pub(crate) fn length_scale_gradient(xs: &[f64], n: usize, d: usize, alpha: &[f64], kinv: &[f64], g: &[f64]) -> Vec<f64> {
+    const BLOCKS: usize = 16;
+    let bounds = triangle_blocks(n, BLOCKS);
+    let nb = bounds.len() - 1;
+    let block = |b: usize| -> Vec<f64> {
+        let mut acc = vec![0.0; d];
+        let mut t = vec![0.0; n];
+        for c in bounds[b]..bounds[b + 1] {
+            if c + 1 >= n {
+                continue;
+            }
+            let ac = alpha[c];
+            let t = &mut t[c + 1..n];
+            let kcol = &kinv[c * n + c + 1..(c + 1) * n];
+            let gcol = &g[c * n + c + 1..(c + 1) * n];
+            for (((tv, &ai), &kv), &gv) in t.iter_mut().zip(&alpha[c + 1..n]).zip(kcol).zip(gcol) {
+                *tv = (ai * ac - kv) * gv;
+            }
+            for (k, out) in acc.iter_mut().enumerate() {
+                let col = &xs[k * n + c..(k + 1) * n];
+                let xc = col[0];
+                let mut s = 0.0;
+                for (&tv, &v) in t.iter().zip(&col[1..]) {
+                    let dlt = v - xc;
+                    s += tv * dlt * dlt;
+                }
+                *out += s;
+            }
+        }
+        acc
+    };
+    let threads = threads_for(n * n / 2 * (d + 3)).min(nb);
+    let partials: Vec<Vec<f64>> = if threads <= 1 {
+        (0..nb).map(block).collect()
+    } else {
+        let mut slots: Vec<Vec<f64>> = vec![Vec::new(); nb];
+        std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..threads)
+                .map(|t| {
+                    let block = &block;
+                    scope.spawn(move || (t..nb).step_by(threads).map(|b| (b, block(b))).collect::<Vec<_>>())
+                })
+                .collect();
+            for h in handles {
+                // A worker can only fail by panicking, which these loops cannot do.
+                if let Ok(res) = h.join() {
+                    for (b, v) in res {
+                        slots[b] = v;
+                    }
+                }
+            }
+        });
+        slots
+    };
+    let mut out = vec![0.0; d];
+    for p in partials {
+        for (o, v) in out.iter_mut().zip(p) {
+            *o += v;
+        }
+    }
+    out
+}

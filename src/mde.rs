@@ -1,0 +1,152 @@
+//! The model deviation estimator as the service serves it: before any data the GP prior, after
+//! that a fitted [`GpModel`], each under a version. Knows nothing of HTTP or SQL.
+
+use crate::gp::{GpModel, GpParams, Hyperparameters, NoiseMode, NoiseSummary};
+use crate::planning::DeviationModel;
+use nalgebra::{DMatrix, DVector};
+
+/// What answers queries.
+#[derive(Debug)]
+pub enum Estimator {
+    /// No data yet: μ = prior mean, σ = prior standard deviation, everywhere.
+    Prior(Hyperparameters),
+    /// A fitted GP.
+    Gp(Box<GpModel>),
+}
+
+/// How a version was fitted.
+#[derive(Debug, Clone)]
+pub struct FitRecord {
+    /// Seconds the fit took.
+    pub fit_seconds: f64,
+    /// When it finished (RFC 3339).
+    pub fitted_at: String,
+    /// Trajectories stored when the fit started (used to tell whether a batch is still unfitted).
+    pub n_trajectories: i64,
+}
+
+/// One version of an experiment's MDE.
+#[derive(Debug)]
+pub struct ServedModel {
+    /// 0 for the prior, then 1, 2, … one per fit.
+    pub version: i64,
+    /// The estimator.
+    pub estimator: Estimator,
+    /// Absent for the prior.
+    pub fit: Option<FitRecord>,
+}
+
+/// A batch of answers.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    /// Mean deviation μ.
+    pub mu: f64,
+    /// Standard deviation σ (latent and noise).
+    pub sigma: f64,
+}
+
+impl ServedModel {
+    /// The prior, version 0, for features of dimension `dim`.
+    pub fn prior(dim: usize, prior_mean: f64) -> Self {
+        Self {
+            version: 0,
+            estimator: Estimator::Prior(Hyperparameters::prior(dim, prior_mean)),
+            fit: None,
+        }
+    }
+
+    /// Training-set size (0 for the prior).
+    pub fn n_train(&self) -> usize {
+        match &self.estimator {
+            Estimator::Prior(_) => 0,
+            Estimator::Gp(gp) => gp.n_train(),
+        }
+    }
+
+    /// The hyperparameters answering queries.
+    pub fn hyperparameters(&self) -> &Hyperparameters {
+        match &self.estimator {
+            Estimator::Prior(h) => h,
+            Estimator::Gp(gp) => gp.hyperparameters(),
+        }
+    }
+
+    /// Log marginal likelihood of the fitted model (`None` for the prior).
+    pub fn log_marginal_likelihood(&self) -> Option<f64> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Gp(gp) => Some(gp.log_marginal_likelihood()),
+        }
+    }
+
+    /// Noise mode used (`None` for the prior).
+    pub fn noise_mode(&self) -> Option<NoiseMode> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Gp(gp) => Some(gp.noise_mode()),
+        }
+    }
+
+    /// Heteroscedastic noise model summary, when there is one.
+    pub fn noise_summary(&self) -> Option<NoiseSummary> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Gp(gp) => gp.noise_summary(),
+        }
+    }
+
+    /// μ and σ for `n = features.len() / dim` row-major feature vectors.
+    pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
+        if dim == 0 {
+            return Vec::new();
+        }
+        let n = features.len() / dim;
+        match &self.estimator {
+            Estimator::Prior(h) => vec![
+                Answer {
+                    mu: h.prior_mean,
+                    sigma: h.prior_std(),
+                };
+                n
+            ],
+            Estimator::Gp(gp) => {
+                let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
+                let p = gp.predict(&x);
+                p.mean
+                    .iter()
+                    .zip(p.std())
+                    .map(|(mu, sigma)| Answer { mu: *mu, sigma })
+                    .collect()
+            }
+        }
+    }
+}
+
+impl DeviationModel for ServedModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.answer(features, dim)
+            .into_iter()
+            .map(|a| (a.mu, a.sigma))
+            .collect()
+    }
+}
+
+/// Row-major features and labels as the GP wants them.
+pub fn training_data(features: Vec<f64>, labels: Vec<f64>, dim: usize) -> (DMatrix<f64>, DVector<f64>) {
+    let n = labels.len();
+    (
+        DMatrix::from_row_slice(n, dim, &features),
+        DVector::from_vec(labels),
+    )
+}
+
+/// The GP parameters for an experiment's MDE settings and a fit's seed.
+pub fn gp_params(noise: NoiseMode, prior_mean: f64, restarts: usize, seed: u64) -> GpParams {
+    GpParams {
+        noise,
+        prior_mean,
+        restarts,
+        seed,
+        ..GpParams::default()
+    }
+}

@@ -1,0 +1,83 @@
+//! Fitted model versions.
+
+use super::Store;
+use crate::gp::{Hyperparameters, ModelState};
+use sqlx::Row;
+
+/// A stored model version.
+#[derive(Debug, Clone)]
+pub struct StoredModel {
+    /// Version (1, 2, …).
+    pub version: i64,
+    /// Training transitions: the experiment's first `n_train` in id order.
+    pub n_train: i64,
+    /// Trajectories stored when the fit started.
+    pub n_trajectories: i64,
+    /// Everything needed to rebuild the model from its training data.
+    pub state: ModelState,
+    /// Seconds the fit took.
+    pub fit_seconds: f64,
+    /// When it finished (RFC 3339).
+    pub fitted_at: String,
+}
+
+fn json_err(e: serde_json::Error) -> sqlx::Error {
+    sqlx::Error::Decode(Box::new(e))
+}
+
+impl Store {
+    /// Records a fitted version.
+    #[tracing::instrument(skip(self, model), fields(version = model.version))]
+    pub async fn insert_model(
+        &self,
+        experiment_id: i64,
+        model: &StoredModel,
+        hyperparameters: &Hyperparameters,
+    ) -> Result<(), sqlx::Error> {
+        let state = serde_json::to_string(&model.state).map_err(json_err)?;
+        let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
+        let noise = serde_json::to_value(model.state.noise).map_err(json_err)?;
+        sqlx::query(
+            "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
+                                 hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(experiment_id)
+        .bind(model.version)
+        .bind(model.n_train)
+        .bind(model.n_trajectories)
+        .bind(noise.as_str().unwrap_or_default())
+        .bind(state)
+        .bind(hyper)
+        .bind(model.state.log_marginal_likelihood)
+        .bind(model.fit_seconds)
+        .bind(&model.fitted_at)
+        .execute(&self.write)
+        .await?;
+        Ok(())
+    }
+
+    /// The latest version of an experiment's model, if any was fitted.
+    #[tracing::instrument(skip(self))]
+    pub async fn latest_model(&self, experiment_id: i64) -> Result<Option<StoredModel>, sqlx::Error> {
+        let Some(row) = sqlx::query(
+            "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at FROM models
+             WHERE experiment_id = ? ORDER BY version DESC LIMIT 1",
+        )
+        .bind(experiment_id)
+        .fetch_optional(&self.read)
+        .await?
+        else {
+            return Ok(None);
+        };
+        let state: String = row.try_get("state")?;
+        Ok(Some(StoredModel {
+            version: row.try_get("version")?,
+            n_train: row.try_get("n_train")?,
+            n_trajectories: row.try_get("n_trajectories")?,
+            state: serde_json::from_str(&state).map_err(json_err)?,
+            fit_seconds: row.try_get("fit_seconds")?,
+            fitted_at: row.try_get("fitted_at")?,
+        }))
+    }
+}

@@ -1,0 +1,273 @@
+//! Proposals and their leases.
+
+use super::{Store, decode_vec, encode_vec};
+use serde_json::Value;
+use sqlx::sqlite::SqliteRow;
+use sqlx::{Row, SqliteConnection};
+
+/// A proposal to store.
+#[derive(Debug, Clone)]
+pub struct NewProposal {
+    /// The client it is leased to.
+    pub client_id: Option<String>,
+    /// Learning iteration it was made in.
+    pub iteration: i64,
+    /// β it was planned with.
+    pub beta: f64,
+    /// `active`, `goal_conditioned` or `random`.
+    pub strategy: String,
+    /// Model version that scored it.
+    pub model_version: i64,
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal.
+    pub goal: Vec<f64>,
+    /// The chosen trajectory and the candidates, as the API shows them.
+    pub body: Value,
+    /// Lease length in seconds.
+    pub ttl_seconds: u32,
+}
+
+/// A stored proposal.
+#[derive(Debug, Clone)]
+pub struct StoredProposal {
+    /// Identifier.
+    pub id: i64,
+    /// Leased to.
+    pub client_id: Option<String>,
+    /// `open`, `executed`, `abandoned` or `expired`.
+    pub status: String,
+    /// Iteration.
+    pub iteration: i64,
+    /// β.
+    pub beta: f64,
+    /// Strategy.
+    pub strategy: String,
+    /// Model version.
+    pub model_version: i64,
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal.
+    pub goal: Vec<f64>,
+    /// Trajectory and candidates.
+    pub body: Value,
+    /// Creation time (RFC 3339).
+    pub created_at: String,
+    /// Lease end (RFC 3339).
+    pub expires_at: String,
+}
+
+/// What linking a trajectory to a proposal found.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum LinkOutcome {
+    /// The proposal was open (or had expired) and is now `executed`.
+    Linked,
+    /// No such proposal in this experiment.
+    NotFound,
+    /// Its trajectory was already posted.
+    AlreadyExecuted,
+}
+
+const COLUMNS: &str = "id, client_id, status, iteration, beta, strategy, model_version, start, goal,
+                       body, created_at, expires_at";
+
+fn unix_now() -> f64 {
+    time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
+}
+
+fn from_row(row: &SqliteRow) -> Result<StoredProposal, sqlx::Error> {
+    let body: String = row.try_get("body")?;
+    Ok(StoredProposal {
+        id: row.try_get("id")?,
+        client_id: row.try_get("client_id")?,
+        status: row.try_get("status")?,
+        iteration: row.try_get("iteration")?,
+        beta: row.try_get("beta")?,
+        strategy: row.try_get("strategy")?,
+        model_version: row.try_get("model_version")?,
+        start: decode_vec(row.try_get("start")?)?,
+        goal: decode_vec(row.try_get("goal")?)?,
+        body: serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?,
+        created_at: row.try_get("created_at")?,
+        expires_at: row.try_get("expires_at")?,
+    })
+}
+
+/// Marks the experiment's open proposals whose lease has passed as `expired`.
+async fn expire_leases(conn: &mut SqliteConnection, experiment_id: i64) -> Result<(), sqlx::Error> {
+    sqlx::query(
+        "UPDATE proposals SET status = 'expired'
+         WHERE experiment_id = ? AND status = 'open' AND expires_unix <= ?",
+    )
+    .bind(experiment_id)
+    .bind(unix_now())
+    .execute(conn)
+    .await?;
+    Ok(())
+}
+
+async fn open_for_client(
+    conn: &mut SqliteConnection,
+    experiment_id: i64,
+    client_id: &str,
+) -> Result<Option<StoredProposal>, sqlx::Error> {
+    sqlx::query(&format!(
+        "SELECT {COLUMNS} FROM proposals
+         WHERE experiment_id = ? AND client_id = ? AND status = 'open' AND expires_unix > ?
+         ORDER BY id DESC LIMIT 1"
+    ))
+    .bind(experiment_id)
+    .bind(client_id)
+    .bind(unix_now())
+    .fetch_optional(conn)
+    .await?
+    .as_ref()
+    .map(from_row)
+    .transpose()
+}
+
+impl Store {
+    /// The open, unexpired proposal leased to `client_id`, if any.
+    #[tracing::instrument(skip(self))]
+    pub async fn open_proposal(
+        &self,
+        experiment_id: i64,
+        client_id: &str,
+    ) -> Result<Option<StoredProposal>, sqlx::Error> {
+        let mut conn = self.read.acquire().await?;
+        open_for_client(&mut conn, experiment_id, client_id).await
+    }
+
+    /// Stores a proposal, unless an open one for the same client appeared meanwhile, which is
+    /// returned instead (`(proposal, created)`).
+    #[tracing::instrument(skip(self, p))]
+    pub async fn insert_proposal(
+        &self,
+        experiment_id: i64,
+        p: &NewProposal,
+    ) -> Result<(StoredProposal, bool), sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        expire_leases(&mut tx, experiment_id).await?;
+        if let Some(client) = &p.client_id
+            && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
+        {
+            tx.commit().await?;
+            return Ok((open, false));
+        }
+        let created = time::OffsetDateTime::now_utc();
+        let expires = created + time::Duration::seconds(i64::from(p.ttl_seconds));
+        let fmt = |t: time::OffsetDateTime| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .unwrap_or_default()
+        };
+        let id: i64 = sqlx::query_scalar(
+            "INSERT INTO proposals (experiment_id, client_id, status, iteration, beta, strategy,
+                                    model_version, start, goal, body, created_at, expires_at,
+                                    expires_unix)
+             VALUES (?, ?, 'open', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+        )
+        .bind(experiment_id)
+        .bind(&p.client_id)
+        .bind(p.iteration)
+        .bind(p.beta)
+        .bind(&p.strategy)
+        .bind(p.model_version)
+        .bind(encode_vec(&p.start))
+        .bind(encode_vec(&p.goal))
+        .bind(p.body.to_string())
+        .bind(fmt(created))
+        .bind(fmt(expires))
+        .bind(expires.unix_timestamp_nanos() as f64 / 1e9)
+        .fetch_one(&mut *tx)
+        .await?;
+        let stored = sqlx::query(&format!("SELECT {COLUMNS} FROM proposals WHERE id = ?"))
+            .bind(id)
+            .fetch_one(&mut *tx)
+            .await?;
+        let stored = from_row(&stored)?;
+        tx.commit().await?;
+        Ok((stored, true))
+    }
+
+    /// One proposal, with its lease brought up to date.
+    #[tracing::instrument(skip(self))]
+    pub async fn proposal(
+        &self,
+        experiment_id: i64,
+        proposal_id: i64,
+    ) -> Result<Option<StoredProposal>, sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        expire_leases(&mut tx, experiment_id).await?;
+        let p = sqlx::query(&format!(
+            "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
+        ))
+        .bind(experiment_id)
+        .bind(proposal_id)
+        .fetch_optional(&mut *tx)
+        .await?
+        .as_ref()
+        .map(from_row)
+        .transpose()?;
+        tx.commit().await?;
+        Ok(p)
+    }
+
+    /// Abandons an open proposal. Returns the proposal as it now is (unchanged if it was not
+    /// open), or `None` if there is no such proposal.
+    #[tracing::instrument(skip(self))]
+    pub async fn abandon_proposal(
+        &self,
+        experiment_id: i64,
+        proposal_id: i64,
+    ) -> Result<Option<StoredProposal>, sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        expire_leases(&mut tx, experiment_id).await?;
+        sqlx::query(
+            "UPDATE proposals SET status = 'abandoned'
+             WHERE experiment_id = ? AND id = ? AND status = 'open'",
+        )
+        .bind(experiment_id)
+        .bind(proposal_id)
+        .execute(&mut *tx)
+        .await?;
+        let p = sqlx::query(&format!(
+            "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
+        ))
+        .bind(experiment_id)
+        .bind(proposal_id)
+        .fetch_optional(&mut *tx)
+        .await?
+        .as_ref()
+        .map(from_row)
+        .transpose()?;
+        tx.commit().await?;
+        Ok(p)
+    }
+}
+
+/// Inside an ingest transaction: closes the lease of the proposal a trajectory executed. An
+/// expired or abandoned proposal still accepts its trajectory (the robot did execute it; the
+/// data is real); one already executed does not.
+pub(super) async fn link_trajectory(
+    conn: &mut SqliteConnection,
+    experiment_id: i64,
+    proposal_id: i64,
+) -> Result<LinkOutcome, sqlx::Error> {
+    let status: Option<String> =
+        sqlx::query_scalar("SELECT status FROM proposals WHERE experiment_id = ? AND id = ?")
+            .bind(experiment_id)
+            .bind(proposal_id)
+            .fetch_optional(&mut *conn)
+            .await?;
+    match status.as_deref() {
+        None => Ok(LinkOutcome::NotFound),
+        Some("executed") => Ok(LinkOutcome::AlreadyExecuted),
+        Some(_) => {
+            sqlx::query("UPDATE proposals SET status = 'executed' WHERE id = ?")
+                .bind(proposal_id)
+                .execute(conn)
+                .await?;
+            Ok(LinkOutcome::Linked)
+        }
+    }
+}
