@@ -20,6 +20,9 @@ pub struct Cli {
 pub enum Command {
     /// Run the HTTP/JSON service.
     Serve(ServeArgs),
+    /// Run the paper's evaluation (strategies × seeds × iterations) against the service and
+    /// write results and plots.
+    Experiment(crate::experiment::ExperimentArgs),
 }
 
 /// Log output format.
@@ -97,6 +100,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 },
             );
             serve(listener, state, shutdown_signal()).await
+        }
+        Command::Experiment(args) => {
+            crate::experiment::init_tracing();
+            crate::experiment::run(args).await.map(|_| ())
         }
     }
 }

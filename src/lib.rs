@@ -18,11 +18,14 @@
 //! - [`http`]: the axum router, handlers per resource, extractors, serving with graceful shutdown.
 //! - [`error`]: the one error type and its JSON shape.
 //! - [`cli`]: the command line (`precond serve`, ...).
+//! - [`experiment`]: `precond experiment`, the paper's evaluation run end to end as an HTTP
+//!   client of the service (simulators, CSV/JSON results, SVG plots).
 
 pub mod bench;
 pub mod cli;
 pub mod domain;
 pub mod error;
+pub mod experiment;
 pub mod gp;
 pub mod http;
 pub mod live;

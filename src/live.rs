@@ -264,7 +264,9 @@ impl Registry {
             .await?
             .ok_or_else(|| Error::NotFound(format!("no experiment {id}")))?;
         let domain = stored.settings.domain.build().map_err(|e| {
-            Error::Internal(anyhow::anyhow!("stored experiment {id} no longer builds: {e}"))
+            Error::Internal(anyhow::anyhow!(
+                "stored experiment {id} no longer builds: {e}"
+            ))
         })?;
         let live = LiveExperiment::new(id, stored.settings, domain);
         let mut covered = 0;

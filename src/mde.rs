@@ -132,7 +132,11 @@ impl DeviationModel for ServedModel {
 }
 
 /// Row-major features and labels as the GP wants them.
-pub fn training_data(features: Vec<f64>, labels: Vec<f64>, dim: usize) -> (DMatrix<f64>, DVector<f64>) {
+pub fn training_data(
+    features: Vec<f64>,
+    labels: Vec<f64>,
+    dim: usize,
+) -> (DMatrix<f64>, DVector<f64>) {
     let n = labels.len();
     (
         DMatrix::from_row_slice(n, dim, &features),

@@ -7,6 +7,7 @@
 
 use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, IcyGridworld, Kinematic, KinematicParams,
+    WaterPlant,
 };
 use crate::error::Error;
 use serde::{Deserialize, Serialize};
@@ -44,6 +45,10 @@ pub enum DomainSpec {
         #[serde(default = "kinematic_defaults::goal_radius")]
         goal_radius: f64,
     },
+    /// The plant-watering world with its documented default scene (see
+    /// `src/domain/water_plant.rs`): pour one unit into the target without spilling more than
+    /// 2 %, with leaves hanging over the target's opening.
+    WaterPlant {},
 }
 
 /// An axis-aligned box.
@@ -124,6 +129,7 @@ impl DomainSpec {
                 })
                 .map_err(wrap)?,
             ),
+            Self::WaterPlant {} => Arc::new(WaterPlant::default()),
         })
     }
 }

@@ -56,7 +56,9 @@ pub(crate) fn default_start(d: usize, r: &[f64], homoscedastic: bool) -> Vec<f64
 /// out in a flat region of the LML waste iterations. Clipped into the bounds by the optimiser.
 fn random_start(rng: &mut ChaCha8Rng, d: usize, r: &[f64], homoscedastic: bool) -> Vec<f64> {
     let v = target_scale(r);
-    let mut t: Vec<f64> = (0..d).map(|_| rng.random_range(0.05f64.ln()..2.0f64.ln())).collect();
+    let mut t: Vec<f64> = (0..d)
+        .map(|_| rng.random_range(0.05f64.ln()..2.0f64.ln()))
+        .collect();
     t.push(rng.random_range((0.1 * v).ln()..(10.0 * v).ln()));
     if homoscedastic {
         t.push(rng.random_range((1e-3 * v).ln()..v.ln()));
@@ -65,15 +67,33 @@ fn random_start(rng: &mut ChaCha8Rng, d: usize, r: &[f64], homoscedastic: bool) 
 }
 
 fn settings(p: &GpParams) -> Settings {
-    Settings { max_iter: p.max_iterations, ftol: p.function_tolerance, gtol: p.gradient_tolerance, memory: 10, max_step: 3.0 }
+    Settings {
+        max_iter: p.max_iterations,
+        ftol: p.function_tolerance,
+        gtol: p.gradient_tolerance,
+        memory: 10,
+        max_step: 3.0,
+    }
 }
 
 pub(crate) fn jitter(p: &GpParams) -> Jitter {
-    Jitter { initial: p.jitter_initial, max: p.jitter_max }
+    Jitter {
+        initial: p.jitter_initial,
+        max: p.jitter_max,
+    }
 }
 
 /// Runs one L-BFGS start on `(x, r)`; `None` if the start is infeasible.
-fn run(x: &Inputs, r: &[f64], noise: NoiseSpec<'_>, p: &GpParams, lo: &[f64], hi: &[f64], start: &[f64], evals: &mut usize) -> Option<lbfgs::Outcome> {
+fn run(
+    x: &Inputs,
+    r: &[f64],
+    noise: NoiseSpec<'_>,
+    p: &GpParams,
+    lo: &[f64],
+    hi: &[f64],
+    start: &[f64],
+    evals: &mut usize,
+) -> Option<lbfgs::Outcome> {
     let mut obj = Objective::new(x, r, noise, jitter(p));
     let mut fg = |t: &[f64], g: &mut [f64]| obj.eval(t, g);
     let out = lbfgs::minimize(&mut fg, start, lo, hi, &settings(p));
@@ -150,7 +170,14 @@ pub(crate) fn optimise(
         }
     }
     let best = best.ok_or_else(|| {
-        GpError::OptimisationFailed(format!("none of {} start(s) gave a finite log marginal likelihood", candidates.len()))
+        GpError::OptimisationFailed(format!(
+            "none of {} start(s) gave a finite log marginal likelihood",
+            candidates.len()
+        ))
     })?;
-    Ok(Optimum { theta: best.x, lml: -best.f, evaluations })
+    Ok(Optimum {
+        theta: best.x,
+        lml: -best.f,
+        evaluations,
+    })
 }

@@ -52,8 +52,15 @@ fn bias_nodes() -> &'static [(f64, f64)] {
 /// to `log e` when `e = σ²(1 − ρ + ρu²)` to get an unbiased estimate of `log σ²`.
 /// `b(1) =` [`LOG_RESIDUAL_BIAS`], `b(0) = 0`, increasing in between.
 pub fn log_residual_bias(rho: f64) -> f64 {
-    let rho = if rho.is_nan() { 1.0 } else { rho.clamp(0.0, 1.0) };
-    -bias_nodes().iter().map(|&(u2, w)| w * (1.0 - rho + rho * u2).ln()).sum::<f64>()
+    let rho = if rho.is_nan() {
+        1.0
+    } else {
+        rho.clamp(0.0, 1.0)
+    };
+    -bias_nodes()
+        .iter()
+        .map(|&(u2, w)| w * (1.0 - rho + rho * u2).ln())
+        .sum::<f64>()
 }
 
 /// The fitted noise GP.
@@ -68,12 +75,21 @@ pub(crate) struct NoiseModel {
 impl NoiseModel {
     /// Per-point noise variances at the training inputs: `exp(μ₂(x_i))`, clipped.
     pub fn train_noise(&self) -> Vec<f64> {
-        self.core.train_mean(&self.targets).iter().map(|z| z.exp().clamp(self.clip.0, self.clip.1)).collect()
+        self.core
+            .train_mean(&self.targets)
+            .iter()
+            .map(|z| z.exp().clamp(self.clip.0, self.clip.1))
+            .collect()
     }
 
     /// Noise variances at query inputs.
     pub fn predict_noise(&self, q: &Inputs) -> Vec<f64> {
-        self.core.predict(q, false).0.iter().map(|z| z.exp().clamp(self.clip.0, self.clip.1)).collect()
+        self.core
+            .predict(q, false)
+            .0
+            .iter()
+            .map(|z| z.exp().clamp(self.clip.0, self.clip.1))
+            .collect()
     }
 
     pub fn state(&self) -> NoiseModelState {
@@ -86,16 +102,28 @@ impl NoiseModel {
     }
 
     pub fn from_state(x: &Inputs, s: &NoiseModelState) -> Result<NoiseModel, GpError> {
-        s.hyperparameters.check(x.d, "noise model hyperparameters")?;
+        s.hyperparameters
+            .check(x.d, "noise model hyperparameters")?;
         if s.log_noise_targets.len() != x.n {
-            return Err(GpError::DimensionMismatch { what: "noise model targets vs rows of x", expected: x.n, found: s.log_noise_targets.len() });
+            return Err(GpError::DimensionMismatch {
+                what: "noise model targets vs rows of x",
+                expected: x.n,
+                found: s.log_noise_targets.len(),
+            });
         }
         if let Some(i) = s.log_noise_targets.iter().position(|v| !v.is_finite()) {
-            return Err(GpError::NonFinite { what: "noise model targets", index: i });
+            return Err(GpError::NonFinite {
+                what: "noise model targets",
+                index: i,
+            });
         }
         let (lo, hi) = s.noise_variance_clip;
-        if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi) || !(s.jitter.is_finite() && s.jitter >= 0.0) {
-            return Err(GpError::InvalidState("noise model clip or jitter out of range".into()));
+        if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi)
+            || !(s.jitter.is_finite() && s.jitter >= 0.0)
+        {
+            return Err(GpError::InvalidState(
+                "noise model clip or jitter out of range".into(),
+            ));
         }
         let h = &s.hyperparameters;
         let core = Core::build(
@@ -105,10 +133,18 @@ impl NoiseModel {
             &h.length_scales,
             h.signal_variance,
             vec![h.noise_variance; x.n],
-            Jitter { initial: 0.0, max: 0.0 },
+            Jitter {
+                initial: 0.0,
+                max: 0.0,
+            },
             s.jitter,
         )?;
-        Ok(NoiseModel { core, hyper: h.clone(), targets: s.log_noise_targets.clone(), clip: s.noise_variance_clip })
+        Ok(NoiseModel {
+            core,
+            hyper: h.clone(),
+            targets: s.log_noise_targets.clone(),
+            clip: s.noise_variance_clip,
+        })
     }
 }
 
@@ -134,7 +170,13 @@ fn log_noise_targets(core: &Core) -> Vec<f64> {
 }
 
 /// Runs steps 2–5 starting from the homoscedastic model `homo` whose `[log ℓ, log s²]` are `theta_main`.
-pub(crate) fn fit(x: &Inputs, y: &[f64], p: &GpParams, homo: Core, theta_main: &[f64]) -> Result<Fitted, GpError> {
+pub(crate) fn fit(
+    x: &Inputs,
+    y: &[f64],
+    p: &GpParams,
+    homo: Core,
+    theta_main: &[f64],
+) -> Result<Fitted, GpError> {
     let d = x.d;
     let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
     let jitter = fit::jitter(p);
@@ -146,21 +188,68 @@ pub(crate) fn fit(x: &Inputs, y: &[f64], p: &GpParams, homo: Core, theta_main: &
         let z = log_noise_targets(best.as_ref().map_or(&homo, |b| &b.main));
         let mz = mean(&z);
         let rz: Vec<f64> = z.iter().map(|v| v - mz).collect();
-        let seed = p.seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
-        let g = optimise(x, &rz, NoiseSpec::Homoscedastic, &p.noise_model_bounds, p, p.restarts, noise_theta.as_deref(), seed)?;
+        let seed = p
+            .seed
+            .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
+        let g = optimise(
+            x,
+            &rz,
+            NoiseSpec::Homoscedastic,
+            &p.noise_model_bounds,
+            p,
+            p.restarts,
+            noise_theta.as_deref(),
+            seed,
+        )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());
         let core = Core::build(x, &z, mz, &gls, gs2, vec![gn; x.n], jitter, 0.0)?;
-        let hyper = Hyperparameters { length_scales: gls, signal_variance: gs2, noise_variance: gn, prior_mean: mz };
-        let nm = NoiseModel { core, hyper, targets: z, clip };
+        let hyper = Hyperparameters {
+            length_scales: gls,
+            signal_variance: gs2,
+            noise_variance: gn,
+            prior_mean: mz,
+        };
+        let nm = NoiseModel {
+            core,
+            hyper,
+            targets: z,
+            clip,
+        };
         let noise = nm.train_noise();
-        let f = optimise(x, &r, NoiseSpec::Fixed(&noise), &p.bounds, p, 0, Some(&current_theta), p.seed)?;
+        let f = optimise(
+            x,
+            &r,
+            NoiseSpec::Fixed(&noise),
+            &p.bounds,
+            p,
+            0,
+            Some(&current_theta),
+            p.seed,
+        )?;
         let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
-        let main = Core::build(x, y, p.prior_mean, &ls, f.theta[d].exp(), noise, jitter, 0.0)?;
+        let main = Core::build(
+            x,
+            y,
+            p.prior_mean,
+            &ls,
+            f.theta[d].exp(),
+            noise,
+            jitter,
+            0.0,
+        )?;
         if std::env::var("GP_DEBUG").is_ok() {
             let kd = main.kinv_diag();
-            let rho: Vec<f64> = (0..x.n).map(|i| (main.noise[i] + main.jitter) * kd[i]).collect();
-            eprintln!("round {round}: lml {:.3} noise-gp {:?} main ls {:?} mean rho {:.3}", main.lml, nm.hyper, main.length_scales, mean(&rho));
+            let rho: Vec<f64> = (0..x.n)
+                .map(|i| (main.noise[i] + main.jitter) * kd[i])
+                .collect();
+            eprintln!(
+                "round {round}: lml {:.3} noise-gp {:?} main ls {:?} mean rho {:.3}",
+                main.lml,
+                nm.hyper,
+                main.length_scales,
+                mean(&rho)
+            );
         }
         let improved = match &best {
             None => true,
@@ -171,7 +260,11 @@ pub(crate) fn fit(x: &Inputs, y: &[f64], p: &GpParams, homo: Core, theta_main: &
         }
         noise_theta = Some(g.theta);
         current_theta = f.theta;
-        best = Some(Fitted { main, noise_model: nm, rounds: round + 1 });
+        best = Some(Fitted {
+            main,
+            noise_model: nm,
+            rounds: round + 1,
+        });
     }
     best.ok_or_else(|| GpError::OptimisationFailed("no heteroscedastic round succeeded".into()))
 }

@@ -32,7 +32,11 @@ pub(crate) struct Inputs {
 impl Inputs {
     /// Copies a nalgebra matrix whose rows are points.
     pub fn from_matrix(x: &DMatrix<f64>) -> Self {
-        Inputs { n: x.nrows(), d: x.ncols(), cols: x.as_slice().to_vec() }
+        Inputs {
+            n: x.nrows(),
+            d: x.ncols(),
+            cols: x.as_slice().to_vec(),
+        }
     }
 
     /// The points at `idx`, in that order.
@@ -43,7 +47,11 @@ impl Inputs {
             let col = &self.cols[k * self.n..(k + 1) * self.n];
             cols.extend(idx.iter().map(|&i| col[i]));
         }
-        Inputs { n: m, d: self.d, cols }
+        Inputs {
+            n: m,
+            d: self.d,
+            cols,
+        }
     }
 
     /// The coordinates divided by the length scales (`x_k / ℓ_k`), column-major.
@@ -51,7 +59,9 @@ impl Inputs {
         let mut out = self.cols.clone();
         for (k, &l) in length_scales.iter().enumerate() {
             let inv = 1.0 / l;
-            out[k * self.n..(k + 1) * self.n].iter_mut().for_each(|v| *v *= inv);
+            out[k * self.n..(k + 1) * self.n]
+                .iter_mut()
+                .for_each(|v| *v *= inv);
         }
         out
     }
@@ -68,7 +78,11 @@ pub(crate) fn matern52(r2: f64, s2: f64) -> f64 {
 /// spawning costs more than it saves).
 pub(crate) fn threads_for(work: usize) -> usize {
     static AVAILABLE: OnceLock<usize> = OnceLock::new();
-    let avail = *AVAILABLE.get_or_init(|| std::thread::available_parallelism().map_or(1, |p| p.get()).min(16));
+    let avail = *AVAILABLE.get_or_init(|| {
+        std::thread::available_parallelism()
+            .map_or(1, |p| p.get())
+            .min(16)
+    });
     if work < 200_000 { 1 } else { avail }
 }
 
@@ -113,7 +127,15 @@ fn split_columns<'a>(mut buf: &'a mut [f64], n: usize, bounds: &[usize]) -> Vec<
 /// `xs` are the length-scale-scaled inputs (`n × d`, column-major). Parallel over balanced
 /// column blocks; every element is computed independently, so the result does not depend on the
 /// number of threads.
-pub(crate) fn build_train(xs: &[f64], n: usize, d: usize, s2: f64, diag_add: &[f64], a: &mut [f64], g: Option<&mut [f64]>) {
+pub(crate) fn build_train(
+    xs: &[f64],
+    n: usize,
+    d: usize,
+    s2: f64,
+    diag_add: &[f64],
+    a: &mut [f64],
+    g: Option<&mut [f64]>,
+) {
     let threads = threads_for(n * n / 2 * (d + 4));
     let bounds = triangle_blocks(n, threads);
     let a_parts = split_columns(a, n, &bounds);
@@ -173,7 +195,15 @@ pub(crate) fn build_train(xs: &[f64], n: usize, d: usize, s2: f64, diag_add: &[f
 
 /// Cross covariance `K*` between training inputs `xs` (`n × d`, scaled) and query inputs `qs`
 /// (`m × d`, scaled), written column-major `n × m` into `out` (query `j` is column `j`).
-pub(crate) fn build_cross(xs: &[f64], n: usize, qs: &[f64], m: usize, d: usize, s2: f64, out: &mut [f64]) {
+pub(crate) fn build_cross(
+    xs: &[f64],
+    n: usize,
+    qs: &[f64],
+    m: usize,
+    d: usize,
+    s2: f64,
+    out: &mut [f64],
+) {
     let threads = threads_for(n * m * (d + 4)).min(m.max(1));
     let work = |j0: usize, part: &mut [f64]| {
         for (jj, col) in part.chunks_exact_mut(n).enumerate() {
@@ -210,7 +240,14 @@ pub(crate) fn build_cross(xs: &[f64], n: usize, qs: &[f64], m: usize, d: usize, 
 /// This is `½ tr(W ∂K/∂log ℓ_k)`, the LML gradient w.r.t. the log length scales. The sum runs
 /// over 16 fixed column blocks whose partial sums are added in order, so it is bit-identical for
 /// any number of threads.
-pub(crate) fn length_scale_gradient(xs: &[f64], n: usize, d: usize, alpha: &[f64], kinv: &[f64], g: &[f64]) -> Vec<f64> {
+pub(crate) fn length_scale_gradient(
+    xs: &[f64],
+    n: usize,
+    d: usize,
+    alpha: &[f64],
+    kinv: &[f64],
+    g: &[f64],
+) -> Vec<f64> {
     const BLOCKS: usize = 16;
     let bounds = triangle_blocks(n, BLOCKS);
     let nb = bounds.len() - 1;
@@ -250,7 +287,12 @@ pub(crate) fn length_scale_gradient(xs: &[f64], n: usize, d: usize, alpha: &[f64
             let handles: Vec<_> = (0..threads)
                 .map(|t| {
                     let block = &block;
-                    scope.spawn(move || (t..nb).step_by(threads).map(|b| (b, block(b))).collect::<Vec<_>>())
+                    scope.spawn(move || {
+                        (t..nb)
+                            .step_by(threads)
+                            .map(|b| (b, block(b)))
+                            .collect::<Vec<_>>()
+                    })
                 })
                 .collect();
             for h in handles {

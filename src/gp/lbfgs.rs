@@ -45,7 +45,12 @@ pub(crate) struct Outcome {
 }
 
 fn dot_masked(a: &[f64], b: &[f64], free: &[bool]) -> f64 {
-    a.iter().zip(b).zip(free).filter(|(_, f)| **f).map(|((x, y), _)| x * y).sum()
+    a.iter()
+        .zip(b)
+        .zip(free)
+        .filter(|(_, f)| **f)
+        .map(|((x, y), _)| x * y)
+        .sum()
 }
 
 /// Minimises `fg` (which returns `f(x)` and writes `∇f(x)`; a non-finite value means "infeasible,
@@ -78,8 +83,13 @@ pub(crate) fn minimize(
     let mut iterations = 0;
     while iterations < s.max_iter {
         iterations += 1;
-        let free: Vec<bool> = (0..p).map(|i| !((x[i] <= lo[i] && g[i] > 0.0) || (x[i] >= hi[i] && g[i] < 0.0))).collect();
-        let pg = (0..p).filter(|&i| free[i]).map(|i| g[i].abs()).fold(0.0, f64::max);
+        let free: Vec<bool> = (0..p)
+            .map(|i| !((x[i] <= lo[i] && g[i] > 0.0) || (x[i] >= hi[i] && g[i] < 0.0)))
+            .collect();
+        let pg = (0..p)
+            .filter(|&i| free[i])
+            .map(|i| g[i].abs())
+            .fold(0.0, f64::max);
         if pg <= s.gtol {
             converged = true;
             break;
@@ -90,7 +100,9 @@ pub(crate) fn minimize(
         let mut gamma = None;
         for (sv, yv) in mem.iter().rev() {
             let sy = dot_masked(sv, yv, &free);
-            if sy <= 1e-12 * dot_masked(yv, yv, &free).sqrt() * dot_masked(sv, sv, &free).sqrt() || sy <= 0.0 {
+            if sy <= 1e-12 * dot_masked(yv, yv, &free).sqrt() * dot_masked(sv, sv, &free).sqrt()
+                || sy <= 0.0
+            {
                 coefs.push(None);
                 continue;
             }
@@ -142,14 +154,22 @@ pub(crate) fn minimize(
                 xn[i] = (x[i] + t * dir[i]).clamp(lo[i], hi[i]);
             }
             let fnew = fg(&xn, &mut gn);
-            let decrease: f64 = g.iter().zip(xn.iter().zip(&x)).map(|(gi, (a, b))| gi * (a - b)).sum();
+            let decrease: f64 = g
+                .iter()
+                .zip(xn.iter().zip(&x))
+                .map(|(gi, (a, b))| gi * (a - b))
+                .sum();
             if fnew.is_finite() && fnew <= f + 1e-4 * decrease {
                 accepted = Some(fnew);
                 break;
             }
             t = if fnew.is_finite() {
                 let denom = 2.0 * (fnew - f - dg * t);
-                let tq = if denom > 0.0 { -dg * t * t / denom } else { 0.5 * t };
+                let tq = if denom > 0.0 {
+                    -dg * t * t / denom
+                } else {
+                    0.5 * t
+                };
                 tq.clamp(0.1 * t, 0.5 * t)
             } else {
                 0.1 * t
@@ -178,7 +198,12 @@ pub(crate) fn minimize(
             break;
         }
     }
-    Some(Outcome { x, f, iterations, converged })
+    Some(Outcome {
+        x,
+        f,
+        iterations,
+        converged,
+    })
 }
 
 #[cfg(test)]
@@ -186,7 +211,13 @@ mod tests {
     use super::*;
 
     fn settings() -> Settings {
-        Settings { max_iter: 500, ftol: 1e-15, gtol: 1e-9, memory: 10, max_step: 10.0 }
+        Settings {
+            max_iter: 500,
+            ftol: 1e-15,
+            gtol: 1e-9,
+            memory: 10,
+            max_step: 10.0,
+        }
     }
 
     #[test]
@@ -197,8 +228,18 @@ mod tests {
             g[1] = 200.0 * (b - a * a);
             (1.0 - a).powi(2) + 100.0 * (b - a * a).powi(2)
         };
-        let out = minimize(&mut fg, &[-1.2, 1.0], &[-5.0, -5.0], &[5.0, 5.0], &settings()).unwrap();
-        assert!((out.x[0] - 1.0).abs() < 1e-5 && (out.x[1] - 1.0).abs() < 1e-5, "{out:?}");
+        let out = minimize(
+            &mut fg,
+            &[-1.2, 1.0],
+            &[-5.0, -5.0],
+            &[5.0, 5.0],
+            &settings(),
+        )
+        .unwrap();
+        assert!(
+            (out.x[0] - 1.0).abs() < 1e-5 && (out.x[1] - 1.0).abs() < 1e-5,
+            "{out:?}"
+        );
     }
 
     #[test]
@@ -210,7 +251,10 @@ mod tests {
             (x[0] - 3.0).powi(2) + (x[1] + 2.0).powi(2) + 0.5 * x[0] * x[1]
         };
         let out = minimize(&mut fg, &[0.5, 0.5], &[0.0, -1.0], &[1.0, 1.0], &settings()).unwrap();
-        assert!((out.x[0] - 1.0).abs() < 1e-12 && (out.x[1] + 1.0).abs() < 1e-12, "{out:?}");
+        assert!(
+            (out.x[0] - 1.0).abs() < 1e-12 && (out.x[1] + 1.0).abs() < 1e-12,
+            "{out:?}"
+        );
         assert!(out.converged);
     }
 

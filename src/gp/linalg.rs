@@ -15,7 +15,11 @@ pub(crate) const PARALLEL_MIN_N: usize = 1200;
 
 /// faer parallelism for an `n × n` problem.
 pub(crate) fn par_for(n: usize) -> Par {
-    if n >= PARALLEL_MIN_N { Par::rayon(0) } else { Par::Seq }
+    if n >= PARALLEL_MIN_N {
+        Par::rayon(0)
+    } else {
+        Par::Seq
+    }
 }
 
 fn view(a: &[f64], nrows: usize, ncols: usize) -> MatRef<'_, f64> {
@@ -30,26 +34,54 @@ fn view_mut(a: &mut [f64], nrows: usize, ncols: usize) -> MatMut<'_, f64> {
 /// is not positive (or not finite); `a`'s lower triangle is then garbage.
 pub(crate) fn cholesky_in_place(a: &mut [f64], n: usize) -> bool {
     let par = par_for(n);
-    let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(n, par, Default::default()));
-    let ok = factor::cholesky_in_place(view_mut(a, n, n), Default::default(), par, MemStack::new(&mut mem), Default::default())
-        .is_ok();
+    let mut mem = MemBuffer::new(factor::cholesky_in_place_scratch::<f64>(
+        n,
+        par,
+        Default::default(),
+    ));
+    let ok = factor::cholesky_in_place(
+        view_mut(a, n, n),
+        Default::default(),
+        par,
+        MemStack::new(&mut mem),
+        Default::default(),
+    )
+    .is_ok();
     // faer accepts any positive pivot; reject non-finite factors too (e.g. from huge entries).
     ok && (0..n).all(|i| a[i * n + i].is_finite() && a[i * n + i] > 0.0)
 }
 
 /// Solves `L X = B` in place (`B` is `n × m`).
 pub(crate) fn solve_lower_in_place(l: &[f64], n: usize, b: &mut [f64], m: usize, par: Par) {
-    faer::linalg::triangular_solve::solve_lower_triangular_in_place(view(l, n, n), view_mut(b, n, m), par);
+    faer::linalg::triangular_solve::solve_lower_triangular_in_place(
+        view(l, n, n),
+        view_mut(b, n, m),
+        par,
+    );
 }
 
 /// Solves `Lᵀ X = B` in place (`B` is `n × m`).
-pub(crate) fn solve_upper_transpose_in_place(l: &[f64], n: usize, b: &mut [f64], m: usize, par: Par) {
-    faer::linalg::triangular_solve::solve_upper_triangular_in_place(view(l, n, n).transpose(), view_mut(b, n, m), par);
+pub(crate) fn solve_upper_transpose_in_place(
+    l: &[f64],
+    n: usize,
+    b: &mut [f64],
+    m: usize,
+    par: Par,
+) {
+    faer::linalg::triangular_solve::solve_upper_triangular_in_place(
+        view(l, n, n).transpose(),
+        view_mut(b, n, m),
+        par,
+    );
 }
 
 /// Writes `L⁻¹` into the lower triangle of `out` (`n × n`).
 pub(crate) fn invert_lower(l: &[f64], n: usize, out: &mut [f64]) {
-    faer::linalg::triangular_inverse::invert_lower_triangular(view_mut(out, n, n), view(l, n, n), par_for(n));
+    faer::linalg::triangular_inverse::invert_lower_triangular(
+        view_mut(out, n, n),
+        view(l, n, n),
+        par_for(n),
+    );
 }
 
 /// Writes the lower triangle of `L⁻ᵀ L⁻¹ = K⁻¹` into `out`, given `L⁻¹` in the lower triangle of `linv`.

@@ -77,7 +77,11 @@ pub(crate) fn factorise(
 ) -> Result<Factor, (GpError, Vec<f64>)> {
     let mean_diag = s2 + noise.iter().sum::<f64>() / n as f64;
     let mut eps = first_eps;
-    let mut diag: Vec<f64> = if eps == 0.0 { noise.to_vec() } else { noise.iter().map(|v| v + eps).collect() };
+    let mut diag: Vec<f64> = if eps == 0.0 {
+        noise.to_vec()
+    } else {
+        noise.iter().map(|v| v + eps).collect()
+    };
     loop {
         build_train(xs, n, d, s2, &diag, &mut l, g.as_deref_mut());
         if linalg::cholesky_in_place(&mut l, n) {
@@ -86,10 +90,19 @@ pub(crate) fn factorise(
             linalg::solve_upper_transpose_in_place(&l, n, &mut alpha, 1, faer::Par::Seq);
             let log_det = 2.0 * (0..n).map(|i| l[i * n + i].ln()).sum::<f64>();
             if alpha.iter().all(|v| v.is_finite()) && log_det.is_finite() {
-                return Ok(Factor { l, jitter: eps, alpha, log_det });
+                return Ok(Factor {
+                    l,
+                    jitter: eps,
+                    alpha,
+                    log_det,
+                });
             }
         }
-        eps = if eps == 0.0 { jitter.initial * mean_diag } else { eps * 10.0 };
+        eps = if eps == 0.0 {
+            jitter.initial * mean_diag
+        } else {
+            eps * 10.0
+        };
         if !(eps <= jitter.max * mean_diag * (1.0 + 1e-9)) || !eps.is_finite() {
             return Err((GpError::NotPositiveDefinite { jitter: eps / 10.0 }, l));
         }
@@ -119,7 +132,16 @@ impl<'a> Objective<'a> {
     /// A new objective for inputs `x`, centred targets `r`.
     pub fn new(x: &'a Inputs, r: &'a [f64], noise: NoiseSpec<'a>, jitter: Jitter) -> Self {
         let nn = x.n * x.n;
-        Objective { x, r, noise, jitter, a: vec![0.0; nn], g: vec![0.0; nn], linv: vec![0.0; nn], evaluations: 0 }
+        Objective {
+            x,
+            r,
+            noise,
+            jitter,
+            a: vec![0.0; nn],
+            g: vec![0.0; nn],
+            linv: vec![0.0; nn],
+            evaluations: 0,
+        }
     }
 
     /// Length of `θ`.
@@ -147,7 +169,18 @@ impl<'a> Objective<'a> {
         };
         let xs = self.x.scaled(&ls);
         let a = std::mem::take(&mut self.a);
-        let fac = match factorise(&xs, n, d, s2, noise, self.r, self.jitter, 0.0, a, Some(&mut self.g)) {
+        let fac = match factorise(
+            &xs,
+            n,
+            d,
+            s2,
+            noise,
+            self.r,
+            self.jitter,
+            0.0,
+            a,
+            Some(&mut self.g),
+        ) {
             Ok(f) => f,
             Err((_, a)) => {
                 self.a = a;
@@ -156,7 +189,9 @@ impl<'a> Objective<'a> {
             }
         };
         let lml = fac.lml(self.r);
-        let Factor { l, jitter, alpha, .. } = fac;
+        let Factor {
+            l, jitter, alpha, ..
+        } = fac;
         let mut a = l;
         // K⁻¹ = L⁻ᵀ L⁻¹, written over L (no longer needed).
         linalg::invert_lower(&a, n, &mut self.linv);

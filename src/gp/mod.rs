@@ -95,7 +95,11 @@ impl Hyperparameters {
     /// Checks that the values are usable for `dim` inputs (finite, positive, right length).
     pub fn check(&self, dim: usize, what: &'static str) -> Result<(), GpError> {
         if self.length_scales.len() != dim {
-            return Err(GpError::DimensionMismatch { what, expected: dim, found: self.length_scales.len() });
+            return Err(GpError::DimensionMismatch {
+                what,
+                expected: dim,
+                found: self.length_scales.len(),
+            });
         }
         let ok = self.length_scales.iter().all(|l| l.is_finite() && *l > 0.0)
             && self.signal_variance.is_finite()
@@ -103,7 +107,13 @@ impl Hyperparameters {
             && self.noise_variance.is_finite()
             && self.noise_variance >= 0.0
             && self.prior_mean.is_finite();
-        if ok { Ok(()) } else { Err(GpError::InvalidState(format!("{what}: hyperparameters must be finite and positive"))) }
+        if ok {
+            Ok(())
+        } else {
+            Err(GpError::InvalidState(format!(
+                "{what}: hyperparameters must be finite and positive"
+            )))
+        }
     }
 }
 
@@ -172,7 +182,11 @@ pub struct Prediction {
 impl Prediction {
     /// Predictive standard deviation of an observation, `√(latent + noise)` — the σ reported to users.
     pub fn std(&self) -> Vec<f64> {
-        self.latent_variance.iter().zip(&self.noise_variance).map(|(a, b)| (a + b).sqrt()).collect()
+        self.latent_variance
+            .iter()
+            .zip(&self.noise_variance)
+            .map(|(a, b)| (a + b).sqrt())
+            .collect()
     }
 
     /// Number of predicted points.

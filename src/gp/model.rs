@@ -8,7 +8,9 @@ use super::hetero::{self, NoiseModel};
 use super::kernel::{self, Inputs};
 use super::linalg;
 use super::lml::{self, Jitter, NoiseSpec};
-use super::{GpError, Hyperparameters, ModelState, NoiseMode, NoiseSummary, Prediction, ValidGpParams};
+use super::{
+    GpError, Hyperparameters, ModelState, NoiseMode, NoiseSummary, Prediction, ValidGpParams,
+};
 
 /// One conditioned GP: scaled training inputs, `L⁻¹` and `α = K⁻¹(y − m)`.
 #[derive(Clone, Debug)]
@@ -47,22 +49,57 @@ impl Core {
         let (n, d) = (x.n, x.d);
         let r: Vec<f64> = y.iter().map(|v| v - mean).collect();
         let xs = x.scaled(length_scales);
-        let fac = lml::factorise(&xs, n, d, s2, &noise, &r, jitter, first_eps, vec![0.0; n * n], None).map_err(|(e, _)| e)?;
+        let fac = lml::factorise(
+            &xs,
+            n,
+            d,
+            s2,
+            &noise,
+            &r,
+            jitter,
+            first_eps,
+            vec![0.0; n * n],
+            None,
+        )
+        .map_err(|(e, _)| e)?;
         let lml = fac.lml(&r);
         let mut linv = vec![0.0; n * n];
         linalg::invert_lower(&fac.l, n, &mut linv);
-        Ok(Core { n, d, xs, length_scales: length_scales.to_vec(), s2, mean, noise, jitter: fac.jitter, linv, alpha: fac.alpha, lml })
+        Ok(Core {
+            n,
+            d,
+            xs,
+            length_scales: length_scales.to_vec(),
+            s2,
+            mean,
+            noise,
+            jitter: fac.jitter,
+            linv,
+            alpha: fac.alpha,
+            lml,
+        })
     }
 
     /// `(K⁻¹)_ii = Σ_{k≥i} (L⁻¹)_ki²`.
     pub fn kinv_diag(&self) -> Vec<f64> {
         let n = self.n;
-        (0..n).map(|i| self.linv[i * n + i..(i + 1) * n].iter().map(|v| v * v).sum()).collect()
+        (0..n)
+            .map(|i| {
+                self.linv[i * n + i..(i + 1) * n]
+                    .iter()
+                    .map(|v| v * v)
+                    .sum()
+            })
+            .collect()
     }
 
     /// Posterior mean of the latent function at the training inputs: `y_i − D'_i α_i`.
     pub fn train_mean(&self, y: &[f64]) -> Vec<f64> {
-        y.iter().zip(&self.noise).zip(&self.alpha).map(|((yi, di), ai)| yi - (di + self.jitter) * ai).collect()
+        y.iter()
+            .zip(&self.noise)
+            .zip(&self.alpha)
+            .map(|((yi, di), ai)| yi - (di + self.jitter) * ai)
+            .collect()
     }
 
     /// Mean and (optionally) latent variance at query points `q`.
@@ -92,7 +129,11 @@ impl Core {
                     var.push((self.s2 - self.quad_single(&ks)).max(0.0));
                 } else {
                     v.resize(n * mc, 0.0);
-                    let par = if n * n * mc >= 50_000_000 { Par::rayon(0) } else { Par::Seq };
+                    let par = if n * n * mc >= 50_000_000 {
+                        Par::rayon(0)
+                    } else {
+                        Par::Seq
+                    };
                     linalg::lower_matmul(&self.linv, n, &ks, mc, &mut v, par);
                     for col in v.chunks_exact(n) {
                         var.push((self.s2 - col.iter().map(|t| t * t).sum::<f64>()).max(0.0));
@@ -130,7 +171,11 @@ impl Core {
             let first = sweep(0, split);
             (first, h.join().unwrap_or_else(|_| sweep(split, n)))
         });
-        first.iter().zip(&second).map(|(a, b)| (a + b) * (a + b)).sum()
+        first
+            .iter()
+            .zip(&second)
+            .map(|(a, b)| (a + b) * (a + b))
+            .sum()
     }
 }
 
@@ -159,11 +204,18 @@ fn check_data(x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Inputs, GpError> {
         return Err(GpError::EmptyData("inputs have no columns"));
     }
     if y.len() != x.nrows() {
-        return Err(GpError::DimensionMismatch { what: "length of y vs rows of x", expected: x.nrows(), found: y.len() });
+        return Err(GpError::DimensionMismatch {
+            what: "length of y vs rows of x",
+            expected: x.nrows(),
+            found: y.len(),
+        });
     }
     check_finite_matrix(x, "x")?;
     if let Some(i) = y.iter().position(|v| !v.is_finite()) {
-        return Err(GpError::NonFinite { what: "y", index: i });
+        return Err(GpError::NonFinite {
+            what: "y",
+            index: i,
+        });
     }
     Ok(Inputs::from_matrix(x))
 }
@@ -172,7 +224,10 @@ fn check_finite_matrix(x: &DMatrix<f64>, what: &'static str) -> Result<(), GpErr
     for i in 0..x.nrows() {
         for j in 0..x.ncols() {
             if !x[(i, j)].is_finite() {
-                return Err(GpError::NonFinite { what, index: i * x.ncols() + j });
+                return Err(GpError::NonFinite {
+                    what,
+                    index: i * x.ncols() + j,
+                });
             }
         }
     }
@@ -190,14 +245,27 @@ impl GpModel {
     /// [`GpError::EmptyData`], [`GpError::DimensionMismatch`], [`GpError::NonFinite`] for bad data;
     /// [`GpError::NotPositiveDefinite`] / [`GpError::OptimisationFailed`] when the covariance cannot
     /// be factorised even with the maximum jitter.
-    pub fn fit(x: &DMatrix<f64>, y: &DVector<f64>, params: &ValidGpParams) -> Result<GpModel, GpError> {
+    pub fn fit(
+        x: &DMatrix<f64>,
+        y: &DVector<f64>,
+        params: &ValidGpParams,
+    ) -> Result<GpModel, GpError> {
         let x = check_data(x, y)?;
         let p = params.params();
         let y = y.as_slice();
         let d = x.d;
         let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
         let jitter = fit::jitter(p);
-        let Optimum { theta, .. } = fit::optimise(&x, &r, NoiseSpec::Homoscedastic, &p.bounds, p, p.restarts, None, p.seed)?;
+        let Optimum { theta, .. } = fit::optimise(
+            &x,
+            &r,
+            NoiseSpec::Homoscedastic,
+            &p.bounds,
+            p,
+            p.restarts,
+            None,
+            p.seed,
+        )?;
         let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
         let s2 = theta[d].exp();
         let noise = theta[d + 1].exp();
@@ -205,8 +273,21 @@ impl GpModel {
         let homo_lml = homo.lml;
         let hetero = p.noise == NoiseMode::Heteroscedastic && x.n >= p.hetero_min_points;
         if !hetero {
-            let hyper = Hyperparameters { length_scales: ls, signal_variance: s2, noise_variance: noise, prior_mean: p.prior_mean };
-            return Ok(GpModel { x, mode: NoiseMode::Homoscedastic, main: homo, noise_model: None, hyper, homo_lml, rounds: 0 });
+            let hyper = Hyperparameters {
+                length_scales: ls,
+                signal_variance: s2,
+                noise_variance: noise,
+                prior_mean: p.prior_mean,
+            };
+            return Ok(GpModel {
+                x,
+                mode: NoiseMode::Homoscedastic,
+                main: homo,
+                noise_model: None,
+                hyper,
+                homo_lml,
+                rounds: 0,
+            });
         }
         let fitted = hetero::fit(&x, y, p, homo, &theta[..d + 1])?;
         let hyper = Hyperparameters {
@@ -233,34 +314,86 @@ impl GpModel {
     /// Data errors as for [`fit`](Self::fit); [`GpError::InvalidState`] / [`GpError::DimensionMismatch`]
     /// when the state does not match the data or is malformed; [`GpError::NotPositiveDefinite`]
     /// if the stored configuration no longer factorises.
-    pub fn from_state(x: &DMatrix<f64>, y: &DVector<f64>, state: &ModelState) -> Result<GpModel, GpError> {
+    pub fn from_state(
+        x: &DMatrix<f64>,
+        y: &DVector<f64>,
+        state: &ModelState,
+    ) -> Result<GpModel, GpError> {
         let x = check_data(x, y)?;
         let y = y.as_slice();
         if state.format != 1 {
-            return Err(GpError::InvalidState(format!("unsupported format {}", state.format)));
+            return Err(GpError::InvalidState(format!(
+                "unsupported format {}",
+                state.format
+            )));
         }
         if state.n_train != x.n {
-            return Err(GpError::DimensionMismatch { what: "state n_train vs rows of x", expected: state.n_train, found: x.n });
+            return Err(GpError::DimensionMismatch {
+                what: "state n_train vs rows of x",
+                expected: state.n_train,
+                found: x.n,
+            });
         }
         let h = &state.hyperparameters;
         h.check(x.d, "hyperparameters")?;
         if !(state.jitter.is_finite() && state.jitter >= 0.0) {
-            return Err(GpError::InvalidState("jitter must be finite and >= 0".into()));
+            return Err(GpError::InvalidState(
+                "jitter must be finite and >= 0".into(),
+            ));
         }
         // A rebuild uses exactly the stored jitter (no ladder): the matrix must be the one fitted.
-        let fixed = Jitter { initial: 0.0, max: 0.0 };
+        let fixed = Jitter {
+            initial: 0.0,
+            max: 0.0,
+        };
         match (state.noise, &state.noise_model) {
             (NoiseMode::Homoscedastic, None) => {
-                let main = Core::build(&x, y, h.prior_mean, &h.length_scales, h.signal_variance, vec![h.noise_variance; x.n], fixed, state.jitter)?;
-                Ok(GpModel { x, mode: NoiseMode::Homoscedastic, homo_lml: main.lml, main, noise_model: None, hyper: h.clone(), rounds: 0 })
+                let main = Core::build(
+                    &x,
+                    y,
+                    h.prior_mean,
+                    &h.length_scales,
+                    h.signal_variance,
+                    vec![h.noise_variance; x.n],
+                    fixed,
+                    state.jitter,
+                )?;
+                Ok(GpModel {
+                    x,
+                    mode: NoiseMode::Homoscedastic,
+                    homo_lml: main.lml,
+                    main,
+                    noise_model: None,
+                    hyper: h.clone(),
+                    rounds: 0,
+                })
             }
             (NoiseMode::Heteroscedastic, Some(ns)) => {
                 let nm = NoiseModel::from_state(&x, ns)?;
                 let noise = nm.train_noise();
-                let main = Core::build(&x, y, h.prior_mean, &h.length_scales, h.signal_variance, noise, fixed, state.jitter)?;
-                Ok(GpModel { x, mode: NoiseMode::Heteroscedastic, main, noise_model: Some(nm), hyper: h.clone(), homo_lml: f64::NAN, rounds: 0 })
+                let main = Core::build(
+                    &x,
+                    y,
+                    h.prior_mean,
+                    &h.length_scales,
+                    h.signal_variance,
+                    noise,
+                    fixed,
+                    state.jitter,
+                )?;
+                Ok(GpModel {
+                    x,
+                    mode: NoiseMode::Heteroscedastic,
+                    main,
+                    noise_model: Some(nm),
+                    hyper: h.clone(),
+                    homo_lml: f64::NAN,
+                    rounds: 0,
+                })
             }
-            _ => Err(GpError::InvalidState("noise mode and noise model disagree".into())),
+            _ => Err(GpError::InvalidState(
+                "noise mode and noise model disagree".into(),
+            )),
         }
     }
 
@@ -332,7 +465,11 @@ impl GpModel {
     pub fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         if x.ncols() != self.x.d {
             let m = x.nrows();
-            return Prediction { mean: vec![f64::NAN; m], latent_variance: vec![f64::NAN; m], noise_variance: vec![f64::NAN; m] };
+            return Prediction {
+                mean: vec![f64::NAN; m],
+                latent_variance: vec![f64::NAN; m],
+                noise_variance: vec![f64::NAN; m],
+            };
         }
         let q = Inputs::from_matrix(x);
         let (mean, latent_variance) = self.main.predict(&q, true);
@@ -340,7 +477,11 @@ impl GpModel {
             Some(nm) => nm.predict_noise(&q),
             None => vec![self.hyper.noise_variance; q.n],
         };
-        let mut p = Prediction { mean, latent_variance, noise_variance };
+        let mut p = Prediction {
+            mean,
+            latent_variance,
+            noise_variance,
+        };
         for i in 0..q.n {
             if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
                 p.mean[i] = f64::NAN;
@@ -354,7 +495,11 @@ impl GpModel {
     /// Like [`predict`](Self::predict) but rejects a wrong column count or non-finite inputs.
     pub fn try_predict(&self, x: &DMatrix<f64>) -> Result<Prediction, GpError> {
         if x.ncols() != self.x.d {
-            return Err(GpError::DimensionMismatch { what: "columns of query x vs input dimension", expected: self.x.d, found: x.ncols() });
+            return Err(GpError::DimensionMismatch {
+                what: "columns of query x vs input dimension",
+                expected: self.x.d,
+                found: x.ncols(),
+            });
         }
         check_finite_matrix(x, "query x")?;
         Ok(self.predict(x))

@@ -49,7 +49,11 @@ impl Bounds {
     };
 
     fn check(&self, prefix: &'static [&'static str; 3]) -> Result<(), GpError> {
-        for (name, (lo, hi)) in prefix.iter().zip([self.length_scale, self.signal_variance, self.noise_variance]) {
+        for (name, (lo, hi)) in
+            prefix
+                .iter()
+                .zip([self.length_scale, self.signal_variance, self.noise_variance])
+        {
             if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi) {
                 return Err(GpError::InvalidParameter {
                     name,
@@ -159,7 +163,10 @@ impl std::ops::Deref for ValidGpParams {
 }
 
 fn invalid(name: &'static str, reason: impl Into<String>) -> GpError {
-    GpError::InvalidParameter { name, reason: reason.into() }
+    GpError::InvalidParameter {
+        name,
+        reason: reason.into(),
+    }
 }
 
 impl GpParams {
@@ -169,43 +176,77 @@ impl GpParams {
             return Err(invalid("prior_mean", "must be finite"));
         }
         if self.restarts > 64 {
-            return Err(invalid("restarts", format!("must be at most 64, got {}", self.restarts)));
+            return Err(invalid(
+                "restarts",
+                format!("must be at most 64, got {}", self.restarts),
+            ));
         }
-        self.bounds.check(&["bounds.length_scale", "bounds.signal_variance", "bounds.noise_variance"])?;
+        self.bounds.check(&[
+            "bounds.length_scale",
+            "bounds.signal_variance",
+            "bounds.noise_variance",
+        ])?;
         self.noise_model_bounds.check(&[
             "noise_model_bounds.length_scale",
             "noise_model_bounds.signal_variance",
             "noise_model_bounds.noise_variance",
         ])?;
         if !(1..=10_000).contains(&self.max_iterations) {
-            return Err(invalid("max_iterations", format!("must be in 1..=10000, got {}", self.max_iterations)));
+            return Err(invalid(
+                "max_iterations",
+                format!("must be in 1..=10000, got {}", self.max_iterations),
+            ));
         }
         if !(self.function_tolerance > 0.0 && self.function_tolerance <= 1e-2) {
-            return Err(invalid("function_tolerance", format!("must be in (0, 1e-2], got {}", self.function_tolerance)));
+            return Err(invalid(
+                "function_tolerance",
+                format!("must be in (0, 1e-2], got {}", self.function_tolerance),
+            ));
         }
         if !(self.gradient_tolerance > 0.0 && self.gradient_tolerance <= 1.0) {
-            return Err(invalid("gradient_tolerance", format!("must be in (0, 1], got {}", self.gradient_tolerance)));
+            return Err(invalid(
+                "gradient_tolerance",
+                format!("must be in (0, 1], got {}", self.gradient_tolerance),
+            ));
         }
         if self.screen_subset != 0 && self.screen_subset < 64 {
-            return Err(invalid("screen_subset", format!("must be 0 (off) or at least 64, got {}", self.screen_subset)));
+            return Err(invalid(
+                "screen_subset",
+                format!("must be 0 (off) or at least 64, got {}", self.screen_subset),
+            ));
         }
         if !(self.jitter_max.is_finite() && self.jitter_max > 0.0 && self.jitter_max <= 0.1) {
-            return Err(invalid("jitter_max", format!("must be in (0, 0.1], got {}", self.jitter_max)));
+            return Err(invalid(
+                "jitter_max",
+                format!("must be in (0, 0.1], got {}", self.jitter_max),
+            ));
         }
         if !(self.jitter_initial > 0.0 && self.jitter_initial <= self.jitter_max) {
             return Err(invalid(
                 "jitter_initial",
-                format!("must be in (0, jitter_max = {}], got {}", self.jitter_max, self.jitter_initial),
+                format!(
+                    "must be in (0, jitter_max = {}], got {}",
+                    self.jitter_max, self.jitter_initial
+                ),
             ));
         }
         if !(1..=20).contains(&self.hetero_rounds) {
-            return Err(invalid("hetero_rounds", format!("must be in 1..=20, got {}", self.hetero_rounds)));
+            return Err(invalid(
+                "hetero_rounds",
+                format!("must be in 1..=20, got {}", self.hetero_rounds),
+            ));
         }
         if !(self.hetero_tolerance >= 0.0 && self.hetero_tolerance < 1.0) {
-            return Err(invalid("hetero_tolerance", format!("must be in [0, 1), got {}", self.hetero_tolerance)));
+            return Err(invalid(
+                "hetero_tolerance",
+                format!("must be in [0, 1), got {}", self.hetero_tolerance),
+            ));
         }
         if self.hetero_min_points < 2 {
-            return Err(invalid("hetero_min_points", format!("must be at least 2, got {}", self.hetero_min_points)));
+            return Err(invalid(
+                "hetero_min_points",
+                format!("must be at least 2, got {}", self.hetero_min_points),
+            ));
         }
         Ok(ValidGpParams(self.clone()))
     }

@@ -107,7 +107,11 @@ pub async fn create_experiment(
     let live = state
         .experiments
         .insert(LiveExperiment::new(stored.id, settings, domain.clone()));
-    tracing::info!(experiment = stored.id, kind = domain.kind(), "experiment created");
+    tracing::info!(
+        experiment = stored.id,
+        kind = domain.kind(),
+        "experiment created"
+    );
     Ok((
         StatusCode::CREATED,
         Json(ExperimentResponse::new(stored, &live)),

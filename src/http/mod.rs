@@ -150,7 +150,11 @@ pub fn routes() -> Vec<Route> {
             "/v1/experiments/{id}/proposals/{pid}/abandon",
             post(proposals::abandon_proposal),
         ),
-        route(M::POST, "/v1/experiments/{id}/plans", post(proposals::create_plan)),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/plans",
+            post(proposals::create_plan),
+        ),
     ]
 }
 

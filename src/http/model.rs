@@ -90,7 +90,10 @@ async fn judge(
         return Err(Error::validation("points", "must hold at least one point"));
     }
     if points.len() > MAX_POINTS {
-        return Err(Error::validation("points", format!("at most {MAX_POINTS} points")));
+        return Err(Error::validation(
+            "points",
+            format!("at most {MAX_POINTS} points"),
+        ));
     }
     let beta = beta.unwrap_or(live.settings.learning.test_beta);
     if !beta.is_finite() {
@@ -132,7 +135,8 @@ async fn judge(
                 a.sigma
             )));
         }
-        results.push(json!({"mu": a.mu, "sigma": a.sigma, "upper": upper, "inside": upper < d_max}));
+        results
+            .push(json!({"mu": a.mu, "sigma": a.sigma, "upper": upper, "inside": upper < d_max}));
     }
     Ok(json!({
         "model_version": model.version,
@@ -169,7 +173,10 @@ fn parse_vector(field: &str, text: &str) -> Result<Vec<f64>, Error> {
     text.split(',')
         .map(|x| {
             x.trim().parse::<f64>().map_err(|_| {
-                Error::validation(field, format!("{x:?} is not a number (use e.g. {field}=1,0.5)"))
+                Error::validation(
+                    field,
+                    format!("{x:?} is not a number (use e.g. {field}=1,0.5)"),
+                )
             })
         })
         .collect()

@@ -92,7 +92,9 @@ fn trajectory_body(t: &Trajectory, alpha_step: Option<(&[f64], f64)>) -> Result<
     });
     if let Some((steps, alpha)) = alpha_step {
         if !finite_all(steps) || !alpha.is_finite() {
-            return Err(Error::Internal(anyhow::anyhow!("non-finite acquisition value")));
+            return Err(Error::Internal(anyhow::anyhow!(
+                "non-finite acquisition value"
+            )));
         }
         body["alpha_step"] = json!(steps);
         body["alpha"] = json!(alpha);
@@ -149,9 +151,17 @@ pub async fn create_proposal(
         .map_or(0, |e| e.n_trajectories);
     let iteration = live.iteration(n_trajectories);
     let beta = live.training_beta(iteration);
-    let strategy: Strategy = request.strategy.unwrap_or(live.settings.learning.strategy).into();
+    let strategy: Strategy = request
+        .strategy
+        .unwrap_or(live.settings.learning.strategy)
+        .into();
     let model = live.model();
-    let seed = problem_seed(live.settings.seed, n_trajectories, &request.start, &request.goal);
+    let seed = problem_seed(
+        live.settings.seed,
+        n_trajectories,
+        &request.start,
+        &request.goal,
+    );
     let proposal = {
         let live = Arc::clone(&live);
         let model = model.clone();
@@ -181,7 +191,9 @@ pub async fn create_proposal(
         .map(|c| json!({"alpha": c.alpha, "length": c.length}))
         .collect();
     if !proposal.candidates.iter().all(|c| c.alpha.is_finite()) {
-        return Err(Error::Internal(anyhow::anyhow!("non-finite candidate score")));
+        return Err(Error::Internal(anyhow::anyhow!(
+            "non-finite candidate score"
+        )));
     }
     let body = json!({
         "trajectory": trajectory_body(
@@ -264,7 +276,12 @@ pub async fn create_plan(
         return Err(Error::validation("beta", "must be a finite number"));
     }
     let model = live.model();
-    let seed = problem_seed(live.settings.seed, model.version, &request.start, &request.goal);
+    let seed = problem_seed(
+        live.settings.seed,
+        model.version,
+        &request.start,
+        &request.goal,
+    );
     let outcome = {
         let live = Arc::clone(&live);
         let model = model.clone();

@@ -59,7 +59,10 @@ impl Store {
 
     /// The latest version of an experiment's model, if any was fitted.
     #[tracing::instrument(skip(self))]
-    pub async fn latest_model(&self, experiment_id: i64) -> Result<Option<StoredModel>, sqlx::Error> {
+    pub async fn latest_model(
+        &self,
+        experiment_id: i64,
+    ) -> Result<Option<StoredModel>, sqlx::Error> {
         let Some(row) = sqlx::query(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at FROM models
              WHERE experiment_id = ? ORDER BY version DESC LIMIT 1",

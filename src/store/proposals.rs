@@ -68,7 +68,8 @@ pub enum LinkOutcome {
     AlreadyExecuted,
 }
 
-const COLUMNS: &str = "id, client_id, status, iteration, beta, strategy, model_version, start, goal,
+const COLUMNS: &str =
+    "id, client_id, status, iteration, beta, strategy, model_version, start, goal,
                        body, created_at, expires_at";
 
 fn unix_now() -> f64 {

@@ -3,4 +3,5 @@
 mod contract;
 mod experiments;
 mod helpers;
+mod learning;
 mod trajectories;

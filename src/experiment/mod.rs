@@ -1,0 +1,419 @@
+//! `precond experiment`: the paper's evaluation, run end to end as an HTTP client of the service.
+//!
+//! For one domain, over strategies × seeds, each run creates its own experiment on the service
+//! and, per iteration, executes a batch of proposed trajectories in the simulator and posts them,
+//! waits for the service's background refit, then evaluates with the test β: plans for fresh
+//! problems (found? executed successfully?) and the precondition's TPR and TNR on held-out
+//! transitions from other seeds' executions ([`protocol`] has the details).
+//!
+//! - [`client`]: the HTTP client of the endpoints the harness drives.
+//! - [`protocol`]: held-out pools, one run's iterations, execution in the simulators.
+//! - [`report`]: the CSV files and the JSON summary (mean and standard error).
+//! - [`plot`]: the SVG figures (the paper's layout; the water plant's precondition maps).
+//!
+//! By default the service runs in-process on an ephemeral port with its database in the output
+//! directory; `--server URL` drives a running one instead.
+
+pub mod client;
+pub mod plot;
+pub mod protocol;
+pub mod report;
+
+use crate::http::{AppState, HttpConfig, serve};
+use crate::settings::StrategySetting;
+use crate::store::Store;
+use anyhow::Context;
+use clap::ValueEnum;
+use client::ApiClient;
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use protocol::{Bench, Labelled, RunResult, RunSpec};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// The built-in worlds the harness can run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DomainKind {
+    /// The icy gridworld (default map).
+    #[value(name = "icy_gridworld")]
+    IcyGridworld,
+    /// The water plant (default scene).
+    #[value(name = "water_plant")]
+    WaterPlant,
+}
+
+impl DomainKind {
+    /// The domain's `kind` tag.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::IcyGridworld => "icy_gridworld",
+            Self::WaterPlant => "water_plant",
+        }
+    }
+}
+
+fn parse_strategy(s: &str) -> Result<StrategySetting, String> {
+    match s {
+        "active" => Ok(StrategySetting::Active),
+        "goal_conditioned" => Ok(StrategySetting::GoalConditioned),
+        "random" => Ok(StrategySetting::Random),
+        other => Err(format!(
+            "{other:?} is not one of active, goal_conditioned, random"
+        )),
+    }
+}
+
+/// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`
+/// ones.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ExperimentArgs {
+    /// The world.
+    #[arg(long, value_enum, default_value_t = DomainKind::IcyGridworld)]
+    pub domain: DomainKind,
+    /// A small run (2 seeds, 3 iterations, 3 test problems, 5 candidates, 1000 extensions).
+    #[arg(long)]
+    pub quick: bool,
+    /// Drive the service at this URL instead of starting one in-process.
+    #[arg(long)]
+    pub server: Option<String>,
+    /// Output directory; results go to `<out>/<domain>/`.
+    #[arg(long, default_value = "results")]
+    pub out: PathBuf,
+    /// Number of seeds (seeds 0..N). Default 10 (quick: 2).
+    #[arg(long)]
+    pub seeds: Option<usize>,
+    /// Learning iterations per run. Default 20 (quick: 3).
+    #[arg(long)]
+    pub iterations: Option<usize>,
+    /// Strategies, comma-separated. Default `active,goal_conditioned,random`.
+    #[arg(long, value_delimiter = ',', value_parser = parse_strategy)]
+    pub strategies: Vec<StrategySetting>,
+    /// Training trajectories per iteration. Default 5.
+    #[arg(long)]
+    pub batch_size: Option<usize>,
+    /// Test problems per iteration. Default 20 (quick: 3).
+    #[arg(long)]
+    pub test_problems: Option<usize>,
+    /// Candidate trajectories per proposal. Default 20 (quick: 5).
+    #[arg(long)]
+    pub n_candidates: Option<u32>,
+    /// RRT extension budget. Default 5000 (quick: 1000).
+    #[arg(long)]
+    pub max_extensions: Option<u32>,
+    /// Held-out pool trajectories per seed. Default 20 (quick: 6).
+    #[arg(long)]
+    pub pool_trajectories: Option<usize>,
+    /// Problems a training slot tries before it is skipped when none has a plan. Default 5.
+    #[arg(long, default_value_t = 5)]
+    pub problem_tries: usize,
+    /// Runs (strategy × seed) in flight at once; each is independent and seeded, so results do
+    /// not depend on it. Default 1.
+    #[arg(long, default_value_t = 1)]
+    pub jobs: usize,
+    /// Seconds to wait for a background refit before forcing one.
+    #[arg(long, default_value_t = 600)]
+    pub fit_timeout: u64,
+    /// No progress bar.
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+/// The resolved settings of a harness run (recorded in the summary).
+#[derive(Debug, Clone, Serialize)]
+pub struct Config {
+    /// The world.
+    pub domain: DomainKind,
+    /// Seeds `0..seeds`.
+    pub seeds: usize,
+    /// Iterations per run.
+    pub iterations: usize,
+    /// Strategies, in report order.
+    pub strategies: Vec<StrategySetting>,
+    /// Training trajectories per iteration.
+    pub batch_size: usize,
+    /// Test problems per iteration.
+    pub test_problems: usize,
+    /// Candidates per proposal.
+    pub n_candidates: u32,
+    /// RRT extension budget.
+    pub max_extensions: u32,
+    /// Held-out pool trajectories per seed.
+    pub pool_trajectories: usize,
+    /// Problems a training slot tries.
+    pub problem_tries: usize,
+    /// Runs in flight at once.
+    pub jobs: usize,
+    /// Iterations at which the water plant's precondition maps are taken (first seed, the
+    /// `active` run or else the first strategy's).
+    pub map_iterations: Vec<usize>,
+    /// Map grid `(columns, rows)`.
+    pub map_resolution: (usize, usize),
+    /// Tilt of the rotation-only map's actions (degrees).
+    pub map_tilt_degrees: f64,
+    /// Wait for a background refit at most this long.
+    #[serde(skip)]
+    pub fit_timeout: Duration,
+}
+
+impl Config {
+    /// Resolves the command-line options against the defaults (paper or `--quick`).
+    pub fn from_args(args: &ExperimentArgs) -> anyhow::Result<Self> {
+        let q = args.quick;
+        let pick =
+            |v: Option<usize>, full: usize, quick: usize| v.unwrap_or(if q { quick } else { full });
+        let iterations = pick(args.iterations, 20, 3);
+        let strategies = if args.strategies.is_empty() {
+            vec![
+                StrategySetting::Active,
+                StrategySetting::GoalConditioned,
+                StrategySetting::Random,
+            ]
+        } else {
+            let mut s = Vec::new();
+            for x in &args.strategies {
+                if !s.contains(x) {
+                    s.push(*x);
+                }
+            }
+            s
+        };
+        let cfg = Self {
+            domain: args.domain,
+            seeds: pick(args.seeds, 10, 2),
+            iterations,
+            strategies,
+            batch_size: pick(args.batch_size, 5, 5),
+            test_problems: pick(args.test_problems, 20, 3),
+            n_candidates: args.n_candidates.unwrap_or(if q { 5 } else { 20 }),
+            max_extensions: args.max_extensions.unwrap_or(if q { 1000 } else { 5000 }),
+            pool_trajectories: pick(args.pool_trajectories, 20, 6),
+            problem_tries: args.problem_tries.max(1),
+            jobs: args.jobs.max(1),
+            map_iterations: {
+                let mut m: Vec<usize> = [0, 5, 10, iterations.saturating_sub(1)]
+                    .into_iter()
+                    .filter(|&j| j < iterations)
+                    .collect();
+                m.dedup();
+                m
+            },
+            map_resolution: if q { (36, 30) } else { (71, 61) },
+            map_tilt_degrees: 140.0,
+            fit_timeout: Duration::from_secs(args.fit_timeout.max(1)),
+        };
+        anyhow::ensure!(cfg.seeds >= 1, "--seeds must be at least 1");
+        anyhow::ensure!(cfg.iterations >= 1, "--iterations must be at least 1");
+        anyhow::ensure!(cfg.batch_size >= 1, "--batch-size must be at least 1");
+        Ok(cfg)
+    }
+}
+
+/// Every measurement of a harness run.
+#[derive(Debug, Clone)]
+pub struct Results {
+    /// The settings.
+    pub config: Config,
+    /// Runs in strategy-then-seed order.
+    pub runs: Vec<RunResult>,
+    /// Held-out transitions per pool seed.
+    pub pool_sizes: Vec<usize>,
+    /// Wall-clock seconds of the whole run.
+    pub seconds: f64,
+    /// The service driven (URL).
+    pub server: String,
+}
+
+/// Runs `precond experiment`: starts the service unless `--server` is given, runs the
+/// protocol, writes the CSVs, the summary and the plots to `<out>/<domain>/`, and returns the
+/// directory.
+pub async fn run(args: ExperimentArgs) -> anyhow::Result<PathBuf> {
+    let cfg = Config::from_args(&args)?;
+    let dir = args.out.join(cfg.domain.as_str());
+    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let started = Instant::now();
+    let results = match &args.server {
+        Some(url) => {
+            let client = ApiClient::new(url);
+            client
+                .health()
+                .await
+                .with_context(|| format!("the service at {url} does not answer"))?;
+            run_protocol(&client, &cfg, !args.no_progress).await?
+        }
+        None => {
+            let server = InProcess::start(&dir.join("precond.db")).await?;
+            let out = run_protocol(&server.client, &cfg, !args.no_progress).await;
+            server.stop().await?;
+            out?
+        }
+    };
+    let results = Results {
+        seconds: started.elapsed().as_secs_f64(),
+        ..results
+    };
+    report::write_all(&dir, &results)?;
+    plot::write_all(&dir, &results)?;
+    eprintln!(
+        "{} runs in {:.0} s; results in {}",
+        results.runs.len(),
+        results.seconds,
+        dir.display()
+    );
+    Ok(dir)
+}
+
+/// Logs to stderr at `warn` unless `RUST_LOG` says otherwise (the in-process service would
+/// otherwise log every request among the progress lines).
+pub fn init_tracing() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+/// The service started in-process on `127.0.0.1:0`.
+struct InProcess {
+    client: ApiClient,
+    shutdown: tokio::sync::oneshot::Sender<()>,
+    handle: tokio::task::JoinHandle<anyhow::Result<()>>,
+}
+
+impl InProcess {
+    /// Starts it over a fresh database at `db` (an existing one is removed).
+    async fn start(db: &Path) -> anyhow::Result<Self> {
+        for suffix in ["", "-wal", "-shm"] {
+            let mut p = db.as_os_str().to_owned();
+            p.push(suffix);
+            let p = PathBuf::from(p);
+            if p.exists() {
+                std::fs::remove_file(&p).with_context(|| format!("removing {}", p.display()))?;
+            }
+        }
+        let path = db.to_str().context("the database path is not UTF-8")?;
+        let store = Store::open(path).await?;
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
+        let addr = listener.local_addr()?;
+        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
+        let state = AppState::new(
+            store,
+            HttpConfig {
+                // Precondition maps and held-out sets are sent in one request each.
+                max_body_bytes: 64 * 1024 * 1024,
+            },
+        );
+        let handle = tokio::spawn(serve(listener, state, async {
+            let _ = rx.await;
+        }));
+        Ok(Self {
+            client: ApiClient::new(&format!("http://{addr}")),
+            shutdown: tx,
+            handle,
+        })
+    }
+
+    async fn stop(self) -> anyhow::Result<()> {
+        let _ = self.shutdown.send(());
+        self.handle.await.context("the in-process server task")?
+    }
+}
+
+/// Builds the pools, then runs every strategy × seed, `cfg.jobs` at a time.
+async fn run_protocol(
+    client: &ApiClient,
+    cfg: &Config,
+    show_progress: bool,
+) -> anyhow::Result<Results> {
+    let bench = Arc::new(Bench::new(cfg.domain));
+    let n_runs = cfg.strategies.len() * cfg.seeds;
+    let progress = if show_progress {
+        ProgressBar::with_draw_target(
+            Some((n_runs * cfg.iterations) as u64),
+            ProgressDrawTarget::stderr(),
+        )
+    } else {
+        ProgressBar::hidden()
+    };
+    progress.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:30}] {pos}/{len} iterations (eta {eta}) {wide_msg}",
+        )
+        .map(|s| s.progress_chars("=> "))
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    // Held-out pools: at least two, so that every seed has another seed's pool.
+    let n_pools = cfg.seeds.max(2);
+    let mut pools: Vec<Vec<Labelled>> = Vec::with_capacity(n_pools);
+    progress.set_message("executing the held-out pools");
+    for k in 0..n_pools {
+        pools.push(protocol::build_pool(client, &bench, cfg, k as u64).await?);
+    }
+    let pool_sizes = pools.iter().map(Vec::len).collect();
+    let map_strategy = if cfg.strategies.contains(&StrategySetting::Active) {
+        StrategySetting::Active
+    } else {
+        cfg.strategies[0]
+    };
+    let mut specs = Vec::with_capacity(n_runs);
+    for seed in 0..cfg.seeds {
+        let held_out: Vec<Labelled> = pools
+            .iter()
+            .enumerate()
+            .filter(|(k, _)| *k != seed)
+            .flat_map(|(_, p)| p.iter().cloned())
+            .collect();
+        let held_out = Arc::new(held_out);
+        for &strategy in &cfg.strategies {
+            specs.push(RunSpec {
+                strategy,
+                seed: seed as u64,
+                held_out: held_out.clone(),
+                maps: seed == 0 && strategy == map_strategy,
+            });
+        }
+    }
+    let semaphore = Arc::new(tokio::sync::Semaphore::new(cfg.jobs));
+    let mut set = tokio::task::JoinSet::new();
+    for (i, spec) in specs.into_iter().enumerate() {
+        let (client, bench, cfg, progress, semaphore) = (
+            client.clone(),
+            bench.clone(),
+            cfg.clone(),
+            progress.clone(),
+            semaphore.clone(),
+        );
+        set.spawn(async move {
+            let _permit = semaphore.acquire_owned().await?;
+            let r = protocol::run_one(&client, &bench, &cfg, &spec, &progress)
+                .await
+                .with_context(|| {
+                    format!(
+                        "run {} seed {}",
+                        protocol::strategy_name(spec.strategy),
+                        spec.seed
+                    )
+                })?;
+            anyhow::Ok((i, r))
+        });
+    }
+    let mut runs: Vec<(usize, RunResult)> = Vec::with_capacity(n_runs);
+    while let Some(joined) = set.join_next().await {
+        runs.push(joined.context("a run task")??);
+    }
+    progress.finish_and_clear();
+    // Strategy-then-seed order.
+    runs.sort_by_key(|(i, _)| {
+        let (seed, s) = (i / cfg.strategies.len(), i % cfg.strategies.len());
+        (s, seed)
+    });
+    Ok(Results {
+        config: cfg.clone(),
+        runs: runs.into_iter().map(|(_, r)| r).collect(),
+        pool_sizes,
+        seconds: 0.0,
+        server: client.base().to_string(),
+    })
+}

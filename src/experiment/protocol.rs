@@ -1,0 +1,739 @@
+//! The paper's protocol for one domain: held-out pools, then per strategy × seed the learning
+//! iterations (train a batch, wait for the refit, evaluate), all through [`ApiClient`].
+//!
+//! **Seeds.** Every random choice of the harness comes from a ChaCha8 stream named by
+//! `(seed, purpose, i, j)` ([`stream`]). Training and test problems and the simulator's
+//! episodes depend on the seed, the iteration and the slot, never on the strategy, so every
+//! strategy sees the same problems at a given seed and iteration (common random numbers). The
+//! service seeds its own choices from the experiment's seed and the data it has seen.
+//!
+//! **Held-out transitions.** Before the runs, for every seed `k` a *pool* of transitions is
+//! executed in the simulator: half of the trajectories are planned for random problems by the
+//! service's prior model (a fresh experiment, which trusts every state-action early on, so the
+//! planner goes wherever `f̂` says the goal is: good and bad pours, ice and walls alike) and half
+//! are random-action rollouts from the same samplers, all with episodes (leaves) drawn from the
+//! pool's own streams. The run of seed `k` is evaluated on the pools of every *other* seed, so
+//! no evaluated transition comes from the same episodes or problems as its training data.
+//!
+//! **Training slots.** A slot samples a problem and asks for a proposal. A `no_plan` answer is
+//! recorded and the slot tries a fresh problem, up to `problem_tries` times; only then is it
+//! skipped. Retrying keeps every batch at `batch_size` trajectories, which keeps the service's
+//! iteration counter (and so its β schedule and its background refits) in step with the
+//! harness. Should a slot be skipped anyway, the harness forces a refit at the end of the
+//! iteration (and the service's batches then no longer align with the harness's iterations).
+
+use super::client::{ApiClient, Executed, PlannedTrajectory, Proposed};
+use super::{Config, DomainKind};
+use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
+use crate::domain::{Domain, IcyGridworld, WaterPlant};
+use crate::settings::StrategySetting;
+use crate::sim::{Simulated, World};
+use indicatif::ProgressBar;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::Serialize;
+use serde_json::{Value, json};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// The client-side view of a built-in world: its domain (the model, goal test and samplers)
+/// and its simulator, like a robot's own code would hold them.
+#[derive(Debug, Clone)]
+pub enum Bench {
+    /// The icy gridworld on its default map.
+    Grid(IcyGridworld),
+    /// The water plant in its default scene.
+    Plant(WaterPlant),
+}
+
+impl Bench {
+    /// The world of `kind` with its defaults.
+    pub fn new(kind: DomainKind) -> Self {
+        match kind {
+            DomainKind::IcyGridworld => Self::Grid(IcyGridworld::default_layout()),
+            DomainKind::WaterPlant => Self::Plant(WaterPlant::default()),
+        }
+    }
+
+    /// The domain.
+    pub fn domain(&self) -> &dyn Domain {
+        match self {
+            Self::Grid(g) => g,
+            Self::Plant(p) => p,
+        }
+    }
+
+    /// A fresh simulator.
+    pub fn world(&self) -> Box<dyn World> {
+        match self {
+            Self::Grid(g) => g.world(),
+            Self::Plant(p) => p.world(),
+        }
+    }
+
+    /// The action to execute from `actual` for the planned action `a` planned from `planned`:
+    /// the water plant keeps a planned action a translation or a rotation after a deviation;
+    /// gridworld moves are executed as they are.
+    pub fn reanchor(&self, planned: &[f64], a: &[f64], actual: &[f64]) -> Vec<f64> {
+        match self {
+            Self::Grid(_) => a.to_vec(),
+            Self::Plant(p) => p.reanchor(planned, a, actual),
+        }
+    }
+}
+
+/// One executed transition with its true deviation label.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Labelled {
+    /// The transition.
+    pub t: Executed,
+    /// `d(f̂(s, a), s')`.
+    pub deviation: f64,
+}
+
+/// A trajectory executed open loop in the simulator.
+#[derive(Debug, Clone)]
+pub struct Execution {
+    /// Its transitions with their labels.
+    pub steps: Vec<Labelled>,
+    /// The state it ended in.
+    pub final_state: Vec<f64>,
+}
+
+/// Executes `plan` open loop from its first state in `world` (already reset).
+pub fn execute(bench: &Bench, world: &mut dyn World, plan: &PlannedTrajectory) -> Execution {
+    let domain = bench.domain();
+    let mut s = plan.states[0].clone();
+    let mut steps = Vec::with_capacity(plan.actions.len());
+    for (k, a) in plan.actions.iter().enumerate() {
+        let a = bench.reanchor(&plan.states[k], a, &s);
+        let s_next = world.step(&s, &a);
+        let deviation = domain.deviation(&s, &a, &s_next);
+        steps.push(Labelled {
+            t: Executed {
+                s: s.clone(),
+                a,
+                s_next: s_next.clone(),
+            },
+            deviation,
+        });
+        s = s_next;
+    }
+    Execution {
+        steps,
+        final_state: s,
+    }
+}
+
+/// Kinds of water-plant training trajectories (the paper's Fig. 3), by their first pour.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PourType {
+    /// Not a water-plant trajectory, or no pour in it.
+    NoPour,
+    /// The lip was not above a leaf and at least 98 % of the pour entered the target.
+    BelowSuccess,
+    /// The lip was not above a leaf and more than 2 % of the pour was spilled.
+    BelowSpill,
+    /// The lip was above a leaf and at least 98 % entered the target.
+    AboveSuccess,
+    /// The lip was above a leaf and more than 2 % was spilled.
+    AboveSpill,
+}
+
+impl PourType {
+    /// All kinds, in CSV column order.
+    pub const ALL: [PourType; 5] = [
+        Self::NoPour,
+        Self::BelowSuccess,
+        Self::BelowSpill,
+        Self::AboveSuccess,
+        Self::AboveSpill,
+    ];
+
+    /// The snake-case name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::NoPour => "no_pour",
+            Self::BelowSuccess => "below_success",
+            Self::BelowSpill => "below_spill",
+            Self::AboveSuccess => "above_success",
+            Self::AboveSpill => "above_spill",
+        }
+    }
+}
+
+/// Classifies an executed trajectory by its first pour: whether a (nominal) leaf lies below the
+/// lip, and whether the pour spilled more than 2 %.
+pub fn classify(bench: &Bench, exec: &Execution) -> PourType {
+    let Bench::Plant(plant) = bench else {
+        return PourType::NoPour;
+    };
+    let Some(step) = exec
+        .steps
+        .iter()
+        .find(|l| l.t.s_next[SRC_VOLUME] < l.t.s[SRC_VOLUME] - 1e-9)
+    else {
+        return PourType::NoPour;
+    };
+    let scene = plant.scene();
+    let lip = scene.lip(Pose::from_slice(&step.t.s_next));
+    let above = scene.leaves.iter().any(|leaf| {
+        leaf.segments().any(|seg| {
+            let (lo, hi) = (seg.a.x.min(seg.b.x), seg.a.x.max(seg.b.x));
+            if lip.x < lo || lip.x > hi || hi == lo {
+                return false;
+            }
+            let y = seg.a.y + (seg.b.y - seg.a.y) * (lip.x - seg.a.x) / (seg.b.x - seg.a.x);
+            y < lip.y
+        })
+    });
+    let poured = step.t.s[SRC_VOLUME] - step.t.s_next[SRC_VOLUME];
+    let gained = step.t.s_next[TGT_VOLUME] - step.t.s[TGT_VOLUME];
+    let success = gained >= 0.98 * poured - 1e-12;
+    match (above, success) {
+        (false, true) => PourType::BelowSuccess,
+        (false, false) => PourType::BelowSpill,
+        (true, true) => PourType::AboveSuccess,
+        (true, false) => PourType::AboveSpill,
+    }
+}
+
+/// Purposes of the random streams (see [`stream`]).
+mod purpose {
+    pub const POOL_PROBLEM: u64 = 1;
+    pub const POOL_EPISODE: u64 = 2;
+    pub const TRAIN_PROBLEM: u64 = 3;
+    pub const TRAIN_EPISODE: u64 = 4;
+    pub const TEST_PROBLEM: u64 = 5;
+    pub const TEST_EPISODE: u64 = 6;
+}
+
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// The random stream of `(seed, purpose, i, j)`.
+pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
+    let key = splitmix(splitmix(splitmix(splitmix(seed) ^ purpose) ^ i) ^ j);
+    ChaCha8Rng::seed_from_u64(key)
+}
+
+/// The body that creates the experiment of one run.
+fn experiment_body(cfg: &Config, name: String, strategy: StrategySetting, seed: u64) -> Value {
+    json!({
+        "name": name,
+        "domain": {"kind": cfg.domain.as_str()},
+        "seed": seed,
+        "learning": {
+            "strategy": strategy,
+            "batch_size": cfg.batch_size,
+            "iterations": cfg.iterations,
+            "n_candidates": cfg.n_candidates,
+            "max_extensions": cfg.max_extensions,
+        },
+    })
+}
+
+/// Builds the held-out pool of seed `seed` (see the module docs).
+pub async fn build_pool(
+    client: &ApiClient,
+    bench: &Bench,
+    cfg: &Config,
+    seed: u64,
+) -> anyhow::Result<Vec<Labelled>> {
+    let exp = client
+        .create_experiment(&experiment_body(
+            cfg,
+            format!("held-out pool, seed {seed}"),
+            StrategySetting::GoalConditioned,
+            seed,
+        ))
+        .await?;
+    let domain = bench.domain();
+    let mut world = bench.world();
+    let mut out = Vec::new();
+    for i in 0..cfg.pool_trajectories as u64 {
+        let problem = domain.sample_problem(&mut stream(seed, purpose::POOL_PROBLEM, i, 0));
+        let strategy = if i % 2 == 0 { None } else { Some("random") };
+        let Proposed::Trajectory(p) = client
+            .propose(exp.id, &problem.start, &problem.goal, strategy)
+            .await?
+        else {
+            continue;
+        };
+        world.reset(&mut stream(seed, purpose::POOL_EPISODE, i, 0));
+        let exec = execute(bench, world.as_mut(), &p.trajectory);
+        out.extend(exec.steps);
+    }
+    Ok(out)
+}
+
+/// Measurements of one iteration of one run.
+#[derive(Debug, Clone, Serialize)]
+pub struct IterationRecord {
+    /// Strategy.
+    pub strategy: StrategySetting,
+    /// Seed.
+    pub seed: u64,
+    /// Iteration (0-based; evaluated after its batch).
+    pub iteration: usize,
+    /// β of the iteration's proposals (`None` if no proposal was made).
+    pub beta_train: Option<f64>,
+    /// Training trajectories executed and posted.
+    pub train_trajectories: usize,
+    /// `no_plan` answers to training proposals.
+    pub train_no_plan: usize,
+    /// Slots skipped after `problem_tries` `no_plan` answers.
+    pub train_skipped: usize,
+    /// Mean number of transitions of the posted trajectories.
+    pub mean_traj_length: Option<f64>,
+    /// Posted trajectories that ended in a goal state.
+    pub train_goal_reached: usize,
+    /// Posted transitions with a true deviation of at least `d_max`.
+    pub train_high_deviation: usize,
+    /// Training transitions of the model evaluated.
+    pub n_train: i64,
+    /// Version of the model evaluated.
+    pub model_version: i64,
+    /// Trajectories the evaluated model covers.
+    pub model_trajectories: i64,
+    /// Test problems.
+    pub test_problems: usize,
+    /// Test problems with a plan found within the budget at test β.
+    pub plans_found: usize,
+    /// Test problems whose plan, executed, reached the goal.
+    pub successes: usize,
+    /// `plans_found / test_problems`.
+    pub plan_found_rate: f64,
+    /// `successes / test_problems`.
+    pub success_rate: f64,
+    /// Held-out transitions judged.
+    pub held_out: usize,
+    /// Held-out transitions with a true deviation below `d_max`.
+    pub held_out_low: usize,
+    /// Held-out transitions with a true deviation of at least `d_max`.
+    pub held_out_high: usize,
+    /// Truly-low transitions judged inside.
+    pub true_positives: usize,
+    /// Truly-high transitions judged outside.
+    pub true_negatives: usize,
+    /// `true_positives / held_out_low`.
+    pub tpr: Option<f64>,
+    /// `true_negatives / held_out_high`.
+    pub tnr: Option<f64>,
+    /// Training trajectories per [`PourType`], in [`PourType::ALL`] order.
+    pub pour_types: [usize; 5],
+    /// Wall-clock seconds of the iteration (training and evaluation).
+    pub seconds: f64,
+}
+
+/// One training slot.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrainingRecord {
+    /// Strategy.
+    pub strategy: StrategySetting,
+    /// Seed.
+    pub seed: u64,
+    /// Iteration.
+    pub iteration: usize,
+    /// Slot in the batch.
+    pub slot: usize,
+    /// `no_plan` answers before a proposal (or before giving up).
+    pub no_plan: usize,
+    /// Whether a trajectory was executed and posted.
+    pub executed: bool,
+    /// Transitions.
+    pub length: usize,
+    /// Whether it ended in a goal state.
+    pub goal_reached: bool,
+    /// Largest true deviation along it.
+    pub max_deviation: f64,
+    /// Its kind (water plant).
+    pub pour_type: PourType,
+}
+
+/// One test problem.
+#[derive(Debug, Clone, Serialize)]
+pub struct TestRecord {
+    /// Strategy.
+    pub strategy: StrategySetting,
+    /// Seed.
+    pub seed: u64,
+    /// Iteration.
+    pub iteration: usize,
+    /// Index of the problem.
+    pub problem: usize,
+    /// A plan was found at test β.
+    pub found: bool,
+    /// Extensions the planner spent.
+    pub extensions: u64,
+    /// Actions in the plan (0 if none).
+    pub plan_length: usize,
+    /// The executed plan reached the goal.
+    pub success: bool,
+}
+
+/// Which slice of the water plant's action space a precondition map shows.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MapKind {
+    /// Upright translations to `(x, y)`.
+    Translation,
+    /// Tilts to [`Config::map_tilt_degrees`] at `(x, y)`.
+    Rotation,
+}
+
+/// `μ + βσ` (test β) over a grid of the action plane, with the training actions of that kind.
+#[derive(Debug, Clone, Serialize)]
+pub struct PreconditionMap {
+    /// Iteration after whose batch it was taken.
+    pub iteration: usize,
+    /// Translation or rotation actions.
+    pub kind: MapKind,
+    /// Grid columns (source centre `x`, m).
+    pub xs: Vec<f64>,
+    /// Grid rows (source centre `y`, m).
+    pub ys: Vec<f64>,
+    /// `upper[r][c]` at `(xs[c], ys[r])`.
+    pub upper: Vec<Vec<f64>>,
+    /// Training actions of this kind so far: `(x, y, true deviation)`.
+    pub points: Vec<(f64, f64, f64)>,
+}
+
+/// Everything one run measured.
+#[derive(Debug, Clone, Default)]
+pub struct RunResult {
+    /// One record per iteration.
+    pub iterations: Vec<IterationRecord>,
+    /// One record per training slot.
+    pub training: Vec<TrainingRecord>,
+    /// One record per test problem.
+    pub tests: Vec<TestRecord>,
+    /// Precondition maps (water plant, the designated run only).
+    pub maps: Vec<PreconditionMap>,
+}
+
+/// What one run needs besides the client.
+#[derive(Debug, Clone)]
+pub struct RunSpec {
+    /// Strategy.
+    pub strategy: StrategySetting,
+    /// Seed.
+    pub seed: u64,
+    /// Held-out transitions (other seeds' pools).
+    pub held_out: Arc<Vec<Labelled>>,
+    /// Whether to take precondition maps.
+    pub maps: bool,
+}
+
+/// Runs the protocol for one strategy and seed (see the module docs).
+pub async fn run_one(
+    client: &ApiClient,
+    bench: &Bench,
+    cfg: &Config,
+    spec: &RunSpec,
+    progress: &ProgressBar,
+) -> anyhow::Result<RunResult> {
+    let (strategy, seed) = (spec.strategy, spec.seed);
+    let exp = client
+        .create_experiment(&experiment_body(
+            cfg,
+            format!(
+                "experiment {}, {}, seed {seed}",
+                cfg.domain.as_str(),
+                strategy_name(strategy)
+            ),
+            strategy,
+            seed,
+        ))
+        .await?;
+    let d_max = exp.d_max;
+    let domain = bench.domain();
+    let mut world = bench.world();
+    let mut result = RunResult::default();
+    let mut posted: i64 = 0;
+    let mut executed_actions: Vec<Labelled> = Vec::new();
+    let tries = cfg.problem_tries.max(1);
+    let held_points: Vec<(&[f64], &[f64])> = spec
+        .held_out
+        .iter()
+        .map(|l| (l.t.s.as_slice(), l.t.a.as_slice()))
+        .collect();
+    for j in 0..cfg.iterations {
+        let started = Instant::now();
+        let mut rec = IterationRecord {
+            strategy,
+            seed,
+            iteration: j,
+            beta_train: None,
+            train_trajectories: 0,
+            train_no_plan: 0,
+            train_skipped: 0,
+            mean_traj_length: None,
+            train_goal_reached: 0,
+            train_high_deviation: 0,
+            n_train: 0,
+            model_version: 0,
+            model_trajectories: 0,
+            test_problems: cfg.test_problems,
+            plans_found: 0,
+            successes: 0,
+            plan_found_rate: 0.0,
+            success_rate: 0.0,
+            held_out: spec.held_out.len(),
+            held_out_low: 0,
+            held_out_high: 0,
+            true_positives: 0,
+            true_negatives: 0,
+            tpr: None,
+            tnr: None,
+            pour_types: [0; 5],
+            seconds: 0.0,
+        };
+        let mut total_length = 0;
+        // Training: one batch.
+        for slot in 0..cfg.batch_size {
+            let mut train = TrainingRecord {
+                strategy,
+                seed,
+                iteration: j,
+                slot,
+                no_plan: 0,
+                executed: false,
+                length: 0,
+                goal_reached: false,
+                max_deviation: 0.0,
+                pour_type: PourType::NoPour,
+            };
+            for t in 0..tries {
+                let key = (slot * tries + t) as u64;
+                let problem =
+                    domain.sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
+                let p = match client
+                    .propose(exp.id, &problem.start, &problem.goal, None)
+                    .await?
+                {
+                    Proposed::NoPlan => {
+                        train.no_plan += 1;
+                        continue;
+                    }
+                    Proposed::Trajectory(p) => p,
+                };
+                world.reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
+                let exec = execute(bench, world.as_mut(), &p.trajectory);
+                let transitions: Vec<Executed> = exec.steps.iter().map(|l| l.t.clone()).collect();
+                client
+                    .post_trajectory(exp.id, Some(p.id), &transitions)
+                    .await?;
+                posted += 1;
+                rec.beta_train = Some(p.beta);
+                train.executed = true;
+                train.length = exec.steps.len();
+                train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
+                train.max_deviation = exec.steps.iter().map(|l| l.deviation).fold(0.0, f64::max);
+                train.pour_type = classify(bench, &exec);
+                rec.train_high_deviation +=
+                    exec.steps.iter().filter(|l| l.deviation >= d_max).count();
+                executed_actions.extend(exec.steps);
+                break;
+            }
+            rec.train_no_plan += train.no_plan;
+            if train.executed {
+                rec.train_trajectories += 1;
+                total_length += train.length;
+                rec.train_goal_reached += usize::from(train.goal_reached);
+                let k = PourType::ALL
+                    .iter()
+                    .position(|p| *p == train.pour_type)
+                    .unwrap_or(0);
+                rec.pour_types[k] += 1;
+            } else {
+                rec.train_skipped += 1;
+            }
+            result.training.push(train);
+        }
+        if rec.train_trajectories > 0 {
+            rec.mean_traj_length = Some(total_length as f64 / rec.train_trajectories as f64);
+        }
+        // The refit: the service fits in the background after every complete batch.
+        let model = if posted == 0 {
+            client.model(exp.id).await?
+        } else if posted % cfg.batch_size as i64 == 0 {
+            client.wait_for_fit(exp.id, posted, cfg.fit_timeout).await?
+        } else {
+            client.refit(exp.id).await?
+        };
+        rec.n_train = model.n_train;
+        rec.model_version = model.version;
+        rec.model_trajectories = model.n_trajectories;
+        // Evaluation: the same fresh problems for every strategy at this seed and iteration.
+        for k in 0..cfg.test_problems {
+            let problem =
+                domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j as u64, k as u64));
+            let plan = client.plan(exp.id, &problem.start, &problem.goal).await?;
+            let mut test = TestRecord {
+                strategy,
+                seed,
+                iteration: j,
+                problem: k,
+                found: false,
+                extensions: plan.extensions,
+                plan_length: 0,
+                success: false,
+            };
+            if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
+                test.found = true;
+                test.plan_length = traj.actions.len();
+                world.reset(&mut stream(seed, purpose::TEST_EPISODE, j as u64, k as u64));
+                let exec = execute(bench, world.as_mut(), traj);
+                test.success = domain.is_goal(&exec.final_state, &problem.goal);
+            }
+            rec.plans_found += usize::from(test.found);
+            rec.successes += usize::from(test.success);
+            result.tests.push(test);
+        }
+        if cfg.test_problems > 0 {
+            rec.plan_found_rate = rec.plans_found as f64 / cfg.test_problems as f64;
+            rec.success_rate = rec.successes as f64 / cfg.test_problems as f64;
+        }
+        if !held_points.is_empty() {
+            let judged = client.precondition(exp.id, &held_points).await?;
+            for (l, j) in spec.held_out.iter().zip(&judged) {
+                if l.deviation < d_max {
+                    rec.held_out_low += 1;
+                    rec.true_positives += usize::from(j.inside);
+                } else {
+                    rec.held_out_high += 1;
+                    rec.true_negatives += usize::from(!j.inside);
+                }
+            }
+            rec.tpr = ratio(rec.true_positives, rec.held_out_low);
+            rec.tnr = ratio(rec.true_negatives, rec.held_out_high);
+        }
+        if spec.maps
+            && cfg.map_iterations.contains(&j)
+            && let Bench::Plant(plant) = bench
+        {
+            for kind in [MapKind::Translation, MapKind::Rotation] {
+                result.maps.push(
+                    precondition_map(client, exp.id, plant, cfg, j, kind, &executed_actions)
+                        .await?,
+                );
+            }
+        }
+        rec.seconds = started.elapsed().as_secs_f64();
+        progress.inc(1);
+        let line = format!(
+            "{} seed {seed} iteration {j}: plan found {:.2}, success {:.2}, TPR {}, TNR {}, \
+             n_train {}, no_plan {}, {:.1} s",
+            strategy_name(strategy),
+            rec.plan_found_rate,
+            rec.success_rate,
+            fmt_opt(rec.tpr),
+            fmt_opt(rec.tnr),
+            rec.n_train,
+            rec.train_no_plan,
+            rec.seconds
+        );
+        if progress.is_hidden() {
+            eprintln!("{line}");
+        } else {
+            progress.set_message(line);
+        }
+        result.iterations.push(rec);
+    }
+    Ok(result)
+}
+
+fn fmt_opt(v: Option<f64>) -> String {
+    v.map_or_else(|| "-".into(), |v| format!("{v:.2}"))
+}
+
+fn ratio(k: usize, n: usize) -> Option<f64> {
+    (n > 0).then(|| k as f64 / n as f64)
+}
+
+/// The strategy's name as in the settings (`active`, `goal_conditioned`, `random`).
+pub fn strategy_name(s: StrategySetting) -> &'static str {
+    match s {
+        StrategySetting::Active => "active",
+        StrategySetting::GoalConditioned => "goal_conditioned",
+        StrategySetting::Random => "random",
+    }
+}
+
+/// Queries the precondition map of one kind (see [`PreconditionMap`]).
+async fn precondition_map(
+    client: &ApiClient,
+    id: i64,
+    plant: &WaterPlant,
+    cfg: &Config,
+    iteration: usize,
+    kind: MapKind,
+    executed: &[Labelled],
+) -> anyhow::Result<PreconditionMap> {
+    let sc = plant.scene();
+    let (nx, ny) = cfg.map_resolution;
+    let lin = |lo: f64, hi: f64, n: usize| -> Vec<f64> {
+        (0..n)
+            .map(|i| lo + (hi - lo) * i as f64 / (n.max(2) - 1) as f64)
+            .collect()
+    };
+    let xs = lin(sc.source_low[0], sc.source_high[0], nx);
+    let ys = lin(sc.source_low[1], sc.source_high[1], ny);
+    let tilt = cfg.map_tilt_degrees.to_radians();
+    let mut states = Vec::with_capacity(nx * ny);
+    let mut actions = Vec::with_capacity(nx * ny);
+    for &y in &ys {
+        for &x in &xs {
+            match kind {
+                MapKind::Rotation => {
+                    states.push(plant.start_state(x, y));
+                    actions.push(vec![x, y, tilt]);
+                }
+                MapKind::Translation => {
+                    // The features are the action and the motion flag: any start that makes
+                    // this a translation gives the same answer.
+                    let from = if x - 0.05 >= sc.source_low[0] {
+                        x - 0.05
+                    } else {
+                        x + 0.05
+                    };
+                    states.push(plant.start_state(from, y));
+                    actions.push(vec![x, y, 0.0]);
+                }
+            }
+        }
+    }
+    let points: Vec<(&[f64], &[f64])> = states
+        .iter()
+        .zip(&actions)
+        .map(|(s, a)| (s.as_slice(), a.as_slice()))
+        .collect();
+    let judged = client.precondition(id, &points).await?;
+    let upper = judged
+        .chunks(nx)
+        .map(|r| r.iter().map(|j| j.upper).collect())
+        .collect();
+    let wanted = match kind {
+        MapKind::Translation => Motion::Translate,
+        MapKind::Rotation => Motion::Rotate,
+    };
+    let points = executed
+        .iter()
+        .filter(|l| plant.motion(&l.t.s, &l.t.a) == wanted)
+        .map(|l| (l.t.a[0], l.t.a[1], l.deviation))
+        .collect();
+    Ok(PreconditionMap {
+        iteration,
+        kind,
+        xs,
+        ys,
+        upper,
+        points,
+    })
+}

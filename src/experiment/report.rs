@@ -1,0 +1,291 @@
+//! What a harness run writes: `iterations.csv` (one row per strategy × seed × iteration),
+//! `training.csv` (one row per training slot), `tests.csv` (one row per test problem),
+//! `summary.json` (mean and standard error over seeds per strategy, iteration and metric) and,
+//! for the water plant, `maps.json` (the precondition maps behind the map figures).
+
+use super::Results;
+use super::protocol::{IterationRecord, PourType, strategy_name};
+use crate::settings::StrategySetting;
+use anyhow::Context;
+use serde_json::{Map, Value, json};
+use std::fmt::Write as _;
+use std::path::Path;
+
+/// The metrics of the summary, each a number (or nothing) per iteration record.
+pub const METRICS: [&str; 14] = [
+    "plan_found_rate",
+    "success_rate",
+    "tpr",
+    "tnr",
+    "train_no_plan",
+    "train_skipped",
+    "mean_traj_length",
+    "train_goal_rate",
+    "n_train",
+    "model_version",
+    "below_success_ratio",
+    "below_spill_ratio",
+    "above_spill_ratio",
+    "no_pour_ratio",
+];
+
+/// The columns of `iterations.csv`.
+pub const ITERATION_COLUMNS: [&str; 32] = [
+    "domain",
+    "strategy",
+    "seed",
+    "iteration",
+    "beta_train",
+    "train_trajectories",
+    "train_no_plan",
+    "train_skipped",
+    "mean_traj_length",
+    "train_goal_reached",
+    "train_high_deviation",
+    "n_train",
+    "model_version",
+    "model_trajectories",
+    "test_problems",
+    "plans_found",
+    "successes",
+    "plan_found_rate",
+    "success_rate",
+    "held_out",
+    "held_out_low",
+    "held_out_high",
+    "true_positives",
+    "true_negatives",
+    "tpr",
+    "tnr",
+    "no_pour",
+    "below_success",
+    "below_spill",
+    "above_success",
+    "above_spill",
+    "seconds",
+];
+
+fn pour_ratio(r: &IterationRecord, kind: PourType) -> Option<f64> {
+    let k = PourType::ALL.iter().position(|p| *p == kind)?;
+    (r.train_trajectories > 0).then(|| r.pour_types[k] as f64 / r.train_trajectories as f64)
+}
+
+/// The value of `metric` (one of [`METRICS`]) in a record.
+pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
+    match metric {
+        "plan_found_rate" => Some(r.plan_found_rate),
+        "success_rate" => Some(r.success_rate),
+        "tpr" => r.tpr,
+        "tnr" => r.tnr,
+        "train_no_plan" => Some(r.train_no_plan as f64),
+        "train_skipped" => Some(r.train_skipped as f64),
+        "mean_traj_length" => r.mean_traj_length,
+        "train_goal_rate" => (r.train_trajectories > 0)
+            .then(|| r.train_goal_reached as f64 / r.train_trajectories as f64),
+        "n_train" => Some(r.n_train as f64),
+        "model_version" => Some(r.model_version as f64),
+        "below_success_ratio" => pour_ratio(r, PourType::BelowSuccess),
+        "below_spill_ratio" => pour_ratio(r, PourType::BelowSpill),
+        "above_spill_ratio" => pour_ratio(r, PourType::AboveSpill),
+        "no_pour_ratio" => pour_ratio(r, PourType::NoPour),
+        _ => None,
+    }
+}
+
+/// Mean, standard error of the mean (sample standard deviation / √n; 0 when n = 1) and n of
+/// the values present.
+pub fn mean_se(values: impl IntoIterator<Item = Option<f64>>) -> Option<(f64, f64, usize)> {
+    let v: Vec<f64> = values
+        .into_iter()
+        .flatten()
+        .filter(|x| x.is_finite())
+        .collect();
+    let n = v.len();
+    if n == 0 {
+        return None;
+    }
+    let mean = v.iter().sum::<f64>() / n as f64;
+    let se = if n > 1 {
+        let var = v.iter().map(|x| (x - mean) * (x - mean)).sum::<f64>() / (n - 1) as f64;
+        (var / n as f64).sqrt()
+    } else {
+        0.0
+    };
+    Some((mean, se, n))
+}
+
+/// Every iteration record of `strategy`, grouped by iteration.
+pub fn by_iteration(results: &Results, strategy: StrategySetting) -> Vec<Vec<&IterationRecord>> {
+    let mut out = vec![Vec::new(); results.config.iterations];
+    for run in &results.runs {
+        for r in run.iterations.iter().filter(|r| r.strategy == strategy) {
+            if let Some(slot) = out.get_mut(r.iteration) {
+                slot.push(r);
+            }
+        }
+    }
+    out
+}
+
+fn opt(v: Option<f64>) -> String {
+    v.map_or_else(String::new, |v| format!("{v}"))
+}
+
+fn write(path: &Path, text: &str) -> anyhow::Result<()> {
+    std::fs::write(path, text).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Writes every file of a run into `dir`.
+pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
+    let domain = results.config.domain.as_str();
+    let mut csv = ITERATION_COLUMNS.join(",") + "\n";
+    for r in results.runs.iter().flat_map(|run| &run.iterations) {
+        let row: Vec<String> = vec![
+            domain.to_string(),
+            strategy_name(r.strategy).to_string(),
+            r.seed.to_string(),
+            r.iteration.to_string(),
+            opt(r.beta_train),
+            r.train_trajectories.to_string(),
+            r.train_no_plan.to_string(),
+            r.train_skipped.to_string(),
+            opt(r.mean_traj_length),
+            r.train_goal_reached.to_string(),
+            r.train_high_deviation.to_string(),
+            r.n_train.to_string(),
+            r.model_version.to_string(),
+            r.model_trajectories.to_string(),
+            r.test_problems.to_string(),
+            r.plans_found.to_string(),
+            r.successes.to_string(),
+            r.plan_found_rate.to_string(),
+            r.success_rate.to_string(),
+            r.held_out.to_string(),
+            r.held_out_low.to_string(),
+            r.held_out_high.to_string(),
+            r.true_positives.to_string(),
+            r.true_negatives.to_string(),
+            opt(r.tpr),
+            opt(r.tnr),
+        ]
+        .into_iter()
+        .chain(r.pour_types.iter().map(|c| c.to_string()))
+        .chain([format!("{:.3}", r.seconds)])
+        .collect();
+        csv += &row.join(",");
+        csv.push('\n');
+    }
+    write(&dir.join("iterations.csv"), &csv)?;
+
+    let mut csv = String::from(
+        "domain,strategy,seed,iteration,slot,no_plan,executed,length,goal_reached,max_deviation,pour_type\n",
+    );
+    for t in results.runs.iter().flat_map(|run| &run.training) {
+        let _ = writeln!(
+            csv,
+            "{domain},{},{},{},{},{},{},{},{},{},{}",
+            strategy_name(t.strategy),
+            t.seed,
+            t.iteration,
+            t.slot,
+            t.no_plan,
+            t.executed,
+            t.length,
+            t.goal_reached,
+            t.max_deviation,
+            t.pour_type.as_str()
+        );
+    }
+    write(&dir.join("training.csv"), &csv)?;
+
+    let mut csv = String::from(
+        "domain,strategy,seed,iteration,problem,found,extensions,plan_length,success\n",
+    );
+    for t in results.runs.iter().flat_map(|run| &run.tests) {
+        let _ = writeln!(
+            csv,
+            "{domain},{},{},{},{},{},{},{},{}",
+            strategy_name(t.strategy),
+            t.seed,
+            t.iteration,
+            t.problem,
+            t.found,
+            t.extensions,
+            t.plan_length,
+            t.success
+        );
+    }
+    write(&dir.join("tests.csv"), &csv)?;
+
+    let summary = summary(results);
+    write(
+        &dir.join("summary.json"),
+        &serde_json::to_string_pretty(&summary)?,
+    )?;
+
+    let maps: Vec<_> = results.runs.iter().flat_map(|r| &r.maps).collect();
+    if !maps.is_empty() {
+        write(&dir.join("maps.json"), &serde_json::to_string(&maps)?)?;
+    }
+    Ok(())
+}
+
+/// The JSON summary: settings, run time, and per strategy per metric a list over iterations of
+/// `{iteration, mean, se, n}` (`mean`/`se` null when no seed had a value), plus the final
+/// iteration's figures under `final`.
+pub fn summary(results: &Results) -> Value {
+    let cfg = &results.config;
+    let mut strategies = Map::new();
+    let mut finals = Map::new();
+    for &s in &cfg.strategies {
+        let groups = by_iteration(results, s);
+        let mut per_metric = Map::new();
+        let mut fin = Map::new();
+        for m in METRICS {
+            let series: Vec<Value> = groups
+                .iter()
+                .enumerate()
+                .map(|(j, g)| {
+                    let stat = mean_se(g.iter().map(|r| metric(r, m)));
+                    json!({
+                        "iteration": j,
+                        "mean": stat.map(|x| x.0),
+                        "se": stat.map(|x| x.1),
+                        "n": stat.map_or(0, |x| x.2),
+                    })
+                })
+                .collect();
+            if let Some(last) = series.last() {
+                fin.insert(m.to_string(), last.clone());
+            }
+            per_metric.insert(m.to_string(), Value::Array(series));
+        }
+        strategies.insert(strategy_name(s).to_string(), Value::Object(per_metric));
+        finals.insert(strategy_name(s).to_string(), Value::Object(fin));
+    }
+    json!({
+        "domain": cfg.domain.as_str(),
+        "config": cfg,
+        "server": results.server,
+        "seconds": results.seconds,
+        "held_out_pool_sizes": results.pool_sizes,
+        "metrics": METRICS,
+        "strategies": strategies,
+        "final": finals,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mean_and_standard_error() {
+        let (m, se, n) = mean_se([Some(1.0), Some(3.0), None]).unwrap();
+        assert_eq!((m, n), (2.0, 2));
+        // Sample sd √2, se = √2 / √2 = 1.
+        assert!((se - 1.0).abs() < 1e-12);
+        assert_eq!(mean_se([Some(0.5)]), Some((0.5, 0.0, 1)));
+        assert_eq!(mean_se([None]), None);
+    }
+}

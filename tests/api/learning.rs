@@ -1,0 +1,417 @@
+//! The MDE, precondition queries, proposals with leases, and test-time plans.
+
+use crate::helpers::*;
+use precond::domain::{Cell, Domain, IcyGridworld, MOVES};
+use precond::sim::{Simulated, World};
+use serde_json::{Value, json};
+
+/// Polls `/model` (bounded) until it covers `n_trajectories` trajectories.
+async fn wait_for_model(app: &TestApp, id: i64, n_trajectories: i64) -> Value {
+    for _ in 0..600 {
+        let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        if model["n_trajectories"].as_i64() >= Some(n_trajectories) {
+            return model;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    panic!("no model covering {n_trajectories} trajectories within 12 s");
+}
+
+/// Every (cell, move) of the default gridworld, executed in the true world, as trajectories of
+/// at most 48 transitions.
+fn every_transition() -> Vec<Value> {
+    let grid = IcyGridworld::default_layout();
+    let mut world = grid.world();
+    let mut transitions = Vec::new();
+    for y in 0..grid.height() as i64 {
+        for x in 0..grid.width() as i64 {
+            if grid.cell(x, y) == Some(Cell::Obstacle) {
+                continue;
+            }
+            for m in MOVES {
+                let s = [x as f64, y as f64];
+                let next = world.step(&s, &m);
+                transitions.push(json!({"s": s, "a": m, "s_next": next}));
+            }
+        }
+    }
+    transitions
+        .chunks(48)
+        .map(|c| json!({"transitions": c}))
+        .collect()
+}
+
+#[tokio::test]
+async fn before_any_data_the_prior_answers_and_says_so() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let (status, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    assert_eq!(status, 200);
+    assert_eq!(
+        (model["version"].as_i64(), model["source"].as_str()),
+        (Some(0), Some("prior"))
+    );
+    let (status, p) = app
+        .post(
+            &format!("/v1/experiments/{id}/precondition"),
+            &json!({"points": [{"s": [3, 2], "a": [1, 0]}], "beta": 2.0}),
+        )
+        .await;
+    assert_eq!(status, 200, "{p}");
+    assert_eq!(p["source"], "prior");
+    let r = &p["results"][0];
+    assert_eq!(r["mu"], 0.0);
+    assert_eq!(r["sigma"], 1.0);
+    assert_eq!(r["upper"], 2.0);
+    assert_eq!(r["inside"], false);
+    let (status, p) = app
+        .get(&format!(
+            "/v1/experiments/{id}/precondition?s=3,2&a=1,0&beta=-2"
+        ))
+        .await;
+    assert_eq!(status, 200, "{p}");
+    assert_eq!(
+        p["results"][0]["inside"], true,
+        "β = −2 trusts the unexplored prior"
+    );
+    let (status, _) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 409, "nothing to fit yet");
+}
+
+#[tokio::test]
+async fn precondition_queries_validate_their_points() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let path = format!("/v1/experiments/{id}/precondition");
+    for (body, field) in [
+        (
+            json!({"points": [{"s": [3, 2, 1], "a": [1, 0]}]}),
+            "points[0].s",
+        ),
+        (
+            json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [3, 2], "a": [2, 0]}]}),
+            "points[1].a",
+        ),
+        (json!({"points": []}), "points"),
+        (
+            json!({"points": [{"s": [3, 2], "a": [1, 0]}], "beta": "high"}),
+            "beta",
+        ),
+    ] {
+        let (status, err) = app.post(&path, &body).await;
+        assert_eq!(status, 422, "{body}: {err}");
+        assert_eq!(err["error"]["details"]["field"], field);
+    }
+    let (status, err) = app.get(&format!("{path}?s=3,x&a=1,0")).await;
+    assert_eq!(
+        (status, err["error"]["details"]["field"].as_str()),
+        (422, Some("s"))
+    );
+    let (status, err) = app.get(&format!("{path}?s=3,2")).await;
+    assert_eq!((status, code(&err)), (422, "validation_failed"));
+}
+
+#[tokio::test]
+async fn the_model_advances_after_each_batch_and_survives_a_restart() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}}))
+        .await;
+    let batches = every_transition();
+    for t in batches.iter().take(5) {
+        let (status, body) = app
+            .post(&format!("/v1/experiments/{id}/trajectories"), t)
+            .await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let model = wait_for_model(&app, id, 5).await;
+    assert_eq!(model["version"], 1);
+    assert_eq!(model["source"], "fit");
+    assert_eq!(model["n_train"], 5 * 48);
+    assert_eq!(
+        model["hyperparameters"]["length_scales"]
+            .as_array()
+            .unwrap()
+            .len(),
+        4
+    );
+    assert!(
+        model["log_marginal_likelihood"]
+            .as_f64()
+            .unwrap()
+            .is_finite()
+    );
+    let points = json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [0, 0], "a": [0, 1]}]});
+    let (_, before) = app
+        .post(&format!("/v1/experiments/{id}/precondition"), &points)
+        .await;
+    assert_eq!(before["model_version"], 1);
+
+    let app = app.restart().await;
+    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    assert_eq!(restored["version"], 1);
+    assert_eq!(restored["hyperparameters"], model["hyperparameters"]);
+    let (lml0, lml1) = (
+        model["log_marginal_likelihood"].as_f64().unwrap(),
+        restored["log_marginal_likelihood"].as_f64().unwrap(),
+    );
+    assert!(
+        (lml0 - lml1).abs() <= 1e-9 * lml0.abs(),
+        "{lml0} then {lml1}"
+    );
+    let (_, after) = app
+        .post(&format!("/v1/experiments/{id}/precondition"), &points)
+        .await;
+    for k in 0..2 {
+        for f in ["mu", "sigma"] {
+            let (b, a) = (
+                before["results"][k][f].as_f64().unwrap(),
+                after["results"][k][f].as_f64().unwrap(),
+            );
+            assert!(
+                (a - b).abs() <= 1e-9 * b.abs().max(1e-9),
+                "{f}[{k}]: {b} then {a}"
+            );
+        }
+    }
+    let (status, refit) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 200, "{refit}");
+    assert_eq!(refit["version"], 2);
+    app.stop().await;
+}
+
+#[tokio::test]
+async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        // Heteroscedastic noise (the default) is what makes this work: a homoscedastic fit of
+        // these 0-or-2 labels puts σ_noise ≈ 0.08 everywhere, so μ + 2σ > d_max = 0.1 even
+        // where the model is exact, and nothing is trusted.
+        .create_experiment(json!({
+            "mde": {"restarts": 0},
+            "learning": {"batch_size": 1000}
+        }))
+        .await;
+    // Before any data the conservative test β trusts nothing.
+    let problem = json!({"start": [5, 0], "goal": [5, 5]});
+    let (status, plan) = app
+        .post(&format!("/v1/experiments/{id}/plans"), &problem)
+        .await;
+    assert_eq!(status, 200, "{plan}");
+    assert_eq!(plan["found"], false);
+    for t in every_transition() {
+        let (status, body) = app
+            .post(&format!("/v1/experiments/{id}/trajectories"), &t)
+            .await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, model) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 200, "{model}");
+    let grid = IcyGridworld::default_layout();
+    // Problems that must cross or skirt an ice band. (Crossing the wall's two-cell gap is not
+    // among them: with these features the fitted x length scale spans most of the grid, so the
+    // GP cannot single out the gap's two trusted up-moves in row 5 — see the issue notes.)
+    for (start, goal) in [
+        ([2, 1], [9, 4]),
+        ([4, 4], [7, 0]),
+        ([1, 9], [10, 9]),
+        ([0, 7], [11, 11]),
+    ] {
+        let (status, plan) = app
+            .post(
+                &format!("/v1/experiments/{id}/plans"),
+                &json!({"start": start, "goal": goal}),
+            )
+            .await;
+        assert_eq!(status, 200, "{plan}");
+        assert_eq!(plan["found"], true, "{start:?} → {goal:?}: {plan}");
+        let t = &plan["trajectory"];
+        let states = t["states"].as_array().unwrap();
+        for (k, a) in t["actions"].as_array().unwrap().iter().enumerate() {
+            let s: Vec<f64> = serde_json::from_value(states[k].clone()).unwrap();
+            let a: Vec<f64> = serde_json::from_value(a.clone()).unwrap();
+            let on_ice = grid.cell(s[0] as i64, s[1] as i64) == Some(Cell::Ice);
+            assert!(!(on_ice && a[0] != 0.0), "x-move {a:?} from ice cell {s:?}");
+            let next = grid.predict(&s, &a);
+            assert_ne!(
+                grid.cell(next[0] as i64, next[1] as i64),
+                Some(Cell::Obstacle)
+            );
+            let upper = t["mu"][k].as_f64().unwrap() + 2.0 * t["sigma"][k].as_f64().unwrap();
+            assert!(upper < 0.1, "edge {k} outside the precondition: {upper}");
+        }
+        assert_eq!(
+            states.last().unwrap(),
+            &json!([goal[0] as f64, goal[1] as f64])
+        );
+    }
+}
+
+#[tokio::test]
+async fn strategies_produce_what_they_promise() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({"seed": 3})).await;
+    let path = format!("/v1/experiments/{id}/proposals");
+    let goal = json!([9, 10]);
+    for strategy in ["active", "goal_conditioned"] {
+        let (status, p) = app
+            .post(
+                &path,
+                &json!({"start": [1, 1], "goal": goal, "strategy": strategy}),
+            )
+            .await;
+        assert_eq!(status, 201, "{p}");
+        assert_eq!(p["strategy"], strategy);
+        assert_eq!(p["status"], "open");
+        let t = &p["trajectory"];
+        assert_eq!(
+            t["states"].as_array().unwrap().last().unwrap(),
+            &json!([9.0, 10.0])
+        );
+        let n = t["actions"].as_array().unwrap().len();
+        assert_eq!(t["mu"].as_array().unwrap().len(), n);
+        assert_eq!(t["alpha_step"].as_array().unwrap().len(), n);
+        let alphas: Vec<f64> = p["candidates"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["alpha"].as_f64().unwrap())
+            .collect();
+        assert!(!alphas.is_empty());
+        let chosen = p["chosen_index"].as_u64().unwrap() as usize;
+        assert_eq!(alphas[chosen], t["alpha"].as_f64().unwrap());
+        if strategy == "active" {
+            let min = alphas.iter().cloned().fold(f64::INFINITY, f64::min);
+            assert_eq!(t["alpha"].as_f64().unwrap(), min, "active picks the argmin");
+        }
+        // β of iteration 0 of the schedule: 2·2/(1+e^{0.5·10}) − 2.
+        let beta0 = 4.0 / (1.0 + (5.0f64).exp()) - 2.0;
+        assert!((p["beta"].as_f64().unwrap() - beta0).abs() < 1e-12);
+    }
+    let (status, p) = app
+        .post(
+            &path,
+            &json!({"start": [1, 1], "goal": goal, "strategy": "random"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{p}");
+    let n = p["trajectory"]["actions"].as_array().unwrap().len();
+    assert_eq!(
+        n, 24,
+        "a random rollout has the domain's length (width + height)"
+    );
+}
+
+#[tokio::test]
+async fn proposals_are_leases() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1}}))
+        .await;
+    let path = format!("/v1/experiments/{id}/proposals");
+    let ask = json!({"start": [0, 0], "goal": [0, 4], "client_id": "robot-a"});
+    let (status, first) = app.post(&path, &ask).await;
+    assert_eq!(status, 201, "{first}");
+    let (status, again) = app.post(&path, &ask).await;
+    assert_eq!(status, 200, "asking again returns the open lease");
+    assert_eq!(again["id"], first["id"]);
+    let (_, other) = app
+        .post(
+            &path,
+            &json!({"start": [0, 0], "goal": [0, 4], "client_id": "robot-b"}),
+        )
+        .await;
+    assert_ne!(other["id"], first["id"], "another client gets its own");
+
+    // Executing it closes the lease.
+    let pid = first["id"].as_i64().unwrap();
+    let states = first["trajectory"]["states"].as_array().unwrap();
+    let transitions: Vec<Value> = first["trajectory"]["actions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+        .map(|(k, a)| json!({"s": states[k], "a": a, "s_next": states[k + 1]}))
+        .collect();
+    let body = json!({"proposal_id": pid, "transitions": transitions});
+    let (status, t) = app
+        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
+        .await;
+    assert_eq!(status, 201, "{t}");
+    assert_eq!(t["proposal_id"], pid);
+    let (_, p) = app.get(&format!("{path}/{pid}")).await;
+    assert_eq!(p["status"], "executed");
+    let (status, err) = app
+        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
+        .await;
+    assert_eq!(
+        (status, code(&err)),
+        (409, "conflict"),
+        "executed once only"
+    );
+    let (status, _) = app.post(&format!("{path}/{pid}/abandon"), &json!({})).await;
+    assert_eq!(status, 409);
+    let (status, fresh) = app.post(&path, &ask).await;
+    assert_eq!(status, 201);
+    assert_ne!(fresh["id"], first["id"]);
+
+    // Abandoning, and expiry.
+    let oid = other["id"].as_i64().unwrap();
+    let (status, abandoned) = app.post(&format!("{path}/{oid}/abandon"), &json!({})).await;
+    assert_eq!(
+        (status, abandoned["status"].as_str()),
+        (200, Some("abandoned"))
+    );
+    tokio::time::sleep(std::time::Duration::from_millis(1100)).await;
+    let fid = fresh["id"].as_i64().unwrap();
+    let (_, expired) = app.get(&format!("{path}/{fid}")).await;
+    assert_eq!(expired["status"], "expired");
+    let (status, renewed) = app.post(&path, &ask).await;
+    assert_eq!(status, 201, "an expired lease is not handed out again");
+    assert_ne!(renewed["id"], fresh["id"]);
+    let (status, _) = app.get(&format!("{path}/9999")).await;
+    assert_eq!(status, 404);
+}
+
+#[tokio::test]
+async fn no_plan_is_422_with_the_extensions_used() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
+            "learning": {"max_extensions": 300}
+        }))
+        .await;
+    let (status, err) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
+        )
+        .await;
+    assert_eq!(status, 422, "{err}");
+    assert_eq!(code(&err), "no_plan");
+    assert!(err["error"]["details"]["extensions"].as_u64().unwrap() >= 300);
+    let (status, err) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0.1, 0.5, 0.0], "goal": [0.9, 0.5]}),
+        )
+        .await;
+    assert_eq!(
+        (status, err["error"]["details"]["field"].as_str()),
+        (422, Some("start"))
+    );
+}

@@ -1,0 +1,159 @@
+//! `precond experiment --quick` on the icy gridworld, through the real service started
+//! in-process on an ephemeral port, writing into a temp dir; the outputs are checked for shape
+//! and sanity.
+
+use clap::Parser;
+use precond::cli::{Cli, Command};
+use serde_json::Value;
+use std::collections::HashSet;
+use std::path::Path;
+
+const STRATEGIES: [&str; 3] = ["active", "goal_conditioned", "random"];
+
+fn parse_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut lines = text.lines();
+    let header: Vec<String> = lines
+        .next()
+        .expect("a header")
+        .split(',')
+        .map(String::from)
+        .collect();
+    let rows: Vec<Vec<String>> = lines
+        .map(|l| l.split(',').map(String::from).collect())
+        .collect();
+    for r in &rows {
+        assert_eq!(r.len(), header.len(), "{}: {r:?}", path.display());
+    }
+    (header, rows)
+}
+
+fn is_rate(x: f64) -> bool {
+    (0.0..=1.0).contains(&x)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
+    let dir = tempfile::tempdir().unwrap();
+    let cli = Cli::try_parse_from([
+        "precond",
+        "experiment",
+        "--domain",
+        "icy_gridworld",
+        "--quick",
+        "--no-progress",
+        "--jobs",
+        "2",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ])
+    .unwrap();
+    let Command::Experiment(args) = cli.command else {
+        panic!("not the experiment command");
+    };
+    let out = precond::experiment::run(args).await.unwrap();
+    assert_eq!(out, dir.path().join("icy_gridworld"));
+
+    // iterations.csv: one row per strategy × seed × iteration, the documented columns.
+    let (header, rows) = parse_csv(&out.join("iterations.csv"));
+    assert_eq!(header, precond::experiment::report::ITERATION_COLUMNS);
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    assert_eq!(rows.len(), 3 * 2 * 3);
+    let keys: HashSet<(String, String, String)> = rows
+        .iter()
+        .map(|r| {
+            (
+                r[col("strategy")].clone(),
+                r[col("seed")].clone(),
+                r[col("iteration")].clone(),
+            )
+        })
+        .collect();
+    assert_eq!(keys.len(), rows.len());
+    for r in &rows {
+        assert_eq!(r[col("domain")], "icy_gridworld");
+        assert!(STRATEGIES.contains(&r[col("strategy")].as_str()));
+        for rate in ["plan_found_rate", "success_rate", "tpr", "tnr"] {
+            let v = &r[col(rate)];
+            if !v.is_empty() {
+                assert!(is_rate(v.parse().unwrap()), "{rate} = {v}");
+            }
+        }
+        let found: usize = r[col("plans_found")].parse().unwrap();
+        let ok: usize = r[col("successes")].parse().unwrap();
+        assert!(ok <= found && found <= 3, "{r:?}");
+        let n_train: usize = r[col("n_train")].parse().unwrap();
+        assert!(n_train > 0, "the model was refit: {r:?}");
+        let covered: usize = r[col("model_trajectories")].parse().unwrap();
+        let posted: usize = r[col("train_trajectories")].parse().unwrap();
+        assert!(
+            covered >= posted,
+            "the evaluated model covers the batch: {r:?}"
+        );
+        assert!(r[col("held_out")].parse::<usize>().unwrap() > 0);
+    }
+
+    // The per-slot and per-problem files.
+    let (_, training) = parse_csv(&out.join("training.csv"));
+    assert_eq!(training.len(), 3 * 2 * 3 * 5);
+    let (_, tests) = parse_csv(&out.join("tests.csv"));
+    assert_eq!(tests.len(), 3 * 2 * 3 * 3);
+
+    // summary.json: every strategy, every iteration, every metric; rates in [0, 1].
+    let summary: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
+    assert_eq!(summary["domain"], "icy_gridworld");
+    for s in STRATEGIES {
+        for m in precond::experiment::report::METRICS {
+            let series = summary["strategies"][s][m].as_array().unwrap();
+            assert_eq!(series.len(), 3, "{s} {m}");
+            for (j, point) in series.iter().enumerate() {
+                assert_eq!(point["iteration"], j);
+                if ["plan_found_rate", "success_rate", "tpr", "tnr"].contains(&m)
+                    && let Some(mean) = point["mean"].as_f64()
+                {
+                    assert!(is_rate(mean), "{s} {m} {point}");
+                    assert!(point["se"].as_f64().unwrap() >= 0.0);
+                }
+            }
+        }
+        assert_eq!(summary["strategies"][s]["plan_found_rate"][0]["n"], 2);
+    }
+
+    // The plots.
+    for name in ["metrics.svg", "training.svg"] {
+        let svg = std::fs::read_to_string(out.join(name)).unwrap();
+        assert!(svg.starts_with("<svg") && svg.len() > 1000, "{name}");
+        assert!(svg.contains("plan found") || name != "metrics.svg");
+    }
+
+    // Deterministic: a second run gives the same measurements.
+    let again = tempfile::tempdir().unwrap();
+    let cli = Cli::try_parse_from([
+        "precond",
+        "experiment",
+        "--quick",
+        "--no-progress",
+        "--strategies",
+        "active",
+        "--seeds",
+        "1",
+        "--out",
+        again.path().to_str().unwrap(),
+    ])
+    .unwrap();
+    let Command::Experiment(args) = cli.command else {
+        panic!("not the experiment command");
+    };
+    let out2 = precond::experiment::run(args).await.unwrap();
+    let (_, rows2) = parse_csv(&out2.join("iterations.csv"));
+    let first: Vec<&Vec<String>> = rows
+        .iter()
+        .filter(|r| r[col("strategy")] == "active" && r[col("seed")] == "0")
+        .collect();
+    assert_eq!(rows2.len(), 3);
+    for (a, b) in first.iter().zip(&rows2) {
+        // Everything but the wall-clock seconds.
+        assert_eq!(a[..a.len() - 1], b[..b.len() - 1]);
+    }
+}
