@@ -1,5 +1,7 @@
-//! Prints the planning benchmark: `cargo run --release --example bench_planning`.
+//! Prints the planning benchmark: `cargo run --release --example bench_planning`
+//! (the same as `precond bench planning`).
 
-fn main() {
-    precond::bench::planning::run_default();
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    precond::bench::planning::run_default()?;
+    Ok(())
 }

@@ -367,6 +367,10 @@ pub struct TestRecord {
     pub iteration: usize,
     /// Index of the problem.
     pub problem: usize,
+    /// Its start state.
+    pub start: Vec<f64>,
+    /// Its goal.
+    pub goal: Vec<f64>,
     /// A plan was found at test β.
     pub found: bool,
     /// Extensions the planner spent.
@@ -580,6 +584,8 @@ pub async fn run_one(
                 seed,
                 iteration: j,
                 problem: k,
+                start: problem.start.clone(),
+                goal: problem.goal.clone(),
                 found: false,
                 extensions: plan.extensions,
                 plan_length: 0,

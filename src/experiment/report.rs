@@ -1,5 +1,6 @@
 //! What a harness run writes: `iterations.csv` (one row per strategy × seed × iteration),
-//! `training.csv` (one row per training slot), `tests.csv` (one row per test problem),
+//! `training.csv` (one row per training slot), `tests.csv` (one row per test problem; vectors
+//! as `;`-separated numbers),
 //! `summary.json` (mean and standard error over seeds per strategy, iteration and metric) and,
 //! for the water plant, `maps.json` (the precondition maps behind the map figures).
 
@@ -199,16 +200,24 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     write(&dir.join("training.csv"), &csv)?;
 
     let mut csv = String::from(
-        "domain,strategy,seed,iteration,problem,found,extensions,plan_length,success\n",
+        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success\n",
     );
+    let vector = |v: &[f64]| {
+        v.iter()
+            .map(|x| format!("{x}"))
+            .collect::<Vec<_>>()
+            .join(";")
+    };
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{}",
             strategy_name(t.strategy),
             t.seed,
             t.iteration,
             t.problem,
+            vector(&t.start),
+            vector(&t.goal),
             t.found,
             t.extensions,
             t.plan_length,

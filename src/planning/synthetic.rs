@@ -2,7 +2,7 @@
 //! the GP where what matters is the planner, not the learning.
 
 use super::DeviationModel;
-use crate::domain::{Domain, IcyGridworld};
+use crate::domain::IcyGridworld;
 
 /// The same `(μ, σ)` everywhere.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -70,31 +70,4 @@ impl DeviationModel for IceModel {
             })
             .collect()
     }
-}
-
-/// The true icy-gridworld step (a stand-in for `crate::sim::gridworld` in this module's tests
-/// and benchmark): on ice the x-moves are reversed; a move off the grid or into an obstacle
-/// leaves the robot where it is.
-pub fn icy_true_step(grid: &IcyGridworld, s: &[f64], a: &[f64]) -> Vec<f64> {
-    let cell = |x: i64, y: i64| -> Option<char> {
-        if x < 0 || y < 0 {
-            return None;
-        }
-        grid.map().get(y as usize)?.chars().nth(x as usize)
-    };
-    let (x, y) = (s[0] as i64, s[1] as i64);
-    let mut dx = a[0] as i64;
-    let dy = a[1] as i64;
-    if cell(x, y) == Some('~') {
-        dx = -dx;
-    }
-    match cell(x + dx, y + dy) {
-        Some('.') | Some('~') => vec![(x + dx) as f64, (y + dy) as f64],
-        _ => s.to_vec(),
-    }
-}
-
-/// The deviation label `d(f̂(s, a), s')` of the true step.
-pub fn icy_true_deviation(grid: &IcyGridworld, s: &[f64], a: &[f64]) -> f64 {
-    grid.deviation(s, a, &icy_true_step(grid, s, a))
 }
