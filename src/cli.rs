@@ -20,9 +20,20 @@ pub struct Cli {
 pub enum Command {
     /// Run the HTTP/JSON service.
     Serve(ServeArgs),
+    /// Print speed benchmarks (build with `--release`).
+    #[command(subcommand)]
+    Bench(BenchCommand),
     /// Run the paper's evaluation (strategies × seeds × iterations) against the service and
     /// write results and plots.
     Experiment(crate::experiment::ExperimentArgs),
+}
+
+/// Benchmarks.
+#[derive(Debug, Subcommand)]
+pub enum BenchCommand {
+    /// A 20-candidate, 5000-extension proposal and a test-time plan on the icy gridworld with the
+    /// MDE fitted on 1000 transitions.
+    Planning,
 }
 
 /// Log output format.
@@ -100,6 +111,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 },
             );
             serve(listener, state, shutdown_signal()).await
+        }
+        Command::Bench(BenchCommand::Planning) => {
+            crate::bench::planning::run_default()?;
+            Ok(())
         }
         Command::Experiment(args) => {
             crate::experiment::init_tracing();
