@@ -64,14 +64,13 @@ fn planning_error(e: PlanningError) -> Error {
     }
 }
 
-/// A seed for one planning request: the experiment's seed, the data it has seen and the problem.
-fn problem_seed(seed: u64, n_trajectories: i64, start: &[f64], goal: &[f64]) -> u64 {
+/// A seed for one planning request from the experiment's seed, a salt (how much data or which
+/// model version the request sees) and the problem.
+fn problem_seed(seed: u64, salt: i64, start: &[f64], goal: &[f64]) -> u64 {
     start
         .iter()
         .chain(goal)
-        .fold(fit_seed(seed, n_trajectories), |h, x| {
-            fit_seed(h ^ x.to_bits(), 1)
-        })
+        .fold(fit_seed(seed, salt), |h, x| fit_seed(h ^ x.to_bits(), 1))
 }
 
 fn finite_all(values: &[f64]) -> bool {
@@ -134,7 +133,7 @@ pub async fn create_proposal(
     let live = state.experiments.get(&state.store, id).await?;
     check_problem(&live, &request.start, &request.goal)?;
     if let Some(client) = &request.client_id {
-        if client.is_empty() || client.len() > MAX_CLIENT_ID_LEN {
+        if client.is_empty() || client.chars().count() > MAX_CLIENT_ID_LEN {
             return Err(Error::validation(
                 "client_id",
                 format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
