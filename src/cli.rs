@@ -31,9 +31,32 @@ pub enum Command {
 /// Benchmarks.
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
+    /// GP fit time, single-point latency and batched throughput for n = 500 … 4000 in d = 6,
+    /// side by side with scikit-learn where `python3` can import it.
+    Gp(GpBenchArgs),
     /// A 20-candidate, 5000-extension proposal and a test-time plan on the icy gridworld with the
     /// MDE fitted on 1000 transitions.
     Planning,
+}
+
+/// Options of `precond bench gp`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct GpBenchArgs {
+    /// Training-set sizes, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "500,1000,2000,4000")]
+    pub sizes: Vec<usize>,
+    /// Skip n = 4000 (same as `--sizes 500,1000,2000`).
+    #[arg(long)]
+    pub quick: bool,
+    /// Optimiser restarts beyond the first, for both libraries.
+    #[arg(long, default_value_t = 2)]
+    pub restarts: usize,
+    /// Do not run scikit-learn even if it is importable.
+    #[arg(long)]
+    pub no_sklearn: bool,
+    /// Largest n at which scikit-learn is run.
+    #[arg(long, default_value_t = 2000)]
+    pub sklearn_max_n: usize,
 }
 
 /// Log output format.
@@ -111,6 +134,22 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 },
             );
             serve(listener, state, shutdown_signal()).await
+        }
+        Command::Bench(BenchCommand::Gp(args)) => {
+            let defaults = crate::bench::gp::GpBenchOptions::default();
+            let sizes = if args.quick {
+                args.sizes.into_iter().filter(|n| *n < 4000).collect()
+            } else {
+                args.sizes
+            };
+            crate::bench::gp::run(&crate::bench::gp::GpBenchOptions {
+                sizes,
+                restarts: args.restarts,
+                sklearn: !args.no_sklearn,
+                sklearn_max_n: args.sklearn_max_n,
+                ..defaults
+            })?;
+            Ok(())
         }
         Command::Bench(BenchCommand::Planning) => {
             crate::bench::planning::run_default()?;

@@ -95,7 +95,9 @@ impl ServedModel {
         }
     }
 
-    /// μ and σ for `n = features.len() / dim` row-major feature vectors.
+    /// μ and σ for `n = features.len() / dim` row-major feature vectors. A GP that cannot
+    /// answer (which the service's validation should make impossible) answers NaN, which
+    /// every caller checks before it leaves the process.
     pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
         if dim == 0 {
             return Vec::new();

@@ -1,3 +1,5 @@
-//! Benchmarks that print timings (run through `examples/` or the service's `bench` subcommand).
+//! Benchmarks that print figures: `precond bench gp` and `precond bench planning` (build with
+//! `--release`).
 
+pub mod gp;
 pub mod planning;

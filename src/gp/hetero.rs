@@ -21,7 +21,7 @@
 //!
 //! At a query point the noise variance is `exp(μ₂(x*))`, clipped the same way.
 
-use super::fit::{self, optimise};
+use super::fit::{self, Warm, optimise};
 use super::kernel::Inputs;
 use super::lml::{Jitter, NoiseSpec};
 use super::model::{Core, mean};
@@ -63,6 +63,10 @@ pub fn log_residual_bias(rho: f64) -> f64 {
         .sum::<f64>()
 }
 
+/// Relative function tolerance floor for the noise GP's optimiser: its targets are log
+/// residuals with a variance of several units, so optimising their LML to 1e-9 buys nothing.
+const NOISE_MODEL_FTOL: f64 = 1e-6;
+
 /// The fitted noise GP.
 #[derive(Clone, Debug)]
 pub(crate) struct NoiseModel {
@@ -92,12 +96,14 @@ impl NoiseModel {
             .collect()
     }
 
-    pub fn state(&self) -> NoiseModelState {
+    pub fn state(&self, rounds: usize, homoscedastic_lml: f64) -> NoiseModelState {
         NoiseModelState {
             hyperparameters: self.hyper.clone(),
             log_noise_targets: self.targets.clone(),
             noise_variance_clip: self.clip,
             jitter: self.core.jitter,
+            rounds,
+            homoscedastic_lml,
         }
     }
 
@@ -118,8 +124,12 @@ impl NoiseModel {
             });
         }
         let (lo, hi) = s.noise_variance_clip;
-        if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi)
-            || !(s.jitter.is_finite() && s.jitter >= 0.0)
+        if !(lo.is_finite()
+            && hi.is_finite()
+            && lo > 0.0
+            && lo <= hi
+            && s.jitter.is_finite()
+            && s.jitter >= 0.0)
         {
             return Err(GpError::InvalidState(
                 "noise model clip or jitter out of range".into(),
@@ -139,6 +149,8 @@ impl NoiseModel {
             },
             s.jitter,
         )?;
+        let mut core = core;
+        core.drop_inverse_factor();
         Ok(NoiseModel {
             core,
             hyper: h.clone(),
@@ -148,11 +160,15 @@ impl NoiseModel {
     }
 }
 
-/// The outcome of [`fit`].
+/// The outcome of [`fit()`].
 pub(crate) struct Fitted {
     pub main: Core,
     pub noise_model: NoiseModel,
     pub rounds: usize,
+    /// Objective evaluations over all rounds (noise GP and main GP).
+    pub evaluations: usize,
+    /// Whether every optimiser run of the kept rounds converged.
+    pub converged: bool,
 }
 
 /// Log-noise targets `z_i = log((y_i − μ_i)² + v_i) + b(ρ_i)` from a conditioned model.
@@ -183,7 +199,11 @@ pub(crate) fn fit(
     let clip = p.bounds.noise_variance;
     let mut best: Option<Fitted> = None;
     let mut current_theta = theta_main.to_vec();
+    let mut main_memory = Vec::new();
     let mut noise_theta: Option<Vec<f64>> = None;
+    let mut noise_memory = Vec::new();
+    let mut evaluations = 0;
+    let mut converged = true;
     for round in 0..p.hetero_rounds {
         let z = log_noise_targets(best.as_ref().map_or(&homo, |b| &b.main));
         let mz = mean(&z);
@@ -198,8 +218,13 @@ pub(crate) fn fit(
             &p.noise_model_bounds,
             p,
             p.restarts,
-            noise_theta.as_deref(),
+            noise_theta.as_deref().map(|theta| Warm {
+                theta,
+                memory: noise_memory.clone(),
+            }),
             seed,
+            NOISE_MODEL_FTOL,
+            false,
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());
@@ -217,6 +242,8 @@ pub(crate) fn fit(
             clip,
         };
         let noise = nm.train_noise();
+        let mut nm = nm;
+        nm.core.drop_inverse_factor();
         let f = optimise(
             x,
             &r,
@@ -224,8 +251,13 @@ pub(crate) fn fit(
             &p.bounds,
             p,
             0,
-            Some(&current_theta),
+            Some(Warm {
+                theta: &current_theta,
+                memory: main_memory.clone(),
+            }),
             p.seed,
+            0.0,
+            true,
         )?;
         let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
         let main = Core::build(
@@ -238,19 +270,7 @@ pub(crate) fn fit(
             jitter,
             0.0,
         )?;
-        if std::env::var("GP_DEBUG").is_ok() {
-            let kd = main.kinv_diag();
-            let rho: Vec<f64> = (0..x.n)
-                .map(|i| (main.noise[i] + main.jitter) * kd[i])
-                .collect();
-            eprintln!(
-                "round {round}: lml {:.3} noise-gp {:?} main ls {:?} mean rho {:.3}",
-                main.lml,
-                nm.hyper,
-                main.length_scales,
-                mean(&rho)
-            );
-        }
+        evaluations += g.evaluations + f.evaluations;
         let improved = match &best {
             None => true,
             Some(b) => main.lml > b.main.lml + p.hetero_tolerance * b.main.lml.abs(),
@@ -259,12 +279,20 @@ pub(crate) fn fit(
             break;
         }
         noise_theta = Some(g.theta);
+        noise_memory = g.memory;
         current_theta = f.theta;
+        main_memory = f.memory;
+        converged &= g.converged && f.converged;
         best = Some(Fitted {
             main,
             noise_model: nm,
             rounds: round + 1,
+            evaluations: 0,
+            converged,
         });
     }
-    best.ok_or_else(|| GpError::OptimisationFailed("no heteroscedastic round succeeded".into()))
+    let mut best = best
+        .ok_or_else(|| GpError::OptimisationFailed("no heteroscedastic round succeeded".into()))?;
+    best.evaluations = evaluations;
+    Ok(best)
 }

@@ -12,9 +12,13 @@
 //! 3. backtracks along the *projected* path `P(x + t d)` until the Armijo condition
 //!    `f(x_t) ≤ f(x) + 10⁻⁴ ∇f(x)ᵀ(x_t − x)` holds (quadratic interpolation, safeguarded);
 //! 4. stops when the projected gradient's infinity norm is below `gtol`, the relative decrease is
-//!    below `ftol` (SciPy's `factr` criterion), the line search fails, or after `max_iter`.
+//!    below `ftol` (SciPy's `factr` criterion), the line search fails (counted as converged when
+//!    the predicted decrease `−∇fᵀd` is itself below `ftol · |f|`), or after `max_iter`.
 
 use std::collections::VecDeque;
+
+/// L-BFGS correction pairs `(s, y)` = (step, gradient change), oldest first.
+pub(crate) type Memory = Vec<(Vec<f64>, Vec<f64>)>;
 
 /// Stopping rules and memory of [`minimize`].
 #[derive(Clone, Copy, Debug)]
@@ -38,10 +42,10 @@ pub(crate) struct Outcome {
     pub x: Vec<f64>,
     /// Objective at `x`.
     pub f: f64,
-    /// Iterations taken.
-    pub iterations: usize,
     /// Whether a convergence test (rather than the iteration cap or a failed line search) stopped it.
     pub converged: bool,
+    /// The correction pairs `(s, y)` held at the end, oldest first (to warm-start a related run).
+    pub memory: Memory,
 }
 
 fn dot_masked(a: &[f64], b: &[f64], free: &[bool]) -> f64 {
@@ -55,13 +59,15 @@ fn dot_masked(a: &[f64], b: &[f64], free: &[bool]) -> f64 {
 
 /// Minimises `fg` (which returns `f(x)` and writes `∇f(x)`; a non-finite value means "infeasible,
 /// back off") over the box `[lo, hi]`, starting from `x0` (projected into the box). `None` when
-/// `f(x0)` itself is not finite.
+/// `f(x0)` itself is not finite. `warm` pre-loads correction pairs (e.g. from a run on a data
+/// subset, with `y` rescaled), so the first steps already use curvature information.
 pub(crate) fn minimize(
     fg: &mut dyn FnMut(&[f64], &mut [f64]) -> f64,
     x0: &[f64],
     lo: &[f64],
     hi: &[f64],
     s: &Settings,
+    warm: Memory,
 ) -> Option<Outcome> {
     let p = x0.len();
     let project = |v: &mut [f64]| {
@@ -77,6 +83,15 @@ pub(crate) fn minimize(
         return None;
     }
     let mut mem: VecDeque<(Vec<f64>, Vec<f64>)> = VecDeque::with_capacity(s.memory);
+    for pair in warm
+        .into_iter()
+        .filter(|(a, b)| a.len() == p && b.len() == p)
+    {
+        if mem.len() == s.memory {
+            mem.pop_front();
+        }
+        mem.push_back(pair);
+    }
     let mut xn = vec![0.0; p];
     let mut gn = vec![0.0; p];
     let mut converged = false;
@@ -133,14 +148,14 @@ pub(crate) fn minimize(
         let mut dir: Vec<f64> = q.iter().map(|v| -v).collect();
         let mut dg: f64 = dir.iter().zip(&g).map(|(a, b)| a * b).sum();
         let mut first = mem.is_empty();
-        if !(dg < 0.0) {
+        if dg >= 0.0 || dg.is_nan() {
             mem.clear();
             first = true;
             dir = (0..p).map(|i| if free[i] { -g[i] } else { 0.0 }).collect();
             dg = dir.iter().zip(&g).map(|(a, b)| a * b).sum();
         }
         let dmax = dir.iter().fold(0.0f64, |m, v| m.max(v.abs()));
-        if !(dmax > 0.0) {
+        if dmax <= 0.0 || dmax.is_nan() {
             converged = true;
             break;
         }
@@ -179,6 +194,9 @@ pub(crate) fn minimize(
             }
         }
         let Some(fnew) = accepted else {
+            // No decrease found. If even the model's predicted decrease is below the function
+            // tolerance, this is convergence at the limit of floating-point resolution.
+            converged = -dg <= s.ftol * f.abs().max(1.0);
             break;
         };
         let sv: Vec<f64> = xn.iter().zip(&x).map(|(a, b)| a - b).collect();
@@ -201,8 +219,8 @@ pub(crate) fn minimize(
     Some(Outcome {
         x,
         f,
-        iterations,
         converged,
+        memory: mem.into(),
     })
 }
 
@@ -234,6 +252,7 @@ mod tests {
             &[-5.0, -5.0],
             &[5.0, 5.0],
             &settings(),
+            Vec::new(),
         )
         .unwrap();
         assert!(
@@ -250,7 +269,15 @@ mod tests {
             g[1] = 2.0 * (x[1] + 2.0) + 0.5 * x[0];
             (x[0] - 3.0).powi(2) + (x[1] + 2.0).powi(2) + 0.5 * x[0] * x[1]
         };
-        let out = minimize(&mut fg, &[0.5, 0.5], &[0.0, -1.0], &[1.0, 1.0], &settings()).unwrap();
+        let out = minimize(
+            &mut fg,
+            &[0.5, 0.5],
+            &[0.0, -1.0],
+            &[1.0, 1.0],
+            &settings(),
+            Vec::new(),
+        )
+        .unwrap();
         assert!(
             (out.x[0] - 1.0).abs() < 1e-12 && (out.x[1] + 1.0).abs() < 1e-12,
             "{out:?}"
@@ -261,6 +288,6 @@ mod tests {
     #[test]
     fn infeasible_start_is_none() {
         let mut fg = |_: &[f64], _: &mut [f64]| f64::NAN;
-        assert!(minimize(&mut fg, &[0.0], &[-1.0], &[1.0], &settings()).is_none());
+        assert!(minimize(&mut fg, &[0.0], &[-1.0], &[1.0], &settings(), Vec::new()).is_none());
     }
 }

@@ -100,13 +100,31 @@ pub(crate) fn inverse_from_inverse_factor(linv: &[f64], n: usize, out: &mut [f64
     );
 }
 
-/// `out = L⁻¹ B` with `L⁻¹` in the lower triangle of `linv` (`n × n`) and `B`, `out` `n × m`.
-pub(crate) fn lower_matmul(linv: &[f64], n: usize, b: &[f64], m: usize, out: &mut [f64], par: Par) {
+/// Writes `L⁻¹` **row-major** (i.e. `L⁻ᵀ` column-major, upper triangle) into `out` (`n × n`):
+/// row `i` of `L⁻¹` is then the contiguous slice `out[i*n ..= i*n + i]`.
+pub(crate) fn invert_lower_row_major(l: &[f64], n: usize, out: &mut [f64]) {
+    faer::linalg::triangular_inverse::invert_lower_triangular(
+        view_mut(out, n, n).transpose_mut(),
+        view(l, n, n),
+        par_for(n),
+    );
+}
+
+/// `out = L⁻¹ B` with `L⁻¹` stored row-major in `linv_rm` (see [`invert_lower_row_major`]) and
+/// `B`, `out` column-major `n × m`.
+pub(crate) fn lower_matmul(
+    linv_rm: &[f64],
+    n: usize,
+    b: &[f64],
+    m: usize,
+    out: &mut [f64],
+    par: Par,
+) {
     faer::linalg::matmul::triangular::matmul(
         view_mut(out, n, m),
         BlockStructure::Rectangular,
         Accum::Replace,
-        view(linv, n, n),
+        view(linv_rm, n, n).transpose(),
         BlockStructure::TriangularLower,
         view(b, n, m),
         BlockStructure::Rectangular,

@@ -10,7 +10,7 @@
 //! For the log signal variance `∂K/∂θ = K − diag(D) − εI`, which gives the closed form
 //! `½[(rᵀα − Σ α_i² D'_i) − (n − Σ (K⁻¹)_ii D'_i)]` with `D' = D + ε`; for a homoscedastic log
 //! noise variance `∂K/∂θ = σ² I`, giving `½ σ² Σ (α_i² − (K⁻¹)_ii)`; the log length scales use
-//! [`length_scale_gradient`](super::kernel::length_scale_gradient).
+//! [`length_scale_gradient`].
 
 use super::GpError;
 use super::kernel::{Inputs, build_train, length_scale_gradient};
@@ -18,6 +18,12 @@ use super::linalg;
 
 /// `½ log 2π`.
 const HALF_LN_2PI: f64 = 0.918_938_533_204_672_8;
+
+/// Smallest accepted squared Cholesky pivot relative to the mean diagonal. A numerically
+/// singular matrix (e.g. duplicate inputs without noise) can factorise with pivots that are pure
+/// rounding noise; those are treated as failures so the jitter ladder takes over. Within the
+/// default bounds (noise ≥ 1e-6, signal ≤ 1e4) genuine pivots are ≥ 1e-10 of the mean diagonal.
+const MIN_PIVOT: f64 = 1e-13;
 
 /// How the diagonal noise of the covariance is given.
 #[derive(Clone, Copy, Debug)]
@@ -84,7 +90,9 @@ pub(crate) fn factorise(
     };
     loop {
         build_train(xs, n, d, s2, &diag, &mut l, g.as_deref_mut());
-        if linalg::cholesky_in_place(&mut l, n) {
+        if linalg::cholesky_in_place(&mut l, n)
+            && (0..n).all(|i| l[i * n + i] * l[i * n + i] >= MIN_PIVOT * mean_diag)
+        {
             let mut alpha = r.to_vec();
             linalg::solve_lower_in_place(&l, n, &mut alpha, 1, faer::Par::Seq);
             linalg::solve_upper_transpose_in_place(&l, n, &mut alpha, 1, faer::Par::Seq);
@@ -98,14 +106,15 @@ pub(crate) fn factorise(
                 });
             }
         }
-        eps = if eps == 0.0 {
+        let next = if eps == 0.0 {
             jitter.initial * mean_diag
         } else {
             eps * 10.0
         };
-        if !(eps <= jitter.max * mean_diag * (1.0 + 1e-9)) || !eps.is_finite() {
-            return Err((GpError::NotPositiveDefinite { jitter: eps / 10.0 }, l));
+        if !(next > eps && next.is_finite() && next <= jitter.max * mean_diag * (1.0 + 1e-9)) {
+            return Err((GpError::NotPositiveDefinite { jitter: eps }, l));
         }
+        eps = next;
         for (dv, nv) in diag.iter_mut().zip(noise) {
             *dv = nv + eps;
         }
@@ -145,6 +154,7 @@ impl<'a> Objective<'a> {
     }
 
     /// Length of `θ`.
+    #[cfg(test)]
     pub fn n_params(&self) -> usize {
         match self.noise {
             NoiseSpec::Homoscedastic => self.x.d + 2,

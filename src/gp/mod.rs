@@ -1,3 +1,4 @@
+#![warn(missing_docs)]
 //! The Gaussian-process model deviation estimator (MDE): a Matérn ν=5/2 ARD GP with a constant
 //! prior mean and homoscedastic or *most likely heteroscedastic* noise (Kersting et al. 2007).
 //!
@@ -33,6 +34,8 @@ mod linalg;
 mod lml;
 pub mod model;
 pub mod params;
+#[cfg(test)]
+mod tests;
 
 use serde::{Deserialize, Serialize};
 
@@ -128,6 +131,10 @@ pub struct NoiseModelState {
     pub noise_variance_clip: (f64, f64),
     /// Absolute jitter that the noise GP's factorisation needed (usually 0).
     pub jitter: f64,
+    /// Heteroscedastic rounds kept (informational).
+    pub rounds: usize,
+    /// LML of the initial homoscedastic fit (informational).
+    pub homoscedastic_lml: f64,
 }
 
 /// Everything needed to rebuild a fitted [`GpModel`] without re-optimising, given the same
@@ -166,6 +173,17 @@ pub struct NoiseSummary {
     pub rounds: usize,
     /// LML of the initial homoscedastic fit, for comparison with the model's LML.
     pub homoscedastic_lml: f64,
+}
+
+/// How a fit's hyperparameter optimisation went.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct FitStats {
+    /// LML evaluations (each one Cholesky, plus an inverse for the gradient), over all starts,
+    /// subset screening and heteroscedastic rounds.
+    pub evaluations: usize,
+    /// Whether every final optimiser run stopped on a convergence test rather than the
+    /// iteration cap or a failed line search.
+    pub converged: bool,
 }
 
 /// Batched predictions; entry `j` of each vector belongs to query row `j`.

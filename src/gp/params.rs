@@ -101,9 +101,11 @@ pub struct GpParams {
     /// Infinity norm of the projected gradient of `−LML` (w.r.t. log-parameters) below which an
     /// optimiser run stops. Default `1e-5`; range `(0, 1]`.
     pub gradient_tolerance: f64,
-    /// When `n` exceeds this, every start (also a lone one) is first optimised on a seeded random
-    /// subset of this many points and only the best is refined on all the data (the full-data
-    /// refinement then needs few iterations). `0` disables screening (every start runs on all data).
+    /// When `n` exceeds this (and `restarts > 0`), the random restarts are first optimised on a
+    /// seeded random subset of this many points and only the best of them is refined on all the
+    /// data (starting near its optimum, so that refinement needs few iterations). The
+    /// deterministic default start always runs on all the data, because on a subset weakly
+    /// relevant inputs look irrelevant. `0` disables screening (every start runs on all data).
     /// Default `512`; must be `0` or at least `64`.
     pub screen_subset: usize,
     /// First jitter tried when a Cholesky factorisation fails, relative to the mean diagonal of

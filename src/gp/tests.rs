@@ -1,0 +1,609 @@
+//! Unit and property tests of the GP core: factorisation, gradients, invariants, round trips,
+//! determinism and error handling.
+
+use approx::assert_relative_eq;
+use nalgebra::{DMatrix, DVector};
+use proptest::prelude::*;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::hetero::{LOG_RESIDUAL_BIAS, log_residual_bias};
+use super::kernel::{Inputs, build_train, matern52};
+use super::lml::{Jitter, NoiseSpec, Objective, factorise};
+use super::*;
+
+const JITTER: Jitter = Jitter {
+    initial: 1e-10,
+    max: 1e-4,
+};
+
+fn data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let x = DMatrix::from_fn(n, d, |_, _| rng.random::<f64>());
+    let y = DVector::from_fn(n, |i, _| {
+        (4.0 * x[(i, 0)]).sin() + x.row(i).sum() * 0.3 + 0.05 * (rng.random::<f64>() - 0.5)
+    });
+    (x, y)
+}
+
+fn homo_params() -> ValidGpParams {
+    GpParams {
+        noise: NoiseMode::Homoscedastic,
+        restarts: 1,
+        seed: 5,
+        ..GpParams::default()
+    }
+    .check()
+    .unwrap()
+}
+
+#[test]
+fn cholesky_factor_reproduces_the_covariance() {
+    let (x, y) = data(60, 3, 1);
+    let inputs = Inputs::from_matrix(&x);
+    let ls = [0.3, 0.7, 1.1];
+    let xs = inputs.scaled(&ls);
+    let n = inputs.n;
+    let noise = vec![0.01; n];
+    let mut k = vec![0.0; n * n];
+    build_train(&xs, n, 3, 0.9, &noise, &mut k, None);
+    let fac = factorise(
+        &xs,
+        n,
+        3,
+        0.9,
+        &noise,
+        y.as_slice(),
+        JITTER,
+        0.0,
+        vec![0.0; n * n],
+        None,
+    )
+    .ok()
+    .unwrap();
+    assert_eq!(fac.jitter, 0.0);
+    for j in 0..n {
+        for i in j..n {
+            let llt: f64 = (0..=j).map(|c| fac.l[c * n + i] * fac.l[c * n + j]).sum();
+            assert_relative_eq!(llt, k[j * n + i], epsilon = 1e-12, max_relative = 1e-10);
+        }
+    }
+    // K α = r
+    for i in 0..n {
+        let ka: f64 = (0..n)
+            .map(|j| if i >= j { k[j * n + i] } else { k[i * n + j] } * fac.alpha[j])
+            .sum();
+        assert_relative_eq!(ka, y[i], epsilon = 1e-9);
+    }
+}
+
+#[test]
+fn kernel_matches_the_matern_formula() {
+    let r: f64 = 0.37;
+    let expected = 1.7 * (1.0 + 5f64.sqrt() * r + 5.0 / 3.0 * r * r) * (-(5f64.sqrt()) * r).exp();
+    assert_relative_eq!(matern52(r * r, 1.7), expected, max_relative = 1e-14);
+    assert_eq!(matern52(0.0, 2.5), 2.5);
+}
+
+fn check_gradient(noise: NoiseSpec<'_>, x: &Inputs, r: &[f64], theta: &[f64]) {
+    let mut obj = Objective::new(x, r, noise, JITTER);
+    let p = obj.n_params();
+    assert_eq!(p, theta.len());
+    let mut g = vec![0.0; p];
+    let f = obj.eval(theta, &mut g);
+    assert!(f.is_finite());
+    let mut scratch = vec![0.0; p];
+    for k in 0..p {
+        let h = 1e-5;
+        let mut tp = theta.to_vec();
+        tp[k] += h;
+        let fp = obj.eval(&tp, &mut scratch);
+        tp[k] -= 2.0 * h;
+        let fm = obj.eval(&tp, &mut scratch);
+        let fd = (fp - fm) / (2.0 * h);
+        assert_relative_eq!(g[k], fd, epsilon = 1e-6, max_relative = 1e-5);
+    }
+}
+
+#[test]
+fn gradient_matches_finite_differences() {
+    let (x, y) = data(70, 3, 2);
+    let inputs = Inputs::from_matrix(&x);
+    let r: Vec<f64> = y.iter().map(|v| v - 0.2).collect();
+    check_gradient(
+        NoiseSpec::Homoscedastic,
+        &inputs,
+        &r,
+        &[
+            (0.4f64).ln(),
+            (0.9f64).ln(),
+            (2.0f64).ln(),
+            (0.7f64).ln(),
+            (0.02f64).ln(),
+        ],
+    );
+    let fixed: Vec<f64> = (0..70).map(|i| 0.005 + 0.001 * i as f64).collect();
+    check_gradient(
+        NoiseSpec::Fixed(&fixed),
+        &inputs,
+        &r,
+        &[(0.2f64).ln(), (1.5f64).ln(), (0.6f64).ln(), (1.3f64).ln()],
+    );
+}
+
+#[test]
+fn gradient_is_right_for_large_matrices_too() {
+    // Above the thresholds where kernel builds and gradient sums run on several threads and
+    // faer switches to its parallel kernels.
+    let (x, y) = data(1300, 2, 3);
+    let inputs = Inputs::from_matrix(&x);
+    check_gradient(
+        NoiseSpec::Homoscedastic,
+        &inputs,
+        y.as_slice(),
+        &[(0.3f64).ln(), (0.8f64).ln(), 0.0, (0.01f64).ln()],
+    );
+}
+
+#[test]
+fn log_residual_bias_matches_quadrature_references() {
+    // References from scipy.integrate.quad of −E[log(1 − ρ + ρu²)].
+    assert_relative_eq!(
+        log_residual_bias(1.0),
+        LOG_RESIDUAL_BIAS,
+        max_relative = 1e-12
+    );
+    assert_relative_eq!(
+        log_residual_bias(0.99),
+        1.038_180_838_349_033,
+        max_relative = 1e-10
+    );
+    assert_relative_eq!(
+        log_residual_bias(0.95),
+        0.794_608_231_804_137,
+        max_relative = 1e-10
+    );
+    assert_relative_eq!(
+        log_residual_bias(0.5),
+        0.159_694_000_715_810_7,
+        max_relative = 1e-10
+    );
+    assert_eq!(log_residual_bias(0.0), 0.0);
+}
+
+#[test]
+fn state_round_trips_exactly_through_json() {
+    let (x, y) = data(40, 2, 4);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let params = GpParams {
+            noise,
+            restarts: 1,
+            seed: 9,
+            ..GpParams::default()
+        }
+        .check()
+        .unwrap();
+        let model = GpModel::fit(&x, &y, &params).unwrap();
+        assert_eq!(model.noise_mode(), noise);
+        let (q, _) = data(25, 2, 5);
+        let a = model.predict(&q);
+        // The stored state itself rebuilds the model bit for bit.
+        let exact = GpModel::from_state(&x, &y, &model.state()).unwrap();
+        assert_eq!(exact.predict(&q), a);
+        assert_eq!(
+            exact.log_marginal_likelihood(),
+            model.log_marginal_likelihood()
+        );
+        // Through JSON, serde_json (without its `float_roundtrip` feature) may misround a float
+        // by one ulp; the model then agrees to ~1e-10 relative.
+        let json = serde_json::to_string(&model.state()).unwrap();
+        let state: ModelState = serde_json::from_str(&json).unwrap();
+        let rebuilt = GpModel::from_state(&x, &y, &state).unwrap();
+        let b = rebuilt.predict(&q);
+        for j in 0..25 {
+            assert_relative_eq!(a.mean[j], b.mean[j], max_relative = 1e-10, epsilon = 1e-10);
+            assert_relative_eq!(
+                a.latent_variance[j],
+                b.latent_variance[j],
+                max_relative = 1e-8,
+                epsilon = 1e-10
+            );
+            assert_relative_eq!(
+                a.noise_variance[j],
+                b.noise_variance[j],
+                max_relative = 1e-10
+            );
+        }
+        assert_relative_eq!(
+            model.log_marginal_likelihood(),
+            rebuilt.log_marginal_likelihood(),
+            max_relative = 1e-10
+        );
+    }
+}
+
+#[test]
+fn same_seed_same_model() {
+    let (x, y) = data(50, 3, 6);
+    let params = GpParams {
+        restarts: 2,
+        seed: 42,
+        ..GpParams::default()
+    }
+    .check()
+    .unwrap();
+    let a = GpModel::fit(&x, &y, &params).unwrap();
+    let b = GpModel::fit(&x, &y, &params).unwrap();
+    assert_eq!(a.state(), b.state());
+    let (q, _) = data(10, 3, 7);
+    assert_eq!(a.predict(&q), b.predict(&q));
+}
+
+#[test]
+fn screening_on_a_subset_still_fits_well() {
+    // n above screen_subset: the starts are screened on a subset, then refined on all data.
+    let (x, y) = data(260, 2, 8);
+    let screened = GpParams {
+        noise: NoiseMode::Homoscedastic,
+        restarts: 2,
+        screen_subset: 64,
+        ..GpParams::default()
+    };
+    let full = GpParams {
+        screen_subset: 0,
+        ..screened.clone()
+    };
+    let a = GpModel::fit(&x, &y, &screened.check().unwrap()).unwrap();
+    let b = GpModel::fit(&x, &y, &full.check().unwrap()).unwrap();
+    let (la, lb) = (a.log_marginal_likelihood(), b.log_marginal_likelihood());
+    assert!(la >= lb - 1e-3 * lb.abs(), "screened {la} vs full {lb}");
+}
+
+#[test]
+fn single_and_batched_predictions_agree() {
+    let (x, y) = data(80, 2, 10);
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let (q, _) = data(30, 2, 11);
+    let batch = model.predict(&q);
+    for j in 0..30 {
+        let one = model.predict(&q.rows(j, 1).into_owned());
+        assert_relative_eq!(
+            one.mean[0],
+            batch.mean[j],
+            max_relative = 1e-12,
+            epsilon = 1e-14
+        );
+        assert_relative_eq!(
+            one.latent_variance[0],
+            batch.latent_variance[j],
+            max_relative = 1e-8,
+            epsilon = 1e-13
+        );
+    }
+}
+
+#[test]
+fn heteroscedastic_falls_back_on_tiny_data() {
+    let (x, y) = data(5, 2, 12);
+    let model = GpModel::fit(&x, &y, &GpParams::default().check().unwrap()).unwrap();
+    assert_eq!(model.noise_mode(), NoiseMode::Homoscedastic);
+    assert!(model.noise_summary().is_none());
+    let (x, y) = data(1, 2, 12);
+    let model = GpModel::fit(&x, &y, &GpParams::default().check().unwrap()).unwrap();
+    assert_eq!(model.n_train(), 1);
+    assert!(model.predict(&x).std()[0].is_finite());
+}
+
+#[test]
+fn duplicate_points_without_noise_use_jitter_or_fail_cleanly() {
+    let x = DMatrix::from_row_slice(4, 1, &[0.2, 0.2, 0.2, 0.7]);
+    let y = DVector::from_row_slice(&[0.1, 0.1, 0.1, 0.5]);
+    let h = Hyperparameters {
+        length_scales: vec![0.5],
+        signal_variance: 1.0,
+        noise_variance: 0.0,
+        prior_mean: 0.0,
+    };
+    let state = ModelState {
+        format: 1,
+        noise: NoiseMode::Homoscedastic,
+        n_train: 4,
+        hyperparameters: h,
+        jitter: 0.0,
+        log_marginal_likelihood: 0.0,
+        noise_model: None,
+    };
+    // A rebuild uses exactly the stored jitter: a singular matrix is an error value.
+    assert!(matches!(
+        GpModel::from_state(&x, &y, &state),
+        Err(GpError::NotPositiveDefinite { .. })
+    ));
+    // A fit with a tiny noise floor climbs the jitter ladder instead.
+    let p = GpParams {
+        noise: NoiseMode::Homoscedastic,
+        bounds: Bounds {
+            noise_variance: (1e-300, 1e-300),
+            ..Bounds::MAIN
+        },
+        ..GpParams::default()
+    };
+    let model = GpModel::fit(&x, &y, &p.check().unwrap()).unwrap();
+    assert!(model.jitter() > 0.0);
+    let rebuilt = GpModel::from_state(&x, &y, &model.state()).unwrap();
+    assert_eq!(rebuilt.predict(&x), model.predict(&x));
+}
+
+#[test]
+fn bad_inputs_are_errors_not_panics() {
+    let p = homo_params();
+    let (x, y) = data(10, 2, 13);
+    assert!(matches!(
+        GpModel::fit(&DMatrix::zeros(0, 2), &DVector::zeros(0), &p),
+        Err(GpError::EmptyData(_))
+    ));
+    assert!(matches!(
+        GpModel::fit(&DMatrix::zeros(3, 0), &DVector::zeros(3), &p),
+        Err(GpError::EmptyData(_))
+    ));
+    assert!(matches!(
+        GpModel::fit(&x, &DVector::zeros(9), &p),
+        Err(GpError::DimensionMismatch { .. })
+    ));
+    let mut xn = x.clone();
+    xn[(3, 1)] = f64::NAN;
+    assert_eq!(
+        GpModel::fit(&xn, &y, &p).unwrap_err(),
+        GpError::NonFinite {
+            what: "x",
+            index: 7
+        }
+    );
+    let mut yn = y.clone();
+    yn[4] = f64::INFINITY;
+    assert_eq!(
+        GpModel::fit(&x, &yn, &p).unwrap_err(),
+        GpError::NonFinite {
+            what: "y",
+            index: 4
+        }
+    );
+
+    let model = GpModel::fit(&x, &y, &p).unwrap();
+    let wrong = DMatrix::zeros(3, 5);
+    assert!(model.predict(&wrong).mean.iter().all(|v| v.is_nan()));
+    assert!(matches!(
+        model.try_predict(&wrong),
+        Err(GpError::DimensionMismatch { .. })
+    ));
+    assert!(matches!(
+        model.try_predict(&xn),
+        Err(GpError::NonFinite { .. })
+    ));
+    let p_nan = model.predict(&xn);
+    assert!(p_nan.mean[3].is_nan() && p_nan.mean[2].is_finite());
+    assert!(model.predict(&DMatrix::zeros(0, 2)).is_empty());
+
+    let mut state = model.state();
+    state.n_train = 11;
+    assert!(matches!(
+        GpModel::from_state(&x, &y, &state),
+        Err(GpError::DimensionMismatch { .. })
+    ));
+    let mut state = model.state();
+    state.hyperparameters.length_scales = vec![0.5];
+    assert!(GpModel::from_state(&x, &y, &state).is_err());
+    let mut state = model.state();
+    state.hyperparameters.signal_variance = -1.0;
+    assert!(matches!(
+        GpModel::from_state(&x, &y, &state),
+        Err(GpError::InvalidState(_))
+    ));
+    let mut state = model.state();
+    state.noise = NoiseMode::Heteroscedastic;
+    assert!(matches!(
+        GpModel::from_state(&x, &y, &state),
+        Err(GpError::InvalidState(_))
+    ));
+}
+
+#[test]
+fn invalid_params_name_the_field() {
+    let name = |p: GpParams| match p.check() {
+        Err(GpError::InvalidParameter { name, .. }) => name,
+        other => panic!("expected an invalid parameter, got {other:?}"),
+    };
+    let d = GpParams::default;
+    assert_eq!(
+        name(GpParams {
+            prior_mean: f64::NAN,
+            ..d()
+        }),
+        "prior_mean"
+    );
+    assert_eq!(
+        name(GpParams {
+            restarts: 65,
+            ..d()
+        }),
+        "restarts"
+    );
+    assert_eq!(
+        name(GpParams {
+            bounds: Bounds {
+                length_scale: (0.0, 1.0),
+                ..Bounds::MAIN
+            },
+            ..d()
+        }),
+        "bounds.length_scale"
+    );
+    assert_eq!(
+        name(GpParams {
+            bounds: Bounds {
+                noise_variance: (2.0, 1.0),
+                ..Bounds::MAIN
+            },
+            ..d()
+        }),
+        "bounds.noise_variance"
+    );
+    assert_eq!(
+        name(GpParams {
+            noise_model_bounds: Bounds {
+                signal_variance: (1.0, f64::INFINITY),
+                ..Bounds::NOISE_MODEL
+            },
+            ..d()
+        }),
+        "noise_model_bounds.signal_variance"
+    );
+    assert_eq!(
+        name(GpParams {
+            max_iterations: 0,
+            ..d()
+        }),
+        "max_iterations"
+    );
+    assert_eq!(
+        name(GpParams {
+            function_tolerance: 0.0,
+            ..d()
+        }),
+        "function_tolerance"
+    );
+    assert_eq!(
+        name(GpParams {
+            gradient_tolerance: -1.0,
+            ..d()
+        }),
+        "gradient_tolerance"
+    );
+    assert_eq!(
+        name(GpParams {
+            screen_subset: 10,
+            ..d()
+        }),
+        "screen_subset"
+    );
+    assert_eq!(
+        name(GpParams {
+            jitter_initial: 1.0,
+            ..d()
+        }),
+        "jitter_initial"
+    );
+    assert_eq!(
+        name(GpParams {
+            jitter_max: 0.5,
+            ..d()
+        }),
+        "jitter_max"
+    );
+    assert_eq!(
+        name(GpParams {
+            hetero_rounds: 0,
+            ..d()
+        }),
+        "hetero_rounds"
+    );
+    assert_eq!(
+        name(GpParams {
+            hetero_tolerance: 1.0,
+            ..d()
+        }),
+        "hetero_tolerance"
+    );
+    assert_eq!(
+        name(GpParams {
+            hetero_min_points: 1,
+            ..d()
+        }),
+        "hetero_min_points"
+    );
+    assert!(GpParams::default().check().is_ok());
+}
+
+#[test]
+fn params_serde_uses_lowercase_modes_and_defaults() {
+    let p: GpParams = serde_json::from_str(r#"{"noise": "homoscedastic", "restarts": 0}"#).unwrap();
+    assert_eq!(p.noise, NoiseMode::Homoscedastic);
+    assert_eq!(p.restarts, 0);
+    assert_eq!(p.max_iterations, GpParams::default().max_iterations);
+    assert_eq!(
+        serde_json::to_string(&NoiseMode::Heteroscedastic).unwrap(),
+        r#""heteroscedastic""#
+    );
+}
+
+#[test]
+fn prior_answers_before_any_data() {
+    let h = Hyperparameters::prior(4, 0.25);
+    assert_eq!(h.length_scales.len(), 4);
+    assert_eq!(h.prior_std(), DEFAULT_PRIOR_SIGNAL_VARIANCE.sqrt());
+    let p = h.prior_prediction(3);
+    assert_eq!(p.mean, vec![0.25; 3]);
+    assert_eq!(p.std(), vec![1.0; 3]);
+}
+
+#[test]
+fn model_is_send_and_sync() {
+    fn assert_send_sync<T: Send + Sync>() {}
+    assert_send_sync::<GpModel>();
+}
+
+proptest! {
+    #![proptest_config(ProptestConfig { cases: 24, .. ProptestConfig::default() })]
+
+    /// Variances are never negative (nor NaN), whatever the hyperparameters and query points,
+    /// including queries on top of training points and far outside the box.
+    #[test]
+    fn variances_are_nonnegative(
+        seed in 0u64..1000,
+        n in 1usize..40,
+        ls in 0.01f64..10.0,
+        s2 in 1e-4f64..1e2,
+        noise in 1e-6f64..1.0,
+        scale in 0.5f64..20.0,
+    ) {
+        let (x, y) = data(n, 2, seed);
+        let state = ModelState {
+            format: 1,
+            noise: NoiseMode::Homoscedastic,
+            n_train: n,
+            hyperparameters: Hyperparameters { length_scales: vec![ls, ls * 2.0], signal_variance: s2, noise_variance: noise, prior_mean: 0.1 },
+            jitter: 0.0,
+            log_marginal_likelihood: 0.0,
+            noise_model: None,
+        };
+        if let Ok(model) = GpModel::from_state(&x, &y, &state) {
+            let mut q = DMatrix::from_fn(n + 20, 2, |i, j| if i < n { x[(i, j)] } else { (i as f64 / 7.0).sin() * scale });
+            q[(0, 0)] += 1e-9;
+            let p = model.predict(&q);
+            for j in 0..q.nrows() {
+                prop_assert!(p.latent_variance[j] >= 0.0 && p.latent_variance[j] <= s2 * (1.0 + 1e-9));
+                prop_assert!(p.noise_variance[j] >= 0.0);
+                prop_assert!(p.mean[j].is_finite());
+            }
+        }
+    }
+
+    /// L·Lᵀ reproduces K for random kernels (checked on the diagonal and first column).
+    #[test]
+    fn factor_reproduces_random_kernels(seed in 0u64..1000, n in 2usize..30, ls in 0.05f64..3.0, noise in 1e-4f64..1.0) {
+        let (x, y) = data(n, 3, seed);
+        let inputs = Inputs::from_matrix(&x);
+        let xs = inputs.scaled(&[ls, ls, ls]);
+        let nv = vec![noise; n];
+        let mut k = vec![0.0; n * n];
+        build_train(&xs, n, 3, 1.0, &nv, &mut k, None);
+        let fac = factorise(&xs, n, 3, 1.0, &nv, y.as_slice(), JITTER, 0.0, vec![0.0; n * n], None).ok().unwrap();
+        for i in 0..n {
+            let diag: f64 = (0..=i).map(|c| fac.l[c * n + i].powi(2)).sum();
+            prop_assert!((diag - k[i * n + i] - fac.jitter).abs() <= 1e-10 * k[i * n + i]);
+            let first: f64 = fac.l[i] * fac.l[0];
+            if i > 0 {
+                prop_assert!((first - k[i]).abs() <= 1e-10);
+            }
+        }
+    }
+}
