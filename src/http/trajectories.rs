@@ -44,42 +44,6 @@ pub struct TrajectoryRequest {
     pub transitions: Vec<TransitionRequest>,
 }
 
-/// A stored transition as clients see it.
-#[derive(Debug, Serialize)]
-pub struct TransitionBody {
-    /// Identifier (ascending in ingest order; the pagination cursor).
-    pub id: i64,
-    /// Owning trajectory.
-    pub trajectory_id: i64,
-    /// Position in the trajectory.
-    pub step: i64,
-    /// State.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// Observed next state.
-    pub s_next: Vec<f64>,
-    /// The model's prediction.
-    pub s_pred: Vec<f64>,
-    /// `d(f̂(s, a), s_next)`.
-    pub deviation: f64,
-}
-
-impl From<Transition> for TransitionBody {
-    fn from(t: Transition) -> Self {
-        Self {
-            id: t.id,
-            trajectory_id: t.trajectory_id,
-            step: t.step,
-            s: t.s,
-            a: t.a,
-            s_next: t.s_next,
-            s_pred: t.s_pred,
-            deviation: t.deviation,
-        }
-    }
-}
-
 /// Validates every transition against the domain and labels it.
 pub fn label_transitions(
     live: &LiveExperiment,
@@ -243,7 +207,7 @@ pub async fn get_trajectory(
         "partial": t.partial,
         "created_at": t.created_at,
         "n_transitions": t.transitions.len(),
-        "transitions": t.transitions.into_iter().map(TransitionBody::from).collect::<Vec<_>>(),
+        "transitions": t.transitions,
     })))
 }
 
@@ -325,7 +289,7 @@ pub async fn list_transitions(
         return Ok(response);
     }
     Ok(Json(json!({
-        "items": items.into_iter().map(TransitionBody::from).collect::<Vec<_>>(),
+        "items": items,
         "next": next,
     }))
     .into_response())

@@ -21,8 +21,8 @@ pub struct NewTransition {
     pub deviation: f64,
 }
 
-/// A stored transition.
-#[derive(Debug, Clone, PartialEq)]
+/// A stored transition; serialised as the API shows it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize)]
 pub struct Transition {
     /// Identifier; ascending in ingest order.
     pub id: i64,
