@@ -157,3 +157,69 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
         assert_eq!(a[..a.len() - 1], b[..b.len() - 1]);
     }
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_quick_water_plant_experiment_draws_the_precondition_maps() {
+    let dir = tempfile::tempdir().unwrap();
+    let cli = Cli::try_parse_from([
+        "precond",
+        "experiment",
+        "--domain",
+        "water_plant",
+        "--quick",
+        "--no-progress",
+        "--strategies",
+        "active,random",
+        "--out",
+        dir.path().to_str().unwrap(),
+    ])
+    .unwrap();
+    let Command::Experiment(args) = cli.command else {
+        panic!("not the experiment command");
+    };
+    let out = precond::experiment::run(args).await.unwrap();
+    let (header, rows) = parse_csv(&out.join("iterations.csv"));
+    assert_eq!(rows.len(), 2 * 2 * 3);
+    // Every executed training trajectory has a type.
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    for r in &rows {
+        let typed: usize = [
+            "no_pour",
+            "below_success",
+            "below_spill",
+            "above_success",
+            "above_spill",
+        ]
+        .iter()
+        .map(|c| r[col(c)].parse::<usize>().unwrap())
+        .sum();
+        assert_eq!(
+            typed,
+            r[col("train_trajectories")].parse::<usize>().unwrap()
+        );
+    }
+    // Maps at the first and last iterations (quick: 0 and 2) of seed 0's active run.
+    let maps: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("maps.json")).unwrap()).unwrap();
+    let maps = maps.as_array().unwrap();
+    assert_eq!(maps.len(), 2 * 2);
+    for m in maps {
+        let (nx, ny) = (
+            m["xs"].as_array().unwrap().len(),
+            m["ys"].as_array().unwrap().len(),
+        );
+        let upper = m["upper"].as_array().unwrap();
+        assert_eq!(upper.len(), ny);
+        assert!(upper.iter().all(|row| row.as_array().unwrap().len() == nx));
+    }
+    for name in [
+        "metrics.svg",
+        "training.svg",
+        "trajectory_types.svg",
+        "precondition_map_0.svg",
+        "precondition_map_2.svg",
+    ] {
+        let svg = std::fs::read_to_string(out.join(name)).unwrap();
+        assert!(svg.starts_with("<svg") && svg.len() > 1000, "{name}");
+    }
+}

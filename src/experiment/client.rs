@@ -171,15 +171,21 @@ impl ApiClient {
         .await
     }
 
-    /// `POST /v1/experiments/{id}/proposals`, optionally overriding the strategy.
+    /// `POST /v1/experiments/{id}/proposals`, optionally leased to `client_id` and overriding
+    /// the strategy. (The service answers a client's open proposal again until it is executed,
+    /// whatever the problem: leave `client_id` out for proposals that are not executed.)
     pub async fn propose(
         &self,
         id: i64,
         start: &[f64],
         goal: &[f64],
+        client_id: Option<&str>,
         strategy: Option<&str>,
     ) -> anyhow::Result<Proposed> {
-        let mut body = json!({"start": start, "goal": goal, "client_id": "precond-experiment"});
+        let mut body = json!({"start": start, "goal": goal});
+        if let Some(c) = client_id {
+            body["client_id"] = json!(c);
+        }
         if let Some(s) = strategy {
             body["strategy"] = json!(s);
         }

@@ -22,6 +22,9 @@ use std::path::Path;
 
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
 
+/// `(iteration, mean, standard error)`.
+type MeanPoint = (f64, f64, f64);
+
 const FONT: &str = "sans-serif";
 
 /// The colour of a strategy's lines.
@@ -103,8 +106,7 @@ fn metric_figure(
     let areas = root.split_evenly((1, panels.len()));
     let x_max = (cfg.iterations.saturating_sub(1)).max(1) as f64;
     for (area, (name, label, unit)) in areas.iter().zip(panels) {
-        // (iteration, mean, se) per strategy.
-        let series: Vec<(StrategySetting, Vec<(f64, f64, f64)>)> = cfg
+        let series: Vec<(StrategySetting, Vec<MeanPoint>)> = cfg
             .strategies
             .iter()
             .map(|&s| {

@@ -260,7 +260,7 @@ pub async fn build_pool(
         let problem = domain.sample_problem(&mut stream(seed, purpose::POOL_PROBLEM, i, 0));
         let strategy = if i % 2 == 0 { None } else { Some("random") };
         let Proposed::Trajectory(p) = client
-            .propose(exp.id, &problem.start, &problem.goal, strategy)
+            .propose(exp.id, &problem.start, &problem.goal, None, strategy)
             .await?
         else {
             continue;
@@ -518,7 +518,13 @@ pub async fn run_one(
                 let problem =
                     domain.sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
                 let p = match client
-                    .propose(exp.id, &problem.start, &problem.goal, None)
+                    .propose(
+                        exp.id,
+                        &problem.start,
+                        &problem.goal,
+                        Some("precond-experiment"),
+                        None,
+                    )
                     .await?
                 {
                     Proposed::NoPlan => {
@@ -527,6 +533,20 @@ pub async fn run_one(
                     }
                     Proposed::Trajectory(p) => p,
                 };
+                // (Within rounding: serde_json's default float parser may be off by an ulp.)
+                anyhow::ensure!(
+                    p.trajectory
+                        .states
+                        .first()
+                        .is_some_and(|s0| s0.len() == problem.start.len()
+                            && s0
+                                .iter()
+                                .zip(&problem.start)
+                                .all(|(a, b)| (a - b).abs() <= 1e-9 * (1.0 + b.abs()))),
+                    "proposal {} does not start at the problem's start {:?}",
+                    p.id,
+                    problem.start
+                );
                 world.reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
                 let exec = execute(bench, world.as_mut(), &p.trajectory);
                 let transitions: Vec<Executed> = exec.steps.iter().map(|l| l.t.clone()).collect();

@@ -2,7 +2,7 @@
 
 use crate::helpers::*;
 use precond::domain::{Cell, Domain, IcyGridworld, MOVES};
-use precond::sim::{Simulated, World};
+use precond::sim::Simulated;
 use serde_json::{Value, json};
 
 /// Polls `/model` (bounded) until it covers `n_trajectories` trajectories.
