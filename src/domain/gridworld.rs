@@ -45,6 +45,7 @@ pub struct IcyGridworld {
     map: Vec<String>,
     state_space: Space,
     action_space: Space,
+    rollout_length: usize,
 }
 
 /// The four moves, in the order the action space lists them.
@@ -106,10 +107,17 @@ impl IcyGridworld {
             high: vec![1.0, 1.0],
             values: Some(MOVES.iter().map(|m| m.to_vec()).collect()),
         };
+        let open: Vec<(i64, i64)> = (0..height)
+            .flat_map(|y| (0..width).map(move |x| (x, y)))
+            .filter(|(x, y)| cells[y * width + x] != Cell::Obstacle)
+            .map(|(x, y)| (x as i64, y as i64))
+            .collect();
+        let rollout_length = mean_manhattan(&open).round().max(1.0) as usize;
         Ok(Self {
             width,
             height,
             cells,
+            rollout_length,
             map: map.iter().map(|r| r.as_ref().to_string()).collect(),
             state_space,
             action_space,
@@ -272,8 +280,12 @@ impl Domain for IcyGridworld {
         MOVES[rng.random_range(0..4)].to_vec()
     }
 
+    /// The mean Manhattan distance between two open cells (8 on the default map): as long as a
+    /// typical goal-reaching trajectory, so that the `random` strategy executes about as many
+    /// transitions per trajectory as the goal-conditioned ones and the strategies are compared
+    /// on equal data.
     fn rollout_length(&self) -> usize {
-        self.width + self.height
+        self.rollout_length
     }
 
     /// Start and goal uniform over the cells that are not obstacles (free or ice), distinct.
@@ -291,6 +303,21 @@ impl Domain for IcyGridworld {
     }
 }
 
+/// Mean Manhattan distance over distinct pairs of cells (0 for fewer than two).
+fn mean_manhattan(cells: &[(i64, i64)]) -> f64 {
+    let n = cells.len();
+    if n < 2 {
+        return 0.0;
+    }
+    let mut total = 0i64;
+    for (i, a) in cells.iter().enumerate() {
+        for b in &cells[i + 1..] {
+            total += (a.0 - b.0).abs() + (a.1 - b.1).abs();
+        }
+    }
+    total as f64 / (n * (n - 1) / 2) as f64
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -301,6 +328,14 @@ mod tests {
         assert_eq!(g.predict(&[3.0, 3.0], &[1.0, 0.0]), vec![4.0, 3.0]);
         assert_eq!(g.predict(&[0.0, 3.0], &[-1.0, 0.0]), vec![0.0, 3.0]);
         assert_eq!(g.predict(&[0.0, 11.0], &[0.0, 1.0]), vec![0.0, 11.0]);
+    }
+
+    #[test]
+    fn random_rollouts_are_as_long_as_a_typical_problem() {
+        assert_eq!(mean_manhattan(&[(0, 0), (3, 4)]), 7.0);
+        assert_eq!(mean_manhattan(&[(0, 0), (1, 0), (0, 1)]), 4.0 / 3.0);
+        let g = IcyGridworld::default_layout();
+        assert_eq!(g.rollout_length(), 8);
     }
 
     #[test]

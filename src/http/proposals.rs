@@ -140,7 +140,7 @@ pub async fn create_proposal(
             ));
         }
         if let Some(open) = state.store.open_proposal(id, client).await? {
-            return Ok((StatusCode::OK, Json(proposal_body(&open))));
+            return lease_answer(open, &request);
         }
     }
     let n_trajectories = state
@@ -213,19 +213,37 @@ pub async fn create_proposal(
                 beta,
                 strategy: strategy.as_str().to_string(),
                 model_version: model.version,
-                start: request.start,
-                goal: request.goal,
+                start: request.start.clone(),
+                goal: request.goal.clone(),
                 body,
                 ttl_seconds: live.settings.learning.proposal_ttl_seconds,
             },
         )
         .await?;
-    let status = if created {
-        StatusCode::CREATED
+    if created {
+        Ok((StatusCode::CREATED, Json(proposal_body(&stored))))
     } else {
-        StatusCode::OK
-    };
-    Ok((status, Json(proposal_body(&stored))))
+        lease_answer(stored, &request)
+    }
+}
+
+/// A client that holds an open lease gets it back when it asks for the same problem; asking for
+/// another problem is a conflict rather than a silent answer to a question it did not ask.
+fn lease_answer(
+    open: StoredProposal,
+    request: &ProposalRequest,
+) -> Result<(StatusCode, Json<Value>), Error> {
+    if open.start != request.start || open.goal != request.goal {
+        return Err(Error::Conflict(format!(
+            "client {:?} holds open proposal {} for start {:?} and goal {:?}; execute or abandon \
+             it before asking for another problem",
+            open.client_id.as_deref().unwrap_or_default(),
+            open.id,
+            open.start,
+            open.goal
+        )));
+    }
+    Ok((StatusCode::OK, Json(proposal_body(&open))))
 }
 
 /// `GET /v1/experiments/{id}/proposals/{pid}`.

@@ -308,8 +308,19 @@ async fn strategies_produce_what_they_promise() {
     assert_eq!(status, 201, "{p}");
     let n = p["trajectory"]["actions"].as_array().unwrap().len();
     assert_eq!(
-        n, 24,
-        "a random rollout has the domain's length (width + height)"
+        n, 8,
+        "a random rollout has the domain's length (mean problem length)"
+    );
+    let last = p["trajectory"]["states"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap()
+        .clone();
+    assert_ne!(
+        last,
+        json!([9.0, 10.0]),
+        "17 moves away: 8 random moves cannot arrive"
     );
 }
 
@@ -334,6 +345,17 @@ async fn proposals_are_leases() {
         )
         .await;
     assert_ne!(other["id"], first["id"], "another client gets its own");
+    let (status, err) = app
+        .post(
+            &path,
+            &json!({"start": [1, 0], "goal": [0, 4], "client_id": "robot-a"}),
+        )
+        .await;
+    assert_eq!(
+        (status, code(&err)),
+        (409, "conflict"),
+        "a lease is for one problem"
+    );
 
     // Executing it closes the lease.
     let pid = first["id"].as_i64().unwrap();
