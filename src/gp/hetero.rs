@@ -196,7 +196,15 @@ pub(crate) fn fit(
     let d = x.d;
     let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
     let jitter = fit::jitter(p);
-    let clip = p.bounds.noise_variance;
+    // A point's noise variance cannot exceed the labels' total variance: otherwise the noise GP
+    // can absorb structure (a large-label cluster explained as noise around a flat mean), and the
+    // main GP, refitted under that fixed noise, has no reason to model it (a self-reinforcing
+    // fixed point of the alternation; seen on the water plant, where it left some fits with the
+    // signal variance at its floor and nothing trusted).
+    let my = mean(y);
+    let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
+    let (clip_lo, clip_hi) = p.bounds.noise_variance;
+    let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
     let mut best: Option<Fitted> = None;
     let mut current_theta = theta_main.to_vec();
     let mut main_memory = Vec::new();

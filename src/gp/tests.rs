@@ -282,6 +282,43 @@ fn single_and_batched_predictions_agree() {
     }
 }
 
+/// Water-plant-like labels: exact zeros where the model is right, a cluster of spills (≈ 0.5,
+/// noisy) in one corner, and a few spills scattered among the zeros.
+fn zeros_and_spills(n: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let x = DMatrix::from_fn(n, 3, |_, _| rng.random::<f64>());
+    let y = DVector::from_fn(n, |i, _| {
+        let spill = x[(i, 0)] > 0.6 && x[(i, 1)] > 0.5;
+        if spill || rng.random::<f64>() < 0.05 {
+            0.5 + 0.3 * (rng.random::<f64>() - 0.5)
+        } else {
+            0.0
+        }
+    });
+    (x, y)
+}
+
+#[test]
+fn heteroscedastic_noise_never_exceeds_the_labels_variance() {
+    for seed in 0..4 {
+        let (x, y) = zeros_and_spills(120, seed);
+        let n = y.len() as f64;
+        let my = y.sum() / n;
+        let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / n;
+        let model = GpModel::fit(&x, &y, &GpParams::default().check().unwrap()).unwrap();
+        let summary = model.noise_summary().expect("heteroscedastic");
+        assert!(
+            summary.max_noise_variance <= var_y * (1.0 + 1e-9),
+            "seed {seed}: a point's noise {} exceeds the labels' variance {var_y}",
+            summary.max_noise_variance
+        );
+        assert!(
+            model.hyperparameters().signal_variance > 1e-3,
+            "seed {seed}: pure-noise fit"
+        );
+    }
+}
+
 #[test]
 fn heteroscedastic_falls_back_on_tiny_data() {
     let (x, y) = data(5, 2, 12);
