@@ -5,7 +5,7 @@ use super::extract::{ApiJson, ApiPath};
 use crate::domain::Space;
 use crate::error::Error;
 use crate::live::LiveExperiment;
-use crate::settings::{DomainSpec, ExperimentRequest, LearningSettings, MdeSettings};
+use crate::settings::{ExperimentRequest, ExperimentSettings};
 use crate::store::Experiment;
 use axum::Json;
 use axum::extract::State;
@@ -42,18 +42,9 @@ impl From<&Space> for SpaceBody {
 pub struct ExperimentResponse {
     /// Identifier.
     pub id: i64,
-    /// Name.
-    pub name: String,
-    /// The domain and its parameters.
-    pub domain: DomainSpec,
-    /// Deviation tolerance.
-    pub d_max: f64,
-    /// Seed.
-    pub seed: u64,
-    /// MDE settings.
-    pub mde: MdeSettings,
-    /// Learning settings.
-    pub learning: LearningSettings,
+    /// The fully resolved settings (`name`, `domain`, `d_max`, `seed`, `mde`, `learning`).
+    #[serde(flatten)]
+    pub settings: ExperimentSettings,
     /// The state space: what `s` and `s_next` must look like.
     pub state_space: SpaceBody,
     /// The action space: what `a` must look like.
@@ -76,16 +67,10 @@ impl ExperimentResponse {
     fn new(e: Experiment, live: &LiveExperiment) -> Self {
         let domain = live.domain.as_ref();
         let model_version = live.model().version;
-        let s = e.settings;
         Self {
             id: e.id,
-            name: s.name,
-            domain: s.domain,
-            d_max: s.d_max,
-            seed: s.seed,
-            iteration: e.n_trajectories / i64::from(s.learning.batch_size),
-            mde: s.mde,
-            learning: s.learning,
+            iteration: live.iteration(e.n_trajectories),
+            settings: e.settings,
             state_space: domain.state_space().into(),
             action_space: domain.action_space().into(),
             feature_names: domain.feature_names(),

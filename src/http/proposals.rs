@@ -246,6 +246,10 @@ fn lease_answer(
     Ok((StatusCode::OK, Json(proposal_body(&open))))
 }
 
+fn no_proposal(id: i64, pid: i64) -> Error {
+    Error::NotFound(format!("no proposal {pid} in experiment {id}"))
+}
+
 /// `GET /v1/experiments/{id}/proposals/{pid}`.
 pub async fn get_proposal(
     State(state): State<AppState>,
@@ -256,7 +260,7 @@ pub async fn get_proposal(
         .store
         .proposal(id, pid)
         .await?
-        .ok_or_else(|| Error::NotFound(format!("no proposal {pid} in experiment {id}")))?;
+        .ok_or_else(|| no_proposal(id, pid))?;
     Ok(Json(proposal_body(&p)))
 }
 
@@ -270,7 +274,7 @@ pub async fn abandon_proposal(
         .store
         .abandon_proposal(id, pid)
         .await?
-        .ok_or_else(|| Error::NotFound(format!("no proposal {pid} in experiment {id}")))?;
+        .ok_or_else(|| no_proposal(id, pid))?;
     if p.status == "executed" {
         return Err(Error::Conflict(format!(
             "proposal {pid} was already executed"
