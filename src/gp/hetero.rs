@@ -21,10 +21,10 @@
 //!
 //! At a query point the noise variance is `exp(μ₂(x*))`, clipped the same way.
 
+use super::core::{Core, mean};
 use super::fit::{self, Warm, optimise};
 use super::kernel::Inputs;
 use super::lml::{Jitter, NoiseSpec};
-use super::model::{Core, mean};
 use super::{GpError, GpParams, Hyperparameters, NoiseModelState};
 
 /// `−(ψ(½) + log 2) ≈ 1.2704`: the bias of `log r²` for a Gaussian residual `r`

@@ -25,6 +25,7 @@
 //! # Ok::<(), precond::gp::GpError>(())
 //! ```
 
+mod core;
 mod error;
 mod fit;
 pub mod hetero;
