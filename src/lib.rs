@@ -8,9 +8,9 @@
 //! ## Module map
 //!
 //! The numeric core knows nothing of HTTP, SQL or JSON:
-//! - [`domain`]: the [`domain::Domain`] trait (spaces, model `f̂`, distance, features,
-//!   constraints, samplers) and the built-in worlds' models: icy gridworld, kinematic, water
-//!   plant.
+//! - [`domain`]: the [`domain::Domain`] trait (spaces, distance, features, constraints,
+//!   samplers), the dynamics-model seam [`domain::DynamicsModel`] (`f̂`, batched and fallible)
+//!   and the built-in worlds' models: icy gridworld, kinematic, water plant.
 //! - [`sim`]: the built-in worlds' true dynamics (simulators), for experiments and tests; the
 //!   planner never sees them.
 //! - [`gp`]: the Gaussian-process regressor behind the MDE: Matérn 5/2 ARD kernel,
@@ -18,29 +18,56 @@
 //! - [`planning`]: RRT candidates inside the precondition, the trajectory acquisition function,
 //!   the β schedule and the `active` / `goal_conditioned` / `random` strategies.
 //! - [`mde`]: the model deviation estimator as served: the prior before any data, then a fitted
-//!   GP, under a version.
+//!   GP, under a version; precondition judgements.
+//! - [`seed`]: seeds derived from seeds (one hashing helper for every seeded choice).
+//! - [`limits`]: the range of everything a client can set, in one place.
 //!
 //! The service around it:
 //! - [`settings`]: an experiment's settings, their defaults and their validation.
 //! - [`store`]: SQLite (sqlx): every query, rows ↔ values, atomic idempotent ingest.
-//! - [`live`]: live experiments in memory (built domain, current model), background refits.
-//! - [`http`]: the axum router, handlers per resource, extractors, serving with graceful shutdown.
-//! - [`error`]: the one error type and its JSON shape.
+//! - [`service`]: what precond does, whoever asks: experiments in memory, labelling and ingest,
+//!   refits, judgements, proposals with leases, plans. Returns domain values and its own error.
+//! - [`api`]: the typed request and response bodies of the HTTP API, shared by the server and
+//!   the Rust client in [`experiment`].
+//! - [`http`]: the axum router; handlers parse, call the service and render; the one HTTP error
+//!   type and its JSON shape; serving with graceful shutdown.
 //! - [`cli`]: the command line (`precond serve`, `precond bench`, `precond experiment`).
-//! - [`bench`]: benchmarks that print figures (`precond bench ...`).
+//! - [`bench`](mod@bench): benchmarks that print figures (`precond bench ...`).
 //! - [`experiment`]: `precond experiment`, the paper's evaluation run end to end as an HTTP
 //!   client of the service (simulators, CSV/JSON results, SVG plots).
+//!
+//! ## Layers and where things plug in
+//!
+//! ```text
+//! cli ─▶ http ─▶ service ─▶ store (SQLite)
+//!          │        │
+//!          ▼        ▼
+//!         api    settings ─▶ domain, planning, gp, mde (the numeric core)
+//! ```
+//!
+//! - **A new world**: implement [`domain::Domain`] (and [`domain::LocalModel`] if its model runs
+//!   in-process), add a variant to [`settings::DomainSpec`]; the planner, the service and the
+//!   API need nothing else.
+//! - **A new dynamics model** (e.g. one served by a robot over the network): implement
+//!   [`domain::DynamicsModel`] and return it from [`domain::Domain::dynamics`]; the planner and
+//!   the labeller call it in batches and turn its [`domain::DynamicsError`] into `502`/`504`.
+//! - **A new regressor** for the MDE: answer [`planning::DeviationModel`] (μ and σ for feature
+//!   rows) and add a variant to [`mde::Estimator`]; the planner only sees the trait.
+//! - **A new store backend**: the service calls [`store::Store`]'s methods only; they take and
+//!   return plain values, so another backend implements the same methods.
 
+pub mod api;
 pub mod bench;
 pub mod cli;
 pub mod domain;
-pub mod error;
 pub mod experiment;
 pub mod gp;
 pub mod http;
-pub mod live;
+pub mod limits;
 pub mod mde;
 pub mod planning;
+pub mod seed;
+pub mod service;
 pub mod settings;
 pub mod sim;
 pub mod store;

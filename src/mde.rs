@@ -36,13 +36,40 @@ pub struct ServedModel {
     pub fit: Option<FitRecord>,
 }
 
-/// A batch of answers.
+/// The MDE's answer at one point.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Answer {
     /// Mean deviation μ.
     pub mu: f64,
     /// Standard deviation σ (latent and noise).
     pub sigma: f64,
+}
+
+/// Whether one state-action lies in the model precondition `μ + βσ < d_max`.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Judgement {
+    /// Mean deviation μ.
+    pub mu: f64,
+    /// Standard deviation σ (latent and noise).
+    pub sigma: f64,
+    /// `μ + βσ`.
+    pub upper: f64,
+    /// `upper < d_max`.
+    pub inside: bool,
+}
+
+impl Judgement {
+    /// The judgement of `answer` at confidence `beta` and tolerance `d_max`; `None` when the
+    /// model answered a non-finite value (which must never reach a client).
+    pub fn of(answer: &Answer, beta: f64, d_max: f64) -> Option<Self> {
+        let upper = answer.mu + beta * answer.sigma;
+        upper.is_finite().then_some(Self {
+            mu: answer.mu,
+            sigma: answer.sigma,
+            upper,
+            inside: upper < d_max,
+        })
+    }
 }
 
 impl ServedModel {

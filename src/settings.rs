@@ -9,9 +9,35 @@ use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, IcyGridworld, Kinematic, KinematicParams,
     WaterPlant,
 };
-use crate::error::Error;
+use crate::gp::NoiseMode;
+use crate::limits::{
+    MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_ITERATIONS, MAX_NAME_LEN,
+    MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
+};
+use crate::planning::{Aggregation, Strategy};
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
+
+/// A setting that is not acceptable: which one (its path in the request, e.g.
+/// `learning.gamma` or `domain.obstacles[2]`) and why.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+#[error("{field}: {reason}")]
+pub struct InvalidSetting {
+    /// Path of the setting in the request.
+    pub field: String,
+    /// What is wrong with it.
+    pub reason: String,
+}
+
+impl InvalidSetting {
+    /// The setting `field` is wrong because `reason`.
+    pub fn new(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+}
 
 /// Which world, with its parameters. The tag is `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -91,18 +117,9 @@ impl Default for DomainSpec {
 }
 
 impl DomainSpec {
-    /// Builds the domain; a failure is a validation error on `domain.<field>`.
-    pub fn build(&self) -> Result<Arc<dyn Domain>, Error> {
-        let wrap = |e: DomainError| {
-            // Kinematic errors start with the parameter name ("goal_radius: ..."); gridworld
-            // errors are about the map.
-            match e.0.split_once(": ") {
-                Some((field, reason)) if !field.contains(' ') => {
-                    Error::validation(format!("domain.{field}"), reason)
-                }
-                _ => Error::validation("domain.map", e.0),
-            }
-        };
+    /// Builds the domain; a failure names the parameter under `domain`.
+    pub fn build(&self) -> Result<Arc<dyn Domain>, InvalidSetting> {
+        let wrap = |e: DomainError| InvalidSetting::new(e.path_under("domain"), e.reason);
         Ok(match self {
             Self::IcyGridworld { map } => Arc::new(IcyGridworld::new(map).map_err(wrap)?),
             Self::Kinematic {
@@ -134,23 +151,12 @@ impl DomainSpec {
     }
 }
 
-/// How the MDE's observation noise is modelled.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum NoiseSetting {
-    /// Input-dependent noise, the most likely heteroscedastic GP (the paper's choice; default).
-    #[default]
-    Heteroscedastic,
-    /// One noise variance for the whole space.
-    Homoscedastic,
-}
-
 /// The model deviation estimator's settings.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct MdeSettings {
     /// Noise model. Default `heteroscedastic`.
-    pub noise: NoiseSetting,
+    pub noise: NoiseMode,
     /// Constant prior mean of the deviation. Default 0 (unexplored regions look trustworthy but
     /// uncertain, which drives exploration).
     pub prior_mean: f64,
@@ -162,35 +168,11 @@ pub struct MdeSettings {
 impl Default for MdeSettings {
     fn default() -> Self {
         Self {
-            noise: NoiseSetting::Heteroscedastic,
+            noise: NoiseMode::Heteroscedastic,
             prior_mean: 0.0,
             restarts: 2,
         }
     }
-}
-
-/// Which candidate a proposal hands out.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum StrategySetting {
-    /// Argmin of the acquisition over goal-reaching candidates (the method; default).
-    #[default]
-    Active,
-    /// A uniformly random goal-reaching candidate.
-    GoalConditioned,
-    /// A random-action rollout from the start, not conditioned on the goal.
-    Random,
-}
-
-/// How step utilities are aggregated into a trajectory's utility.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum AggregationSetting {
-    /// `h_max = max_t γ^t α_step(t)` (default).
-    #[default]
-    Max,
-    /// `h_sum = Σ_t γ^t α_step(t)`.
-    Sum,
 }
 
 /// The active-learning settings.
@@ -198,7 +180,7 @@ pub enum AggregationSetting {
 #[serde(default, deny_unknown_fields)]
 pub struct LearningSettings {
     /// Default strategy of proposals. Default `active`.
-    pub strategy: StrategySetting,
+    pub strategy: Strategy,
     /// Executed trajectories per iteration; the MDE is refit after each batch. Default 5.
     pub batch_size: u32,
     /// Planned iterations `J` of the β schedule. Default 20.
@@ -212,7 +194,7 @@ pub struct LearningSettings {
     /// Discount `γ` of the aggregation. Default 0.9.
     pub gamma: f64,
     /// Aggregation `h`. Default `max`.
-    pub aggregation: AggregationSetting,
+    pub aggregation: Aggregation,
     /// β schedule amplitude `k1`. Default 2.
     pub k1: f64,
     /// β schedule steepness `k2`. Default 0.5.
@@ -226,14 +208,14 @@ pub struct LearningSettings {
 impl Default for LearningSettings {
     fn default() -> Self {
         Self {
-            strategy: StrategySetting::Active,
+            strategy: Strategy::Active,
             batch_size: 5,
             iterations: 20,
             n_candidates: 20,
             max_extensions: 5000,
             c: 1.0,
             gamma: 0.9,
-            aggregation: AggregationSetting::Max,
+            aggregation: Aggregation::Max,
             k1: 2.0,
             k2: 0.5,
             test_beta: 2.0,
@@ -243,7 +225,7 @@ impl Default for LearningSettings {
 }
 
 /// An experiment's settings as a client posts them; every field optional.
-#[derive(Debug, Clone, Default, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ExperimentRequest {
     /// Free-form name. Default `""`.
@@ -253,6 +235,7 @@ pub struct ExperimentRequest {
     #[serde(default)]
     pub domain: DomainSpec,
     /// Deviation tolerance. Default: the domain's (0.1 for the built-in worlds).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub d_max: Option<f64>,
     /// Seed of every random choice the service makes for this experiment. Default 0.
     #[serde(default)]
@@ -282,27 +265,12 @@ pub struct ExperimentSettings {
     pub learning: LearningSettings,
 }
 
-/// Upper bounds that keep one request's work bounded.
-pub mod limits {
-    /// Most candidates per proposal.
-    pub const MAX_CANDIDATES: u32 = 200;
-    /// Largest extension budget.
-    pub const MAX_EXTENSIONS: u32 = 200_000;
-    /// Largest batch size.
-    pub const MAX_BATCH_SIZE: u32 = 10_000;
-    /// Most optimiser restarts.
-    pub const MAX_RESTARTS: usize = 20;
-    /// Longest name.
-    pub const MAX_NAME_LEN: usize = 200;
-}
-
 impl ExperimentRequest {
     /// Validates every field and resolves defaults. Returns the domain it built on the way.
-    pub fn resolve(self) -> Result<(ExperimentSettings, Arc<dyn Domain>), Error> {
-        use limits::*;
+    pub fn resolve(self) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
         let domain = self.domain.build()?;
         if self.name.chars().count() > MAX_NAME_LEN {
-            return Err(Error::validation(
+            return Err(InvalidSetting::new(
                 "name",
                 format!("at most {MAX_NAME_LEN} characters"),
             ));
@@ -312,14 +280,14 @@ impl ExperimentRequest {
         let m = &self.mde;
         finite("mde.prior_mean", m.prior_mean)?;
         if m.restarts > MAX_RESTARTS {
-            return Err(Error::validation(
+            return Err(InvalidSetting::new(
                 "mde.restarts",
                 format!("at most {MAX_RESTARTS}"),
             ));
         }
         let l = &self.learning;
         in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;
-        in_range("learning.iterations", l.iterations, 1, 100_000)?;
+        in_range("learning.iterations", l.iterations, 1, MAX_ITERATIONS)?;
         in_range("learning.n_candidates", l.n_candidates, 1, MAX_CANDIDATES)?;
         in_range(
             "learning.max_extensions",
@@ -331,18 +299,18 @@ impl ExperimentRequest {
             "learning.proposal_ttl_seconds",
             l.proposal_ttl_seconds,
             1,
-            7 * 24 * 3600,
+            MAX_PROPOSAL_TTL_SECONDS,
         )?;
         finite("learning.c", l.c)?;
         if l.c < 0.0 {
-            return Err(Error::validation("learning.c", "must be ≥ 0"));
+            return Err(InvalidSetting::new("learning.c", "must be ≥ 0"));
         }
         if !(l.gamma > 0.0 && l.gamma <= 1.0) {
-            return Err(Error::validation("learning.gamma", "must be in (0, 1]"));
+            return Err(InvalidSetting::new("learning.gamma", "must be in (0, 1]"));
         }
         finite("learning.k1", l.k1)?;
         if l.k1 < 0.0 {
-            return Err(Error::validation("learning.k1", "must be ≥ 0"));
+            return Err(InvalidSetting::new("learning.k1", "must be ≥ 0"));
         }
         positive("learning.k2", l.k2)?;
         finite("learning.test_beta", l.test_beta)?;
@@ -360,40 +328,33 @@ impl ExperimentRequest {
     }
 }
 
-fn finite(field: &str, v: f64) -> Result<(), Error> {
+fn finite(field: &str, v: f64) -> Result<(), InvalidSetting> {
     if v.is_finite() {
         Ok(())
     } else {
-        Err(Error::validation(field, "must be a finite number"))
+        Err(InvalidSetting::new(field, "must be a finite number"))
     }
 }
 
-fn positive(field: &str, v: f64) -> Result<(), Error> {
+fn positive(field: &str, v: f64) -> Result<(), InvalidSetting> {
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
-        Err(Error::validation(field, "must be a positive finite number"))
-    }
-}
-
-fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), Error> {
-    if (lo..=hi).contains(&v) {
-        Ok(())
-    } else {
-        Err(Error::validation(
+        Err(InvalidSetting::new(
             field,
-            format!("must be between {lo} and {hi}, got {v}"),
+            "must be a positive finite number",
         ))
     }
 }
 
-impl From<StrategySetting> for crate::planning::Strategy {
-    fn from(s: StrategySetting) -> Self {
-        match s {
-            StrategySetting::Active => Self::Active,
-            StrategySetting::GoalConditioned => Self::GoalConditioned,
-            StrategySetting::Random => Self::Random,
-        }
+fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), InvalidSetting> {
+    if (lo..=hi).contains(&v) {
+        Ok(())
+    } else {
+        Err(InvalidSetting::new(
+            field,
+            format!("must be between {lo} and {hi}, got {v}"),
+        ))
     }
 }
 
@@ -412,10 +373,7 @@ impl LearningSettings {
         crate::planning::AcquisitionSettings {
             c: self.c,
             gamma: self.gamma,
-            aggregation: match self.aggregation {
-                AggregationSetting::Max => crate::planning::Aggregation::Max,
-                AggregationSetting::Sum => crate::planning::Aggregation::Sum,
-            },
+            aggregation: self.aggregation,
         }
     }
 }

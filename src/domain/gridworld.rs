@@ -2,7 +2,7 @@
 //! planning helpers. The true dynamics (ice reverses x-moves, obstacles block) live in
 //! `crate::sim::gridworld`.
 
-use super::{Domain, DomainError, Problem, Space, euclidean};
+use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, euclidean};
 use rand::{Rng, RngCore};
 
 /// The default layout: 12×12, an obstacle wall across row 6 with a two-cell gap at x = 5..6,
@@ -59,23 +59,29 @@ impl IcyGridworld {
     pub fn new<S: AsRef<str>>(map: &[S]) -> Result<Self, DomainError> {
         let height = map.len();
         if height == 0 {
-            return Err(DomainError::new("the map has no rows"));
+            return Err(DomainError::at("map", "the map has no rows"));
         }
         let width = map[0].as_ref().chars().count();
         if width == 0 || width > Self::MAX_SIDE || height > Self::MAX_SIDE {
-            return Err(DomainError::new(format!(
-                "the map must be between 1 and {} cells on each side, got {width}×{height}",
-                Self::MAX_SIDE
-            )));
+            return Err(DomainError::at(
+                "map",
+                format!(
+                    "the map must be between 1 and {} cells on each side, got {width}×{height}",
+                    Self::MAX_SIDE
+                ),
+            ));
         }
         let mut cells = Vec::with_capacity(width * height);
         for (y, row) in map.iter().enumerate() {
             let row = row.as_ref();
             if row.chars().count() != width {
-                return Err(DomainError::new(format!(
-                    "row {y} has {} cells, row 0 has {width}: every row must be equally long",
-                    row.chars().count()
-                )));
+                return Err(DomainError::at(
+                    "map",
+                    format!(
+                        "row {y} has {} cells, row 0 has {width}: every row must be equally long",
+                        row.chars().count()
+                    ),
+                ));
             }
             for (x, ch) in row.chars().enumerate() {
                 cells.push(match ch {
@@ -83,7 +89,7 @@ impl IcyGridworld {
                     '#' => Cell::Obstacle,
                     '~' => Cell::Ice,
                     other => {
-                        return Err(DomainError::new(format!(
+                        return Err(DomainError::at("map", format!(
                             "cell [{x}, {y}] is {other:?}; use '.' (free), '#' (obstacle) or '~' (ice)"
                         )));
                     }
@@ -91,7 +97,8 @@ impl IcyGridworld {
             }
         }
         if cells.iter().filter(|c| **c != Cell::Obstacle).count() < 2 {
-            return Err(DomainError::new(
+            return Err(DomainError::at(
+                "map",
                 "the map needs at least two cells that are not obstacles",
             ));
         }
@@ -189,12 +196,8 @@ impl Domain for IcyGridworld {
         &self.action_space
     }
 
-    /// The robot moves to the intended cell, clamped to the grid; ice and obstacles are unknown to
-    /// the model.
-    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        let mut next = vec![s[0] + a[0], s[1] + a[1]];
-        self.state_space.clamp(&mut next);
-        next
+    fn dynamics(&self) -> &dyn DynamicsModel {
+        self
     }
 
     fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64 {
@@ -300,6 +303,16 @@ impl Domain for IcyGridworld {
             start: open[i].to_vec(),
             goal: open[j].to_vec(),
         }
+    }
+}
+
+impl LocalModel for IcyGridworld {
+    /// The robot moves to the intended cell, clamped to the grid; ice and obstacles are unknown to
+    /// the model.
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let mut next = vec![s[0] + a[0], s[1] + a[1]];
+        self.state_space.clamp(&mut next);
+        next
     }
 }
 

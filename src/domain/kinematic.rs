@@ -2,7 +2,7 @@
 //! that simple. `f̂(s, a) = clip(s + a)` to the state bounds; Euclidean distance; optional
 //! axis-aligned box obstacles for the approximate collision check; a goal is a state with a radius.
 
-use super::{Domain, DomainError, Problem, Space, euclidean};
+use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, euclidean};
 use rand::{Rng, RngCore};
 
 /// An axis-aligned box that planned edges may not pass through.
@@ -72,10 +72,13 @@ impl Kinematic {
     pub fn new(params: KinematicParams) -> Result<Self, DomainError> {
         let n = params.state_low.len();
         if n == 0 || n > Self::MAX_DIM {
-            return Err(DomainError::new(format!(
-                "state_low: the dimension must be between 1 and {}, got {n}",
-                Self::MAX_DIM
-            )));
+            return Err(DomainError::at(
+                "state_low",
+                format!(
+                    "the dimension must be between 1 and {}, got {n}",
+                    Self::MAX_DIM
+                ),
+            ));
         }
         for (name, v) in [
             ("state_high", &params.state_high),
@@ -83,10 +86,10 @@ impl Kinematic {
             ("action_high", &params.action_high),
         ] {
             if v.len() != n {
-                return Err(DomainError::new(format!(
-                    "{name}: expected {n} components like state_low, got {}",
-                    v.len()
-                )));
+                return Err(DomainError::at(
+                    name,
+                    format!("expected {n} components like state_low, got {}", v.len()),
+                ));
             }
         }
         for (name, v) in [
@@ -96,49 +99,53 @@ impl Kinematic {
             ("action_high", &params.action_high),
         ] {
             if v.iter().any(|x| !x.is_finite()) {
-                return Err(DomainError::new(format!(
-                    "{name}: every bound must be finite"
-                )));
+                return Err(DomainError::at(name, "every bound must be finite"));
             }
         }
         for i in 0..n {
             if params.state_low[i] >= params.state_high[i] {
-                return Err(DomainError::new(format!(
-                    "state_high: component {i} must exceed state_low's"
-                )));
+                return Err(DomainError::at(
+                    "state_high",
+                    format!("component {i} must exceed state_low's"),
+                ));
             }
             if params.action_low[i] > 0.0 {
-                return Err(DomainError::new(format!(
-                    "action_low: component {i} must be ≤ 0 so that the robot can stand still"
-                )));
+                return Err(DomainError::at(
+                    "action_low",
+                    format!("component {i} must be ≤ 0 so that the robot can stand still"),
+                ));
             }
             if params.action_high[i] < 0.0 {
-                return Err(DomainError::new(format!(
-                    "action_high: component {i} must be ≥ 0 so that the robot can stand still"
-                )));
+                return Err(DomainError::at(
+                    "action_high",
+                    format!("component {i} must be ≥ 0 so that the robot can stand still"),
+                ));
             }
             if params.action_low[i] == params.action_high[i] {
-                return Err(DomainError::new(format!(
-                    "action_high: component {i} must exceed action_low's"
-                )));
+                return Err(DomainError::at(
+                    "action_high",
+                    format!("component {i} must exceed action_low's"),
+                ));
             }
         }
         for (k, o) in params.obstacles.iter().enumerate() {
             if o.low.len() != n || o.high.len() != n {
-                return Err(DomainError::new(format!(
-                    "obstacles[{k}]: low and high need {n} components"
-                )));
+                return Err(DomainError::at(
+                    format!("obstacles[{k}]"),
+                    format!("low and high need {n} components"),
+                ));
             }
             if o.low.iter().chain(&o.high).any(|x| !x.is_finite())
                 || o.low.iter().zip(&o.high).any(|(l, h)| l > h)
             {
-                return Err(DomainError::new(format!(
-                    "obstacles[{k}]: bounds must be finite with low ≤ high"
-                )));
+                return Err(DomainError::at(
+                    format!("obstacles[{k}]"),
+                    "bounds must be finite with low ≤ high",
+                ));
             }
         }
         if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
-            return Err(DomainError::new("goal_radius: must be a positive number"));
+            return Err(DomainError::at("goal_radius", "must be a positive number"));
         }
         let names = |prefix: &str| (0..n).map(|i| format!("{prefix}{i}")).collect::<Vec<_>>();
         let state_space = Space {
@@ -197,10 +204,8 @@ impl Domain for Kinematic {
         &self.action_space
     }
 
-    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        let mut next: Vec<f64> = s.iter().zip(a).map(|(x, d)| x + d).collect();
-        self.state_space.clamp(&mut next);
-        next
+    fn dynamics(&self) -> &dyn DynamicsModel {
+        self
     }
 
     fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64 {
@@ -304,6 +309,14 @@ impl Domain for Kinematic {
             goal = self.sample_free(rng);
         }
         Problem { start, goal }
+    }
+}
+
+impl LocalModel for Kinematic {
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let mut next: Vec<f64> = s.iter().zip(a).map(|(x, d)| x + d).collect();
+        self.state_space.clamp(&mut next);
+        next
     }
 }
 

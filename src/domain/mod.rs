@@ -8,10 +8,12 @@
 //! domain-specific vectors (a cell for the gridworld, a state for the kinematic domain, a target
 //! volume for the water plant).
 
+pub mod dynamics;
 mod gridworld;
 mod kinematic;
 pub mod water_plant;
 
+pub use dynamics::{DynamicsError, DynamicsModel, LocalModel, Predicted};
 pub use gridworld::{Cell, DEFAULT_MAP, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
 pub use water_plant::WaterPlant;
@@ -97,16 +99,56 @@ impl Space {
 /// Slack allowed on bounds when validating observed values (sensor rounding).
 pub const BOUND_TOLERANCE: f64 = 1e-9;
 
-/// A domain-level validation failure: what is wrong with a value, in words.
+/// A domain-level validation failure: which part of the checked value is wrong, and why.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
-#[error("{0}")]
-pub struct DomainError(pub String);
+#[error("{}{}{reason}", field, if field.is_empty() { "" } else { ": " })]
+pub struct DomainError {
+    /// The part of the checked value the failure is about, as a path relative to it (a
+    /// parameter such as `goal_radius` or `obstacles[2]`), or empty when it is the value as a
+    /// whole (a state, an action, a goal).
+    pub field: String,
+    /// What is wrong, in words.
+    pub reason: String,
+}
 
 impl DomainError {
-    /// Wraps a reason.
+    /// A failure of the checked value as a whole.
     pub fn new(reason: impl Into<String>) -> Self {
-        Self(reason.into())
+        Self::at("", reason)
     }
+
+    /// A failure of the part `field` of the checked value.
+    pub fn at(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// The full path of the failing field when the checked value sits at `prefix` in a request:
+    /// `domain` and `goal_radius` give `domain.goal_radius`; `transitions[0].s` and a failure
+    /// of the whole state give `transitions[0].s`.
+    pub fn path_under(&self, prefix: &str) -> String {
+        match (prefix.is_empty(), self.field.is_empty()) {
+            (_, true) => prefix.to_string(),
+            (true, false) => self.field.clone(),
+            (false, false) if self.field.starts_with('[') => format!("{prefix}{}", self.field),
+            (false, false) => format!("{prefix}.{}", self.field),
+        }
+    }
+}
+
+/// An executed transition as the robot observed it: the state, the action taken, and the state
+/// that followed.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Transition {
+    /// State before the action.
+    pub s: Vec<f64>,
+    /// Action executed.
+    pub a: Vec<f64>,
+    /// State observed after it.
+    pub s_next: Vec<f64>,
 }
 
 /// A planning problem: where to start and what counts as arriving.
@@ -120,8 +162,9 @@ pub struct Problem {
 
 /// Everything the learner and the planner know about a world.
 ///
-/// Implementations must be cheap to call: the planner calls `predict`, `features`,
-/// `edge_allowed` and `steer` thousands of times per proposal.
+/// Implementations must be cheap to call: the planner calls `features`, `edge_allowed` and
+/// `steer` thousands of times per proposal. The model `f̂` is reached through
+/// [`Domain::dynamics`], in batches.
 pub trait Domain: Send + Sync + std::fmt::Debug {
     /// The `kind` tag of this domain (`"icy_gridworld"`, `"kinematic"`, `"water_plant"`).
     fn kind(&self) -> &'static str;
@@ -132,16 +175,11 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// The action space.
     fn action_space(&self) -> &Space;
 
-    /// The given, inaccurate dynamics model `ŝ' = f̂(s, a)`.
-    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64>;
+    /// The given, inaccurate dynamics model `ŝ' = f̂(s, a)` (see [`dynamics`]).
+    fn dynamics(&self) -> &dyn DynamicsModel;
 
     /// The distance `d(ŝ', s') ≥ 0` between a predicted and an observed state.
     fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64;
-
-    /// The deviation label of an executed transition: `d(f̂(s, a), s')`.
-    fn deviation(&self, s: &[f64], a: &[f64], s_next: &[f64]) -> f64 {
-        self.distance(&self.predict(s, a), s_next)
-    }
 
     /// The default tolerance `d_max`.
     fn default_d_max(&self) -> f64;

@@ -1,16 +1,22 @@
 //! A thin HTTP client for the endpoints the harness drives: experiments, proposals,
-//! trajectories, the model, plans and precondition queries. Only the fields the harness reads are
-//! decoded; an error status becomes an `anyhow` error carrying the service's error body, except
-//! `422 no_plan`, which is an answer ([`Proposed::NoPlan`]).
+//! trajectories, the model, plans and precondition queries, speaking the typed bodies of
+//! [`crate::api`]. An error status becomes an `anyhow` error carrying the service's error body,
+//! except `422 no_plan`, which is an answer ([`Proposed::NoPlan`]).
 
+use crate::api::{
+    ErrorBody, ExperimentRequest, ExperimentResponse, HealthResponse, Judgement, ModelResponse,
+    PlanRequest, PlanResponse, Point, PreconditionRequest, PreconditionResponse, ProposalRequest,
+    ProposalResponse, TrajectoryCreated, TrajectoryRequest,
+};
+use crate::domain::Transition;
+use crate::planning::Strategy;
 use anyhow::{Context, bail};
-use serde::Deserialize;
 use serde::de::DeserializeOwned;
-use serde_json::{Value, json};
+use serde_json::Value;
 use std::time::{Duration, Instant};
 
 /// Most points sent in one precondition query (the service's limit).
-pub const MAX_POINTS_PER_QUERY: usize = 100_000;
+pub const MAX_POINTS_PER_QUERY: usize = crate::limits::MAX_POINTS;
 
 /// A client of one `precond` service.
 #[derive(Debug, Clone)]
@@ -19,95 +25,13 @@ pub struct ApiClient {
     http: reqwest::Client,
 }
 
-/// The fields of a created experiment the harness uses.
-#[derive(Debug, Clone, Deserialize)]
-pub struct CreatedExperiment {
-    /// Identifier.
-    pub id: i64,
-    /// The resolved tolerance.
-    pub d_max: f64,
-}
-
-/// A planned trajectory as the service returns it.
-#[derive(Debug, Clone, Deserialize)]
-pub struct PlannedTrajectory {
-    /// Predicted states, one more than `actions`.
-    pub states: Vec<Vec<f64>>,
-    /// Actions.
-    pub actions: Vec<Vec<f64>>,
-}
-
-/// The fields of a proposal the harness uses.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Proposal {
-    /// Identifier, to link the executed trajectory.
-    pub id: i64,
-    /// The trajectory to execute.
-    pub trajectory: PlannedTrajectory,
-    /// The β it was planned with.
-    pub beta: f64,
-    /// The service's learning iteration when it was planned.
-    pub iteration: i64,
-}
-
 /// What a proposal request returned.
 #[derive(Debug, Clone)]
 pub enum Proposed {
     /// A trajectory to execute.
-    Trajectory(Box<Proposal>),
+    Trajectory(Box<ProposalResponse>),
     /// No candidate reached the goal inside the precondition (`422 no_plan`).
     NoPlan,
-}
-
-/// A test-time plan.
-#[derive(Debug, Clone, Deserialize)]
-pub struct Plan {
-    /// Whether a plan was found within the extension budget.
-    pub found: bool,
-    /// Extensions spent.
-    pub extensions: u64,
-    /// The plan, when found.
-    pub trajectory: Option<PlannedTrajectory>,
-}
-
-/// The served model's bookkeeping.
-#[derive(Debug, Clone, Deserialize)]
-pub struct ModelInfo {
-    /// Version (0: the prior).
-    pub version: i64,
-    /// Training transitions of the fit.
-    pub n_train: i64,
-    /// Trajectories the fit covers.
-    pub n_trajectories: i64,
-}
-
-/// One answer of a precondition query.
-#[derive(Debug, Clone, Copy, Deserialize)]
-pub struct Judgement {
-    /// Predicted deviation mean.
-    pub mu: f64,
-    /// Predicted deviation standard deviation (noise included).
-    pub sigma: f64,
-    /// `μ + βσ`.
-    pub upper: f64,
-    /// `upper < d_max`.
-    pub inside: bool,
-}
-
-#[derive(Deserialize)]
-struct Judgements {
-    results: Vec<Judgement>,
-}
-
-/// One executed transition to post.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct Executed {
-    /// State before.
-    pub s: Vec<f64>,
-    /// Action executed.
-    pub a: Vec<f64>,
-    /// True next state.
-    pub s_next: Vec<f64>,
 }
 
 impl ApiClient {
@@ -156,14 +80,17 @@ impl ApiClient {
 
     /// Checks that the service answers `/healthz`.
     pub async fn health(&self) -> anyhow::Result<()> {
-        let _: Value = self
+        let _: HealthResponse = self
             .expect(self.http.get(self.url("/healthz")), "GET /healthz")
             .await?;
         Ok(())
     }
 
     /// `POST /v1/experiments`.
-    pub async fn create_experiment(&self, body: &Value) -> anyhow::Result<CreatedExperiment> {
+    pub async fn create_experiment(
+        &self,
+        body: &ExperimentRequest,
+    ) -> anyhow::Result<ExperimentResponse> {
         self.expect(
             self.http.post(self.url("/v1/experiments")).json(body),
             "POST /v1/experiments",
@@ -180,15 +107,14 @@ impl ApiClient {
         start: &[f64],
         goal: &[f64],
         client_id: Option<&str>,
-        strategy: Option<&str>,
+        strategy: Option<Strategy>,
     ) -> anyhow::Result<Proposed> {
-        let mut body = json!({"start": start, "goal": goal});
-        if let Some(c) = client_id {
-            body["client_id"] = json!(c);
-        }
-        if let Some(s) = strategy {
-            body["strategy"] = json!(s);
-        }
+        let body = ProposalRequest {
+            start: start.to_vec(),
+            goal: goal.to_vec(),
+            client_id: client_id.map(str::to_string),
+            strategy,
+        };
         let what = "POST /proposals";
         let (status, body) = self
             .send(
@@ -198,13 +124,16 @@ impl ApiClient {
                 what,
             )
             .await?;
-        if status == 422 && body["error"]["code"] == "no_plan" {
+        if status == 422
+            && serde_json::from_value::<ErrorBody>(body.clone())
+                .is_ok_and(|e| e.error.code == "no_plan")
+        {
             return Ok(Proposed::NoPlan);
         }
         if !(200..300).contains(&status) {
             bail!("{what}: HTTP {status}: {body}");
         }
-        let p: Proposal =
+        let p: ProposalResponse =
             serde_json::from_value(body).with_context(|| format!("{what}: unexpected body"))?;
         Ok(Proposed::Trajectory(Box::new(p)))
     }
@@ -214,23 +143,24 @@ impl ApiClient {
         &self,
         id: i64,
         proposal_id: Option<i64>,
-        transitions: &[Executed],
-    ) -> anyhow::Result<()> {
-        let body =
-            json!({"proposal_id": proposal_id, "partial": false, "transitions": transitions});
-        let _: Value = self
-            .expect(
-                self.http
-                    .post(self.url(&format!("/v1/experiments/{id}/trajectories")))
-                    .json(&body),
-                "POST /trajectories",
-            )
-            .await?;
-        Ok(())
+        transitions: Vec<Transition>,
+    ) -> anyhow::Result<TrajectoryCreated> {
+        let body = TrajectoryRequest {
+            proposal_id,
+            partial: false,
+            transitions,
+        };
+        self.expect(
+            self.http
+                .post(self.url(&format!("/v1/experiments/{id}/trajectories")))
+                .json(&body),
+            "POST /trajectories",
+        )
+        .await
     }
 
     /// `GET /v1/experiments/{id}/model`.
-    pub async fn model(&self, id: i64) -> anyhow::Result<ModelInfo> {
+    pub async fn model(&self, id: i64) -> anyhow::Result<ModelResponse> {
         self.expect(
             self.http
                 .get(self.url(&format!("/v1/experiments/{id}/model"))),
@@ -240,7 +170,7 @@ impl ApiClient {
     }
 
     /// `POST /v1/experiments/{id}/model/refit`: fit now on everything stored.
-    pub async fn refit(&self, id: i64) -> anyhow::Result<ModelInfo> {
+    pub async fn refit(&self, id: i64) -> anyhow::Result<ModelResponse> {
         self.expect(
             self.http
                 .post(self.url(&format!("/v1/experiments/{id}/model/refit"))),
@@ -256,7 +186,7 @@ impl ApiClient {
         id: i64,
         n_trajectories: i64,
         timeout: Duration,
-    ) -> anyhow::Result<ModelInfo> {
+    ) -> anyhow::Result<ModelResponse> {
         let started = Instant::now();
         let mut sleep = Duration::from_millis(5);
         loop {
@@ -277,11 +207,16 @@ impl ApiClient {
     }
 
     /// `POST /v1/experiments/{id}/plans` with the experiment's test β.
-    pub async fn plan(&self, id: i64, start: &[f64], goal: &[f64]) -> anyhow::Result<Plan> {
+    pub async fn plan(&self, id: i64, start: &[f64], goal: &[f64]) -> anyhow::Result<PlanResponse> {
+        let body = PlanRequest {
+            start: start.to_vec(),
+            goal: goal.to_vec(),
+            beta: None,
+        };
         self.expect(
             self.http
                 .post(self.url(&format!("/v1/experiments/{id}/plans")))
-                .json(&json!({"start": start, "goal": goal})),
+                .json(&body),
             "POST /plans",
         )
         .await
@@ -296,10 +231,17 @@ impl ApiClient {
     ) -> anyhow::Result<Vec<Judgement>> {
         let mut out = Vec::with_capacity(points.len());
         for chunk in points.chunks(MAX_POINTS_PER_QUERY) {
-            let body = json!({
-                "points": chunk.iter().map(|(s, a)| json!({"s": s, "a": a})).collect::<Vec<_>>(),
-            });
-            let j: Judgements = self
+            let body = PreconditionRequest {
+                points: chunk
+                    .iter()
+                    .map(|(s, a)| Point {
+                        s: s.to_vec(),
+                        a: a.to_vec(),
+                    })
+                    .collect(),
+                beta: None,
+            };
+            let j: PreconditionResponse = self
                 .expect(
                     self.http
                         .post(self.url(&format!("/v1/experiments/{id}/precondition")))

@@ -20,7 +20,7 @@ pub mod protocol;
 pub mod report;
 
 use crate::http::{AppState, HttpConfig, serve};
-use crate::settings::StrategySetting;
+use crate::planning::Strategy;
 use crate::store::Store;
 use anyhow::Context;
 use clap::ValueEnum;
@@ -54,15 +54,9 @@ impl DomainKind {
     }
 }
 
-fn parse_strategy(s: &str) -> Result<StrategySetting, String> {
-    match s {
-        "active" => Ok(StrategySetting::Active),
-        "goal_conditioned" => Ok(StrategySetting::GoalConditioned),
-        "random" => Ok(StrategySetting::Random),
-        other => Err(format!(
-            "{other:?} is not one of active, goal_conditioned, random"
-        )),
-    }
+fn parse_strategy(s: &str) -> Result<Strategy, String> {
+    s.parse()
+        .map_err(|e: crate::planning::PlanningError| e.to_string())
 }
 
 /// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`
@@ -89,7 +83,7 @@ pub struct ExperimentArgs {
     pub iterations: Option<usize>,
     /// Strategies, comma-separated. Default `active,goal_conditioned,random`.
     #[arg(long, value_delimiter = ',', value_parser = parse_strategy)]
-    pub strategies: Vec<StrategySetting>,
+    pub strategies: Vec<Strategy>,
     /// Training trajectories per iteration. Default 5.
     #[arg(long)]
     pub batch_size: Option<usize>,
@@ -130,7 +124,7 @@ pub struct Config {
     /// Iterations per run.
     pub iterations: usize,
     /// Strategies, in report order.
-    pub strategies: Vec<StrategySetting>,
+    pub strategies: Vec<Strategy>,
     /// Training trajectories per iteration.
     pub batch_size: usize,
     /// Test problems per iteration.
@@ -166,9 +160,9 @@ impl Config {
         let iterations = pick(args.iterations, 20, 3);
         let strategies = if args.strategies.is_empty() {
             vec![
-                StrategySetting::Active,
-                StrategySetting::GoalConditioned,
-                StrategySetting::Random,
+                Strategy::Active,
+                Strategy::GoalConditioned,
+                Strategy::Random,
             ]
         } else {
             let mut s = Vec::new();
@@ -352,8 +346,8 @@ async fn run_protocol(
         pools.push(protocol::build_pool(client, &bench, cfg, k as u64).await?);
     }
     let pool_sizes = pools.iter().map(Vec::len).collect();
-    let map_strategy = if cfg.strategies.contains(&StrategySetting::Active) {
-        StrategySetting::Active
+    let map_strategy = if cfg.strategies.contains(&Strategy::Active) {
+        Strategy::Active
     } else {
         cfg.strategies[0]
     };
@@ -389,13 +383,7 @@ async fn run_protocol(
             let _permit = semaphore.acquire_owned().await?;
             let r = protocol::run_one(&client, &bench, &cfg, &spec, &progress)
                 .await
-                .with_context(|| {
-                    format!(
-                        "run {} seed {}",
-                        protocol::strategy_name(spec.strategy),
-                        spec.seed
-                    )
-                })?;
+                .with_context(|| format!("run {} seed {}", spec.strategy.as_str(), spec.seed))?;
             anyhow::Ok((i, r))
         });
     }

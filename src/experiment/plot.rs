@@ -11,11 +11,11 @@
 //!   boundary, the training actions, and the scene).
 
 use super::Results;
-use super::protocol::{MapKind, PreconditionMap, strategy_name};
+use super::protocol::{MapKind, PreconditionMap};
 use super::report::{by_iteration, mean_se, metric};
 use crate::domain::WaterPlant;
 use crate::domain::water_plant::{Rect, Scene};
-use crate::settings::StrategySetting;
+use crate::planning::Strategy;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use std::path::Path;
@@ -28,11 +28,11 @@ type MeanPoint = (f64, f64, f64);
 const FONT: &str = "sans-serif";
 
 /// The colour of a strategy's lines.
-pub fn strategy_color(s: StrategySetting) -> RGBColor {
+pub fn strategy_color(s: Strategy) -> RGBColor {
     match s {
-        StrategySetting::Active => RGBColor(31, 119, 180),
-        StrategySetting::GoalConditioned => RGBColor(255, 127, 14),
-        StrategySetting::Random => RGBColor(44, 160, 44),
+        Strategy::Active => RGBColor(31, 119, 180),
+        Strategy::GoalConditioned => RGBColor(255, 127, 14),
+        Strategy::Random => RGBColor(44, 160, 44),
     }
 }
 
@@ -106,7 +106,7 @@ fn metric_figure(
     let areas = root.split_evenly((1, panels.len()));
     let x_max = (cfg.iterations.saturating_sub(1)).max(1) as f64;
     for (area, (name, label, unit)) in areas.iter().zip(panels) {
-        let series: Vec<(StrategySetting, Vec<MeanPoint>)> = cfg
+        let series: Vec<(Strategy, Vec<MeanPoint>)> = cfg
             .strategies
             .iter()
             .map(|&s| {
@@ -162,7 +162,7 @@ fn metric_figure(
                     pts.iter().map(|(x, m, _)| (*x, *m)),
                     color.stroke_width(2),
                 ))?
-                .label(strategy_name(*s))
+                .label(s.as_str())
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 18, y)], color.stroke_width(2))
                 });

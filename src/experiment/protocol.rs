@@ -22,17 +22,20 @@
 //! harness. Should a slot be skipped anyway, the harness forces a refit at the end of the
 //! iteration (and the service's batches then no longer align with the harness's iterations).
 
-use super::client::{ApiClient, Executed, PlannedTrajectory, Proposed};
+use super::client::{ApiClient, Proposed};
 use super::{Config, DomainKind};
+use crate::api::{ExperimentRequest, PlannedTrajectory};
+use crate::domain::Transition;
 use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
-use crate::domain::{Domain, IcyGridworld, WaterPlant};
-use crate::settings::StrategySetting;
+use crate::domain::{IcyGridworld, LocalModel, WaterPlant};
+use crate::planning::Strategy;
+use crate::settings::{DomainSpec, LearningSettings};
 use crate::sim::{Simulated, World};
 use indicatif::ProgressBar;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
-use serde_json::{Value, json};
+
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -55,8 +58,8 @@ impl Bench {
         }
     }
 
-    /// The domain.
-    pub fn domain(&self) -> &dyn Domain {
+    /// The domain, with its model run in-process.
+    pub fn domain(&self) -> &dyn LocalModel {
         match self {
             Self::Grid(g) => g,
             Self::Plant(p) => p,
@@ -86,7 +89,7 @@ impl Bench {
 #[derive(Debug, Clone, PartialEq)]
 pub struct Labelled {
     /// The transition.
-    pub t: Executed,
+    pub t: Transition,
     /// `d(f̂(s, a), s')`.
     pub deviation: f64,
 }
@@ -110,7 +113,7 @@ pub fn execute(bench: &Bench, world: &mut dyn World, plan: &PlannedTrajectory) -
         let s_next = world.step(&s, &a);
         let deviation = domain.deviation(&s, &a, &s_next);
         steps.push(Labelled {
-            t: Executed {
+            t: Transition {
                 s: s.clone(),
                 a,
                 s_next: s_next.clone(),
@@ -209,33 +212,33 @@ mod purpose {
     pub const TEST_EPISODE: u64 = 6;
 }
 
-fn splitmix(mut z: u64) -> u64 {
-    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 /// The random stream of `(seed, purpose, i, j)`.
 pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
-    let key = splitmix(splitmix(splitmix(splitmix(seed) ^ purpose) ^ i) ^ j);
+    use crate::seed::splitmix64 as mix;
+    let key = mix(mix(mix(mix(seed) ^ purpose) ^ i) ^ j);
     ChaCha8Rng::seed_from_u64(key)
 }
 
-/// The body that creates the experiment of one run.
-fn experiment_body(cfg: &Config, name: String, strategy: StrategySetting, seed: u64) -> Value {
-    json!({
-        "name": name,
-        "domain": {"kind": cfg.domain.as_str()},
-        "seed": seed,
-        "learning": {
-            "strategy": strategy,
-            "batch_size": cfg.batch_size,
-            "iterations": cfg.iterations,
-            "n_candidates": cfg.n_candidates,
-            "max_extensions": cfg.max_extensions,
+/// The request that creates the experiment of one run.
+fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) -> ExperimentRequest {
+    let domain = match cfg.domain {
+        DomainKind::IcyGridworld => DomainSpec::default(),
+        DomainKind::WaterPlant => DomainSpec::WaterPlant {},
+    };
+    ExperimentRequest {
+        name,
+        domain,
+        seed,
+        learning: LearningSettings {
+            strategy,
+            batch_size: cfg.batch_size as u32,
+            iterations: cfg.iterations as u32,
+            n_candidates: cfg.n_candidates,
+            max_extensions: cfg.max_extensions,
+            ..LearningSettings::default()
         },
-    })
+        ..ExperimentRequest::default()
+    }
 }
 
 /// Builds the held-out pool of seed `seed` (see the module docs).
@@ -249,7 +252,7 @@ pub async fn build_pool(
         .create_experiment(&experiment_body(
             cfg,
             format!("held-out pool, seed {seed}"),
-            StrategySetting::GoalConditioned,
+            Strategy::GoalConditioned,
             seed,
         ))
         .await?;
@@ -258,7 +261,11 @@ pub async fn build_pool(
     let mut out = Vec::new();
     for i in 0..cfg.pool_trajectories as u64 {
         let problem = domain.sample_problem(&mut stream(seed, purpose::POOL_PROBLEM, i, 0));
-        let strategy = if i % 2 == 0 { None } else { Some("random") };
+        let strategy = if i % 2 == 0 {
+            None
+        } else {
+            Some(Strategy::Random)
+        };
         let Proposed::Trajectory(p) = client
             .propose(exp.id, &problem.start, &problem.goal, None, strategy)
             .await?
@@ -266,7 +273,7 @@ pub async fn build_pool(
             continue;
         };
         world.reset(&mut stream(seed, purpose::POOL_EPISODE, i, 0));
-        let exec = execute(bench, world.as_mut(), &p.trajectory);
+        let exec = execute(bench, world.as_mut(), &p.content.trajectory);
         out.extend(exec.steps);
     }
     Ok(out)
@@ -276,7 +283,7 @@ pub async fn build_pool(
 #[derive(Debug, Clone, Serialize)]
 pub struct IterationRecord {
     /// Strategy.
-    pub strategy: StrategySetting,
+    pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
     /// Iteration (0-based; evaluated after its batch).
@@ -335,7 +342,7 @@ pub struct IterationRecord {
 #[derive(Debug, Clone, Serialize)]
 pub struct TrainingRecord {
     /// Strategy.
-    pub strategy: StrategySetting,
+    pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
     /// Iteration.
@@ -360,7 +367,7 @@ pub struct TrainingRecord {
 #[derive(Debug, Clone, Serialize)]
 pub struct TestRecord {
     /// Strategy.
-    pub strategy: StrategySetting,
+    pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
     /// Iteration.
@@ -425,7 +432,7 @@ pub struct RunResult {
 #[derive(Debug, Clone)]
 pub struct RunSpec {
     /// Strategy.
-    pub strategy: StrategySetting,
+    pub strategy: Strategy,
     /// Seed.
     pub seed: u64,
     /// Held-out transitions (other seeds' pools).
@@ -449,13 +456,13 @@ pub async fn run_one(
             format!(
                 "experiment {}, {}, seed {seed}",
                 cfg.domain.as_str(),
-                strategy_name(strategy)
+                strategy.as_str()
             ),
             strategy,
             seed,
         ))
         .await?;
-    let d_max = exp.d_max;
+    let d_max = exp.settings.d_max;
     let domain = bench.domain();
     let mut world = bench.world();
     let mut result = RunResult::default();
@@ -535,7 +542,8 @@ pub async fn run_one(
                 };
                 // (Within rounding: serde_json's default float parser may be off by an ulp.)
                 anyhow::ensure!(
-                    p.trajectory
+                    p.content
+                        .trajectory
                         .states
                         .first()
                         .is_some_and(|s0| s0.len() == problem.start.len()
@@ -544,17 +552,17 @@ pub async fn run_one(
                                 .zip(&problem.start)
                                 .all(|(a, b)| (a - b).abs() <= 1e-9 * (1.0 + b.abs()))),
                     "proposal {} does not start at the problem's start {:?}",
-                    p.id,
+                    p.proposal.id,
                     problem.start
                 );
                 world.reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
-                let exec = execute(bench, world.as_mut(), &p.trajectory);
-                let transitions: Vec<Executed> = exec.steps.iter().map(|l| l.t.clone()).collect();
+                let exec = execute(bench, world.as_mut(), &p.content.trajectory);
+                let transitions: Vec<Transition> = exec.steps.iter().map(|l| l.t.clone()).collect();
                 client
-                    .post_trajectory(exp.id, Some(p.id), &transitions)
+                    .post_trajectory(exp.id, Some(p.proposal.id), transitions)
                     .await?;
                 posted += 1;
-                rec.beta_train = Some(p.beta);
+                rec.beta_train = Some(p.proposal.terms.beta);
                 train.executed = true;
                 train.length = exec.steps.len();
                 train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
@@ -591,7 +599,7 @@ pub async fn run_one(
         } else {
             client.refit(exp.id).await?
         };
-        rec.n_train = model.n_train;
+        rec.n_train = model.n_train as i64;
         rec.model_version = model.version;
         rec.model_trajectories = model.n_trajectories;
         // Evaluation: the same fresh problems for every strategy at this seed and iteration.
@@ -607,7 +615,7 @@ pub async fn run_one(
                 start: problem.start.clone(),
                 goal: problem.goal.clone(),
                 found: false,
-                extensions: plan.extensions,
+                extensions: plan.extensions as u64,
                 plan_length: 0,
                 success: false,
             };
@@ -656,7 +664,7 @@ pub async fn run_one(
         let line = format!(
             "{} seed {seed} iteration {j}: plan found {:.2}, success {:.2}, TPR {}, TNR {}, \
              n_train {}, no_plan {}, {:.1} s",
-            strategy_name(strategy),
+            strategy.as_str(),
             rec.plan_found_rate,
             rec.success_rate,
             fmt_opt(rec.tpr),
@@ -681,15 +689,6 @@ fn fmt_opt(v: Option<f64>) -> String {
 
 fn ratio(k: usize, n: usize) -> Option<f64> {
     (n > 0).then(|| k as f64 / n as f64)
-}
-
-/// The strategy's name as in the settings (`active`, `goal_conditioned`, `random`).
-pub fn strategy_name(s: StrategySetting) -> &'static str {
-    match s {
-        StrategySetting::Active => "active",
-        StrategySetting::GoalConditioned => "goal_conditioned",
-        StrategySetting::Random => "random",
-    }
 }
 
 /// Queries the precondition map of one kind (see [`PreconditionMap`]).

@@ -5,8 +5,8 @@
 //! for the water plant, `maps.json` (the precondition maps behind the map figures).
 
 use super::Results;
-use super::protocol::{IterationRecord, PourType, strategy_name};
-use crate::settings::StrategySetting;
+use super::protocol::{IterationRecord, PourType};
+use crate::planning::Strategy;
 use anyhow::Context;
 use serde_json::{Map, Value, json};
 use std::fmt::Write as _;
@@ -116,7 +116,7 @@ pub fn mean_se(values: impl IntoIterator<Item = Option<f64>>) -> Option<(f64, f6
 }
 
 /// Every iteration record of `strategy`, grouped by iteration.
-pub fn by_iteration(results: &Results, strategy: StrategySetting) -> Vec<Vec<&IterationRecord>> {
+pub fn by_iteration(results: &Results, strategy: Strategy) -> Vec<Vec<&IterationRecord>> {
     let mut out = vec![Vec::new(); results.config.iterations];
     for run in &results.runs {
         for r in run.iterations.iter().filter(|r| r.strategy == strategy) {
@@ -143,7 +143,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for r in results.runs.iter().flat_map(|run| &run.iterations) {
         let row: Vec<String> = vec![
             domain.to_string(),
-            strategy_name(r.strategy).to_string(),
+            r.strategy.as_str().to_string(),
             r.seed.to_string(),
             r.iteration.to_string(),
             opt(r.beta_train),
@@ -185,7 +185,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
         let _ = writeln!(
             csv,
             "{domain},{},{},{},{},{},{},{},{},{},{}",
-            strategy_name(t.strategy),
+            t.strategy.as_str(),
             t.seed,
             t.iteration,
             t.slot,
@@ -212,7 +212,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
         let _ = writeln!(
             csv,
             "{domain},{},{},{},{},{},{},{},{},{},{}",
-            strategy_name(t.strategy),
+            t.strategy.as_str(),
             t.seed,
             t.iteration,
             t.problem,
@@ -269,8 +269,8 @@ pub fn summary(results: &Results) -> Value {
             }
             per_metric.insert(m.to_string(), Value::Array(series));
         }
-        strategies.insert(strategy_name(s).to_string(), Value::Object(per_metric));
-        finals.insert(strategy_name(s).to_string(), Value::Object(fin));
+        strategies.insert(s.as_str().to_string(), Value::Object(per_metric));
+        finals.insert(s.as_str().to_string(), Value::Object(fin));
     }
     json!({
         "domain": cfg.domain.as_str(),

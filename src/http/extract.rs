@@ -4,7 +4,7 @@
 //! JSON (400) and well-formed JSON with a wrong field (422, naming the field's path, e.g.
 //! `transitions[3].s`). It accepts any `Content-Type` so that `curl -d` works as typed.
 
-use crate::error::Error;
+use super::error::ApiError;
 use axum::body::Bytes;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{FromRequest, FromRequestParts, Request};
@@ -20,7 +20,7 @@ where
     S: Send + Sync,
     T: DeserializeOwned,
 {
-    type Rejection = Error;
+    type Rejection = ApiError;
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
         let limit = req
@@ -30,9 +30,9 @@ where
             .unwrap_or(0);
         let bytes = Bytes::from_request(req, state).await.map_err(|r| {
             if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
-                Error::PayloadTooLarge { limit }
+                ApiError::PayloadTooLarge { limit }
             } else {
-                Error::BadRequest(format!("could not read the request body: {r}"))
+                ApiError::BadRequest(format!("could not read the request body: {r}"))
             }
         })?;
         parse_json(&bytes).map(ApiJson)
@@ -47,12 +47,12 @@ pub struct BodyLimit(pub usize);
 ///
 /// The body must be a JSON object: serde would otherwise read a struct from an array in field
 /// order, which no client means.
-pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, Error> {
+pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
     if bytes.iter().find(|b| !b.is_ascii_whitespace()) != Some(&b'{') {
         return Err(
             match serde_json::from_slice::<serde::de::IgnoredAny>(bytes) {
-                Ok(_) => Error::validation("body", "must be a JSON object"),
-                Err(e) => Error::BadRequest(format!("malformed JSON: {e}")),
+                Ok(_) => ApiError::validation("body", "must be a JSON object"),
+                Err(e) => ApiError::BadRequest(format!("malformed JSON: {e}")),
             },
         );
     }
@@ -67,13 +67,13 @@ pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, Error> {
                 } else {
                     path
                 };
-                Error::validation(field, strip_position(&inner.to_string()))
+                ApiError::validation(field, strip_position(&inner.to_string()))
             }
-            _ => Error::BadRequest(format!("malformed JSON: {inner}")),
+            _ => ApiError::BadRequest(format!("malformed JSON: {inner}")),
         }
     })?;
     de.end()
-        .map_err(|e| Error::BadRequest(format!("malformed JSON: {e}")))?;
+        .map_err(|e| ApiError::BadRequest(format!("malformed JSON: {e}")))?;
     Ok(value)
 }
 
@@ -87,22 +87,22 @@ fn strip_position(message: &str) -> String {
 
 /// Path parameters; a parameter that does not parse names no existing resource (404).
 #[derive(Debug, FromRequestParts)]
-#[from_request(via(axum::extract::Path), rejection(Error))]
+#[from_request(via(axum::extract::Path), rejection(ApiError))]
 pub struct ApiPath<T>(pub T);
 
-impl From<PathRejection> for Error {
+impl From<PathRejection> for ApiError {
     fn from(r: PathRejection) -> Self {
-        Error::NotFound(format!("no such resource: {}", r.body_text()))
+        ApiError::not_found(format!("no such resource: {}", r.body_text()))
     }
 }
 
 /// Query parameters; a bad one is a 422 naming it.
 #[derive(Debug, FromRequestParts)]
-#[from_request(via(axum::extract::Query), rejection(Error))]
+#[from_request(via(axum::extract::Query), rejection(ApiError))]
 pub struct ApiQuery<T>(pub T);
 
-impl From<QueryRejection> for Error {
+impl From<QueryRejection> for ApiError {
     fn from(r: QueryRejection) -> Self {
-        Error::validation("query", r.body_text())
+        ApiError::validation("query", r.body_text())
     }
 }

@@ -1,22 +1,26 @@
 //! Liveness and readiness.
 
 use super::AppState;
-use crate::error::Error;
+use super::error::{ApiError, ApiResult};
+use crate::api::HealthResponse;
 use axum::Json;
 use axum::extract::State;
-use serde_json::{Value, json};
 
 /// `GET /healthz`: the process is alive.
-pub async fn get_health() -> Json<Value> {
-    Json(json!({"status": "ok"}))
+pub async fn get_health() -> Json<HealthResponse> {
+    Json(HealthResponse {
+        status: "ok".into(),
+    })
 }
 
 /// `GET /readyz`: the database answers.
-pub async fn get_readiness(State(state): State<AppState>) -> Result<Json<Value>, Error> {
+pub async fn get_readiness(State(state): State<AppState>) -> ApiResult<Json<HealthResponse>> {
     state
-        .store
-        .ping()
+        .service
+        .ready()
         .await
-        .map_err(|e| Error::Unavailable(format!("database not answering: {e}")))?;
-    Ok(Json(json!({"status": "ready"})))
+        .map_err(|e| ApiError::Unavailable(format!("database not answering: {e}")))?;
+    Ok(Json(HealthResponse {
+        status: "ready".into(),
+    }))
 }

@@ -3,15 +3,16 @@
 //! The router is built from [`routes`], the same table the contract test compares with
 //! `api/openapi.yaml`, so a route cannot exist in one and not the other.
 
+pub mod error;
 mod experiments;
 pub mod extract;
 mod health;
 mod model;
 mod proposals;
+mod render;
 mod trajectories;
 
-use crate::error::Error;
-use crate::live::Registry;
+use crate::service::Service;
 use crate::store::Store;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request};
@@ -19,14 +20,13 @@ use axum::http::{Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{MethodRouter, get, post};
+use error::ApiError;
 use extract::BodyLimit;
 use std::future::Future;
 use std::sync::Arc;
 use tokio::net::TcpListener;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::trace::TraceLayer;
-
-pub use trajectories::{TrajectoryRequest, TransitionRequest};
 
 /// Limits and knobs of the HTTP layer.
 #[derive(Debug, Clone)]
@@ -46,10 +46,8 @@ impl Default for HttpConfig {
 /// What every handler can reach.
 #[derive(Debug, Clone)]
 pub struct AppState {
-    /// The database.
-    pub store: Store,
-    /// Live experiments (built domains, current models).
-    pub experiments: Arc<Registry>,
+    /// The service.
+    pub service: Service,
     /// HTTP settings.
     pub config: Arc<HttpConfig>,
 }
@@ -58,8 +56,7 @@ impl AppState {
     /// State over an opened store.
     pub fn new(store: Store, config: HttpConfig) -> Self {
         Self {
-            store,
-            experiments: Arc::new(Registry::default()),
+            service: Service::new(store),
             config: Arc::new(config),
         }
     }
@@ -180,17 +177,19 @@ pub fn app(state: AppState) -> Router {
         .with_state(state)
 }
 
-async fn route_not_found(method: Method, uri: axum::http::Uri) -> Error {
-    Error::NotFound(format!("no route for {method} {}", uri.path()))
+async fn route_not_found(method: Method, uri: axum::http::Uri) -> ApiError {
+    ApiError::not_found(format!("no route for {method} {}", uri.path()))
 }
 
-async fn method_not_allowed() -> Error {
-    Error::MethodNotAllowed
+async fn method_not_allowed() -> ApiError {
+    ApiError::MethodNotAllowed
 }
 
 fn panic_response(_: Box<dyn std::any::Any + Send + 'static>) -> Response {
     tracing::error!("a handler panicked");
-    let e = Error::Internal(anyhow::anyhow!("handler panicked"));
+    let e = ApiError::from(crate::service::Error::Internal(anyhow::anyhow!(
+        "handler panicked"
+    )));
     (StatusCode::INTERNAL_SERVER_ERROR, axum::Json(e.body())).into_response()
 }
 
@@ -201,7 +200,7 @@ pub async fn serve(
     state: AppState,
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
-    let store = state.store.clone();
+    let store = state.service.store().clone();
     let addr = listener.local_addr()?;
     tracing::info!(%addr, "serving");
     axum::serve(listener, app(state))

@@ -67,6 +67,9 @@ pub enum PlanningError {
         /// Extensions (attempted edges) spent before giving up.
         extensions: usize,
     },
+    /// The dynamics model `f̂` could not answer (a remote model that failed or timed out).
+    #[error(transparent)]
+    Dynamics(#[from] crate::domain::DynamicsError),
     /// The deviation model broke its contract (a bug in the model, not in the request).
     #[error("the deviation model returned {got} predictions for {expected} points")]
     ModelOutput {

@@ -29,7 +29,8 @@
 
 use super::cache::ModelCache;
 use super::{DeviationModel, PlanningError};
-use crate::domain::Domain;
+use crate::domain::{Domain, DynamicsError, Predicted};
+use crate::limits::{MAX_CANDIDATES, MAX_EXTENSIONS};
 use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashSet;
@@ -38,10 +39,10 @@ use std::collections::HashSet;
 #[derive(Debug, Clone, PartialEq)]
 pub struct PlannerSettings {
     /// Budget of one RRT run, in extensions (attempted edges). Default 5000 (paper);
-    /// 1 ..= 1 000 000.
+    /// 1 ..= [`MAX_EXTENSIONS`].
     pub max_extensions: usize,
     /// Number of seeded RRT runs per proposal, hence the largest number of candidates.
-    /// Default 20; 1 ..= 1000.
+    /// Default 20; 1 ..= [`MAX_CANDIDATES`].
     pub n_candidates: usize,
     /// Probability that an extension grows towards the goal rather than a uniform state.
     /// Default 0.2 (a common choice: enough pull to reach the goal quickly in open space,
@@ -87,8 +88,18 @@ impl PlannerSettings {
                 Ok(())
             }
         };
-        in_range("max_extensions", self.max_extensions, 1, 1_000_000)?;
-        in_range("n_candidates", self.n_candidates, 1, 1000)?;
+        in_range(
+            "max_extensions",
+            self.max_extensions,
+            1,
+            MAX_EXTENSIONS as usize,
+        )?;
+        in_range(
+            "n_candidates",
+            self.n_candidates,
+            1,
+            MAX_CANDIDATES as usize,
+        )?;
         in_range("extension_batch", self.extension_batch, 1, 4096)?;
         in_range(
             "max_failed_runs",
@@ -198,11 +209,11 @@ pub(crate) fn check_problem(
 ) -> Result<(), PlanningError> {
     domain
         .validate_state(start)
-        .map_err(|e| PlanningError::input("start", e.0))?;
+        .map_err(|e| PlanningError::input("start", e.to_string()))?;
     if let Some(goal) = goal {
         domain
             .validate_goal(goal)
-            .map_err(|e| PlanningError::input("goal", e.0))?;
+            .map_err(|e| PlanningError::input("goal", e.to_string()))?;
     }
     if !beta.is_finite() {
         return Err(PlanningError::input("beta", "must be a finite number"));
@@ -282,6 +293,37 @@ fn state_key(s: &[f64]) -> Vec<u64> {
     s.iter().map(|x| (x + 0.0).to_bits()).collect()
 }
 
+/// Predicts the next state of every steered edge `(parent node, action)` in one call.
+fn predict_edges(
+    domain: &dyn Domain,
+    tree: &Tree,
+    steered: &[(usize, Vec<f64>)],
+) -> Result<Vec<Predicted>, PlanningError> {
+    let states: Vec<&[f64]> = steered
+        .iter()
+        .map(|(i, _)| tree.states[*i].as_slice())
+        .collect();
+    let actions: Vec<&[f64]> = steered.iter().map(|(_, a)| a.as_slice()).collect();
+    let predicted = domain.dynamics().predict_batch(&states, &actions)?;
+    check_predictions(domain, predicted.len(), steered.len())?;
+    Ok(predicted)
+}
+
+/// A dynamics model must answer one prediction per point, each a state.
+pub(crate) fn check_predictions(
+    domain: &dyn Domain,
+    got: usize,
+    expected: usize,
+) -> Result<(), PlanningError> {
+    if got != expected {
+        return Err(PlanningError::Dynamics(DynamicsError::Unavailable {
+            model: format!("of the {} domain", domain.kind()),
+            reason: format!("answered {got} predictions for {expected} points"),
+        }));
+    }
+    Ok(())
+}
+
 /// An edge proposed in a round.
 struct Proposed {
     parent: usize,
@@ -325,6 +367,7 @@ pub(crate) fn grow(
         round.clear();
         features.clear();
         prefetch.clear();
+        let mut steered: Vec<(usize, Vec<f64>)> = Vec::with_capacity(size);
         for _ in 0..size {
             let target = if rng.random::<f64>() < settings.goal_bias {
                 domain.goal_target(goal, rng)
@@ -332,30 +375,49 @@ pub(crate) fn grow(
                 domain.sample_state(rng)
             };
             let parent = tree.nearest(domain, &target);
-            let s = &tree.states[parent];
-            let action = domain.steer(s, &target, rng);
-            let next = domain.predict(s, &action);
-            let asked = domain.edge_allowed(s, &action, &next) && !tree.contains(&next);
+            let action = domain.steer(&tree.states[parent], &target, rng);
+            steered.push((parent, action));
+        }
+        let predicted = predict_edges(domain, &tree, &steered)?;
+        let mut to_prefetch: Vec<(usize, &[f64])> = Vec::new();
+        for ((parent, action), p) in steered.iter().zip(predicted) {
+            let s = &tree.states[*parent];
+            let asked =
+                p.valid && domain.edge_allowed(s, action, &p.next) && !tree.contains(&p.next);
             if asked {
-                let phi = domain.features(s, &action);
+                let phi = domain.features(s, action);
                 if let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi)) {
                     // A miss in a discrete action space: ask about the node's other moves in the
                     // same call, since the tree is likely to try them later.
-                    for v in values.iter().filter(|v| **v != action) {
-                        let n = domain.predict(s, v);
-                        if domain.edge_allowed(s, v, &n) && !tree.contains(&n) {
-                            prefetch.extend(domain.features(s, v));
-                        }
-                    }
+                    to_prefetch.extend(
+                        values
+                            .iter()
+                            .filter(|v| *v != action)
+                            .map(|v| (*parent, v.as_slice())),
+                    );
                 }
                 features.extend(phi);
             }
             round.push(Proposed {
-                parent,
-                action,
-                next,
+                parent: *parent,
+                action: action.clone(),
+                next: p.next,
                 asked,
             });
+        }
+        if !to_prefetch.is_empty() {
+            let states: Vec<&[f64]> = to_prefetch
+                .iter()
+                .map(|(i, _)| tree.states[*i].as_slice())
+                .collect();
+            let actions: Vec<&[f64]> = to_prefetch.iter().map(|(_, v)| *v).collect();
+            let next = domain.dynamics().predict_batch(&states, &actions)?;
+            check_predictions(domain, next.len(), to_prefetch.len())?;
+            for ((s, v), n) in states.iter().zip(&actions).zip(next) {
+                if n.valid && domain.edge_allowed(s, v, &n.next) && !tree.contains(&n.next) {
+                    prefetch.extend(domain.features(s, v));
+                }
+            }
         }
         // The answers to the prefetched rows come after those of the edges; they are cached.
         features.append(&mut prefetch);

@@ -29,7 +29,8 @@ use std::fmt;
 use std::str::FromStr;
 
 /// How a proposal chooses the trajectory to execute.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
 pub enum Strategy {
     /// Goal-reaching candidates, argmin of the acquisition function: the method. The default.
     #[default]
@@ -296,8 +297,9 @@ impl Problem<'_> {
             for _ in 0..planner.random_action_tries {
                 extensions += 1;
                 let a = domain.sample_action(&s, rng);
-                let next = domain.predict(&s, &a);
-                if !domain.edge_allowed(&s, &a, &next) {
+                let predicted = domain.dynamics().predict_one(&s, &a)?;
+                let next = predicted.next;
+                if !(predicted.valid && domain.edge_allowed(&s, &a, &next)) {
                     continue;
                 }
                 let (mu, sigma) = cache.predict(&domain.features(&s, &a))?[0];

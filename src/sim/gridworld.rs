@@ -55,7 +55,7 @@ impl World for IcyGridworldSim {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::domain::{DEFAULT_MAP, Domain};
+    use crate::domain::{DEFAULT_MAP, Domain, LocalModel};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

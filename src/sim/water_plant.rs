@@ -484,8 +484,8 @@ impl World for WaterPlantSim {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::domain::Domain;
     use crate::domain::water_plant::{Motion, TOTAL_WATER};
+    use crate::domain::{Domain, LocalModel};
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

@@ -18,11 +18,15 @@ pub struct Experiment {
     pub n_trajectories: i64,
     /// Transitions stored.
     pub n_transitions: i64,
+    /// The latest fitted model version (0: none, the prior answers).
+    pub model_version: i64,
 }
 
 const SELECT: &str = "SELECT e.id, e.settings, e.created_at,
         (SELECT COUNT(*) FROM trajectories t WHERE t.experiment_id = e.id) AS n_trajectories,
-        (SELECT COUNT(*) FROM transitions x WHERE x.experiment_id = e.id) AS n_transitions
+        (SELECT COUNT(*) FROM transitions x WHERE x.experiment_id = e.id) AS n_transitions,
+        (SELECT COALESCE(MAX(version), 0) FROM models m WHERE m.experiment_id = e.id)
+            AS model_version
      FROM experiments e";
 
 fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
@@ -33,6 +37,7 @@ fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
         created_at: row.try_get("created_at")?,
         n_trajectories: row.try_get("n_trajectories")?,
         n_transitions: row.try_get("n_transitions")?,
+        model_version: row.try_get("model_version")?,
     })
 }
 
@@ -59,6 +64,7 @@ impl Store {
             created_at,
             n_trajectories: 0,
             n_transitions: 0,
+            model_version: 0,
         })
     }
 

@@ -13,9 +13,9 @@ mod trajectories;
 
 pub use experiments::Experiment;
 pub use models::StoredModel;
-pub use proposals::{NewProposal, StoredProposal};
+pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, NewTransition, StoredTrajectory, Transition,
+    IdempotencyKey, IngestOutcome, Ingested, LabelledTransition, StoredTrajectory, StoredTransition,
 };
 
 use anyhow::Context;

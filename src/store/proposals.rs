@@ -1,60 +1,103 @@
 //! Proposals and their leases.
 
 use super::{Store, decode_vec, encode_vec};
-use serde_json::Value;
+use crate::planning::Strategy;
 use sqlx::sqlite::SqliteRow;
 use sqlx::{Row, SqliteConnection};
+
+/// Where a proposal's lease stands.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProposalStatus {
+    /// Leased to its client, waiting for the executed trajectory.
+    Open,
+    /// Its trajectory was posted.
+    Executed,
+    /// The client gave it up.
+    Abandoned,
+    /// The lease ran out before a trajectory was posted.
+    Expired,
+}
+
+impl ProposalStatus {
+    /// The stored name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Open => "open",
+            Self::Executed => "executed",
+            Self::Abandoned => "abandoned",
+            Self::Expired => "expired",
+        }
+    }
+
+    fn parse(s: &str) -> Result<Self, sqlx::Error> {
+        Ok(match s {
+            "open" => Self::Open,
+            "executed" => Self::Executed,
+            "abandoned" => Self::Abandoned,
+            "expired" => Self::Expired,
+            other => {
+                return Err(sqlx::Error::Decode(
+                    format!("unknown proposal status {other:?}").into(),
+                ));
+            }
+        })
+    }
+}
+
+fn parse_strategy(s: &str) -> Result<Strategy, sqlx::Error> {
+    s.parse()
+        .map_err(|e: crate::planning::PlanningError| sqlx::Error::Decode(Box::new(e)))
+}
+
+/// What a proposal answered and under which conditions: the problem, the client it is leased
+/// to, and the learning state that shaped it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ProposalTerms {
+    /// The client it is leased to.
+    pub client_id: Option<String>,
+    /// The learning iteration it was made in.
+    pub iteration: i64,
+    /// β it was planned with.
+    pub beta: f64,
+    /// The strategy that chose it.
+    pub strategy: Strategy,
+    /// The MDE version that scored it.
+    pub model_version: i64,
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal.
+    pub goal: Vec<f64>,
+}
 
 /// A proposal to store.
 #[derive(Debug, Clone)]
 pub struct NewProposal {
-    /// The client it is leased to.
-    pub client_id: Option<String>,
-    /// Learning iteration it was made in.
-    pub iteration: i64,
-    /// β it was planned with.
-    pub beta: f64,
-    /// `active`, `goal_conditioned` or `random`.
-    pub strategy: String,
-    /// Model version that scored it.
-    pub model_version: i64,
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Goal.
-    pub goal: Vec<f64>,
-    /// The chosen trajectory and the candidates, as the API shows them.
-    pub body: Value,
+    /// Its terms.
+    pub terms: ProposalTerms,
+    /// The chosen trajectory and the candidates, as JSON exactly as the API shows them.
+    pub body: String,
     /// Lease length in seconds.
     pub ttl_seconds: u32,
 }
 
-/// A stored proposal.
-#[derive(Debug, Clone)]
+/// A stored proposal; serialised (without its body) as the API shows it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StoredProposal {
     /// Identifier.
     pub id: i64,
-    /// Leased to.
-    pub client_id: Option<String>,
-    /// `open`, `executed`, `abandoned` or `expired`.
-    pub status: String,
-    /// Iteration.
-    pub iteration: i64,
-    /// β.
-    pub beta: f64,
-    /// Strategy.
-    pub strategy: String,
-    /// Model version.
-    pub model_version: i64,
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Goal.
-    pub goal: Vec<f64>,
-    /// Trajectory and candidates.
-    pub body: Value,
+    /// Where its lease stands.
+    pub status: ProposalStatus,
+    /// Its terms.
+    #[serde(flatten)]
+    pub terms: ProposalTerms,
     /// Creation time (RFC 3339).
     pub created_at: String,
-    /// Lease end (RFC 3339).
+    /// End of the lease (RFC 3339).
     pub expires_at: String,
+    /// Trajectory and candidates (JSON, as stored).
+    #[serde(skip)]
+    pub body: String,
 }
 
 /// What linking a trajectory to a proposal found.
@@ -77,18 +120,19 @@ fn unix_now() -> f64 {
 }
 
 fn from_row(row: &SqliteRow) -> Result<StoredProposal, sqlx::Error> {
-    let body: String = row.try_get("body")?;
     Ok(StoredProposal {
         id: row.try_get("id")?,
-        client_id: row.try_get("client_id")?,
-        status: row.try_get("status")?,
-        iteration: row.try_get("iteration")?,
-        beta: row.try_get("beta")?,
-        strategy: row.try_get("strategy")?,
-        model_version: row.try_get("model_version")?,
-        start: decode_vec(row.try_get("start")?)?,
-        goal: decode_vec(row.try_get("goal")?)?,
-        body: serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?,
+        status: ProposalStatus::parse(row.try_get("status")?)?,
+        terms: ProposalTerms {
+            client_id: row.try_get("client_id")?,
+            iteration: row.try_get("iteration")?,
+            beta: row.try_get("beta")?,
+            strategy: parse_strategy(row.try_get("strategy")?)?,
+            model_version: row.try_get("model_version")?,
+            start: decode_vec(row.try_get("start")?)?,
+            goal: decode_vec(row.try_get("goal")?)?,
+        },
+        body: row.try_get("body")?,
         created_at: row.try_get("created_at")?,
         expires_at: row.try_get("expires_at")?,
     })
@@ -105,6 +149,23 @@ async fn expire_leases(conn: &mut SqliteConnection, experiment_id: i64) -> Resul
     .execute(conn)
     .await?;
     Ok(())
+}
+
+async fn select_by_id(
+    conn: &mut SqliteConnection,
+    experiment_id: i64,
+    proposal_id: i64,
+) -> Result<Option<StoredProposal>, sqlx::Error> {
+    sqlx::query(&format!(
+        "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
+    ))
+    .bind(experiment_id)
+    .bind(proposal_id)
+    .fetch_optional(conn)
+    .await?
+    .as_ref()
+    .map(from_row)
+    .transpose()
 }
 
 async fn open_for_client(
@@ -149,7 +210,7 @@ impl Store {
     ) -> Result<(StoredProposal, bool), sqlx::Error> {
         let mut tx = self.write.begin().await?;
         expire_leases(&mut tx, experiment_id).await?;
-        if let Some(client) = &p.client_id
+        if let Some(client) = &p.terms.client_id
             && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
         {
             tx.commit().await?;
@@ -168,14 +229,14 @@ impl Store {
              VALUES (?, ?, 'open', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
         )
         .bind(experiment_id)
-        .bind(&p.client_id)
-        .bind(p.iteration)
-        .bind(p.beta)
-        .bind(&p.strategy)
-        .bind(p.model_version)
-        .bind(encode_vec(&p.start))
-        .bind(encode_vec(&p.goal))
-        .bind(p.body.to_string())
+        .bind(&p.terms.client_id)
+        .bind(p.terms.iteration)
+        .bind(p.terms.beta)
+        .bind(p.terms.strategy.as_str())
+        .bind(p.terms.model_version)
+        .bind(encode_vec(&p.terms.start))
+        .bind(encode_vec(&p.terms.goal))
+        .bind(&p.body)
         .bind(fmt(created))
         .bind(fmt(expires))
         .bind(expires.unix_timestamp_nanos() as f64 / 1e9)
@@ -199,16 +260,7 @@ impl Store {
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
         let mut tx = self.write.begin().await?;
         expire_leases(&mut tx, experiment_id).await?;
-        let p = sqlx::query(&format!(
-            "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
-        ))
-        .bind(experiment_id)
-        .bind(proposal_id)
-        .fetch_optional(&mut *tx)
-        .await?
-        .as_ref()
-        .map(from_row)
-        .transpose()?;
+        let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
         tx.commit().await?;
         Ok(p)
     }
@@ -231,16 +283,7 @@ impl Store {
         .bind(proposal_id)
         .execute(&mut *tx)
         .await?;
-        let p = sqlx::query(&format!(
-            "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
-        ))
-        .bind(experiment_id)
-        .bind(proposal_id)
-        .fetch_optional(&mut *tx)
-        .await?
-        .as_ref()
-        .map(from_row)
-        .transpose()?;
+        let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
         tx.commit().await?;
         Ok(p)
     }

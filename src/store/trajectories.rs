@@ -2,19 +2,16 @@
 
 use super::proposals::{LinkOutcome, link_trajectory};
 use super::{Store, decode_vec, encode_vec, now};
-use serde_json::Value;
+use crate::domain::Transition;
 use sqlx::Row;
 use sqlx::sqlite::SqliteRow;
 
-/// One transition to store, with the label the server computed.
-#[derive(Debug, Clone)]
-pub struct NewTransition {
-    /// State.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// Observed next state.
-    pub s_next: Vec<f64>,
+/// A transition to store: what the robot observed, with the model's prediction and the label
+/// the service computed from them.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LabelledTransition {
+    /// What the robot observed.
+    pub observed: Transition,
     /// The model's prediction `f̂(s, a)`.
     pub s_pred: Vec<f64>,
     /// `d(f̂(s, a), s_next)`.
@@ -22,8 +19,8 @@ pub struct NewTransition {
 }
 
 /// A stored transition; serialised as the API shows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize)]
-pub struct Transition {
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct StoredTransition {
     /// Identifier; ascending in ingest order.
     pub id: i64,
     /// The trajectory it belongs to.
@@ -42,8 +39,8 @@ pub struct Transition {
     pub deviation: f64,
 }
 
-/// A stored trajectory with its transitions.
-#[derive(Debug, Clone)]
+/// A stored trajectory with its transitions; serialised as the API shows it.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct StoredTrajectory {
     /// Identifier.
     pub id: i64,
@@ -56,20 +53,31 @@ pub struct StoredTrajectory {
     /// Ingest time (RFC 3339).
     pub created_at: String,
     /// Its transitions in order.
-    pub transitions: Vec<Transition>,
+    pub transitions: Vec<StoredTransition>,
+}
+
+/// What an ingest stored, for the response.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Ingested {
+    /// The new trajectory's identifier.
+    pub trajectory_id: i64,
+    /// Ingest time (RFC 3339).
+    pub created_at: String,
+    /// Trajectories of the experiment after this one.
+    pub n_trajectories: i64,
 }
 
 /// What an ingest did.
 #[derive(Debug)]
-pub enum IngestOutcome {
-    /// Stored; the response body that was also recorded under the idempotency key.
-    Created(Value),
+pub enum IngestOutcome<R> {
+    /// Stored; the response that was also recorded (as JSON) under the idempotency key.
+    Created(R),
     /// The idempotency key was seen with the same request: the first response, nothing stored.
     Replayed {
         /// The first response's status.
         status: u16,
-        /// The first response's body.
-        body: Value,
+        /// The first response's body (JSON).
+        body: String,
     },
     /// The idempotency key was seen with a different request; nothing stored.
     KeyReused,
@@ -88,8 +96,8 @@ pub struct IdempotencyKey<'a> {
     pub request: &'a str,
 }
 
-fn transition_from_row(row: &SqliteRow) -> Result<Transition, sqlx::Error> {
-    Ok(Transition {
+fn transition_from_row(row: &SqliteRow) -> Result<StoredTransition, sqlx::Error> {
+    Ok(StoredTransition {
         id: row.try_get("id")?,
         trajectory_id: row.try_get("trajectory_id")?,
         step: row.try_get("step")?,
@@ -107,19 +115,18 @@ impl Store {
     /// Stores one trajectory and all its transitions in one transaction, or nothing.
     ///
     /// With an idempotency key, a retry of the same request replays the first response and a
-    /// different request under the same key is refused. `respond` builds the response body from
-    /// the stored trajectory and the experiment's trajectory count after it; the body is
-    /// recorded with the key in the same transaction.
+    /// different request under the same key is refused. `respond` builds the response body
+    /// (JSON) from what was stored; the body is recorded with the key in the same transaction.
     #[tracing::instrument(skip(self, transitions, idempotency, respond), fields(n = transitions.len()))]
-    pub async fn ingest_trajectory(
+    pub async fn ingest_trajectory<R: serde::Serialize>(
         &self,
         experiment_id: i64,
         proposal_id: Option<i64>,
         partial: bool,
-        transitions: &[NewTransition],
+        transitions: &[LabelledTransition],
         idempotency: Option<IdempotencyKey<'_>>,
-        respond: impl FnOnce(&StoredTrajectory, i64) -> Value,
-    ) -> Result<IngestOutcome, sqlx::Error> {
+        respond: impl FnOnce(&Ingested) -> R,
+    ) -> Result<IngestOutcome<R>, sqlx::Error> {
         let mut tx = self.write.begin().await?;
         if let Some(k) = idempotency {
             let seen = sqlx::query(
@@ -137,8 +144,6 @@ impl Store {
                 }
                 let status: i64 = row.try_get("status")?;
                 let body: String = row.try_get("response")?;
-                let body =
-                    serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
                 return Ok(IngestOutcome::Replayed {
                     status: status as u16,
                     body,
@@ -164,48 +169,36 @@ impl Store {
         .bind(&created_at)
         .fetch_one(&mut *tx)
         .await?;
-        let mut stored = Vec::with_capacity(transitions.len());
         for (step, t) in transitions.iter().enumerate() {
-            let id: i64 = sqlx::query_scalar(
+            let o = &t.observed;
+            sqlx::query(
                 "INSERT INTO transitions
                    (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
-                 VALUES (?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
             )
             .bind(experiment_id)
             .bind(trajectory_id)
             .bind(step as i64)
-            .bind(encode_vec(&t.s))
-            .bind(encode_vec(&t.a))
-            .bind(encode_vec(&t.s_next))
+            .bind(encode_vec(&o.s))
+            .bind(encode_vec(&o.a))
+            .bind(encode_vec(&o.s_next))
             .bind(encode_vec(&t.s_pred))
             .bind(t.deviation)
-            .fetch_one(&mut *tx)
+            .execute(&mut *tx)
             .await?;
-            stored.push(Transition {
-                id,
-                trajectory_id,
-                step: step as i64,
-                s: t.s.clone(),
-                a: t.a.clone(),
-                s_next: t.s_next.clone(),
-                s_pred: t.s_pred.clone(),
-                deviation: t.deviation,
-            });
         }
         let n_trajectories: i64 =
             sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = ?")
                 .bind(experiment_id)
                 .fetch_one(&mut *tx)
                 .await?;
-        let trajectory = StoredTrajectory {
-            id: trajectory_id,
-            experiment_id,
-            proposal_id,
-            partial,
-            created_at,
-            transitions: stored,
-        };
-        let body = respond(&trajectory, n_trajectories);
+        let response = respond(&Ingested {
+            trajectory_id,
+            created_at: created_at.clone(),
+            n_trajectories,
+        });
+        let body =
+            serde_json::to_string(&response).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
         if let Some(k) = idempotency {
             sqlx::query(
                 "INSERT INTO idempotency_keys (experiment_id, key, request, status, response, created_at)
@@ -214,13 +207,13 @@ impl Store {
             .bind(experiment_id)
             .bind(k.key)
             .bind(k.request)
-            .bind(body.to_string())
-            .bind(&trajectory.created_at)
+            .bind(&body)
+            .bind(&created_at)
             .execute(&mut *tx)
             .await?;
         }
         tx.commit().await?;
-        Ok(IngestOutcome::Created(body))
+        Ok(IngestOutcome::Created(response))
     }
 
     /// One trajectory of an experiment with its transitions, or `None`.
@@ -268,7 +261,7 @@ impl Store {
         experiment_id: i64,
         after: i64,
         limit: Option<i64>,
-    ) -> Result<Vec<Transition>, sqlx::Error> {
+    ) -> Result<Vec<StoredTransition>, sqlx::Error> {
         sqlx::query(&format!(
             "SELECT {TRANSITION_COLUMNS} FROM transitions
              WHERE experiment_id = ? AND id > ? ORDER BY id LIMIT ?"

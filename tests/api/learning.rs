@@ -1,7 +1,7 @@
 //! The MDE, precondition queries, proposals with leases, and test-time plans.
 
 use crate::helpers::*;
-use precond::domain::{Cell, Domain, IcyGridworld, MOVES};
+use precond::domain::{Cell, IcyGridworld, LocalModel, MOVES};
 use precond::sim::Simulated;
 use serde_json::{Value, json};
 

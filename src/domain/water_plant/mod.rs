@@ -59,7 +59,7 @@
 //! Goal: `[v]`, the volume wanted in the target (`0 < v ≤ 1`; problems use `[1.0]`). A state is a
 //! goal when the target holds at least `0.98 v` and at most `0.02 v` has been spilled.
 
-use super::{Domain, DomainError, Problem, Space};
+use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space};
 use rand::{Rng, RngCore};
 use std::f64::consts::PI;
 
@@ -320,18 +320,8 @@ impl Domain for WaterPlant {
         &self.action_space
     }
 
-    /// The paper's analytical model (see the module docs).
-    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        let pose = self.clamp_pose(a);
-        let (src, tgt, spilled) = self.model_pour(pose, s[SRC_VOLUME], s[TGT_VOLUME], s[SPILLED]);
-        let mut next = s.to_vec();
-        next[SRC_X] = pose.x;
-        next[SRC_Y] = pose.y;
-        next[SRC_THETA] = pose.theta;
-        next[SRC_VOLUME] = src;
-        next[TGT_VOLUME] = tgt;
-        next[SPILLED] = spilled;
-        next
+    fn dynamics(&self) -> &dyn DynamicsModel {
+        self
     }
 
     /// Sum of both containers' position distances plus the mean volume deviation of the two
@@ -505,6 +495,22 @@ impl Domain for WaterPlant {
     }
 }
 
+impl LocalModel for WaterPlant {
+    /// The paper's analytical model (see the module docs).
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let pose = self.clamp_pose(a);
+        let (src, tgt, spilled) = self.model_pour(pose, s[SRC_VOLUME], s[TGT_VOLUME], s[SPILLED]);
+        let mut next = s.to_vec();
+        next[SRC_X] = pose.x;
+        next[SRC_Y] = pose.y;
+        next[SRC_THETA] = pose.theta;
+        next[SRC_VOLUME] = src;
+        next[TGT_VOLUME] = tgt;
+        next[SPILLED] = spilled;
+        next
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -639,7 +645,7 @@ mod tests {
         assert!(w.validate_step(&s, &[-0.5, 0.75, 2.3]).is_ok());
         assert!(w.validate_step(&s, &[-0.5, 0.75, 0.0]).is_ok());
         let err = w.validate_step(&s, &[-0.25, 0.75, 1.0]).unwrap_err();
-        assert!(err.0.contains("either translates"), "{err}");
+        assert!(err.reason.contains("either translates"), "{err}");
         // Out of bounds, non-finite, wrong length.
         assert!(w.validate_action(&[-0.25, 0.75, 3.0]).is_err());
         assert!(w.validate_action(&[f64::NAN, 0.75, 0.0]).is_err());

@@ -5,13 +5,14 @@
 //! new version is stored, then swapped in atomically. Queries keep using the previous version
 //! until then, so no request ever waits on a fit.
 
+use super::Error;
 use crate::domain::Domain;
-use crate::error::Error;
-use crate::gp::{GpModel, NoiseMode};
+use crate::gp::GpModel;
 use crate::mde::{Estimator, FitRecord, ServedModel, gp_params, training_data};
 use crate::planning::beta_schedule;
-use crate::settings::{ExperimentSettings, NoiseSetting};
-use crate::store::{Store, StoredModel, Transition};
+use crate::seed;
+use crate::settings::ExperimentSettings;
+use crate::store::{Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
@@ -61,6 +62,28 @@ impl LiveExperiment {
         *self.model.write().unwrap_or_else(|p| p.into_inner()) = model;
     }
 
+    /// Checks a planning problem's start state and goal; errors name `start` or `goal`.
+    pub fn check_problem(&self, start: &[f64], goal: &[f64]) -> Result<(), Error> {
+        self.domain
+            .validate_state(start)
+            .map_err(|e| Error::invalid_at("start", e))?;
+        self.domain
+            .validate_goal(goal)
+            .map_err(|e| Error::invalid_at("goal", e))
+    }
+
+    /// Checks a state-action that sits at `at` in a request (`transitions[3]`, `points[0]`):
+    /// the state, the action, and that the action may be taken from the state. Errors name
+    /// `<at>.s` or `<at>.a`.
+    pub fn check_step(&self, at: &str, s: &[f64], a: &[f64]) -> Result<(), Error> {
+        let d = self.domain.as_ref();
+        d.validate_state(s)
+            .map_err(|e| Error::invalid_at(&format!("{at}.s"), e))?;
+        d.validate_action(a)
+            .and_then(|()| d.validate_step(s, a))
+            .map_err(|e| Error::invalid_at(&format!("{at}.a"), e))
+    }
+
     /// The learning iteration after `n_trajectories` executed trajectories.
     pub fn iteration(&self, n_trajectories: i64) -> i64 {
         n_trajectories / i64::from(self.settings.learning.batch_size)
@@ -72,15 +95,8 @@ impl LiveExperiment {
         beta_schedule(iteration.max(0) as usize, l.iterations as usize, l.k1, l.k2)
     }
 
-    fn noise_mode(&self) -> NoiseMode {
-        match self.settings.mde.noise {
-            NoiseSetting::Heteroscedastic => NoiseMode::Heteroscedastic,
-            NoiseSetting::Homoscedastic => NoiseMode::Homoscedastic,
-        }
-    }
-
     /// Row-major features and labels of `transitions`.
-    fn training_set(&self, transitions: &[Transition]) -> (Vec<f64>, Vec<f64>) {
+    fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
         let mut labels = Vec::with_capacity(transitions.len());
         for t in transitions {
@@ -121,10 +137,10 @@ impl LiveExperiment {
         let (features, labels) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
         let params = gp_params(
-            self.noise_mode(),
+            self.settings.mde.noise,
             self.settings.mde.prior_mean,
             self.settings.mde.restarts,
-            fit_seed(self.settings.seed, version),
+            seed::mix(self.settings.seed, version),
         )
         .check()
         .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
@@ -214,14 +230,6 @@ impl LiveExperiment {
     }
 }
 
-/// The seed of fit `version` of an experiment seeded `seed` (SplitMix64 of both).
-pub fn fit_seed(seed: u64, version: i64) -> u64 {
-    let mut z = seed ^ (version as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^ (z >> 31)
-}
-
 /// Every experiment this process has touched.
 #[derive(Debug, Default)]
 pub struct Registry {
@@ -230,7 +238,8 @@ pub struct Registry {
 }
 
 impl Registry {
-    fn cached(&self, id: i64) -> Option<Arc<LiveExperiment>> {
+    /// The live experiment `id` if this process has loaded it.
+    pub fn cached(&self, id: i64) -> Option<Arc<LiveExperiment>> {
         self.experiments
             .read()
             .unwrap_or_else(|p| p.into_inner())
@@ -262,12 +271,8 @@ impl Registry {
         let stored = store
             .experiment(id)
             .await?
-            .ok_or_else(|| Error::NotFound(format!("no experiment {id}")))?;
-        let domain = stored.settings.domain.build().map_err(|e| {
-            Error::Internal(anyhow::anyhow!(
-                "stored experiment {id} no longer builds: {e}"
-            ))
-        })?;
+            .ok_or_else(|| super::experiments::no_experiment(id))?;
+        let domain = build_stored_domain(id, &stored.settings)?;
         let live = LiveExperiment::new(id, stored.settings, domain);
         let mut covered = 0;
         if let Some(model) = store.latest_model(id).await? {
@@ -281,4 +286,17 @@ impl Registry {
         }
         Ok(live)
     }
+}
+
+/// Builds the domain of stored experiment `id`; a failure is a bug (or a stored row edited by
+/// hand): it was validated when the experiment was created.
+pub fn build_stored_domain(
+    id: i64,
+    settings: &ExperimentSettings,
+) -> Result<Arc<dyn Domain>, Error> {
+    settings.domain.build().map_err(|e| {
+        Error::Internal(anyhow::anyhow!(
+            "stored experiment {id} no longer builds: {e}"
+        ))
+    })
 }

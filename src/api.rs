@@ -1,0 +1,379 @@
+//! The HTTP API's bodies, typed: every request the server accepts and every response it sends,
+//! as the server renders them and as a Rust client (the `precond experiment` harness) reads
+//! them. `api/openapi.yaml` is the contract; the field names here are its field names.
+//!
+//! Requests refuse unknown fields (a misspelt option is an error, not a silent default);
+//! responses ignore unknown fields when read, so a client keeps working when the server adds
+//! one.
+
+use crate::domain::{Space, Transition};
+use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
+use crate::planning::Strategy;
+use crate::settings::ExperimentSettings;
+use crate::store::{StoredProposal, StoredTrajectory, StoredTransition};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+pub use crate::mde::Judgement;
+pub use crate::settings::ExperimentRequest;
+
+/// `GET /healthz` and `GET /readyz`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct HealthResponse {
+    /// `ok` (alive) or `ready` (the database answers).
+    pub status: String,
+}
+
+/// A state or action space as clients see it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SpaceView {
+    /// Component names.
+    pub names: Vec<String>,
+    /// Lower bounds.
+    pub low: Vec<f64>,
+    /// Upper bounds.
+    pub high: Vec<f64>,
+    /// Allowed values of a discrete space.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub values: Option<Vec<Vec<f64>>>,
+}
+
+impl From<&Space> for SpaceView {
+    fn from(s: &Space) -> Self {
+        Self {
+            names: s.names.clone(),
+            low: s.low.clone(),
+            high: s.high.clone(),
+            values: s.values.clone(),
+        }
+    }
+}
+
+/// An experiment with its resolved settings, spaces and progress (`POST /v1/experiments`,
+/// `GET /v1/experiments/{id}`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExperimentResponse {
+    /// Identifier.
+    pub id: i64,
+    /// The fully resolved settings (`name`, `domain`, `d_max`, `seed`, `mde`, `learning`).
+    #[serde(flatten)]
+    pub settings: ExperimentSettings,
+    /// The state space: what `s` and `s_next` must look like.
+    pub state_space: SpaceView,
+    /// The action space: what `a` must look like.
+    pub action_space: SpaceView,
+    /// Names of the MDE's feature components.
+    pub feature_names: Vec<String>,
+    /// Creation time (RFC 3339).
+    pub created_at: String,
+    /// Executed trajectories stored.
+    pub n_trajectories: i64,
+    /// Transitions stored.
+    pub n_transitions: i64,
+    /// Current learning iteration (completed batches).
+    pub iteration: i64,
+    /// The latest MDE version (0: the prior).
+    pub model_version: i64,
+}
+
+/// `GET /v1/experiments`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ExperimentList {
+    /// Every experiment, oldest first.
+    pub items: Vec<ExperimentResponse>,
+}
+
+/// `POST /v1/experiments/{id}/trajectories` body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TrajectoryRequest {
+    /// The proposal this trajectory executed; closes its lease.
+    #[serde(default)]
+    pub proposal_id: Option<i64>,
+    /// The robot stopped before the end of what it meant to execute.
+    #[serde(default)]
+    pub partial: bool,
+    /// The executed transitions, in order.
+    pub transitions: Vec<Transition>,
+}
+
+/// `201` answer to a posted trajectory (replayed as it was for a retry with the same
+/// `Idempotency-Key`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryCreated {
+    /// Identifier of the stored trajectory.
+    pub id: i64,
+    /// Its experiment.
+    pub experiment_id: i64,
+    /// The proposal it executed, if any.
+    pub proposal_id: Option<i64>,
+    /// Whether the robot stopped early.
+    pub partial: bool,
+    /// Transitions stored.
+    pub n_transitions: usize,
+    /// Each transition's deviation label `d(f̂(s, a), s_next)`, in order.
+    pub deviations: Vec<f64>,
+    /// Learning iteration after this trajectory.
+    pub iteration: i64,
+    /// The MDE version answering when it was stored.
+    pub model_version: i64,
+    /// Trajectories of the experiment, this one included.
+    pub n_trajectories: i64,
+    /// Ingest time (RFC 3339).
+    pub created_at: String,
+}
+
+/// `GET /v1/experiments/{id}/trajectories/{tid}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrajectoryResponse {
+    /// The trajectory and its transitions, in order, with their predictions and labels.
+    #[serde(flatten)]
+    pub trajectory: StoredTrajectory,
+    /// Transitions stored.
+    pub n_transitions: usize,
+}
+
+/// Query of `GET /v1/experiments/{id}/transitions`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TransitionsQuery {
+    /// Return transitions with an id greater than this cursor. Default 0.
+    #[serde(default)]
+    pub after: i64,
+    /// Page size: default 100 and at most 1000 for JSON; unlimited by default for CSV.
+    pub limit: Option<i64>,
+}
+
+/// A page of `GET /v1/experiments/{id}/transitions`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TransitionPage {
+    /// Transitions in id order.
+    pub items: Vec<StoredTransition>,
+    /// Cursor of the next page (`after=`), or `null` on the last.
+    pub next: Option<i64>,
+}
+
+/// Whether a model version was fitted or is the prior.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ModelSource {
+    /// No data yet: μ = prior mean, σ = prior standard deviation everywhere.
+    Prior,
+    /// A GP fitted on stored transitions.
+    Fit,
+}
+
+/// `GET /v1/experiments/{id}/model` and `POST .../model/refit`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelResponse {
+    /// Its experiment.
+    pub experiment_id: i64,
+    /// Version (0: the prior).
+    pub version: i64,
+    /// Prior or fit.
+    pub source: ModelSource,
+    /// Training transitions.
+    pub n_train: usize,
+    /// Noise mode of the fit (`null` for the prior).
+    pub noise: Option<NoiseMode>,
+    /// Names of the feature components, in the order of `length_scales`.
+    pub feature_names: Vec<String>,
+    /// Hyperparameters (length scales in the unit-box feature space).
+    pub hyperparameters: Hyperparameters,
+    /// The heteroscedastic noise model's summary, when there is one.
+    pub noise_model: Option<NoiseSummary>,
+    /// Log marginal likelihood of the fit.
+    pub log_marginal_likelihood: Option<f64>,
+    /// Seconds the fit took.
+    pub fit_seconds: Option<f64>,
+    /// When the fit finished (RFC 3339).
+    pub fitted_at: Option<String>,
+    /// Trajectories the fit covers.
+    pub n_trajectories: i64,
+}
+
+/// One state-action to judge.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Point {
+    /// State.
+    pub s: Vec<f64>,
+    /// Action.
+    pub a: Vec<f64>,
+}
+
+/// `POST /v1/experiments/{id}/precondition` body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PreconditionRequest {
+    /// The state-actions to judge.
+    pub points: Vec<Point>,
+    /// Confidence multiplier β; default: the experiment's `learning.test_beta`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beta: Option<f64>,
+}
+
+/// Query of `GET /v1/experiments/{id}/precondition`: one point, comma-separated.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PointQuery {
+    /// State, e.g. `s=3,2`.
+    pub s: String,
+    /// Action, e.g. `a=1,0`.
+    pub a: String,
+    /// β; default `learning.test_beta`.
+    pub beta: Option<f64>,
+}
+
+/// The answer to a precondition query.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PreconditionResponse {
+    /// The MDE version that answered.
+    pub model_version: i64,
+    /// Prior or fit.
+    pub source: ModelSource,
+    /// β used.
+    pub beta: f64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// One judgement per point, in order.
+    pub results: Vec<Judgement>,
+    /// The state of a `GET` query.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub s: Option<Vec<f64>>,
+    /// The action of a `GET` query.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub a: Option<Vec<f64>>,
+}
+
+/// `POST /v1/experiments/{id}/proposals` body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProposalRequest {
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal (the domain's goal vector: a cell, a state, a target volume).
+    pub goal: Vec<f64>,
+    /// The client the proposal is leased to; asking again while it is open returns it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub client_id: Option<String>,
+    /// Overrides the experiment's strategy for this proposal.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub strategy: Option<Strategy>,
+}
+
+/// A planned trajectory with the MDE's answer at each step (and, for proposals, the
+/// acquisition).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlannedTrajectory {
+    /// Predicted states `s_0 = start, s_{t+1} = f̂(s_t, a_t)`; one more than `actions`.
+    pub states: Vec<Vec<f64>>,
+    /// Actions.
+    pub actions: Vec<Vec<f64>>,
+    /// `μ` per action.
+    pub mu: Vec<f64>,
+    /// `σ` per action (noise included).
+    pub sigma: Vec<f64>,
+    /// `α_step = μ − cσ` per action (proposals only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha_step: Option<Vec<f64>>,
+    /// The trajectory's acquisition value `α` (proposals only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub alpha: Option<f64>,
+}
+
+/// A scored candidate of a proposal.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct CandidateView {
+    /// Its acquisition value `α`.
+    pub alpha: f64,
+    /// Its number of actions.
+    pub length: usize,
+}
+
+/// What a proposal chose and from what: stored with the proposal exactly as shown.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProposalContent {
+    /// The trajectory to execute.
+    pub trajectory: PlannedTrajectory,
+    /// Every candidate, in the order found.
+    pub candidates: Vec<CandidateView>,
+    /// Index of the chosen one in `candidates`.
+    pub chosen_index: usize,
+    /// RRT extensions spent (for `random`, actions tried).
+    pub extensions: usize,
+}
+
+/// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProposalResponse {
+    /// Identifier, lease status (`open`, `executed`, `abandoned`, `expired`), terms (client,
+    /// iteration, β, strategy, model version, start, goal) and lease times.
+    #[serde(flatten)]
+    pub proposal: StoredProposal,
+    /// The chosen trajectory and the candidates.
+    #[serde(flatten)]
+    pub content: ProposalContent,
+}
+
+/// `POST /v1/experiments/{id}/plans` body.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PlanRequest {
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal.
+    pub goal: Vec<f64>,
+    /// β; default `learning.test_beta`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub beta: Option<f64>,
+}
+
+/// A test-time plan.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PlanResponse {
+    /// Whether a plan was found within the extension budget.
+    pub found: bool,
+    /// Extensions spent.
+    pub extensions: usize,
+    /// β used.
+    pub beta: f64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// The MDE version that answered.
+    pub model_version: i64,
+    /// The plan, when found.
+    pub trajectory: Option<PlannedTrajectory>,
+}
+
+/// Every error's body: `{"error": {"code", "message", "details"}}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ErrorBody {
+    /// The error.
+    pub error: ErrorDetail,
+}
+
+/// What went wrong, for machines (`code`, `details`) and people (`message`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ErrorDetail {
+    /// Stable machine-readable code, e.g. `validation_failed`.
+    pub code: String,
+    /// Human-readable message.
+    pub message: String,
+    /// Code-specific details (e.g. `{"field", "reason"}`), or `null`.
+    pub details: Value,
+}
+
+impl From<&crate::planning::Trajectory> for PlannedTrajectory {
+    /// The trajectory with its per-step μ and σ, without acquisition values.
+    fn from(t: &crate::planning::Trajectory) -> Self {
+        Self {
+            states: t.states.clone(),
+            actions: t.actions.clone(),
+            mu: t.mu.clone(),
+            sigma: t.sigma.clone(),
+            alpha_step: None,
+            alpha: None,
+        }
+    }
+}

@@ -1,0 +1,108 @@
+//! The dynamics-model seam: the given model `ŝ' = f̂(s, a)` as the planner and the labeller
+//! reach it — batched and fallible, so that a model served by a robot's own process (over the
+//! network) plugs in beside the built-in worlds' analytical ones without touching the planner.
+//!
+//! - [`DynamicsModel`] is what every caller uses: one call predicts many `(s, a)` pairs and may
+//!   fail with a [`DynamicsError`] that names the model.
+//! - [`LocalModel`] is how the built-in worlds provide theirs: an in-process, cheap, infallible
+//!   `predict` per point; every [`LocalModel`] is a [`DynamicsModel`].
+//!
+//! The pattern is the deviation model's (`planning::DeviationModel` with its cache): callers ask
+//! for many points at once, the model decides how to answer them.
+
+use super::Domain;
+use std::fmt;
+
+/// One prediction of the dynamics model.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Predicted {
+    /// The predicted next state `ŝ' = f̂(s, a)`.
+    pub next: Vec<f64>,
+    /// The model's own verdict on the step (a robot's collision or joint-limit check); `true`
+    /// when the model has none. An invalid step is never planned.
+    pub valid: bool,
+}
+
+impl Predicted {
+    /// A valid prediction.
+    pub fn valid(next: Vec<f64>) -> Self {
+        Self { next, valid: true }
+    }
+}
+
+/// Why the dynamics model could not answer. Each variant names the model (e.g. its URL).
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum DynamicsError {
+    /// The model did not answer in time.
+    #[error("the dynamics model {model} did not answer within {timeout_ms} ms")]
+    Timeout {
+        /// Which model (e.g. its URL).
+        model: String,
+        /// The time limit.
+        timeout_ms: u64,
+    },
+    /// The model could not be reached, failed, or answered something unusable.
+    #[error("the dynamics model {model} is unavailable: {reason}")]
+    Unavailable {
+        /// Which model (e.g. its URL).
+        model: String,
+        /// What went wrong.
+        reason: String,
+    },
+    /// The model lives on the client, which posts its own predictions and plans itself; the
+    /// service has nothing to call.
+    #[error("the dynamics model is the client's own: the client posts its predictions")]
+    ClientSide,
+}
+
+/// The given, inaccurate dynamics model `ŝ' = f̂(s, a)`, batched and fallible.
+pub trait DynamicsModel: Send + Sync + fmt::Debug {
+    /// Predicts the next state of every pair `(states[i], actions[i])`, in order: exactly one
+    /// [`Predicted`] per pair, each with the state's dimension, or an error for the whole batch.
+    ///
+    /// `states` and `actions` are equally long; callers have validated every vector against the
+    /// domain's spaces.
+    fn predict_batch(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError>;
+
+    /// Predicts one pair (a batch of one).
+    fn predict_one(&self, s: &[f64], a: &[f64]) -> Result<Predicted, DynamicsError> {
+        self.predict_batch(&[s], &[a])?
+            .pop()
+            .ok_or_else(|| DynamicsError::Unavailable {
+                model: format!("{self:?}"),
+                reason: "answered no prediction for one point".into(),
+            })
+    }
+}
+
+/// A domain whose model runs in-process, cheaply and without failing: the built-in worlds.
+///
+/// Implementing it makes the domain a [`DynamicsModel`] (one point at a time); its
+/// [`Domain::dynamics`] is then simply `self`.
+pub trait LocalModel: Domain {
+    /// `ŝ' = f̂(s, a)`.
+    fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64>;
+
+    /// The deviation label `d(f̂(s, a), s')` of an executed transition.
+    fn deviation(&self, s: &[f64], a: &[f64], s_next: &[f64]) -> f64 {
+        self.distance(&self.predict(s, a), s_next)
+    }
+}
+
+impl<T: LocalModel> DynamicsModel for T {
+    fn predict_batch(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        Ok(states
+            .iter()
+            .zip(actions)
+            .map(|(s, a)| Predicted::valid(self.predict(s, a)))
+            .collect())
+    }
+}

@@ -1,0 +1,144 @@
+//! The HTTP error: every failure a client can see, with the status that fits and the one JSON
+//! shape `{"error": {"code", "message", "details"}}` (`api::ErrorBody`).
+//!
+//! Handlers return `Result<_, ApiError>`; extractor rejections, unknown routes and panics go
+//! through here too. Internal failures are logged once, here, with their cause; the client gets
+//! a generic message.
+
+use crate::api::{ErrorBody, ErrorDetail};
+use crate::domain::DynamicsError;
+use crate::service::Error;
+use axum::Json;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde_json::{Value, json};
+
+/// Everything that can go wrong in a request.
+#[derive(Debug, thiserror::Error)]
+pub enum ApiError {
+    /// The body is not well-formed JSON (400 `bad_request`).
+    #[error("{0}")]
+    BadRequest(String),
+    /// The body is larger than the configured limit (413 `payload_too_large`).
+    #[error("request body larger than {limit} bytes")]
+    PayloadTooLarge {
+        /// The limit in bytes.
+        limit: usize,
+    },
+    /// The route exists but not with this method (405 `method_not_allowed`).
+    #[error("method not allowed on this route")]
+    MethodNotAllowed,
+    /// A dependency (the database) is not answering (503 `unavailable`).
+    #[error("{0}")]
+    Unavailable(String),
+    /// What the service answered instead of a result.
+    #[error(transparent)]
+    Service(#[from] Error),
+}
+
+impl ApiError {
+    /// A validation failure of `field` (422 `validation_failed`).
+    pub fn validation(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::Service(Error::validation(field, reason))
+    }
+
+    /// A resource or route that does not exist (404 `not_found`).
+    pub fn not_found(what: impl Into<String>) -> Self {
+        Self::Service(Error::NotFound(what.into()))
+    }
+
+    /// The HTTP status that fits.
+    pub fn status(&self) -> StatusCode {
+        match self {
+            Self::BadRequest(_) => StatusCode::BAD_REQUEST,
+            Self::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
+            Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            Self::Service(e) => match e {
+                Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+                Error::NotFound(_) => StatusCode::NOT_FOUND,
+                Error::Conflict(_) => StatusCode::CONFLICT,
+                Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
+                Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
+                Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
+                Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+            },
+        }
+    }
+
+    /// The stable machine-readable code.
+    pub fn code(&self) -> &'static str {
+        match self {
+            Self::BadRequest(_) => "bad_request",
+            Self::PayloadTooLarge { .. } => "payload_too_large",
+            Self::MethodNotAllowed => "method_not_allowed",
+            Self::Unavailable(_) => "unavailable",
+            Self::Service(e) => match e {
+                Error::Validation { .. } | Error::Dynamics(DynamicsError::ClientSide) => {
+                    "validation_failed"
+                }
+                Error::NotFound(_) => "not_found",
+                Error::Conflict(_) => "conflict",
+                Error::NoPlan { .. } => "no_plan",
+                Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
+                Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
+                Error::Internal(_) => "internal",
+            },
+        }
+    }
+
+    fn details(&self) -> Value {
+        match self {
+            Self::PayloadTooLarge { limit } => json!({"limit_bytes": limit}),
+            Self::Service(e) => match e {
+                Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
+                Error::NoPlan { extensions } => json!({"extensions": extensions}),
+                Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
+                    json!({"model": model, "timeout_ms": timeout_ms})
+                }
+                Error::Dynamics(DynamicsError::Unavailable { model, reason }) => {
+                    json!({"model": model, "reason": reason})
+                }
+                Error::Dynamics(DynamicsError::ClientSide) => {
+                    json!({"field": "domain.model", "reason": e.to_string()})
+                }
+                _ => Value::Null,
+            },
+            _ => Value::Null,
+        }
+    }
+
+    /// The JSON body of this error.
+    pub fn body(&self) -> ErrorBody {
+        let message = match self {
+            Self::Service(Error::Internal(_)) => "internal server error".to_string(),
+            other => other.to_string(),
+        };
+        ErrorBody {
+            error: ErrorDetail {
+                code: self.code().to_string(),
+                message,
+                details: self.details(),
+            },
+        }
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        match &self {
+            Self::Service(Error::Internal(cause)) => {
+                tracing::error!(error = ?cause, "request failed")
+            }
+            Self::Service(Error::Dynamics(e)) => {
+                tracing::warn!(error = %e, "dynamics model failed")
+            }
+            Self::Unavailable(reason) => tracing::warn!(%reason, "dependency unavailable"),
+            _ => {}
+        }
+        (self.status(), Json(self.body())).into_response()
+    }
+}
+
+/// Result alias for handlers.
+pub type ApiResult<T> = std::result::Result<T, ApiError>;

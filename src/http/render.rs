@@ -1,0 +1,97 @@
+//! From the service's values to the API's response bodies. Rendering never fails and never
+//! computes anything the service should have.
+
+use crate::api::{
+    ExperimentResponse, ModelResponse, ModelSource, PlanResponse, PreconditionResponse,
+    ProposalResponse, TrajectoryResponse,
+};
+use crate::mde::ServedModel;
+use crate::service::{ExperimentState, Judged, ModelView, Planned, ProposalRecord};
+use crate::store::StoredTrajectory;
+
+/// Whether a version is the prior or a fit.
+pub fn source(m: &ServedModel) -> ModelSource {
+    if m.fit.is_some() {
+        ModelSource::Fit
+    } else {
+        ModelSource::Prior
+    }
+}
+
+/// An experiment with its spaces and progress.
+pub fn experiment(s: ExperimentState) -> ExperimentResponse {
+    let iteration = s.iteration();
+    let (e, domain) = (s.experiment, s.domain);
+    ExperimentResponse {
+        id: e.id,
+        iteration,
+        settings: e.settings,
+        state_space: domain.state_space().into(),
+        action_space: domain.action_space().into(),
+        feature_names: domain.feature_names(),
+        created_at: e.created_at,
+        n_trajectories: e.n_trajectories,
+        n_transitions: e.n_transitions,
+        model_version: e.model_version,
+    }
+}
+
+/// A trajectory with its transitions.
+pub fn trajectory(trajectory: StoredTrajectory) -> TrajectoryResponse {
+    TrajectoryResponse {
+        n_transitions: trajectory.transitions.len(),
+        trajectory,
+    }
+}
+
+/// A model version.
+pub fn model(v: ModelView) -> ModelResponse {
+    let m = v.model.as_ref();
+    ModelResponse {
+        experiment_id: v.experiment_id,
+        version: m.version,
+        source: source(m),
+        n_train: m.n_train(),
+        noise: m.noise_mode(),
+        feature_names: v.feature_names,
+        hyperparameters: m.hyperparameters().clone(),
+        noise_model: m.noise_summary(),
+        log_marginal_likelihood: m.log_marginal_likelihood(),
+        fit_seconds: m.fit.as_ref().map(|f| f.fit_seconds),
+        fitted_at: m.fit.as_ref().map(|f| f.fitted_at.clone()),
+        n_trajectories: m.fit.as_ref().map_or(0, |f| f.n_trajectories),
+    }
+}
+
+/// Precondition judgements.
+pub fn judged(j: Judged) -> PreconditionResponse {
+    PreconditionResponse {
+        model_version: j.model.version,
+        source: source(&j.model),
+        beta: j.beta,
+        d_max: j.d_max,
+        results: j.judgements,
+        s: None,
+        a: None,
+    }
+}
+
+/// A proposal.
+pub fn proposal(p: ProposalRecord) -> ProposalResponse {
+    ProposalResponse {
+        proposal: p.stored,
+        content: p.content,
+    }
+}
+
+/// A test-time plan.
+pub fn plan(p: Planned) -> PlanResponse {
+    PlanResponse {
+        found: p.outcome.trajectory.is_some(),
+        extensions: p.outcome.extensions,
+        beta: p.beta,
+        d_max: p.d_max,
+        model_version: p.model_version,
+        trajectory: p.outcome.trajectory.as_ref().map(Into::into),
+    }
+}

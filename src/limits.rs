@@ -1,0 +1,35 @@
+//! The ranges of everything a client can set, documented once and used by every layer that
+//! checks them (the experiment settings at the door, the planner and the GP behind it).
+//!
+//! Each upper bound keeps one request's worst case bounded: a proposal costs at most
+//! `MAX_CANDIDATES × MAX_EXTENSIONS` extensions, a fit at most `1 + MAX_RESTARTS` optimiser
+//! starts, a precondition query at most `MAX_POINTS` GP predictions.
+
+/// Candidate trajectories (RRT runs) per proposal: `1 ..= 200`.
+pub const MAX_CANDIDATES: u32 = 200;
+/// RRT extension budget of one search: `1 ..= 200 000`.
+pub const MAX_EXTENSIONS: u32 = 200_000;
+/// Trajectories per learning iteration: `1 ..= 10 000`.
+pub const MAX_BATCH_SIZE: u32 = 10_000;
+/// Planned learning iterations `J` of the β schedule: `1 ..= 100 000`.
+pub const MAX_ITERATIONS: u32 = 100_000;
+/// Extra seeded hyperparameter-optimiser starts: `0 ..= 20`.
+pub const MAX_RESTARTS: usize = 20;
+/// Seconds an open proposal stays leased: `1 ..= 604 800` (a week).
+pub const MAX_PROPOSAL_TTL_SECONDS: u32 = 7 * 24 * 3600;
+/// Characters of an experiment's name: `0 ..= 200`.
+pub const MAX_NAME_LEN: usize = 200;
+/// Characters of a proposal's `client_id`: `1 ..= 200`.
+pub const MAX_CLIENT_ID_LEN: usize = 200;
+/// Characters of an `Idempotency-Key`: `1 ..= 200` visible ASCII.
+pub const MAX_IDEMPOTENCY_KEY_LEN: usize = 200;
+/// Transitions in one posted trajectory: `1 ..= 10 000`.
+pub const MAX_TRANSITIONS: usize = 10_000;
+/// Points in one precondition query: `1 ..= 100 000`.
+pub const MAX_POINTS: usize = 100_000;
+/// Transitions in one JSON page: `1 ..= 1000`, default [`DEFAULT_PAGE`].
+pub const MAX_PAGE: i64 = 1000;
+/// Transitions in a JSON page when the client does not say.
+pub const DEFAULT_PAGE: i64 = 100;
+/// Rows of one explicit CSV page (a CSV export is unlimited by default).
+pub const MAX_CSV_ROWS: i64 = 1_000_000_000;

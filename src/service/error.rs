@@ -1,0 +1,85 @@
+//! What the service layer can answer instead of a result, by what the caller should do about
+//! it. Knows nothing of HTTP: the HTTP layer maps each variant to a status and a code.
+
+use crate::domain::{DomainError, DynamicsError};
+use crate::planning::PlanningError;
+use crate::settings::InvalidSetting;
+
+/// Why a service operation did not succeed.
+#[derive(Debug, thiserror::Error)]
+pub enum Error {
+    /// A field of the request has the wrong dimension, range or value.
+    #[error("{field}: {reason}")]
+    Validation {
+        /// Path of the offending field, e.g. `transitions[3].s`.
+        field: String,
+        /// Why it is wrong.
+        reason: String,
+    },
+    /// The experiment, trajectory or proposal does not exist.
+    #[error("{0}")]
+    NotFound(String),
+    /// The request conflicts with what is stored (an idempotency key reused with another body,
+    /// a proposal executed twice, a lease held for another problem, nothing to fit).
+    #[error("{0}")]
+    Conflict(String),
+    /// The planner found no goal-reaching trajectory inside the precondition.
+    #[error("no goal-reaching trajectory within {extensions} extensions")]
+    NoPlan {
+        /// Extensions spent by the search.
+        extensions: usize,
+    },
+    /// The experiment's dynamics model could not answer; nothing was stored.
+    #[error(transparent)]
+    Dynamics(#[from] DynamicsError),
+    /// A bug or a broken dependency (the database): logged with its cause, never shown.
+    #[error(transparent)]
+    Internal(#[from] anyhow::Error),
+}
+
+impl Error {
+    /// A validation failure of `field`.
+    pub fn validation(field: impl Into<String>, reason: impl Into<String>) -> Self {
+        Self::Validation {
+            field: field.into(),
+            reason: reason.into(),
+        }
+    }
+
+    /// A domain check that failed on the value at `field` of the request.
+    pub fn invalid_at(field: &str, e: DomainError) -> Self {
+        Self::validation(e.path_under(field), e.reason)
+    }
+}
+
+impl From<InvalidSetting> for Error {
+    fn from(e: InvalidSetting) -> Self {
+        Self::Validation {
+            field: e.field,
+            reason: e.reason,
+        }
+    }
+}
+
+impl From<sqlx::Error> for Error {
+    fn from(e: sqlx::Error) -> Self {
+        Self::Internal(anyhow::Error::new(e).context("database"))
+    }
+}
+
+impl From<PlanningError> for Error {
+    fn from(e: PlanningError) -> Self {
+        match e {
+            PlanningError::NoPlan { extensions } => Self::NoPlan { extensions },
+            PlanningError::InvalidInput { field, reason } => Self::validation(field, reason),
+            PlanningError::InvalidSettings { field, reason } => {
+                Self::validation(format!("learning.{field}"), reason)
+            }
+            PlanningError::Dynamics(e) => Self::Dynamics(e),
+            e @ PlanningError::ModelOutput { .. } => Self::Internal(e.into()),
+        }
+    }
+}
+
+/// Result of a service operation.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

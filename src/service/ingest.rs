@@ -1,0 +1,220 @@
+//! Ingest: validate executed transitions against the domain, label each with the experiment's
+//! own model (`d(f̂(s, a), s_next)`, one batched model call per trajectory), and store the
+//! trajectory in one transaction, idempotently. A batch that completes schedules a refit.
+
+use super::live::LiveExperiment;
+use super::{Error, Result, Service};
+use crate::api::{TrajectoryCreated, TrajectoryRequest};
+use crate::domain::{DynamicsError, Transition};
+use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_TRANSITIONS};
+use crate::store::{
+    IdempotencyKey, IngestOutcome, LabelledTransition, StoredTrajectory, StoredTransition,
+};
+use std::sync::Arc;
+
+/// What an ingest answered.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Ingested {
+    /// The trajectory was stored.
+    Created(TrajectoryCreated),
+    /// A retry with the same `Idempotency-Key` and body: the first answer, nothing stored.
+    Replayed {
+        /// The first answer's HTTP status.
+        status: u16,
+        /// The first answer.
+        response: TrajectoryCreated,
+    },
+}
+
+/// Checks an `Idempotency-Key`: 1 to [`MAX_IDEMPOTENCY_KEY_LEN`] visible ASCII characters.
+pub fn check_idempotency_key(key: &str) -> Result<()> {
+    if key.is_empty()
+        || key.len() > MAX_IDEMPOTENCY_KEY_LEN
+        || !key
+            .bytes()
+            .all(|b| (b' '..=b'~').contains(&b) || b == b'\t')
+    {
+        return Err(Error::validation(
+            "Idempotency-Key",
+            format!("must be 1 to {MAX_IDEMPOTENCY_KEY_LEN} visible ASCII characters"),
+        ));
+    }
+    Ok(())
+}
+
+/// Validates every transition against the domain (the field named by its index) and labels it
+/// with the model's prediction. The model is called once for the whole trajectory, off the
+/// async workers; if it fails, nothing is labelled.
+pub async fn label(
+    live: &Arc<LiveExperiment>,
+    transitions: Vec<Transition>,
+) -> Result<Vec<LabelledTransition>> {
+    if transitions.is_empty() {
+        return Err(Error::validation(
+            "transitions",
+            "must hold at least one transition",
+        ));
+    }
+    if transitions.len() > MAX_TRANSITIONS {
+        return Err(Error::validation(
+            "transitions",
+            format!("at most {MAX_TRANSITIONS} transitions per trajectory"),
+        ));
+    }
+    for (i, t) in transitions.iter().enumerate() {
+        live.check_step(&format!("transitions[{i}]"), &t.s, &t.a)?;
+        live.domain
+            .validate_observed_state(&t.s_next)
+            .map_err(|e| Error::invalid_at(&format!("transitions[{i}].s_next"), e))?;
+    }
+    let domain = live.domain.clone();
+    let (transitions, predicted) = Service::blocking(move || {
+        let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
+        let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
+        let predicted = domain.dynamics().predict_batch(&states, &actions);
+        (transitions, predicted)
+    })
+    .await?;
+    let predicted = predicted?;
+    if predicted.len() != transitions.len() {
+        return Err(Error::Dynamics(DynamicsError::Unavailable {
+            model: format!("of the {} domain", live.domain.kind()),
+            reason: format!(
+                "answered {} predictions for {} transitions",
+                predicted.len(),
+                transitions.len()
+            ),
+        }));
+    }
+    transitions
+        .into_iter()
+        .zip(predicted)
+        .enumerate()
+        .map(|(i, (observed, p))| {
+            let deviation = live.domain.distance(&p.next, &observed.s_next);
+            if !deviation.is_finite() {
+                return Err(Error::validation(
+                    format!("transitions[{i}].s_next"),
+                    "the deviation from the prediction is not a finite number",
+                ));
+            }
+            Ok(LabelledTransition {
+                observed,
+                s_pred: p.next,
+                deviation,
+            })
+        })
+        .collect()
+}
+
+impl Service {
+    /// Validates, labels and stores one executed trajectory atomically (see the module docs).
+    /// With `idempotency_key`, a retry of the same request answers the first response and
+    /// stores nothing; the same key with another request is a conflict.
+    pub async fn ingest(
+        &self,
+        id: i64,
+        request: TrajectoryRequest,
+        idempotency_key: Option<&str>,
+    ) -> Result<Ingested> {
+        let live = self.live(id).await?;
+        if let Some(key) = idempotency_key {
+            check_idempotency_key(key)?;
+        }
+        let canonical = serde_json::to_string(&request).map_err(anyhow::Error::from)?;
+        let TrajectoryRequest {
+            proposal_id,
+            partial,
+            transitions,
+        } = request;
+        let labelled = label(&live, transitions).await?;
+        let deviations: Vec<f64> = labelled.iter().map(|t| t.deviation).collect();
+        let batch_size = i64::from(live.settings.learning.batch_size);
+        let model_version = live.model().version;
+        let outcome = self
+            .store
+            .ingest_trajectory(
+                id,
+                proposal_id,
+                partial,
+                &labelled,
+                idempotency_key.map(|key| IdempotencyKey {
+                    key,
+                    request: &canonical,
+                }),
+                |stored| TrajectoryCreated {
+                    id: stored.trajectory_id,
+                    experiment_id: id,
+                    proposal_id,
+                    partial,
+                    n_transitions: deviations.len(),
+                    deviations,
+                    iteration: stored.n_trajectories / batch_size,
+                    model_version,
+                    n_trajectories: stored.n_trajectories,
+                    created_at: stored.created_at.clone(),
+                },
+            )
+            .await?;
+        let proposal = || proposal_id.unwrap_or_default();
+        match outcome {
+            IngestOutcome::Created(response) => {
+                tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
+                if response.n_trajectories % batch_size == 0 {
+                    live.schedule_refit(&self.store);
+                }
+                Ok(Ingested::Created(response))
+            }
+            IngestOutcome::Replayed { status, body } => Ok(Ingested::Replayed {
+                status,
+                response: serde_json::from_str(&body)
+                    .map_err(|e| anyhow::Error::new(e).context("a stored response"))?,
+            }),
+            IngestOutcome::KeyReused => Err(Error::Conflict(
+                "this Idempotency-Key was already used with a different request".into(),
+            )),
+            IngestOutcome::ProposalNotFound => Err(Error::validation(
+                "proposal_id",
+                format!("no proposal {} in experiment {id}", proposal()),
+            )),
+            IngestOutcome::ProposalAlreadyExecuted => Err(Error::Conflict(format!(
+                "proposal {} was already executed: its trajectory is stored",
+                proposal()
+            ))),
+        }
+    }
+
+    /// The experiment's transitions with an id greater than `after`, in id order: at most
+    /// `limit` (all when `None`), with the cursor of the next page when there is one.
+    pub async fn transitions(
+        &self,
+        id: i64,
+        after: i64,
+        limit: Option<i64>,
+    ) -> Result<(Vec<StoredTransition>, Option<i64>)> {
+        self.experiment(id).await?;
+        let mut items = self
+            .store
+            .transitions(id, after, limit.map(|l| l + 1))
+            .await?;
+        let next = match limit {
+            Some(l) if items.len() as i64 > l => {
+                items.truncate(l as usize);
+                items.last().map(|t| t.id)
+            }
+            _ => None,
+        };
+        Ok((items, next))
+    }
+
+    /// One stored trajectory with its transitions.
+    pub async fn trajectory(&self, id: i64, trajectory_id: i64) -> Result<StoredTrajectory> {
+        self.experiment(id).await?;
+        self.store
+            .trajectory(id, trajectory_id)
+            .await?
+            .ok_or_else(|| {
+                Error::NotFound(format!("no trajectory {trajectory_id} in experiment {id}"))
+            })
+    }
+}

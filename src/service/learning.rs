@@ -1,0 +1,190 @@
+//! The model deviation estimator as a service: the version answering, refits, precondition
+//! judgements ("is this state-action trusted?") and test-time plans.
+
+use super::live::FitTrigger;
+use super::{Error, Result, Service};
+use crate::api::Point;
+use crate::limits::MAX_POINTS;
+use crate::mde::{Judgement, ServedModel};
+use crate::planning::{self, RrtOutcome, Trajectory};
+use crate::seed;
+use std::sync::Arc;
+
+/// Judgements of more points than this are computed on the blocking pool.
+const INLINE_POINTS: usize = 256;
+
+/// An experiment's model version with what is needed to show it.
+#[derive(Debug, Clone)]
+pub struct ModelView {
+    /// The experiment.
+    pub experiment_id: i64,
+    /// Names of the feature components.
+    pub feature_names: Vec<String>,
+    /// The version.
+    pub model: Arc<ServedModel>,
+}
+
+/// Precondition judgements of a batch of points.
+#[derive(Debug, Clone)]
+pub struct Judged {
+    /// The version that answered.
+    pub model: Arc<ServedModel>,
+    /// β used.
+    pub beta: f64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// One judgement per point, in order.
+    pub judgements: Vec<Judgement>,
+}
+
+/// A test-time plan.
+#[derive(Debug, Clone)]
+pub struct Planned {
+    /// The search's outcome: the plan if found, the extensions spent.
+    pub outcome: RrtOutcome,
+    /// β used.
+    pub beta: f64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// The model version that answered.
+    pub model_version: i64,
+}
+
+/// Checks that a planned trajectory carries only finite μ and σ (a model that answered NaN is a
+/// bug that must not reach a client).
+pub(crate) fn check_finite(t: &Trajectory) -> Result<()> {
+    if t.mu.iter().chain(&t.sigma).all(|x| x.is_finite()) {
+        Ok(())
+    } else {
+        Err(Error::Internal(anyhow::anyhow!(
+            "the model answered a non-finite deviation along a trajectory"
+        )))
+    }
+}
+
+/// `beta` of a request, or the experiment's test β.
+fn beta_or_test(beta: Option<f64>, test_beta: f64) -> Result<f64> {
+    let beta = beta.unwrap_or(test_beta);
+    if !beta.is_finite() {
+        return Err(Error::validation("beta", "must be a finite number"));
+    }
+    Ok(beta)
+}
+
+impl Service {
+    /// The version answering queries now.
+    pub async fn model(&self, id: i64) -> Result<ModelView> {
+        let live = self.live(id).await?;
+        Ok(ModelView {
+            experiment_id: id,
+            feature_names: live.domain.feature_names(),
+            model: live.model(),
+        })
+    }
+
+    /// Fits a new version on every stored transition now (off the async workers) and answers
+    /// with it.
+    pub async fn refit(&self, id: i64) -> Result<ModelView> {
+        let live = self.live(id).await?;
+        let model = live.refit(&self.store, FitTrigger::Forced).await?;
+        Ok(ModelView {
+            experiment_id: id,
+            feature_names: live.domain.feature_names(),
+            model,
+        })
+    }
+
+    /// Judges state-actions against the current model: `upper = μ + βσ`, `inside = upper <
+    /// d_max`, with β the request's or the experiment's test β. Errors name the point
+    /// (`points[i].s`).
+    pub async fn judge(&self, id: i64, points: &[Point], beta: Option<f64>) -> Result<Judged> {
+        let live = self.live(id).await?;
+        if points.is_empty() {
+            return Err(Error::validation("points", "must hold at least one point"));
+        }
+        if points.len() > MAX_POINTS {
+            return Err(Error::validation(
+                "points",
+                format!("at most {MAX_POINTS} points"),
+            ));
+        }
+        let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
+        let domain = live.domain.as_ref();
+        let dim = domain.feature_dim();
+        let mut features = Vec::with_capacity(points.len() * dim);
+        for (i, p) in points.iter().enumerate() {
+            live.check_step(&format!("points[{i}]"), &p.s, &p.a)?;
+            features.extend(domain.features(&p.s, &p.a));
+        }
+        let model = live.model();
+        let answers = if points.len() > INLINE_POINTS {
+            let model = model.clone();
+            Self::blocking(move || model.answer(&features, dim)).await?
+        } else {
+            model.answer(&features, dim)
+        };
+        let d_max = live.settings.d_max;
+        let judgements = answers
+            .iter()
+            .map(|a| {
+                Judgement::of(a, beta, d_max).ok_or_else(|| {
+                    Error::Internal(anyhow::anyhow!(
+                        "the model answered a non-finite deviation (μ = {}, σ = {})",
+                        a.mu,
+                        a.sigma
+                    ))
+                })
+            })
+            .collect::<Result<_>>()?;
+        Ok(Judged {
+            model,
+            beta,
+            d_max,
+            judgements,
+        })
+    }
+
+    /// A test-time plan from `start` to `goal` inside the precondition at β (default: the test
+    /// β). Nothing is stored.
+    pub async fn plan(
+        &self,
+        id: i64,
+        start: Vec<f64>,
+        goal: Vec<f64>,
+        beta: Option<f64>,
+    ) -> Result<Planned> {
+        let live = self.live(id).await?;
+        live.check_problem(&start, &goal)?;
+        let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
+        let model = live.model();
+        let seed = seed::mix_values(
+            live.settings.seed,
+            model.version,
+            start.iter().chain(&goal).copied(),
+        );
+        let model_version = model.version;
+        let d_max = live.settings.d_max;
+        let outcome = Self::blocking(move || {
+            planning::plan(
+                live.domain.as_ref(),
+                model.as_ref(),
+                &start,
+                &goal,
+                beta,
+                d_max,
+                &live.settings.learning.planner(),
+                seed,
+            )
+        })
+        .await??;
+        if let Some(t) = &outcome.trajectory {
+            check_finite(t)?;
+        }
+        Ok(Planned {
+            outcome,
+            beta,
+            d_max,
+            model_version,
+        })
+    }
+}

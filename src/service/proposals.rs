@@ -1,0 +1,189 @@
+//! Proposals (ask: which trajectory should the robot try next?) and their leases.
+//!
+//! A proposal plans candidates inside the current precondition with the iteration's `β_j`,
+//! lets the strategy choose, and stores the choice leased to the asking client: the same client
+//! asking again for the same problem gets the same proposal back until it posts the executed
+//! trajectory, abandons it, or the lease expires; asking for another problem meanwhile is a
+//! conflict rather than a silent answer to a question it did not ask.
+
+use super::learning::check_finite;
+use super::{Error, Result, Service};
+use crate::api::{CandidateView, PlannedTrajectory, ProposalContent, ProposalRequest};
+use crate::limits::MAX_CLIENT_ID_LEN;
+use crate::planning::{self, Proposal};
+use crate::seed;
+use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
+
+/// A stored proposal with what it chose.
+#[derive(Debug, Clone)]
+pub struct ProposalRecord {
+    /// The stored proposal and its lease.
+    pub stored: StoredProposal,
+    /// The chosen trajectory and the scored candidates.
+    pub content: ProposalContent,
+}
+
+impl ProposalRecord {
+    fn from_stored(stored: StoredProposal) -> Result<Self> {
+        let content = serde_json::from_str(&stored.body).map_err(|e| {
+            anyhow::Error::new(e).context(format!("the stored content of proposal {}", stored.id))
+        })?;
+        Ok(Self { stored, content })
+    }
+}
+
+/// What a strategy chose, as stored and shown.
+fn content(p: &Proposal) -> Result<ProposalContent> {
+    check_finite(&p.trajectory)?;
+    let scores = p.alpha_step.iter().chain([&p.alpha]);
+    if !scores
+        .chain(p.candidates.iter().map(|c| &c.alpha))
+        .all(|x| x.is_finite())
+    {
+        return Err(Error::Internal(anyhow::anyhow!(
+            "non-finite acquisition value"
+        )));
+    }
+    Ok(ProposalContent {
+        trajectory: PlannedTrajectory {
+            alpha_step: Some(p.alpha_step.clone()),
+            alpha: Some(p.alpha),
+            ..PlannedTrajectory::from(&p.trajectory)
+        },
+        candidates: p
+            .candidates
+            .iter()
+            .map(|c| CandidateView {
+                alpha: c.alpha,
+                length: c.length,
+            })
+            .collect(),
+        chosen_index: p.chosen_index,
+        extensions: p.extensions,
+    })
+}
+
+/// The open lease answered again for the same problem, or a conflict for another one.
+fn lease_answer(open: StoredProposal, request: &ProposalRequest) -> Result<ProposalRecord> {
+    let terms = &open.terms;
+    if terms.start != request.start || terms.goal != request.goal {
+        return Err(Error::Conflict(format!(
+            "client {:?} holds open proposal {} for start {:?} and goal {:?}; execute or abandon \
+             it before asking for another problem",
+            terms.client_id.as_deref().unwrap_or_default(),
+            open.id,
+            terms.start,
+            terms.goal
+        )));
+    }
+    ProposalRecord::from_stored(open)
+}
+
+impl Service {
+    /// Proposes the trajectory to execute next for `request`'s problem (see the module docs).
+    /// Returns the proposal and whether it is new (`false`: the client's open lease).
+    pub async fn propose(
+        &self,
+        id: i64,
+        request: ProposalRequest,
+    ) -> Result<(ProposalRecord, bool)> {
+        let live = self.live(id).await?;
+        live.check_problem(&request.start, &request.goal)?;
+        if let Some(client) = &request.client_id {
+            if client.is_empty() || client.chars().count() > MAX_CLIENT_ID_LEN {
+                return Err(Error::validation(
+                    "client_id",
+                    format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
+                ));
+            }
+            if let Some(open) = self.store.open_proposal(id, client).await? {
+                return Ok((lease_answer(open, &request)?, false));
+            }
+        }
+        let n_trajectories = self
+            .store
+            .experiment(id)
+            .await?
+            .map_or(0, |e| e.n_trajectories);
+        let iteration = live.iteration(n_trajectories);
+        let beta = live.training_beta(iteration);
+        let strategy = request.strategy.unwrap_or(live.settings.learning.strategy);
+        let model = live.model();
+        let model_version = model.version;
+        let seed = seed::mix_values(
+            live.settings.seed,
+            n_trajectories,
+            request.start.iter().chain(&request.goal).copied(),
+        );
+        let proposal = {
+            let live = live.clone();
+            let (start, goal) = (request.start.clone(), request.goal.clone());
+            Self::blocking(move || {
+                let l = &live.settings.learning;
+                planning::propose(
+                    strategy,
+                    live.domain.as_ref(),
+                    model.as_ref(),
+                    &start,
+                    &goal,
+                    beta,
+                    live.settings.d_max,
+                    &l.planner(),
+                    &l.acquisition(),
+                    seed,
+                )
+            })
+            .await??
+        };
+        let body = serde_json::to_string(&content(&proposal)?).map_err(anyhow::Error::from)?;
+        let (stored, created) = self
+            .store
+            .insert_proposal(
+                id,
+                &NewProposal {
+                    terms: ProposalTerms {
+                        client_id: request.client_id.clone(),
+                        iteration,
+                        beta,
+                        strategy,
+                        model_version,
+                        start: request.start.clone(),
+                        goal: request.goal.clone(),
+                    },
+                    body,
+                    ttl_seconds: live.settings.learning.proposal_ttl_seconds,
+                },
+            )
+            .await?;
+        if created {
+            Ok((ProposalRecord::from_stored(stored)?, true))
+        } else {
+            Ok((lease_answer(stored, &request)?, false))
+        }
+    }
+
+    /// One proposal, its lease brought up to date.
+    pub async fn proposal(&self, id: i64, proposal_id: i64) -> Result<ProposalRecord> {
+        self.experiment(id).await?;
+        let stored = self.store.proposal(id, proposal_id).await?;
+        ProposalRecord::from_stored(stored.ok_or_else(|| no_proposal(id, proposal_id))?)
+    }
+
+    /// Gives up an open proposal: the client will not execute it. An executed one is a
+    /// conflict; an expired or abandoned one is answered as it is.
+    pub async fn abandon(&self, id: i64, proposal_id: i64) -> Result<ProposalRecord> {
+        self.experiment(id).await?;
+        let stored = self.store.abandon_proposal(id, proposal_id).await?;
+        let stored = stored.ok_or_else(|| no_proposal(id, proposal_id))?;
+        if stored.status == ProposalStatus::Executed {
+            return Err(Error::Conflict(format!(
+                "proposal {proposal_id} was already executed"
+            )));
+        }
+        ProposalRecord::from_stored(stored)
+    }
+}
+
+fn no_proposal(id: i64, proposal_id: i64) -> Error {
+    Error::NotFound(format!("no proposal {proposal_id} in experiment {id}"))
+}
