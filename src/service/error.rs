@@ -46,6 +46,11 @@ impl Error {
         }
     }
 
+    /// The answer for an experiment id that names nothing.
+    pub fn no_experiment(id: i64) -> Self {
+        Self::NotFound(format!("no experiment {id}"))
+    }
+
     /// A domain check that failed on the value at `field` of the request.
     pub fn invalid_at(field: &str, e: DomainError) -> Self {
         Self::validation(e.path_under(field), e.reason)

@@ -56,7 +56,7 @@ impl Service {
             .store
             .experiment(id)
             .await?
-            .ok_or_else(|| no_experiment(id))?;
+            .ok_or_else(|| Error::no_experiment(id))?;
         self.state_of(experiment)
     }
 
@@ -67,9 +67,4 @@ impl Service {
         };
         Ok(ExperimentState { experiment, domain })
     }
-}
-
-/// The answer for an experiment id that names nothing.
-pub(crate) fn no_experiment(id: i64) -> Error {
-    Error::NotFound(format!("no experiment {id}"))
 }

@@ -271,7 +271,7 @@ impl Registry {
         let stored = store
             .experiment(id)
             .await?
-            .ok_or_else(|| super::experiments::no_experiment(id))?;
+            .ok_or_else(|| Error::no_experiment(id))?;
         let domain = build_stored_domain(id, &stored.settings)?;
         let live = LiveExperiment::new(id, stored.settings, domain);
         let mut covered = 0;
