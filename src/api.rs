@@ -260,6 +260,21 @@ pub struct ProposalRequest {
     /// Overrides the experiment's strategy for this proposal.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub strategy: Option<Strategy>,
+    /// The client's own candidate trajectories: the service scores them instead of planning
+    /// (required when the experiment's model is the client's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub candidates: Option<Vec<CandidateTrajectory>>,
+}
+
+/// A trajectory the client planned: its predicted states (starting with the start state) and
+/// the actions between them.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CandidateTrajectory {
+    /// Predicted states `s_0 = start, s_1, …`; one more than `actions`.
+    pub states: Vec<Vec<f64>>,
+    /// Actions.
+    pub actions: Vec<Vec<f64>>,
 }
 
 /// A planned trajectory with the MDE's answer at each step (and, for proposals, the
@@ -282,13 +297,58 @@ pub struct PlannedTrajectory {
     pub alpha: Option<f64>,
 }
 
-/// A scored candidate of a proposal.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// A scored candidate of a proposal or plan. Candidates the service planned itself lie inside
+/// the precondition and reach the goal by construction and carry `alpha` and `length` only; a
+/// client's candidates also carry their verdict and per-step answers.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CandidateView {
-    /// Its acquisition value `α`.
+    /// Its acquisition value `α` (the aggregated `α_step = μ − cσ`).
     pub alpha: f64,
     /// Its number of actions.
     pub length: usize,
+    /// Whether every step lies in the precondition at the β used.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub inside: Option<bool>,
+    /// The first step outside the precondition (`null` when inside).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_outside: Option<usize>,
+    /// Whether its last state satisfies the goal test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reaches_goal: Option<bool>,
+    /// `μ` per step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mu: Option<Vec<f64>>,
+    /// `σ` per step.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<Vec<f64>>,
+}
+
+impl CandidateView {
+    /// A candidate the service planned itself.
+    pub fn planned(alpha: f64, length: usize) -> Self {
+        Self {
+            alpha,
+            length,
+            inside: None,
+            first_outside: None,
+            reaches_goal: None,
+            mu: None,
+            sigma: None,
+        }
+    }
+
+    /// A client's candidate with its verdict.
+    pub fn judged(v: &crate::planning::Verdict) -> Self {
+        Self {
+            alpha: v.alpha,
+            length: v.trajectory.len(),
+            inside: Some(v.inside),
+            first_outside: v.first_outside,
+            reaches_goal: Some(v.reaches_goal),
+            mu: Some(v.trajectory.mu.clone()),
+            sigma: Some(v.trajectory.sigma.clone()),
+        }
+    }
 }
 
 /// What a proposal chose and from what: stored with the proposal exactly as shown.
@@ -327,6 +387,11 @@ pub struct PlanRequest {
     /// β; default `learning.test_beta`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub beta: Option<f64>,
+    /// The client's own candidate trajectories: the plan is the one with the smallest `α` among
+    /// those inside the precondition that reach the goal (required when the experiment's model
+    /// is the client's).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub candidates: Option<Vec<CandidateTrajectory>>,
 }
 
 /// A test-time plan.
@@ -344,6 +409,9 @@ pub struct PlanResponse {
     pub model_version: i64,
     /// The plan, when found.
     pub trajectory: Option<PlannedTrajectory>,
+    /// The client's candidates with their verdicts, when it posted some.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub candidates: Option<Vec<CandidateView>>,
 }
 
 /// Every error's body: `{"error": {"code", "message", "details"}}`.

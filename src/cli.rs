@@ -1,6 +1,8 @@
 //! The command line: `precond serve` and friends. `main` only parses and calls [`run`].
 
 use crate::http::{AppState, HttpConfig, serve};
+use crate::remote_model::ModelUrlPolicy;
+use crate::service::Service;
 use crate::store::Store;
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -35,7 +37,8 @@ pub enum BenchCommand {
     /// side by side with scikit-learn where `python3` can import it.
     Gp(GpBenchArgs),
     /// A 20-candidate, 5000-extension proposal and a test-time plan on the icy gridworld with the
-    /// MDE fitted on 1000 transitions.
+    /// MDE fitted on 1000 transitions; then the same with a model served over HTTP on loopback
+    /// (model calls and points per proposal).
     Planning,
 }
 
@@ -83,6 +86,15 @@ pub struct ServeArgs {
     /// Largest accepted request body, in bytes.
     #[arg(long, env = "PRECOND_MAX_BODY_BYTES", default_value_t = 4 * 1024 * 1024)]
     pub max_body_bytes: usize,
+    /// Allow experiments whose dynamics model is served at URLs under this prefix (e.g.
+    /// `http://robot-pc:9000/`); repeatable. Without one, remote models are refused.
+    #[arg(
+        long = "allow-model-url",
+        value_name = "PREFIX",
+        env = "PRECOND_ALLOW_MODEL_URLS",
+        value_delimiter = ','
+    )]
+    pub allow_model_urls: Vec<String>,
 }
 
 /// Installs the global tracing subscriber.
@@ -123,12 +135,17 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Serve(args) => {
             init_tracing(args.log_format);
+            let model_urls =
+                ModelUrlPolicy::new(&args.allow_model_urls).map_err(anyhow::Error::msg)?;
+            if !args.allow_model_urls.is_empty() {
+                tracing::info!(prefixes = ?model_urls.prefixes(), "remote dynamics models allowed");
+            }
             let store = Store::open(&args.database_url).await?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
                 .await
                 .with_context(|| format!("binding {}", args.addr))?;
-            let state = AppState::new(
-                store,
+            let state = AppState::with_service(
+                Service::with_model_urls(store, model_urls),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
                 },
@@ -152,8 +169,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             Ok(())
         }
         Command::Bench(BenchCommand::Planning) => {
-            crate::bench::planning::run_default()?;
-            Ok(())
+            tokio::task::spawn_blocking(crate::bench::planning::run_default).await??;
+            crate::bench::remote::run(5).await
         }
         Command::Experiment(args) => {
             crate::experiment::init_tracing();

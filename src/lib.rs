@@ -24,6 +24,8 @@
 //!
 //! The service around it:
 //! - [`settings`]: an experiment's settings, their defaults and their validation.
+//! - [`remote_model`]: a dynamics model served by a robot over HTTP, and the operator's list of
+//!   allowed model URLs.
 //! - [`store`]: SQLite (sqlx): every query, rows ↔ values, atomic idempotent ingest.
 //! - [`service`]: what precond does, whoever asks: experiments in memory, labelling and ingest,
 //!   refits, judgements, proposals with leases, plans. Returns domain values and its own error.
@@ -66,6 +68,7 @@ pub mod http;
 pub mod limits;
 pub mod mde;
 pub mod planning;
+pub mod remote_model;
 pub mod seed;
 pub mod service;
 pub mod settings;

@@ -33,3 +33,6 @@ pub const MAX_PAGE: i64 = 1000;
 pub const DEFAULT_PAGE: i64 = 100;
 /// Rows of one explicit CSV page (a CSV export is unlimited by default).
 pub const MAX_CSV_ROWS: i64 = 1_000_000_000;
+/// Candidate trajectories a client may post with one proposal or plan: `1 ..= 200`; their
+/// steps together count against [`MAX_POINTS`].
+pub const MAX_CLIENT_CANDIDATES: usize = 200;

@@ -68,6 +68,20 @@ pub trait DynamicsModel: Send + Sync + fmt::Debug {
         actions: &[&[f64]],
     ) -> Result<Vec<Predicted>, DynamicsError>;
 
+    /// Whether the model lives on the client, which posts its own predictions (`s_pred`) and
+    /// plans itself: the service never calls it.
+    fn client_side(&self) -> bool {
+        false
+    }
+
+    /// How many RRT edges the planner should propose per round, each round's predictions
+    /// going to the model in one call. In-process models answer one point as cheaply as many
+    /// (1, the classic RRT); a model behind the network answers a large batch at nearly the cost
+    /// of one call.
+    fn round_size(&self) -> usize {
+        1
+    }
+
     /// Predicts one pair (a batch of one).
     fn predict_one(&self, s: &[f64], a: &[f64]) -> Result<Predicted, DynamicsError> {
         self.predict_batch(&[s], &[a])?

@@ -183,6 +183,27 @@ impl IcyGridworld {
     }
 }
 
+impl IcyGridworld {
+    /// The move that brings `s` closest to `target`; ties are broken at random.
+    pub fn steer_toward(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
+        let mut best = f64::INFINITY;
+        let mut ties: [usize; 4] = [0; 4];
+        let mut n_ties = 0;
+        for (i, m) in MOVES.iter().enumerate() {
+            let d = euclidean(&[s[0] + m[0], s[1] + m[1]], target);
+            if d < best - 1e-12 {
+                best = d;
+                ties[0] = i;
+                n_ties = 1;
+            } else if (d - best).abs() <= 1e-12 {
+                ties[n_ties] = i;
+                n_ties += 1;
+            }
+        }
+        MOVES[ties[rng.random_range(0..n_ties)]].to_vec()
+    }
+}
+
 impl Domain for IcyGridworld {
     fn kind(&self) -> &'static str {
         "icy_gridworld"
@@ -260,23 +281,8 @@ impl Domain for IcyGridworld {
         euclidean(a, b)
     }
 
-    /// The move that brings `s` closest to `target`; ties are broken at random.
-    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
-        let mut best = f64::INFINITY;
-        let mut ties: [usize; 4] = [0; 4];
-        let mut n_ties = 0;
-        for (i, m) in MOVES.iter().enumerate() {
-            let d = euclidean(&[s[0] + m[0], s[1] + m[1]], target);
-            if d < best - 1e-12 {
-                best = d;
-                ties[0] = i;
-                n_ties = 1;
-            } else if (d - best).abs() <= 1e-12 {
-                ties[n_ties] = i;
-                n_ties += 1;
-            }
-        }
-        MOVES[ties[rng.random_range(0..n_ties)]].to_vec()
+    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>> {
+        vec![self.steer_toward(s, target, rng)]
     }
 
     fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {

@@ -191,6 +191,25 @@ impl Kinematic {
     }
 }
 
+impl Kinematic {
+    /// The displacement to the target, shrunk uniformly until it fits the action bounds.
+    pub fn steer_toward(&self, s: &[f64], target: &[f64], _rng: &mut dyn RngCore) -> Vec<f64> {
+        let delta: Vec<f64> = s.iter().zip(target).map(|(x, t)| t - x).collect();
+        let mut scale: f64 = 1.0;
+        for (i, d) in delta.iter().enumerate() {
+            let limit = if *d > 0.0 {
+                self.action_space.high[i]
+            } else {
+                -self.action_space.low[i]
+            };
+            if d.abs() > limit {
+                scale = scale.min(limit / d.abs());
+            }
+        }
+        delta.iter().map(|d| d * scale).collect()
+    }
+}
+
 impl Domain for Kinematic {
     fn kind(&self) -> &'static str {
         "kinematic"
@@ -272,21 +291,8 @@ impl Domain for Kinematic {
         euclidean(a, b)
     }
 
-    /// The displacement to the target, shrunk uniformly until it fits the action bounds.
-    fn steer(&self, s: &[f64], target: &[f64], _rng: &mut dyn RngCore) -> Vec<f64> {
-        let delta: Vec<f64> = s.iter().zip(target).map(|(x, t)| t - x).collect();
-        let mut scale: f64 = 1.0;
-        for (i, d) in delta.iter().enumerate() {
-            let limit = if *d > 0.0 {
-                self.action_space.high[i]
-            } else {
-                -self.action_space.low[i]
-            };
-            if d.abs() > limit {
-                scale = scale.min(limit / d.abs());
-            }
-        }
-        delta.iter().map(|d| d * scale).collect()
+    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>> {
+        vec![self.steer_toward(s, target, rng)]
     }
 
     fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
@@ -335,7 +341,7 @@ mod tests {
     fn steering_respects_the_action_bounds() {
         let k = Kinematic::new(KinematicParams::default()).unwrap();
         let mut rng = rand::rng();
-        let a = k.steer(&[0.0, 0.0], &[1.0, 0.5], &mut rng);
+        let a = k.steer_toward(&[0.0, 0.0], &[1.0, 0.5], &mut rng);
         assert!((a[0] - 0.1).abs() < 1e-12 && (a[1] - 0.05).abs() < 1e-12);
     }
 

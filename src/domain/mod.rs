@@ -8,11 +8,13 @@
 //! domain-specific vectors (a cell for the gridworld, a state for the kinematic domain, a target
 //! volume for the water plant).
 
+pub mod custom;
 pub mod dynamics;
 mod gridworld;
 mod kinematic;
 pub mod water_plant;
 
+pub use custom::{ClientModel, CustomDomain, CustomParams, LinearModel};
 pub use dynamics::{DynamicsError, DynamicsModel, LocalModel, Predicted};
 pub use gridworld::{Cell, DEFAULT_MAP, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
@@ -139,7 +141,7 @@ impl DomainError {
 }
 
 /// An executed transition as the robot observed it: the state, the action taken, and the state
-/// that followed.
+/// that followed — and, when the robot's model lives on the client, what that model predicted.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Transition {
@@ -149,6 +151,34 @@ pub struct Transition {
     pub a: Vec<f64>,
     /// State observed after it.
     pub s_next: Vec<f64>,
+    /// The client's own prediction `f̂(s, a)`: required when the experiment's model is the
+    /// client's, refused otherwise (a label always comes from one model).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub s_pred: Option<Vec<f64>>,
+}
+
+/// An executed transition with the model's prediction and its deviation label
+/// `d(f̂(s, a), s_next)`: what the MDE learns from.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LabelledTransition {
+    /// What the robot observed.
+    pub observed: Transition,
+    /// The model's prediction `f̂(s, a)`.
+    pub s_pred: Vec<f64>,
+    /// `d(f̂(s, a), s_next)`.
+    pub deviation: f64,
+}
+
+impl Transition {
+    /// A transition without a client-side prediction.
+    pub fn new(s: Vec<f64>, a: Vec<f64>, s_next: Vec<f64>) -> Self {
+        Self {
+            s,
+            a,
+            s_next,
+            s_pred: None,
+        }
+    }
 }
 
 /// A planning problem: where to start and what counts as arriving.
@@ -251,8 +281,12 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// Distance used to find the nearest tree node to a target.
     fn state_metric(&self, a: &[f64], b: &[f64]) -> f64;
 
-    /// An action from `s` towards `target` (the RRT's steering function).
-    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64>;
+    /// Actions from `s` towards `target` (the RRT's steering function): the planner predicts
+    /// them all (in one batch with the rest of its round) and keeps the one whose allowed
+    /// prediction is nearest `target` by [`Domain::state_metric`]. Worlds that steer
+    /// analytically return one action; a domain that cannot see inside its model returns
+    /// several samples.
+    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>>;
 
     /// A random action from `s`, from the same sampler the planner uses (the `random` strategy).
     fn sample_action(&self, s: &[f64], rng: &mut dyn RngCore) -> Vec<f64>;

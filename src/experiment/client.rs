@@ -114,6 +114,7 @@ impl ApiClient {
             goal: goal.to_vec(),
             client_id: client_id.map(str::to_string),
             strategy,
+            candidates: None,
         };
         let what = "POST /proposals";
         let (status, body) = self
@@ -212,6 +213,7 @@ impl ApiClient {
             start: start.to_vec(),
             goal: goal.to_vec(),
             beta: None,
+            candidates: None,
         };
         self.expect(
             self.http

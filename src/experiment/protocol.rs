@@ -113,11 +113,7 @@ pub fn execute(bench: &Bench, world: &mut dyn World, plan: &PlannedTrajectory) -
         let s_next = world.step(&s, &a);
         let deviation = domain.deviation(&s, &a, &s_next);
         steps.push(Labelled {
-            t: Transition {
-                s: s.clone(),
-                a,
-                s_next: s_next.clone(),
-            },
+            t: Transition::new(s.clone(), a, s_next.clone()),
             deviation,
         });
         s = s_next;

@@ -57,7 +57,7 @@ impl ApiError {
             Self::Service(e) => match e {
                 Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
                 Error::NotFound(_) => StatusCode::NOT_FOUND,
-                Error::Conflict(_) => StatusCode::CONFLICT,
+                Error::Conflict(_) | Error::LeaseHeld { .. } => StatusCode::CONFLICT,
                 Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
                 Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
@@ -78,7 +78,7 @@ impl ApiError {
                     "validation_failed"
                 }
                 Error::NotFound(_) => "not_found",
-                Error::Conflict(_) => "conflict",
+                Error::Conflict(_) | Error::LeaseHeld { .. } => "conflict",
                 Error::NoPlan { .. } => "no_plan",
                 Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
@@ -92,7 +92,21 @@ impl ApiError {
             Self::PayloadTooLarge { limit } => json!({"limit_bytes": limit}),
             Self::Service(e) => match e {
                 Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
-                Error::NoPlan { extensions } => json!({"extensions": extensions}),
+                Error::LeaseHeld {
+                    proposal_id,
+                    client_id,
+                    start,
+                    goal,
+                } => json!({"proposal_id": proposal_id, "client_id": client_id,
+                            "start": start, "goal": goal}),
+                Error::NoPlan {
+                    extensions,
+                    candidates,
+                } if candidates.is_empty() => json!({"extensions": extensions}),
+                Error::NoPlan {
+                    extensions,
+                    candidates,
+                } => json!({"extensions": extensions, "candidates": candidates}),
                 Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
                     json!({"model": model, "timeout_ms": timeout_ms})
                 }

@@ -53,10 +53,15 @@ pub struct AppState {
 }
 
 impl AppState {
-    /// State over an opened store.
+    /// State over an opened store, with the service's default policies.
     pub fn new(store: Store, config: HttpConfig) -> Self {
+        Self::with_service(Service::new(store), config)
+    }
+
+    /// State over a configured service.
+    pub fn with_service(service: Service, config: HttpConfig) -> Self {
         Self {
-            service: Service::new(store),
+            service,
             config: Arc::new(config),
         }
     }

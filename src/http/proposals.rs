@@ -55,7 +55,13 @@ pub async fn create_plan(
 ) -> ApiResult<Json<PlanResponse>> {
     let planned = state
         .service
-        .plan(id, request.start, request.goal, request.beta)
+        .plan(
+            id,
+            request.start,
+            request.goal,
+            request.beta,
+            request.candidates,
+        )
         .await?;
     Ok(Json(render::plan(planned)))
 }

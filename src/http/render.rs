@@ -2,8 +2,8 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    ExperimentResponse, ModelResponse, ModelSource, PlanResponse, PreconditionResponse,
-    ProposalResponse, TrajectoryResponse,
+    CandidateView, ExperimentResponse, ModelResponse, ModelSource, PlanResponse,
+    PreconditionResponse, ProposalResponse, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{ExperimentState, Judged, ModelView, Planned, ProposalRecord};
@@ -93,5 +93,8 @@ pub fn plan(p: Planned) -> PlanResponse {
         d_max: p.d_max,
         model_version: p.model_version,
         trajectory: p.outcome.trajectory.as_ref().map(Into::into),
+        candidates: p
+            .candidates
+            .map(|verdicts| verdicts.iter().map(CandidateView::judged).collect()),
     }
 }

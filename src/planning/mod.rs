@@ -8,6 +8,8 @@
 //! - [`rrt`](mod@rrt): one RRT run (and the test-time [`plan`]), the planner settings, trajectories.
 //! - [`strategy`]: candidate generation and the `active` / `goal_conditioned` / `random`
 //!   strategies behind [`propose`].
+//! - [`given`]: candidates posted by the client, judged step by step and chosen by the same
+//!   strategies.
 //! - [`synthetic`]: cheap deviation models with known answers, for tests, benchmarks and demos.
 //!
 //! The module knows nothing of HTTP, SQL or JSON. The deviation model is reached only through
@@ -16,6 +18,7 @@
 
 pub mod acquisition;
 pub mod cache;
+pub mod given;
 pub mod rrt;
 pub mod schedule;
 pub mod strategy;
@@ -26,6 +29,7 @@ mod tests;
 
 pub use acquisition::{AcquisitionSettings, Aggregation, aggregate, alpha_step};
 pub use cache::ModelCache;
+pub use given::{Path, Verdict, choose, judge_candidates};
 pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, rrt};
 pub use schedule::{BetaSchedule, beta_schedule};
 pub use strategy::{CandidateScore, Proposal, Strategy, propose};

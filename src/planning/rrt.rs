@@ -153,6 +153,8 @@ pub struct RrtOutcome {
     pub extensions: usize,
     /// Number of nodes in the tree at the end, the start included.
     pub tree_size: usize,
+    /// Calls made to the dynamics model (each with a batch of points).
+    pub dynamics_calls: usize,
 }
 
 /// One RRT run from `start` towards `goal`, keeping only edges with `μ + β σ < d_max`
@@ -293,22 +295,6 @@ fn state_key(s: &[f64]) -> Vec<u64> {
     s.iter().map(|x| (x + 0.0).to_bits()).collect()
 }
 
-/// Predicts the next state of every steered edge `(parent node, action)` in one call.
-fn predict_edges(
-    domain: &dyn Domain,
-    tree: &Tree,
-    steered: &[(usize, Vec<f64>)],
-) -> Result<Vec<Predicted>, PlanningError> {
-    let states: Vec<&[f64]> = steered
-        .iter()
-        .map(|(i, _)| tree.states[*i].as_slice())
-        .collect();
-    let actions: Vec<&[f64]> = steered.iter().map(|(_, a)| a.as_slice()).collect();
-    let predicted = domain.dynamics().predict_batch(&states, &actions)?;
-    check_predictions(domain, predicted.len(), steered.len())?;
-    Ok(predicted)
-}
-
 /// A dynamics model must answer one prediction per point, each a state.
 pub(crate) fn check_predictions(
     domain: &dyn Domain,
@@ -333,6 +319,16 @@ struct Proposed {
     asked: bool,
 }
 
+/// A node and the actions the domain steers with from it towards a target.
+struct Steered {
+    parent: usize,
+    target: Vec<f64>,
+    actions: Vec<Vec<f64>>,
+}
+
+/// The most edges proposed in one round, whatever the model asks for.
+const MAX_ROUND: usize = 4096;
+
 /// The RRT proper, with a cache that may be shared by the runs of one proposal.
 /// Inputs are assumed checked.
 #[allow(clippy::too_many_arguments)]
@@ -347,27 +343,33 @@ pub(crate) fn grow(
     rng: &mut dyn RngCore,
 ) -> Result<RrtOutcome, PlanningError> {
     let mut tree = Tree::new(start);
+    let mut outcome = RrtOutcome {
+        trajectory: None,
+        extensions: 0,
+        tree_size: 1,
+        dynamics_calls: 0,
+    };
     if domain.is_goal(start, goal) {
-        return Ok(RrtOutcome {
-            trajectory: Some(tree.path_to(0)),
-            extensions: 0,
-            tree_size: 1,
-        });
+        outcome.trajectory = Some(tree.path_to(0));
+        return Ok(outcome);
     }
-    let mut extensions = 0;
-    let mut round: Vec<Proposed> = Vec::with_capacity(settings.extension_batch);
+    let dynamics = domain.dynamics();
+    let round_size = settings
+        .extension_batch
+        .max(dynamics.round_size())
+        .min(MAX_ROUND);
+    let mut round: Vec<Proposed> = Vec::with_capacity(round_size);
     let mut features: Vec<f64> = Vec::new();
     let mut prefetch: Vec<f64> = Vec::new();
     let discrete_actions = domain.action_space().values.as_ref();
-    while extensions < settings.max_extensions {
-        let size = settings
-            .extension_batch
+    while outcome.extensions < settings.max_extensions {
+        let size = round_size
             .min(tree.states.len())
-            .min(settings.max_extensions - extensions);
+            .min(settings.max_extensions - outcome.extensions);
         round.clear();
         features.clear();
         prefetch.clear();
-        let mut steered: Vec<(usize, Vec<f64>)> = Vec::with_capacity(size);
+        let mut steered: Vec<Steered> = Vec::with_capacity(size);
         for _ in 0..size {
             let target = if rng.random::<f64>() < settings.goal_bias {
                 domain.goal_target(goal, rng)
@@ -375,45 +377,75 @@ pub(crate) fn grow(
                 domain.sample_state(rng)
             };
             let parent = tree.nearest(domain, &target);
-            let action = domain.steer(&tree.states[parent], &target, rng);
-            steered.push((parent, action));
+            let actions = domain.steer(&tree.states[parent], &target, rng);
+            steered.push(Steered {
+                parent,
+                target,
+                actions,
+            });
         }
-        let predicted = predict_edges(domain, &tree, &steered)?;
+        // One call predicts every action of every edge of the round.
+        let pairs: Vec<(usize, &[f64])> = steered
+            .iter()
+            .flat_map(|e| e.actions.iter().map(|a| (e.parent, a.as_slice())))
+            .collect();
+        let mut predicted =
+            predict(domain, &tree, &pairs, &mut outcome.dynamics_calls)?.into_iter();
         let mut to_prefetch: Vec<(usize, &[f64])> = Vec::new();
-        for ((parent, action), p) in steered.iter().zip(predicted) {
-            let s = &tree.states[*parent];
-            let asked =
-                p.valid && domain.edge_allowed(s, action, &p.next) && !tree.contains(&p.next);
-            if asked {
-                let phi = domain.features(s, action);
-                if let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi)) {
-                    // A miss in a discrete action space: ask about the node's other moves in the
-                    // same call, since the tree is likely to try them later.
-                    to_prefetch.extend(
-                        values
-                            .iter()
-                            .filter(|v| *v != action)
-                            .map(|v| (*parent, v.as_slice())),
-                    );
+        for edge in &steered {
+            let s = &tree.states[edge.parent];
+            // The allowed, new prediction nearest the target.
+            let mut best: Option<(f64, usize, Vec<f64>)> = None;
+            for (j, action) in edge.actions.iter().enumerate() {
+                let Some(p) = predicted.next() else { break };
+                if !(p.valid && domain.edge_allowed(s, action, &p.next) && !tree.contains(&p.next))
+                {
+                    continue;
                 }
-                features.extend(phi);
+                let d = if edge.actions.len() == 1 {
+                    0.0
+                } else {
+                    domain.state_metric(&p.next, &edge.target)
+                };
+                if best.as_ref().is_none_or(|(b, _, _)| d < *b) {
+                    best = Some((d, j, p.next));
+                }
             }
+            let Some((_, j, next)) = best else {
+                round.push(Proposed {
+                    parent: edge.parent,
+                    action: Vec::new(),
+                    next: Vec::new(),
+                    asked: false,
+                });
+                continue;
+            };
+            let action = &edge.actions[j];
+            let phi = domain.features(s, action);
+            if edge.actions.len() == 1
+                && let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi))
+            {
+                // A miss in a discrete action space: ask about the node's other moves in the
+                // same call, since the tree is likely to try them later.
+                to_prefetch.extend(
+                    values
+                        .iter()
+                        .filter(|v| *v != action)
+                        .map(|v| (edge.parent, v.as_slice())),
+                );
+            }
+            features.extend(phi);
             round.push(Proposed {
-                parent: *parent,
+                parent: edge.parent,
                 action: action.clone(),
-                next: p.next,
-                asked,
+                next,
+                asked: true,
             });
         }
         if !to_prefetch.is_empty() {
-            let states: Vec<&[f64]> = to_prefetch
-                .iter()
-                .map(|(i, _)| tree.states[*i].as_slice())
-                .collect();
-            let actions: Vec<&[f64]> = to_prefetch.iter().map(|(_, v)| *v).collect();
-            let next = domain.dynamics().predict_batch(&states, &actions)?;
-            check_predictions(domain, next.len(), to_prefetch.len())?;
-            for ((s, v), n) in states.iter().zip(&actions).zip(next) {
+            let next = predict(domain, &tree, &to_prefetch, &mut outcome.dynamics_calls)?;
+            for ((i, v), n) in to_prefetch.iter().zip(next) {
+                let s = &tree.states[*i];
                 if n.valid && domain.edge_allowed(s, v, &n.next) && !tree.contains(&n.next) {
                     prefetch.extend(domain.features(s, v));
                 }
@@ -424,7 +456,7 @@ pub(crate) fn grow(
         let answers = cache.predict(&features)?;
         let mut answers = answers.into_iter();
         for edge in round.drain(..) {
-            extensions += 1;
+            outcome.extensions += 1;
             if !edge.asked {
                 continue;
             }
@@ -440,17 +472,45 @@ pub(crate) fn grow(
             tree.add(edge.parent, edge.action, edge.next, mu, sigma);
             if reached {
                 let node = tree.states.len() - 1;
-                return Ok(RrtOutcome {
-                    trajectory: Some(tree.path_to(node)),
-                    extensions,
-                    tree_size: tree.states.len(),
-                });
+                outcome.trajectory = Some(tree.path_to(node));
+                outcome.tree_size = tree.states.len();
+                return Ok(outcome);
             }
         }
     }
-    Ok(RrtOutcome {
-        trajectory: None,
-        extensions,
-        tree_size: tree.states.len(),
-    })
+    outcome.tree_size = tree.states.len();
+    Ok(outcome)
+}
+
+/// Predicts `f̂(node, action)` for every pair in one call to the domain's dynamics model,
+/// counting the call.
+fn predict(
+    domain: &dyn Domain,
+    tree: &Tree,
+    pairs: &[(usize, &[f64])],
+    calls: &mut usize,
+) -> Result<Vec<Predicted>, PlanningError> {
+    let states: Vec<&[f64]> = pairs
+        .iter()
+        .map(|(i, _)| tree.states[*i].as_slice())
+        .collect();
+    let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| *a).collect();
+    predict_pairs(domain, &states, &actions, calls)
+}
+
+/// Predicts `f̂(states[i], actions[i])` in one call, counting it and checking that the model
+/// answered one prediction per pair.
+pub(crate) fn predict_pairs(
+    domain: &dyn Domain,
+    states: &[&[f64]],
+    actions: &[&[f64]],
+    calls: &mut usize,
+) -> Result<Vec<Predicted>, PlanningError> {
+    if states.is_empty() {
+        return Ok(Vec::new());
+    }
+    *calls += 1;
+    let predicted = domain.dynamics().predict_batch(states, actions)?;
+    check_predictions(domain, predicted.len(), states.len())?;
+    Ok(predicted)
 }

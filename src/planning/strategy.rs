@@ -20,7 +20,7 @@
 
 use super::acquisition::AcquisitionSettings;
 use super::cache::ModelCache;
-use super::rrt::{PlannerSettings, Trajectory, check_problem, grow, seeded_rng};
+use super::rrt::{PlannerSettings, Trajectory, check_problem, grow, predict_pairs, seeded_rng};
 use super::{DeviationModel, PlanningError};
 use crate::domain::Domain;
 use rand::Rng;
@@ -106,6 +106,8 @@ pub struct Proposal {
     pub model_points: usize,
     /// Calls made to the deviation model (each with a batch of points).
     pub model_calls: usize,
+    /// Calls made to the dynamics model `f̂` (each with a batch of points).
+    pub dynamics_calls: usize,
 }
 
 /// Proposes the trajectory to execute next for the problem `start → goal` under the current
@@ -136,7 +138,9 @@ pub fn propose(
         d_max,
     };
     if strategy == Strategy::Random {
-        let (trajectory, extensions) = problem.rollout(&mut cache, planner, &mut own_rng)?;
+        let mut dynamics_calls = 0;
+        let (trajectory, extensions) =
+            problem.rollout(&mut cache, planner, &mut own_rng, &mut dynamics_calls)?;
         let (alpha_step, alpha) = acquisition.score(&trajectory);
         return Ok(Proposal {
             strategy,
@@ -152,6 +156,7 @@ pub fn propose(
             runs: 1,
             model_points: cache.points(),
             model_calls: cache.calls(),
+            dynamics_calls,
         });
     }
     if domain.is_goal(start, goal) {
@@ -193,11 +198,12 @@ pub fn propose(
         runs: found.runs,
         model_points: cache.points(),
         model_calls: cache.calls(),
+        dynamics_calls: found.dynamics_calls,
     })
 }
 
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.
-fn argmin(values: impl Iterator<Item = f64>) -> usize {
+pub(crate) fn argmin(values: impl Iterator<Item = f64>) -> usize {
     let mut best: Option<(usize, f64)> = None;
     for (i, v) in values.enumerate() {
         if best.is_none_or(|(_, b)| v.total_cmp(&b).is_lt()) {
@@ -221,6 +227,7 @@ struct Candidates {
     trajectories: Vec<Trajectory>,
     extensions: usize,
     runs: usize,
+    dynamics_calls: usize,
 }
 
 impl Problem<'_> {
@@ -234,6 +241,7 @@ impl Problem<'_> {
             trajectories: Vec::new(),
             extensions: 0,
             runs: 0,
+            dynamics_calls: 0,
         };
         let mut seen: HashSet<Vec<u64>> = HashSet::new();
         let mut failed = 0;
@@ -251,6 +259,7 @@ impl Problem<'_> {
             )?;
             found.runs += 1;
             found.extensions += outcome.extensions;
+            found.dynamics_calls += outcome.dynamics_calls;
             match outcome.trajectory {
                 Some(t) => {
                     let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
@@ -279,6 +288,7 @@ impl Problem<'_> {
         cache: &mut ModelCache<'_>,
         planner: &PlannerSettings,
         rng: &mut dyn rand::RngCore,
+        dynamics_calls: &mut usize,
     ) -> Result<(Trajectory, usize), PlanningError> {
         let domain = self.domain;
         let mut t = Trajectory {
@@ -288,30 +298,46 @@ impl Problem<'_> {
             sigma: Vec::new(),
         };
         let mut extensions = 0;
-        'steps: for _ in 0..domain.rollout_length() {
+        for _ in 0..domain.rollout_length() {
             let s = t
                 .states
                 .last()
                 .expect("a trajectory has a first state")
                 .clone();
-            for _ in 0..planner.random_action_tries {
-                extensions += 1;
-                let a = domain.sample_action(&s, rng);
-                let predicted = domain.dynamics().predict_one(&s, &a)?;
-                let next = predicted.next;
-                if !(predicted.valid && domain.edge_allowed(&s, &a, &next)) {
-                    continue;
-                }
-                let (mu, sigma) = cache.predict(&domain.features(&s, &a))?[0];
-                if mu + self.beta * sigma < self.d_max {
-                    t.states.push(next);
-                    t.actions.push(a);
-                    t.mu.push(mu);
-                    t.sigma.push(sigma);
-                    continue 'steps;
-                }
-            }
-            break;
+            // Every try of a step is predicted in one call; the first allowed one inside the
+            // precondition is taken.
+            let tries: Vec<Vec<f64>> = (0..planner.random_action_tries)
+                .map(|_| domain.sample_action(&s, rng))
+                .collect();
+            let states = vec![s.as_slice(); tries.len()];
+            let actions: Vec<&[f64]> = tries.iter().map(Vec::as_slice).collect();
+            let predicted = predict_pairs(domain, &states, &actions, dynamics_calls)?;
+            let allowed: Vec<(usize, Vec<f64>, Vec<f64>)> = tries
+                .into_iter()
+                .zip(predicted)
+                .enumerate()
+                .filter(|(_, (a, p))| p.valid && domain.edge_allowed(&s, a, &p.next))
+                .map(|(k, (a, p))| (k, a, p.next))
+                .collect();
+            let features: Vec<f64> = allowed
+                .iter()
+                .flat_map(|(_, a, _)| domain.features(&s, a))
+                .collect();
+            let answers = cache.predict(&features)?;
+            let chosen = allowed
+                .into_iter()
+                .zip(answers)
+                .find(|(_, (mu, sigma))| mu + self.beta * sigma < self.d_max);
+            let Some(((k, a, next), (mu, sigma))) = chosen else {
+                extensions += planner.random_action_tries;
+                break;
+            };
+            // Actions tried until this one.
+            extensions += k + 1;
+            t.states.push(next);
+            t.actions.push(a);
+            t.mu.push(mu);
+            t.sigma.push(sigma);
         }
         if t.is_empty() {
             return Err(PlanningError::NoPlan { extensions });

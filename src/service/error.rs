@@ -1,6 +1,7 @@
 //! What the service layer can answer instead of a result, by what the caller should do about
 //! it. Knows nothing of HTTP: the HTTP layer maps each variant to a status and a code.
 
+use crate::api::CandidateView;
 use crate::domain::{DomainError, DynamicsError};
 use crate::planning::PlanningError;
 use crate::settings::InvalidSetting;
@@ -23,11 +24,30 @@ pub enum Error {
     /// a proposal executed twice, a lease held for another problem, nothing to fit).
     #[error("{0}")]
     Conflict(String),
-    /// The planner found no goal-reaching trajectory inside the precondition.
-    #[error("no goal-reaching trajectory within {extensions} extensions")]
+    /// The client holds an open proposal for another problem: it must execute or abandon that
+    /// one first.
+    #[error(
+        "client {client_id:?} holds open proposal {proposal_id} for start {start:?} and goal \
+         {goal:?}; execute or abandon it before asking for another problem"
+    )]
+    LeaseHeld {
+        /// The open proposal.
+        proposal_id: i64,
+        /// The client holding it.
+        client_id: String,
+        /// Its start state.
+        start: Vec<f64>,
+        /// Its goal.
+        goal: Vec<f64>,
+    },
+    /// The planner found no goal-reaching trajectory inside the precondition (or none of the
+    /// client's candidates is inside and reaches the goal).
+    #[error("no goal-reaching trajectory inside the precondition ({extensions} extensions, {} candidates judged)", candidates.len())]
     NoPlan {
         /// Extensions spent by the search.
         extensions: usize,
+        /// The client's candidates with their verdicts, when it posted some.
+        candidates: Vec<CandidateView>,
     },
     /// The experiment's dynamics model could not answer; nothing was stored.
     #[error(transparent)]
@@ -75,7 +95,10 @@ impl From<sqlx::Error> for Error {
 impl From<PlanningError> for Error {
     fn from(e: PlanningError) -> Self {
         match e {
-            PlanningError::NoPlan { extensions } => Self::NoPlan { extensions },
+            PlanningError::NoPlan { extensions } => Self::NoPlan {
+                extensions,
+                candidates: Vec::new(),
+            },
             PlanningError::InvalidInput { field, reason } => Self::validation(field, reason),
             PlanningError::InvalidSettings { field, reason } => {
                 Self::validation(format!("learning.{field}"), reason)

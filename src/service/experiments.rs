@@ -27,7 +27,7 @@ impl ExperimentState {
 impl Service {
     /// Validates the settings, stores a new experiment and loads it (answering from the prior).
     pub async fn create_experiment(&self, request: ExperimentRequest) -> Result<ExperimentState> {
-        let (settings, domain) = request.resolve()?;
+        let (settings, domain) = request.resolve(&self.model_urls)?;
         let experiment = self.store.insert_experiment(&settings).await?;
         self.live
             .insert(LiveExperiment::new(experiment.id, settings, domain.clone()));

@@ -5,11 +5,9 @@
 use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{TrajectoryCreated, TrajectoryRequest};
-use crate::domain::{DynamicsError, Transition};
+use crate::domain::{DynamicsError, LabelledTransition, Transition};
 use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_TRANSITIONS};
-use crate::store::{
-    IdempotencyKey, IngestOutcome, LabelledTransition, StoredTrajectory, StoredTransition,
-};
+use crate::store::{IdempotencyKey, IngestOutcome, StoredTrajectory, StoredTransition};
 use std::sync::Arc;
 
 /// What an ingest answered.
@@ -47,7 +45,7 @@ pub fn check_idempotency_key(key: &str) -> Result<()> {
 /// async workers; if it fails, nothing is labelled.
 pub async fn label(
     live: &Arc<LiveExperiment>,
-    transitions: Vec<Transition>,
+    mut transitions: Vec<Transition>,
 ) -> Result<Vec<LabelledTransition>> {
     if transitions.is_empty() {
         return Err(Error::validation(
@@ -61,37 +59,69 @@ pub async fn label(
             format!("at most {MAX_TRANSITIONS} transitions per trajectory"),
         ));
     }
+    let client_side = live.domain.dynamics().client_side();
     for (i, t) in transitions.iter().enumerate() {
+        let at = |name: &str| format!("transitions[{i}].{name}");
         live.check_step(&format!("transitions[{i}]"), &t.s, &t.a)?;
         live.domain
             .validate_observed_state(&t.s_next)
-            .map_err(|e| Error::invalid_at(&format!("transitions[{i}].s_next"), e))?;
+            .map_err(|e| Error::invalid_at(&at("s_next"), e))?;
+        match (&t.s_pred, client_side) {
+            (Some(s_pred), true) => live
+                .domain
+                .validate_observed_state(s_pred)
+                .map_err(|e| Error::invalid_at(&at("s_pred"), e))?,
+            (None, true) => {
+                return Err(Error::validation(
+                    at("s_pred"),
+                    "the experiment's model is the client's: post its prediction with every \
+                     transition",
+                ));
+            }
+            (Some(_), false) => {
+                return Err(Error::validation(
+                    at("s_pred"),
+                    "the experiment's model is not the client's: the service predicts with it, \
+                     so that every label comes from one model",
+                ));
+            }
+            (None, false) => {}
+        }
     }
-    let domain = live.domain.clone();
-    let (transitions, predicted) = Service::blocking(move || {
-        let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
-        let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
-        let predicted = domain.dynamics().predict_batch(&states, &actions);
-        (transitions, predicted)
-    })
-    .await?;
-    let predicted = predicted?;
-    if predicted.len() != transitions.len() {
-        return Err(Error::Dynamics(DynamicsError::Unavailable {
-            model: format!("of the {} domain", live.domain.kind()),
-            reason: format!(
-                "answered {} predictions for {} transitions",
-                predicted.len(),
-                transitions.len()
-            ),
-        }));
-    }
+    let predicted: Vec<Vec<f64>> = if client_side {
+        transitions
+            .iter()
+            .map(|t| t.s_pred.clone().unwrap_or_default())
+            .collect()
+    } else {
+        let domain = live.domain.clone();
+        let (moved, predicted) = Service::blocking(move || {
+            let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
+            let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
+            let predicted = domain.dynamics().predict_batch(&states, &actions);
+            (transitions, predicted)
+        })
+        .await?;
+        transitions = moved;
+        let predicted = predicted?;
+        if predicted.len() != transitions.len() {
+            return Err(Error::Dynamics(DynamicsError::Unavailable {
+                model: format!("of the {} domain", live.domain.kind()),
+                reason: format!(
+                    "answered {} predictions for {} transitions",
+                    predicted.len(),
+                    transitions.len()
+                ),
+            }));
+        }
+        predicted.into_iter().map(|p| p.next).collect()
+    };
     transitions
         .into_iter()
         .zip(predicted)
         .enumerate()
-        .map(|(i, (observed, p))| {
-            let deviation = live.domain.distance(&p.next, &observed.s_next);
+        .map(|(i, (observed, s_pred))| {
+            let deviation = live.domain.distance(&s_pred, &observed.s_next);
             if !deviation.is_finite() {
                 return Err(Error::validation(
                     format!("transitions[{i}].s_next"),
@@ -100,7 +130,7 @@ pub async fn label(
             }
             Ok(LabelledTransition {
                 observed,
-                s_pred: p.next,
+                s_pred,
                 deviation,
             })
         })

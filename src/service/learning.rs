@@ -1,12 +1,12 @@
 //! The model deviation estimator as a service: the version answering, refits, precondition
 //! judgements ("is this state-action trusted?") and test-time plans.
 
-use super::live::FitTrigger;
+use super::live::{FitTrigger, LiveExperiment};
 use super::{Error, Result, Service};
-use crate::api::Point;
-use crate::limits::MAX_POINTS;
+use crate::api::{CandidateTrajectory, Point};
+use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, ServedModel};
-use crate::planning::{self, RrtOutcome, Trajectory};
+use crate::planning::{self, Path, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
 use std::sync::Arc;
 
@@ -42,6 +42,8 @@ pub struct Judged {
 pub struct Planned {
     /// The search's outcome: the plan if found, the extensions spent.
     pub outcome: RrtOutcome,
+    /// The client's candidates with their verdicts, when it posted some.
+    pub candidates: Option<Vec<Verdict>>,
     /// β used.
     pub beta: f64,
     /// The experiment's tolerance.
@@ -60,6 +62,109 @@ pub(crate) fn check_finite(t: &Trajectory) -> Result<()> {
             "the model answered a non-finite deviation along a trajectory"
         )))
     }
+}
+
+/// Checks the client's candidate trajectories against the domain and the problem's start:
+/// shapes, states, actions and steps, with the field named (`candidates[2].actions[5]`).
+pub(crate) fn check_candidates(
+    live: &LiveExperiment,
+    start: &[f64],
+    candidates: Vec<CandidateTrajectory>,
+) -> Result<Vec<Path>> {
+    if candidates.is_empty() || candidates.len() > MAX_CLIENT_CANDIDATES {
+        return Err(Error::validation(
+            "candidates",
+            format!("must hold 1 to {MAX_CLIENT_CANDIDATES} trajectories"),
+        ));
+    }
+    let steps: usize = candidates.iter().map(|c| c.actions.len()).sum();
+    if steps > MAX_POINTS {
+        return Err(Error::validation(
+            "candidates",
+            format!("at most {MAX_POINTS} steps in all, got {steps}"),
+        ));
+    }
+    let d = live.domain.as_ref();
+    candidates
+        .into_iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let at = format!("candidates[{i}]");
+            if c.actions.is_empty() || c.states.len() != c.actions.len() + 1 {
+                return Err(Error::validation(
+                    format!("{at}.states"),
+                    format!(
+                        "a candidate needs at least one action and one more state than actions \
+                         ({} states, {} actions)",
+                        c.states.len(),
+                        c.actions.len()
+                    ),
+                ));
+            }
+            for (t, s) in c.states.iter().enumerate() {
+                d.validate_state(s)
+                    .map_err(|e| Error::invalid_at(&format!("{at}.states[{t}]"), e))?;
+            }
+            let s0 = &c.states[0];
+            if s0.len() != start.len()
+                || s0
+                    .iter()
+                    .zip(start)
+                    .any(|(a, b)| (a - b).abs() > 1e-9 * (1.0 + b.abs()))
+            {
+                return Err(Error::validation(
+                    format!("{at}.states[0]"),
+                    format!("must be the start state {start:?}"),
+                ));
+            }
+            for (t, a) in c.actions.iter().enumerate() {
+                d.validate_action(a)
+                    .and_then(|()| d.validate_step(&c.states[t], a))
+                    .map_err(|e| Error::invalid_at(&format!("{at}.actions[{t}]"), e))?;
+            }
+            Ok((c.states, c.actions))
+        })
+        .collect()
+}
+
+/// Judges the client's (checked) candidates with the current model at β, off the async
+/// workers.
+pub(crate) async fn judge_given(
+    live: &Arc<LiveExperiment>,
+    model: Arc<ServedModel>,
+    goal: Vec<f64>,
+    candidates: Vec<Path>,
+    beta: f64,
+) -> Result<Vec<Verdict>> {
+    let live = live.clone();
+    let verdicts = Service::blocking(move || {
+        planning::judge_candidates(
+            live.domain.as_ref(),
+            model.as_ref(),
+            &goal,
+            candidates,
+            beta,
+            live.settings.d_max,
+            &live.settings.learning.acquisition(),
+        )
+    })
+    .await??;
+    for v in &verdicts {
+        check_finite(&v.trajectory)?;
+    }
+    Ok(verdicts)
+}
+
+/// The answer to a client whose model lives on its side and who asked the service to plan.
+pub(crate) fn needs_candidates(live: &LiveExperiment) -> Result<()> {
+    if live.domain.dynamics().client_side() {
+        return Err(Error::validation(
+            "candidates",
+            "the experiment's model is the client's, so the service cannot plan with it: post \
+             candidate trajectories (`candidates`) for it to score",
+        ));
+    }
+    Ok(())
 }
 
 /// `beta` of a request, or the experiment's test β.
@@ -145,25 +250,45 @@ impl Service {
     }
 
     /// A test-time plan from `start` to `goal` inside the precondition at β (default: the test
-    /// β). Nothing is stored.
+    /// β): planned by the service, or the best of the client's `candidates` (the eligible one
+    /// with the smallest `α`). Nothing is stored.
     pub async fn plan(
         &self,
         id: i64,
         start: Vec<f64>,
         goal: Vec<f64>,
         beta: Option<f64>,
+        candidates: Option<Vec<CandidateTrajectory>>,
     ) -> Result<Planned> {
         let live = self.live(id).await?;
         live.check_problem(&start, &goal)?;
         let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
         let model = live.model();
+        let model_version = model.version;
+        let d_max = live.settings.d_max;
+        if let Some(candidates) = candidates {
+            let checked = check_candidates(&live, &start, candidates)?;
+            let verdicts = judge_given(&live, model, goal, checked, beta).await?;
+            let chosen = planning::choose(Strategy::Active, &verdicts, 0);
+            return Ok(Planned {
+                outcome: RrtOutcome {
+                    trajectory: chosen.map(|i| verdicts[i].trajectory.clone()),
+                    extensions: 0,
+                    tree_size: 0,
+                    dynamics_calls: 0,
+                },
+                candidates: Some(verdicts),
+                beta,
+                d_max,
+                model_version,
+            });
+        }
+        needs_candidates(&live)?;
         let seed = seed::mix_values(
             live.settings.seed,
             model.version,
             start.iter().chain(&goal).copied(),
         );
-        let model_version = model.version;
-        let d_max = live.settings.d_max;
         let outcome = Self::blocking(move || {
             planning::plan(
                 live.domain.as_ref(),
@@ -182,6 +307,7 @@ impl Service {
         }
         Ok(Planned {
             outcome,
+            candidates: None,
             beta,
             d_max,
             model_version,

@@ -28,22 +28,31 @@ pub use learning::{Judged, ModelView, Planned};
 pub use live::{FitTrigger, LiveExperiment, Registry};
 pub use proposals::ProposalRecord;
 
+use crate::remote_model::ModelUrlPolicy;
 use crate::store::Store;
 use std::sync::Arc;
 
-/// The service: the store and the experiments this process has loaded. Cheap to clone.
+/// The service: the store, the operator's policies and the experiments this process has
+/// loaded. Cheap to clone.
 #[derive(Debug, Clone)]
 pub struct Service {
     store: Store,
     live: Arc<Registry>,
+    model_urls: Arc<ModelUrlPolicy>,
 }
 
 impl Service {
-    /// The service over an opened store.
+    /// The service over an opened store, with no remote model allowed.
     pub fn new(store: Store) -> Self {
+        Self::with_model_urls(store, ModelUrlPolicy::default())
+    }
+
+    /// The service over an opened store, allowing remote models under `model_urls`.
+    pub fn with_model_urls(store: Store, model_urls: ModelUrlPolicy) -> Self {
         Self {
             store,
             live: Arc::new(Registry::default()),
+            model_urls: Arc::new(model_urls),
         }
     }
 

@@ -6,11 +6,11 @@
 //! trajectory, abandons it, or the lease expires; asking for another problem meanwhile is a
 //! conflict rather than a silent answer to a question it did not ask.
 
-use super::learning::check_finite;
+use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
 use super::{Error, Result, Service};
 use crate::api::{CandidateView, PlannedTrajectory, ProposalContent, ProposalRequest};
 use crate::limits::MAX_CLIENT_ID_LEN;
-use crate::planning::{self, Proposal};
+use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 
@@ -53,13 +53,33 @@ fn content(p: &Proposal) -> Result<ProposalContent> {
         candidates: p
             .candidates
             .iter()
-            .map(|c| CandidateView {
-                alpha: c.alpha,
-                length: c.length,
-            })
+            .map(|c| CandidateView::planned(c.alpha, c.length))
             .collect(),
         chosen_index: p.chosen_index,
         extensions: p.extensions,
+    })
+}
+
+/// What a strategy chose among the client's judged candidates, as stored and shown; `no_plan`
+/// with every verdict when there is nothing to choose.
+fn given_content(strategy: Strategy, verdicts: &[Verdict], seed: u64) -> Result<ProposalContent> {
+    let candidates: Vec<CandidateView> = verdicts.iter().map(CandidateView::judged).collect();
+    let Some(chosen) = planning::choose(strategy, verdicts, seed) else {
+        return Err(Error::NoPlan {
+            extensions: 0,
+            candidates,
+        });
+    };
+    let v = &verdicts[chosen];
+    Ok(ProposalContent {
+        trajectory: PlannedTrajectory {
+            alpha_step: Some(v.alpha_step.clone()),
+            alpha: Some(v.alpha),
+            ..PlannedTrajectory::from(&v.trajectory)
+        },
+        candidates,
+        chosen_index: chosen,
+        extensions: 0,
     })
 }
 
@@ -67,14 +87,12 @@ fn content(p: &Proposal) -> Result<ProposalContent> {
 fn lease_answer(open: StoredProposal, request: &ProposalRequest) -> Result<ProposalRecord> {
     let terms = &open.terms;
     if terms.start != request.start || terms.goal != request.goal {
-        return Err(Error::Conflict(format!(
-            "client {:?} holds open proposal {} for start {:?} and goal {:?}; execute or abandon \
-             it before asking for another problem",
-            terms.client_id.as_deref().unwrap_or_default(),
-            open.id,
-            terms.start,
-            terms.goal
-        )));
+        return Err(Error::LeaseHeld {
+            proposal_id: open.id,
+            client_id: terms.client_id.clone().unwrap_or_default(),
+            start: terms.start.clone(),
+            goal: terms.goal.clone(),
+        });
     }
     ProposalRecord::from_stored(open)
 }
@@ -115,27 +133,37 @@ impl Service {
             n_trajectories,
             request.start.iter().chain(&request.goal).copied(),
         );
-        let proposal = {
-            let live = live.clone();
-            let (start, goal) = (request.start.clone(), request.goal.clone());
-            Self::blocking(move || {
-                let l = &live.settings.learning;
-                planning::propose(
-                    strategy,
-                    live.domain.as_ref(),
-                    model.as_ref(),
-                    &start,
-                    &goal,
-                    beta,
-                    live.settings.d_max,
-                    &l.planner(),
-                    &l.acquisition(),
-                    seed,
-                )
-            })
-            .await??
+        let content = match request.candidates.clone() {
+            Some(candidates) => {
+                let checked = check_candidates(&live, &request.start, candidates)?;
+                let verdicts =
+                    judge_given(&live, model, request.goal.clone(), checked, beta).await?;
+                given_content(strategy, &verdicts, seed)?
+            }
+            None => {
+                needs_candidates(&live)?;
+                let live = live.clone();
+                let (start, goal) = (request.start.clone(), request.goal.clone());
+                let proposal = Self::blocking(move || {
+                    let l = &live.settings.learning;
+                    planning::propose(
+                        strategy,
+                        live.domain.as_ref(),
+                        model.as_ref(),
+                        &start,
+                        &goal,
+                        beta,
+                        live.settings.d_max,
+                        &l.planner(),
+                        &l.acquisition(),
+                        seed,
+                    )
+                })
+                .await??;
+                content(&proposal)?
+            }
         };
-        let body = serde_json::to_string(&content(&proposal)?).map_err(anyhow::Error::from)?;
+        let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;
         let (stored, created) = self
             .store
             .insert_proposal(

@@ -640,7 +640,7 @@ mod tests {
                     d.sample_action(&s, &mut rng)
                 } else {
                     let g = d.goal_target(&[1.0], &mut rng);
-                    d.steer(&s, &g, &mut rng)
+                    d.steer_toward(&s, &g, &mut rng)
                 };
                 s = w.step(&s, &a);
                 let total = s[SRC_VOLUME] + s[TGT_VOLUME] + s[SPILLED];
@@ -749,7 +749,7 @@ mod tests {
         for _ in 0..n {
             let s = d.sample_problem(&mut rng).start;
             let g = d.goal_target(&[1.0], &mut rng);
-            let a = d.steer(&s, &g, &mut rng);
+            let a = d.steer_toward(&s, &g, &mut rng);
             let s2 = w.step(&s, &a);
             let _ = w.step(&s2, &[s2[0], s2[1], 2.4]);
         }

@@ -15,7 +15,7 @@ pub use experiments::Experiment;
 pub use models::StoredModel;
 pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, Ingested, LabelledTransition, StoredTrajectory, StoredTransition,
+    IdempotencyKey, IngestOutcome, Ingested, StoredTrajectory, StoredTransition,
 };
 
 use anyhow::Context;

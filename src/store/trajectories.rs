@@ -2,21 +2,9 @@
 
 use super::proposals::{LinkOutcome, link_trajectory};
 use super::{Store, decode_vec, encode_vec, now};
-use crate::domain::Transition;
+use crate::domain::LabelledTransition;
 use sqlx::Row;
 use sqlx::sqlite::SqliteRow;
-
-/// A transition to store: what the robot observed, with the model's prediction and the label
-/// the service computed from them.
-#[derive(Debug, Clone, PartialEq)]
-pub struct LabelledTransition {
-    /// What the robot observed.
-    pub observed: Transition,
-    /// The model's prediction `f̂(s, a)`.
-    pub s_pred: Vec<f64>,
-    /// `d(f̂(s, a), s_next)`.
-    pub deviation: f64,
-}
 
 /// A stored transition; serialised as the API shows it.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]

@@ -294,6 +294,28 @@ impl WaterPlant {
     }
 }
 
+impl WaterPlant {
+    /// Either a translation towards the target's position (at most `max_translation` long) or a
+    /// rotation to the target's tilt: the one that is needed when only one is, else either with
+    /// equal probability.
+    pub fn steer_toward(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
+        let to = Vec2::new(target[SRC_X], target[SRC_Y]);
+        let moves = (to - Vec2::new(s[SRC_X], s[SRC_Y])).norm() > MOTION_TOLERANCE;
+        let turns = (target[SRC_THETA] - s[SRC_THETA]).abs() > MOTION_TOLERANCE;
+        let translate = match (moves, turns) {
+            (true, false) => true,
+            (false, true) => false,
+            _ => rng.random_bool(0.5),
+        };
+        if translate {
+            self.translation_towards(s, to)
+        } else {
+            let (lo, hi) = (self.scene.source_low[2], self.scene.source_high[2]);
+            vec![s[SRC_X], s[SRC_Y], target[SRC_THETA].clamp(lo, hi)]
+        }
+    }
+}
+
 impl Domain for WaterPlant {
     /// The action must not both translate and rotate. (A posted action that does neither is
     /// accepted: the robot stood still.)
@@ -443,24 +465,8 @@ impl Domain for WaterPlant {
         pose + (a[TGT_VOLUME] - b[TGT_VOLUME]).abs() + (a[SPILLED] - b[SPILLED]).abs()
     }
 
-    /// Either a translation towards the target's position (at most `max_translation` long) or a
-    /// rotation to the target's tilt: the one that is needed when only one is, else either with
-    /// equal probability.
-    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
-        let to = Vec2::new(target[SRC_X], target[SRC_Y]);
-        let moves = (to - Vec2::new(s[SRC_X], s[SRC_Y])).norm() > MOTION_TOLERANCE;
-        let turns = (target[SRC_THETA] - s[SRC_THETA]).abs() > MOTION_TOLERANCE;
-        let translate = match (moves, turns) {
-            (true, false) => true,
-            (false, true) => false,
-            _ => rng.random_bool(0.5),
-        };
-        if translate {
-            self.translation_towards(s, to)
-        } else {
-            let (lo, hi) = (self.scene.source_low[2], self.scene.source_high[2]);
-            vec![s[SRC_X], s[SRC_Y], target[SRC_THETA].clamp(lo, hi)]
-        }
+    fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>> {
+        vec![self.steer_toward(s, target, rng)]
     }
 
     /// With equal probability a translation in a uniform direction, uniform length up to
@@ -759,13 +765,13 @@ mod tests {
         let s = w.start_state(-0.75, 0.5);
         // Only the position differs: a translation of at most max_translation.
         let mut t = w.start_state(0.75, 1.25);
-        let a = w.steer(&s, &t, &mut r);
+        let a = w.steer_toward(&s, &t, &mut r);
         assert_eq!(w.motion(&s, &a), Motion::Translate);
         assert_relative_eq!((a[0] - s[0]).hypot(a[1] - s[1]), 0.35, epsilon = 1e-12);
         // Only the tilt differs: a rotation all the way.
         t = s.clone();
         t[SRC_THETA] = 2.4;
-        assert_eq!(w.steer(&s, &t, &mut r), vec![-0.75, 0.5, 2.4]);
+        assert_eq!(w.steer_toward(&s, &t, &mut r), vec![-0.75, 0.5, 2.4]);
     }
 
     #[test]
@@ -842,7 +848,7 @@ mod tests {
             let s = w.sample_problem(&mut r).start;
             let target = w.sample_state(&mut r);
             let goal = w.goal_target(&[1.0], &mut r);
-            for a in [w.steer(&s, &target, &mut r), w.steer(&s, &goal, &mut r), w.sample_action(&s, &mut r)] {
+            for a in [w.steer_toward(&s, &target, &mut r), w.steer_toward(&s, &goal, &mut r), w.sample_action(&s, &mut r)] {
                 prop_assert!(w.validate_step(&s, &a).is_ok(), "{:?}", a);
                 prop_assert!(w.validate_state(&w.predict(&s, &a)).is_ok());
                 let m = w.motion(&s, &a);

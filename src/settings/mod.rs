@@ -5,6 +5,10 @@
 //! These are the service's vocabulary (serde, validated once at the door); the numeric core gets
 //! plain domain values built from them.
 
+pub mod custom;
+
+pub use custom::{CustomSpec, DistanceSpec, FeaturesSpec, GoalSpec, ModelSpec, SpaceSpec};
+
 use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, IcyGridworld, Kinematic, KinematicParams,
     WaterPlant,
@@ -15,6 +19,7 @@ use crate::limits::{
     MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
 };
 use crate::planning::{Aggregation, Strategy};
+use crate::remote_model::ModelUrlPolicy;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -72,9 +77,12 @@ pub enum DomainSpec {
         goal_radius: f64,
     },
     /// The plant-watering world with its documented default scene (see
-    /// `src/domain/water_plant.rs`): pour one unit into the target without spilling more than
-    /// 2 %, with leaves hanging over the target's opening.
+    /// `src/domain/water_plant/mod.rs`): pour one unit into the target without spilling more
+    /// than 2 %, with leaves hanging over the target's opening.
     WaterPlant {},
+    /// Any robot's own: its spaces, distance, goal test, obstacles and model (remote, linear or
+    /// on the client); see [`CustomSpec`].
+    Custom(Box<CustomSpec>),
 }
 
 /// An axis-aligned box.
@@ -147,6 +155,16 @@ impl DomainSpec {
                 .map_err(wrap)?,
             ),
             Self::WaterPlant {} => Arc::new(WaterPlant::default()),
+            Self::Custom(spec) => Arc::new(spec.build()?),
+        })
+    }
+
+    /// The spec with every default filled in, checked against the operator's model URL
+    /// policy (custom domains; the other kinds are resolved by serde's defaults).
+    pub fn resolve(self, policy: &ModelUrlPolicy) -> Result<Self, InvalidSetting> {
+        Ok(match self {
+            Self::Custom(spec) => Self::Custom(Box::new(spec.resolve(policy)?)),
+            other => other,
         })
     }
 }
@@ -267,7 +285,11 @@ pub struct ExperimentSettings {
 
 impl ExperimentRequest {
     /// Validates every field and resolves defaults. Returns the domain it built on the way.
-    pub fn resolve(self) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
+    pub fn resolve(
+        mut self,
+        policy: &ModelUrlPolicy,
+    ) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
+        self.domain = self.domain.resolve(policy)?;
         let domain = self.domain.build()?;
         if self.name.chars().count() > MAX_NAME_LEN {
             return Err(InvalidSetting::new(

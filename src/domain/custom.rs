@@ -1,0 +1,698 @@
+//! A domain declared by the client: any robot's state and action spaces, the components fed to
+//! the MDE, a weighted Euclidean distance, a goal test on chosen state components, box
+//! obstacles, and the robot's own model `f̂` behind the [`DynamicsModel`] seam (served by the
+//! robot over the network, a linear map, or kept on the client).
+//!
+//! The planner cannot see inside the model, so it steers by sampling: from a node it tries
+//! [`CustomParams::steer_samples`] actions (all values of a discrete action space), predicts them
+//! in one batch and keeps the allowed one whose prediction is nearest the target (distances in
+//! the unit box of the state bounds, so that components in different units compare).
+
+use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
+use super::{Space, euclidean};
+use rand::seq::IndexedRandom;
+use rand::{Rng, RngCore};
+use std::sync::Arc;
+
+/// Largest accepted state or action dimension.
+pub const MAX_DIM: usize = 64;
+/// Most values of a discrete action space.
+pub const MAX_ACTION_VALUES: usize = 256;
+/// Most box obstacles.
+pub const MAX_OBSTACLES: usize = 1000;
+/// Most actions sampled per steering step.
+pub const MAX_STEER_SAMPLES: usize = 256;
+/// Longest `random`-strategy rollout.
+pub const MAX_ROLLOUT_LENGTH: usize = 10_000;
+
+/// Points checked along each edge by the approximate collision check.
+const COLLISION_SAMPLES: usize = 8;
+
+/// A client-declared domain's parameters.
+#[derive(Debug, Clone, PartialEq)]
+pub struct CustomParams {
+    /// The state space (continuous).
+    pub state: Space,
+    /// The action space: continuous bounds, or discrete `values` (bounds spanning them).
+    pub action: Space,
+    /// State components fed to the MDE, in order.
+    pub feature_state: Vec<usize>,
+    /// Action components fed to the MDE, in order.
+    pub feature_action: Vec<usize>,
+    /// Weights `w_i ≥ 0` (not all 0) of `d = sqrt(Σ w_i (ŝ_i − s_i)²)`, one per state component.
+    pub weights: Vec<f64>,
+    /// State components the goal test compares.
+    pub goal_components: Vec<usize>,
+    /// A state is a goal when those components lie within this Euclidean distance of the goal.
+    pub goal_radius: f64,
+    /// Boxes in the state space that planned edges may not pass through.
+    pub obstacles: Vec<BoxObstacle>,
+    /// Actions sampled per steering step (continuous action spaces).
+    pub steer_samples: usize,
+    /// Steps of a `random`-strategy rollout.
+    pub rollout_length: usize,
+}
+
+/// The default tolerance `d_max` of a custom domain, in the units of its distance (clients
+/// usually set their own).
+pub const DEFAULT_D_MAX: f64 = 0.1;
+
+/// The client-declared domain (see the module docs).
+#[derive(Debug, Clone)]
+pub struct CustomDomain {
+    params: CustomParams,
+    model: Arc<dyn DynamicsModel>,
+}
+
+fn check_space(space: &Space, what: &str) -> Result<(), DomainError> {
+    let n = space.dim();
+    if n == 0 || n > MAX_DIM {
+        return Err(DomainError::at(
+            format!("{what}.names"),
+            format!("the dimension must be between 1 and {MAX_DIM}, got {n}"),
+        ));
+    }
+    for (field, v) in [("low", &space.low), ("high", &space.high)] {
+        if v.len() != n {
+            return Err(DomainError::at(
+                format!("{what}.{field}"),
+                format!("expected {n} components like names, got {}", v.len()),
+            ));
+        }
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(DomainError::at(
+                format!("{what}.{field}[{i}]"),
+                "must be a finite number",
+            ));
+        }
+    }
+    if let Some(i) = (0..n).find(|&i| space.low[i] > space.high[i]) {
+        return Err(DomainError::at(
+            format!("{what}.high[{i}]"),
+            "must not be below low",
+        ));
+    }
+    if space.values.is_none()
+        && let Some(i) = (0..n).find(|&i| space.low[i] == space.high[i])
+    {
+        return Err(DomainError::at(
+            format!("{what}.high[{i}]"),
+            "must exceed low (a continuous component needs room)",
+        ));
+    }
+    Ok(())
+}
+
+fn check_indices(indices: &[usize], n: usize, field: &str) -> Result<(), DomainError> {
+    if let Some((k, i)) = indices.iter().enumerate().find(|(_, i)| **i >= n) {
+        return Err(DomainError::at(
+            format!("{field}[{k}]"),
+            format!("index {i} is out of range (there are {n} components)"),
+        ));
+    }
+    let mut seen = vec![false; n];
+    for (k, i) in indices.iter().enumerate() {
+        if std::mem::replace(&mut seen[*i], true) {
+            return Err(DomainError::at(
+                format!("{field}[{k}]"),
+                format!("index {i} is listed twice"),
+            ));
+        }
+    }
+    Ok(())
+}
+
+impl CustomDomain {
+    /// Checks the parameters and builds the domain around `model`. Errors name the parameter
+    /// (`state.low`, `features.action[1]`, `goal.radius`, `obstacles[2]`, …).
+    pub fn new(params: CustomParams, model: Arc<dyn DynamicsModel>) -> Result<Self, DomainError> {
+        check_space(&params.state, "state")?;
+        check_space(&params.action, "action")?;
+        let (n, m) = (params.state.dim(), params.action.dim());
+        if params.state.values.is_some() {
+            return Err(DomainError::at(
+                "state.values",
+                "the state space is continuous",
+            ));
+        }
+        if let Some(values) = &params.action.values {
+            if values.is_empty() || values.len() > MAX_ACTION_VALUES {
+                return Err(DomainError::at(
+                    "action.values",
+                    format!("must hold 1 to {MAX_ACTION_VALUES} actions"),
+                ));
+            }
+            for (k, v) in values.iter().enumerate() {
+                params
+                    .action
+                    .check(v)
+                    .map_err(|e| DomainError::at(format!("action.values[{k}]"), e.reason))?;
+            }
+        }
+        check_indices(&params.feature_state, n, "features.state")?;
+        check_indices(&params.feature_action, m, "features.action")?;
+        if params.feature_state.len() + params.feature_action.len() == 0 {
+            return Err(DomainError::at(
+                "features",
+                "at least one state or action component must feed the MDE",
+            ));
+        }
+        if params.weights.len() != n {
+            return Err(DomainError::at(
+                "distance.weights",
+                format!("expected {n} weights, one per state component"),
+            ));
+        }
+        if let Some(i) = params
+            .weights
+            .iter()
+            .position(|w| !(w.is_finite() && *w >= 0.0))
+        {
+            return Err(DomainError::at(
+                format!("distance.weights[{i}]"),
+                "must be a finite number ≥ 0",
+            ));
+        }
+        if params.weights.iter().all(|w| *w == 0.0) {
+            return Err(DomainError::at(
+                "distance.weights",
+                "at least one weight must be positive",
+            ));
+        }
+        if params.goal_components.is_empty() {
+            return Err(DomainError::at(
+                "goal.components",
+                "name at least one state component",
+            ));
+        }
+        check_indices(&params.goal_components, n, "goal.components")?;
+        if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
+            return Err(DomainError::at("goal.radius", "must be a positive number"));
+        }
+        if params.obstacles.len() > MAX_OBSTACLES {
+            return Err(DomainError::at(
+                "obstacles",
+                format!("at most {MAX_OBSTACLES} obstacles"),
+            ));
+        }
+        for (k, o) in params.obstacles.iter().enumerate() {
+            if o.low.len() != n || o.high.len() != n {
+                return Err(DomainError::at(
+                    format!("obstacles[{k}]"),
+                    format!("low and high need {n} components, one per state component"),
+                ));
+            }
+            if o.low.iter().chain(&o.high).any(|x| !x.is_finite())
+                || o.low.iter().zip(&o.high).any(|(l, h)| l > h)
+            {
+                return Err(DomainError::at(
+                    format!("obstacles[{k}]"),
+                    "bounds must be finite with low ≤ high",
+                ));
+            }
+        }
+        if !(1..=MAX_STEER_SAMPLES).contains(&params.steer_samples) {
+            return Err(DomainError::at(
+                "steer_samples",
+                format!("must be between 1 and {MAX_STEER_SAMPLES}"),
+            ));
+        }
+        if !(1..=MAX_ROLLOUT_LENGTH).contains(&params.rollout_length) {
+            return Err(DomainError::at(
+                "rollout_length",
+                format!("must be between 1 and {MAX_ROLLOUT_LENGTH}"),
+            ));
+        }
+        Ok(Self { params, model })
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &CustomParams {
+        &self.params
+    }
+
+    fn in_collision(&self, p: &[f64]) -> bool {
+        self.params.obstacles.iter().any(|o| {
+            p.iter()
+                .zip(o.low.iter().zip(&o.high))
+                .all(|(x, (lo, hi))| *x >= *lo && *x <= *hi)
+        })
+    }
+
+    fn goal_distance(&self, s: &[f64], goal: &[f64]) -> f64 {
+        self.params
+            .goal_components
+            .iter()
+            .zip(goal)
+            .map(|(&i, g)| (s[i] - g) * (s[i] - g))
+            .sum::<f64>()
+            .sqrt()
+    }
+}
+
+impl Domain for CustomDomain {
+    fn kind(&self) -> &'static str {
+        "custom"
+    }
+
+    fn state_space(&self) -> &Space {
+        &self.params.state
+    }
+
+    fn action_space(&self) -> &Space {
+        &self.params.action
+    }
+
+    fn dynamics(&self) -> &dyn DynamicsModel {
+        self.model.as_ref()
+    }
+
+    /// `sqrt(Σ w_i (ŝ_i − s_i)²)`.
+    fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64 {
+        self.params
+            .weights
+            .iter()
+            .zip(predicted.iter().zip(observed))
+            .map(|(w, (p, o))| w * (p - o) * (p - o))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    fn default_d_max(&self) -> f64 {
+        DEFAULT_D_MAX
+    }
+
+    fn feature_dim(&self) -> usize {
+        self.params.feature_state.len() + self.params.feature_action.len()
+    }
+
+    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let unit = |space: &Space, v: &[f64], i: usize| {
+            let w = space.high[i] - space.low[i];
+            if w > 0.0 {
+                (v[i] - space.low[i]) / w
+            } else {
+                0.0
+            }
+        };
+        let p = &self.params;
+        p.feature_state
+            .iter()
+            .map(|&i| unit(&p.state, s, i))
+            .chain(p.feature_action.iter().map(|&i| unit(&p.action, a, i)))
+            .collect()
+    }
+
+    fn feature_names(&self) -> Vec<String> {
+        let p = &self.params;
+        p.feature_state
+            .iter()
+            .map(|&i| p.state.names[i].clone())
+            .chain(p.feature_action.iter().map(|&i| p.action.names[i].clone()))
+            .collect()
+    }
+
+    fn validate_goal(&self, goal: &[f64]) -> Result<(), DomainError> {
+        let comps = &self.params.goal_components;
+        if goal.len() != comps.len() {
+            return Err(DomainError::new(format!(
+                "expected {} components (the goal's state components {comps:?}), got {}",
+                comps.len(),
+                goal.len()
+            )));
+        }
+        for (g, &i) in goal.iter().zip(comps) {
+            let s = &self.params.state;
+            if !g.is_finite() {
+                return Err(DomainError::new(format!(
+                    "component {i} ({}) is not a finite number",
+                    s.names[i]
+                )));
+            }
+            if *g < s.low[i] || *g > s.high[i] {
+                return Err(DomainError::new(format!(
+                    "component {i} ({}) = {g} is outside [{}, {}]",
+                    s.names[i], s.low[i], s.high[i]
+                )));
+            }
+        }
+        Ok(())
+    }
+
+    fn is_goal(&self, s: &[f64], goal: &[f64]) -> bool {
+        self.goal_distance(s, goal) <= self.params.goal_radius
+    }
+
+    /// The prediction stays within the state bounds, moves, and its segment from `s` misses
+    /// every obstacle.
+    fn edge_allowed(&self, s: &[f64], _a: &[f64], s_pred: &[f64]) -> bool {
+        let st = &self.params.state;
+        if s_pred.len() != s.len() || st.check(s_pred).is_err() {
+            return false;
+        }
+        if euclidean(s, s_pred) < 1e-12 {
+            return false;
+        }
+        if self.params.obstacles.is_empty() {
+            return true;
+        }
+        let mut p = vec![0.0; s.len()];
+        (1..=COLLISION_SAMPLES).all(|k| {
+            let t = k as f64 / COLLISION_SAMPLES as f64;
+            for (i, pi) in p.iter_mut().enumerate() {
+                *pi = s[i] + t * (s_pred[i] - s[i]);
+            }
+            !self.in_collision(&p)
+        })
+    }
+
+    fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
+        let st = &self.params.state;
+        (0..st.dim())
+            .map(|i| rng.random_range(st.low[i]..=st.high[i]))
+            .collect()
+    }
+
+    /// A uniform state with the goal's components set to the goal.
+    fn goal_target(&self, goal: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
+        let mut s = self.sample_state(rng);
+        for (&i, g) in self.params.goal_components.iter().zip(goal) {
+            s[i] = *g;
+        }
+        s
+    }
+
+    /// Euclidean distance in the unit box of the state bounds.
+    fn state_metric(&self, a: &[f64], b: &[f64]) -> f64 {
+        let st = &self.params.state;
+        st.to_unit(a)
+            .zip(st.to_unit(b))
+            .map(|(p, q)| (p - q) * (p - q))
+            .sum::<f64>()
+            .sqrt()
+    }
+
+    /// Every value of a discrete action space, else `steer_samples` uniform actions.
+    fn steer(&self, s: &[f64], _target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>> {
+        match &self.params.action.values {
+            Some(values) => values.clone(),
+            None => (0..self.params.steer_samples)
+                .map(|_| self.sample_action(s, rng))
+                .collect(),
+        }
+    }
+
+    fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
+        let act = &self.params.action;
+        match &act.values {
+            Some(values) => values.choose(rng).cloned().unwrap_or_default(),
+            None => (0..act.dim())
+                .map(|i| rng.random_range(act.low[i]..=act.high[i]))
+                .collect(),
+        }
+    }
+
+    fn rollout_length(&self) -> usize {
+        self.params.rollout_length
+    }
+
+    /// A uniform start outside the obstacles and a goal (on the goal components) at least twice
+    /// the goal radius away from it.
+    fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem {
+        let free = |rng: &mut dyn RngCore| {
+            let mut s = self.sample_state(rng);
+            for _ in 0..1000 {
+                if !self.in_collision(&s) {
+                    break;
+                }
+                s = self.sample_state(rng);
+            }
+            s
+        };
+        let start = free(rng);
+        let mut goal_state = free(rng);
+        let goal_of =
+            |s: &[f64]| -> Vec<f64> { self.params.goal_components.iter().map(|&i| s[i]).collect() };
+        for _ in 0..1000 {
+            if self.goal_distance(&start, &goal_of(&goal_state)) > 2.0 * self.params.goal_radius {
+                break;
+            }
+            goal_state = free(rng);
+        }
+        Problem {
+            goal: goal_of(&goal_state),
+            start,
+        }
+    }
+}
+
+/// `ŝ' = clip(A s + B a + c)` to the state bounds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearModel {
+    a: Vec<Vec<f64>>,
+    b: Vec<Vec<f64>>,
+    c: Vec<f64>,
+    state: Space,
+}
+
+impl LinearModel {
+    /// Checks the shapes (`A`: n×n, `B`: n×m, `c`: n) and finiteness against the spaces.
+    /// Errors name `A`, `B` or `c` (relative to the model).
+    pub fn new(
+        a: Vec<Vec<f64>>,
+        b: Vec<Vec<f64>>,
+        c: Vec<f64>,
+        state: &Space,
+        action: &Space,
+    ) -> Result<Self, DomainError> {
+        let (n, m) = (state.dim(), action.dim());
+        for (name, mat, cols) in [("A", &a, n), ("B", &b, m)] {
+            if mat.len() != n {
+                return Err(DomainError::at(
+                    name,
+                    format!(
+                        "expected {n} rows (one per state component), got {}",
+                        mat.len()
+                    ),
+                ));
+            }
+            for (r, row) in mat.iter().enumerate() {
+                if row.len() != cols {
+                    return Err(DomainError::at(
+                        format!("{name}[{r}]"),
+                        format!("expected {cols} columns, got {}", row.len()),
+                    ));
+                }
+                if row.iter().any(|x| !x.is_finite()) {
+                    return Err(DomainError::at(
+                        format!("{name}[{r}]"),
+                        "every entry must be a finite number",
+                    ));
+                }
+            }
+        }
+        if c.len() != n {
+            return Err(DomainError::at(
+                "c",
+                format!("expected {n} components, got {}", c.len()),
+            ));
+        }
+        if c.iter().any(|x| !x.is_finite()) {
+            return Err(DomainError::at("c", "every entry must be a finite number"));
+        }
+        Ok(Self {
+            a,
+            b,
+            c,
+            state: state.clone(),
+        })
+    }
+
+    /// `clip(A s + B a + c)`.
+    pub fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let dot = |row: &[f64], v: &[f64]| row.iter().zip(v).map(|(p, q)| p * q).sum::<f64>();
+        let mut next: Vec<f64> = (0..self.c.len())
+            .map(|i| dot(&self.a[i], s) + dot(&self.b[i], a) + self.c[i])
+            .collect();
+        self.state.clamp(&mut next);
+        next
+    }
+}
+
+impl DynamicsModel for LinearModel {
+    fn predict_batch(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        Ok(states
+            .iter()
+            .zip(actions)
+            .map(|(s, a)| Predicted::valid(self.predict(s, a)))
+            .collect())
+    }
+}
+
+/// The model of an experiment whose client predicts for itself: the client posts `s_pred`
+/// with every transition and plans on its side; the service never calls it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct ClientModel;
+
+impl DynamicsModel for ClientModel {
+    fn predict_batch(&self, _: &[&[f64]], _: &[&[f64]]) -> Result<Vec<Predicted>, DynamicsError> {
+        Err(DynamicsError::ClientSide)
+    }
+
+    fn client_side(&self) -> bool {
+        true
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    fn space(names: &[&str], low: &[f64], high: &[f64]) -> Space {
+        Space {
+            names: names.iter().map(|s| s.to_string()).collect(),
+            low: low.to_vec(),
+            high: high.to_vec(),
+            values: None,
+        }
+    }
+
+    fn params() -> CustomParams {
+        CustomParams {
+            state: space(&["x", "y", "v"], &[0.0, 0.0, -1.0], &[2.0, 1.0, 1.0]),
+            action: space(&["ax", "ay"], &[-0.1, -0.1], &[0.1, 0.1]),
+            feature_state: vec![0, 1],
+            feature_action: vec![1],
+            weights: vec![1.0, 4.0, 0.0],
+            goal_components: vec![0, 1],
+            goal_radius: 0.05,
+            obstacles: vec![],
+            steer_samples: 8,
+            rollout_length: 20,
+        }
+    }
+
+    fn linear(p: &CustomParams) -> LinearModel {
+        let eye = |n: usize, m: usize| -> Vec<Vec<f64>> {
+            (0..n)
+                .map(|i| (0..m).map(|j| f64::from(u8::from(i == j))).collect())
+                .collect()
+        };
+        LinearModel::new(eye(3, 3), eye(3, 2), vec![0.0; 3], &p.state, &p.action).unwrap()
+    }
+
+    fn domain() -> CustomDomain {
+        let p = params();
+        let model = Arc::new(linear(&p));
+        CustomDomain::new(p, model).unwrap()
+    }
+
+    #[test]
+    fn distance_is_weighted_and_features_pick_the_declared_components() {
+        let d = domain();
+        assert!(
+            (d.distance(&[0.0, 0.0, 0.0], &[0.3, 0.1, 5.0]) - (0.09f64 + 0.04).sqrt()).abs()
+                < 1e-12
+        );
+        assert_eq!(
+            d.features(&[1.0, 0.5, 0.0], &[0.0, 0.1]),
+            vec![0.5, 0.5, 1.0]
+        );
+        assert_eq!(d.feature_names(), vec!["x", "y", "ay"]);
+        assert!(d.is_goal(&[1.0, 0.5, 0.9], &[1.03, 0.5]));
+        assert!(!d.is_goal(&[1.0, 0.5, 0.9], &[1.06, 0.5]));
+    }
+
+    #[test]
+    fn linear_model_clips_to_the_state_bounds() {
+        let p = params();
+        let m = linear(&p);
+        assert_eq!(
+            m.predict(&[1.95, 0.5, 0.0], &[0.1, -0.05]),
+            vec![2.0, 0.45, 0.0]
+        );
+    }
+
+    #[test]
+    fn errors_name_the_parameter() {
+        let model: Arc<dyn DynamicsModel> = Arc::new(ClientModel);
+        type Change = Box<dyn Fn(&mut CustomParams)>;
+        let cases: Vec<(Change, &str)> = vec![
+            (Box::new(|p| p.state.low[1] = f64::NAN), "state.low[1]"),
+            (Box::new(|p| p.state.high[0] = 0.0), "state.high[0]"),
+            (
+                Box::new(|p| p.action.high.pop().map(|_| ()).unwrap_or(())),
+                "action.high",
+            ),
+            (
+                Box::new(|p| p.feature_action = vec![2]),
+                "features.action[0]",
+            ),
+            (
+                Box::new(|p| p.feature_state = vec![0, 0]),
+                "features.state[1]",
+            ),
+            (Box::new(|p| p.weights = vec![0.0; 3]), "distance.weights"),
+            (Box::new(|p| p.weights[2] = -1.0), "distance.weights[2]"),
+            (
+                Box::new(|p| p.goal_components = vec![3]),
+                "goal.components[0]",
+            ),
+            (Box::new(|p| p.goal_radius = 0.0), "goal.radius"),
+            (
+                Box::new(|p| {
+                    p.obstacles = vec![BoxObstacle {
+                        low: vec![0.0],
+                        high: vec![1.0],
+                    }]
+                }),
+                "obstacles[0]",
+            ),
+        ];
+        for (change, field) in cases {
+            let mut p = params();
+            change(&mut p);
+            let e = CustomDomain::new(p, model.clone()).unwrap_err();
+            assert_eq!(e.field, field, "{e}");
+        }
+        let p = params();
+        let e = LinearModel::new(
+            vec![vec![1.0; 3]; 3],
+            vec![vec![1.0; 3]; 3],
+            vec![0.0; 3],
+            &p.state,
+            &p.action,
+        )
+        .unwrap_err();
+        assert_eq!(e.field, "B[0]");
+    }
+
+    #[test]
+    fn steering_samples_actions_and_problems_keep_their_goal_apart() {
+        let d = domain();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let actions = d.steer(&[1.0, 0.5, 0.0], &[0.0, 0.0, 0.0], &mut rng);
+        assert_eq!(actions.len(), 8);
+        assert!(actions.iter().all(|a| d.validate_action(a).is_ok()));
+        for _ in 0..50 {
+            let p = d.sample_problem(&mut rng);
+            assert!(d.validate_goal(&p.goal).is_ok());
+            assert!(!d.is_goal(&p.start, &p.goal));
+        }
+    }
+
+    #[test]
+    fn the_client_model_refuses_to_predict() {
+        assert_eq!(
+            ClientModel.predict_batch(&[&[0.0]], &[&[0.0]]),
+            Err(DynamicsError::ClientSide)
+        );
+        assert!(ClientModel.client_side());
+    }
+}

@@ -1,0 +1,332 @@
+//! The settings of a client-declared (`custom`) domain: the robot's spaces, the MDE's
+//! components, the distance, the goal test, obstacles, and where its model `f̂` lives.
+//!
+//! ```json
+//! {"kind": "custom",
+//!  "state":  {"names": ["x", "y"], "low": [0, 0], "high": [1, 1]},
+//!  "action": {"names": ["dx", "dy"], "low": [-0.1, -0.1], "high": [0.1, 0.1]},
+//!  "features": {"state": [0, 1], "action": [0, 1]},
+//!  "distance": {"weights": [1, 1]},
+//!  "goal": {"components": [0, 1], "radius": 0.05},
+//!  "obstacles": [{"low": [0.4, 0], "high": [0.5, 0.6]}],
+//!  "model": {"kind": "remote", "url": "http://robot-pc:9000/predict", "timeout_ms": 2000}}
+//! ```
+//!
+//! Omitted parts resolve to their defaults (every component feeds the MDE, unit weights, the
+//! goal on every state component with radius 0.05) and the resolved settings show them.
+
+use super::{InvalidSetting, ObstacleSpec};
+use crate::domain::custom::{MAX_ACTION_VALUES, MAX_DIM};
+use crate::domain::{
+    BoxObstacle, ClientModel, CustomDomain, CustomParams, DomainError, DynamicsModel, LinearModel,
+    Space,
+};
+use crate::remote_model::{MAX_TIMEOUT_MS, ModelUrlPolicy, RemoteModel};
+use serde::{Deserialize, Serialize};
+use std::sync::Arc;
+
+/// A state or action space as declared.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SpaceSpec {
+    /// One name per component. Default `s0, s1, …` / `a0, a1, …`.
+    #[serde(default)]
+    pub names: Vec<String>,
+    /// Lower bounds. For a discrete action space, default: the smallest value per component.
+    #[serde(default)]
+    pub low: Vec<f64>,
+    /// Upper bounds. For a discrete action space, default: the largest value per component.
+    #[serde(default)]
+    pub high: Vec<f64>,
+    /// The allowed actions of a discrete action space.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub values: Option<Vec<Vec<f64>>>,
+}
+
+/// Which components feed the MDE.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FeaturesSpec {
+    /// State components, by index.
+    #[serde(default)]
+    pub state: Vec<usize>,
+    /// Action components, by index.
+    #[serde(default)]
+    pub action: Vec<usize>,
+}
+
+/// The weighted Euclidean distance `d = sqrt(Σ w_i (ŝ_i − s_i)²)`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DistanceSpec {
+    /// One weight ≥ 0 per state component, not all 0.
+    pub weights: Vec<f64>,
+}
+
+/// The goal test: the chosen state components within `radius` of the goal.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GoalSpec {
+    /// State components compared with the goal vector. Default: all.
+    #[serde(default)]
+    pub components: Option<Vec<usize>>,
+    /// Euclidean radius on those components. Default 0.05.
+    #[serde(default = "default_goal_radius")]
+    pub radius: f64,
+}
+
+fn default_goal_radius() -> f64 {
+    0.05
+}
+
+impl Default for GoalSpec {
+    fn default() -> Self {
+        Self {
+            components: None,
+            radius: default_goal_radius(),
+        }
+    }
+}
+
+/// Where the model `f̂` lives. The tag is `kind`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
+pub enum ModelSpec {
+    /// Served by the robot's own process: `POST url {"states", "actions"} → {"next_states",
+    /// "valid"?}` (only under URL prefixes the operator allows).
+    Remote {
+        /// The model's URL (`http://…`).
+        url: String,
+        /// Time limit of one call, in milliseconds. Default 2000.
+        #[serde(default = "default_timeout_ms")]
+        timeout_ms: u64,
+    },
+    /// `ŝ' = clip(A s + B a + c)` to the state bounds.
+    Linear {
+        /// `A`, n × n.
+        #[serde(rename = "A")]
+        a: Vec<Vec<f64>>,
+        /// `B`, n × m.
+        #[serde(rename = "B")]
+        b: Vec<Vec<f64>>,
+        /// `c`, n. Default zeros.
+        #[serde(default)]
+        c: Option<Vec<f64>>,
+    },
+    /// The client's own: it posts `s_pred` with every transition and plans itself, posting
+    /// candidate trajectories for the service to score.
+    Client {},
+}
+
+fn default_timeout_ms() -> u64 {
+    2000
+}
+
+/// A client-declared domain as posted (see the module docs).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CustomSpec {
+    /// The state space (continuous, bounded).
+    pub state: SpaceSpec,
+    /// The action space: bounds, or `values` for a discrete one.
+    pub action: SpaceSpec,
+    /// Components fed to the MDE. Default: all.
+    #[serde(default)]
+    pub features: Option<FeaturesSpec>,
+    /// The distance. Default: unit weights.
+    #[serde(default)]
+    pub distance: Option<DistanceSpec>,
+    /// The goal test. Default: every state component, radius 0.05.
+    #[serde(default)]
+    pub goal: GoalSpec,
+    /// Boxes in the state space that planned edges may not pass through. Default none.
+    #[serde(default)]
+    pub obstacles: Vec<ObstacleSpec>,
+    /// Where the model lives.
+    pub model: ModelSpec,
+    /// Actions the planner samples per steering step (continuous actions). Default 8.
+    #[serde(default = "default_steer_samples")]
+    pub steer_samples: usize,
+    /// Steps of a `random`-strategy rollout. Default 20.
+    #[serde(default = "default_rollout_length")]
+    pub rollout_length: usize,
+}
+
+fn default_steer_samples() -> usize {
+    8
+}
+
+fn default_rollout_length() -> usize {
+    20
+}
+
+fn invalid(e: DomainError) -> InvalidSetting {
+    InvalidSetting::new(e.path_under("domain"), e.reason)
+}
+
+fn bad(field: &str, reason: impl Into<String>) -> InvalidSetting {
+    InvalidSetting::new(format!("domain.{field}"), reason)
+}
+
+impl SpaceSpec {
+    /// Fills in default names and the bounds of a discrete space.
+    fn resolve(mut self, what: &str, prefix: &str) -> Result<Self, InvalidSetting> {
+        if let Some(values) = &self.values {
+            if values.is_empty() || values.len() > MAX_ACTION_VALUES {
+                return Err(bad(
+                    &format!("{what}.values"),
+                    format!("must hold 1 to {MAX_ACTION_VALUES} actions"),
+                ));
+            }
+            let m = values[0].len();
+            if m == 0 || m > MAX_DIM {
+                return Err(bad(
+                    &format!("{what}.values[0]"),
+                    format!("the dimension must be between 1 and {MAX_DIM}"),
+                ));
+            }
+            for (k, v) in values.iter().enumerate() {
+                if v.len() != m {
+                    return Err(bad(
+                        &format!("{what}.values[{k}]"),
+                        format!("expected {m} components like values[0], got {}", v.len()),
+                    ));
+                }
+                if v.iter().any(|x| !x.is_finite()) {
+                    return Err(bad(
+                        &format!("{what}.values[{k}]"),
+                        "must be finite numbers",
+                    ));
+                }
+            }
+            let fold = |f: fn(f64, f64) -> f64, init: f64| -> Vec<f64> {
+                (0..m)
+                    .map(|i| values.iter().map(|v| v[i]).fold(init, f))
+                    .collect()
+            };
+            if self.low.is_empty() {
+                self.low = fold(f64::min, f64::INFINITY);
+            }
+            if self.high.is_empty() {
+                self.high = fold(f64::max, f64::NEG_INFINITY);
+            }
+        }
+        let n = if self.names.is_empty() {
+            self.low.len()
+        } else {
+            self.names.len()
+        };
+        if n == 0 {
+            return Err(bad(
+                &format!("{what}.low"),
+                "give the bounds (and optionally names) of every component",
+            ));
+        }
+        if self.names.is_empty() {
+            self.names = (0..n).map(|i| format!("{prefix}{i}")).collect();
+        }
+        if let Some(k) = self.names.iter().position(|s| s.is_empty() || s.len() > 64) {
+            return Err(bad(
+                &format!("{what}.names[{k}]"),
+                "must be 1 to 64 characters",
+            ));
+        }
+        Ok(self)
+    }
+
+    fn space(&self) -> Space {
+        Space {
+            names: self.names.clone(),
+            low: self.low.clone(),
+            high: self.high.clone(),
+            values: self.values.clone(),
+        }
+    }
+}
+
+impl CustomSpec {
+    /// Fills in every default so that the stored and shown settings say exactly what is used,
+    /// and checks that a remote model's URL is one the operator allows.
+    pub fn resolve(mut self, policy: &ModelUrlPolicy) -> Result<Self, InvalidSetting> {
+        self.state = self.state.resolve("state", "s")?;
+        self.action = self.action.resolve("action", "a")?;
+        let (n, m) = (self.state.names.len(), self.action.names.len());
+        self.features.get_or_insert_with(|| FeaturesSpec {
+            state: (0..n).collect(),
+            action: (0..m).collect(),
+        });
+        self.distance.get_or_insert_with(|| DistanceSpec {
+            weights: vec![1.0; n],
+        });
+        self.goal.components.get_or_insert_with(|| (0..n).collect());
+        match &mut self.model {
+            ModelSpec::Remote { url, timeout_ms } => {
+                if !(1..=MAX_TIMEOUT_MS).contains(timeout_ms) {
+                    return Err(bad(
+                        "model.timeout_ms",
+                        format!("must be between 1 and {MAX_TIMEOUT_MS}"),
+                    ));
+                }
+                policy
+                    .check(url)
+                    .map_err(|reason| bad("model.url", reason))?;
+            }
+            ModelSpec::Linear { c, .. } => {
+                c.get_or_insert_with(|| vec![0.0; n]);
+            }
+            ModelSpec::Client {} => {}
+        }
+        Ok(self)
+    }
+
+    /// Builds the domain with its model (no network: a remote model is first called when
+    /// used). Errors name the parameter under `domain`.
+    pub fn build(&self) -> Result<CustomDomain, InvalidSetting> {
+        let (state, action) = (self.state.space(), self.action.space());
+        let model: Arc<dyn DynamicsModel> = match &self.model {
+            ModelSpec::Remote { url, timeout_ms } => {
+                Arc::new(RemoteModel::new(url, *timeout_ms, state.dim()))
+            }
+            ModelSpec::Linear { a, b, c } => {
+                let c = c.clone().unwrap_or_else(|| vec![0.0; state.dim()]);
+                Arc::new(
+                    LinearModel::new(a.clone(), b.clone(), c, &state, &action)
+                        .map_err(|e| InvalidSetting::new(e.path_under("domain.model"), e.reason))?,
+                )
+            }
+            ModelSpec::Client {} => Arc::new(ClientModel),
+        };
+        let (n, m) = (state.dim(), action.dim());
+        let features = self.features.clone().unwrap_or(FeaturesSpec {
+            state: (0..n).collect(),
+            action: (0..m).collect(),
+        });
+        let params = CustomParams {
+            state,
+            action,
+            feature_state: features.state,
+            feature_action: features.action,
+            weights: self
+                .distance
+                .as_ref()
+                .map_or_else(|| vec![1.0; n], |d| d.weights.clone()),
+            goal_components: self
+                .goal
+                .components
+                .clone()
+                .unwrap_or_else(|| (0..n).collect()),
+            goal_radius: self.goal.radius,
+            obstacles: self
+                .obstacles
+                .iter()
+                .map(|o| BoxObstacle {
+                    low: o.low.clone(),
+                    high: o.high.clone(),
+                })
+                .collect(),
+            steer_samples: self.steer_samples,
+            rollout_length: self.rollout_length,
+        };
+        CustomDomain::new(params, model).map_err(invalid)
+    }
+}
