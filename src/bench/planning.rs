@@ -2,7 +2,7 @@
 //! the icy gridworld with the real MDE (the service's default GP) fitted on 1000 transitions of
 //! the true world, and a test-time plan, each timed (median over several runs) and printed.
 
-use crate::domain::{Domain, IcyGridworld, LocalModel};
+use crate::domain::{Domain, IcyGridworld, LabelledTransition, LocalModel, Transition};
 use crate::gp::{GpModel, GpParams};
 use crate::mde::{Estimator, ServedModel, training_data};
 use crate::planning::{
@@ -13,21 +13,9 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::{Duration, Instant};
 
-/// One executed transition of the true icy gridworld.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Transition {
-    /// State before.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// True next state.
-    pub s_next: Vec<f64>,
-    /// Its deviation label `d(f̂(s, a), s')`.
-    pub deviation: f64,
-}
-
-/// `n` transitions from uniformly drawn open cells and moves, executed in the true world.
-pub fn icy_transitions(grid: &IcyGridworld, n: usize, seed: u64) -> Vec<Transition> {
+/// `n` transitions from uniformly drawn open cells and moves, executed in the true world and
+/// labelled by the model.
+pub fn icy_transitions(grid: &IcyGridworld, n: usize, seed: u64) -> Vec<LabelledTransition> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut world = grid.world();
     let open = grid.open_cells();
@@ -36,12 +24,11 @@ pub fn icy_transitions(grid: &IcyGridworld, n: usize, seed: u64) -> Vec<Transiti
             let s = open[rng.random_range(0..open.len())].to_vec();
             let a = grid.sample_action(&s, &mut rng);
             let s_next = world.step(&s, &a);
-            let deviation = grid.deviation(&s, &a, &s_next);
-            Transition {
-                s,
-                a,
-                s_next,
-                deviation,
+            let s_pred = grid.predict(&s, &a);
+            LabelledTransition {
+                deviation: grid.distance(&s_pred, &s_next),
+                observed: Transition::new(s, a, s_next),
+                s_pred,
             }
         })
         .collect()
@@ -247,13 +234,21 @@ pub fn fitted_model(
     n: usize,
     seed: u64,
 ) -> Result<ServedModel, crate::gp::GpError> {
-    let data = icy_transitions(grid, n, seed);
+    fit_mde(grid, &icy_transitions(grid, n, seed), seed)
+}
+
+/// The service's MDE (default settings) fitted on `data`.
+pub fn fit_mde(
+    domain: &dyn Domain,
+    data: &[LabelledTransition],
+    seed: u64,
+) -> Result<ServedModel, crate::gp::GpError> {
     let features: Vec<f64> = data
         .iter()
-        .flat_map(|t| grid.features(&t.s, &t.a))
+        .flat_map(|t| domain.features(&t.observed.s, &t.observed.a))
         .collect();
     let labels: Vec<f64> = data.iter().map(|t| t.deviation).collect();
-    let (x, y) = training_data(features, labels, grid.feature_dim());
+    let (x, y) = training_data(features, labels, domain.feature_dim());
     let params = GpParams {
         seed,
         ..GpParams::default()
