@@ -1,6 +1,8 @@
 //! Test harness: a real server on a real socket over a real SQLite file in a temp dir.
 
 use precond::http::{AppState, HttpConfig, serve};
+use precond::remote_model::ModelUrlPolicy;
+use precond::service::Service;
 use precond::store::Store;
 use serde_json::{Value, json};
 use std::net::SocketAddr;
@@ -34,10 +36,27 @@ pub async fn spawn_app_with(db_path: &Path, config: HttpConfig) -> TestApp {
     let store = Store::open(db_path.to_str().unwrap())
         .await
         .expect("open store");
+    spawn_state(db_path, AppState::new(store, config)).await
+}
+
+/// Starts a server that allows remote dynamics models under `prefixes`.
+pub async fn spawn_app_allowing_models(db_path: &Path, prefixes: &[String]) -> TestApp {
+    let store = Store::open(db_path.to_str().unwrap())
+        .await
+        .expect("open store");
+    let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap());
+    spawn_state(
+        db_path,
+        AppState::with_service(service, HttpConfig::default()),
+    )
+    .await
+}
+
+async fn spawn_state(db_path: &Path, state: AppState) -> TestApp {
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
     let (tx, rx) = oneshot::channel::<()>();
-    let handle = tokio::spawn(serve(listener, AppState::new(store, config), async {
+    let handle = tokio::spawn(serve(listener, state, async {
         let _ = rx.await;
     }));
     TestApp {

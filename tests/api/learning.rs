@@ -356,6 +356,8 @@ async fn proposals_are_leases() {
         (409, "conflict"),
         "a lease is for one problem"
     );
+    assert_eq!(err["error"]["details"]["proposal_id"], first["id"], "{err}");
+    assert_eq!(err["error"]["details"]["client_id"], "robot-a");
 
     // Executing it closes the lease.
     let pid = first["id"].as_i64().unwrap();

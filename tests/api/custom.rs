@@ -1,0 +1,501 @@
+//! Custom domains: any robot's spaces, distance and goal, with its own model served over HTTP,
+//! given as a linear map, or kept on the client (candidates and client predictions).
+
+use crate::helpers::*;
+use crate::model_server::{self, ModelServer};
+use serde_json::{Value, json};
+use std::sync::atomic::Ordering;
+
+/// A robot in the unit square moving by at most 0.1 per axis; distance weights `[1, 4]`.
+fn plane(model: Value) -> Value {
+    json!({
+        "kind": "custom",
+        "state": {"names": ["x", "y"], "low": [0, 0], "high": [1, 1]},
+        "action": {"names": ["dx", "dy"], "low": [-0.1, -0.1], "high": [0.1, 0.1]},
+        "distance": {"weights": [1, 4]},
+        "goal": {"radius": 0.05},
+        "steer_samples": 8,
+        "model": model,
+    })
+}
+
+fn remote(server: &ModelServer, endpoint: &str) -> Value {
+    json!({"kind": "remote", "url": server.url(endpoint), "timeout_ms": 500})
+}
+
+async fn app_with_models(server: &ModelServer) -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    let app = spawn_app_allowing_models(&db, &[server.prefix()]).await;
+    (dir, app)
+}
+
+fn weighted(p: &[f64], o: &[f64]) -> f64 {
+    ((p[0] - o[0]).powi(2) + 4.0 * (p[1] - o[1]).powi(2)).sqrt()
+}
+
+#[tokio::test]
+async fn a_remote_model_labels_every_transition_in_one_call_with_the_declared_distance() {
+    let server = model_server::start().await;
+    let (_dir, app) = app_with_models(&server).await;
+    let (status, exp) = app
+        .post(
+            "/v1/experiments",
+            &json!({"domain": plane(remote(&server, "predict")), "d_max": 0.02}),
+        )
+        .await;
+    assert_eq!(status, 201, "{exp}");
+    // The resolved settings say what is used.
+    assert_eq!(
+        exp["domain"]["features"],
+        json!({"state": [0, 1], "action": [0, 1]})
+    );
+    assert_eq!(exp["domain"]["goal"]["components"], json!([0, 1]));
+    assert_eq!(exp["feature_names"], json!(["x", "y", "dx", "dy"]));
+    let id = exp["id"].as_i64().unwrap();
+    let transitions = [
+        ([0.2, 0.3], [0.05, 0.0], [0.26, 0.31]),
+        ([0.26, 0.31], [0.0, -0.1], [0.26, 0.21]),
+        ([0.9, 0.9], [0.1, 0.1], [0.95, 0.97]),
+    ];
+    let body = json!({"transitions": transitions
+        .iter()
+        .map(|(s, a, n)| json!({"s": s, "a": a, "s_next": n}))
+        .collect::<Vec<_>>()});
+    let (status, created) = app
+        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
+        .await;
+    assert_eq!(status, 201, "{created}");
+    assert_eq!(server.counts.calls.load(Ordering::Relaxed), 1);
+    assert_eq!(server.counts.points.load(Ordering::Relaxed), 3);
+    let stored = app.all_transitions(id).await;
+    for (k, (s, a, n)) in transitions.iter().enumerate() {
+        let pred = [s[0] + a[0], s[1] + a[1]];
+        let d = created["deviations"][k].as_f64().unwrap();
+        assert!(
+            (d - weighted(&pred, n)).abs() < 1e-12,
+            "transition {k}: {d}"
+        );
+        let s_pred: Vec<f64> = serde_json::from_value(stored[k]["s_pred"].clone()).unwrap();
+        assert!((s_pred[0] - pred[0]).abs() < 1e-12 && (s_pred[1] - pred[1]).abs() < 1e-12);
+    }
+}
+
+#[tokio::test]
+async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored() {
+    let server = model_server::start().await;
+    let (_dir, app) = app_with_models(&server).await;
+    for (endpoint, status, code_wanted) in [
+        ("slow", 504, "model_timeout"),
+        ("error", 502, "model_unavailable"),
+        ("short", 502, "model_unavailable"),
+        ("nan", 502, "model_unavailable"),
+    ] {
+        let id = app
+            .create_experiment(json!({"domain": plane(remote(&server, endpoint))}))
+            .await;
+        let (got, body) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &json!({"transitions": [{"s": [0.2, 0.2], "a": [0.1, 0], "s_next": [0.3, 0.2]}]}),
+            )
+            .await;
+        assert_eq!(
+            (got, code(&body)),
+            (status, code_wanted),
+            "{endpoint}: {body}"
+        );
+        assert_eq!(body["error"]["details"]["model"], server.url(endpoint));
+        let (got, body) = app
+            .post(
+                &format!("/v1/experiments/{id}/proposals"),
+                &json!({"start": [0.1, 0.1], "goal": [0.5, 0.5], "client_id": "robot"}),
+            )
+            .await;
+        assert_eq!(
+            (got, code(&body)),
+            (status, code_wanted),
+            "{endpoint}: {body}"
+        );
+        let (_, exp) = app.get(&format!("/v1/experiments/{id}")).await;
+        assert_eq!(
+            (
+                exp["n_trajectories"].as_i64(),
+                exp["n_transitions"].as_i64()
+            ),
+            (Some(0), Some(0)),
+            "{endpoint}"
+        );
+        let (got, _) = app.get(&format!("/v1/experiments/{id}/proposals/1")).await;
+        assert_eq!(got, 404, "{endpoint}: no proposal may be stored");
+    }
+}
+
+#[tokio::test]
+async fn model_urls_are_allowed_only_under_the_operators_prefixes() {
+    let server = model_server::start().await;
+    let (_dir, app) = app_with_models(&server).await;
+    let elsewhere = json!({"kind": "remote", "url": "http://10.0.0.9:9000/predict"});
+    let (status, body) = app
+        .post("/v1/experiments", &json!({"domain": plane(elsewhere)}))
+        .await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+    assert_eq!(body["error"]["details"]["field"], "domain.model.url");
+
+    let (_dir2, db2) = temp_db();
+    let closed = spawn_app(&db2).await;
+    let (status, body) = closed
+        .post(
+            "/v1/experiments",
+            &json!({"domain": plane(remote(&server, "predict"))}),
+        )
+        .await;
+    assert_eq!(status, 422, "{body}");
+    assert_eq!(body["error"]["details"]["field"], "domain.model.url");
+    assert!(
+        body["error"]["details"]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("--allow-model-url"),
+        "{body}"
+    );
+}
+
+#[tokio::test]
+async fn a_bad_custom_domain_is_refused_with_the_field_named() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let linear = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
+    let cases: Vec<(Value, &str)> = vec![
+        (
+            json!({"state": {"low": [0, 0], "high": [1]}}),
+            "domain.state.high",
+        ),
+        (
+            json!({"state": {"low": [0, 1], "high": [1, 1]}}),
+            "domain.state.high[1]",
+        ),
+        (
+            json!({"distance": {"weights": [0, 0]}}),
+            "domain.distance.weights",
+        ),
+        (
+            json!({"distance": {"weights": [1, -1]}}),
+            "domain.distance.weights[1]",
+        ),
+        (
+            json!({"goal": {"components": [2], "radius": 0.1}}),
+            "domain.goal.components[0]",
+        ),
+        (
+            json!({"features": {"state": [], "action": [5]}}),
+            "domain.features.action[0]",
+        ),
+        (
+            json!({"model": {"kind": "linear", "A": [[1, 0]], "B": [[1, 0], [0, 1]]}}),
+            "domain.model.A",
+        ),
+        (
+            json!({"obstacles": [{"low": [0], "high": [1]}]}),
+            "domain.obstacles[0]",
+        ),
+    ];
+    for (change, field) in cases {
+        let mut domain = plane(linear.clone());
+        for (k, v) in change.as_object().unwrap() {
+            domain[k] = v.clone();
+        }
+        let (status, body) = app
+            .post("/v1/experiments", &json!({"domain": domain}))
+            .await;
+        assert_eq!(
+            (status, code(&body)),
+            (422, "validation_failed"),
+            "{field}: {body}"
+        );
+        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+    }
+    // A missing field inside a tagged part is reported under `domain` (serde buffers tagged
+    // enums, so the inner path is lost), with the field in the reason.
+    let mut domain = plane(linear);
+    domain["model"] = json!({"kind": "remote"});
+    let (status, body) = app
+        .post("/v1/experiments", &json!({"domain": domain}))
+        .await;
+    assert_eq!(status, 422, "{body}");
+    assert_eq!(body["error"]["details"]["field"], "domain");
+    assert!(
+        body["error"]["details"]["reason"]
+            .as_str()
+            .unwrap()
+            .contains("`url`")
+    );
+    let (_, list) = app.get("/v1/experiments").await;
+    assert_eq!(list["items"].as_array().unwrap().len(), 0);
+}
+
+#[tokio::test]
+async fn a_linear_model_with_identities_labels_like_the_kinematic_shorthand() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let linear = app
+        .create_experiment(json!({"domain": plane(json!({
+            "kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}))}))
+        .await;
+    let kinematic = app
+        .create_experiment(json!({"domain": {"kind": "kinematic"}}))
+        .await;
+    let body = json!({"transitions": [
+        {"s": [0.95, 0.5], "a": [0.1, -0.05], "s_next": [1.0, 0.4]},
+        {"s": [1.0, 0.4], "a": [-0.1, 0.0], "s_next": [0.85, 0.4]}]});
+    let (_, a) = app
+        .post(&format!("/v1/experiments/{linear}/trajectories"), &body)
+        .await;
+    let (_, b) = app
+        .post(&format!("/v1/experiments/{kinematic}/trajectories"), &body)
+        .await;
+    let (a, b) = (&a["deviations"], &b["deviations"]);
+    // Both clip the prediction to the bounds; the custom distance weighs y by 4.
+    assert_eq!(a[1], b[1]);
+    let expected = weighted(&[1.0, 0.45], &[1.0, 0.4]);
+    assert!((a[0].as_f64().unwrap() - expected).abs() < 1e-12, "{a}");
+}
+
+#[tokio::test]
+async fn plans_respect_the_robots_own_validity_check() {
+    let server = model_server::start().await;
+    let (_dir, app) = app_with_models(&server).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": plane(remote(&server, "valid")),
+            "learning": {"n_candidates": 4, "max_extensions": 3000}}))
+        .await;
+    let (status, p) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{p}");
+    let states = p["trajectory"]["states"].as_array().unwrap();
+    assert!(states.len() > 2);
+    for s in &states[1..] {
+        let x = s[0].as_f64().unwrap();
+        assert!(
+            !(0.48..=0.52).contains(&x),
+            "a state the model called invalid: {s}"
+        );
+    }
+    // Rounds of edges go to the model together: far fewer calls than extensions.
+    let calls = server.counts.calls.load(Ordering::Relaxed);
+    assert!(
+        calls > 0 && calls < p["extensions"].as_u64().unwrap() as usize,
+        "{calls} calls"
+    );
+}
+
+#[tokio::test]
+async fn a_client_model_posts_its_predictions_and_its_candidates() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": plane(json!({"kind": "client"})),
+            "d_max": 0.05,
+            "learning": {"c": 1.5, "gamma": 0.8}}))
+        .await;
+    let path = format!("/v1/experiments/{id}/trajectories");
+    let (status, body) = app
+        .post(
+            &path,
+            &json!({"transitions": [{"s": [0.2, 0.2], "a": [0.1, 0], "s_next": [0.3, 0.2]}]}),
+        )
+        .await;
+    assert_eq!(status, 422, "{body}");
+    assert_eq!(body["error"]["details"]["field"], "transitions[0].s_pred");
+    let (status, body) = app
+        .post(
+            &path,
+            &json!({"transitions": [
+                {"s": [0.2, 0.2], "a": [0.1, 0], "s_next": [0.3, 0.2], "s_pred": [0.31, 0.22]}]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    let expected = weighted(&[0.31, 0.22], &[0.3, 0.2]);
+    assert!((body["deviations"][0].as_f64().unwrap() - expected).abs() < 1e-12);
+
+    // The service cannot plan with the client's model.
+    let problem = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1]});
+    for route in ["proposals", "plans"] {
+        let (status, body) = app
+            .post(&format!("/v1/experiments/{id}/{route}"), &problem)
+            .await;
+        assert_eq!(status, 422, "{body}");
+        assert_eq!(body["error"]["details"]["field"], "candidates");
+    }
+
+    // Candidates: the service scores every step and chooses the eligible one with least α.
+    let straight = json!({"states": [[0.1, 0.1], [0.2, 0.1], [0.3, 0.1]],
+                          "actions": [[0.1, 0], [0.1, 0]]});
+    let detour = json!({"states": [[0.1, 0.1], [0.1, 0.2], [0.2, 0.2], [0.3, 0.15], [0.3, 0.1]],
+                        "actions": [[0, 0.1], [0.1, 0], [0.1, -0.05], [0, -0.05]]});
+    let short = json!({"states": [[0.1, 0.1], [0.15, 0.1]], "actions": [[0.05, 0]]});
+    let request = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1], "client_id": "arm",
+                         "candidates": [straight, detour, short]});
+    let (status, p) = app
+        .post(&format!("/v1/experiments/{id}/proposals"), &request)
+        .await;
+    assert_eq!(status, 201, "{p}");
+    let candidates = p["candidates"].as_array().unwrap();
+    assert_eq!(candidates.len(), 3);
+    let (c, gamma, beta, d_max) = (1.5, 0.8, p["beta"].as_f64().unwrap(), 0.05);
+    let mut eligible = Vec::new();
+    for (k, cand) in candidates.iter().enumerate() {
+        let mu: Vec<f64> = serde_json::from_value(cand["mu"].clone()).unwrap();
+        let sigma: Vec<f64> = serde_json::from_value(cand["sigma"].clone()).unwrap();
+        // α = h_max of γ^t (μ_t − c σ_t), recomputed from what was returned.
+        let alpha = mu
+            .iter()
+            .zip(&sigma)
+            .enumerate()
+            .map(|(t, (m, s))| gamma_pow(gamma, t) * (m - c * s))
+            .fold(f64::NEG_INFINITY, f64::max);
+        assert!(
+            (alpha - cand["alpha"].as_f64().unwrap()).abs() < 1e-9,
+            "{cand}"
+        );
+        let inside = mu.iter().zip(&sigma).all(|(m, s)| m + beta * s < d_max);
+        assert_eq!(cand["inside"], inside, "{cand}");
+        if inside && cand["reaches_goal"] == true {
+            eligible.push((k, alpha));
+        }
+    }
+    assert_eq!(candidates[2]["reaches_goal"], false);
+    let best = eligible
+        .iter()
+        .min_by(|a, b| a.1.total_cmp(&b.1))
+        .expect("an eligible candidate")
+        .0;
+    assert_eq!(p["chosen_index"].as_u64(), Some(best as u64));
+    assert_eq!(
+        p["trajectory"]["states"],
+        request["candidates"][best]["states"]
+    );
+
+    // A bad candidate is refused with its field named.
+    let bad = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1],
+                     "candidates": [{"states": [[0.2, 0.1], [0.3, 0.1]], "actions": [[0.1, 0]]}]});
+    let (status, body) = app.post(&format!("/v1/experiments/{id}/plans"), &bad).await;
+    assert_eq!(status, 422, "{body}");
+    assert_eq!(body["error"]["details"]["field"], "candidates[0].states[0]");
+}
+
+fn gamma_pow(gamma: f64, t: usize) -> f64 {
+    gamma.powi(t as i32)
+}
+
+/// The true world of the learning test: `s' = s + a`, except on a sticky patch
+/// (`x ∈ [0.35, 0.65]`, `y < 0.6`) where the robot only makes a fifth of the commanded move.
+fn true_step(s: &[f64], a: &[f64]) -> Vec<f64> {
+    let sticky = (0.35..=0.65).contains(&s[0]) && s[1] < 0.6;
+    let k = if sticky { 0.2 } else { 1.0 };
+    s.iter()
+        .zip(a)
+        .map(|(x, d)| (x + k * d).clamp(0.0, 1.0))
+        .collect()
+}
+
+fn execute(states: &Value, actions: &Value) -> (Vec<Value>, Vec<f64>) {
+    let mut s: Vec<f64> = serde_json::from_value(states[0].clone()).unwrap();
+    let mut out = Vec::new();
+    for a in actions.as_array().unwrap() {
+        let a: Vec<f64> = serde_json::from_value(a.clone()).unwrap();
+        let next = true_step(&s, &a);
+        out.push(json!({"s": s, "a": a, "s_next": next}));
+        s = next;
+    }
+    (out, s)
+}
+
+#[tokio::test]
+async fn learning_with_a_remote_model_ends_with_plans_that_avoid_where_it_is_wrong() {
+    let server = model_server::start().await;
+    let (_dir, app) = app_with_models(&server).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": plane(remote(&server, "predict")),
+            "d_max": 0.05,
+            "seed": 7,
+            "mde": {"noise": "homoscedastic", "restarts": 0},
+            "learning": {"batch_size": 5, "iterations": 8, "n_candidates": 5,
+                         "max_extensions": 1500}}))
+        .await;
+    // Problems across the square, some of whose straight lines cross the sticky patch.
+    let problems: Vec<([f64; 2], [f64; 2])> = (0..40)
+        .map(|k| {
+            let y0 = 0.1 + 0.8 * ((k * 7) % 10) as f64 / 10.0;
+            let y1 = 0.1 + 0.8 * ((k * 3) % 10) as f64 / 10.0;
+            if k % 2 == 0 {
+                ([0.1, y0], [0.9, y1])
+            } else {
+                ([0.9, y0], [0.1, y1])
+            }
+        })
+        .collect();
+    for (start, goal) in &problems {
+        let (status, p) = app
+            .post(
+                &format!("/v1/experiments/{id}/proposals"),
+                &json!({"start": start, "goal": goal, "client_id": "robot"}),
+            )
+            .await;
+        if status == 422 && code(&p) == "no_plan" {
+            continue;
+        }
+        assert_eq!(status, 201, "{p}");
+        let (transitions, _) = execute(&p["trajectory"]["states"], &p["trajectory"]["actions"]);
+        let (status, body) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &json!({"proposal_id": p["id"], "transitions": transitions}),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, model) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 200, "{model}");
+    // Test time: across the patch's rows. A plan that is found must be one the true world
+    // executes within the tolerance (so it avoids the patch) and that reaches the goal.
+    let mut found = 0;
+    for y in [0.15, 0.3, 0.45] {
+        let (status, plan) = app
+            .post(
+                &format!("/v1/experiments/{id}/plans"),
+                &json!({"start": [0.1, y], "goal": [0.9, y]}),
+            )
+            .await;
+        assert_eq!(status, 200, "{plan}");
+        if plan["found"] != true {
+            continue;
+        }
+        found += 1;
+        let t = &plan["trajectory"];
+        let (executed, end) = execute(&t["states"], &t["actions"]);
+        for step in &executed {
+            let s: Vec<f64> = serde_json::from_value(step["s"].clone()).unwrap();
+            let next: Vec<f64> = serde_json::from_value(step["s_next"].clone()).unwrap();
+            let a: Vec<f64> = serde_json::from_value(step["a"].clone()).unwrap();
+            let pred = [s[0] + a[0], s[1] + a[1]];
+            assert!(
+                weighted(&pred, &next) < 0.02,
+                "a planned step the model gets wrong: {step}"
+            );
+        }
+        assert!(
+            ((end[0] - 0.9).powi(2) + (end[1] - y).powi(2)).sqrt() <= 0.05,
+            "{end:?}"
+        );
+    }
+    assert!(found >= 1, "no test plan found at all");
+}

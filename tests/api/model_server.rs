@@ -1,0 +1,120 @@
+//! A robot's dynamics model served over HTTP, as a lab would run it, on port 0 in the test:
+//! `POST /predict {"states", "actions"} → {"next_states"}` with `ŝ' = s + a` — and endpoints
+//! that misbehave in the ways a real model server can.
+
+use axum::Json;
+use axum::Router;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use axum::routing::post;
+use serde::Deserialize;
+use serde_json::json;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+#[derive(Deserialize)]
+struct Batch {
+    states: Vec<Vec<f64>>,
+    actions: Vec<Vec<f64>>,
+}
+
+fn step(b: &Batch) -> Vec<Vec<f64>> {
+    b.states
+        .iter()
+        .zip(&b.actions)
+        .map(|(s, a)| s.iter().zip(a).map(|(x, d)| x + d).collect())
+        .collect()
+}
+
+/// Calls and points received, per endpoint.
+#[derive(Debug, Default)]
+pub struct Counts {
+    /// Calls to `/predict` and `/valid`.
+    pub calls: AtomicUsize,
+    /// Points received by `/predict` and `/valid`.
+    pub points: AtomicUsize,
+}
+
+/// The running model server.
+pub struct ModelServer {
+    /// Its address.
+    pub addr: SocketAddr,
+    /// What `/predict` received.
+    pub counts: Arc<Counts>,
+}
+
+impl ModelServer {
+    /// The URL of one of its endpoints (`predict`, `slow`, `error`, `short`, `nan`,
+    /// `valid`).
+    pub fn url(&self, endpoint: &str) -> String {
+        format!("http://{}/{endpoint}", self.addr)
+    }
+
+    /// The prefix to allow.
+    pub fn prefix(&self) -> String {
+        format!("http://{}/", self.addr)
+    }
+}
+
+async fn predict(State(counts): State<Arc<Counts>>, Json(b): Json<Batch>) -> Response {
+    counts.calls.fetch_add(1, Ordering::Relaxed);
+    counts.points.fetch_add(b.states.len(), Ordering::Relaxed);
+    Json(json!({"next_states": step(&b)})).into_response()
+}
+
+/// `ŝ' = s + a`, but steps that end with `x` in `[0.48, 0.52]` are invalid (the robot's own
+/// collision check).
+async fn with_validity(State(counts): State<Arc<Counts>>, Json(b): Json<Batch>) -> Response {
+    counts.calls.fetch_add(1, Ordering::Relaxed);
+    counts.points.fetch_add(b.states.len(), Ordering::Relaxed);
+    let next = step(&b);
+    let valid: Vec<bool> = next
+        .iter()
+        .map(|s| !(0.48..=0.52).contains(&s[0]))
+        .collect();
+    Json(json!({"next_states": next, "valid": valid})).into_response()
+}
+
+async fn slow(Json(b): Json<Batch>) -> Response {
+    tokio::time::sleep(std::time::Duration::from_millis(1500)).await;
+    Json(json!({"next_states": step(&b)})).into_response()
+}
+
+async fn error() -> Response {
+    (StatusCode::INTERNAL_SERVER_ERROR, "model crashed").into_response()
+}
+
+async fn short(Json(b): Json<Batch>) -> Response {
+    let mut next = step(&b);
+    next.pop();
+    Json(json!({"next_states": next})).into_response()
+}
+
+async fn nan(Json(b): Json<Batch>) -> Response {
+    // What Python's json.dumps writes for float('nan').
+    let rows: Vec<String> = b.states.iter().map(|_| "[NaN, 0.5]".to_string()).collect();
+    (
+        [("content-type", "application/json")],
+        format!("{{\"next_states\": [{}]}}", rows.join(", ")),
+    )
+        .into_response()
+}
+
+/// Starts the model server on `127.0.0.1:0` for the rest of the test's runtime.
+pub async fn start() -> ModelServer {
+    let counts = Arc::new(Counts::default());
+    let app = Router::new()
+        .route("/predict", post(predict))
+        .route("/valid", post(with_validity))
+        .route("/slow", post(slow))
+        .route("/error", post(error))
+        .route("/short", post(short))
+        .route("/nan", post(nan))
+        .with_state(counts.clone());
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let addr = listener.local_addr().unwrap();
+    tokio::spawn(async move { axum::serve(listener, app).await });
+    ModelServer { addr, counts }
+}
