@@ -445,36 +445,283 @@ pub async fn run_one(
     spec: &RunSpec,
     progress: &ProgressBar,
 ) -> anyhow::Result<RunResult> {
-    let (strategy, seed) = (spec.strategy, spec.seed);
+    let name = format!(
+        "experiment {}, {}, seed {}",
+        cfg.domain.as_str(),
+        spec.strategy.as_str(),
+        spec.seed
+    );
     let exp = client
-        .create_experiment(&experiment_body(
-            cfg,
-            format!(
-                "experiment {}, {}, seed {seed}",
-                cfg.domain.as_str(),
-                strategy.as_str()
-            ),
-            strategy,
-            seed,
-        ))
+        .create_experiment(&experiment_body(cfg, name, spec.strategy, spec.seed))
         .await?;
-    let d_max = exp.settings.d_max;
-    let domain = bench.domain();
-    let mut world = bench.world();
-    let mut result = RunResult::default();
-    let mut posted: i64 = 0;
-    let mut executed_actions: Vec<Labelled> = Vec::new();
-    let tries = cfg.problem_tries.max(1);
-    let held_points: Vec<(&[f64], &[f64])> = spec
-        .held_out
-        .iter()
-        .map(|l| (l.t.s.as_slice(), l.t.a.as_slice()))
-        .collect();
+    let mut run = Run {
+        client,
+        bench,
+        cfg,
+        spec,
+        id: exp.id,
+        d_max: exp.settings.d_max,
+        world: bench.world(),
+        result: RunResult::default(),
+        posted: 0,
+        executed: Vec::new(),
+    };
     for j in 0..cfg.iterations {
         let started = Instant::now();
-        let mut rec = IterationRecord {
-            strategy,
+        let mut rec = IterationRecord::new(spec, cfg, j);
+        run.train_batch(&mut rec).await?;
+        run.refit(&mut rec).await?;
+        run.evaluate(&mut rec).await?;
+        run.judge_held_out(&mut rec).await?;
+        run.take_maps(j).await?;
+        rec.seconds = started.elapsed().as_secs_f64();
+        report(progress, &rec);
+        run.result.iterations.push(rec);
+    }
+    Ok(run.result)
+}
+
+/// The state of one run between its steps.
+struct Run<'a> {
+    client: &'a ApiClient,
+    bench: &'a Bench,
+    cfg: &'a Config,
+    spec: &'a RunSpec,
+    /// The run's experiment.
+    id: i64,
+    d_max: f64,
+    world: Box<dyn World>,
+    result: RunResult,
+    /// Trajectories posted so far.
+    posted: i64,
+    /// Every executed transition with its true deviation (for the precondition maps).
+    executed: Vec<Labelled>,
+}
+
+impl Run<'_> {
+    /// Training: one batch of `batch_size` slots.
+    async fn train_batch(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
+        let mut total_length = 0;
+        for slot in 0..self.cfg.batch_size {
+            let train = self.train_slot(rec, slot).await?;
+            rec.train_no_plan += train.no_plan;
+            if train.executed {
+                rec.train_trajectories += 1;
+                total_length += train.length;
+                rec.train_goal_reached += usize::from(train.goal_reached);
+                let k = PourType::ALL
+                    .iter()
+                    .position(|p| *p == train.pour_type)
+                    .unwrap_or(0);
+                rec.pour_types[k] += 1;
+            } else {
+                rec.train_skipped += 1;
+            }
+            self.result.training.push(train);
+        }
+        if rec.train_trajectories > 0 {
+            rec.mean_traj_length = Some(total_length as f64 / rec.train_trajectories as f64);
+        }
+        Ok(())
+    }
+
+    /// One slot: fresh problems until a proposal comes back (or `problem_tries` run out), then
+    /// execute it in the simulator and post it.
+    async fn train_slot(
+        &mut self,
+        rec: &mut IterationRecord,
+        slot: usize,
+    ) -> anyhow::Result<TrainingRecord> {
+        let (seed, j) = (self.spec.seed, rec.iteration);
+        let domain = self.bench.domain();
+        let mut train = TrainingRecord {
+            strategy: self.spec.strategy,
             seed,
+            iteration: j,
+            slot,
+            no_plan: 0,
+            executed: false,
+            length: 0,
+            goal_reached: false,
+            max_deviation: 0.0,
+            pour_type: PourType::NoPour,
+        };
+        let tries = self.cfg.problem_tries.max(1);
+        for t in 0..tries {
+            let key = (slot * tries + t) as u64;
+            let problem =
+                domain.sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
+            let proposed = self
+                .client
+                .propose(
+                    self.id,
+                    &problem.start,
+                    &problem.goal,
+                    Some("precond-experiment"),
+                    None,
+                )
+                .await?;
+            let p = match proposed {
+                Proposed::NoPlan => {
+                    train.no_plan += 1;
+                    continue;
+                }
+                Proposed::Trajectory(p) => p,
+            };
+            // (Within rounding: serde_json's default float parser may be off by an ulp.)
+            anyhow::ensure!(
+                p.content
+                    .trajectory
+                    .states
+                    .first()
+                    .is_some_and(|s0| close(s0, &problem.start)),
+                "proposal {} does not start at the problem's start {:?}",
+                p.proposal.id,
+                problem.start
+            );
+            self.world
+                .reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
+            let exec = execute(self.bench, self.world.as_mut(), &p.content.trajectory);
+            let transitions: Vec<Transition> = exec.steps.iter().map(|l| l.t.clone()).collect();
+            self.client
+                .post_trajectory(self.id, Some(p.proposal.id), transitions)
+                .await?;
+            self.posted += 1;
+            rec.beta_train = Some(p.proposal.terms.beta);
+            train.executed = true;
+            train.length = exec.steps.len();
+            train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
+            train.max_deviation = exec.steps.iter().map(|l| l.deviation).fold(0.0, f64::max);
+            train.pour_type = classify(self.bench, &exec);
+            rec.train_high_deviation += exec
+                .steps
+                .iter()
+                .filter(|l| l.deviation >= self.d_max)
+                .count();
+            self.executed.extend(exec.steps);
+            break;
+        }
+        Ok(train)
+    }
+
+    /// The refit: the service fits in the background after every complete batch; a batch cut
+    /// short by skipped slots is fitted on demand.
+    async fn refit(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
+        let batch = self.cfg.batch_size as i64;
+        let model = if self.posted == 0 {
+            self.client.model(self.id).await?
+        } else if self.posted % batch == 0 {
+            self.client
+                .wait_for_fit(self.id, self.posted, self.cfg.fit_timeout)
+                .await?
+        } else {
+            self.client.refit(self.id).await?
+        };
+        rec.n_train = model.n_train as i64;
+        rec.model_version = model.version;
+        rec.model_trajectories = model.n_trajectories;
+        Ok(())
+    }
+
+    /// Evaluation: the same fresh problems for every strategy at this seed and iteration, each
+    /// planned at test β and, if a plan is found, executed.
+    async fn evaluate(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
+        let (seed, j) = (self.spec.seed, rec.iteration as u64);
+        let domain = self.bench.domain();
+        for k in 0..self.cfg.test_problems {
+            let problem =
+                domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j, k as u64));
+            let plan = self
+                .client
+                .plan(self.id, &problem.start, &problem.goal)
+                .await?;
+            let mut test = TestRecord {
+                strategy: self.spec.strategy,
+                seed,
+                iteration: rec.iteration,
+                problem: k,
+                start: problem.start.clone(),
+                goal: problem.goal.clone(),
+                found: false,
+                extensions: plan.extensions as u64,
+                plan_length: 0,
+                success: false,
+            };
+            if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
+                test.found = true;
+                test.plan_length = traj.actions.len();
+                self.world
+                    .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
+                let exec = execute(self.bench, self.world.as_mut(), traj);
+                test.success = domain.is_goal(&exec.final_state, &problem.goal);
+            }
+            rec.plans_found += usize::from(test.found);
+            rec.successes += usize::from(test.success);
+            self.result.tests.push(test);
+        }
+        if self.cfg.test_problems > 0 {
+            rec.plan_found_rate = rec.plans_found as f64 / self.cfg.test_problems as f64;
+            rec.success_rate = rec.successes as f64 / self.cfg.test_problems as f64;
+        }
+        Ok(())
+    }
+
+    /// TPR and TNR of the precondition on the held-out transitions.
+    async fn judge_held_out(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
+        let held = &self.spec.held_out;
+        if held.is_empty() {
+            return Ok(());
+        }
+        let points: Vec<(&[f64], &[f64])> = held
+            .iter()
+            .map(|l| (l.t.s.as_slice(), l.t.a.as_slice()))
+            .collect();
+        let judged = self.client.precondition(self.id, &points).await?;
+        for (l, j) in held.iter().zip(&judged) {
+            if l.deviation < self.d_max {
+                rec.held_out_low += 1;
+                rec.true_positives += usize::from(j.inside);
+            } else {
+                rec.held_out_high += 1;
+                rec.true_negatives += usize::from(!j.inside);
+            }
+        }
+        rec.tpr = ratio(rec.true_positives, rec.held_out_low);
+        rec.tnr = ratio(rec.true_negatives, rec.held_out_high);
+        Ok(())
+    }
+
+    /// The precondition maps of the designated run (water plant) at the chosen iterations.
+    async fn take_maps(&mut self, j: usize) -> anyhow::Result<()> {
+        let Bench::Plant(plant) = self.bench else {
+            return Ok(());
+        };
+        if !self.spec.maps || !self.cfg.map_iterations.contains(&j) {
+            return Ok(());
+        }
+        for kind in [MapKind::Translation, MapKind::Rotation] {
+            let map = precondition_map(
+                self.client,
+                self.id,
+                plant,
+                self.cfg,
+                j,
+                kind,
+                &self.executed,
+            )
+            .await?;
+            self.result.maps.push(map);
+        }
+        Ok(())
+    }
+}
+
+impl IterationRecord {
+    /// An empty record of iteration `j`.
+    fn new(spec: &RunSpec, cfg: &Config, j: usize) -> Self {
+        Self {
+            strategy: spec.strategy,
+            seed: spec.seed,
             iteration: j,
             beta_train: None,
             train_trajectories: 0,
@@ -500,183 +747,40 @@ pub async fn run_one(
             tnr: None,
             pour_types: [0; 5],
             seconds: 0.0,
-        };
-        let mut total_length = 0;
-        // Training: one batch.
-        for slot in 0..cfg.batch_size {
-            let mut train = TrainingRecord {
-                strategy,
-                seed,
-                iteration: j,
-                slot,
-                no_plan: 0,
-                executed: false,
-                length: 0,
-                goal_reached: false,
-                max_deviation: 0.0,
-                pour_type: PourType::NoPour,
-            };
-            for t in 0..tries {
-                let key = (slot * tries + t) as u64;
-                let problem =
-                    domain.sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
-                let p = match client
-                    .propose(
-                        exp.id,
-                        &problem.start,
-                        &problem.goal,
-                        Some("precond-experiment"),
-                        None,
-                    )
-                    .await?
-                {
-                    Proposed::NoPlan => {
-                        train.no_plan += 1;
-                        continue;
-                    }
-                    Proposed::Trajectory(p) => p,
-                };
-                // (Within rounding: serde_json's default float parser may be off by an ulp.)
-                anyhow::ensure!(
-                    p.content
-                        .trajectory
-                        .states
-                        .first()
-                        .is_some_and(|s0| s0.len() == problem.start.len()
-                            && s0
-                                .iter()
-                                .zip(&problem.start)
-                                .all(|(a, b)| (a - b).abs() <= 1e-9 * (1.0 + b.abs()))),
-                    "proposal {} does not start at the problem's start {:?}",
-                    p.proposal.id,
-                    problem.start
-                );
-                world.reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
-                let exec = execute(bench, world.as_mut(), &p.content.trajectory);
-                let transitions: Vec<Transition> = exec.steps.iter().map(|l| l.t.clone()).collect();
-                client
-                    .post_trajectory(exp.id, Some(p.proposal.id), transitions)
-                    .await?;
-                posted += 1;
-                rec.beta_train = Some(p.proposal.terms.beta);
-                train.executed = true;
-                train.length = exec.steps.len();
-                train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
-                train.max_deviation = exec.steps.iter().map(|l| l.deviation).fold(0.0, f64::max);
-                train.pour_type = classify(bench, &exec);
-                rec.train_high_deviation +=
-                    exec.steps.iter().filter(|l| l.deviation >= d_max).count();
-                executed_actions.extend(exec.steps);
-                break;
-            }
-            rec.train_no_plan += train.no_plan;
-            if train.executed {
-                rec.train_trajectories += 1;
-                total_length += train.length;
-                rec.train_goal_reached += usize::from(train.goal_reached);
-                let k = PourType::ALL
-                    .iter()
-                    .position(|p| *p == train.pour_type)
-                    .unwrap_or(0);
-                rec.pour_types[k] += 1;
-            } else {
-                rec.train_skipped += 1;
-            }
-            result.training.push(train);
         }
-        if rec.train_trajectories > 0 {
-            rec.mean_traj_length = Some(total_length as f64 / rec.train_trajectories as f64);
-        }
-        // The refit: the service fits in the background after every complete batch.
-        let model = if posted == 0 {
-            client.model(exp.id).await?
-        } else if posted % cfg.batch_size as i64 == 0 {
-            client.wait_for_fit(exp.id, posted, cfg.fit_timeout).await?
-        } else {
-            client.refit(exp.id).await?
-        };
-        rec.n_train = model.n_train as i64;
-        rec.model_version = model.version;
-        rec.model_trajectories = model.n_trajectories;
-        // Evaluation: the same fresh problems for every strategy at this seed and iteration.
-        for k in 0..cfg.test_problems {
-            let problem =
-                domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j as u64, k as u64));
-            let plan = client.plan(exp.id, &problem.start, &problem.goal).await?;
-            let mut test = TestRecord {
-                strategy,
-                seed,
-                iteration: j,
-                problem: k,
-                start: problem.start.clone(),
-                goal: problem.goal.clone(),
-                found: false,
-                extensions: plan.extensions as u64,
-                plan_length: 0,
-                success: false,
-            };
-            if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
-                test.found = true;
-                test.plan_length = traj.actions.len();
-                world.reset(&mut stream(seed, purpose::TEST_EPISODE, j as u64, k as u64));
-                let exec = execute(bench, world.as_mut(), traj);
-                test.success = domain.is_goal(&exec.final_state, &problem.goal);
-            }
-            rec.plans_found += usize::from(test.found);
-            rec.successes += usize::from(test.success);
-            result.tests.push(test);
-        }
-        if cfg.test_problems > 0 {
-            rec.plan_found_rate = rec.plans_found as f64 / cfg.test_problems as f64;
-            rec.success_rate = rec.successes as f64 / cfg.test_problems as f64;
-        }
-        if !held_points.is_empty() {
-            let judged = client.precondition(exp.id, &held_points).await?;
-            for (l, j) in spec.held_out.iter().zip(&judged) {
-                if l.deviation < d_max {
-                    rec.held_out_low += 1;
-                    rec.true_positives += usize::from(j.inside);
-                } else {
-                    rec.held_out_high += 1;
-                    rec.true_negatives += usize::from(!j.inside);
-                }
-            }
-            rec.tpr = ratio(rec.true_positives, rec.held_out_low);
-            rec.tnr = ratio(rec.true_negatives, rec.held_out_high);
-        }
-        if spec.maps
-            && cfg.map_iterations.contains(&j)
-            && let Bench::Plant(plant) = bench
-        {
-            for kind in [MapKind::Translation, MapKind::Rotation] {
-                result.maps.push(
-                    precondition_map(client, exp.id, plant, cfg, j, kind, &executed_actions)
-                        .await?,
-                );
-            }
-        }
-        rec.seconds = started.elapsed().as_secs_f64();
-        progress.inc(1);
-        let line = format!(
-            "{} seed {seed} iteration {j}: plan found {:.2}, success {:.2}, TPR {}, TNR {}, \
-             n_train {}, no_plan {}, {:.1} s",
-            strategy.as_str(),
-            rec.plan_found_rate,
-            rec.success_rate,
-            fmt_opt(rec.tpr),
-            fmt_opt(rec.tnr),
-            rec.n_train,
-            rec.train_no_plan,
-            rec.seconds
-        );
-        if progress.is_hidden() {
-            eprintln!("{line}");
-        } else {
-            progress.set_message(line);
-        }
-        result.iterations.push(rec);
     }
-    Ok(result)
+}
+
+/// Whether two states agree within rounding.
+fn close(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .zip(b)
+            .all(|(x, y)| (x - y).abs() <= 1e-9 * (1.0 + y.abs()))
+}
+
+/// One line of progress per iteration: on the bar, or on stderr when the bar is hidden.
+fn report(progress: &ProgressBar, rec: &IterationRecord) {
+    progress.inc(1);
+    let line = format!(
+        "{} seed {} iteration {}: plan found {:.2}, success {:.2}, TPR {}, TNR {}, \
+         n_train {}, no_plan {}, {:.1} s",
+        rec.strategy.as_str(),
+        rec.seed,
+        rec.iteration,
+        rec.plan_found_rate,
+        rec.success_rate,
+        fmt_opt(rec.tpr),
+        fmt_opt(rec.tnr),
+        rec.n_train,
+        rec.train_no_plan,
+        rec.seconds
+    );
+    if progress.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        progress.set_message(line);
+    }
 }
 
 fn fmt_opt(v: Option<f64>) -> String {
