@@ -15,10 +15,12 @@
 //! directory; `--server URL` drives a running one instead.
 
 pub mod client;
+pub mod layouts;
 pub mod plot;
 pub mod protocol;
 pub mod report;
 
+use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::planning::Strategy;
 use crate::store::Store;
@@ -26,6 +28,7 @@ use anyhow::Context;
 use clap::ValueEnum;
 use client::ApiClient;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use layouts::Layout;
 use protocol::{Bench, Labelled, RunResult, RunSpec};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -57,6 +60,11 @@ impl DomainKind {
 fn parse_strategy(s: &str) -> Result<Strategy, String> {
     s.parse()
         .map_err(|e: crate::planning::PlanningError| e.to_string())
+}
+
+fn parse_noise(s: &str) -> Result<NoiseMode, String> {
+    serde_json::from_value(serde_json::Value::String(s.into()))
+        .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
 }
 
 /// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`
@@ -112,6 +120,45 @@ pub struct ExperimentArgs {
     /// No progress bar.
     #[arg(long)]
     pub no_progress: bool,
+    /// Gridworld: run on the map in this file (rows of `.`, `#`, `~`, row y = 0 first) instead
+    /// of the default map. Repeatable.
+    #[arg(long = "map", value_name = "FILE")]
+    pub maps: Vec<PathBuf>,
+    /// Gridworld: also run on N seeded random maps (`random-0` … `random-{N-1}`: sides of
+    /// 10–20, a wall with gaps, ice bands, obstacle blocks). Each layout's results go to
+    /// `<out>/icy_gridworld/<layout>/`, and `layouts.csv` compares them.
+    #[arg(long, default_value_t = 0)]
+    pub random_maps: usize,
+    /// The MDE's noise model (`homoscedastic` or `heteroscedastic`). Default: the service's.
+    #[arg(long, value_parser = parse_noise)]
+    pub noise: Option<NoiseMode>,
+}
+
+impl ExperimentArgs {
+    /// The gridworld layouts to run: the files given with `--map` (or the default map when there
+    /// are none), then the random ones. Empty for the water plant.
+    pub fn layouts(&self) -> anyhow::Result<Vec<Layout>> {
+        if self.domain != DomainKind::IcyGridworld {
+            anyhow::ensure!(
+                self.maps.is_empty() && self.random_maps == 0,
+                "--map and --random-maps are for --domain icy_gridworld"
+            );
+            return Ok(Vec::new());
+        }
+        let mut out = Vec::new();
+        for path in &self.maps {
+            out.push(Layout::from_file(path)?);
+        }
+        if out.is_empty() {
+            out.push(Layout::default_map());
+        }
+        out.extend((0..self.random_maps as u64).map(Layout::random));
+        let mut names = std::collections::HashSet::new();
+        for l in &out {
+            anyhow::ensure!(names.insert(&l.name), "two layouts are named {:?}", l.name);
+        }
+        Ok(out)
+    }
 }
 
 /// The resolved settings of a harness run (recorded in the summary).
@@ -119,6 +166,10 @@ pub struct ExperimentArgs {
 pub struct Config {
     /// The world.
     pub domain: DomainKind,
+    /// The gridworld layout (`None`: the default map, or the water plant).
+    pub layout: Option<Layout>,
+    /// The MDE's noise model (`None`: the service's default).
+    pub noise: Option<NoiseMode>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -175,6 +226,8 @@ impl Config {
         };
         let cfg = Self {
             domain: args.domain,
+            layout: None,
+            noise: args.noise,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,
@@ -204,6 +257,13 @@ impl Config {
     }
 }
 
+impl Config {
+    /// The layout's name (`default` for the default map and for the water plant).
+    pub fn layout_name(&self) -> &str {
+        self.layout.as_ref().map_or("default", |l| &l.name)
+    }
+}
+
 /// Every measurement of a harness run.
 #[derive(Debug, Clone)]
 pub struct Results {
@@ -220,12 +280,42 @@ pub struct Results {
 }
 
 /// Runs `precond experiment`: starts the service unless `--server` is given, runs the
-/// protocol, writes the CSVs, the summary and the plots to `<out>/<domain>/`, and returns the
-/// directory.
+/// protocol on every layout, writes the CSVs, the summary and the plots to `<out>/<domain>/`
+/// (one subdirectory per layout when there are several, with `layouts.csv` beside them), and
+/// returns the directory.
 pub async fn run(args: ExperimentArgs) -> anyhow::Result<PathBuf> {
-    let cfg = Config::from_args(&args)?;
-    let dir = args.out.join(cfg.domain.as_str());
-    std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let base = Config::from_args(&args)?;
+    let layouts = args.layouts()?;
+    let top = args.out.join(base.domain.as_str());
+    let nested = layouts.len() > 1 || layouts.first().is_some_and(|l| l.name != "default");
+    let mut all = Vec::new();
+    for layout in layouts
+        .iter()
+        .map(Some)
+        .chain(layouts.is_empty().then_some(None))
+    {
+        let cfg = Config {
+            layout: layout.cloned(),
+            ..base.clone()
+        };
+        let dir = match layout {
+            Some(l) if nested => top.join(&l.name),
+            _ => top.clone(),
+        };
+        if nested {
+            eprintln!("layout {}", cfg.layout_name());
+        }
+        all.push(run_layout(&args, cfg, &dir).await?);
+    }
+    if nested {
+        report::write_layouts(&top, &all)?;
+    }
+    Ok(top)
+}
+
+/// Runs the protocol for one layout and writes its files to `dir`.
+async fn run_layout(args: &ExperimentArgs, cfg: Config, dir: &Path) -> anyhow::Result<Results> {
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let started = Instant::now();
     let results = match &args.server {
         Some(url) => {
@@ -247,15 +337,15 @@ pub async fn run(args: ExperimentArgs) -> anyhow::Result<PathBuf> {
         seconds: started.elapsed().as_secs_f64(),
         ..results
     };
-    report::write_all(&dir, &results)?;
-    plot::write_all(&dir, &results)?;
+    report::write_all(dir, &results)?;
+    plot::write_all(dir, &results)?;
     eprintln!(
         "{} runs in {:.0} s; results in {}",
         results.runs.len(),
         results.seconds,
         dir.display()
     );
-    Ok(dir)
+    Ok(results)
 }
 
 /// Logs to stderr at `warn` unless `RUST_LOG` says otherwise (the in-process service would
@@ -321,7 +411,7 @@ async fn run_protocol(
     cfg: &Config,
     show_progress: bool,
 ) -> anyhow::Result<Results> {
-    let bench = Arc::new(Bench::new(cfg.domain));
+    let bench = Arc::new(Bench::new(cfg.domain, cfg.layout.as_ref())?);
     let n_runs = cfg.strategies.len() * cfg.seeds;
     let progress = if show_progress {
         ProgressBar::with_draw_target(

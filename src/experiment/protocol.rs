@@ -23,13 +23,14 @@
 //! iteration (and the service's batches then no longer align with the harness's iterations).
 
 use super::client::{ApiClient, Proposed};
+use super::layouts::Layout;
 use super::{Config, DomainKind};
 use crate::api::{ExperimentRequest, PlannedTrajectory};
 use crate::domain::Transition;
 use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
-use crate::domain::{IcyGridworld, LocalModel, WaterPlant};
+use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES, Problem, WaterPlant};
 use crate::planning::Strategy;
-use crate::settings::{DomainSpec, LearningSettings};
+use crate::settings::{DomainSpec, LearningSettings, MdeSettings};
 use crate::sim::{Simulated, World};
 use indicatif::ProgressBar;
 use rand::SeedableRng;
@@ -50,12 +51,46 @@ pub enum Bench {
 }
 
 impl Bench {
-    /// The world of `kind` with its defaults.
-    pub fn new(kind: DomainKind) -> Self {
-        match kind {
-            DomainKind::IcyGridworld => Self::Grid(IcyGridworld::default_layout()),
+    /// The world of `kind`: the gridworld on `layout` (default: the documented map), the
+    /// water plant in its default scene.
+    pub fn new(kind: DomainKind, layout: Option<&Layout>) -> anyhow::Result<Self> {
+        Ok(match kind {
+            DomainKind::IcyGridworld => Self::Grid(match layout {
+                Some(l) => IcyGridworld::new(&l.map)
+                    .map_err(|e| anyhow::anyhow!("layout {}: {e}", l.name))?,
+                None => IcyGridworld::default_layout(),
+            }),
             DomainKind::WaterPlant => Self::Plant(WaterPlant::default()),
+        })
+    }
+
+    /// Whether `problem` can be solved inside the *true* precondition (every step's true
+    /// deviation below `d_max`): a breadth-first search over the gridworld's true dynamics.
+    /// `None` for the water plant, whose episodes vary and whose action space is continuous.
+    pub fn oracle(&self, problem: &Problem, d_max: f64) -> Option<bool> {
+        let Self::Grid(g) = self else {
+            return None;
+        };
+        let mut world = g.world();
+        let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
+        let mut seen = std::collections::HashSet::from([key(&problem.start)]);
+        let mut queue = std::collections::VecDeque::from([problem.start.clone()]);
+        while let Some(s) = queue.pop_front() {
+            if g.is_goal(&s, &problem.goal) {
+                return Some(true);
+            }
+            for m in MOVES {
+                let pred = g.predict(&s, &m);
+                if !g.edge_allowed(&s, &m, &pred) {
+                    continue;
+                }
+                let next = world.step(&s, &m);
+                if g.deviation(&s, &m, &next) < d_max && seen.insert(key(&next)) {
+                    queue.push_back(next);
+                }
+            }
         }
+        Some(false)
     }
 
     /// The domain, with its model run in-process.
@@ -218,13 +253,20 @@ pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
 /// The request that creates the experiment of one run.
 fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) -> ExperimentRequest {
     let domain = match cfg.domain {
-        DomainKind::IcyGridworld => DomainSpec::default(),
+        DomainKind::IcyGridworld => match &cfg.layout {
+            Some(l) => DomainSpec::IcyGridworld { map: l.map.clone() },
+            None => DomainSpec::default(),
+        },
         DomainKind::WaterPlant => DomainSpec::WaterPlant {},
     };
     ExperimentRequest {
         name,
         domain,
         seed,
+        mde: MdeSettings {
+            noise: cfg.noise.unwrap_or(MdeSettings::default().noise),
+            ..MdeSettings::default()
+        },
         learning: LearningSettings {
             strategy,
             batch_size: cfg.batch_size as u32,
@@ -310,6 +352,10 @@ pub struct IterationRecord {
     pub plans_found: usize,
     /// Test problems whose plan, executed, reached the goal.
     pub successes: usize,
+    /// Test problems solvable inside the true precondition (gridworld; 0 where unknown).
+    pub oracle_solvable: usize,
+    /// `oracle_solvable / test_problems`, where the oracle is known.
+    pub oracle_rate: Option<f64>,
     /// `plans_found / test_problems`.
     pub plan_found_rate: f64,
     /// `successes / test_problems`.
@@ -382,6 +428,8 @@ pub struct TestRecord {
     pub plan_length: usize,
     /// The executed plan reached the goal.
     pub success: bool,
+    /// The problem is solvable inside the true precondition (`None` where that is unknown).
+    pub oracle: Option<bool>,
 }
 
 /// Which slice of the water plant's action space a precondition map shows.
@@ -628,6 +676,7 @@ impl Run<'_> {
     async fn evaluate(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
         let (seed, j) = (self.spec.seed, rec.iteration as u64);
         let domain = self.bench.domain();
+        let mut known_oracle = false;
         for k in 0..self.cfg.test_problems {
             let problem =
                 domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j, k as u64));
@@ -646,6 +695,7 @@ impl Run<'_> {
                 extensions: plan.extensions as u64,
                 plan_length: 0,
                 success: false,
+                oracle: self.bench.oracle(&problem, self.d_max),
             };
             if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
                 test.found = true;
@@ -657,11 +707,15 @@ impl Run<'_> {
             }
             rec.plans_found += usize::from(test.found);
             rec.successes += usize::from(test.success);
+            rec.oracle_solvable += usize::from(test.oracle == Some(true));
+            known_oracle |= test.oracle.is_some();
             self.result.tests.push(test);
         }
         if self.cfg.test_problems > 0 {
             rec.plan_found_rate = rec.plans_found as f64 / self.cfg.test_problems as f64;
             rec.success_rate = rec.successes as f64 / self.cfg.test_problems as f64;
+            rec.oracle_rate =
+                known_oracle.then(|| rec.oracle_solvable as f64 / self.cfg.test_problems as f64);
         }
         Ok(())
     }
@@ -736,6 +790,8 @@ impl IterationRecord {
             test_problems: cfg.test_problems,
             plans_found: 0,
             successes: 0,
+            oracle_solvable: 0,
+            oracle_rate: None,
             plan_found_rate: 0.0,
             success_rate: 0.0,
             held_out: spec.held_out.len(),

@@ -13,9 +13,11 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 14] = [
+pub const METRICS: [&str; 16] = [
     "plan_found_rate",
     "success_rate",
+    "oracle_rate",
+    "success_of_oracle",
     "tpr",
     "tnr",
     "train_no_plan",
@@ -31,8 +33,9 @@ pub const METRICS: [&str; 14] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 32] = [
+pub const ITERATION_COLUMNS: [&str; 35] = [
     "domain",
+    "layout",
     "strategy",
     "seed",
     "iteration",
@@ -51,6 +54,8 @@ pub const ITERATION_COLUMNS: [&str; 32] = [
     "successes",
     "plan_found_rate",
     "success_rate",
+    "oracle_solvable",
+    "oracle_rate",
     "held_out",
     "held_out_low",
     "held_out_high",
@@ -76,6 +81,10 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
     match metric {
         "plan_found_rate" => Some(r.plan_found_rate),
         "success_rate" => Some(r.success_rate),
+        "oracle_rate" => r.oracle_rate,
+        "success_of_oracle" => {
+            (r.oracle_solvable > 0).then(|| r.successes as f64 / r.oracle_solvable as f64)
+        }
         "tpr" => r.tpr,
         "tnr" => r.tnr,
         "train_no_plan" => Some(r.train_no_plan as f64),
@@ -139,10 +148,12 @@ fn write(path: &Path, text: &str) -> anyhow::Result<()> {
 /// Writes every file of a run into `dir`.
 pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     let domain = results.config.domain.as_str();
+    let layout = results.config.layout_name();
     let mut csv = ITERATION_COLUMNS.join(",") + "\n";
     for r in results.runs.iter().flat_map(|run| &run.iterations) {
         let row: Vec<String> = vec![
             domain.to_string(),
+            layout.to_string(),
             r.strategy.as_str().to_string(),
             r.seed.to_string(),
             r.iteration.to_string(),
@@ -161,6 +172,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.successes.to_string(),
             r.plan_found_rate.to_string(),
             r.success_rate.to_string(),
+            r.oracle_solvable.to_string(),
+            opt(r.oracle_rate),
             r.held_out.to_string(),
             r.held_out_low.to_string(),
             r.held_out_high.to_string(),
@@ -200,7 +213,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     write(&dir.join("training.csv"), &csv)?;
 
     let mut csv = String::from(
-        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success\n",
+        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle\n",
     );
     let vector = |v: &[f64]| {
         v.iter()
@@ -211,7 +224,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
@@ -221,7 +234,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             t.found,
             t.extensions,
             t.plan_length,
-            t.success
+            t.success,
+            t.oracle.map_or_else(String::new, |o| o.to_string())
         );
     }
     write(&dir.join("tests.csv"), &csv)?;
@@ -237,6 +251,76 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
         write(&dir.join("maps.json"), &serde_json::to_string(&maps)?)?;
     }
     Ok(())
+}
+
+/// The metrics `layouts.csv` compares.
+pub const LAYOUT_METRICS: [&str; 7] = [
+    "success_rate",
+    "plan_found_rate",
+    "oracle_rate",
+    "success_of_oracle",
+    "tpr",
+    "tnr",
+    "n_train",
+];
+
+/// Writes `layouts.csv` into `dir`: per layout (and `all`, pooling every layout's runs),
+/// strategy and iteration, the mean and standard error over seeds of [`LAYOUT_METRICS`]; and
+/// prints the last iteration's success against the oracle per layout and strategy.
+pub fn write_layouts(dir: &Path, all: &[Results]) -> anyhow::Result<()> {
+    let mut csv = String::from("layout,strategy,iteration,n");
+    for m in LAYOUT_METRICS {
+        let _ = write!(csv, ",{m},{m}_se");
+    }
+    csv.push('\n');
+    let Some(first) = all.first() else {
+        return write(&dir.join("layouts.csv"), &csv);
+    };
+    let cfg = &first.config;
+    let mut groups: Vec<(&str, Vec<&Results>)> = all
+        .iter()
+        .map(|r| (r.config.layout_name(), vec![r]))
+        .collect();
+    groups.push(("all", all.iter().collect()));
+    for (name, results) in &groups {
+        for &s in &cfg.strategies {
+            let mut per_iteration = vec![Vec::new(); cfg.iterations];
+            for r in results {
+                for (j, g) in by_iteration(r, s).into_iter().enumerate() {
+                    per_iteration[j].extend(g);
+                }
+            }
+            for (j, recs) in per_iteration.iter().enumerate() {
+                let _ = write!(csv, "{name},{},{j},{}", s.as_str(), recs.len());
+                for m in LAYOUT_METRICS {
+                    match mean_se(recs.iter().map(|r| metric(r, m))) {
+                        Some((mean, se, _)) => {
+                            let _ = write!(csv, ",{mean},{se}");
+                        }
+                        None => csv.push_str(",,"),
+                    }
+                }
+                csv.push('\n');
+                if j + 1 == cfg.iterations {
+                    let success = mean_se(recs.iter().map(|r| metric(r, "success_rate")));
+                    let oracle = mean_se(recs.iter().map(|r| metric(r, "oracle_rate")));
+                    let tnr = mean_se(recs.iter().map(|r| metric(r, "tnr")));
+                    eprintln!(
+                        "{name:>10} {:<16} iteration {j}: success {} of oracle {}, TNR {}",
+                        s.as_str(),
+                        fmt_stat(success),
+                        fmt_stat(oracle),
+                        fmt_stat(tnr)
+                    );
+                }
+            }
+        }
+    }
+    write(&dir.join("layouts.csv"), &csv)
+}
+
+fn fmt_stat(s: Option<(f64, f64, usize)>) -> String {
+    s.map_or_else(|| "-".into(), |(m, se, _)| format!("{m:.2} ± {se:.2}"))
 }
 
 /// The JSON summary: settings, run time, and per strategy per metric a list over iterations of
@@ -274,6 +358,7 @@ pub fn summary(results: &Results) -> Value {
     }
     json!({
         "domain": cfg.domain.as_str(),
+        "layout": cfg.layout_name(),
         "config": cfg,
         "server": results.server,
         "seconds": results.seconds,
