@@ -59,6 +59,7 @@ pub struct Kinematic {
     params: KinematicParams,
     state_space: Space,
     action_space: Space,
+    rollout_length: usize,
 }
 
 /// Points checked along each edge by the approximate collision check.
@@ -160,11 +161,46 @@ impl Kinematic {
             high: params.action_high.clone(),
             values: None,
         };
-        Ok(Self {
+        let mut domain = Self {
             params,
             state_space,
             action_space,
-        })
+            rollout_length: 1,
+        };
+        domain.rollout_length = domain.typical_path_steps();
+        Ok(domain)
+    }
+
+    /// The steps of a straight, full-speed path between the start and goal of a random problem,
+    /// averaged over 256 seeded problems and rounded: the length of a `random` rollout, so that
+    /// every strategy executes about as many transitions per trajectory as a goal-reaching one.
+    fn typical_path_steps(&self) -> usize {
+        use rand::SeedableRng;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0x726f_6c6c);
+        let n = 256;
+        let total: f64 = (0..n)
+            .map(|_| {
+                let p = self.sample_problem(&mut rng);
+                p.start
+                    .iter()
+                    .zip(&p.goal)
+                    .enumerate()
+                    .map(|(i, (s, g))| {
+                        let limit = if g > s {
+                            self.action_space.high[i]
+                        } else {
+                            -self.action_space.low[i]
+                        };
+                        if limit > 0.0 {
+                            ((g - s).abs() / limit).ceil()
+                        } else {
+                            0.0
+                        }
+                    })
+                    .fold(0.0, f64::max)
+            })
+            .sum();
+        ((total / n as f64).round() as usize).clamp(1, 1000)
     }
 
     /// The parameters this domain was built from.
@@ -302,7 +338,7 @@ impl Domain for Kinematic {
     }
 
     fn rollout_length(&self) -> usize {
-        20
+        self.rollout_length
     }
 
     fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem {
@@ -329,6 +365,27 @@ impl LocalModel for Kinematic {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn random_rollouts_are_as_long_as_a_typical_path() {
+        // Unit square, steps of 0.1: E[max(|Δx|, |Δy|)] = 7/15 between two uniform points, so
+        // a straight path takes about 5 steps (after rounding each path up to whole steps).
+        let k = Kinematic::new(KinematicParams::default()).unwrap();
+        assert!(
+            (4..=6).contains(&k.rollout_length()),
+            "{}",
+            k.rollout_length()
+        );
+        // Half the speed, about twice the steps.
+        let slow = Kinematic::new(KinematicParams {
+            action_low: vec![-0.05, -0.05],
+            action_high: vec![0.05, 0.05],
+            ..KinematicParams::default()
+        })
+        .unwrap();
+        let ratio = slow.rollout_length() as f64 / k.rollout_length() as f64;
+        assert!((1.6..=2.4).contains(&ratio), "{ratio}");
+    }
 
     #[test]
     fn model_adds_the_action_and_clips() {
