@@ -36,9 +36,24 @@ pub enum Cell {
     Ice,
 }
 
+/// How a gridworld state-action is fed to the MDE.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GridFeatures {
+    /// `(x, y, dx, dy)` scaled to the unit box: one set of length scales for every move (the
+    /// paper's).
+    #[default]
+    Scaled,
+    /// `(x, y)` of each move in its own pair of coordinates (zero for the other moves), then the
+    /// move one-hot: each move gets its own length scales, so how far what is learned about one
+    /// move spreads is not limited by how sharply another move's deviation changes.
+    PerMove,
+}
+
 /// The icy gridworld domain. States are `[x, y]` cells, actions the four unit moves.
 #[derive(Debug, Clone)]
 pub struct IcyGridworld {
+    feature_map: GridFeatures,
     width: usize,
     height: usize,
     cells: Vec<Cell>,
@@ -121,6 +136,7 @@ impl IcyGridworld {
             .collect();
         let rollout_length = mean_manhattan(&open).round().max(1.0) as usize;
         Ok(Self {
+            feature_map: GridFeatures::Scaled,
             width,
             height,
             cells,
@@ -129,6 +145,14 @@ impl IcyGridworld {
             state_space,
             action_space,
         })
+    }
+
+    /// The same world with MDE features `f`.
+    pub fn with_features(self, f: GridFeatures) -> Self {
+        Self {
+            feature_map: f,
+            ..self
+        }
     }
 
     /// The default 12×12 layout.
@@ -230,19 +254,46 @@ impl Domain for IcyGridworld {
     }
 
     fn feature_dim(&self) -> usize {
-        4
+        match self.feature_map {
+            GridFeatures::Scaled => 4,
+            GridFeatures::PerMove => 3 * MOVES.len(),
+        }
     }
 
-    /// `(x, y)` scaled by the grid, then the move scaled from `[-1, 1]` to `[0, 1]`.
+    /// [`GridFeatures::Scaled`]: `(x, y)` scaled by the grid, then the move scaled from
+    /// `[-1, 1]` to `[0, 1]`. [`GridFeatures::PerMove`]: for move `k`, the scaled `(x, y)` at
+    /// positions `2k, 2k+1` (zeros elsewhere), then the move one-hot.
     fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        self.state_space
-            .to_unit(s)
-            .chain(self.action_space.to_unit(a))
-            .collect()
+        match self.feature_map {
+            GridFeatures::Scaled => self
+                .state_space
+                .to_unit(s)
+                .chain(self.action_space.to_unit(a))
+                .collect(),
+            GridFeatures::PerMove => {
+                let k = MOVES.iter().position(|m| m[..] == a[..]).unwrap_or(0);
+                let mut f = vec![0.0; 3 * MOVES.len()];
+                for (i, u) in self.state_space.to_unit(s).enumerate() {
+                    f[2 * k + i] = u;
+                }
+                f[2 * MOVES.len() + k] = 1.0;
+                f
+            }
+        }
     }
 
     fn feature_names(&self) -> Vec<String> {
-        ["x", "y", "dx", "dy"].map(String::from).to_vec()
+        match self.feature_map {
+            GridFeatures::Scaled => ["x", "y", "dx", "dy"].map(String::from).to_vec(),
+            GridFeatures::PerMove => {
+                let moves = ["right", "left", "up", "down"];
+                moves
+                    .iter()
+                    .flat_map(|m| [format!("x|{m}"), format!("y|{m}")])
+                    .chain(moves.iter().map(|m| format!("is_{m}")))
+                    .collect()
+            }
+        }
     }
 
     fn validate_state(&self, s: &[f64]) -> Result<(), DomainError> {
@@ -355,6 +406,19 @@ mod tests {
         assert_eq!(mean_manhattan(&[(0, 0), (1, 0), (0, 1)]), 4.0 / 3.0);
         let g = IcyGridworld::default_layout();
         assert_eq!(g.rollout_length(), 8);
+    }
+
+    #[test]
+    fn per_move_features_give_each_move_its_own_coordinates() {
+        let g = IcyGridworld::default_layout().with_features(GridFeatures::PerMove);
+        assert_eq!(g.feature_dim(), 12);
+        let f = g.features(&[11.0, 0.0], &[0.0, 1.0]);
+        assert_eq!(
+            f,
+            vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+        );
+        assert_eq!(g.feature_names().len(), 12);
+        assert_eq!(g.feature_names()[4], "x|up");
     }
 
     #[test]

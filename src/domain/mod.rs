@@ -16,7 +16,7 @@ pub mod water_plant;
 
 pub use custom::{ClientModel, CustomDomain, CustomParams, LinearModel};
 pub use dynamics::{DynamicsError, DynamicsModel, LocalModel, Predicted};
-pub use gridworld::{Cell, DEFAULT_MAP, IcyGridworld, MOVES};
+pub use gridworld::{Cell, DEFAULT_MAP, GridFeatures, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
 pub use water_plant::WaterPlant;
 

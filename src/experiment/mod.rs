@@ -20,6 +20,7 @@ pub mod plot;
 pub mod protocol;
 pub mod report;
 
+use crate::domain::GridFeatures;
 use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::planning::Strategy;
@@ -65,6 +66,11 @@ fn parse_strategy(s: &str) -> Result<Strategy, String> {
 fn parse_noise(s: &str) -> Result<NoiseMode, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
         .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
+}
+
+fn parse_grid_features(s: &str) -> Result<GridFeatures, String> {
+    serde_json::from_value(serde_json::Value::String(s.into()))
+        .map_err(|_| format!("{s:?} is not a feature map; use scaled or per_move"))
 }
 
 /// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`
@@ -132,6 +138,9 @@ pub struct ExperimentArgs {
     /// The MDE's noise model (`homoscedastic` or `heteroscedastic`). Default: the service's.
     #[arg(long, value_parser = parse_noise)]
     pub noise: Option<NoiseMode>,
+    /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
+    #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
+    pub grid_features: GridFeatures,
 }
 
 impl ExperimentArgs {
@@ -170,6 +179,8 @@ pub struct Config {
     pub layout: Option<Layout>,
     /// The MDE's noise model (`None`: the service's default).
     pub noise: Option<NoiseMode>,
+    /// The gridworld's MDE features.
+    pub grid_features: GridFeatures,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -228,6 +239,7 @@ impl Config {
             domain: args.domain,
             layout: None,
             noise: args.noise,
+            grid_features: args.grid_features,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,
@@ -411,7 +423,11 @@ async fn run_protocol(
     cfg: &Config,
     show_progress: bool,
 ) -> anyhow::Result<Results> {
-    let bench = Arc::new(Bench::new(cfg.domain, cfg.layout.as_ref())?);
+    let bench = Arc::new(Bench::new(
+        cfg.domain,
+        cfg.layout.as_ref(),
+        cfg.grid_features,
+    )?);
     let n_runs = cfg.strategies.len() * cfg.seeds;
     let progress = if show_progress {
         ProgressBar::with_draw_target(

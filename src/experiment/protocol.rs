@@ -28,7 +28,9 @@ use super::{Config, DomainKind};
 use crate::api::{ExperimentRequest, PlannedTrajectory};
 use crate::domain::Transition;
 use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
-use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES, Problem, WaterPlant};
+use crate::domain::{
+    DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, LocalModel, MOVES, Problem, WaterPlant,
+};
 use crate::planning::Strategy;
 use crate::settings::{DomainSpec, LearningSettings, MdeSettings};
 use crate::sim::{Simulated, World};
@@ -53,13 +55,20 @@ pub enum Bench {
 impl Bench {
     /// The world of `kind`: the gridworld on `layout` (default: the documented map), the
     /// water plant in its default scene.
-    pub fn new(kind: DomainKind, layout: Option<&Layout>) -> anyhow::Result<Self> {
+    pub fn new(
+        kind: DomainKind,
+        layout: Option<&Layout>,
+        features: GridFeatures,
+    ) -> anyhow::Result<Self> {
         Ok(match kind {
-            DomainKind::IcyGridworld => Self::Grid(match layout {
-                Some(l) => IcyGridworld::new(&l.map)
-                    .map_err(|e| anyhow::anyhow!("layout {}: {e}", l.name))?,
-                None => IcyGridworld::default_layout(),
-            }),
+            DomainKind::IcyGridworld => Self::Grid(
+                match layout {
+                    Some(l) => IcyGridworld::new(&l.map)
+                        .map_err(|e| anyhow::anyhow!("layout {}: {e}", l.name))?,
+                    None => IcyGridworld::default_layout(),
+                }
+                .with_features(features),
+            ),
             DomainKind::WaterPlant => Self::Plant(WaterPlant::default()),
         })
     }
@@ -254,8 +263,14 @@ pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
 fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) -> ExperimentRequest {
     let domain = match cfg.domain {
         DomainKind::IcyGridworld => match &cfg.layout {
-            Some(l) => DomainSpec::IcyGridworld { map: l.map.clone() },
-            None => DomainSpec::default(),
+            Some(l) => DomainSpec::IcyGridworld {
+                map: l.map.clone(),
+                features: cfg.grid_features,
+            },
+            None => DomainSpec::IcyGridworld {
+                map: DEFAULT_MAP.iter().map(|r| r.to_string()).collect(),
+                features: cfg.grid_features,
+            },
         },
         DomainKind::WaterPlant => DomainSpec::WaterPlant {},
     };

@@ -10,8 +10,8 @@ pub mod custom;
 pub use custom::{CustomSpec, DistanceSpec, FeaturesSpec, GoalSpec, ModelSpec, SpaceSpec};
 
 use crate::domain::{
-    BoxObstacle, DEFAULT_MAP, Domain, DomainError, IcyGridworld, Kinematic, KinematicParams,
-    WaterPlant,
+    BoxObstacle, DEFAULT_MAP, Domain, DomainError, GridFeatures, IcyGridworld, Kinematic,
+    KinematicParams, WaterPlant,
 };
 use crate::gp::NoiseMode;
 use crate::limits::{
@@ -54,6 +54,10 @@ pub enum DomainSpec {
         /// The layout.
         #[serde(default = "default_map")]
         map: Vec<String>,
+        /// How a state-action is fed to the MDE: `scaled` (the paper's `(x, y, dx, dy)`) or
+        /// `per_move` (each move its own coordinates and length scales). Default `scaled`.
+        #[serde(default)]
+        features: GridFeatures,
     },
     /// The generic kinematic domain: `f̂(s, a) = clip(s + a)`.
     Kinematic {
@@ -120,7 +124,10 @@ mod kinematic_defaults {
 
 impl Default for DomainSpec {
     fn default() -> Self {
-        Self::IcyGridworld { map: default_map() }
+        Self::IcyGridworld {
+            map: default_map(),
+            features: GridFeatures::default(),
+        }
     }
 }
 
@@ -129,7 +136,11 @@ impl DomainSpec {
     pub fn build(&self) -> Result<Arc<dyn Domain>, InvalidSetting> {
         let wrap = |e: DomainError| InvalidSetting::new(e.path_under("domain"), e.reason);
         Ok(match self {
-            Self::IcyGridworld { map } => Arc::new(IcyGridworld::new(map).map_err(wrap)?),
+            Self::IcyGridworld { map, features } => Arc::new(
+                IcyGridworld::new(map)
+                    .map_err(wrap)?
+                    .with_features(*features),
+            ),
             Self::Kinematic {
                 state_low,
                 state_high,
