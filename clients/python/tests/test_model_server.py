@@ -73,5 +73,11 @@ def test_serve_model_answers_over_http_and_reports_failures() -> None:
         wrong = http.post(server.url.replace("/predict", "/other"), json={})
         assert wrong.status_code == 404
         assert server.calls == 2 and server.points == 2
+        kept = httpx.Client()
+        assert kept.post(server.url, json={"states": [], "actions": []}).status_code == 200
+    # Closed: new connections are refused and kept-alive ones are closed.
     with pytest.raises(httpx.ConnectError):
         httpx.post(server.url, json={"states": [], "actions": []})
+    with pytest.raises(httpx.TransportError):
+        kept.post(server.url, json={"states": [], "actions": []})
+    kept.close()

@@ -21,8 +21,10 @@ thread; calls to ``fn`` are serialised unless ``threadsafe=True``.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import socket
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -98,9 +100,20 @@ class ModelServer:
         self.points = 0
         lock = threading.Lock()
         server = self
+        self._connections: set[socket.socket] = set()
 
         class Handler(BaseHTTPRequestHandler):
             protocol_version = "HTTP/1.1"
+
+            def setup(self) -> None:
+                super().setup()
+                with lock:
+                    server._connections.add(self.connection)
+
+            def finish(self) -> None:
+                with lock:
+                    server._connections.discard(self.connection)
+                super().finish()
 
             def log_message(self, format: str, *args: Any) -> None:
                 log.debug("%s " + format, self.address_string(), *args)
@@ -172,12 +185,15 @@ class ModelServer:
             self._httpd.server_close()
 
     def close(self) -> None:
-        """Stops serving and frees the port."""
+        """Stops serving, closes open keep-alive connections and frees the port."""
         if self._thread is not None:
             self._httpd.shutdown()
             self._thread.join()
             self._thread = None
         self._httpd.server_close()
+        for conn in list(self._connections):
+            with contextlib.suppress(OSError):
+                conn.shutdown(socket.SHUT_RDWR)
 
     def __enter__(self) -> ModelServer:
         return self
