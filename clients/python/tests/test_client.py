@@ -528,3 +528,23 @@ def test_not_found_is_not_retried() -> None:
     with pytest.raises(NotFound):
         make_client(handler).get_experiment(9)
     assert n["calls"] == 1
+
+
+def test_learn_sends_the_clients_own_candidates_for_each_problem() -> None:
+    from precond_client import Candidate
+
+    server = FakeLoopServer()
+    sent: list[Any] = []
+
+    def spy(req: httpx.Request) -> httpx.Response:
+        if req.url.path.endswith("/proposals"):
+            sent.append(json.loads(req.content).get("candidates"))
+        return server(req)
+
+    def planner(start: np.ndarray, goal: np.ndarray) -> list[Candidate]:
+        return [Candidate(np.vstack([start, goal]), (goal - start)[None])]
+
+    c = make_client(spy, experiment_id=1, client_id="r1")
+    for ep in c.learn([([0.0, 0.0], [0.5, 0.0])], candidates=planner):
+        ep.post(np.vstack([ep.start, ep.start + ep.actions[0]]))
+    assert sent == [[{"states": [[0.0, 0.0], [0.5, 0.0]], "actions": [[0.5, 0.0]]}]]
