@@ -1,0 +1,81 @@
+"""precond-client: drive a precond server's active learning of model preconditions from Python.
+
+- :class:`Client` — experiments, proposals, trajectories (idempotent, retried), the model,
+  precondition queries and plans, with numpy arrays in and out.
+- :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
+- :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
+- :mod:`precond_client.errors` — the server's errors as exceptions with ``code``, ``message``
+  and ``details``.
+"""
+
+from .client import Client
+from .errors import (
+    ApiError,
+    BadRequest,
+    Conflict,
+    InternalError,
+    ModelTimeout,
+    ModelUnavailable,
+    NoPlan,
+    NotFound,
+    PayloadTooLarge,
+    PrecondError,
+    TransportError,
+    Unavailable,
+    ValidationFailed,
+)
+from .model_server import ModelServer, serve_model
+from .models import (
+    Candidate,
+    CandidateScore,
+    Experiment,
+    Hyperparameters,
+    Model,
+    Plan,
+    PlannedTrajectory,
+    Precondition,
+    Proposal,
+    Space,
+    StoredTransition,
+    TrajectoryCreated,
+    Transition,
+    transitions_from_states,
+)
+from .robot import Episode, Learner
+
+__all__ = [
+    "ApiError",
+    "BadRequest",
+    "Candidate",
+    "CandidateScore",
+    "Client",
+    "Conflict",
+    "Episode",
+    "Experiment",
+    "Hyperparameters",
+    "InternalError",
+    "Learner",
+    "Model",
+    "ModelServer",
+    "ModelTimeout",
+    "ModelUnavailable",
+    "NoPlan",
+    "NotFound",
+    "PayloadTooLarge",
+    "Plan",
+    "PlannedTrajectory",
+    "PrecondError",
+    "Precondition",
+    "Proposal",
+    "Space",
+    "StoredTransition",
+    "TrajectoryCreated",
+    "Transition",
+    "TransportError",
+    "Unavailable",
+    "ValidationFailed",
+    "serve_model",
+    "transitions_from_states",
+]
+
+__version__ = "0.1.0"

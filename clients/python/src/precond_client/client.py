@@ -1,0 +1,437 @@
+"""The HTTP client of a precond server.
+
+One :class:`Client` talks to one server and, for the experiment-scoped calls, to one current
+experiment (``experiment_id``; set by :meth:`Client.create_experiment`,
+:meth:`Client.ensure_experiment` or :meth:`Client.use`).
+
+**Retries.** A request that could not be sent (connection refused, the server restarting) is
+retried with exponential back-off and jitter, and so is an answer ``429`` or ``5xx`` for requests
+that are safe to repeat: reads, precondition queries and plans, proposals (a repeated proposal
+for the same ``client_id`` and problem returns the open one), abandons, and trajectories, which
+always carry an ``Idempotency-Key`` (a repeat is replayed by the server, never stored twice).
+Creating an experiment is not idempotent on the server, so it is retried only when the request
+surely did not arrive; :meth:`Client.ensure_experiment` makes creation safe to repeat by name.
+"""
+
+from __future__ import annotations
+
+import random
+import socket
+import time
+import uuid
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING, Any
+
+import httpx
+from numpy.typing import ArrayLike
+
+from . import errors
+from .models import (
+    Candidate,
+    Experiment,
+    Model,
+    Plan,
+    Precondition,
+    Proposal,
+    StoredTransition,
+    TrajectoryCreated,
+    Transition,
+    as_list,
+    mat,
+)
+
+if TYPE_CHECKING:
+    from .robot import CandidateFn, Learner, Problem
+
+PRECONDITION_CHUNK = 10_000
+"""Points per precondition request (the server accepts up to 100 000, but the request body
+is limited to 4 MiB by default)."""
+
+
+class Client:
+    """A client of one precond server.
+
+    Args:
+        base_url: The server, e.g. ``http://127.0.0.1:8080``.
+        token: Sent as ``Authorization: Bearer <token>`` (for a server behind an authenticating
+            proxy; precond itself does not check it).
+        timeout: Seconds to wait for each answer (proposals plan on the server: allow a few
+            seconds).
+        experiment_id: The current experiment for the experiment-scoped calls.
+        client_id: The lease holder's name used by :meth:`propose` and :meth:`learn` when they
+            are not given one; default the host name, so a restarted robot process finds the
+            lease it held.
+        retries: How many times a failed request is repeated before giving up.
+        backoff: The first back-off in seconds; it doubles per retry (with jitter) up to
+            ``max_backoff``.
+        max_backoff: The longest back-off in seconds.
+        transport: An ``httpx`` transport (tests use ``httpx.MockTransport``).
+    """
+
+    def __init__(
+        self,
+        base_url: str = "http://127.0.0.1:8080",
+        token: str | None = None,
+        timeout: float = 30.0,
+        *,
+        experiment_id: int | None = None,
+        client_id: str | None = None,
+        retries: int = 8,
+        backoff: float = 0.1,
+        max_backoff: float = 5.0,
+        transport: httpx.BaseTransport | None = None,
+    ) -> None:
+        headers = {"Accept": "application/json", "User-Agent": "precond-client/0.1"}
+        if token is not None:
+            headers["Authorization"] = f"Bearer {token}"
+        self._http = httpx.Client(
+            base_url=base_url.rstrip("/"), timeout=timeout, headers=headers, transport=transport
+        )
+        self.experiment_id = experiment_id
+        self.client_id = client_id or socket.gethostname() or "precond-client"
+        self.retries = retries
+        self.backoff = backoff
+        self.max_backoff = max_backoff
+        self._sleep: Callable[[float], None] = time.sleep
+        self._state_dim: dict[int, int] = {}
+
+    # ------------------------------------------------------------------ plumbing
+
+    def close(self) -> None:
+        """Closes the connection pool."""
+        self._http.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _delay(self, attempt: int, response: httpx.Response | None) -> float:
+        if response is not None:
+            ra = response.headers.get("Retry-After")
+            if ra is not None:
+                try:
+                    return min(float(ra), self.max_backoff)
+                except ValueError:
+                    pass
+        base: float = min(self.max_backoff, self.backoff * 2.0**attempt)
+        return base * random.uniform(0.5, 1.0)
+
+    def _request(
+        self,
+        method: str,
+        path: str,
+        *,
+        json: Any = None,
+        params: Mapping[str, Any] | None = None,
+        headers: Mapping[str, str] | None = None,
+        idempotent: bool = True,
+    ) -> httpx.Response:
+        """Sends a request with retries; returns a 2xx answer or raises."""
+        attempt = 0
+        while True:
+            try:
+                r = self._http.request(method, path, json=json, params=params, headers=headers)
+            except httpx.TransportError as e:
+                # A request that never reached the server is always safe to send again.
+                unsent = isinstance(e, (httpx.ConnectError, httpx.ConnectTimeout))
+                if attempt >= self.retries or not (idempotent or unsent):
+                    raise errors.TransportError(f"{method} {path}: {e!r}") from e
+                self._sleep(self._delay(attempt, None))
+                attempt += 1
+                continue
+            retryable = r.status_code == 429 or r.status_code >= 500
+            if not idempotent:
+                retryable = r.status_code in (429, 503)
+            if retryable and attempt < self.retries:
+                self._sleep(self._delay(attempt, r))
+                attempt += 1
+                continue
+            if r.is_error:
+                try:
+                    body: Any = r.json()
+                except ValueError:
+                    body = r.text
+                raise errors.from_response(r.status_code, body)
+            return r
+
+    def _exp(self, experiment_id: int | None) -> int:
+        eid = experiment_id if experiment_id is not None else self.experiment_id
+        if eid is None:
+            raise ValueError(
+                "no current experiment: call create_experiment, ensure_experiment or use(id) first"
+            )
+        return eid
+
+    def _path(self, suffix: str, experiment_id: int | None = None) -> str:
+        return f"/v1/experiments/{self._exp(experiment_id)}{suffix}"
+
+    # ------------------------------------------------------------------ health
+
+    def ready(self) -> bool:
+        """Whether the server answers and its database is ready (one try, no retries)."""
+        try:
+            return self._http.get("/readyz").status_code == 200
+        except httpx.TransportError:
+            return False
+
+    def wait_ready(self, timeout: float = 30.0) -> None:
+        """Waits until the server is ready; raises :class:`TransportError` after ``timeout``."""
+        deadline = time.monotonic() + timeout
+        while not self.ready():
+            if time.monotonic() > deadline:
+                raise errors.TransportError(f"{self._http.base_url} not ready after {timeout} s")
+            self._sleep(0.05)
+
+    # ------------------------------------------------------------------ experiments
+
+    def use(self, experiment_id: int) -> Client:
+        """Makes ``experiment_id`` the current experiment; returns the client."""
+        self.experiment_id = experiment_id
+        return self
+
+    def create_experiment(
+        self, settings: Mapping[str, Any] | None = None, **fields: Any
+    ) -> Experiment:
+        """Creates an experiment and makes it the current one.
+
+        ``settings`` is the ``ExperimentRequest`` body (``name``, ``domain``, ``d_max``,
+        ``seed``, ``mde``, ``learning``); keyword arguments are merged into it. The server does
+        not deduplicate creations, so this is not retried once the request may have arrived;
+        use :meth:`ensure_experiment` to create by name safely.
+        """
+        body = {**(settings or {}), **fields}
+        r = self._request("POST", "/v1/experiments", json=body, idempotent=False)
+        exp = Experiment.from_json(r.json())
+        self.experiment_id = exp.id
+        return exp
+
+    def ensure_experiment(
+        self, name: str, settings: Mapping[str, Any] | None = None, **fields: Any
+    ) -> Experiment:
+        """The newest experiment called ``name``, created with ``settings`` if there is none;
+        it becomes the current one. Safe to call again after a crash or a lost answer (an
+        experiment whose creation answer was lost is found by its name)."""
+        if not name:
+            raise ValueError("ensure_experiment needs a non-empty name")
+        for attempt in range(self.retries + 1):
+            found = [e for e in self.list_experiments() if e.name == name]
+            if found:
+                exp = found[-1]
+                self.experiment_id = exp.id
+                return exp
+            try:
+                return self.create_experiment(settings, **{**fields, "name": name})
+            except errors.TransportError:
+                if attempt >= self.retries:
+                    raise
+                self._sleep(self._delay(attempt, None))
+        raise AssertionError("unreachable")
+
+    def list_experiments(self) -> list[Experiment]:
+        """Every experiment, oldest first."""
+        items = self._request("GET", "/v1/experiments").json()["items"]
+        return [Experiment.from_json(e) for e in items]
+
+    def get_experiment(self, experiment_id: int | None = None) -> Experiment:
+        """An experiment (default the current one) with its progress."""
+        exp = Experiment.from_json(self._request("GET", self._path("", experiment_id)).json())
+        self._state_dim[exp.id] = exp.state_space.dim
+        return exp
+
+    # ------------------------------------------------------------------ proposals and plans
+
+    def propose(
+        self,
+        start: ArrayLike,
+        goal: ArrayLike,
+        client_id: str | None = None,
+        candidates: Sequence[Candidate] | None = None,
+        strategy: str | None = None,
+    ) -> Proposal:
+        """Asks for the trajectory to execute from ``start`` to ``goal``, leased to
+        ``client_id`` (default :attr:`client_id`).
+
+        Asking again while the lease is open returns the same proposal; asking for another
+        problem raises :class:`~precond_client.errors.Conflict` whose ``lease`` names the
+        held proposal. With ``candidates`` (required for a client-side model) the server
+        scores them instead of planning. No trajectory inside the precondition raises
+        :class:`~precond_client.errors.NoPlan`.
+        """
+        body: dict[str, Any] = {
+            "start": as_list(start),
+            "goal": as_list(goal),
+            "client_id": client_id or self.client_id,
+        }
+        if strategy is not None:
+            body["strategy"] = strategy
+        if candidates is not None:
+            body["candidates"] = [c.to_json() for c in candidates]
+        r = self._request("POST", self._path("/proposals"), json=body)
+        return Proposal.from_json(r.json())
+
+    def get_proposal(self, proposal_id: int) -> Proposal:
+        """A proposal with its current status."""
+        return Proposal.from_json(
+            self._request("GET", self._path(f"/proposals/{proposal_id}")).json()
+        )
+
+    def abandon(self, proposal_id: int) -> Proposal:
+        """Gives a proposal up, releasing its lease (repeating it is harmless)."""
+        r = self._request("POST", self._path(f"/proposals/{proposal_id}/abandon"))
+        return Proposal.from_json(r.json())
+
+    def plan(
+        self,
+        start: ArrayLike,
+        goal: ArrayLike,
+        beta: float | None = None,
+        candidates: Sequence[Candidate] | None = None,
+    ) -> Plan:
+        """A test-time plan inside the precondition at ``beta`` (default the experiment's test
+        β); ``found`` is false when there is none. Nothing is stored."""
+        body: dict[str, Any] = {"start": as_list(start), "goal": as_list(goal)}
+        if beta is not None:
+            body["beta"] = float(beta)
+        if candidates is not None:
+            body["candidates"] = [c.to_json() for c in candidates]
+        return Plan.from_json(self._request("POST", self._path("/plans"), json=body).json())
+
+    # ------------------------------------------------------------------ trajectories
+
+    def post_trajectory(
+        self,
+        transitions: Iterable[Transition | Mapping[str, Any]],
+        proposal_id: int | None = None,
+        partial: bool = False,
+        idempotency_key: str | None = None,
+    ) -> TrajectoryCreated:
+        """Posts an executed trajectory; the server labels and stores it atomically.
+
+        Every post carries an ``Idempotency-Key``, so retries never store it twice. The default
+        key is ``proposal-<id>`` for the execution of a proposal (a proposal is executed once,
+        so even a restarted robot posting it again is recognised) and a random one otherwise.
+        """
+        items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
+        if not items:
+            raise ValueError("a trajectory needs at least one transition")
+        body: dict[str, Any] = {"transitions": items, "partial": bool(partial)}
+        if proposal_id is not None:
+            body["proposal_id"] = int(proposal_id)
+        if idempotency_key is None:
+            idempotency_key = (
+                f"proposal-{proposal_id}" if proposal_id is not None else f"py-{uuid.uuid4()}"
+            )
+        r = self._request(
+            "POST",
+            self._path("/trajectories"),
+            json=body,
+            headers={"Idempotency-Key": idempotency_key},
+        )
+        replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
+        return TrajectoryCreated.from_json(r.json(), replayed=replayed)
+
+    def transitions(self, after: int = 0, page_size: int = 1000) -> Iterator[StoredTransition]:
+        """Every stored transition with an id greater than ``after``, in id order, fetched
+        page by page as the iterator advances."""
+        cursor: int | None = after
+        while cursor is not None:
+            page = self._request(
+                "GET", self._path("/transitions"), params={"after": cursor, "limit": page_size}
+            ).json()
+            for item in page["items"]:
+                yield StoredTransition.from_json(item)
+            cursor = page["next"]
+
+    # ------------------------------------------------------------------ the model
+
+    def model(self) -> Model:
+        """The MDE version answering queries."""
+        return Model.from_json(self._request("GET", self._path("/model")).json())
+
+    def refit(self) -> Model:
+        """Fits the MDE now on everything stored and returns the new version."""
+        r = self._request("POST", self._path("/model/refit"), idempotent=False)
+        return Model.from_json(r.json())
+
+    def wait_for_model(self, n_trajectories: int, timeout: float = 120.0) -> Model:
+        """Waits until the answering model was fitted on at least ``n_trajectories``
+        trajectories (background refits run after every batch); returns it."""
+        deadline = time.monotonic() + timeout
+        while True:
+            m = self.model()
+            if m.n_trajectories >= n_trajectories:
+                return m
+            if time.monotonic() > deadline:
+                raise TimeoutError(
+                    f"model covers {m.n_trajectories} trajectories, not {n_trajectories}, "
+                    f"after {timeout} s"
+                )
+            self._sleep(0.1)
+
+    def precondition(
+        self,
+        points: ArrayLike | tuple[ArrayLike, ArrayLike],
+        beta: float | None = None,
+    ) -> Precondition:
+        """Judges state-actions: ``μ``, ``σ``, ``μ + βσ`` and whether each is inside the
+        precondition, at ``beta`` (default the experiment's test β).
+
+        ``points`` is either a pair ``(states, actions)`` of arrays ``(N, n)`` and ``(N, m)``,
+        or one array ``(N, n + m)`` whose first ``n`` columns are the state. Large queries are
+        sent in chunks.
+        """
+        if isinstance(points, tuple):
+            states, actions = mat(points[0]), mat(points[1])
+        else:
+            rows = mat(points)
+            eid = self._exp(None)
+            if eid not in self._state_dim:
+                self.get_experiment()
+            n = self._state_dim[eid]
+            states, actions = rows[:, :n], rows[:, n:]
+        if len(states) != len(actions):
+            raise ValueError(f"{len(states)} states for {len(actions)} actions")
+        if len(states) == 0:
+            raise ValueError("no points to judge")
+        parts = []
+        for lo in range(0, len(states), PRECONDITION_CHUNK):
+            hi = lo + PRECONDITION_CHUNK
+            body: dict[str, Any] = {
+                "points": [
+                    {"s": as_list(s), "a": as_list(a)}
+                    for s, a in zip(states[lo:hi], actions[lo:hi], strict=True)
+                ]
+            }
+            if beta is not None:
+                body["beta"] = float(beta)
+            r = self._request("POST", self._path("/precondition"), json=body)
+            parts.append(Precondition.from_json(r.json()))
+        return parts[0] if len(parts) == 1 else Precondition.concat(parts)
+
+    # ------------------------------------------------------------------ the loop
+
+    def learn(
+        self,
+        problems: Iterable[Problem],
+        *,
+        client_id: str | None = None,
+        candidates: CandidateFn | None = None,
+        resume: bool = True,
+        skip_no_plan: bool = True,
+    ) -> Learner:
+        """The active-learning loop over ``problems`` (pairs ``(start, goal)``): an iterator of
+        :class:`~precond_client.robot.Episode`, each a proposal to execute and report with
+        ``episode.post(observed_states)`` (or ``episode.abandon()``). See
+        :class:`~precond_client.robot.Learner`."""
+        from .robot import Learner
+
+        return Learner(
+            self,
+            problems,
+            client_id=client_id or self.client_id,
+            candidates=candidates,
+            resume=resume,
+            skip_no_plan=skip_no_plan,
+        )

@@ -1,0 +1,128 @@
+"""Errors: every error the server answers becomes an :class:`ApiError` carrying its ``code``,
+``message`` and ``details``; a server that cannot be reached becomes a :class:`TransportError`.
+
+The server's error body is always ``{"error": {"code", "message", "details"}}``; each ``code``
+has its own subclass so a robot loop can catch exactly what it handles::
+
+    try:
+        proposal = client.propose(start, goal)
+    except NoPlan as e:
+        print("nothing trusted reaches the goal", e.details["extensions"])
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class PrecondError(Exception):
+    """Base class of every error this package raises."""
+
+
+class TransportError(PrecondError):
+    """The server could not be reached (or kept failing) after every retry."""
+
+
+class ApiError(PrecondError):
+    """An error answered by the server.
+
+    Attributes:
+        status: The HTTP status code.
+        code: The stable machine-readable code, e.g. ``validation_failed``.
+        message: The server's human-readable message.
+        details: Code-specific details (``{"field", "reason"}`` for ``validation_failed``, the
+            lease for a ``conflict`` over a held proposal, ...), or ``None``.
+    """
+
+    def __init__(self, status: int, code: str, message: str, details: Any = None) -> None:
+        super().__init__(f"{status} {code}: {message}")
+        self.status = status
+        self.code = code
+        self.message = message
+        self.details = details
+
+
+class BadRequest(ApiError):
+    """``400 bad_request``: the body was not well-formed JSON."""
+
+
+class NotFound(ApiError):
+    """``404 not_found``: no such experiment, trajectory, proposal or route."""
+
+
+class Conflict(ApiError):
+    """``409 conflict``: an ``Idempotency-Key`` reused with another body, a proposal already
+    executed, a refit with no data, or a client holding a lease on another problem.
+
+    For a held lease, :attr:`lease` gives its ``proposal_id``, ``client_id``, ``start`` and
+    ``goal``.
+    """
+
+    @property
+    def lease(self) -> dict[str, Any] | None:
+        """The held lease (``proposal_id``, ``client_id``, ``start``, ``goal``), if this is one."""
+        d = self.details
+        if isinstance(d, dict) and "proposal_id" in d and "client_id" in d:
+            return d
+        return None
+
+
+class PayloadTooLarge(ApiError):
+    """``413 payload_too_large``: the body exceeds the server's ``--max-body-bytes``."""
+
+
+class ValidationFailed(ApiError):
+    """``422 validation_failed``: a field is wrong; ``details["field"]`` names it."""
+
+    @property
+    def field(self) -> str | None:
+        """The offending field, e.g. ``transitions[3].s``."""
+        d = self.details
+        return str(d["field"]) if isinstance(d, dict) and "field" in d else None
+
+
+class NoPlan(ApiError):
+    """``422 no_plan``: no goal-reaching trajectory inside the precondition was found."""
+
+
+class ModelUnavailable(ApiError):
+    """``502 model_unavailable``: the experiment's remote model refused, failed or answered
+    the wrong shape; nothing was stored."""
+
+
+class ModelTimeout(ApiError):
+    """``504 model_timeout``: the experiment's remote model did not answer in time."""
+
+
+class Unavailable(ApiError):
+    """``503 unavailable``: the server's database does not answer."""
+
+
+class InternalError(ApiError):
+    """``500 internal``: a bug in the server (logged there)."""
+
+
+_BY_CODE: dict[str, type[ApiError]] = {
+    "bad_request": BadRequest,
+    "not_found": NotFound,
+    "conflict": Conflict,
+    "payload_too_large": PayloadTooLarge,
+    "validation_failed": ValidationFailed,
+    "no_plan": NoPlan,
+    "model_unavailable": ModelUnavailable,
+    "model_timeout": ModelTimeout,
+    "unavailable": Unavailable,
+    "internal": InternalError,
+}
+
+
+def from_response(status: int, body: Any) -> ApiError:
+    """The error for a non-2xx answer with JSON ``body`` (or anything else, e.g. a proxy's
+    HTML page, which becomes an :class:`ApiError` with code ``http_<status>``)."""
+    err = body.get("error") if isinstance(body, dict) else None
+    if isinstance(err, dict) and isinstance(err.get("code"), str):
+        code = err["code"]
+        cls = _BY_CODE.get(code, ApiError)
+        return cls(status, code, str(err.get("message", "")), err.get("details"))
+    text = body if isinstance(body, str) else repr(body)
+    return ApiError(status, f"http_{status}", text[:500], None)

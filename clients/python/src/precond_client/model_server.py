@@ -1,0 +1,226 @@
+"""Serve a Python dynamics model as a custom domain's ``remote`` model.
+
+The server calls ``POST <url>`` with ``{"states": [[...]], "actions": [[...]]}`` (up to 4096
+points per call) and expects ``{"next_states": [[...]], "valid": [...]?}``. :func:`serve_model`
+answers those calls with a numpy function::
+
+    def f_hat(states, actions):            # (N, n), (N, m) -> (N, n)
+        return states + actions
+
+    with serve_model(f_hat, "127.0.0.1", 9000) as model:
+        client.create_experiment(domain={..., "model": {"kind": "remote", "url": model.url}})
+        ...
+
+``fn`` may also return ``(next_states, valid)``, ``valid`` a boolean per point: the robot's own
+constraint check (collisions, joint limits); a step it calls invalid is never planned. Wrong
+shapes, non-finite numbers and exceptions in ``fn`` are answered with ``500`` and a message
+(the precond server reports them as ``502 model_unavailable`` naming the URL) and logged here.
+The server runs on the standard library's threading HTTP server, keep-alive, in a background
+thread; calls to ``fn`` are serialised unless ``threadsafe=True``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import socket
+import threading
+from collections.abc import Callable
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .models import Array
+
+log = logging.getLogger("precond_client.model_server")
+
+ModelFn = Callable[[Array, Array], "ArrayLike | tuple[ArrayLike, ArrayLike]"]
+"""A batched dynamics model: ``fn(states (N, n), actions (N, m)) -> next_states (N, n)`` or
+``(next_states, valid)``."""
+
+MAX_BODY_BYTES = 64 * 1024 * 1024
+
+
+class ModelError(ValueError):
+    """A request or an answer of the model that does not fit the protocol."""
+
+
+def evaluate(fn: ModelFn, body: Any) -> dict[str, Any]:
+    """Answers one protocol request ``body`` with ``fn``; raises :class:`ModelError` for a
+    request or answer of the wrong shape."""
+    if not isinstance(body, dict) or "states" not in body or "actions" not in body:
+        raise ModelError('the request must be {"states": [[...]], "actions": [[...]]}')
+    try:
+        states = np.asarray(body["states"], dtype=np.float64)
+        actions = np.asarray(body["actions"], dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ModelError(f"states and actions must be arrays of numbers: {e}") from e
+    n = len(states)
+    if n == 0:
+        return {"next_states": [], "valid": []}
+    if states.ndim != 2 or actions.ndim != 2 or len(actions) != n:
+        raise ModelError(
+            f"states {states.shape} and actions {actions.shape} must be 2-D with equal rows"
+        )
+    out = fn(states, actions)
+    valid: NDArray[np.bool_] | None = None
+    if isinstance(out, tuple):
+        nxt_raw, valid_raw = out
+        valid = np.asarray(valid_raw, dtype=np.bool_).reshape(-1)
+        if len(valid) != n:
+            raise ModelError(f"the model returned {len(valid)} valid flags for {n} points")
+    else:
+        nxt_raw = out
+    nxt = np.asarray(nxt_raw, dtype=np.float64)
+    if nxt.shape != states.shape:
+        raise ModelError(f"the model returned next states {nxt.shape} for states {states.shape}")
+    if not np.all(np.isfinite(nxt)):
+        raise ModelError("the model returned a non-finite next state")
+    answer: dict[str, Any] = {"next_states": nxt.tolist()}
+    if valid is not None:
+        answer["valid"] = valid.tolist()
+    return answer
+
+
+class ModelServer:
+    """A running model server; stop it with :meth:`close` (or use it as a context manager).
+
+    Attributes:
+        url: What to put in the experiment's ``domain.model.url``.
+        calls: Requests answered so far.
+    """
+
+    def __init__(self, fn: ModelFn, host: str, port: int, path: str, threadsafe: bool) -> None:
+        self.fn = fn
+        self.path = path if path.startswith("/") else "/" + path
+        self.calls = 0
+        self.points = 0
+        lock = threading.Lock()
+        server = self
+        self._connections: set[socket.socket] = set()
+
+        class Handler(BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+            # The headers and the body go out in two writes; with Nagle's algorithm the second
+            # waits for the peer's delayed ACK, 40 ms per call on Linux.
+            disable_nagle_algorithm = True
+
+            def setup(self) -> None:
+                super().setup()
+                with lock:
+                    server._connections.add(self.connection)
+
+            def finish(self) -> None:
+                with lock:
+                    server._connections.discard(self.connection)
+                super().finish()
+
+            def log_message(self, format: str, *args: Any) -> None:
+                log.debug("%s " + format, self.address_string(), *args)
+
+            def _send(self, status: int, body: dict[str, Any]) -> None:
+                data = json.dumps(body).encode()
+                self.send_response(status)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(data)))
+                self.end_headers()
+                self.wfile.write(data)
+
+            def do_POST(self) -> None:
+                length = int(self.headers.get("Content-Length") or 0)
+                if length > MAX_BODY_BYTES:
+                    self.close_connection = True
+                    self._send(413, {"error": f"body over {MAX_BODY_BYTES} bytes"})
+                    return
+                raw = self.rfile.read(length)
+                if self.path.split("?")[0] != server.path:
+                    self._send(404, {"error": f"the model is served at {server.path}"})
+                    return
+                try:
+                    body = json.loads(raw)
+                    if threadsafe:
+                        answer = evaluate(server.fn, body)
+                    else:
+                        with lock:
+                            answer = evaluate(server.fn, body)
+                except (ModelError, json.JSONDecodeError) as e:
+                    log.error("model request refused: %s", e)
+                    self._send(500, {"error": str(e)})
+                    return
+                except Exception as e:
+                    log.exception("the model raised")
+                    self._send(500, {"error": f"the model raised {e!r}"})
+                    return
+                with lock:
+                    server.calls += 1
+                    server.points += len(answer["next_states"])
+                self._send(200, answer)
+
+            def do_GET(self) -> None:
+                self._send(405, {"error": f"POST {server.path}"})
+
+        self._httpd = ThreadingHTTPServer((host, port), Handler)
+        self._httpd.daemon_threads = True
+        self.host = host
+        self.port = int(self._httpd.server_address[1])
+        self.url = f"http://{host}:{self.port}{self.path}"
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> ModelServer:
+        """Serves in a background thread; returns the server."""
+        if self._thread is None:
+            self._thread = threading.Thread(
+                target=self._httpd.serve_forever, name="precond-model", daemon=True
+            )
+            self._thread.start()
+        return self
+
+    def serve_forever(self) -> None:
+        """Serves in this thread until interrupted."""
+        try:
+            self._httpd.serve_forever()
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self._httpd.server_close()
+
+    def close(self) -> None:
+        """Stops serving, closes open keep-alive connections and frees the port."""
+        if self._thread is not None:
+            self._httpd.shutdown()
+            self._thread.join()
+            self._thread = None
+        self._httpd.server_close()
+        for conn in list(self._connections):
+            with contextlib.suppress(OSError):
+                conn.shutdown(socket.SHUT_RDWR)
+
+    def __enter__(self) -> ModelServer:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def serve_model(
+    fn: ModelFn,
+    host: str = "127.0.0.1",
+    port: int = 9000,
+    *,
+    path: str = "/predict",
+    threadsafe: bool = False,
+    block: bool = False,
+) -> ModelServer:
+    """Serves ``fn`` as a remote model at ``http://host:port/path`` (port 0 picks a free one;
+    the server's ``url`` says which). Runs in a background thread and returns the server, or
+    with ``block=True`` serves in this thread until interrupted. Start precond with
+    ``--allow-model-url http://host:port/`` so that experiments may use it."""
+    server = ModelServer(fn, host, port, path, threadsafe)
+    if block:
+        log.info("serving the model at %s", server.url)
+        server.serve_forever()
+        return server
+    return server.start()

@@ -1,0 +1,488 @@
+"""Typed bodies of the precond API, mirroring the schemas of ``api/openapi.yaml``.
+
+Responses are read into frozen dataclasses whose vectors are numpy arrays (``float64``; a
+trajectory's ``states`` is ``(T + 1, n)``, its ``actions`` ``(T, m)``). Unknown fields are
+ignored, so the client keeps working when the server adds one; every dataclass keeps the JSON it
+was read from in ``raw``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+"""A float64 numpy array."""
+
+
+def vec(x: ArrayLike) -> Array:
+    """``x`` as a 1-D float64 array."""
+    return np.asarray(x, dtype=np.float64).reshape(-1)
+
+
+def mat(x: ArrayLike, cols: int | None = None) -> Array:
+    """``x`` as a 2-D float64 array (an empty list becomes ``(0, cols or 0)``)."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.size == 0:
+        return np.zeros((0, cols or 0))
+    return a.reshape(len(a), -1) if a.ndim != 2 else a
+
+
+def as_list(x: ArrayLike) -> list[float]:
+    """A vector as a JSON list of finite floats; raises ``ValueError`` on NaN or infinity."""
+    v = vec(x)
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"vector {v.tolist()} has a non-finite entry")
+    return [float(e) for e in v]
+
+
+def as_lists(x: ArrayLike) -> list[list[float]]:
+    """Rows of a 2-D array as JSON lists of finite floats."""
+    a = np.asarray(x, dtype=np.float64)
+    if a.ndim != 2:
+        raise ValueError(f"expected a 2-D array, got shape {a.shape}")
+    return [as_list(row) for row in a]
+
+
+@dataclass(frozen=True)
+class Space:
+    """A state or action space (schema ``Space``)."""
+
+    names: list[str]
+    low: Array
+    high: Array
+    values: Array | None = None
+    """The allowed actions of a discrete space, one per row."""
+
+    @property
+    def dim(self) -> int:
+        """Number of components."""
+        return len(self.names)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Space:
+        """Reads the JSON form."""
+        values = d.get("values")
+        return cls(
+            names=list(d["names"]),
+            low=vec(d["low"]),
+            high=vec(d["high"]),
+            values=mat(values) if values is not None else None,
+        )
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """An experiment with its resolved settings, spaces and progress (schema ``Experiment``)."""
+
+    id: int
+    name: str
+    domain: dict[str, Any]
+    d_max: float
+    seed: int
+    mde: dict[str, Any]
+    learning: dict[str, Any]
+    state_space: Space
+    action_space: Space
+    feature_names: list[str]
+    created_at: str
+    n_trajectories: int
+    n_transitions: int
+    iteration: int
+    model_version: int
+    raw: dict[str, Any] = field(repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Experiment:
+        """Reads the JSON form."""
+        return cls(
+            id=int(d["id"]),
+            name=str(d["name"]),
+            domain=dict(d["domain"]),
+            d_max=float(d["d_max"]),
+            seed=int(d["seed"]),
+            mde=dict(d["mde"]),
+            learning=dict(d["learning"]),
+            state_space=Space.from_json(d["state_space"]),
+            action_space=Space.from_json(d["action_space"]),
+            feature_names=list(d["feature_names"]),
+            created_at=str(d["created_at"]),
+            n_trajectories=int(d["n_trajectories"]),
+            n_transitions=int(d["n_transitions"]),
+            iteration=int(d["iteration"]),
+            model_version=int(d["model_version"]),
+            raw=d,
+        )
+
+
+@dataclass(frozen=True)
+class Transition:
+    """One executed transition to post (schema ``TransitionRequest``).
+
+    ``s_pred`` is the client's own prediction ``f̂(s, a)``: required when the experiment's model
+    is the client's (``model.kind`` ``client``), refused otherwise.
+    """
+
+    s: ArrayLike
+    a: ArrayLike
+    s_next: ArrayLike
+    s_pred: ArrayLike | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON form."""
+        d: dict[str, Any] = {
+            "s": as_list(self.s),
+            "a": as_list(self.a),
+            "s_next": as_list(self.s_next),
+        }
+        if self.s_pred is not None:
+            d["s_pred"] = as_list(self.s_pred)
+        return d
+
+
+def transitions_from_states(
+    states: ArrayLike, actions: ArrayLike, predicted: ArrayLike | None = None
+) -> list[Transition]:
+    """The transitions of a trajectory given the ``k + 1`` observed states (the start first)
+    and the ``k`` actions executed (and, for a client-side model, the ``k`` predictions)."""
+    s = mat(states)
+    a = mat(actions)
+    if len(s) != len(a) + 1:
+        raise ValueError(f"{len(s)} observed states for {len(a)} actions: need one more state")
+    p = mat(predicted) if predicted is not None else None
+    if p is not None and len(p) != len(a):
+        raise ValueError(f"{len(p)} predictions for {len(a)} actions")
+    return [
+        Transition(s[i], a[i], s[i + 1], p[i] if p is not None else None) for i in range(len(a))
+    ]
+
+
+@dataclass(frozen=True)
+class StoredTransition:
+    """A stored, labelled transition (schema ``Transition``)."""
+
+    id: int
+    trajectory_id: int
+    step: int
+    s: Array
+    a: Array
+    s_next: Array
+    s_pred: Array
+    deviation: float
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> StoredTransition:
+        """Reads the JSON form."""
+        return cls(
+            id=int(d["id"]),
+            trajectory_id=int(d["trajectory_id"]),
+            step=int(d["step"]),
+            s=vec(d["s"]),
+            a=vec(d["a"]),
+            s_next=vec(d["s_next"]),
+            s_pred=vec(d["s_pred"]),
+            deviation=float(d["deviation"]),
+        )
+
+
+@dataclass(frozen=True)
+class TrajectoryCreated:
+    """The answer to a posted trajectory (schema ``TrajectoryCreated``)."""
+
+    id: int
+    experiment_id: int
+    proposal_id: int | None
+    partial: bool
+    n_transitions: int
+    deviations: Array
+    iteration: int
+    model_version: int
+    n_trajectories: int
+    created_at: str
+    replayed: bool = False
+    """Whether the server replayed the answer to an earlier request with the same
+    ``Idempotency-Key`` (nothing new was stored)."""
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any], replayed: bool = False) -> TrajectoryCreated:
+        """Reads the JSON form."""
+        pid = d.get("proposal_id")
+        return cls(
+            id=int(d["id"]),
+            experiment_id=int(d["experiment_id"]),
+            proposal_id=int(pid) if pid is not None else None,
+            partial=bool(d["partial"]),
+            n_transitions=int(d["n_transitions"]),
+            deviations=vec(d["deviations"]),
+            iteration=int(d["iteration"]),
+            model_version=int(d["model_version"]),
+            n_trajectories=int(d["n_trajectories"]),
+            created_at=str(d["created_at"]),
+            replayed=replayed,
+        )
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """A trajectory the client planned itself (schema ``CandidateTrajectory``): its predicted
+    states, starting with the start state, and the actions between them."""
+
+    states: ArrayLike
+    actions: ArrayLike
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON form."""
+        return {"states": as_lists(mat(self.states)), "actions": as_lists(mat(self.actions))}
+
+
+@dataclass(frozen=True)
+class PlannedTrajectory:
+    """A planned trajectory with the MDE's answer per step (schemas ``PlannedTrajectory`` and
+    ``ProposedTrajectory``)."""
+
+    states: Array
+    """Predicted states ``(T + 1, n)``, the start first."""
+    actions: Array
+    """Actions ``(T, m)``."""
+    mu: Array
+    sigma: Array
+    alpha_step: Array | None = None
+    alpha: float | None = None
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> PlannedTrajectory:
+        """Reads the JSON form."""
+        states = mat(d["states"])
+        alpha_step = d.get("alpha_step")
+        alpha = d.get("alpha")
+        return cls(
+            states=states,
+            actions=mat(d["actions"]),
+            mu=vec(d["mu"]),
+            sigma=vec(d["sigma"]),
+            alpha_step=vec(alpha_step) if alpha_step is not None else None,
+            alpha=float(alpha) if alpha is not None else None,
+        )
+
+
+@dataclass(frozen=True)
+class CandidateScore:
+    """A scored candidate of a proposal or plan (schema ``CandidateScore``); the verdict
+    fields are set only for the client's own candidates."""
+
+    alpha: float
+    length: int
+    inside: bool | None = None
+    first_outside: int | None = None
+    reaches_goal: bool | None = None
+    mu: Array | None = None
+    sigma: Array | None = None
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> CandidateScore:
+        """Reads the JSON form."""
+        fo = d.get("first_outside")
+        return cls(
+            alpha=float(d["alpha"]),
+            length=int(d["length"]),
+            inside=d.get("inside"),
+            first_outside=int(fo) if fo is not None else None,
+            reaches_goal=d.get("reaches_goal"),
+            mu=vec(d["mu"]) if d.get("mu") is not None else None,
+            sigma=vec(d["sigma"]) if d.get("sigma") is not None else None,
+        )
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """A proposal: the trajectory to execute next, leased to a client (schema ``Proposal``)."""
+
+    id: int
+    status: str
+    """``open``, ``executed``, ``abandoned`` or ``expired``."""
+    client_id: str | None
+    iteration: int
+    beta: float
+    strategy: str
+    model_version: int
+    start: Array
+    goal: Array
+    created_at: str
+    expires_at: str
+    trajectory: PlannedTrajectory
+    candidates: list[CandidateScore]
+    chosen_index: int
+    extensions: int
+    raw: dict[str, Any] = field(repr=False, compare=False)
+
+    @property
+    def actions(self) -> Array:
+        """The actions to execute from :attr:`start`, ``(T, m)``."""
+        return self.trajectory.actions
+
+    @property
+    def states(self) -> Array:
+        """The model's predicted states, ``(T + 1, n)``."""
+        return self.trajectory.states
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Proposal:
+        """Reads the JSON form."""
+        return cls(
+            id=int(d["id"]),
+            status=str(d["status"]),
+            client_id=d.get("client_id"),
+            iteration=int(d["iteration"]),
+            beta=float(d["beta"]),
+            strategy=str(d["strategy"]),
+            model_version=int(d["model_version"]),
+            start=vec(d["start"]),
+            goal=vec(d["goal"]),
+            created_at=str(d["created_at"]),
+            expires_at=str(d["expires_at"]),
+            trajectory=PlannedTrajectory.from_json(d["trajectory"]),
+            candidates=[CandidateScore.from_json(c) for c in d["candidates"]],
+            chosen_index=int(d["chosen_index"]),
+            extensions=int(d["extensions"]),
+            raw=d,
+        )
+
+
+@dataclass(frozen=True)
+class Plan:
+    """A test-time plan (schema ``Plan``)."""
+
+    found: bool
+    extensions: int
+    beta: float
+    d_max: float
+    model_version: int
+    trajectory: PlannedTrajectory | None
+    candidates: list[CandidateScore] | None = None
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Plan:
+        """Reads the JSON form."""
+        t = d.get("trajectory")
+        c = d.get("candidates")
+        return cls(
+            found=bool(d["found"]),
+            extensions=int(d["extensions"]),
+            beta=float(d["beta"]),
+            d_max=float(d["d_max"]),
+            model_version=int(d["model_version"]),
+            trajectory=PlannedTrajectory.from_json(t) if t is not None else None,
+            candidates=[CandidateScore.from_json(x) for x in c] if c is not None else None,
+        )
+
+
+@dataclass(frozen=True)
+class Hyperparameters:
+    """A GP's hyperparameters in natural units (schema ``Hyperparameters``)."""
+
+    length_scales: Array
+    signal_variance: float
+    noise_variance: float
+    prior_mean: float
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Hyperparameters:
+        """Reads the JSON form."""
+        return cls(
+            length_scales=vec(d["length_scales"]),
+            signal_variance=float(d["signal_variance"]),
+            noise_variance=float(d["noise_variance"]),
+            prior_mean=float(d["prior_mean"]),
+        )
+
+
+@dataclass(frozen=True)
+class Model:
+    """The MDE version answering queries (schema ``Model``)."""
+
+    experiment_id: int
+    version: int
+    source: str
+    """``prior`` (version 0) or ``fit``."""
+    n_train: int
+    noise: str | None
+    feature_names: list[str]
+    hyperparameters: Hyperparameters
+    log_marginal_likelihood: float | None
+    fit_seconds: float | None
+    fitted_at: str | None
+    n_trajectories: int
+    raw: dict[str, Any] = field(repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Model:
+        """Reads the JSON form (the noise model's summary stays in ``raw["noise_model"]``)."""
+        lml = d.get("log_marginal_likelihood")
+        fs = d.get("fit_seconds")
+        return cls(
+            experiment_id=int(d["experiment_id"]),
+            version=int(d["version"]),
+            source=str(d["source"]),
+            n_train=int(d["n_train"]),
+            noise=d.get("noise"),
+            feature_names=list(d["feature_names"]),
+            hyperparameters=Hyperparameters.from_json(d["hyperparameters"]),
+            log_marginal_likelihood=float(lml) if lml is not None else None,
+            fit_seconds=float(fs) if fs is not None else None,
+            fitted_at=d.get("fitted_at"),
+            n_trajectories=int(d["n_trajectories"]),
+            raw=d,
+        )
+
+
+@dataclass(frozen=True)
+class Precondition:
+    """The answer to a precondition query, one entry per point in every array
+    (schema ``PreconditionAnswer``)."""
+
+    model_version: int
+    source: str
+    beta: float
+    d_max: float
+    mu: Array
+    """Predicted mean deviation ``μ`` per point."""
+    sigma: Array
+    """Predicted standard deviation ``σ`` per point."""
+    upper: Array
+    """``μ + βσ`` per point."""
+    inside: NDArray[np.bool_]
+    """``upper < d_max`` per point."""
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Precondition:
+        """Reads the JSON form."""
+        rs: Sequence[Mapping[str, Any]] = d["results"]
+        return cls(
+            model_version=int(d["model_version"]),
+            source=str(d["source"]),
+            beta=float(d["beta"]),
+            d_max=float(d["d_max"]),
+            mu=np.array([r["mu"] for r in rs], dtype=np.float64),
+            sigma=np.array([r["sigma"] for r in rs], dtype=np.float64),
+            upper=np.array([r["upper"] for r in rs], dtype=np.float64),
+            inside=np.array([bool(r["inside"]) for r in rs], dtype=np.bool_),
+        )
+
+    @staticmethod
+    def concat(parts: Sequence[Precondition]) -> Precondition:
+        """The answers of consecutive chunks of one query, joined."""
+        first = parts[0]
+        return Precondition(
+            model_version=first.model_version,
+            source=first.source,
+            beta=first.beta,
+            d_max=first.d_max,
+            mu=np.concatenate([p.mu for p in parts]),
+            sigma=np.concatenate([p.sigma for p in parts]),
+            upper=np.concatenate([p.upper for p in parts]),
+            inside=np.concatenate([p.inside for p in parts]),
+        )

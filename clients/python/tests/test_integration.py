@@ -1,0 +1,223 @@
+"""Integration tests: the client against the real precond server binary over loopback, with a
+remote model served by ``serve_model`` and a server restart in the middle of the loop."""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import PrecondServer
+
+from precond_client import (
+    Candidate,
+    Client,
+    Conflict,
+    ModelUnavailable,
+    NotFound,
+    ValidationFailed,
+    serve_model,
+    transitions_from_states,
+)
+from precond_client.models import Array
+
+pytestmark = pytest.mark.integration
+
+MakeServer = Callable[..., PrecondServer]
+
+ICE_LOW, ICE_HIGH, SLIP = 0.45, 0.75, 1.8
+
+
+def model(states: Array, actions: Array) -> Array:
+    """The robot's model: the point moves by the action (clipped to the table)."""
+    return np.clip(states + actions, 0.0, 1.0)
+
+
+def true_step(s: Array, a: Array) -> Array:
+    """The true world: on the icy band ``ICE_LOW ≤ x ≤ ICE_HIGH`` the point slides further."""
+    gain = SLIP if ICE_LOW <= s[0] <= ICE_HIGH else 1.0
+    return np.clip(s + gain * a, 0.0, 1.0)
+
+
+def execute(start: Array, actions: Array) -> Array:
+    """Runs actions open loop in the true world; the observed states, the start first."""
+    states = [np.asarray(start, dtype=np.float64)]
+    for a in actions:
+        states.append(true_step(states[-1], a))
+    return np.array(states)
+
+
+def settings(url: str, name: str) -> dict[str, Any]:
+    return {
+        "name": name,
+        "d_max": 0.05,
+        "seed": 3,
+        "domain": {
+            "kind": "custom",
+            "state": {"names": ["x", "y"], "low": [0, 0], "high": [1, 1]},
+            "action": {"names": ["dx", "dy"], "low": [-0.1, -0.1], "high": [0.1, 0.1]},
+            "goal": {"radius": 0.08},
+            "model": {"kind": "remote", "url": url, "timeout_ms": 5000},
+        },
+        "mde": {"noise": "homoscedastic", "restarts": 0},
+        "learning": {"batch_size": 2, "iterations": 100, "n_candidates": 3, "max_extensions": 2000},
+    }
+
+
+def problems(n: int, seed: int = 0) -> list[tuple[Array, Array]]:
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        start = np.array([rng.uniform(0.05, 0.3), rng.uniform(0.1, 0.9)])
+        goal = np.array([rng.uniform(0.7, 0.95), rng.uniform(0.1, 0.9)])
+        out.append((start, goal))
+    return out
+
+
+def test_a_loop_survives_server_and_robot_restarts_without_duplicates_or_losses(
+    make_server: MakeServer,
+) -> None:
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60, client_id="arm-1", backoff=0.05, retries=40)
+        exp = client.ensure_experiment("restart loop", settings(served.url, "ignored"))
+        assert exp.domain["model"]["url"] == served.url
+        assert client.ensure_experiment("restart loop").id == exp.id
+
+        posted: dict[int, int] = {}  # proposal id -> trajectory id
+        lengths: dict[int, int] = {}
+        learner = client.learn(problems(8))
+        for i, ep in enumerate(learner):
+            observed = execute(ep.start, ep.actions)
+            if i == 2:
+                # The server goes down while the robot executes; it is back a moment later,
+                # and the post waits for it.
+                server.stop()
+                restarter = threading.Timer(0.5, server.start)
+                restarter.start()
+                created = ep.post(observed)
+                restarter.join()
+            else:
+                created = ep.post(observed)
+            assert not created.replayed
+            posted[ep.proposal.id] = created.id
+            lengths[created.id] = created.n_transitions
+            if i == 3:
+                # The answer was lost: the robot posts the same execution again after a restart.
+                server.restart()
+                again = client.post_trajectory(
+                    [
+                        {"s": s.tolist(), "a": a.tolist(), "s_next": n.tolist()}
+                        for s, a, n in zip(observed[:-1], ep.actions, observed[1:], strict=True)
+                    ],
+                    proposal_id=ep.proposal.id,
+                )
+                assert again.replayed and again.id == created.id
+        assert learner.episodes >= 4, "the loop must reach both restarts"
+        assert server.starts == 3
+        assert served.calls > 0  # the server planned and labelled with the Python model
+
+        # The robot's process dies holding a lease for one problem ...
+        held = client.propose([0.1, 0.2], [0.35, 0.2])
+        # ... and a new process of the same robot asks for another: it is handed the held one
+        # first, then its own.
+        robot2 = Client(server.url, timeout=60, client_id="arm-1", experiment_id=exp.id)
+        seen = []
+        for ep in robot2.learn([([0.1, 0.8], [0.35, 0.8])]):
+            seen.append((ep.proposal.id, ep.resumed))
+            created = ep.post(execute(ep.start, ep.actions))
+            posted[ep.proposal.id] = created.id
+            lengths[created.id] = created.n_transitions
+        assert seen[0] == (held.id, True)
+        assert len(seen) == 2 and not seen[1][1]
+
+        # Every execution is stored exactly once.
+        exp = client.get_experiment()
+        assert exp.n_trajectories == len(posted) == len(set(posted.values()))
+        stored = list(client.transitions(page_size=7))
+        assert len(stored) == exp.n_transitions == sum(lengths.values())
+        by_traj: dict[int, int] = {}
+        for t in stored:
+            by_traj[t.trajectory_id] = by_traj.get(t.trajectory_id, 0) + 1
+        assert by_traj == lengths
+        for pid in posted:
+            assert client.get_proposal(pid).status == "executed"
+        # The server labelled with the served model: s_pred is the Python model's prediction,
+        # and deviations are non-zero only on the ice.
+        s = np.array([t.s for t in stored])
+        a = np.array([t.a for t in stored])
+        s_next = np.array([t.s_next for t in stored])
+        s_pred = np.array([t.s_pred for t in stored])
+        dev = np.array([t.deviation for t in stored])
+        np.testing.assert_allclose(s_pred, model(s, a), atol=1e-12)
+        np.testing.assert_allclose(dev, np.linalg.norm(s_pred - s_next, axis=1), rtol=1e-9)
+        on_ice = (s[:, 0] >= ICE_LOW) & (s[:, 0] <= ICE_HIGH)
+        assert on_ice.any() and (~on_ice).any()
+        np.testing.assert_allclose(dev[~on_ice], 0.0, atol=1e-9)
+        assert dev[on_ice].max() > 0.05
+
+
+def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeServer) -> None:
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60)
+        client.create_experiment(settings(served.url, "queries"))
+        assert client.model().source == "prior"
+
+        rng = np.random.default_rng(1)
+        for _ in range(4):
+            start = rng.uniform(0.1, 0.9, size=2)
+            actions = rng.uniform(-0.1, 0.1, size=(8, 2))
+            states = execute(start, actions)
+            client.post_trajectory(transitions_from_states(states, actions))
+        fitted = client.refit()
+        assert fitted.source == "fit" and fitted.n_train == 32 and fitted.version >= 1
+        assert len(fitted.hyperparameters.length_scales) == 4
+
+        grid = np.array([[x, 0.5, 0.1, 0.0] for x in (0.2, 0.6, 0.9)])
+        ans = client.precondition(grid, beta=0.0)
+        assert ans.mu.shape == (3,) and ans.inside.shape == (3,)
+        assert ans.model_version == fitted.version
+        np.testing.assert_allclose(ans.upper, ans.mu, atol=1e-12)  # β = 0
+        split = client.precondition((grid[:, :2], grid[:, 2:]), beta=2.0)
+        np.testing.assert_allclose(split.upper, split.mu + 2.0 * split.sigma, rtol=1e-9)
+
+        plan = client.plan([0.1, 0.2], [0.3, 0.2], beta=-3.0)
+        assert plan.found and plan.trajectory is not None
+        assert plan.trajectory.states.shape[1] == 2
+        mine = Candidate([[0.1, 0.2], [0.2, 0.2], [0.3, 0.2]], [[0.1, 0.0], [0.1, 0.0]])
+        scored = client.plan([0.1, 0.2], [0.3, 0.2], beta=-3.0, candidates=[mine])
+        assert scored.candidates is not None and scored.candidates[0].reaches_goal
+
+
+def test_server_errors_arrive_as_exceptions_with_code_and_details(
+    make_server: MakeServer,
+) -> None:
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60, retries=2, backoff=0.01, client_id="r1")
+        with pytest.raises(NotFound):
+            client.get_experiment(999)
+        client.create_experiment(settings(served.url, "errors"))
+        with pytest.raises(ValidationFailed) as bad:
+            client.post_trajectory([{"s": [0.1, 0.1], "a": [0.5, 0.0], "s_next": [0.2, 0.1]}])
+        assert bad.value.field == "transitions[0].a"
+        held = client.propose([0.1, 0.5], [0.4, 0.5])
+        assert client.propose([0.1, 0.5], [0.4, 0.5]).id == held.id
+        with pytest.raises(Conflict) as conflict:
+            client.propose([0.2, 0.5], [0.4, 0.5])
+        assert conflict.value.lease is not None
+        assert conflict.value.lease["proposal_id"] == held.id
+        assert client.abandon(held.id).status == "abandoned"
+        with pytest.raises(ValidationFailed) as url:
+            client.create_experiment(settings("http://127.0.0.1:1/elsewhere", "not allowed"))
+        assert url.value.field == "domain.model.url"
+    # The model server is gone: the service answers 502 naming it, after the client's retries.
+    t0 = time.monotonic()
+    with pytest.raises(ModelUnavailable) as down:
+        client.propose([0.1, 0.5], [0.4, 0.5])
+    assert served.url in str(down.value.details)
+    assert time.monotonic() - t0 < 30

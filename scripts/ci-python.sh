@@ -1,0 +1,34 @@
+#!/usr/bin/env bash
+# The Python client's gate: install it into a venv under target/, lint (ruff), type-check
+# (mypy --strict), and run its unit tests and its integration tests against the real server
+# binary, ${PRECOND_BIN:-target/debug/precond} (built here if missing).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+started=$SECONDS
+
+target="${CARGO_TARGET_DIR:-target}"
+export PRECOND_BIN="${PRECOND_BIN:-$target/debug/precond}"
+if [ ! -x "$PRECOND_BIN" ]; then
+    echo "== cargo build --locked (no server binary at $PRECOND_BIN)"
+    cargo build --locked
+fi
+export PRECOND_BIN="$(cd "$(dirname "$PRECOND_BIN")" && pwd)/$(basename "$PRECOND_BIN")"
+
+venv=target/venv-python-client
+if [ ! -x "$venv/bin/python" ]; then
+    echo "== python3 -m venv $venv"
+    python3 -m venv "$venv"
+fi
+echo "== pip install -e clients/python[dev]"
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check -e "clients/python[dev]"
+
+cd clients/python
+echo "== ruff check, ruff format --check"
+"../../$venv/bin/ruff" check .
+"../../$venv/bin/ruff" format --check .
+echo "== mypy --strict"
+"../../$venv/bin/mypy"
+echo "== pytest (unit and integration, server $PRECOND_BIN)"
+PRECOND_REQUIRE_SERVER=1 "../../$venv/bin/pytest" -q -p no:cacheprovider tests
+
+echo "== python client: done in $((SECONDS - started)) s"
