@@ -1,5 +1,6 @@
 //! Integration tests over a real socket and a real SQLite file.
 
+mod auth;
 mod contract;
 mod custom;
 mod experiments;
