@@ -6,5 +6,6 @@ mod custom;
 mod experiments;
 mod helpers;
 mod learning;
+mod limits;
 mod model_server;
 mod trajectories;
