@@ -57,9 +57,10 @@ pub enum Error {
         /// Seconds to wait before retrying.
         retry_after_secs: u64,
     },
-    /// The planning deadline passed (waiting for a slot or searching); nothing was stored.
+    /// The deadline passed: a search (waiting for a slot or searching; nothing was stored) or
+    /// a forced refit (which goes on in the background and is swapped in when done).
     #[error(
-        "the planning deadline of {timeout_ms} ms passed after {extensions} extensions; retry in {retry_after_secs} s"
+        "the deadline of {timeout_ms} ms passed ({extensions} extensions searched); retry in {retry_after_secs} s"
     )]
     DeadlineExceeded {
         /// Extensions spent before the search stopped (0 if it never started).

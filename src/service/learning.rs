@@ -188,12 +188,19 @@ impl Service {
     }
 
     /// Fits a new version on every stored transition now (off the async workers) and answers
-    /// with it.
+    /// with it. The fit runs in its own task: if it does not finish within the planning
+    /// deadline the answer is `DeadlineExceeded`, and the fit goes on, is stored and swapped in
+    /// when done (a client that goes away does not lose it either).
     pub async fn refit(&self, id: i64) -> Result<ModelView> {
         let live = self.live(id).await?;
-        let model = live
-            .refit(&self.store, &self.work, FitTrigger::Forced)
-            .await?;
+        let fit = {
+            let (live, store, work) = (live.clone(), self.store.clone(), self.work.clone());
+            tokio::spawn(async move { live.refit(&store, &work, FitTrigger::Forced).await })
+        };
+        let model = tokio::time::timeout(self.work.limits().plan_timeout, fit)
+            .await
+            .map_err(|_| self.work.deadline_exceeded(0))?
+            .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??;
         Ok(ModelView {
             experiment_id: id,
             feature_names: live.domain.feature_names(),
