@@ -26,9 +26,23 @@ pub enum Command {
     /// Print speed benchmarks (build with `--release`).
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Copy the database to a new file while the server keeps serving (a consistent snapshot;
+    /// writers are not blocked).
+    Backup(BackupArgs),
     /// Run the paper's evaluation (strategies × seeds × iterations) against the service and
     /// write results and plots.
     Experiment(crate::experiment::ExperimentArgs),
+}
+
+/// Options of `precond backup`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BackupArgs {
+    /// The database being served: a path or a `sqlite://` URL.
+    #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
+    pub database_url: String,
+    /// The new file to write (must not exist).
+    #[arg(long, value_name = "FILE")]
+    pub to: std::path::PathBuf,
 }
 
 /// Benchmarks.
@@ -294,6 +308,26 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 plan_timeout_ms: args.plan_timeout_ms,
             })
             .await
+        }
+        Command::Backup(args) => {
+            anyhow::ensure!(
+                !args.to.exists(),
+                "{} exists; a backup goes to a new file",
+                args.to.display()
+            );
+            let to = args.to.to_str().context("the backup path is not UTF-8")?;
+            let store = Store::open(&args.database_url).await?;
+            store
+                .backup_to(to)
+                .await
+                .with_context(|| format!("writing the backup {to}"))?;
+            let size = store.size().await?;
+            store.close().await;
+            println!(
+                "backed up {} experiments, {} trajectories, {} transitions to {to}",
+                size.experiments, size.trajectories, size.transitions
+            );
+            Ok(())
         }
         Command::Experiment(args) => {
             crate::experiment::init_tracing();
