@@ -66,6 +66,10 @@ if grep -q '"level":"ERROR"' "$work/server.log"; then
     grep '"level":"ERROR"' "$work/server.log" | head -20
     status=1
 fi
+if grep -qF "$token" "$work/server.log"; then
+    echo "the access token appears in the server log"
+    status=1
+fi
 cases=$(sed -n 's/^ *\([0-9][0-9]*\) generated.*/\1/p' "$work/report.txt" | tail -1)
 echo "schemathesis: ${cases:-0} test cases, exit status $status, $(( $(date +%s) - started )) s"
 if [ "${cases:-0}" -lt "$min_cases" ]; then

@@ -335,3 +335,40 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn without_tokens_only_loopback_is_served_unless_insisted() {
+        let loopback: std::net::SocketAddr = "127.0.0.1:8080".parse().unwrap();
+        let v6: std::net::SocketAddr = "[::1]:8080".parse().unwrap();
+        let open: std::net::SocketAddr = "0.0.0.0:8080".parse().unwrap();
+        assert!(check_exposure(loopback, false, false).is_ok());
+        assert!(check_exposure(v6, false, false).is_ok());
+        let e = check_exposure(open, false, false).unwrap_err().to_string();
+        assert!(
+            e.contains("--token-file") && e.contains("--insecure-no-auth"),
+            "{e}"
+        );
+        assert!(check_exposure(open, true, false).is_ok());
+        assert!(check_exposure(open, false, true).is_ok());
+    }
+
+    #[test]
+    fn serve_limits_are_checked() {
+        let args = |extra: &[&str]| {
+            let mut argv = vec!["precond", "serve"];
+            argv.extend(extra);
+            match Cli::parse_from(argv).command {
+                Command::Serve(a) => a,
+                _ => unreachable!(),
+            }
+        };
+        let l = args(&["--max-concurrent-plans", "3"]).limits().unwrap();
+        assert_eq!((l.max_concurrent_plans, l.max_queued_plans), (3, 24));
+        assert!(args(&["--plan-timeout-ms", "5"]).limits().is_err());
+        assert!(args(&["--max-transitions", "10001"]).limits().is_err());
+    }
+}
