@@ -151,13 +151,12 @@ impl LiveExperiment {
         .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
         let slot = gate.fit_slot().await?;
         let started = Instant::now();
-        let gp = tokio::task::spawn_blocking(move || {
+        let gp = super::work::run_niced(move || {
             let _slot = slot;
             let (x, y) = training_data(features, labels, dim);
             GpModel::fit(&x, &y, &params)
         })
-        .await
-        .context("fit task")?;
+        .await?;
         let trigger_name = match trigger {
             FitTrigger::Batch => "batch",
             FitTrigger::Forced => "forced",

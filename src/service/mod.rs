@@ -105,7 +105,7 @@ impl Service {
     ) -> Result<T> {
         let (slot, deadline) = self.work.plan_slot(arrived).await?;
         let (budget, _cancel_on_drop) = WorkGate::budget(deadline);
-        let outcome = Self::blocking(move || {
+        let outcome = work::run_niced(move || {
             // The slot is held by the running search, not by the request: a cancelled
             // request's slot frees when its search has actually stopped.
             let _slot = slot;

@@ -218,6 +218,40 @@ impl WorkGate {
     }
 }
 
+/// Runs CPU-heavy `work` (a search or a fit) on a thread of its own at a lower scheduling
+/// priority (nice +10 on Linux), so that the async workers answering health checks and reads
+/// preempt it whenever they have something to do; the result comes back over a channel. A
+/// panic in `work` is an internal error.
+pub async fn run_niced<T: Send + 'static>(work: impl FnOnce() -> T + Send + 'static) -> Result<T> {
+    let (tx, rx) = tokio::sync::oneshot::channel();
+    std::thread::Builder::new()
+        .name("precond-work".into())
+        .spawn(move || {
+            lower_priority();
+            let _ = tx.send(work());
+        })
+        .map_err(|e| Error::Internal(anyhow::Error::new(e).context("starting a work thread")))?;
+    rx.await
+        .map_err(|_| Error::Internal(anyhow::anyhow!("a work thread panicked")))
+}
+
+/// Raises this thread's nice value by 10 (Linux: per thread). Raising it needs no privilege;
+/// if it fails anyway the work runs at normal priority.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    {
+        // SAFETY: gettid and setpriority take and return plain integers; PRIO_PROCESS with a
+        // thread id changes that thread only, this one.
+        let rc = unsafe {
+            let tid = libc::gettid();
+            libc::setpriority(libc::PRIO_PROCESS, tid as libc::id_t, 10)
+        };
+        if rc != 0 {
+            tracing::debug!("could not lower a work thread's priority");
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
