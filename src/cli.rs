@@ -1,8 +1,9 @@
 //! The command line: `precond serve` and friends. `main` only parses and calls [`run`].
 
+use crate::http::auth::TokenTable;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::remote_model::ModelUrlPolicy;
-use crate::service::Service;
+use crate::service::{Limits, Service};
 use crate::store::Store;
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
@@ -25,9 +26,23 @@ pub enum Command {
     /// Print speed benchmarks (build with `--release`).
     #[command(subcommand)]
     Bench(BenchCommand),
+    /// Copy the database to a new file while the server keeps serving (a consistent snapshot;
+    /// writers are not blocked).
+    Backup(BackupArgs),
     /// Run the paper's evaluation (strategies × seeds × iterations) against the service and
     /// write results and plots.
     Experiment(crate::experiment::ExperimentArgs),
+}
+
+/// Options of `precond backup`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BackupArgs {
+    /// The database being served: a path or a `sqlite://` URL.
+    #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
+    pub database_url: String,
+    /// The new file to write (must not exist).
+    #[arg(long, value_name = "FILE")]
+    pub to: std::path::PathBuf,
 }
 
 /// Benchmarks.
@@ -40,6 +55,23 @@ pub enum BenchCommand {
     /// MDE fitted on 1000 transitions; then the same with a model served over HTTP on loopback
     /// (model calls and points per proposal).
     Planning,
+    /// Latency of `/healthz` and a cheap read, idle and while concurrent clients saturate the
+    /// planner with proposals that run into their deadline.
+    Saturation(SaturationArgs),
+}
+
+/// Options of `precond bench saturation`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SaturationArgs {
+    /// Concurrent clients asking for proposals.
+    #[arg(long, default_value_t = 16)]
+    pub clients: usize,
+    /// Seconds of each phase (idle, saturated).
+    #[arg(long, default_value_t = 10.0)]
+    pub seconds: f64,
+    /// Planning deadline in milliseconds.
+    #[arg(long, default_value_t = 2000)]
+    pub plan_timeout_ms: u64,
 }
 
 /// Options of `precond bench gp`.
@@ -95,6 +127,89 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     pub allow_model_urls: Vec<String>,
+    /// Access tokens, one a line: `token role [experiment-ids|*]` with role `read`, `write` or
+    /// `admin` (see the README's "Deploying for a lab"). Without it every request is let
+    /// through, so the server then refuses a non-loopback address unless
+    /// `--insecure-no-auth` is given.
+    #[arg(long, env = "PRECOND_TOKEN_FILE", value_name = "FILE")]
+    pub token_file: Option<std::path::PathBuf>,
+    /// Serve without tokens on a non-loopback address (a trusted network only).
+    #[arg(long, env = "PRECOND_INSECURE_NO_AUTH")]
+    pub insecure_no_auth: bool,
+    /// Planning searches and fits running at once (1 ..= 256; default: the number of cores).
+    #[arg(long, env = "PRECOND_MAX_CONCURRENT_PLANS")]
+    pub max_concurrent_plans: Option<usize>,
+    /// Planning requests waiting for a slot before new ones get `429` (0 ..= 10 000; default:
+    /// 8 × max-concurrent-plans).
+    #[arg(long, env = "PRECOND_MAX_QUEUED_PLANS")]
+    pub max_queued_plans: Option<usize>,
+    /// Wall-clock budget of one proposal or plan, queueing included, in milliseconds
+    /// (100 ..= 600 000); past it the client gets `503` with `Retry-After`.
+    #[arg(long, env = "PRECOND_PLAN_TIMEOUT_MS", default_value_t = 30_000)]
+    pub plan_timeout_ms: u64,
+    /// Experiments this server holds (1 ..= 1 000 000).
+    #[arg(long, env = "PRECOND_MAX_EXPERIMENTS", default_value_t = 1000)]
+    pub max_experiments: usize,
+    /// Transitions in one posted trajectory (1 ..= 10 000).
+    #[arg(long, env = "PRECOND_MAX_TRANSITIONS", default_value_t = crate::limits::MAX_TRANSITIONS)]
+    pub max_transitions: usize,
+    /// Seconds in-flight requests may run on after SIGTERM before they are dropped.
+    #[arg(long, env = "PRECOND_SHUTDOWN_GRACE_SECS", default_value_t = 20)]
+    pub shutdown_grace_secs: u64,
+}
+
+impl ServeArgs {
+    /// The service limits these options set, checked.
+    pub fn limits(&self) -> anyhow::Result<Limits> {
+        let defaults = Limits::default();
+        let concurrent = self
+            .max_concurrent_plans
+            .unwrap_or(defaults.max_concurrent_plans);
+        let limits = Limits {
+            max_concurrent_plans: concurrent,
+            max_queued_plans: self.max_queued_plans.unwrap_or(8 * concurrent),
+            plan_timeout: std::time::Duration::from_millis(self.plan_timeout_ms),
+            max_experiments: self.max_experiments,
+            max_transitions: self.max_transitions,
+        };
+        limits.check().map_err(anyhow::Error::msg)?;
+        Ok(limits)
+    }
+}
+
+/// Reads the token file, if any; the error names the file and the line, never a token.
+pub fn load_tokens(
+    path: Option<&std::path::Path>,
+) -> anyhow::Result<Option<std::sync::Arc<TokenTable>>> {
+    let Some(path) = path else { return Ok(None) };
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading the token file {}", path.display()))?;
+    let table =
+        TokenTable::parse(&text).with_context(|| format!("the token file {}", path.display()))?;
+    Ok(Some(std::sync::Arc::new(table)))
+}
+
+/// Refuses to serve without tokens on a non-loopback address unless the operator insisted.
+pub fn check_exposure(
+    addr: std::net::SocketAddr,
+    has_tokens: bool,
+    insecure_no_auth: bool,
+) -> anyhow::Result<()> {
+    if has_tokens || addr.ip().is_loopback() {
+        return Ok(());
+    }
+    if insecure_no_auth {
+        tracing::warn!(
+            %addr,
+            "serving WITHOUT access tokens on a non-loopback address (--insecure-no-auth): \
+             anyone who can reach it can create experiments and post data"
+        );
+        return Ok(());
+    }
+    anyhow::bail!(
+        "refusing to serve on {addr} without access tokens: give --token-file FILE (or \
+         PRECOND_TOKEN_FILE), listen on a loopback address, or pass --insecure-no-auth"
+    )
 }
 
 /// Installs the global tracing subscriber.
@@ -140,14 +255,28 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             if !args.allow_model_urls.is_empty() {
                 tracing::info!(prefixes = ?model_urls.prefixes(), "remote dynamics models allowed");
             }
-            let store = Store::open(&args.database_url).await?;
+            let limits = args.limits()?;
+            let tokens = load_tokens(args.token_file.as_deref())?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
                 .await
                 .with_context(|| format!("binding {}", args.addr))?;
+            check_exposure(
+                listener.local_addr()?,
+                tokens.is_some(),
+                args.insecure_no_auth,
+            )?;
+            match &tokens {
+                Some(t) => tracing::info!(tokens = t.len(), "access tokens required"),
+                None => tracing::info!("no token file: every request is let through"),
+            }
+            let store = Store::open(&args.database_url).await?;
+            tracing::info!(?limits, "limits");
             let state = AppState::with_service(
-                Service::with_model_urls(store, model_urls),
+                Service::with_model_urls(store, model_urls).with_limits(limits),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
+                    tokens,
+                    shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
                 },
             );
             serve(listener, state, shutdown_signal()).await
@@ -172,9 +301,74 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             tokio::task::spawn_blocking(crate::bench::planning::run_default).await??;
             crate::bench::remote::run(5).await
         }
+        Command::Bench(BenchCommand::Saturation(args)) => {
+            crate::bench::saturation::run(&crate::bench::saturation::SaturationOptions {
+                clients: args.clients,
+                seconds: args.seconds,
+                plan_timeout_ms: args.plan_timeout_ms,
+            })
+            .await
+        }
+        Command::Backup(args) => {
+            anyhow::ensure!(
+                !args.to.exists(),
+                "{} exists; a backup goes to a new file",
+                args.to.display()
+            );
+            let to = args.to.to_str().context("the backup path is not UTF-8")?;
+            let store = Store::open(&args.database_url).await?;
+            store
+                .backup_to(to)
+                .await
+                .with_context(|| format!("writing the backup {to}"))?;
+            let size = store.size().await?;
+            store.close().await;
+            println!(
+                "backed up {} experiments, {} trajectories, {} transitions to {to}",
+                size.experiments, size.trajectories, size.transitions
+            );
+            Ok(())
+        }
         Command::Experiment(args) => {
             crate::experiment::init_tracing();
             crate::experiment::run(args).await.map(|_| ())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn without_tokens_only_loopback_is_served_unless_insisted() {
+        let loopback: std::net::SocketAddr = "127.0.0.1:8080".parse().unwrap();
+        let v6: std::net::SocketAddr = "[::1]:8080".parse().unwrap();
+        let open: std::net::SocketAddr = "0.0.0.0:8080".parse().unwrap();
+        assert!(check_exposure(loopback, false, false).is_ok());
+        assert!(check_exposure(v6, false, false).is_ok());
+        let e = check_exposure(open, false, false).unwrap_err().to_string();
+        assert!(
+            e.contains("--token-file") && e.contains("--insecure-no-auth"),
+            "{e}"
+        );
+        assert!(check_exposure(open, true, false).is_ok());
+        assert!(check_exposure(open, false, true).is_ok());
+    }
+
+    #[test]
+    fn serve_limits_are_checked() {
+        let args = |extra: &[&str]| {
+            let mut argv = vec!["precond", "serve"];
+            argv.extend(extra);
+            match Cli::parse_from(argv).command {
+                Command::Serve(a) => a,
+                _ => unreachable!(),
+            }
+        };
+        let l = args(&["--max-concurrent-plans", "3"]).limits().unwrap();
+        assert_eq!((l.max_concurrent_plans, l.max_queued_plans), (3, 24));
+        assert!(args(&["--plan-timeout-ms", "5"]).limits().is_err());
+        assert!(args(&["--max-transitions", "10001"]).limits().is_err());
     }
 }

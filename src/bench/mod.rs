@@ -1,6 +1,8 @@
 //! Benchmarks that print figures: `precond bench gp` and `precond bench planning` (build with
-//! `--release`). `planning` also times proposals with a model served over HTTP ([`remote`]).
+//! `--release`). `planning` also times proposals with a model served over HTTP ([`remote`]);
+//! `saturation` measures health checks and cheap reads while the planner is saturated.
 
 pub mod gp;
 pub mod planning;
 pub mod remote;
+pub mod saturation;

@@ -9,7 +9,7 @@ use crate::api::{ErrorBody, ErrorDetail};
 use crate::domain::DynamicsError;
 use crate::service::Error;
 use axum::Json;
-use axum::http::StatusCode;
+use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
@@ -31,6 +31,12 @@ pub enum ApiError {
     /// A dependency (the database) is not answering (503 `unavailable`).
     #[error("{0}")]
     Unavailable(String),
+    /// No bearer token, or one the server does not know (401 `unauthorized`).
+    #[error("a valid bearer token is required (Authorization: Bearer <token>)")]
+    Unauthorized,
+    /// The token lacks the route's role or does not reach the experiment (403 `forbidden`).
+    #[error("{0}")]
+    Forbidden(String),
     /// What the service answered instead of a result.
     #[error(transparent)]
     Service(#[from] Error),
@@ -54,6 +60,8 @@ impl ApiError {
             Self::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+            Self::Unauthorized => StatusCode::UNAUTHORIZED,
+            Self::Forbidden(_) => StatusCode::FORBIDDEN,
             Self::Service(e) => match e {
                 Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
                 Error::NotFound(_) => StatusCode::NOT_FOUND,
@@ -61,6 +69,11 @@ impl ApiError {
                 Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
                 Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
+                Error::Overloaded { .. } => StatusCode::TOO_MANY_REQUESTS,
+                Error::DeadlineExceeded { .. } | Error::Cancelled => {
+                    StatusCode::SERVICE_UNAVAILABLE
+                }
+                Error::LimitReached(_) => StatusCode::CONFLICT,
                 Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
             },
         }
@@ -73,6 +86,8 @@ impl ApiError {
             Self::PayloadTooLarge { .. } => "payload_too_large",
             Self::MethodNotAllowed => "method_not_allowed",
             Self::Unavailable(_) => "unavailable",
+            Self::Unauthorized => "unauthorized",
+            Self::Forbidden(_) => "forbidden",
             Self::Service(e) => match e {
                 Error::Validation { .. } | Error::Dynamics(DynamicsError::ClientSide) => {
                     "validation_failed"
@@ -82,6 +97,10 @@ impl ApiError {
                 Error::NoPlan { .. } => "no_plan",
                 Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
+                Error::Overloaded { .. } => "overloaded",
+                Error::DeadlineExceeded { .. } => "deadline_exceeded",
+                Error::Cancelled => "cancelled",
+                Error::LimitReached(_) => "limit_reached",
                 Error::Internal(_) => "internal",
             },
         }
@@ -116,9 +135,29 @@ impl ApiError {
                 Error::Dynamics(DynamicsError::ClientSide) => {
                     json!({"field": "domain.model", "reason": e.to_string()})
                 }
+                Error::Overloaded { retry_after_secs } => {
+                    json!({"retry_after_seconds": retry_after_secs})
+                }
+                Error::DeadlineExceeded {
+                    extensions,
+                    timeout_ms,
+                    retry_after_secs,
+                } => json!({"extensions": extensions, "timeout_ms": timeout_ms,
+                            "retry_after_seconds": retry_after_secs}),
                 _ => Value::Null,
             },
             _ => Value::Null,
+        }
+    }
+
+    /// Seconds a client should wait before retrying, for the `Retry-After` header.
+    pub fn retry_after_secs(&self) -> Option<u64> {
+        match self {
+            Self::Service(Error::Overloaded { retry_after_secs })
+            | Self::Service(Error::DeadlineExceeded {
+                retry_after_secs, ..
+            }) => Some(*retry_after_secs),
+            _ => None,
         }
     }
 
@@ -150,7 +189,18 @@ impl IntoResponse for ApiError {
             Self::Unavailable(reason) => tracing::warn!(%reason, "dependency unavailable"),
             _ => {}
         }
-        (self.status(), Json(self.body())).into_response()
+        let mut response = (self.status(), Json(self.body())).into_response();
+        if let Some(secs) = self.retry_after_secs() {
+            response
+                .headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        }
+        if matches!(self, Self::Unauthorized) {
+            response
+                .headers_mut()
+                .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
+        }
+        response
     }
 }
 

@@ -1,13 +1,14 @@
 //! `/v1/experiments`: create, list, show.
 
 use super::AppState;
+use super::auth::Caller;
 use super::error::ApiResult;
 use super::extract::{ApiJson, ApiPath};
 use super::render;
 use crate::api::{ExperimentList, ExperimentRequest, ExperimentResponse};
-use axum::Json;
 use axum::extract::State;
 use axum::http::StatusCode;
+use axum::{Extension, Json};
 
 /// `POST /v1/experiments`.
 pub async fn create_experiment(
@@ -18,11 +19,19 @@ pub async fn create_experiment(
     Ok((StatusCode::CREATED, Json(render::experiment(created))))
 }
 
-/// `GET /v1/experiments`.
-pub async fn list_experiments(State(state): State<AppState>) -> ApiResult<Json<ExperimentList>> {
+/// `GET /v1/experiments`: every experiment the caller's token reaches (all without tokens).
+pub async fn list_experiments(
+    State(state): State<AppState>,
+    caller: Option<Extension<Caller>>,
+) -> ApiResult<Json<ExperimentList>> {
     let items = state.service.experiments().await?;
+    let visible = |id: i64| caller.as_ref().is_none_or(|c| c.scope.allows(id));
     Ok(Json(ExperimentList {
-        items: items.into_iter().map(render::experiment).collect(),
+        items: items
+            .into_iter()
+            .filter(|e| visible(e.experiment.id))
+            .map(render::experiment)
+            .collect(),
     }))
 }
 

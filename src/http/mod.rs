@@ -3,10 +3,12 @@
 //! The router is built from [`routes`], the same table the contract test compares with
 //! `api/openapi.yaml`, so a route cannot exist in one and not the other.
 
+pub mod auth;
 pub mod error;
 mod experiments;
 pub mod extract;
 mod health;
+pub mod metrics;
 mod model;
 mod proposals;
 mod render;
@@ -16,6 +18,7 @@ use crate::service::Service;
 use crate::store::Store;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request};
+use axum::http::HeaderName;
 use axum::http::{Method, StatusCode};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
@@ -24,8 +27,10 @@ use error::ApiError;
 use extract::BodyLimit;
 use std::future::Future;
 use std::sync::Arc;
+use std::time::Duration;
 use tokio::net::TcpListener;
 use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
 /// Limits and knobs of the HTTP layer.
@@ -33,12 +38,19 @@ use tower_http::trace::TraceLayer;
 pub struct HttpConfig {
     /// Largest accepted request body in bytes.
     pub max_body_bytes: usize,
+    /// Access tokens; `None` lets every request through (loopback or `--insecure-no-auth`).
+    pub tokens: Option<Arc<auth::TokenTable>>,
+    /// How long in-flight requests may run on after shutdown is requested before they are
+    /// dropped (a dropped search stops at its next round).
+    pub shutdown_grace: Duration,
 }
 
 impl Default for HttpConfig {
     fn default() -> Self {
         Self {
             max_body_bytes: 4 * 1024 * 1024,
+            tokens: None,
+            shutdown_grace: Duration::from_secs(20),
         }
     }
 }
@@ -67,6 +79,9 @@ impl AppState {
     }
 }
 
+/// The header carrying a request's id, in logs and responses.
+pub const REQUEST_ID: HeaderName = HeaderName::from_static("x-request-id");
+
 /// One row of the route table.
 pub struct Route {
     /// HTTP method.
@@ -91,6 +106,7 @@ pub fn routes() -> Vec<Route> {
     vec![
         route(M::GET, "/healthz", get(health::get_health)),
         route(M::GET, "/readyz", get(health::get_readiness)),
+        route(M::GET, "/metrics", get(metrics::get_metrics)),
         route(
             M::POST,
             "/v1/experiments",
@@ -160,14 +176,21 @@ pub fn routes() -> Vec<Route> {
     ]
 }
 
-/// The application: routes, fallbacks, body limit, tracing and the panic net.
+/// The application: routes, access tokens, fallbacks, body limit, tracing and the panic net.
 pub fn app(state: AppState) -> Router {
     let limit = state.config.max_body_bytes;
+    let tokens = state.config.tokens.clone();
+    metrics::handle();
     let mut router = Router::new();
     for r in routes() {
         router = router.route(r.path, r.handler);
     }
     router
+        // A route layer, so that the middleware sees the matched route's template.
+        .route_layer(middleware::from_fn(move |req: Request, next: Next| {
+            auth::authorize(tokens.clone(), req, next)
+        }))
+        .route_layer(middleware::from_fn(metrics::track))
         .fallback(route_not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(middleware::from_fn(
@@ -178,7 +201,18 @@ pub fn app(state: AppState) -> Router {
         ))
         .layer(DefaultBodyLimit::max(limit))
         .layer(CatchPanicLayer::custom(panic_response))
-        .layer(TraceLayer::new_for_http())
+        .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
+            let id = req
+                .headers()
+                .get(REQUEST_ID)
+                .and_then(|v| v.to_str().ok())
+                .unwrap_or("-");
+            tracing::info_span!("request", method = %req.method(), uri = %req.uri().path(),
+                    request_id = %id)
+        }))
+        // An `x-request-id` on every request (the client's, or a new UUID) and response.
+        .layer(PropagateRequestIdLayer::new(REQUEST_ID))
+        .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
         .with_state(state)
 }
 
@@ -206,12 +240,43 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let store = state.service.store().clone();
+    let grace = state.config.shutdown_grace;
     let addr = listener.local_addr()?;
     tracing::info!(%addr, "serving");
-    axum::serve(listener, app(state))
-        .with_graceful_shutdown(shutdown)
-        .await?;
-    store.close().await;
+    let service = state.service.clone();
+    tokio::spawn(async move {
+        match service.resume_refits().await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(experiments = n, "refitting batches left unfitted"),
+            Err(e) => tracing::error!(error = %e, "could not look for unfitted batches"),
+        }
+    });
+    let (requested_tx, requested_rx) = tokio::sync::oneshot::channel::<()>();
+    let signal = async move {
+        shutdown.await;
+        let _ = requested_tx.send(());
+    };
+    let server = axum::serve(listener, app(state)).with_graceful_shutdown(signal);
+    let grace_over = async move {
+        if requested_rx.await.is_ok() {
+            tokio::time::sleep(grace).await;
+        } else {
+            std::future::pending::<()>().await;
+        }
+    };
+    tokio::select! {
+        served = server => served?,
+        () = grace_over => tracing::warn!(
+            seconds = grace.as_secs_f64(),
+            "grace period over: dropping the requests still in flight"
+        ),
+    }
+    if tokio::time::timeout(Duration::from_secs(5), store.close())
+        .await
+        .is_err()
+    {
+        tracing::warn!("the database did not close within 5 s");
+    }
     tracing::info!("stopped");
     Ok(())
 }

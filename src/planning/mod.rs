@@ -4,6 +4,7 @@
 //!
 //! - [`schedule`]: `β_j` over the learning iterations.
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
+//! - [`budget`]: the deadline and cancel flag a search checks between rounds.
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
 //! - [`rrt`](mod@rrt): one RRT run (and the test-time [`plan`]), the planner settings, trajectories.
 //! - [`strategy`]: candidate generation and the `active` / `goal_conditioned` / `random`
@@ -17,6 +18,7 @@
 //! derives from a `u64` seed: the same inputs and seed give the same result.
 
 pub mod acquisition;
+pub mod budget;
 pub mod cache;
 pub mod given;
 pub mod rrt;
@@ -28,11 +30,12 @@ pub mod synthetic;
 mod tests;
 
 pub use acquisition::{AcquisitionSettings, Aggregation, aggregate, alpha_step};
+pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose, judge_candidates};
-pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, rrt};
+pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, plan_within, rrt};
 pub use schedule::{BetaSchedule, beta_schedule};
-pub use strategy::{CandidateScore, Proposal, Strategy, propose};
+pub use strategy::{CandidateScore, Proposal, Strategy, propose, propose_within};
 
 /// A model deviation estimator as the planner sees it: μ and σ (σ includes noise) of the
 /// deviation for feature vectors φ(s,a).
@@ -69,6 +72,14 @@ pub enum PlanningError {
     #[error("no plan inside the model precondition within {extensions} extensions")]
     NoPlan {
         /// Extensions (attempted edges) spent before giving up.
+        extensions: usize,
+    },
+    /// The search stopped before it concluded: its deadline passed or it was cancelled.
+    #[error("the search stopped ({reason:?}) after {extensions} extensions")]
+    Stopped {
+        /// Why.
+        reason: budget::Stop,
+        /// Extensions spent until then.
         extensions: usize,
     },
     /// The dynamics model `f̂` could not answer (a remote model that failed or timed out).

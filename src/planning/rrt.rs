@@ -10,7 +10,8 @@
 //!   tree would otherwise fill with copies of the same cells), and
 //! - `(s, a)` lies in the precondition: `μ + β σ < d_max` at `φ(s, a)`.
 //!
-//! It stops when a new node satisfies the goal test or after `max_extensions` extensions.
+//! It stops when a new node satisfies the goal test or after `max_extensions` extensions, or
+//! earlier with [`PlanningError::Stopped`] when its [`Budget`] runs out (checked each round).
 //!
 //! **Batched rounds.** So that the deviation model sees many points at once, extensions are
 //! made in rounds: each round proposes up to `extension_batch` edges against the tree as it
@@ -27,6 +28,7 @@
 //! **Prefetching.** In a discrete action space (the gridworld), when the model must be asked
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
 
+use super::budget::Budget;
 use super::cache::ModelCache;
 use super::{DeviationModel, PlanningError};
 use crate::domain::{Domain, DynamicsError, Predicted};
@@ -170,10 +172,38 @@ pub fn rrt(
     settings: &PlannerSettings,
     rng: &mut dyn RngCore,
 ) -> Result<RrtOutcome, PlanningError> {
+    rrt_within(
+        domain,
+        mde,
+        start,
+        goal,
+        beta,
+        d_max,
+        settings,
+        rng,
+        &Budget::unlimited(),
+    )
+}
+
+/// [`rrt`] that stops with [`PlanningError::Stopped`] once `budget` says so.
+#[allow(clippy::too_many_arguments)]
+pub fn rrt_within(
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    start: &[f64],
+    goal: &[f64],
+    beta: f64,
+    d_max: f64,
+    settings: &PlannerSettings,
+    rng: &mut dyn RngCore,
+    budget: &Budget,
+) -> Result<RrtOutcome, PlanningError> {
     settings.check()?;
     check_problem(domain, start, Some(goal), beta, d_max)?;
     let mut cache = ModelCache::new(mde, domain.feature_dim());
-    grow(domain, &mut cache, start, goal, beta, d_max, settings, rng)
+    grow(
+        domain, &mut cache, start, goal, beta, d_max, settings, rng, budget,
+    )
 }
 
 /// The test-time plan: one RRT run with the (conservative) test `β`, seeded by `seed`.
@@ -190,8 +220,36 @@ pub fn plan(
     settings: &PlannerSettings,
     seed: u64,
 ) -> Result<RrtOutcome, PlanningError> {
+    plan_within(
+        domain,
+        mde,
+        start,
+        goal,
+        beta,
+        d_max,
+        settings,
+        seed,
+        &Budget::unlimited(),
+    )
+}
+
+/// [`plan`] that stops with [`PlanningError::Stopped`] once `budget` says so.
+#[allow(clippy::too_many_arguments)]
+pub fn plan_within(
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    start: &[f64],
+    goal: &[f64],
+    beta: f64,
+    d_max: f64,
+    settings: &PlannerSettings,
+    seed: u64,
+    budget: &Budget,
+) -> Result<RrtOutcome, PlanningError> {
     let mut rng = seeded_rng(seed, 0);
-    rrt(domain, mde, start, goal, beta, d_max, settings, &mut rng)
+    rrt_within(
+        domain, mde, start, goal, beta, d_max, settings, &mut rng, budget,
+    )
 }
 
 /// The random stream `stream` of `seed`: independent streams for the runs of one proposal.
@@ -341,6 +399,7 @@ pub(crate) fn grow(
     d_max: f64,
     settings: &PlannerSettings,
     rng: &mut dyn RngCore,
+    budget: &Budget,
 ) -> Result<RrtOutcome, PlanningError> {
     let mut tree = Tree::new(start);
     let mut outcome = RrtOutcome {
@@ -363,6 +422,12 @@ pub(crate) fn grow(
     let mut prefetch: Vec<f64> = Vec::new();
     let discrete_actions = domain.action_space().values.as_ref();
     while outcome.extensions < settings.max_extensions {
+        if let Some(reason) = budget.stop() {
+            return Err(PlanningError::Stopped {
+                reason,
+                extensions: outcome.extensions,
+            });
+        }
         let size = round_size
             .min(tree.states.len())
             .min(settings.max_extensions - outcome.extensions);

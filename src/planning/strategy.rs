@@ -19,6 +19,7 @@
 //!   `NoPlan` only when not even the first step is possible.
 
 use super::acquisition::AcquisitionSettings;
+use super::budget::Budget;
 use super::cache::ModelCache;
 use super::rrt::{PlannerSettings, Trajectory, check_problem, grow, predict_pairs, seeded_rng};
 use super::{DeviationModel, PlanningError};
@@ -125,6 +126,37 @@ pub fn propose(
     acquisition: &AcquisitionSettings,
     seed: u64,
 ) -> Result<Proposal, PlanningError> {
+    propose_within(
+        strategy,
+        domain,
+        mde,
+        start,
+        goal,
+        beta,
+        d_max,
+        planner,
+        acquisition,
+        seed,
+        &Budget::unlimited(),
+    )
+}
+
+/// [`propose`] that stops with [`PlanningError::Stopped`] once `budget` says so (the
+/// extensions reported are those of every run until then).
+#[allow(clippy::too_many_arguments)]
+pub fn propose_within(
+    strategy: Strategy,
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    start: &[f64],
+    goal: &[f64],
+    beta: f64,
+    d_max: f64,
+    planner: &PlannerSettings,
+    acquisition: &AcquisitionSettings,
+    seed: u64,
+    budget: &Budget,
+) -> Result<Proposal, PlanningError> {
     planner.check()?;
     acquisition.check()?;
     check_problem(domain, start, Some(goal), beta, d_max)?;
@@ -139,8 +171,13 @@ pub fn propose(
     };
     if strategy == Strategy::Random {
         let mut dynamics_calls = 0;
-        let (trajectory, extensions) =
-            problem.rollout(&mut cache, planner, &mut own_rng, &mut dynamics_calls)?;
+        let (trajectory, extensions) = problem.rollout(
+            &mut cache,
+            planner,
+            &mut own_rng,
+            &mut dynamics_calls,
+            budget,
+        )?;
         let (alpha_step, alpha) = acquisition.score(&trajectory);
         return Ok(Proposal {
             strategy,
@@ -165,7 +202,7 @@ pub fn propose(
             "the start already satisfies the goal: there is nothing to plan",
         ));
     }
-    let found = problem.candidates(&mut cache, planner, seed)?;
+    let found = problem.candidates(&mut cache, planner, seed, budget)?;
     let scored: Vec<(Vec<f64>, f64)> = found
         .trajectories
         .iter()
@@ -236,6 +273,7 @@ impl Problem<'_> {
         cache: &mut ModelCache<'_>,
         planner: &PlannerSettings,
         seed: u64,
+        budget: &Budget,
     ) -> Result<Candidates, PlanningError> {
         let mut found = Candidates {
             trajectories: Vec::new(),
@@ -256,7 +294,15 @@ impl Problem<'_> {
                 self.d_max,
                 planner,
                 &mut rng,
-            )?;
+                budget,
+            )
+            .map_err(|e| match e {
+                PlanningError::Stopped { reason, extensions } => PlanningError::Stopped {
+                    reason,
+                    extensions: found.extensions + extensions,
+                },
+                e => e,
+            })?;
             found.runs += 1;
             found.extensions += outcome.extensions;
             found.dynamics_calls += outcome.dynamics_calls;
@@ -289,6 +335,7 @@ impl Problem<'_> {
         planner: &PlannerSettings,
         rng: &mut dyn rand::RngCore,
         dynamics_calls: &mut usize,
+        budget: &Budget,
     ) -> Result<(Trajectory, usize), PlanningError> {
         let domain = self.domain;
         let mut t = Trajectory {
@@ -299,6 +346,9 @@ impl Problem<'_> {
         };
         let mut extensions = 0;
         for _ in 0..domain.rollout_length() {
+            if let Some(reason) = budget.stop() {
+                return Err(PlanningError::Stopped { reason, extensions });
+            }
             let s = t
                 .states
                 .last()

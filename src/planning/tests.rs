@@ -670,3 +670,104 @@ fn inputs_and_settings_are_checked_by_name() {
     let out = plan(&grid, &mde, &[3.0, 3.0], &[3.0, 3.0], 2.0, 0.1, &s, 0).unwrap();
     assert_eq!(out.trajectory.map(|t| t.len()), Some(0));
 }
+
+/// A kinematic world cut in two by a wall: the goal side cannot be reached.
+fn walled_off() -> Kinematic {
+    Kinematic::new(KinematicParams {
+        obstacles: vec![BoxObstacle {
+            low: vec![0.45, 0.0],
+            high: vec![0.55, 1.0],
+        }],
+        ..KinematicParams::default()
+    })
+    .unwrap()
+}
+
+#[test]
+fn a_search_stops_at_its_deadline_with_the_extensions_spent() {
+    let domain = walled_off();
+    let mde = ConstantModel {
+        mu: 0.0,
+        sigma: 0.0,
+    };
+    let settings = PlannerSettings {
+        max_extensions: 200_000,
+        ..PlannerSettings::default()
+    };
+    let started = std::time::Instant::now();
+    let budget = Budget::until(started + std::time::Duration::from_millis(100));
+    let err = propose_within(
+        Strategy::Active,
+        &domain,
+        &mde,
+        &[0.1, 0.5],
+        &[0.9, 0.5],
+        0.0,
+        0.1,
+        &settings,
+        &AcquisitionSettings::default(),
+        3,
+        &budget,
+    )
+    .unwrap_err();
+    let PlanningError::Stopped { reason, extensions } = err else {
+        panic!("expected Stopped, got {err:?}");
+    };
+    assert_eq!(reason, Stop::Deadline);
+    assert!(extensions > 0 && extensions < 200_000, "{extensions}");
+    assert!(started.elapsed() < std::time::Duration::from_secs(2));
+    // The same search without a budget spends all of it and finds no plan.
+    let small = PlannerSettings {
+        max_extensions: 300,
+        ..settings
+    };
+    let out = plan_within(
+        &domain,
+        &mde,
+        &[0.1, 0.5],
+        &[0.9, 0.5],
+        0.0,
+        0.1,
+        &small,
+        3,
+        &Budget::unlimited(),
+    )
+    .unwrap();
+    assert!(out.trajectory.is_none());
+    assert_eq!(out.extensions, 300);
+}
+
+#[test]
+fn a_cancelled_search_stops_before_its_next_round() {
+    let domain = walled_off();
+    let mde = ConstantModel {
+        mu: 0.0,
+        sigma: 0.0,
+    };
+    let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let budget = Budget::unlimited().cancelled_by(flag);
+    for strategy in [Strategy::Active, Strategy::Random] {
+        let err = propose_within(
+            strategy,
+            &domain,
+            &mde,
+            &[0.1, 0.5],
+            &[0.9, 0.5],
+            0.0,
+            0.1,
+            &PlannerSettings::default(),
+            &AcquisitionSettings::default(),
+            3,
+            &budget,
+        )
+        .unwrap_err();
+        assert_eq!(
+            err,
+            PlanningError::Stopped {
+                reason: Stop::Cancelled,
+                extensions: 0
+            },
+            "{strategy}"
+        );
+    }
+}

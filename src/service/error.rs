@@ -49,6 +49,33 @@ pub enum Error {
         /// The client's candidates with their verdicts, when it posted some.
         candidates: Vec<CandidateView>,
     },
+    /// Too many planning requests are already waiting: retry after `retry_after_secs`.
+    #[error(
+        "the planner is saturated: too many requests are waiting; retry in {retry_after_secs} s"
+    )]
+    Overloaded {
+        /// Seconds to wait before retrying.
+        retry_after_secs: u64,
+    },
+    /// The deadline passed: a search (waiting for a slot or searching; nothing was stored) or
+    /// a forced refit (which goes on in the background and is swapped in when done).
+    #[error(
+        "the deadline of {timeout_ms} ms passed ({extensions} extensions searched); retry in {retry_after_secs} s"
+    )]
+    DeadlineExceeded {
+        /// Extensions spent before the search stopped (0 if it never started).
+        extensions: usize,
+        /// The deadline, in milliseconds from the request's arrival.
+        timeout_ms: u64,
+        /// Seconds to wait before retrying.
+        retry_after_secs: u64,
+    },
+    /// The client went away and its search was cancelled; nobody reads this answer.
+    #[error("the request was cancelled")]
+    Cancelled,
+    /// An operator's limit (experiments per server) is reached.
+    #[error("{0}")]
+    LimitReached(String),
     /// The experiment's dynamics model could not answer; nothing was stored.
     #[error(transparent)]
     Dynamics(#[from] DynamicsError),
@@ -104,6 +131,9 @@ impl From<PlanningError> for Error {
                 Self::validation(format!("learning.{field}"), reason)
             }
             PlanningError::Dynamics(e) => Self::Dynamics(e),
+            // The service maps a stopped search itself, knowing its deadline; one that reaches
+            // here ran outside the work gate.
+            e @ PlanningError::Stopped { .. } => Self::Internal(e.into()),
             e @ PlanningError::ModelOutput { .. } => Self::Internal(e.into()),
         }
     }

@@ -28,6 +28,13 @@ impl Service {
     /// Validates the settings, stores a new experiment and loads it (answering from the prior).
     pub async fn create_experiment(&self, request: ExperimentRequest) -> Result<ExperimentState> {
         let (settings, domain) = request.resolve(&self.model_urls)?;
+        let _counted_and_created_together = self.creating.lock().await;
+        let max = self.work.limits().max_experiments;
+        if self.store.count_experiments().await? >= max as i64 {
+            return Err(Error::LimitReached(format!(
+                "this server holds its limit of {max} experiments (--max-experiments)"
+            )));
+        }
         let experiment = self.store.insert_experiment(&settings).await?;
         self.live
             .insert(LiveExperiment::new(experiment.id, settings, domain.clone()));

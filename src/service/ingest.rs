@@ -46,6 +46,7 @@ pub fn check_idempotency_key(key: &str) -> Result<()> {
 pub async fn label(
     live: &Arc<LiveExperiment>,
     mut transitions: Vec<Transition>,
+    max_transitions: usize,
 ) -> Result<Vec<LabelledTransition>> {
     if transitions.is_empty() {
         return Err(Error::validation(
@@ -53,10 +54,13 @@ pub async fn label(
             "must hold at least one transition",
         ));
     }
-    if transitions.len() > MAX_TRANSITIONS {
+    if transitions.len() > max_transitions.min(MAX_TRANSITIONS) {
         return Err(Error::validation(
             "transitions",
-            format!("at most {MAX_TRANSITIONS} transitions per trajectory"),
+            format!(
+                "at most {} transitions per trajectory",
+                max_transitions.min(MAX_TRANSITIONS)
+            ),
         ));
     }
     let client_side = live.domain.dynamics().client_side();
@@ -157,7 +161,7 @@ impl Service {
             partial,
             transitions,
         } = request;
-        let labelled = label(&live, transitions).await?;
+        let labelled = label(&live, transitions, self.work.limits().max_transitions).await?;
         let deviations: Vec<f64> = labelled.iter().map(|t| t.deviation).collect();
         let batch_size = i64::from(live.settings.learning.batch_size);
         let model_version = live.model().version;
@@ -191,7 +195,7 @@ impl Service {
             IngestOutcome::Created(response) => {
                 tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
                 if response.n_trajectories % batch_size == 0 {
-                    live.schedule_refit(&self.store);
+                    live.schedule_refit(&self.store, &self.work);
                 }
                 Ok(Ingested::Created(response))
             }

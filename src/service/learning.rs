@@ -188,15 +188,44 @@ impl Service {
     }
 
     /// Fits a new version on every stored transition now (off the async workers) and answers
-    /// with it.
+    /// with it. The fit runs in its own task: if it does not finish within the planning
+    /// deadline the answer is `DeadlineExceeded`, and the fit goes on, is stored and swapped in
+    /// when done (a client that goes away does not lose it either).
     pub async fn refit(&self, id: i64) -> Result<ModelView> {
         let live = self.live(id).await?;
-        let model = live.refit(&self.store, FitTrigger::Forced).await?;
+        let fit = {
+            let (live, store, work) = (live.clone(), self.store.clone(), self.work.clone());
+            tokio::spawn(async move { live.refit(&store, &work, FitTrigger::Forced).await })
+        };
+        let model = tokio::time::timeout(self.work.limits().plan_timeout, fit)
+            .await
+            .map_err(|_| self.work.deadline_exceeded(0))?
+            .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??;
         Ok(ModelView {
             experiment_id: id,
             feature_names: live.domain.feature_names(),
             model,
         })
+    }
+
+    /// Loads every experiment whose latest complete batch has no fitted model (the server
+    /// stopped before or during its fit), which schedules that fit in the background. Returns
+    /// how many were scheduled.
+    pub async fn resume_refits(&self) -> Result<usize> {
+        let mut scheduled = 0;
+        for e in self.store.experiments().await? {
+            let batch = i64::from(e.settings.learning.batch_size);
+            let covered = self
+                .store
+                .latest_model(e.id)
+                .await?
+                .map_or(0, |m| m.n_trajectories);
+            if e.n_trajectories / batch > covered / batch && self.live.cached(e.id).is_none() {
+                self.live(e.id).await?;
+                scheduled += 1;
+            }
+        }
+        Ok(scheduled)
     }
 
     /// Judges state-actions against the current model: `upper = μ + βσ`, `inside = upper <
@@ -260,6 +289,7 @@ impl Service {
         beta: Option<f64>,
         candidates: Option<Vec<CandidateTrajectory>>,
     ) -> Result<Planned> {
+        let arrived = std::time::Instant::now();
         let live = self.live(id).await?;
         live.check_problem(&start, &goal)?;
         let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
@@ -289,19 +319,21 @@ impl Service {
             model.version,
             start.iter().chain(&goal).copied(),
         );
-        let outcome = Self::blocking(move || {
-            planning::plan(
-                live.domain.as_ref(),
-                model.as_ref(),
-                &start,
-                &goal,
-                beta,
-                d_max,
-                &live.settings.learning.planner(),
-                seed,
-            )
-        })
-        .await??;
+        let outcome = self
+            .search(arrived, move |budget| {
+                planning::plan_within(
+                    live.domain.as_ref(),
+                    model.as_ref(),
+                    &start,
+                    &goal,
+                    beta,
+                    d_max,
+                    &live.settings.learning.planner(),
+                    seed,
+                    budget,
+                )
+            })
+            .await?;
         if let Some(t) = &outcome.trajectory {
             check_finite(t)?;
         }

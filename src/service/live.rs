@@ -6,6 +6,7 @@
 //! until then, so no request ever waits on a fit.
 
 use super::Error;
+use super::work::WorkGate;
 use crate::domain::Domain;
 use crate::gp::GpModel;
 use crate::mde::{Estimator, FitRecord, ServedModel, gp_params, training_data};
@@ -109,9 +110,13 @@ impl LiveExperiment {
     /// Fits a new version on every stored transition, stores it and swaps it in. With
     /// [`FitTrigger::Batch`], does nothing when the current version already covers the latest
     /// complete batch. Returns the version answering afterwards.
+    ///
+    /// The fit takes a slot of `gate` (waiting as long as it takes) and is counted in
+    /// `precond_fits_total` and `precond_fit_seconds`.
     pub async fn refit(
         self: &Arc<Self>,
         store: &Store,
+        gate: &WorkGate,
         trigger: FitTrigger,
     ) -> Result<Arc<ServedModel>, Error> {
         let _one_fit_at_a_time = self.fit_lock.lock().await;
@@ -144,14 +149,23 @@ impl LiveExperiment {
         )
         .check()
         .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
+        let slot = gate.fit_slot().await?;
         let started = Instant::now();
-        let gp = tokio::task::spawn_blocking(move || {
+        let gp = super::work::run_niced(move || {
+            let _slot = slot;
             let (x, y) = training_data(features, labels, dim);
             GpModel::fit(&x, &y, &params)
         })
-        .await
-        .context("fit task")?
-        .map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
+        .await?;
+        let trigger_name = match trigger {
+            FitTrigger::Batch => "batch",
+            FitTrigger::Forced => "forced",
+        };
+        let result = if gp.is_ok() { "ok" } else { "failed" };
+        metrics::counter!("precond_fits_total", "trigger" => trigger_name, "result" => result)
+            .increment(1);
+        metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
+        let gp = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
         let fit = FitRecord {
             fit_seconds: started.elapsed().as_secs_f64(),
             fitted_at: crate::store::now(),
@@ -185,11 +199,12 @@ impl LiveExperiment {
     }
 
     /// Starts a [`FitTrigger::Batch`] refit in the background; failures are logged.
-    pub fn schedule_refit(self: &Arc<Self>, store: &Store) {
+    pub fn schedule_refit(self: &Arc<Self>, store: &Store, gate: &Arc<WorkGate>) {
         let live = self.clone();
         let store = store.clone();
+        let gate = gate.clone();
         tokio::spawn(async move {
-            if let Err(e) = live.refit(&store, FitTrigger::Batch).await {
+            if let Err(e) = live.refit(&store, &gate, FitTrigger::Batch).await {
                 tracing::error!(experiment = live.id, error = %e, "background refit failed");
             }
         });
@@ -260,7 +275,12 @@ impl Registry {
     /// The live experiment `id`, loading it (and its latest model) from the store if needed;
     /// 404 if it does not exist. A batch that completed but was never fitted (the server stopped
     /// first) is fitted in the background.
-    pub async fn get(&self, store: &Store, id: i64) -> Result<Arc<LiveExperiment>, Error> {
+    pub async fn get(
+        &self,
+        store: &Store,
+        gate: &Arc<WorkGate>,
+        id: i64,
+    ) -> Result<Arc<LiveExperiment>, Error> {
         if let Some(live) = self.cached(id) {
             return Ok(live);
         }
@@ -282,7 +302,7 @@ impl Registry {
         }
         let live = self.insert(live);
         if live.iteration(stored.n_trajectories) > live.iteration(covered) {
-            live.schedule_refit(store);
+            live.schedule_refit(store, gate);
         }
         Ok(live)
     }

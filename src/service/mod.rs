@@ -9,6 +9,8 @@
 //!   store a trajectory atomically and idempotently.
 //! - [`learning`](mod@learning): the model, refits, precondition judgements and test-time plans.
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
+//! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search
+//!   and fit passes through (concurrency, queue, deadlines, cancellation).
 //! - [`error`](mod@error): the service's [`Error`].
 //!
 //! CPU-heavy work (fits, planning, large judgements, calls to the dynamics model) runs on the
@@ -20,6 +22,7 @@ pub mod ingest;
 pub mod learning;
 pub mod live;
 pub mod proposals;
+pub mod work;
 
 pub use error::{Error, Result};
 pub use experiments::ExperimentState;
@@ -27,10 +30,13 @@ pub use ingest::Ingested;
 pub use learning::{Judged, ModelView, Planned};
 pub use live::{FitTrigger, LiveExperiment, Registry};
 pub use proposals::ProposalRecord;
+pub use work::{Limits, WorkGate};
 
+use crate::planning::{Budget, PlanningError, Stop};
 use crate::remote_model::ModelUrlPolicy;
 use crate::store::Store;
 use std::sync::Arc;
+use std::time::Instant;
 
 /// The service: the store, the operator's policies and the experiments this process has
 /// loaded. Cheap to clone.
@@ -39,6 +45,9 @@ pub struct Service {
     store: Store,
     live: Arc<Registry>,
     model_urls: Arc<ModelUrlPolicy>,
+    work: Arc<WorkGate>,
+    /// Held while an experiment is counted and created, so the limit is exact.
+    creating: Arc<tokio::sync::Mutex<()>>,
 }
 
 impl Service {
@@ -53,7 +62,21 @@ impl Service {
             store,
             live: Arc::new(Registry::default()),
             model_urls: Arc::new(model_urls),
+            work: Arc::new(WorkGate::new(Limits::default())),
+            creating: Arc::new(tokio::sync::Mutex::new(())),
         }
+    }
+
+    /// The same service under the operator's `limits` (assumed checked, see
+    /// [`Limits::check`]).
+    pub fn with_limits(mut self, limits: Limits) -> Self {
+        self.work = Arc::new(WorkGate::new(limits));
+        self
+    }
+
+    /// The gate searches and fits pass through, with the limits.
+    pub fn work(&self) -> &WorkGate {
+        &self.work
     }
 
     /// The store.
@@ -69,7 +92,37 @@ impl Service {
     /// The live experiment `id` (domain and current model), loading it if needed; `NotFound`
     /// if there is no such experiment.
     pub async fn live(&self, id: i64) -> Result<Arc<LiveExperiment>> {
-        self.live.get(&self.store, id).await
+        self.live.get(&self.store, &self.work, id).await
+    }
+
+    /// Runs a planning search through the work gate (see [`work`](mod@work)): waits for a
+    /// slot until the deadline counted from `arrived`, then searches on the blocking pool with
+    /// that deadline and a flag raised if this future is dropped (the client went away).
+    pub(crate) async fn search<T: Send + 'static>(
+        &self,
+        arrived: Instant,
+        search: impl FnOnce(&Budget) -> Result<T, PlanningError> + Send + 'static,
+    ) -> Result<T> {
+        let (slot, deadline) = self.work.plan_slot(arrived).await?;
+        let (budget, _cancel_on_drop) = WorkGate::budget(deadline);
+        let outcome = work::run_niced(move || {
+            // The slot is held by the running search, not by the request: a cancelled
+            // request's slot frees when its search has actually stopped.
+            let _slot = slot;
+            search(&budget)
+        })
+        .await?;
+        outcome.map_err(|e| match e {
+            PlanningError::Stopped {
+                reason: Stop::Deadline,
+                extensions,
+            } => self.work.deadline_exceeded(extensions),
+            PlanningError::Stopped {
+                reason: Stop::Cancelled,
+                ..
+            } => Error::Cancelled,
+            e => e.into(),
+        })
     }
 
     /// Runs CPU-heavy or blocking work (planning, fitting, the dynamics model) on the blocking

@@ -13,6 +13,7 @@ use crate::limits::MAX_CLIENT_ID_LEN;
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
+use std::time::Instant;
 
 /// A stored proposal with what it chose.
 #[derive(Debug, Clone)]
@@ -100,11 +101,35 @@ fn lease_answer(open: StoredProposal, request: &ProposalRequest) -> Result<Propo
 impl Service {
     /// Proposes the trajectory to execute next for `request`'s problem (see the module docs).
     /// Returns the proposal and whether it is new (`false`: the client's open lease).
+    ///
+    /// Counts each answer in `precond_proposals_total` by outcome.
     pub async fn propose(
         &self,
         id: i64,
         request: ProposalRequest,
     ) -> Result<(ProposalRecord, bool)> {
+        let answer = self.propose_unmetered(id, request).await;
+        let outcome = match &answer {
+            Ok((_, true)) => "created",
+            Ok((_, false)) => "lease_returned",
+            Err(Error::NoPlan { .. }) => "no_plan",
+            Err(Error::LeaseHeld { .. }) => "lease_held",
+            Err(Error::DeadlineExceeded { .. }) => "deadline_exceeded",
+            Err(Error::Overloaded { .. }) => "overloaded",
+            Err(Error::Cancelled) => "cancelled",
+            Err(Error::Validation { .. } | Error::NotFound(_)) => "invalid",
+            Err(_) => "failed",
+        };
+        metrics::counter!("precond_proposals_total", "outcome" => outcome).increment(1);
+        answer
+    }
+
+    async fn propose_unmetered(
+        &self,
+        id: i64,
+        request: ProposalRequest,
+    ) -> Result<(ProposalRecord, bool)> {
+        let arrived = Instant::now();
         let live = self.live(id).await?;
         live.check_problem(&request.start, &request.goal)?;
         if let Some(client) = &request.client_id {
@@ -144,22 +169,24 @@ impl Service {
                 needs_candidates(&live)?;
                 let live = live.clone();
                 let (start, goal) = (request.start.clone(), request.goal.clone());
-                let proposal = Self::blocking(move || {
-                    let l = &live.settings.learning;
-                    planning::propose(
-                        strategy,
-                        live.domain.as_ref(),
-                        model.as_ref(),
-                        &start,
-                        &goal,
-                        beta,
-                        live.settings.d_max,
-                        &l.planner(),
-                        &l.acquisition(),
-                        seed,
-                    )
-                })
-                .await??;
+                let proposal = self
+                    .search(arrived, move |budget| {
+                        let l = &live.settings.learning;
+                        planning::propose_within(
+                            strategy,
+                            live.domain.as_ref(),
+                            model.as_ref(),
+                            &start,
+                            &goal,
+                            beta,
+                            live.settings.d_max,
+                            &l.planner(),
+                            &l.acquisition(),
+                            seed,
+                            budget,
+                        )
+                    })
+                    .await?;
                 content(&proposal)?
             }
         };

@@ -90,4 +90,12 @@ impl Store {
             .map(from_row)
             .collect()
     }
+
+    /// Number of experiments.
+    #[tracing::instrument(skip(self))]
+    pub async fn count_experiments(&self) -> Result<i64, sqlx::Error> {
+        sqlx::query_scalar("SELECT COUNT(*) FROM experiments")
+            .fetch_one(&self.read)
+            .await
+    }
 }

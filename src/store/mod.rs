@@ -72,11 +72,57 @@ impl Store {
             .map(|_| ())
     }
 
+    /// Size of the database file in bytes (pages × page size; the WAL not included) and the
+    /// numbers of experiments, trajectories and transitions stored.
+    #[tracing::instrument(skip(self))]
+    pub async fn size(&self) -> Result<StoreSize, sqlx::Error> {
+        let (bytes, experiments, trajectories, transitions): (i64, i64, i64, i64) = sqlx::query_as(
+            "SELECT (SELECT page_count FROM pragma_page_count())
+                          * (SELECT page_size FROM pragma_page_size()),
+                        (SELECT COUNT(*) FROM experiments),
+                        (SELECT COUNT(*) FROM trajectories),
+                        (SELECT COUNT(*) FROM transitions)",
+        )
+        .fetch_one(&self.read)
+        .await?;
+        Ok(StoreSize {
+            bytes,
+            experiments,
+            trajectories,
+            transitions,
+        })
+    }
+
+    /// Writes a consistent copy of the database to the new file `path` while it is being
+    /// served (`VACUUM INTO` on a reader: one read transaction, so writers are not blocked in WAL
+    /// mode).
+    #[tracing::instrument(skip(self))]
+    pub async fn backup_to(&self, path: &str) -> Result<(), sqlx::Error> {
+        sqlx::query("VACUUM INTO ?")
+            .bind(path)
+            .execute(&self.read)
+            .await
+            .map(|_| ())
+    }
+
     /// Closes both pools, waiting for in-flight queries; the WAL is checkpointed on close.
     pub async fn close(&self) {
         self.read.close().await;
         self.write.close().await;
     }
+}
+
+/// How much a store holds.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct StoreSize {
+    /// Bytes of the database file (WAL excluded).
+    pub bytes: i64,
+    /// Experiments.
+    pub experiments: i64,
+    /// Trajectories, over all experiments.
+    pub trajectories: i64,
+    /// Transitions, over all experiments.
+    pub transitions: i64,
 }
 
 /// The current time as an RFC 3339 UTC string, the store's time format.

@@ -2,7 +2,7 @@
 
 use precond::http::{AppState, HttpConfig, serve};
 use precond::remote_model::ModelUrlPolicy;
-use precond::service::Service;
+use precond::service::{Limits, Service};
 use precond::store::Store;
 use serde_json::{Value, json};
 use std::net::SocketAddr;
@@ -45,6 +45,19 @@ pub async fn spawn_app_allowing_models(db_path: &Path, prefixes: &[String]) -> T
         .await
         .expect("open store");
     let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap());
+    spawn_state(
+        db_path,
+        AppState::with_service(service, HttpConfig::default()),
+    )
+    .await
+}
+
+/// Starts a server under the operator's `limits`.
+pub async fn spawn_app_with_limits(db_path: &Path, limits: Limits) -> TestApp {
+    let store = Store::open(db_path.to_str().unwrap())
+        .await
+        .expect("open store");
+    let service = Service::new(store).with_limits(limits);
     spawn_state(
         db_path,
         AppState::with_service(service, HttpConfig::default()),

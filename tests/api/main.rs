@@ -1,9 +1,11 @@
 //! Integration tests over a real socket and a real SQLite file.
 
+mod auth;
 mod contract;
 mod custom;
 mod experiments;
 mod helpers;
 mod learning;
+mod limits;
 mod model_server;
 mod trajectories;

@@ -165,6 +165,7 @@ async fn an_oversized_body_is_413() {
         &db,
         HttpConfig {
             max_body_bytes: 2048,
+            ..HttpConfig::default()
         },
     )
     .await;
@@ -275,4 +276,42 @@ async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
     let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
     assert_eq!(experiment["n_trajectories"], 80);
     assert_eq!(experiment["iteration"], 16);
+}
+
+#[tokio::test]
+async fn an_online_backup_is_a_consistent_copy() {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    for y in 0..3 {
+        let (status, _) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &free_row_trajectory(0, y, 4),
+            )
+            .await;
+        assert_eq!(status, 201);
+    }
+    // While the server is serving.
+    let live = precond::store::Store::open(db.to_str().unwrap())
+        .await
+        .unwrap();
+    let copy = dir.path().join("backup.db");
+    live.backup_to(copy.to_str().unwrap()).await.unwrap();
+    live.close().await;
+    let (status, _) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &free_row_trajectory(0, 3, 4),
+        )
+        .await;
+    assert_eq!(status, 201, "the server keeps writing");
+    let backup = precond::store::Store::open(copy.to_str().unwrap())
+        .await
+        .unwrap();
+    let size = backup.size().await.unwrap();
+    assert_eq!(
+        (size.experiments, size.trajectories, size.transitions),
+        (1, 3, 12)
+    );
 }

@@ -1,0 +1,205 @@
+//! Bounded work over HTTP: deadlines, the queue, cancellation, the operator's limits, metrics
+//! and request ids.
+
+use crate::helpers::*;
+use precond::service::Limits;
+use serde_json::{Value, json};
+use std::time::{Duration, Instant};
+
+/// A kinematic world cut in two by a wall: no search reaches the goal, so every search runs
+/// until its budget or deadline.
+fn walled() -> Value {
+    json!({
+        "domain": {"kind": "kinematic",
+                   "obstacles": [{"low": [0.45, 0.0], "high": [0.55, 1.0]}]},
+        "learning": {"max_extensions": 200000}
+    })
+}
+
+fn blocked_ask(client: &str) -> Value {
+    json!({"start": [0.1, 0.5], "goal": [0.9, 0.5], "client_id": client})
+}
+
+fn limits(slots: usize, queue: usize, timeout_ms: u64) -> Limits {
+    Limits {
+        max_concurrent_plans: slots,
+        max_queued_plans: queue,
+        plan_timeout: Duration::from_millis(timeout_ms),
+        ..Limits::default()
+    }
+}
+
+#[tokio::test]
+async fn a_search_past_its_deadline_is_503_with_retry_after() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(&db, limits(2, 4, 300)).await;
+    let id = app.create_experiment(walled()).await;
+    let started = Instant::now();
+    let r = app
+        .client
+        .post(app.url(&format!("/v1/experiments/{id}/proposals")))
+        .json(&blocked_ask("a"))
+        .send()
+        .await
+        .unwrap();
+    let took = started.elapsed();
+    assert_eq!(r.status().as_u16(), 503);
+    assert_eq!(r.headers()["retry-after"], "1");
+    let body: Value = r.json().await.unwrap();
+    assert_eq!(code(&body), "deadline_exceeded", "{body}");
+    assert!(body["error"]["details"]["extensions"].as_u64().unwrap() > 0);
+    assert_eq!(body["error"]["details"]["timeout_ms"], 300);
+    assert!(took < Duration::from_secs(3), "{took:?}");
+    // A test-time plan has the same deadline; nothing was stored for either.
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/plans"),
+            &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
+        )
+        .await;
+    assert_eq!((status, code(&body)), (503, "deadline_exceeded"));
+}
+
+#[tokio::test]
+async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(&db, limits(1, 1, 1500)).await;
+    let id = app.create_experiment(walled()).await;
+    let url = app.url(&format!("/v1/experiments/{id}/proposals"));
+    let ask = |c: &'static str| {
+        let (client, url) = (app.client.clone(), url.clone());
+        tokio::spawn(async move {
+            let r = client.post(url).json(&blocked_ask(c)).send().await.unwrap();
+            (r.status().as_u16(), r.headers().get("retry-after").cloned())
+        })
+    };
+    let running = ask("running");
+    // Wait until the first holds the slot, then queue one and overflow with a third.
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let waiting = ask("waiting");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let (status, refused) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &blocked_ask("third"),
+        )
+        .await;
+    assert_eq!((status, code(&refused)), (429, "overloaded"), "{refused}");
+    let started = Instant::now();
+    for _ in 0..5 {
+        assert_eq!(app.get("/healthz").await.0, 200);
+        assert_eq!(app.get(&format!("/v1/experiments/{id}")).await.0, 200);
+    }
+    assert!(started.elapsed() < Duration::from_millis(500));
+    let (s1, r1) = running.await.unwrap();
+    let (s2, _) = waiting.await.unwrap();
+    assert_eq!((s1, s2), (503, 503));
+    assert!(r1.is_some());
+}
+
+#[tokio::test]
+async fn a_client_that_goes_away_cancels_its_search() {
+    let (_dir, db) = temp_db();
+    // One slot and a long deadline: only cancellation can free the slot quickly.
+    let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
+    let id = app.create_experiment(walled()).await;
+    let impatient = reqwest::Client::builder()
+        .timeout(Duration::from_millis(300))
+        .build()
+        .unwrap();
+    let gone = impatient
+        .post(app.url(&format!("/v1/experiments/{id}/proposals")))
+        .json(&blocked_ask("impatient"))
+        .send()
+        .await;
+    assert!(gone.unwrap_err().is_timeout());
+    // A feasible problem now gets the slot at once.
+    let started = Instant::now();
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    assert!(
+        started.elapsed() < Duration::from_secs(5),
+        "{:?}",
+        started.elapsed()
+    );
+}
+
+#[tokio::test]
+async fn the_operator_limits_experiments_and_transitions() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(
+        &db,
+        Limits {
+            max_experiments: 2,
+            max_transitions: 3,
+            ..Limits::default()
+        },
+    )
+    .await;
+    let id = app.create_experiment(json!({})).await;
+    app.create_experiment(json!({})).await;
+    let (status, body) = app.post("/v1/experiments", &json!({})).await;
+    assert_eq!((status, code(&body)), (409, "limit_reached"), "{body}");
+    let (status, _) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &free_row_trajectory(0, 0, 3),
+        )
+        .await;
+    assert_eq!(status, 201);
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &free_row_trajectory(0, 0, 4),
+        )
+        .await;
+    assert_eq!(status, 422);
+    assert_eq!(body["error"]["details"]["field"], "transitions");
+}
+
+#[tokio::test]
+async fn metrics_and_request_ids_are_exposed() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    app.post(
+        &format!("/v1/experiments/{id}/trajectories"),
+        &free_row_trajectory(0, 0, 2),
+    )
+    .await;
+    let r = app.client.get(app.url("/metrics")).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    assert!(
+        r.headers()["content-type"]
+            .to_str()
+            .unwrap()
+            .starts_with("text/plain")
+    );
+    let generated = r.headers()["x-request-id"].to_str().unwrap().to_string();
+    assert_eq!(generated.len(), 36, "a UUID: {generated}");
+    let text = r.text().await.unwrap();
+    for needle in [
+        "http_requests_total{",
+        "route=\"/v1/experiments/{id}/trajectories\"",
+        "http_request_duration_seconds_bucket{",
+        "precond_store_experiments ",
+        "precond_store_transitions ",
+        "precond_store_bytes ",
+        "precond_planning_queue_depth ",
+    ] {
+        assert!(text.contains(needle), "{needle} in\n{text}");
+    }
+    let r = app
+        .client
+        .get(app.url("/healthz"))
+        .header("x-request-id", "robot-7-req-42")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.headers()["x-request-id"], "robot-7-req-42");
+}

@@ -1,0 +1,473 @@
+//! Crash and shutdown tests against the real binary: `kill -9` at random (seeded) moments while
+//! clients ingest with `Idempotency-Key` and retry across restarts; SIGTERM during ingest and
+//! during a refit; an open proposal across a crash. Each test is bounded in time.
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+use sqlx::Connection;
+use std::collections::HashMap;
+use std::io::{BufRead, BufReader};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex, RwLock};
+use std::time::{Duration, Instant};
+
+/// A `precond serve` subprocess on a loopback port, its log collected.
+struct Server {
+    child: Child,
+    base: String,
+    log: Arc<Mutex<Vec<String>>>,
+}
+
+impl Server {
+    /// Starts the binary on `db` and returns once it listens (it logs its address once bound).
+    fn start(db: &Path, extra: &[&str]) -> Server {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_precond"))
+            .args(["serve", "--addr", "127.0.0.1:0", "--log-format", "json"])
+            .arg("--database-url")
+            .arg(db)
+            .args(extra)
+            .env("RUST_LOG", "info")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("the precond binary starts");
+        let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
+        let mut log = Vec::new();
+        let addr = loop {
+            let line = lines
+                .next()
+                .expect("the server logs its address before exiting")
+                .unwrap();
+            log.push(line.clone());
+            let v: Value = serde_json::from_str(&line).unwrap_or_default();
+            if v["fields"]["message"] == "serving" {
+                break v["fields"]["addr"].as_str().unwrap().to_string();
+            }
+        };
+        let log = Arc::new(Mutex::new(log));
+        let sink = log.clone();
+        // Keep draining stdout so the server never blocks on a full pipe.
+        std::thread::spawn(move || {
+            for line in lines.map_while(Result::ok) {
+                sink.lock().unwrap().push(line);
+            }
+        });
+        Server {
+            child,
+            base: format!("http://{addr}"),
+            log,
+        }
+    }
+
+    fn kill9(mut self) {
+        self.child.kill().unwrap();
+        self.child.wait().unwrap();
+    }
+
+    fn sigterm(&self) {
+        let status = Command::new("kill")
+            .args(["-TERM", &self.child.id().to_string()])
+            .status()
+            .unwrap();
+        assert!(status.success());
+    }
+
+    /// Waits for the process to exit, at most `limit`; its exit status and the time it took.
+    fn wait_exit(&mut self, limit: Duration) -> (std::process::ExitStatus, Duration) {
+        let started = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                return (status, started.elapsed());
+            }
+            assert!(
+                started.elapsed() < limit,
+                "the server did not exit within {limit:?}"
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
+    fn logged(&self, needle: &str) -> bool {
+        self.log.lock().unwrap().iter().any(|l| l.contains(needle))
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
+    let r = client.post(url).json(body).send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
+    let r = client.get(url).send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+/// Every transition of experiment `id`, following the cursor.
+async fn all_transitions(client: &reqwest::Client, base: &str, id: i64) -> Vec<Value> {
+    let mut out = Vec::new();
+    let mut after = 0;
+    loop {
+        let (status, page) = get(
+            client,
+            &format!("{base}/v1/experiments/{id}/transitions?after={after}&limit=1000"),
+        )
+        .await;
+        assert_eq!(status, 200, "{page}");
+        out.extend(page["items"].as_array().unwrap().iter().cloned());
+        match page["next"].as_i64() {
+            Some(next) => after = next,
+            None => return out,
+        }
+    }
+}
+
+/// One client's trajectory `k`: seeded, in the kinematic unit square, with the deviations the
+/// service must compute (`s_next = s + f·a`, so the label is `(1 − f)|a|`).
+fn trajectory(client: usize, k: usize) -> (Value, Vec<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64((client * 1000 + k) as u64);
+    let n = rng.random_range(1..=6);
+    let mut transitions = Vec::new();
+    let mut labels = Vec::new();
+    for _ in 0..n {
+        let s = [rng.random_range(0.2..0.8), rng.random_range(0.2..0.8)];
+        let a: [f64; 2] = [rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1)];
+        let f = [1.0, 0.5, 0.0][rng.random_range(0..3)];
+        let s_next = [s[0] + f * a[0], s[1] + f * a[1]];
+        labels.push((1.0 - f) * (a[0] * a[0] + a[1] * a[1]).sqrt());
+        transitions.push(json!({"s": s, "a": a, "s_next": s_next}));
+    }
+    (json!({ "transitions": transitions }), labels)
+}
+
+async fn integrity_check(db: &Path) {
+    let mut conn = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db.display()))
+        .await
+        .unwrap();
+    let (ok,): (String,) = sqlx::query_as("PRAGMA integrity_check")
+        .fetch_one(&mut conn)
+        .await
+        .unwrap();
+    assert_eq!(ok, "ok");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
+    const CLIENTS: usize = 16;
+    const PER_CLIENT: usize = 20;
+    const KILLS: usize = 6;
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("crash.db");
+    let server = Server::start(&db, &[]);
+    let http = reqwest::Client::builder()
+        .timeout(Duration::from_secs(5))
+        .build()
+        .unwrap();
+    let (status, e) = post(
+        &http,
+        &format!("{}/v1/experiments", server.base),
+        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
+    )
+    .await;
+    assert_eq!(status, 201, "{e}");
+    let id = e["id"].as_i64().unwrap();
+    let base = Arc::new(RwLock::new(server.base.clone()));
+    let started = Instant::now();
+
+    // Clients: post each trajectory with its key until acknowledged, whatever happens.
+    let mut clients = Vec::new();
+    for c in 0..CLIENTS {
+        let (http, base) = (http.clone(), base.clone());
+        clients.push(tokio::spawn(async move {
+            let mut acked = Vec::new();
+            let mut retries = 0;
+            let mut pace = ChaCha8Rng::seed_from_u64(c as u64);
+            for k in 0..PER_CLIENT {
+                let (body, labels) = trajectory(c, k);
+                // A robot takes a while to execute a trajectory.
+                tokio::time::sleep(Duration::from_millis(pace.random_range(10..60))).await;
+                loop {
+                    let url = format!("{}/v1/experiments/{id}/trajectories", base.read().unwrap());
+                    let sent = http
+                        .post(&url)
+                        .header("idempotency-key", format!("client-{c}-trajectory-{k}"))
+                        .json(&body)
+                        .send()
+                        .await;
+                    if let Ok(r) = sent {
+                        let status = r.status().as_u16();
+                        if let Ok(v) = r.json::<Value>().await {
+                            assert!(
+                                status == 201 || status >= 500,
+                                "client {c} trajectory {k}: {status} {v}"
+                            );
+                            if status == 201 {
+                                acked.push((v["id"].as_i64().unwrap(), body.clone(), labels));
+                                break;
+                            }
+                        }
+                    }
+                    retries += 1;
+                    tokio::time::sleep(Duration::from_millis(15)).await;
+                }
+            }
+            (acked, retries)
+        }));
+    }
+
+    // The killer: kill -9 at seeded random moments, restart on the same file.
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let mut server = server;
+    for kill in 0..KILLS {
+        tokio::time::sleep(Duration::from_millis(rng.random_range(40..200))).await;
+        assert!(
+            clients.iter().any(|c| !c.is_finished()),
+            "kill {kill} comes while clients are ingesting"
+        );
+        server.kill9();
+        server = Server::start(&db, &[]);
+        *base.write().unwrap() = server.base.clone();
+    }
+    let mut acked = Vec::new();
+    let mut retries = 0;
+    for c in clients {
+        let (a, r) = c.await.unwrap();
+        acked.extend(a);
+        retries += r;
+    }
+    assert!(started.elapsed() < Duration::from_secs(40));
+    assert!(
+        retries >= KILLS,
+        "the kills interrupted ingest ({retries} retries)"
+    );
+    assert_eq!(acked.len(), CLIENTS * PER_CLIENT);
+
+    // Every acknowledged trajectory stored exactly once, whole, with its labels.
+    let stored = all_transitions(&http, &server.base, id).await;
+    let mut by_trajectory: HashMap<i64, Vec<&Value>> = HashMap::new();
+    for t in &stored {
+        by_trajectory
+            .entry(t["trajectory_id"].as_i64().unwrap())
+            .or_default()
+            .push(t);
+    }
+    assert_eq!(
+        by_trajectory.len(),
+        CLIENTS * PER_CLIENT,
+        "one stored trajectory per acknowledged one, no more"
+    );
+    for (tid, body, labels) in &acked {
+        let got = &by_trajectory[tid];
+        let sent = body["transitions"].as_array().unwrap();
+        assert_eq!(got.len(), sent.len(), "trajectory {tid} is whole");
+        for ((g, s), label) in got.iter().zip(sent).zip(labels) {
+            assert_eq!(g["s"], s["s"]);
+            assert_eq!(g["a"], s["a"]);
+            let d = g["deviation"].as_f64().unwrap();
+            assert!((d - label).abs() < 1e-9, "trajectory {tid}: {d} vs {label}");
+        }
+    }
+    let (_, e) = get(&http, &format!("{}/v1/experiments/{id}", server.base)).await;
+    assert_eq!(e["n_trajectories"], (CLIENTS * PER_CLIENT) as i64);
+    server.kill9();
+    integrity_check(&db).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn an_open_proposal_survives_a_crash_and_is_returned_to_its_client() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("proposal.db");
+    let server = Server::start(&db, &[]);
+    let http = reqwest::Client::new();
+    let (_, e) = post(
+        &http,
+        &format!("{}/v1/experiments", server.base),
+        &json!({"domain": {"kind": "kinematic"}}),
+    )
+    .await;
+    let id = e["id"].as_i64().unwrap();
+    let ask = json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"});
+    let (status, first) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", server.base),
+        &ask,
+    )
+    .await;
+    assert_eq!(status, 201, "{first}");
+    server.kill9();
+    let server = Server::start(&db, &[]);
+    let (status, again) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", server.base),
+        &ask,
+    )
+    .await;
+    assert_eq!(status, 200, "the open lease is answered: {again}");
+    assert_eq!(again["id"], first["id"]);
+    assert_eq!(again["trajectory"], first["trajectory"]);
+    let other = json!({"start": [0.1, 0.1], "goal": [0.9, 0.2], "client_id": "arm-1"});
+    let (status, _) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", server.base),
+        &other,
+    )
+    .await;
+    assert_eq!(status, 409);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn sigterm_during_ingest_finishes_or_fails_cleanly_and_exits_in_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("term.db");
+    let mut server = Server::start(&db, &["--shutdown-grace-secs", "3"]);
+    let http = reqwest::Client::builder()
+        .timeout(Duration::from_secs(10))
+        .build()
+        .unwrap();
+    let (_, e) = post(
+        &http,
+        &format!("{}/v1/experiments", server.base),
+        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
+    )
+    .await;
+    let id = e["id"].as_i64().unwrap();
+    let url = format!("{}/v1/experiments/{id}/trajectories", server.base);
+    let mut clients = Vec::new();
+    for c in 0..8 {
+        let (http, url) = (http.clone(), url.clone());
+        clients.push(tokio::spawn(async move {
+            let mut acked = Vec::new();
+            for k in 0..1000 {
+                let (body, _) = trajectory(100 + c, k);
+                match http.post(&url).json(&body).send().await {
+                    Ok(r) => {
+                        let status = r.status().as_u16();
+                        let v: Value = r.json().await.unwrap_or(Value::Null);
+                        assert_eq!(status, 201, "an in-flight request finishes: {v}");
+                        acked.push(v["id"].as_i64().unwrap());
+                    }
+                    // Refused or closed once the server stops accepting: a clean failure.
+                    Err(e) => {
+                        assert!(e.is_connect() || e.is_request(), "{e}");
+                        break;
+                    }
+                }
+            }
+            acked
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    server.sigterm();
+    let (status, took) = server.wait_exit(Duration::from_secs(3 + 5));
+    assert!(status.success(), "{status}");
+    assert!(took < Duration::from_secs(3 + 2), "{took:?}");
+    let mut acked = Vec::new();
+    for c in clients {
+        acked.extend(c.await.unwrap());
+    }
+    assert!(!acked.is_empty());
+    assert!(server.logged("shutdown requested"));
+    let server = Server::start(&db, &[]);
+    let stored = all_transitions(&http, &server.base, id).await;
+    let tids: std::collections::HashSet<i64> = stored
+        .iter()
+        .map(|t| t["trajectory_id"].as_i64().unwrap())
+        .collect();
+    for tid in &acked {
+        assert!(
+            tids.contains(tid),
+            "acknowledged trajectory {tid} is stored"
+        );
+    }
+    server.kill9();
+    integrity_check(&db).await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn sigterm_during_a_refit_exits_in_time_and_the_next_start_refits() {
+    let dir = tempfile::tempdir().unwrap();
+    let db = dir.path().join("refit.db");
+    let mut server = Server::start(&db, &["--shutdown-grace-secs", "1"]);
+    let http = reqwest::Client::new();
+    // One batch of 40 trajectories (about 280 transitions): a heteroscedastic fit with a few
+    // restarts takes seconds in a debug build, long enough to be caught running.
+    let (_, e) = post(
+        &http,
+        &format!("{}/v1/experiments", server.base),
+        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 40},
+                "mde": {"restarts": 3}}),
+    )
+    .await;
+    let id = e["id"].as_i64().unwrap();
+    let url = format!("{}/v1/experiments/{id}/trajectories", server.base);
+    for k in 0..40 {
+        let mut body = json!({"transitions": []});
+        for j in 0..2 {
+            let (t, _) = trajectory(200 + j, k);
+            body["transitions"]
+                .as_array_mut()
+                .unwrap()
+                .extend(t["transitions"].as_array().unwrap().iter().cloned());
+        }
+        let (status, v) = post(&http, &url, &body).await;
+        assert_eq!(status, 201, "{v}");
+    }
+    // The batch is complete: a background fit starts. Wait until it runs, then stop.
+    let started = Instant::now();
+    loop {
+        let text = http
+            .get(format!("{}/metrics", server.base))
+            .send()
+            .await
+            .unwrap()
+            .text()
+            .await
+            .unwrap();
+        if text.contains("precond_planning_running 1") {
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(10),
+            "no fit started"
+        );
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    server.sigterm();
+    let (status, took) = server.wait_exit(Duration::from_secs(10));
+    assert!(status.success(), "{status}");
+    assert!(took < Duration::from_secs(1 + 3), "{took:?}");
+    // The next start fits the batch the stopped one did not store.
+    let server = Server::start(&db, &[]);
+    let started = Instant::now();
+    loop {
+        let (_, model) = get(&http, &format!("{}/v1/experiments/{id}/model", server.base)).await;
+        if model["version"].as_i64().unwrap_or(0) >= 1 {
+            assert_eq!(model["n_train"].as_i64().unwrap(), {
+                let e = get(&http, &format!("{}/v1/experiments/{id}", server.base))
+                    .await
+                    .1;
+                e["n_transitions"].as_i64().unwrap()
+            });
+            eprintln!("refitted after the restart in {:?}", started.elapsed());
+            break;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(40),
+            "the batch was not refitted after the restart: {:?}",
+            server.log.lock().unwrap()
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    server.kill9();
+    integrity_check(&db).await;
+}
