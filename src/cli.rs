@@ -95,6 +95,16 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     pub allow_model_urls: Vec<String>,
+    /// Let the dashboard (or any browser page) served from this origin read the API, e.g.
+    /// `http://lab-pc:8080` for a dashboard there pointed at this server with `?api=`;
+    /// repeatable. Without one, browsers only let this server's own pages call it.
+    #[arg(
+        long = "cors-allow-origin",
+        value_name = "ORIGIN",
+        env = "PRECOND_CORS_ALLOW_ORIGINS",
+        value_delimiter = ','
+    )]
+    pub cors_allow_origins: Vec<String>,
 }
 
 /// Installs the global tracing subscriber.
@@ -148,6 +158,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 Service::with_model_urls(store, model_urls),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
+                    cors_allow_origins: args.cors_allow_origins,
                 },
             );
             serve(listener, state, shutdown_signal()).await

@@ -297,6 +297,7 @@ impl InProcess {
             HttpConfig {
                 // Precondition maps and held-out sets are sent in one request each.
                 max_body_bytes: 64 * 1024 * 1024,
+                ..HttpConfig::default()
             },
         );
         let handle = tokio::spawn(serve(listener, state, async {

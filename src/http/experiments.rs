@@ -2,9 +2,10 @@
 
 use super::AppState;
 use super::error::ApiResult;
-use super::extract::{ApiJson, ApiPath};
+use super::extract::{ApiJson, ApiPath, ApiQuery};
 use super::render;
-use crate::api::{ExperimentList, ExperimentRequest, ExperimentResponse};
+use crate::api::{ExperimentList, ExperimentRequest, ExperimentResponse, ExperimentsQuery};
+use crate::service::experiments::next_offset;
 use axum::Json;
 use axum::extract::State;
 use axum::http::StatusCode;
@@ -18,11 +19,21 @@ pub async fn create_experiment(
     Ok((StatusCode::CREATED, Json(render::experiment(created))))
 }
 
-/// `GET /v1/experiments`.
-pub async fn list_experiments(State(state): State<AppState>) -> ApiResult<Json<ExperimentList>> {
-    let items = state.service.experiments().await?;
+/// `GET /v1/experiments?order=&offset=&limit=`: every experiment (oldest first) by default,
+/// or one page.
+pub async fn list_experiments(
+    State(state): State<AppState>,
+    ApiQuery(query): ApiQuery<ExperimentsQuery>,
+) -> ApiResult<Json<ExperimentList>> {
+    let (items, total) = state
+        .service
+        .experiments(query.order, query.offset, query.limit)
+        .await?;
+    let next = next_offset(query.offset, items.len(), total);
     Ok(Json(ExperimentList {
         items: items.into_iter().map(render::experiment).collect(),
+        total,
+        next,
     }))
 }
 

@@ -1,22 +1,26 @@
 //! The HTTP/JSON API: one [`AppState`], one route table, one error shape.
 //!
 //! The router is built from [`routes`], the same table the contract test compares with
-//! `api/openapi.yaml`, so a route cannot exist in one and not the other.
+//! `api/openapi.yaml`, so a route cannot exist in one and not the other. The dashboard's pages
+//! and assets (`/`, `/ui/...`) are merged beside it: they are not part of the JSON API.
 
+mod activity;
 pub mod error;
 mod experiments;
 pub mod extract;
 mod health;
+mod inspection;
 mod model;
 mod proposals;
 mod render;
 mod trajectories;
+mod ui;
 
 use crate::service::Service;
 use crate::store::Store;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request};
-use axum::http::{Method, StatusCode};
+use axum::http::{HeaderValue, Method, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{MethodRouter, get, post};
@@ -25,7 +29,9 @@ use extract::BodyLimit;
 use std::future::Future;
 use std::sync::Arc;
 use tokio::net::TcpListener;
+use tower::util::option_layer;
 use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::trace::TraceLayer;
 
 /// Limits and knobs of the HTTP layer.
@@ -33,14 +39,39 @@ use tower_http::trace::TraceLayer;
 pub struct HttpConfig {
     /// Largest accepted request body in bytes.
     pub max_body_bytes: usize,
+    /// Origins (`scheme://host[:port]`) whose pages may call the API from a browser (CORS), e.g.
+    /// a dashboard served by another precond; none by default.
+    pub cors_allow_origins: Vec<String>,
 }
 
 impl Default for HttpConfig {
     fn default() -> Self {
         Self {
             max_body_bytes: 4 * 1024 * 1024,
+            cors_allow_origins: Vec::new(),
         }
     }
+}
+
+/// The CORS layer for the configured origins; an origin that is not a valid header value is an
+/// error at start-up.
+fn cors(origins: &[String]) -> anyhow::Result<Option<CorsLayer>> {
+    if origins.is_empty() {
+        return Ok(None);
+    }
+    let origins = origins
+        .iter()
+        .map(|o| {
+            HeaderValue::from_str(o.trim_end_matches('/'))
+                .map_err(|_| anyhow::anyhow!("invalid CORS origin {o:?}"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Some(
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::list(origins))
+            .allow_methods([Method::GET, Method::HEAD, Method::POST])
+            .allow_headers([header::CONTENT_TYPE]),
+    ))
 }
 
 /// What every handler can reach.
@@ -121,7 +152,22 @@ pub fn routes() -> Vec<Route> {
             "/v1/experiments/{id}/transitions",
             get(trajectories::list_transitions),
         ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/runs",
+            get(activity::list_runs),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/timeline",
+            get(activity::get_timeline),
+        ),
         route(M::GET, "/v1/experiments/{id}/model", get(model::get_model)),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/model/diagnostics",
+            get(inspection::get_model_diagnostics),
+        ),
         route(
             M::POST,
             "/v1/experiments/{id}/model/refit",
@@ -136,6 +182,11 @@ pub fn routes() -> Vec<Route> {
             M::GET,
             "/v1/experiments/{id}/precondition",
             get(model::get_precondition),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/precondition/map",
+            get(inspection::get_precondition_map),
         ),
         route(
             M::POST,
@@ -160,14 +211,16 @@ pub fn routes() -> Vec<Route> {
     ]
 }
 
-/// The application: routes, fallbacks, body limit, tracing and the panic net.
-pub fn app(state: AppState) -> Router {
+/// The application: routes, fallbacks, body limit, CORS (when configured), tracing and the
+/// panic net. Fails only on an invalid CORS origin.
+pub fn app(state: AppState) -> anyhow::Result<Router> {
     let limit = state.config.max_body_bytes;
-    let mut router = Router::new();
+    let cors = cors(&state.config.cors_allow_origins)?;
+    let mut router = ui::router();
     for r in routes() {
         router = router.route(r.path, r.handler);
     }
-    router
+    Ok(router
         .fallback(route_not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(middleware::from_fn(
@@ -177,9 +230,10 @@ pub fn app(state: AppState) -> Router {
             },
         ))
         .layer(DefaultBodyLimit::max(limit))
+        .layer(option_layer(cors))
         .layer(CatchPanicLayer::custom(panic_response))
         .layer(TraceLayer::new_for_http())
-        .with_state(state)
+        .with_state(state))
 }
 
 async fn route_not_found(method: Method, uri: axum::http::Uri) -> ApiError {
@@ -208,7 +262,7 @@ pub async fn serve(
     let store = state.service.store().clone();
     let addr = listener.local_addr()?;
     tracing::info!(%addr, "serving");
-    axum::serve(listener, app(state))
+    axum::serve(listener, app(state)?)
         .with_graceful_shutdown(shutdown)
         .await?;
     store.close().await;

@@ -29,7 +29,13 @@ pub struct LiveExperiment {
     pub domain: Arc<dyn Domain>,
     model: RwLock<Arc<ServedModel>>,
     fit_lock: tokio::sync::Mutex<()>,
+    /// Older versions rebuilt on request (most recent use last), at most [`KEPT_VERSIONS`].
+    older: std::sync::Mutex<Vec<Arc<ServedModel>>>,
 }
+
+/// Older model versions kept in memory per experiment after a rebuild (each holds its training
+/// inputs and `L⁻¹`, `n²` floats).
+pub const KEPT_VERSIONS: usize = 4;
 
 /// Why a fit is made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -50,12 +56,61 @@ impl LiveExperiment {
             domain,
             model: RwLock::new(Arc::new(prior)),
             fit_lock: tokio::sync::Mutex::new(()),
+            older: std::sync::Mutex::new(Vec::new()),
         }
     }
 
     /// The version answering queries now.
     pub fn model(&self) -> Arc<ServedModel> {
         self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Model version `version` (`None`: the one answering now). A version older than the
+    /// current one is rebuilt from its stored state and training data (no re-optimisation: one
+    /// factorisation) and kept among the last [`KEPT_VERSIONS`] used; `NotFound` if it was never
+    /// fitted.
+    pub async fn model_at(
+        &self,
+        store: &Store,
+        version: Option<i64>,
+    ) -> Result<Arc<ServedModel>, Error> {
+        let current = self.model();
+        let Some(version) = version.filter(|v| *v != current.version) else {
+            return Ok(current);
+        };
+        if version == 0 {
+            let prior = ServedModel::prior(self.domain.feature_dim(), self.settings.mde.prior_mean);
+            return Ok(Arc::new(prior));
+        }
+        {
+            let mut kept = self.older_versions();
+            if let Some(i) = kept.iter().position(|m| m.version == version) {
+                let m = kept.remove(i);
+                kept.push(m.clone());
+                return Ok(m);
+            }
+        }
+        let stored = store
+            .model_version(self.id, version)
+            .await?
+            .ok_or_else(|| {
+                Error::NotFound(format!(
+                    "experiment {} has no model version {version}",
+                    self.id
+                ))
+            })?;
+        let rebuilt = Arc::new(self.restore(store, stored).await?);
+        let mut kept = self.older_versions();
+        kept.retain(|m| m.version != version);
+        kept.push(rebuilt.clone());
+        if kept.len() > KEPT_VERSIONS {
+            kept.remove(0);
+        }
+        Ok(rebuilt)
+    }
+
+    fn older_versions(&self) -> std::sync::MutexGuard<'_, Vec<Arc<ServedModel>>> {
+        self.older.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     fn swap_model(&self, model: Arc<ServedModel>) {

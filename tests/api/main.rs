@@ -2,6 +2,7 @@
 
 mod contract;
 mod custom;
+mod dashboard;
 mod experiments;
 mod helpers;
 mod learning;

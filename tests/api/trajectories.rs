@@ -165,6 +165,7 @@ async fn an_oversized_body_is_413() {
         &db,
         HttpConfig {
             max_body_bytes: 2048,
+            ..HttpConfig::default()
         },
     )
     .await;
