@@ -116,7 +116,7 @@ function modelTable(t) {
   return h('details', {}, h('summary', {}, `Model versions (${t.models.length})`),
     table([['version', 1], ['iteration', 1], ['n_train', 1], ['trajectories', 1], ['noise'], ['LML', 1], ['fit s', 1], ['fitted']],
       t.models.map(m => h('tr', {}, td(m.version, true), td(m.iteration, true), td(m.n_train, true), td(m.n_trajectories, true),
-        td(m.noise), td(fmt(m.log_marginal_likelihood, 5), true), td(fmt(m.fit_seconds), true), td(ago(m.fitted_at)))))));
+        td(m.noise), td(fmt(m.log_marginal_likelihood, 5), true), td(fmt(m.fit_seconds), true), td(ago(m.fitted_at))))));
 }
 
 function runsTable(e, page, offset) {
