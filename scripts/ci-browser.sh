@@ -51,6 +51,7 @@ done
 [ -n "$addr" ] || { cat "$log"; echo "the server did not report its address"; exit 1; }
 echo "server at http://$addr"
 
+rm -rf "$work/screenshots"
 status=0
 node "$work/dashboard.mjs" "http://$addr" "$work/screenshots" || status=$?
 if [ "$status" -ne 0 ]; then

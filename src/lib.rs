@@ -32,7 +32,8 @@
 //! - [`api`]: the typed request and response bodies of the HTTP API, shared by the server and
 //!   the Rust client in [`experiment`].
 //! - [`http`]: the axum router; handlers parse, call the service and render; the one HTTP error
-//!   type and its JSON shape; serving with graceful shutdown.
+//!   type and its JSON shape; serving with graceful shutdown; the web dashboard (`ui/`, embedded
+//!   in the binary, reading only the JSON API).
 //! - [`cli`]: the command line (`precond serve`, `precond bench`, `precond experiment`).
 //! - [`bench`](mod@bench): benchmarks that print figures (`precond bench ...`).
 //! - [`experiment`]: `precond experiment`, the paper's evaluation run end to end as an HTTP
