@@ -301,8 +301,24 @@ pub struct Diagnostics {
     pub mean_log_density: f64,
     /// Observed against nominal shares for `z` = 0.5, 1, 1.5, 2, 2.5, 3.
     pub coverage: Vec<Coverage>,
-    /// The precondition's true-positive and true-negative rates.
+    /// The precondition's true-positive and true-negative rates (leave-one-out).
     pub precondition: PreconditionRates,
+    /// The same rates on the transitions posted after the version's training set (never seen
+    /// by it; at most the first 10 000), judged by the version itself; `null` when there are
+    /// none yet.
+    pub later: Option<LaterRates>,
+}
+
+/// The precondition's rates on transitions a version never saw.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LaterRates {
+    /// Transitions judged.
+    pub n: usize,
+    /// Observed against nominal coverage of `μ ± zσ` on them.
+    pub coverage: Vec<Coverage>,
+    /// The rates.
+    #[serde(flatten)]
+    pub rates: PreconditionRates,
 }
 
 /// `POST /v1/experiments/{id}/trajectories` body.

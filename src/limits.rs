@@ -46,3 +46,6 @@ pub const MAX_MAP_TRAINING_POINTS: usize = 2000;
 /// Rows of each list of an experiment's timeline (iterations, model versions): the first
 /// `10 000`.
 pub const MAX_TIMELINE_ROWS: i64 = 10_000;
+/// Transitions after a model version's training set that its diagnostics judge (the first
+/// `10 000`).
+pub const MAX_LATER_TRANSITIONS: i64 = 10_000;

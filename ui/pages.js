@@ -299,6 +299,18 @@ export async function mapPage(root, params, id) {
 
 // ---------------------------------------------------------------- diagnostics
 
+function laterCard(d, pct, kpi) {
+  const l = d.later;
+  if (!l) return h('section', { class: 'card' }, h('h2', {}, 'Later transitions'),
+    h('p', { class: 'muted' }, `No transitions were posted after version ${d.model_version}'s training set yet.`));
+  const c1 = l.coverage.find(c => c.z === 1), c2 = l.coverage.find(c => c.z === 2);
+  return h('section', { class: 'card', id: 'later' }, h('h2', {}, `The ${l.n} transitions posted after its training set (never seen by version ${d.model_version})`), h('div', { class: 'kpi' },
+    kpi('TPR', pct(l.tpr), `${l.true_positives} of ${l.positives} below d_max judged inside`),
+    kpi('TNR', pct(l.tnr), `${l.true_negatives} of ${l.negatives} at or above d_max judged outside`),
+    kpi('inside μ ± 1σ', pct(c1.observed), `nominal ${pct(c1.nominal)}`),
+    kpi('inside μ ± 2σ', pct(c2.observed), `nominal ${pct(c2.nominal)}`)));
+}
+
 export async function diagnosticsPage(root, params, id) {
   const [e, t] = await Promise.all([api(`/v1/experiments/${id}`), api(`/v1/experiments/${id}/timeline`)]);
   const name = e.name || `experiment ${id}`;
@@ -325,6 +337,7 @@ export async function diagnosticsPage(root, params, id) {
       h('section', { class: 'card' }, h('h2', {}, `Precondition μ + ${fmt(p.beta)}σ < ${fmt(p.d_max)} against the labels`), h('div', { class: 'kpi' },
         kpi('TPR', pct(p.tpr), `${p.true_positives} of ${p.positives} labels below d_max judged inside`),
         kpi('TNR', pct(p.tnr), `${p.true_negatives} of ${p.negatives} labels at or above d_max judged outside`))),
+      laterCard(d, pct, kpi),
       h('div', { class: 'charts' }, lineChart({ title: 'Coverage of μ ± zσ: observed against nominal', x: d.coverage.map(c => c.nominal), xlabel: 'nominal share',
         yMin: 0, yMax: 1, diagonal: true, series: [{ name: 'observed', values: d.coverage.map(c => c.observed) }] })),
       table([['z', 1], ['nominal', 1], ['observed', 1]], d.coverage.map(c => h('tr', {}, td(fmt(c.z), true), td(pct(c.nominal), true), td(pct(c.observed), true)))));

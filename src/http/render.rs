@@ -2,9 +2,9 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    CandidateView, Diagnostics, ExperimentResponse, MapAxis, MapPoint, ModelResponse, ModelSource,
-    PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RunPage, Timeline,
-    TimelineIteration, TimelineModel, TrajectoryResponse,
+    CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
+    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RunPage,
+    Timeline, TimelineIteration, TimelineModel, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{
@@ -113,6 +113,11 @@ pub fn diagnostics(experiment_id: i64, d: LooDiagnostics) -> Diagnostics {
         mean_log_density: s.mean_log_density,
         coverage: s.coverage,
         precondition: s.precondition,
+        later: d.later.map(|l| LaterRates {
+            n: l.n,
+            coverage: l.coverage,
+            rates: l.precondition,
+        }),
     }
 }
 

@@ -4,7 +4,9 @@
 use super::{Error, Result, Service};
 use crate::api::{Coverage, PreconditionRates};
 use crate::domain::Space;
-use crate::limits::{DEFAULT_MAP_SIDE, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS};
+use crate::limits::{
+    DEFAULT_MAP_SIDE, MAX_LATER_TRANSITIONS, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS,
+};
 use crate::mde::{Estimator, ServedModel};
 use crate::store::StoredTransition;
 use std::sync::Arc;
@@ -64,7 +66,8 @@ const NOMINAL: [(f64, f64); 6] = [
     (3.0, 0.997_300_203_936_740),
 ];
 
-/// Summarises leave-one-out predictions `(y_i − μ₋ᵢ, σ₋ᵢ)` of `labels`: coverage of `μ ± zσ`,
+/// Summarises predictions `(y_i − μ_i, σ_i)` of `labels` (leave-one-out, or by a model that
+/// never saw them): coverage of `μ ± zσ`,
 /// RMSE, mean log predictive density, and the precondition `μ + βσ < d_max` against the truth
 /// `y < d_max`.
 pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], beta: f64, d_max: f64) -> LooSummary {
@@ -129,13 +132,15 @@ pub struct LooSummary {
     pub precondition: PreconditionRates,
 }
 
-/// Leave-one-out checks of a fitted version.
+/// Leave-one-out checks of a fitted version, and its judgements of later transitions.
 #[derive(Debug, Clone)]
 pub struct LooDiagnostics {
     /// The version checked.
     pub model_version: i64,
-    /// What the checks found.
+    /// What leave-one-out found.
     pub summary: LooSummary,
+    /// What the version found on the transitions posted after its training set (none: `None`).
+    pub later: Option<LooSummary>,
 }
 
 /// Where an axis name points: a state (`false`) or action (`true`) component.
@@ -328,9 +333,41 @@ impl Service {
                 labels.len()
             )));
         }
+        let later = self
+            .store
+            .transitions_after_first(id, labels.len() as i64, MAX_LATER_TRANSITIONS)
+            .await?;
+        let later = if later.is_empty() {
+            None
+        } else {
+            let dim = live.domain.feature_dim();
+            let mut features = Vec::with_capacity(later.len() * dim);
+            for t in &later {
+                features.extend(live.domain.features(&t.s, &t.a));
+            }
+            let judged = model.clone();
+            let answers = Self::blocking(move || judged.answer(&features, dim)).await?;
+            let labels: Vec<f64> = later.iter().map(|t| t.deviation).collect();
+            // As residuals `(y − μ, σ)`, the form `loo_summary` reads.
+            let residuals: Vec<(f64, f64)> = labels
+                .iter()
+                .zip(&answers)
+                .map(|(y, a)| (y - a.mu, a.sigma))
+                .collect();
+            if residuals
+                .iter()
+                .any(|(r, sd)| !(r.is_finite() && sd.is_finite()))
+            {
+                return Err(Error::Internal(anyhow::anyhow!(
+                    "the model answered a non-finite deviation on a later transition"
+                )));
+            }
+            Some(loo_summary(&labels, &residuals, beta, live.settings.d_max))
+        };
         Ok(LooDiagnostics {
             model_version: model.version,
             summary: loo_summary(&labels, &loo, beta, live.settings.d_max),
+            later,
         })
     }
 }

@@ -272,4 +272,26 @@ impl Store {
         .fetch_all(&self.read)
         .await
     }
+
+    /// Transitions of an experiment after its first `skip` in id order (those a model version
+    /// fitted on the first `skip` never saw), at most `limit`.
+    #[tracing::instrument(skip(self))]
+    pub async fn transitions_after_first(
+        &self,
+        experiment_id: i64,
+        skip: i64,
+        limit: i64,
+    ) -> Result<Vec<super::StoredTransition>, sqlx::Error> {
+        let first_unseen: Option<i64> = sqlx::query_scalar(
+            "SELECT id FROM transitions WHERE experiment_id = ? ORDER BY id LIMIT 1 OFFSET ?",
+        )
+        .bind(experiment_id)
+        .bind(skip)
+        .fetch_optional(&self.read)
+        .await?;
+        match first_unseen {
+            Some(id) => self.transitions(experiment_id, id - 1, Some(limit)).await,
+            None => Ok(Vec::new()),
+        }
+    }
 }

@@ -353,6 +353,47 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
     for rate in ["tpr", "tnr"] {
         assert!((0.0..=1.0).contains(&p[rate].as_f64().unwrap()), "{p}");
     }
+    assert!(d["later"].is_null(), "the fit saw every transition: {d}");
+    // Transitions posted after the fit are judged by it as they are: never seen, not refitted.
+    post_all(&app, id, &rows_of_moves(4, 6)).await;
+    let (_, d) = app.get(&format!("{path}?beta=2")).await;
+    let later = &d["later"];
+    assert_eq!(later["n"], 2 * 12 * 4, "{d}");
+    assert_eq!(
+        later["positives"].as_u64().unwrap() + later["negatives"].as_u64().unwrap(),
+        2 * 12 * 4
+    );
+    // The same judgements through the precondition query (the model was not refitted).
+    let n_train = model["n_train"].as_u64().unwrap() as usize;
+    let unseen: Vec<Value> = app.all_transitions(id).await.split_off(n_train);
+    let points: Vec<Value> = unseen
+        .iter()
+        .map(|t| json!({"s": t["s"], "a": t["a"]}))
+        .collect();
+    let (_, judged) = app
+        .post(
+            &format!("/v1/experiments/{id}/precondition"),
+            &json!({"points": points, "beta": 2.0}),
+        )
+        .await;
+    let (mut tp, mut tn) = (0, 0);
+    for (t, j) in unseen.iter().zip(judged["results"].as_array().unwrap()) {
+        let positive = t["deviation"].as_f64().unwrap() < 0.1;
+        let inside = j["inside"].as_bool().unwrap();
+        tp += u64::from(positive && inside);
+        tn += u64::from(!positive && !inside);
+    }
+    assert_eq!(
+        (
+            later["true_positives"].as_u64(),
+            later["true_negatives"].as_u64()
+        ),
+        (Some(tp), Some(tn))
+    );
+    assert_eq!(
+        d["n"], model["n_train"],
+        "leave-one-out still checks the training set"
+    );
     let (status, err) = app.get(&format!("{path}?beta=x")).await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
     let (status, _) = app.get(&format!("{path}?version=5")).await;

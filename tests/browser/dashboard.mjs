@@ -110,6 +110,10 @@ test('diagnostics show leave-one-out calibration and the precondition rates', as
   assert.match(text, /inside μ ± 1σ[\s\S]*nominal 68\.3 %/);
   assert.match(text, /TPR[\s\S]*TNR/);
   await page.screenshot({ path: `${out}/diagnostics.png`, fullPage: true });
+  // Version 1 was fitted after the first batch: every later transition is judged by it.
+  await open(`/ui/experiments/${grid}/diagnostics?version=1`);
+  await page.waitForSelector('#later');
+  assert.match(await page.locator('#later').innerText(), /transitions posted after its training set[\s\S]*TPR[\s\S]*TNR/);
 });
 
 test('an unknown experiment shows the API error', async () => {
