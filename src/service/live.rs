@@ -29,13 +29,17 @@ pub struct LiveExperiment {
     pub domain: Arc<dyn Domain>,
     model: RwLock<Arc<ServedModel>>,
     fit_lock: tokio::sync::Mutex<()>,
-    /// Older versions rebuilt on request (most recent use last), at most [`KEPT_VERSIONS`].
+    /// Older versions rebuilt on request (most recent use last), at most [`KEPT_VERSIONS`]
+    /// and [`KEPT_VERSIONS_FLOATS`].
     older: std::sync::Mutex<Vec<Arc<ServedModel>>>,
 }
 
-/// Older model versions kept in memory per experiment after a rebuild (each holds its training
-/// inputs and `L⁻¹`, `n²` floats).
+/// Older model versions kept in memory per experiment after a rebuild, at most.
 pub const KEPT_VERSIONS: usize = 4;
+
+/// Each kept version holds its `L⁻¹` (`n_train²` floats): beyond this many floats in all
+/// (256 MiB) the least recently used are dropped, down to the one just rebuilt.
+pub const KEPT_VERSIONS_FLOATS: usize = 1 << 25;
 
 /// Why a fit is made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -103,7 +107,11 @@ impl LiveExperiment {
         let mut kept = self.older_versions();
         kept.retain(|m| m.version != version);
         kept.push(rebuilt.clone());
-        if kept.len() > KEPT_VERSIONS {
+        let floats = |kept: &[Arc<ServedModel>]| -> usize {
+            kept.iter().map(|m| m.n_train() * m.n_train()).sum()
+        };
+        while kept.len() > 1 && (kept.len() > KEPT_VERSIONS || floats(&kept) > KEPT_VERSIONS_FLOATS)
+        {
             kept.remove(0);
         }
         Ok(rebuilt)
