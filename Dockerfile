@@ -5,6 +5,7 @@ COPY Cargo.toml Cargo.lock ./
 COPY src src
 COPY migrations migrations
 COPY api api
+COPY ui ui
 RUN cargo build --release --locked --bin precond
 
 # Runtime stage: a small image, a non-root user, the database on a volume.

@@ -10,7 +10,10 @@ use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
-use crate::store::{StoredProposal, StoredTrajectory, StoredTransition};
+use crate::store::{
+    IterationStats, ListOrder, ModelSummary, Run, StoredProposal, StoredTrajectory,
+    StoredTransition,
+};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -74,13 +77,248 @@ pub struct ExperimentResponse {
     pub iteration: i64,
     /// The latest MDE version (0: the prior).
     pub model_version: i64,
+    /// The latest of its creation, its last trajectory and its last proposal (RFC 3339).
+    #[serde(default)]
+    pub last_activity: String,
+}
+
+/// Query of `GET /v1/experiments`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExperimentsQuery {
+    /// `oldest` (ascending id, the default) or `newest` first.
+    #[serde(default)]
+    pub order: ListOrder,
+    /// Experiments to skip. Default 0.
+    #[serde(default)]
+    pub offset: i64,
+    /// Page size, 1 to 1000; every experiment when absent.
+    pub limit: Option<i64>,
 }
 
 /// `GET /v1/experiments`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ExperimentList {
-    /// Every experiment, oldest first.
+    /// The page's experiments, in the order asked (every experiment, oldest first, by default).
     pub items: Vec<ExperimentResponse>,
+    /// Experiments stored in all.
+    #[serde(default)]
+    pub total: i64,
+    /// The `offset` of the next page, or `null` on the last.
+    #[serde(default)]
+    pub next: Option<i64>,
+}
+
+/// Query of the offset-paginated lists (`GET …/runs`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PageQuery {
+    /// Rows to skip. Default 0.
+    #[serde(default)]
+    pub offset: i64,
+    /// Page size, 1 to 1000; default 100.
+    pub limit: Option<i64>,
+}
+
+/// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them and
+/// trajectories posted without a proposal, newest first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunPage {
+    /// The page's runs.
+    pub items: Vec<Run>,
+    /// Runs in all.
+    pub total: i64,
+    /// The `offset` of the next page, or `null` on the last.
+    pub next: Option<i64>,
+}
+
+/// One learning iteration of `GET /v1/experiments/{id}/timeline`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TimelineIteration {
+    /// `β_j` of the learning schedule at this iteration.
+    pub beta: f64,
+    /// What was executed in it.
+    #[serde(flatten)]
+    pub stats: IterationStats,
+}
+
+/// One model version of `GET /v1/experiments/{id}/timeline`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TimelineModel {
+    /// The learning iteration its training data reached (`n_trajectories / batch_size`).
+    pub iteration: i64,
+    /// The version's summary.
+    #[serde(flatten)]
+    pub model: ModelSummary,
+}
+
+/// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Timeline {
+    /// Its experiment.
+    pub experiment_id: i64,
+    /// Trajectories per iteration (`learning.batch_size`).
+    pub batch_size: i64,
+    /// Planned iterations `J` of the β schedule (`learning.iterations`).
+    pub iterations_planned: i64,
+    /// Iterations with executed trajectories, in order (at most 10 000).
+    pub iterations: Vec<TimelineIteration>,
+    /// Fitted model versions, oldest first (at most 10 000).
+    pub models: Vec<TimelineModel>,
+}
+
+/// Query of `GET /v1/experiments/{id}/precondition/map`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MapQuery {
+    /// The horizontal axis: a state component `s.<name>` or an action component `a.<name>`.
+    pub x: String,
+    /// The vertical axis, likewise; not the same as `x`.
+    pub y: String,
+    /// The state fixing the other components, comma-separated; default the state box's centre.
+    pub s: Option<String>,
+    /// The action fixing the other components; default the first allowed value of a discrete
+    /// action space, else the action box's centre.
+    pub a: Option<String>,
+    /// Grid points along `x`, 2 to 200; default 41.
+    pub nx: Option<usize>,
+    /// Grid points along `y`, 2 to 200; default 41.
+    pub ny: Option<usize>,
+    /// The model version to evaluate; default the one answering now.
+    pub version: Option<i64>,
+}
+
+/// One axis of a precondition map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapAxis {
+    /// `s.<name>` or `a.<name>`.
+    pub name: String,
+    /// The grid's coordinates along it: evenly spaced from the component's lower to its upper
+    /// bound, both included.
+    pub values: Vec<f64>,
+}
+
+/// A training transition drawn on a map.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct MapPoint {
+    /// State.
+    pub s: Vec<f64>,
+    /// Action.
+    pub a: Vec<f64>,
+    /// Its deviation label.
+    pub deviation: f64,
+}
+
+/// `GET /v1/experiments/{id}/precondition/map`: `μ` and `σ` of a model version on a grid over
+/// two components of `(s, a)`, the others fixed; the precondition at any β is
+/// `μ + βσ < d_max`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PreconditionMap {
+    /// The version evaluated.
+    pub model_version: i64,
+    /// Prior or fit.
+    pub source: ModelSource,
+    /// Its training transitions (the experiment's first `n_train`).
+    pub n_train: usize,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// The experiment's test β (`learning.test_beta`).
+    pub test_beta: f64,
+    /// The state fixing the components not on an axis.
+    pub s: Vec<f64>,
+    /// The action fixing the components not on an axis.
+    pub a: Vec<f64>,
+    /// The horizontal axis.
+    pub x: MapAxis,
+    /// The vertical axis.
+    pub y: MapAxis,
+    /// `μ` row-major: `mu[j * nx + i]` at `(x.values[i], y.values[j])`.
+    pub mu: Vec<f64>,
+    /// `σ` (noise included), laid out as `mu`.
+    pub sigma: Vec<f64>,
+    /// The version's training transitions, at most 2000 evenly spread over them.
+    pub training: Vec<MapPoint>,
+}
+
+/// Query of `GET /v1/experiments/{id}/model/diagnostics`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DiagnosticsQuery {
+    /// The model version to check; default the one answering now.
+    pub version: Option<i64>,
+    /// β of the precondition whose rates are reported; default `learning.test_beta`.
+    pub beta: Option<f64>,
+}
+
+/// The share of labels inside `μ ± zσ` against the nominal Gaussian share.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Coverage {
+    /// The interval's half-width in σ.
+    pub z: f64,
+    /// `P(|N(0,1)| ≤ z)`.
+    pub nominal: f64,
+    /// The observed share.
+    pub observed: f64,
+}
+
+/// How often the precondition agrees with the labels' truth `y < d_max`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PreconditionRates {
+    /// β used.
+    pub beta: f64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// Labels below `d_max` (the model was right).
+    pub positives: usize,
+    /// Labels at or above `d_max`.
+    pub negatives: usize,
+    /// Positives judged inside the precondition.
+    pub true_positives: usize,
+    /// Negatives judged outside.
+    pub true_negatives: usize,
+    /// `true_positives / positives` (`null` without positives).
+    pub tpr: Option<f64>,
+    /// `true_negatives / negatives` (`null` without negatives).
+    pub tnr: Option<f64>,
+}
+
+/// `GET /v1/experiments/{id}/model/diagnostics`: leave-one-out calibration of a fitted model
+/// version and the rates of its precondition on its own training labels, each predicted by the
+/// model conditioned on every other label.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Diagnostics {
+    /// Its experiment.
+    pub experiment_id: i64,
+    /// The version checked.
+    pub model_version: i64,
+    /// `leave_one_out`.
+    pub method: String,
+    /// Labels checked (the version's training set).
+    pub n: usize,
+    /// Root mean squared leave-one-out error.
+    pub rmse: f64,
+    /// Mean leave-one-out log predictive density (Gaussian; higher is better).
+    pub mean_log_density: f64,
+    /// Observed against nominal shares for `z` = 0.5, 1, 1.5, 2, 2.5, 3.
+    pub coverage: Vec<Coverage>,
+    /// The precondition's true-positive and true-negative rates (leave-one-out).
+    pub precondition: PreconditionRates,
+    /// The same rates on the transitions posted after the version's training set (never seen
+    /// by it; at most the first 10 000), judged by the version itself; `null` when there are
+    /// none yet.
+    pub later: Option<LaterRates>,
+}
+
+/// The precondition's rates on transitions a version never saw.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LaterRates {
+    /// Transitions judged.
+    pub n: usize,
+    /// Observed against nominal coverage of `μ ± zσ` on them.
+    pub coverage: Vec<Coverage>,
+    /// The rates.
+    #[serde(flatten)]
+    pub rates: PreconditionRates,
 }
 
 /// `POST /v1/experiments/{id}/trajectories` body.

@@ -156,6 +156,16 @@ pub struct ServeArgs {
     /// Seconds in-flight requests may run on after SIGTERM before they are dropped.
     #[arg(long, env = "PRECOND_SHUTDOWN_GRACE_SECS", default_value_t = 20)]
     pub shutdown_grace_secs: u64,
+    /// Let the dashboard (or any browser page) served from this origin read the API, e.g.
+    /// `http://lab-pc:8080` for a dashboard there pointed at this server with `?api=`;
+    /// repeatable. Without one, browsers only let this server's own pages call it.
+    #[arg(
+        long = "cors-allow-origin",
+        value_name = "ORIGIN",
+        env = "PRECOND_CORS_ALLOW_ORIGINS",
+        value_delimiter = ','
+    )]
+    pub cors_allow_origins: Vec<String>,
 }
 
 impl ServeArgs {
@@ -277,6 +287,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                     max_body_bytes: args.max_body_bytes,
                     tokens,
                     shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
+                    cors_allow_origins: args.cors_allow_origins,
                 },
             );
             serve(listener, state, shutdown_signal()).await

@@ -33,7 +33,7 @@
 //!   the Rust client in [`experiment`].
 //! - [`http`]: the axum router; handlers parse, call the service and render; the one HTTP error
 //!   type and its JSON shape; access tokens, `/metrics`, request ids; serving with graceful
-//!   shutdown.
+//!   shutdown; the web dashboard (`ui/`, embedded in the binary, reading only the JSON API).
 //! - [`cli`]: the command line (`precond serve`, `precond backup`, `precond bench`,
 //!   `precond experiment`).
 //! - [`bench`](mod@bench): benchmarks that print figures (`precond bench ...`).

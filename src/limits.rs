@@ -36,3 +36,16 @@ pub const MAX_CSV_ROWS: i64 = 1_000_000_000;
 /// Candidate trajectories a client may post with one proposal or plan: `1 ..= 200`; their
 /// steps together count against [`MAX_POINTS`].
 pub const MAX_CLIENT_CANDIDATES: usize = 200;
+/// Points along one side of a precondition map: `2 ..= 200`, default [`DEFAULT_MAP_SIDE`]. A
+/// map costs at most `MAX_MAP_SIDE²` GP predictions, less than one [`MAX_POINTS`] query.
+pub const MAX_MAP_SIDE: usize = 200;
+/// Points along one side of a precondition map when the client does not say.
+pub const DEFAULT_MAP_SIDE: usize = 41;
+/// Training points a precondition map carries for drawing (evenly spread over the training set).
+pub const MAX_MAP_TRAINING_POINTS: usize = 2000;
+/// Rows of each list of an experiment's timeline (iterations, model versions): the first
+/// `10 000`.
+pub const MAX_TIMELINE_ROWS: i64 = 10_000;
+/// Transitions after a model version's training set that its diagnostics judge (the first
+/// `10 000`).
+pub const MAX_LATER_TRANSITIONS: i64 = 10_000;

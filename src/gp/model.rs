@@ -312,6 +312,27 @@ impl GpModel {
         })
     }
 
+    /// Leave-one-out predictions at the training points, in closed form (Rasmussen & Williams
+    /// 2006, §5.4.2): for point `i`, the prediction of `y_i` by the model conditioned on every
+    /// other point, with the same hyperparameters (and, in heteroscedastic mode, the same noise
+    /// model). Returns `(residual_i, sd_i)` with `residual_i = y_i − μ₋ᵢ = α_i / (K⁻¹)_ii` and
+    /// `sd_i = (K⁻¹)_ii^{-1/2}`, the standard deviation of an observation (noise included, as in
+    /// [`Prediction::std`]). Costs O(n²) on the cached `L⁻¹`; `None` when the factor is absent.
+    pub fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
+        let n = self.main.n;
+        if self.main.linv.len() != n * n {
+            return None;
+        }
+        Some(
+            self.main
+                .kinv_diag()
+                .iter()
+                .zip(&self.main.alpha)
+                .map(|(k, a)| (a / k, 1.0 / k.sqrt()))
+                .collect(),
+        )
+    }
+
     /// Number of training points.
     pub fn n_train(&self) -> usize {
         self.x.n

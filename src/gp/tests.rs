@@ -644,3 +644,26 @@ proptest! {
         }
     }
 }
+
+#[test]
+fn leave_one_out_matches_refitting_without_the_point() {
+    let (x, y) = data(30, 2, 11);
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let loo = model.leave_one_out().expect("the factor is kept");
+    assert_eq!(loo.len(), 30);
+    let noise = model.hyperparameters().noise_variance + model.jitter();
+    for i in [0, 7, 29] {
+        // The same hyperparameters conditioned on every other point, predicting y_i.
+        let keep: Vec<usize> = (0..30).filter(|&k| k != i).collect();
+        let xs = x.select_rows(&keep);
+        let ys = DVector::from_iterator(29, keep.iter().map(|&k| y[k]));
+        let mut state = model.state();
+        state.n_train = 29;
+        let without = GpModel::from_state(&xs, &ys, &state).unwrap();
+        let p = without.predict(&x.rows(i, 1).into_owned());
+        let (residual, sd) = loo[i];
+        assert_relative_eq!(y[i] - residual, p.mean[0], epsilon = 1e-7);
+        let sd_ref = (p.latent_variance[0] + noise).sqrt();
+        assert_relative_eq!(sd, sd_ref, max_relative = 1e-6);
+    }
+}

@@ -1,25 +1,29 @@
 //! The HTTP/JSON API: one [`AppState`], one route table, one error shape.
 //!
 //! The router is built from [`routes`], the same table the contract test compares with
-//! `api/openapi.yaml`, so a route cannot exist in one and not the other.
+//! `api/openapi.yaml`, so a route cannot exist in one and not the other. The dashboard's pages
+//! and assets (`/`, `/ui/...`) are merged beside it: they are not part of the JSON API.
 
+mod activity;
 pub mod auth;
 pub mod error;
 mod experiments;
 pub mod extract;
 mod health;
+mod inspection;
 pub mod metrics;
 mod model;
 mod proposals;
 mod render;
 mod trajectories;
+mod ui;
 
 use crate::service::Service;
 use crate::store::Store;
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, Request};
 use axum::http::HeaderName;
-use axum::http::{Method, StatusCode};
+use axum::http::{HeaderValue, Method, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{MethodRouter, get, post};
@@ -29,7 +33,9 @@ use std::future::Future;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
+use tower::util::option_layer;
 use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
@@ -43,6 +49,9 @@ pub struct HttpConfig {
     /// How long in-flight requests may run on after shutdown is requested before they are
     /// dropped (a dropped search stops at its next round).
     pub shutdown_grace: Duration,
+    /// Origins (`scheme://host[:port]`) whose pages may call the API from a browser (CORS), e.g.
+    /// a dashboard served by another precond; none by default.
+    pub cors_allow_origins: Vec<String>,
 }
 
 impl Default for HttpConfig {
@@ -51,8 +60,30 @@ impl Default for HttpConfig {
             max_body_bytes: 4 * 1024 * 1024,
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
+            cors_allow_origins: Vec::new(),
         }
     }
+}
+
+/// The CORS layer for the configured origins; an origin that is not a valid header value is an
+/// error at start-up.
+fn cors(origins: &[String]) -> anyhow::Result<Option<CorsLayer>> {
+    if origins.is_empty() {
+        return Ok(None);
+    }
+    let origins = origins
+        .iter()
+        .map(|o| {
+            HeaderValue::from_str(o.trim_end_matches('/'))
+                .map_err(|_| anyhow::anyhow!("invalid CORS origin {o:?}"))
+        })
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    Ok(Some(
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::list(origins))
+            .allow_methods([Method::GET, Method::HEAD, Method::POST])
+            .allow_headers([header::CONTENT_TYPE]),
+    ))
 }
 
 /// What every handler can reach.
@@ -137,7 +168,22 @@ pub fn routes() -> Vec<Route> {
             "/v1/experiments/{id}/transitions",
             get(trajectories::list_transitions),
         ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/runs",
+            get(activity::list_runs),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/timeline",
+            get(activity::get_timeline),
+        ),
         route(M::GET, "/v1/experiments/{id}/model", get(model::get_model)),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/model/diagnostics",
+            get(inspection::get_model_diagnostics),
+        ),
         route(
             M::POST,
             "/v1/experiments/{id}/model/refit",
@@ -152,6 +198,11 @@ pub fn routes() -> Vec<Route> {
             M::GET,
             "/v1/experiments/{id}/precondition",
             get(model::get_precondition),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/precondition/map",
+            get(inspection::get_precondition_map),
         ),
         route(
             M::POST,
@@ -176,21 +227,27 @@ pub fn routes() -> Vec<Route> {
     ]
 }
 
-/// The application: routes, access tokens, fallbacks, body limit, tracing and the panic net.
-pub fn app(state: AppState) -> Router {
+/// The application: routes (the dashboard's pages among them), access tokens, fallbacks, body
+/// limit, CORS (when configured), tracing, request ids and the panic net. Fails only on an
+/// invalid CORS origin.
+pub fn app(state: AppState) -> anyhow::Result<Router> {
     let limit = state.config.max_body_bytes;
     let tokens = state.config.tokens.clone();
+    let cors = cors(&state.config.cors_allow_origins)?;
     metrics::handle();
     let mut router = Router::new();
     for r in routes() {
         router = router.route(r.path, r.handler);
     }
-    router
+    Ok(router
         // A route layer, so that the middleware sees the matched route's template.
         .route_layer(middleware::from_fn(move |req: Request, next: Next| {
             auth::authorize(tokens.clone(), req, next)
         }))
         .route_layer(middleware::from_fn(metrics::track))
+        // The dashboard's static pages: open (a browser cannot send a bearer token with a page
+        // load); the API calls they make carry the token the user gives the page.
+        .merge(ui::router())
         .fallback(route_not_found)
         .method_not_allowed_fallback(method_not_allowed)
         .layer(middleware::from_fn(
@@ -200,6 +257,7 @@ pub fn app(state: AppState) -> Router {
             },
         ))
         .layer(DefaultBodyLimit::max(limit))
+        .layer(option_layer(cors))
         .layer(CatchPanicLayer::custom(panic_response))
         .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
             let id = req
@@ -213,7 +271,7 @@ pub fn app(state: AppState) -> Router {
         // An `x-request-id` on every request (the client's, or a new UUID) and response.
         .layer(PropagateRequestIdLayer::new(REQUEST_ID))
         .layer(SetRequestIdLayer::new(REQUEST_ID, MakeRequestUuid))
-        .with_state(state)
+        .with_state(state))
 }
 
 async fn route_not_found(method: Method, uri: axum::http::Uri) -> ApiError {
@@ -256,7 +314,7 @@ pub async fn serve(
         shutdown.await;
         let _ = requested_tx.send(());
     };
-    let server = axum::serve(listener, app(state)).with_graceful_shutdown(signal);
+    let server = axum::serve(listener, app(state)?).with_graceful_shutdown(signal);
     let grace_over = async move {
         if requested_rx.await.is_ok() {
             tokio::time::sleep(grace).await;

@@ -40,7 +40,7 @@ pub async fn query_precondition(
     Ok(Json(render::judged(judged)))
 }
 
-fn parse_vector(field: &str, text: &str) -> ApiResult<Vec<f64>> {
+pub(super) fn parse_vector(field: &str, text: &str) -> ApiResult<Vec<f64>> {
     text.split(',')
         .map(|x| {
             x.trim().parse::<f64>().map_err(|_| {

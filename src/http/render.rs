@@ -2,11 +2,15 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    CandidateView, ExperimentResponse, ModelResponse, ModelSource, PlanResponse,
-    PreconditionResponse, ProposalResponse, TrajectoryResponse,
+    CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
+    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RunPage,
+    Timeline, TimelineIteration, TimelineModel, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
-use crate::service::{ExperimentState, Judged, ModelView, Planned, ProposalRecord};
+use crate::service::{
+    ExperimentState, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
+    PreconditionGrid, ProposalRecord, Runs,
+};
 use crate::store::StoredTrajectory;
 
 /// Whether a version is the prior or a fit.
@@ -33,6 +37,87 @@ pub fn experiment(s: ExperimentState) -> ExperimentResponse {
         n_trajectories: e.n_trajectories,
         n_transitions: e.n_transitions,
         model_version: e.model_version,
+        last_activity: e.last_activity,
+    }
+}
+
+/// A page of runs.
+pub fn runs(r: Runs) -> RunPage {
+    RunPage {
+        items: r.items,
+        total: r.total,
+        next: r.next,
+    }
+}
+
+/// A learning timeline.
+pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
+    Timeline {
+        experiment_id,
+        batch_size: t.batch_size,
+        iterations_planned: t.iterations_planned,
+        iterations: t
+            .iterations
+            .into_iter()
+            .map(|(beta, stats)| TimelineIteration { beta, stats })
+            .collect(),
+        models: t
+            .models
+            .into_iter()
+            .map(|(iteration, model)| TimelineModel { iteration, model })
+            .collect(),
+    }
+}
+
+/// A model version on a grid.
+pub fn map(g: PreconditionGrid) -> PreconditionMap {
+    PreconditionMap {
+        model_version: g.model.version,
+        source: source(&g.model),
+        n_train: g.model.n_train(),
+        d_max: g.d_max,
+        test_beta: g.test_beta,
+        s: g.s,
+        a: g.a,
+        x: MapAxis {
+            name: g.x.0,
+            values: g.x.1,
+        },
+        y: MapAxis {
+            name: g.y.0,
+            values: g.y.1,
+        },
+        mu: g.mu,
+        sigma: g.sigma,
+        training: g
+            .training
+            .into_iter()
+            .map(|t| MapPoint {
+                s: t.s,
+                a: t.a,
+                deviation: t.deviation,
+            })
+            .collect(),
+    }
+}
+
+/// Leave-one-out diagnostics.
+pub fn diagnostics(experiment_id: i64, d: LooDiagnostics) -> Diagnostics {
+    let s = d.summary;
+    Diagnostics {
+        experiment_id,
+        model_version: d.model_version,
+        method: "leave_one_out".into(),
+        n: s.n,
+        rmse: s.rmse,
+        mean_log_density: s.mean_log_density,
+        coverage: s.coverage,
+        precondition: s.precondition,
+        later: d.later.map(|l| LaterRates {
+            n: l.n,
+            coverage: l.coverage,
+            rates: l.precondition,
+        }),
     }
 }
 

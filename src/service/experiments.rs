@@ -3,8 +3,9 @@
 use super::live::{LiveExperiment, build_stored_domain};
 use super::{Error, Result, Service};
 use crate::domain::Domain;
+use crate::limits::MAX_PAGE;
 use crate::settings::ExperimentRequest;
-use crate::store::Experiment;
+use crate::store::{Experiment, ListOrder};
 use std::sync::Arc;
 
 /// A stored experiment with its built domain.
@@ -46,15 +47,25 @@ impl Service {
         Ok(ExperimentState { experiment, domain })
     }
 
-    /// Every experiment, oldest first. Experiments this process has not loaded are shown from
+    /// A page of experiments in `order`, skipping `offset`, at most `limit` (every one when
+    /// `None`), with the total count. Experiments this process has not loaded are shown from
     /// the store alone: listing never rebuilds a model.
-    pub async fn experiments(&self) -> Result<Vec<ExperimentState>> {
-        self.store
-            .experiments()
+    pub async fn experiments(
+        &self,
+        order: ListOrder,
+        offset: i64,
+        limit: Option<i64>,
+    ) -> Result<(Vec<ExperimentState>, i64)> {
+        check_page(offset, limit)?;
+        let total = self.store.count_experiments().await?;
+        let items = self
+            .store
+            .experiments(order, offset, limit)
             .await?
             .into_iter()
             .map(|experiment| self.state_of(experiment))
-            .collect()
+            .collect::<Result<_>>()?;
+        Ok((items, total))
     }
 
     /// One experiment; `NotFound` if there is none.
@@ -74,4 +85,24 @@ impl Service {
         };
         Ok(ExperimentState { experiment, domain })
     }
+}
+
+/// Checks the `offset` and `limit` of an offset-paginated list.
+pub(crate) fn check_page(offset: i64, limit: Option<i64>) -> Result<()> {
+    if offset < 0 {
+        return Err(Error::validation("offset", "must be at least 0"));
+    }
+    if limit.is_some_and(|l| !(1..=MAX_PAGE).contains(&l)) {
+        return Err(Error::validation(
+            "limit",
+            format!("must be between 1 and {MAX_PAGE}"),
+        ));
+    }
+    Ok(())
+}
+
+/// The `offset` of the page after one that skipped `offset` and held `len` of `total` rows.
+pub(crate) fn next_offset(offset: i64, len: usize, total: i64) -> Option<i64> {
+    let end = offset + len as i64;
+    (len > 0 && end < total).then_some(end)
 }

@@ -8,6 +8,7 @@ use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, ServedModel};
 use crate::planning::{self, Path, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
+use crate::store::ListOrder;
 use std::sync::Arc;
 
 /// Judgements of more points than this are computed on the blocking pool.
@@ -213,7 +214,7 @@ impl Service {
     /// how many were scheduled.
     pub async fn resume_refits(&self) -> Result<usize> {
         let mut scheduled = 0;
-        for e in self.store.experiments().await? {
+        for e in self.store.experiments(ListOrder::Oldest, 0, None).await? {
             let batch = i64::from(e.settings.learning.batch_size);
             let covered = self
                 .store

@@ -30,7 +30,17 @@ pub struct LiveExperiment {
     pub domain: Arc<dyn Domain>,
     model: RwLock<Arc<ServedModel>>,
     fit_lock: tokio::sync::Mutex<()>,
+    /// Older versions rebuilt on request (most recent use last), at most [`KEPT_VERSIONS`]
+    /// and [`KEPT_VERSIONS_FLOATS`].
+    older: std::sync::Mutex<Vec<Arc<ServedModel>>>,
 }
+
+/// Older model versions kept in memory per experiment after a rebuild, at most.
+pub const KEPT_VERSIONS: usize = 4;
+
+/// Each kept version holds its `L⁻¹` (`n_train²` floats): beyond this many floats in all
+/// (256 MiB) the least recently used are dropped, down to the one just rebuilt.
+pub const KEPT_VERSIONS_FLOATS: usize = 1 << 25;
 
 /// Why a fit is made.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -51,12 +61,65 @@ impl LiveExperiment {
             domain,
             model: RwLock::new(Arc::new(prior)),
             fit_lock: tokio::sync::Mutex::new(()),
+            older: std::sync::Mutex::new(Vec::new()),
         }
     }
 
     /// The version answering queries now.
     pub fn model(&self) -> Arc<ServedModel> {
         self.model.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Model version `version` (`None`: the one answering now). A version older than the
+    /// current one is rebuilt from its stored state and training data (no re-optimisation: one
+    /// factorisation) and kept among the last [`KEPT_VERSIONS`] used; `NotFound` if it was never
+    /// fitted.
+    pub async fn model_at(
+        &self,
+        store: &Store,
+        version: Option<i64>,
+    ) -> Result<Arc<ServedModel>, Error> {
+        let current = self.model();
+        let Some(version) = version.filter(|v| *v != current.version) else {
+            return Ok(current);
+        };
+        if version == 0 {
+            let prior = ServedModel::prior(self.domain.feature_dim(), self.settings.mde.prior_mean);
+            return Ok(Arc::new(prior));
+        }
+        {
+            let mut kept = self.older_versions();
+            if let Some(i) = kept.iter().position(|m| m.version == version) {
+                let m = kept.remove(i);
+                kept.push(m.clone());
+                return Ok(m);
+            }
+        }
+        let stored = store
+            .model_version(self.id, version)
+            .await?
+            .ok_or_else(|| {
+                Error::NotFound(format!(
+                    "experiment {} has no model version {version}",
+                    self.id
+                ))
+            })?;
+        let rebuilt = Arc::new(self.restore(store, stored).await?);
+        let mut kept = self.older_versions();
+        kept.retain(|m| m.version != version);
+        kept.push(rebuilt.clone());
+        let floats = |kept: &[Arc<ServedModel>]| -> usize {
+            kept.iter().map(|m| m.n_train() * m.n_train()).sum()
+        };
+        while kept.len() > 1 && (kept.len() > KEPT_VERSIONS || floats(&kept) > KEPT_VERSIONS_FLOATS)
+        {
+            kept.remove(0);
+        }
+        Ok(rebuilt)
+    }
+
+    fn older_versions(&self) -> std::sync::MutexGuard<'_, Vec<Arc<ServedModel>>> {
+        self.older.lock().unwrap_or_else(|p| p.into_inner())
     }
 
     fn swap_model(&self, model: Arc<ServedModel>) {

@@ -11,22 +11,29 @@
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
 //! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search
 //!   and fit passes through (concurrency, queue, deadlines, cancellation).
+//! - [`activity`](mod@activity): an experiment's runs and learning timeline, for the dashboard.
+//! - [`inspection`](mod@inspection): a model version on a grid (the precondition map) and its
+//!   leave-one-out calibration.
 //! - [`error`](mod@error): the service's [`Error`].
 //!
 //! CPU-heavy work (fits, planning, large judgements, calls to the dynamics model) runs on the
 //! blocking pool, never on the async workers.
 
+pub mod activity;
 pub mod error;
 pub mod experiments;
 pub mod ingest;
+pub mod inspection;
 pub mod learning;
 pub mod live;
 pub mod proposals;
 pub mod work;
 
+pub use activity::{LearningTimeline, Runs};
 pub use error::{Error, Result};
 pub use experiments::ExperimentState;
 pub use ingest::Ingested;
+pub use inspection::{LooDiagnostics, MapRequest, PreconditionGrid};
 pub use learning::{Judged, ModelView, Planned};
 pub use live::{FitTrigger, LiveExperiment, Registry};
 pub use proposals::ProposalRecord;

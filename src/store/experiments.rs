@@ -20,21 +20,60 @@ pub struct Experiment {
     pub n_transitions: i64,
     /// The latest fitted model version (0: none, the prior answers).
     pub model_version: i64,
+    /// The latest of its creation, its last trajectory and its last proposal (RFC 3339).
+    pub last_activity: String,
+}
+
+/// Which end of the experiment list comes first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ListOrder {
+    /// Ascending id (creation order).
+    #[default]
+    Oldest,
+    /// Descending id: the newest experiment first.
+    Newest,
 }
 
 const SELECT: &str = "SELECT e.id, e.settings, e.created_at,
         (SELECT COUNT(*) FROM trajectories t WHERE t.experiment_id = e.id) AS n_trajectories,
         (SELECT COUNT(*) FROM transitions x WHERE x.experiment_id = e.id) AS n_transitions,
         (SELECT COALESCE(MAX(version), 0) FROM models m WHERE m.experiment_id = e.id)
-            AS model_version
+            AS model_version,
+        (SELECT created_at FROM trajectories t WHERE t.experiment_id = e.id
+            ORDER BY t.id DESC LIMIT 1) AS last_trajectory_at,
+        (SELECT created_at FROM proposals p WHERE p.experiment_id = e.id
+            ORDER BY p.id DESC LIMIT 1) AS last_proposal_at
      FROM experiments e";
+
+/// The latest of RFC 3339 times (compared as instants, not as strings: fractional seconds may
+/// have any number of digits).
+fn latest(times: &[&str]) -> String {
+    let parse = |t: &str| {
+        time::OffsetDateTime::parse(t, &time::format_description::well_known::Rfc3339).ok()
+    };
+    times
+        .iter()
+        .filter_map(|t| parse(t).map(|at| (at, *t)))
+        .max_by_key(|(at, _)| *at)
+        .map(|(_, t)| t.to_string())
+        .unwrap_or_else(|| times.first().copied().unwrap_or_default().to_string())
+}
 
 fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
     let settings: String = row.try_get("settings")?;
+    let created_at: String = row.try_get("created_at")?;
+    let mut times = vec![created_at.as_str()];
+    let trajectory: Option<String> = row.try_get("last_trajectory_at")?;
+    let proposal: Option<String> = row.try_get("last_proposal_at")?;
+    times.extend(trajectory.as_deref());
+    times.extend(proposal.as_deref());
+    let last_activity = latest(&times);
     Ok(Experiment {
         id: row.try_get("id")?,
         settings: serde_json::from_str(&settings).map_err(|e| sqlx::Error::Decode(Box::new(e)))?,
-        created_at: row.try_get("created_at")?,
+        last_activity,
+        created_at,
         n_trajectories: row.try_get("n_trajectories")?,
         n_transitions: row.try_get("n_transitions")?,
         model_version: row.try_get("model_version")?,
@@ -61,10 +100,11 @@ impl Store {
         Ok(Experiment {
             id,
             settings: settings.clone(),
-            created_at,
             n_trajectories: 0,
             n_transitions: 0,
             model_version: 0,
+            last_activity: created_at.clone(),
+            created_at,
         })
     }
 
@@ -80,18 +120,31 @@ impl Store {
             .transpose()
     }
 
-    /// Every experiment, oldest first.
+    /// A page of experiments in `order`: skipping `offset`, at most `limit` (all when `None`).
     #[tracing::instrument(skip(self))]
-    pub async fn experiments(&self) -> Result<Vec<Experiment>, sqlx::Error> {
-        sqlx::query(&format!("{SELECT} ORDER BY e.id"))
-            .fetch_all(&self.read)
-            .await?
-            .iter()
-            .map(from_row)
-            .collect()
+    pub async fn experiments(
+        &self,
+        order: ListOrder,
+        offset: i64,
+        limit: Option<i64>,
+    ) -> Result<Vec<Experiment>, sqlx::Error> {
+        let direction = match order {
+            ListOrder::Oldest => "ASC",
+            ListOrder::Newest => "DESC",
+        };
+        sqlx::query(&format!(
+            "{SELECT} ORDER BY e.id {direction} LIMIT ? OFFSET ?"
+        ))
+        .bind(limit.unwrap_or(-1))
+        .bind(offset)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(from_row)
+        .collect()
     }
 
-    /// Number of experiments.
+    /// How many experiments there are.
     #[tracing::instrument(skip(self))]
     pub async fn count_experiments(&self) -> Result<i64, sqlx::Error> {
         sqlx::query_scalar("SELECT COUNT(*) FROM experiments")

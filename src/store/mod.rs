@@ -6,12 +6,14 @@
 //! read-then-write transactions (idempotency checks, counters) free of `SQLITE_BUSY` upgrades.
 //! The file is in WAL mode, so readers never wait for the writer.
 
+mod activity;
 mod experiments;
 mod models;
 mod proposals;
 mod trajectories;
 
-pub use experiments::Experiment;
+pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
+pub use experiments::{Experiment, ListOrder};
 pub use models::StoredModel;
 pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 pub use trajectories::{

@@ -2,7 +2,6 @@
 
 use super::Store;
 use crate::gp::{Hyperparameters, ModelState};
-use sqlx::Row;
 
 /// A stored model version.
 #[derive(Debug, Clone)]
@@ -63,24 +62,47 @@ impl Store {
         &self,
         experiment_id: i64,
     ) -> Result<Option<StoredModel>, sqlx::Error> {
-        let Some(row) = sqlx::query(
+        self.model_where(experiment_id, "ORDER BY version DESC LIMIT 1", None)
+            .await
+    }
+
+    /// Version `version` of an experiment's model, if it was fitted.
+    #[tracing::instrument(skip(self))]
+    pub async fn model_version(
+        &self,
+        experiment_id: i64,
+        version: i64,
+    ) -> Result<Option<StoredModel>, sqlx::Error> {
+        self.model_where(experiment_id, "AND version = ?", Some(version))
+            .await
+    }
+
+    async fn model_where(
+        &self,
+        experiment_id: i64,
+        clause: &str,
+        version: Option<i64>,
+    ) -> Result<Option<StoredModel>, sqlx::Error> {
+        let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at FROM models
-             WHERE experiment_id = ? ORDER BY version DESC LIMIT 1",
-        )
-        .bind(experiment_id)
-        .fetch_optional(&self.read)
-        .await?
-        else {
+             WHERE experiment_id = ? {clause}"
+        );
+        let mut query =
+            sqlx::query_as::<_, (i64, i64, i64, String, f64, String)>(&sql).bind(experiment_id);
+        if let Some(v) = version {
+            query = query.bind(v);
+        }
+        let Some(row) = query.fetch_optional(&self.read).await? else {
             return Ok(None);
         };
-        let state: String = row.try_get("state")?;
+        let (version, n_train, n_trajectories, state, fit_seconds, fitted_at) = row;
         Ok(Some(StoredModel {
-            version: row.try_get("version")?,
-            n_train: row.try_get("n_train")?,
-            n_trajectories: row.try_get("n_trajectories")?,
+            version,
+            n_train,
+            n_trajectories,
             state: serde_json::from_str(&state).map_err(json_err)?,
-            fit_seconds: row.try_get("fit_seconds")?,
-            fitted_at: row.try_get("fitted_at")?,
+            fit_seconds,
+            fitted_at,
         }))
     }
 }

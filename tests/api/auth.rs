@@ -70,6 +70,27 @@ async fn health_routes_stay_open_and_everything_else_needs_a_known_token() {
 }
 
 #[tokio::test]
+async fn the_dashboard_pages_are_open_and_its_api_calls_need_a_token() {
+    let (_dir, db) = temp_db();
+    let app = app_with_tokens(&db, 1).await;
+    for path in ["/", "/ui/experiments"] {
+        let r = app.client.get(app.url(path)).send().await.unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{path}");
+        assert!(r.text().await.unwrap().contains("<html"), "{path}");
+    }
+    assert_eq!(
+        call(&app, "GET", "/v1/experiments", None, None).await.0,
+        401
+    );
+    assert_eq!(
+        call(&app, "GET", "/v1/experiments", Some(READER), None)
+            .await
+            .0,
+        200
+    );
+}
+
+#[tokio::test]
 async fn each_role_reaches_its_routes_and_no_further() {
     let (_dir, db) = temp_db();
     let app = app_with_tokens(&db, 1).await;
@@ -139,8 +160,20 @@ async fn a_scoped_token_reaches_only_its_experiments() {
         .map(|e| e["id"].as_i64().unwrap())
         .collect();
     assert_eq!(ids, vec![2]);
+    // Its pages count only what it reaches.
+    assert_eq!(list["total"], 1, "{list}");
+    let (_, page) = call(
+        &app,
+        "GET",
+        "/v1/experiments?offset=1&limit=1",
+        Some(SCOPED),
+        None,
+    )
+    .await;
+    assert_eq!(page["items"].as_array().unwrap().len(), 0, "{page}");
     let (_, all) = call(&app, "GET", "/v1/experiments", Some(READER), None).await;
     assert_eq!(all["items"].as_array().unwrap().len(), 3);
+    assert_eq!(all["total"], 3);
     let traj = free_row_trajectory(0, 0, 1);
     let (status, body) = call(
         &app,

@@ -3,6 +3,7 @@
 mod auth;
 mod contract;
 mod custom;
+mod dashboard;
 mod experiments;
 mod helpers;
 mod learning;

@@ -1,0 +1,69 @@
+//! An experiment's history as the dashboard shows it: its runs (proposals and the trajectories
+//! that executed them, trajectories without a proposal) and its learning timeline.
+
+use super::experiments::{check_page, next_offset};
+use super::{Result, Service};
+use crate::limits::{DEFAULT_PAGE, MAX_TIMELINE_ROWS};
+use crate::planning::beta_schedule;
+use crate::store::{IterationStats, ModelSummary, Run};
+
+/// A page of runs with the total count and the next page's offset.
+#[derive(Debug, Clone)]
+pub struct Runs {
+    /// The page, newest first.
+    pub items: Vec<Run>,
+    /// Runs in all.
+    pub total: i64,
+    /// The next page's offset, if any.
+    pub next: Option<i64>,
+}
+
+/// How learning went: per iteration (with its `β_j`) and per model version (with the iteration
+/// its data reached).
+#[derive(Debug, Clone)]
+pub struct LearningTimeline {
+    /// Trajectories per iteration.
+    pub batch_size: i64,
+    /// Planned iterations `J`.
+    pub iterations_planned: i64,
+    /// `(β_j, statistics)` per iteration with data.
+    pub iterations: Vec<(f64, IterationStats)>,
+    /// `(iteration, summary)` per model version.
+    pub models: Vec<(i64, ModelSummary)>,
+}
+
+impl Service {
+    /// A page of an experiment's runs, newest first (default page size 100).
+    pub async fn runs(&self, id: i64, offset: i64, limit: Option<i64>) -> Result<Runs> {
+        check_page(offset, limit)?;
+        self.experiment(id).await?;
+        let limit = limit.unwrap_or(DEFAULT_PAGE);
+        let total = self.store.count_runs(id).await?;
+        let items = self.store.runs(id, offset, limit).await?;
+        let next = next_offset(offset, items.len(), total);
+        Ok(Runs { items, total, next })
+    }
+
+    /// The experiment's learning timeline (at most [`MAX_TIMELINE_ROWS`] iterations and as many
+    /// model versions).
+    pub async fn timeline(&self, id: i64) -> Result<LearningTimeline> {
+        let e = self.experiment(id).await?.experiment;
+        let l = &e.settings.learning;
+        let batch = i64::from(l.batch_size.max(1));
+        let stats = self
+            .store
+            .iteration_stats(id, batch, e.settings.d_max, MAX_TIMELINE_ROWS)
+            .await?;
+        let models = self.store.model_summaries(id, MAX_TIMELINE_ROWS).await?;
+        let beta = |j: i64| beta_schedule(j.max(0) as usize, l.iterations as usize, l.k1, l.k2);
+        Ok(LearningTimeline {
+            batch_size: batch,
+            iterations_planned: i64::from(l.iterations),
+            iterations: stats.into_iter().map(|s| (beta(s.iteration), s)).collect(),
+            models: models
+                .into_iter()
+                .map(|m| (m.n_trajectories / batch, m))
+                .collect(),
+        })
+    }
+}

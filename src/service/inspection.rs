@@ -1,0 +1,404 @@
+//! Looking inside a model version: its `μ` and `σ` on a grid over two components of `(s, a)`
+//! (the precondition map) and its leave-one-out calibration (diagnostics).
+
+use super::{Error, Result, Service};
+use crate::api::{Coverage, PreconditionRates};
+use crate::domain::Space;
+use crate::limits::{
+    DEFAULT_MAP_SIDE, MAX_LATER_TRANSITIONS, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS,
+};
+use crate::mde::{Estimator, ServedModel};
+use crate::store::StoredTransition;
+use std::sync::Arc;
+
+/// What a precondition map asks for, parsed.
+#[derive(Debug, Clone)]
+pub struct MapRequest {
+    /// Horizontal axis, `s.<name>` or `a.<name>`.
+    pub x: String,
+    /// Vertical axis.
+    pub y: String,
+    /// The state fixing the other components (default: the state box's centre).
+    pub s: Option<Vec<f64>>,
+    /// The action fixing the other components (default: the first discrete action or the
+    /// action box's centre).
+    pub a: Option<Vec<f64>>,
+    /// Grid points along `x`.
+    pub nx: Option<usize>,
+    /// Grid points along `y`.
+    pub ny: Option<usize>,
+    /// Model version (default: the current one).
+    pub version: Option<i64>,
+}
+
+/// A model version evaluated on a grid.
+#[derive(Debug, Clone)]
+pub struct PreconditionGrid {
+    /// The version evaluated.
+    pub model: Arc<ServedModel>,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// The experiment's test β.
+    pub test_beta: f64,
+    /// The fixed state.
+    pub s: Vec<f64>,
+    /// The fixed action.
+    pub a: Vec<f64>,
+    /// `(name, coordinates)` of the horizontal axis.
+    pub x: (String, Vec<f64>),
+    /// `(name, coordinates)` of the vertical axis.
+    pub y: (String, Vec<f64>),
+    /// `μ`, row-major (`ny` rows of `nx`).
+    pub mu: Vec<f64>,
+    /// `σ`, laid out as `mu`.
+    pub sigma: Vec<f64>,
+    /// Training transitions of the version, evenly thinned.
+    pub training: Vec<StoredTransition>,
+}
+
+/// `(z, P(|N(0,1)| ≤ z))` for the coverage table.
+const NOMINAL: [(f64, f64); 6] = [
+    (0.5, 0.382_924_922_548_026),
+    (1.0, 0.682_689_492_137_086),
+    (1.5, 0.866_385_597_462_284),
+    (2.0, 0.954_499_736_103_642),
+    (2.5, 0.987_580_669_348_448),
+    (3.0, 0.997_300_203_936_740),
+];
+
+/// Summarises predictions `(y_i − μ_i, σ_i)` of `labels` (leave-one-out, or by a model that
+/// never saw them): coverage of `μ ± zσ`,
+/// RMSE, mean log predictive density, and the precondition `μ + βσ < d_max` against the truth
+/// `y < d_max`.
+pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], beta: f64, d_max: f64) -> LooSummary {
+    let n = labels.len().min(loo.len());
+    let share = |count: usize| if n == 0 { 0.0 } else { count as f64 / n as f64 };
+    let coverage = NOMINAL
+        .iter()
+        .map(|&(z, nominal)| Coverage {
+            z,
+            nominal,
+            observed: share(loo.iter().filter(|(r, sd)| r.abs() <= z * sd).count()),
+        })
+        .collect();
+    let rmse = (loo.iter().map(|(r, _)| r * r).sum::<f64>() / n.max(1) as f64).sqrt();
+    let mean_log_density = loo
+        .iter()
+        .map(|(r, sd)| -0.5 * (r / sd).powi(2) - sd.ln() - 0.5 * (2.0 * std::f64::consts::PI).ln())
+        .sum::<f64>()
+        / n.max(1) as f64;
+    let (mut positives, mut negatives, mut tp, mut tn) = (0, 0, 0, 0);
+    for (y, (r, sd)) in labels.iter().zip(loo) {
+        let inside = (y - r) + beta * sd < d_max;
+        if *y < d_max {
+            positives += 1;
+            tp += usize::from(inside);
+        } else {
+            negatives += 1;
+            tn += usize::from(!inside);
+        }
+    }
+    let rate = |k: usize, of: usize| (of > 0).then(|| k as f64 / of as f64);
+    LooSummary {
+        n,
+        rmse,
+        mean_log_density,
+        coverage,
+        precondition: PreconditionRates {
+            beta,
+            d_max,
+            positives,
+            negatives,
+            true_positives: tp,
+            true_negatives: tn,
+            tpr: rate(tp, positives),
+            tnr: rate(tn, negatives),
+        },
+    }
+}
+
+/// What [`loo_summary`] finds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LooSummary {
+    /// Labels checked.
+    pub n: usize,
+    /// Root mean squared leave-one-out error.
+    pub rmse: f64,
+    /// Mean Gaussian log predictive density.
+    pub mean_log_density: f64,
+    /// Observed against nominal coverage.
+    pub coverage: Vec<Coverage>,
+    /// The precondition's rates.
+    pub precondition: PreconditionRates,
+}
+
+/// Leave-one-out checks of a fitted version, and its judgements of later transitions.
+#[derive(Debug, Clone)]
+pub struct LooDiagnostics {
+    /// The version checked.
+    pub model_version: i64,
+    /// What leave-one-out found.
+    pub summary: LooSummary,
+    /// What the version found on the transitions posted after its training set (none: `None`).
+    pub later: Option<LooSummary>,
+}
+
+/// Where an axis name points: a state (`false`) or action (`true`) component.
+fn parse_axis(field: &str, name: &str, state: &Space, action: &Space) -> Result<(bool, usize)> {
+    let found = match name.split_once('.') {
+        Some(("s", c)) => state.names.iter().position(|n| n == c).map(|i| (false, i)),
+        Some(("a", c)) => action.names.iter().position(|n| n == c).map(|i| (true, i)),
+        _ => None,
+    };
+    found.ok_or_else(|| {
+        let names: Vec<String> = state
+            .names
+            .iter()
+            .map(|n| format!("s.{n}"))
+            .chain(action.names.iter().map(|n| format!("a.{n}")))
+            .collect();
+        Error::validation(
+            field,
+            format!("{name:?} is not a component; one of {}", names.join(", ")),
+        )
+    })
+}
+
+/// A fixed vector: the right dimension, finite.
+fn check_vector(field: &str, v: &[f64], space: &Space) -> Result<()> {
+    if v.len() != space.dim() {
+        return Err(Error::validation(
+            field,
+            format!(
+                "expected {} components ({}), got {}",
+                space.dim(),
+                space.names.join(", "),
+                v.len()
+            ),
+        ));
+    }
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        return Err(Error::validation(
+            field,
+            format!("component {i} ({}) is not a finite number", space.names[i]),
+        ));
+    }
+    Ok(())
+}
+
+fn side(field: &str, n: Option<usize>) -> Result<usize> {
+    let n = n.unwrap_or(DEFAULT_MAP_SIDE);
+    if !(2..=MAX_MAP_SIDE).contains(&n) {
+        return Err(Error::validation(
+            field,
+            format!("must be between 2 and {MAX_MAP_SIDE}"),
+        ));
+    }
+    Ok(n)
+}
+
+fn centre(space: &Space) -> Vec<f64> {
+    space
+        .low
+        .iter()
+        .zip(&space.high)
+        .map(|(l, h)| 0.5 * (l + h))
+        .collect()
+}
+
+/// `n` evenly spaced values from `low` to `high`, both included.
+fn linspace(low: f64, high: f64, n: usize) -> Vec<f64> {
+    (0..n)
+        .map(|i| low + (high - low) * i as f64 / (n - 1) as f64)
+        .collect()
+}
+
+/// Every `⌈n / max⌉`-th element, at most `max`.
+fn thin<T>(items: Vec<T>, max: usize) -> Vec<T> {
+    let stride = items.len().div_ceil(max.max(1)).max(1);
+    items.into_iter().step_by(stride).collect()
+}
+
+impl Service {
+    /// `μ` and `σ` of a model version on a grid over two components of `(s, a)`, the other
+    /// components fixed; with the version's training transitions (thinned) to draw on it.
+    pub async fn precondition_map(&self, id: i64, request: MapRequest) -> Result<PreconditionGrid> {
+        let live = self.live(id).await?;
+        let domain = live.domain.clone();
+        let (state, action) = (domain.state_space(), domain.action_space());
+        let x_axis = parse_axis("x", &request.x, state, action)?;
+        let y_axis = parse_axis("y", &request.y, state, action)?;
+        if x_axis == y_axis {
+            return Err(Error::validation("y", "must differ from x"));
+        }
+        let (nx, ny) = (side("nx", request.nx)?, side("ny", request.ny)?);
+        let s = request.s.unwrap_or_else(|| centre(state));
+        check_vector("s", &s, state)?;
+        let a = request.a.unwrap_or_else(|| match &action.values {
+            Some(values) if !values.is_empty() => values[0].clone(),
+            _ => centre(action),
+        });
+        check_vector("a", &a, action)?;
+        let model = live.model_at(&self.store, request.version).await?;
+        let bounds = |(is_action, i): (bool, usize)| {
+            let space = if is_action { action } else { state };
+            (space.low[i], space.high[i])
+        };
+        let (xl, xh) = bounds(x_axis);
+        let (yl, yh) = bounds(y_axis);
+        let (xs, ys) = (linspace(xl, xh, nx), linspace(yl, yh, ny));
+        let dim = domain.feature_dim();
+        let (grid_s, grid_a, grid_xs, grid_ys) = (s.clone(), a.clone(), xs.clone(), ys.clone());
+        let evaluated = model.clone();
+        let answers = Self::blocking(move || {
+            let mut features = Vec::with_capacity(nx * ny * dim);
+            let (mut ps, mut pa) = (grid_s, grid_a);
+            let set = |(is_action, i): (bool, usize), v: f64, ps: &mut [f64], pa: &mut [f64]| {
+                if is_action { pa[i] = v } else { ps[i] = v }
+            };
+            for &yv in &grid_ys {
+                for &xv in &grid_xs {
+                    set(x_axis, xv, &mut ps, &mut pa);
+                    set(y_axis, yv, &mut ps, &mut pa);
+                    features.extend(domain.features(&ps, &pa));
+                }
+            }
+            evaluated.answer(&features, dim)
+        })
+        .await?;
+        if answers
+            .iter()
+            .any(|p| !(p.mu.is_finite() && p.sigma.is_finite()))
+        {
+            return Err(Error::Internal(anyhow::anyhow!(
+                "the model answered a non-finite deviation on the map's grid"
+            )));
+        }
+        let n_train = model.n_train() as i64;
+        let training = if n_train > 0 {
+            thin(
+                self.store.transitions(id, 0, Some(n_train)).await?,
+                MAX_MAP_TRAINING_POINTS,
+            )
+        } else {
+            Vec::new()
+        };
+        Ok(PreconditionGrid {
+            d_max: live.settings.d_max,
+            test_beta: live.settings.learning.test_beta,
+            s,
+            a,
+            x: (request.x, xs),
+            y: (request.y, ys),
+            mu: answers.iter().map(|p| p.mu).collect(),
+            sigma: answers.iter().map(|p| p.sigma).collect(),
+            training,
+            model,
+        })
+    }
+
+    /// Leave-one-out predictions of every training label of a fitted version (default: the
+    /// current one) from the others; `Conflict` for the prior, which has no labels.
+    pub async fn diagnostics(
+        &self,
+        id: i64,
+        version: Option<i64>,
+        beta: Option<f64>,
+    ) -> Result<LooDiagnostics> {
+        let live = self.live(id).await?;
+        let beta = beta.unwrap_or(live.settings.learning.test_beta);
+        if !beta.is_finite() {
+            return Err(Error::validation("beta", "must be a finite number"));
+        }
+        let model = live.model_at(&self.store, version).await?;
+        let Estimator::Gp(gp) = &model.estimator else {
+            return Err(Error::Conflict(format!(
+                "model version {} is the prior: there are no training labels to check",
+                model.version
+            )));
+        };
+        let labels = self.store.first_deviations(id, gp.n_train() as i64).await?;
+        let evaluated = model.clone();
+        let loo = Self::blocking(move || match &evaluated.estimator {
+            Estimator::Gp(gp) => gp.leave_one_out(),
+            Estimator::Prior(_) => None,
+        })
+        .await?
+        .ok_or_else(|| Error::Internal(anyhow::anyhow!("the model keeps no factor")))?;
+        if labels.len() != loo.len() {
+            return Err(Error::Internal(anyhow::anyhow!(
+                "model {} has {} training points but {} labels are stored",
+                model.version,
+                loo.len(),
+                labels.len()
+            )));
+        }
+        let later = self
+            .store
+            .transitions_after_first(id, labels.len() as i64, MAX_LATER_TRANSITIONS)
+            .await?;
+        let later = if later.is_empty() {
+            None
+        } else {
+            let dim = live.domain.feature_dim();
+            let mut features = Vec::with_capacity(later.len() * dim);
+            for t in &later {
+                features.extend(live.domain.features(&t.s, &t.a));
+            }
+            let judged = model.clone();
+            let answers = Self::blocking(move || judged.answer(&features, dim)).await?;
+            let labels: Vec<f64> = later.iter().map(|t| t.deviation).collect();
+            // As residuals `(y − μ, σ)`, the form `loo_summary` reads.
+            let residuals: Vec<(f64, f64)> = labels
+                .iter()
+                .zip(&answers)
+                .map(|(y, a)| (y - a.mu, a.sigma))
+                .collect();
+            if residuals
+                .iter()
+                .any(|(r, sd)| !(r.is_finite() && sd.is_finite()))
+            {
+                return Err(Error::Internal(anyhow::anyhow!(
+                    "the model answered a non-finite deviation on a later transition"
+                )));
+            }
+            Some(loo_summary(&labels, &residuals, beta, live.settings.d_max))
+        };
+        Ok(LooDiagnostics {
+            model_version: model.version,
+            summary: loo_summary(&labels, &loo, beta, live.settings.d_max),
+            later,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn loo_summary_counts_coverage_and_rates() {
+        // Residuals of 0.5σ, 1.5σ, 2.5σ and 0 with σ = 0.1.
+        let labels = [0.0, 0.3, 0.05, 0.2];
+        let loo = [(0.05, 0.1), (0.15, 0.1), (-0.25, 0.1), (0.0, 0.1)];
+        let s = loo_summary(&labels, &loo, 1.0, 0.2);
+        assert_eq!(s.n, 4);
+        let observed: Vec<f64> = s.coverage.iter().map(|c| c.observed).collect();
+        assert_eq!(observed, vec![0.5, 0.5, 0.75, 0.75, 1.0, 1.0]);
+        // μ₋ᵢ = y − r: −0.05, 0.15, 0.3, 0.2; upper = μ + 0.1: 0.05, 0.25, 0.4, 0.3.
+        let p = &s.precondition;
+        assert_eq!((p.positives, p.negatives), (2, 2));
+        assert_eq!((p.true_positives, p.true_negatives), (1, 2));
+        assert_eq!((p.tpr, p.tnr), (Some(0.5), Some(1.0)));
+        let rmse = ((0.05f64.powi(2) + 0.15f64.powi(2) + 0.25f64.powi(2)) / 4.0).sqrt();
+        assert!((s.rmse - rmse).abs() < 1e-12);
+    }
+
+    #[test]
+    fn thinning_keeps_at_most_the_bound_evenly() {
+        let kept = thin((0..4500).collect::<Vec<_>>(), 2000);
+        assert!(kept.len() <= 2000);
+        assert_eq!(&kept[..3], &[0, 3, 6]);
+        assert_eq!(thin(vec![1, 2], 2000), vec![1, 2]);
+    }
+}

@@ -1,0 +1,297 @@
+//! Read-only views of an experiment's history for the dashboard: proposals and trajectories as
+//! one list of runs, per-iteration statistics and the list of model versions.
+
+use super::Store;
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+/// Where a run stands: a proposal's lease status, or what its trajectory was.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RunStatus {
+    /// A proposal leased to its client, waiting for the executed trajectory.
+    Open,
+    /// A proposal whose trajectory was posted in full.
+    Executed,
+    /// A proposal its client gave up.
+    Abandoned,
+    /// A proposal whose lease ran out before a trajectory was posted.
+    Expired,
+    /// A proposal whose robot stopped early (`partial` trajectory).
+    Partial,
+    /// A trajectory posted without a proposal (teleoperation, logs, another planner).
+    Unsolicited,
+}
+
+/// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct Run {
+    /// The proposal, if there was one.
+    pub proposal_id: Option<i64>,
+    /// The executed trajectory, if one was posted.
+    pub trajectory_id: Option<i64>,
+    /// Where it stands.
+    pub status: RunStatus,
+    /// The client the proposal was leased to.
+    pub client_id: Option<String>,
+    /// The learning iteration the proposal was made in (`null` without a proposal).
+    pub iteration: Option<i64>,
+    /// β the proposal was planned with (`null` without a proposal).
+    pub beta: Option<f64>,
+    /// The MDE version that scored the proposal (`null` without a proposal).
+    pub model_version: Option<i64>,
+    /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
+    pub created_at: String,
+    /// Actions: executed transitions when a trajectory was posted, else the proposal's planned
+    /// actions.
+    pub length: i64,
+    /// Whether the posted trajectory stopped early.
+    pub partial: bool,
+    /// The largest deviation label of the executed trajectory (`null` before one was posted).
+    pub max_deviation: Option<f64>,
+}
+
+/// Executed trajectories and transitions of one learning iteration.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct IterationStats {
+    /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
+    /// next batch's first, in ingest order).
+    pub iteration: i64,
+    /// Trajectories posted in it.
+    pub n_trajectories: i64,
+    /// Their transitions.
+    pub n_transitions: i64,
+    /// Mean deviation label of those transitions.
+    pub mean_deviation: f64,
+    /// Largest deviation label.
+    pub max_deviation: f64,
+    /// Share of the transitions with a deviation below `d_max` (the model was right there).
+    pub share_within_d_max: f64,
+}
+
+/// A stored model version's summary (no training data, no noise model).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ModelSummary {
+    /// Version (1, 2, …).
+    pub version: i64,
+    /// Training transitions (the experiment's first `n_train`).
+    pub n_train: i64,
+    /// Trajectories stored when the fit started.
+    pub n_trajectories: i64,
+    /// Noise mode of the fit.
+    pub noise: String,
+    /// Log marginal likelihood of the fit.
+    pub log_marginal_likelihood: f64,
+    /// Seconds the fit took.
+    pub fit_seconds: f64,
+    /// When it finished (RFC 3339).
+    pub fitted_at: String,
+}
+
+/// Proposals (with the trajectory that executed each) and trajectories without a proposal, as
+/// one relation; `?1` is the experiment, `?2` the current Unix time (an open proposal whose
+/// lease has passed shows as expired without being written).
+const RUNS: &str = "
+    SELECT p.id AS proposal_id, t.id AS trajectory_id,
+           CASE WHEN p.status = 'open' AND p.expires_unix <= ?2 THEN 'expired'
+                ELSE p.status END AS proposal_status,
+           p.client_id, p.iteration, p.beta, p.model_version, p.created_at,
+           COALESCE(t.n_transitions, json_array_length(p.body, '$.trajectory.actions'), 0)
+               AS length,
+           COALESCE(t.partial, 0) AS partial
+    FROM proposals p LEFT JOIN trajectories t ON t.proposal_id = p.id
+    WHERE p.experiment_id = ?1
+    UNION ALL
+    SELECT NULL, t.id, NULL, NULL, NULL, NULL, NULL, t.created_at, t.n_transitions, t.partial
+    FROM trajectories t
+    WHERE t.experiment_id = ?1 AND t.proposal_id IS NULL";
+
+fn unix_now() -> f64 {
+    time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
+}
+
+fn run_from_row(row: &SqliteRow) -> Result<Run, sqlx::Error> {
+    let proposal_id: Option<i64> = row.try_get("proposal_id")?;
+    let partial: bool = row.try_get("partial")?;
+    let proposal_status: Option<String> = row.try_get("proposal_status")?;
+    let status = match (proposal_status.as_deref(), partial) {
+        (None, _) => RunStatus::Unsolicited,
+        (Some("executed"), true) => RunStatus::Partial,
+        (Some("executed"), false) => RunStatus::Executed,
+        (Some("open"), _) => RunStatus::Open,
+        (Some("abandoned"), _) => RunStatus::Abandoned,
+        (Some("expired"), _) => RunStatus::Expired,
+        (Some(other), _) => {
+            return Err(sqlx::Error::Decode(
+                format!("unknown proposal status {other:?}").into(),
+            ));
+        }
+    };
+    Ok(Run {
+        proposal_id,
+        trajectory_id: row.try_get("trajectory_id")?,
+        status,
+        client_id: row.try_get("client_id")?,
+        iteration: row.try_get("iteration")?,
+        beta: row.try_get("beta")?,
+        model_version: row.try_get("model_version")?,
+        created_at: row.try_get("created_at")?,
+        length: row.try_get("length")?,
+        partial,
+        max_deviation: row.try_get("max_deviation")?,
+    })
+}
+
+impl Store {
+    /// A page of an experiment's runs, newest first: skipping `offset`, at most `limit`. The
+    /// maximum deviation is computed for the page's trajectories only.
+    #[tracing::instrument(skip(self))]
+    pub async fn runs(
+        &self,
+        experiment_id: i64,
+        offset: i64,
+        limit: i64,
+    ) -> Result<Vec<Run>, sqlx::Error> {
+        sqlx::query(&format!(
+            "SELECT r.*, (SELECT MAX(x.deviation) FROM transitions x
+                          WHERE x.trajectory_id = r.trajectory_id) AS max_deviation
+             FROM ({RUNS}) r
+             ORDER BY julianday(r.created_at) DESC, r.proposal_id DESC, r.trajectory_id DESC
+             LIMIT ?3 OFFSET ?4"
+        ))
+        .bind(experiment_id)
+        .bind(unix_now())
+        .bind(limit)
+        .bind(offset)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(run_from_row)
+        .collect()
+    }
+
+    /// How many runs an experiment has.
+    #[tracing::instrument(skip(self))]
+    pub async fn count_runs(&self, experiment_id: i64) -> Result<i64, sqlx::Error> {
+        sqlx::query_scalar(
+            "SELECT (SELECT COUNT(*) FROM proposals WHERE experiment_id = ?1)
+                  + (SELECT COUNT(*) FROM trajectories
+                     WHERE experiment_id = ?1 AND proposal_id IS NULL)",
+        )
+        .bind(experiment_id)
+        .fetch_one(&self.read)
+        .await
+    }
+
+    /// Per-iteration statistics of the first `limit` iterations: trajectory `k` (0-based, in
+    /// ingest order) belongs to iteration `k / batch_size`.
+    #[tracing::instrument(skip(self))]
+    pub async fn iteration_stats(
+        &self,
+        experiment_id: i64,
+        batch_size: i64,
+        d_max: f64,
+        limit: i64,
+    ) -> Result<Vec<IterationStats>, sqlx::Error> {
+        sqlx::query(
+            "WITH t AS (
+                 SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / ?2 AS iteration
+                 FROM trajectories WHERE experiment_id = ?1
+             )
+             SELECT t.iteration, COUNT(DISTINCT t.id) AS n_trajectories,
+                    COUNT(*) AS n_transitions, AVG(x.deviation) AS mean_deviation,
+                    MAX(x.deviation) AS max_deviation,
+                    AVG(CASE WHEN x.deviation < ?3 THEN 1.0 ELSE 0.0 END) AS share_within
+             FROM t JOIN transitions x ON x.trajectory_id = t.id
+             GROUP BY t.iteration ORDER BY t.iteration LIMIT ?4",
+        )
+        .bind(experiment_id)
+        .bind(batch_size.max(1))
+        .bind(d_max)
+        .bind(limit)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(|row| {
+            Ok(IterationStats {
+                iteration: row.try_get("iteration")?,
+                n_trajectories: row.try_get("n_trajectories")?,
+                n_transitions: row.try_get("n_transitions")?,
+                mean_deviation: row.try_get("mean_deviation")?,
+                max_deviation: row.try_get("max_deviation")?,
+                share_within_d_max: row.try_get("share_within")?,
+            })
+        })
+        .collect()
+    }
+
+    /// The first `limit` model versions of an experiment, oldest first.
+    #[tracing::instrument(skip(self))]
+    pub async fn model_summaries(
+        &self,
+        experiment_id: i64,
+        limit: i64,
+    ) -> Result<Vec<ModelSummary>, sqlx::Error> {
+        sqlx::query(
+            "SELECT version, n_train, n_trajectories, noise, log_marginal_likelihood,
+                    fit_seconds, fitted_at
+             FROM models WHERE experiment_id = ? ORDER BY version LIMIT ?",
+        )
+        .bind(experiment_id)
+        .bind(limit)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(|row| {
+            Ok(ModelSummary {
+                version: row.try_get("version")?,
+                n_train: row.try_get("n_train")?,
+                n_trajectories: row.try_get("n_trajectories")?,
+                noise: row.try_get("noise")?,
+                log_marginal_likelihood: row.try_get("log_marginal_likelihood")?,
+                fit_seconds: row.try_get("fit_seconds")?,
+                fitted_at: row.try_get("fitted_at")?,
+            })
+        })
+        .collect()
+    }
+
+    /// The first `n` deviation labels of an experiment, in id order (a model version's training
+    /// labels).
+    #[tracing::instrument(skip(self))]
+    pub async fn first_deviations(
+        &self,
+        experiment_id: i64,
+        n: i64,
+    ) -> Result<Vec<f64>, sqlx::Error> {
+        sqlx::query_scalar(
+            "SELECT deviation FROM transitions WHERE experiment_id = ? ORDER BY id LIMIT ?",
+        )
+        .bind(experiment_id)
+        .bind(n)
+        .fetch_all(&self.read)
+        .await
+    }
+
+    /// Transitions of an experiment after its first `skip` in id order (those a model version
+    /// fitted on the first `skip` never saw), at most `limit`.
+    #[tracing::instrument(skip(self))]
+    pub async fn transitions_after_first(
+        &self,
+        experiment_id: i64,
+        skip: i64,
+        limit: i64,
+    ) -> Result<Vec<super::StoredTransition>, sqlx::Error> {
+        let first_unseen: Option<i64> = sqlx::query_scalar(
+            "SELECT id FROM transitions WHERE experiment_id = ? ORDER BY id LIMIT 1 OFFSET ?",
+        )
+        .bind(experiment_id)
+        .bind(skip)
+        .fetch_optional(&self.read)
+        .await?;
+        match first_unseen {
+            Some(id) => self.transitions(experiment_id, id - 1, Some(limit)).await,
+            None => Ok(Vec::new()),
+        }
+    }
+}

@@ -1,0 +1,142 @@
+// End-to-end tests of the dashboard in headless Chromium: `node dashboard.mjs BASE_URL OUT_DIR`.
+// The server at BASE_URL must be empty; this script fills it through the API, opens every page,
+// checks what they show and saves screenshots in OUT_DIR. Exits non-zero on the first failure.
+import { chromium } from 'playwright-core';
+import assert from 'node:assert/strict';
+import { mkdirSync } from 'node:fs';
+import { call, seedGridworld, seedKinematic } from './seed.mjs';
+
+const [base, out] = process.argv.slice(2);
+if (!base || !out) throw new Error('usage: node dashboard.mjs BASE_URL OUT_DIR');
+mkdirSync(out, { recursive: true });
+
+const CHROMIUM_ARGS = ['--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
+  '--disable-background-networking', '--disable-component-update', '--disable-sync'];
+
+const t0 = Date.now();
+const kin = await seedKinematic(base);
+const grid = await seedGridworld(base);
+const e = await call(base, 'GET', `/v1/experiments/${grid}`);
+console.log(`seeded: gridworld #${grid} (${e.n_trajectories} trajectories, model v${e.model_version}), kinematic #${kin} in ${Date.now() - t0} ms`);
+
+const browser = await chromium.launch({ executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium', args: CHROMIUM_ARGS });
+const context = await browser.newContext({ viewport: { width: 1280, height: 900 }, acceptDownloads: true });
+const page = await context.newPage();
+const errors = [];
+page.on('pageerror', err => errors.push(String(err)));
+page.on('console', msg => { if (msg.type() === 'error') errors.push(msg.text()); });
+
+async function open(path) {
+  await page.goto(base + path);
+  await page.waitForSelector('body[data-ready="true"]', { timeout: 20000 });
+  const alert = await page.locator('[role=alert]').count();
+  assert.equal(alert, 0, `${path} shows an error: ${alert && await page.locator('[role=alert]').innerText()}`);
+}
+
+const tests = [];
+const test = (name, fn) => tests.push([name, fn]);
+
+test('the experiment list shows every experiment, newest first, and exports CSV', async () => {
+  await open('/');
+  const rows = page.locator('#experiments tbody tr');
+  assert.equal(await rows.count(), 2);
+  assert.match(await rows.nth(0).innerText(), /icy gridworld\s+icy_gridworld\s+active/);
+  assert.match(await rows.nth(1).innerText(), /kinematic arm\s+kinematic/);
+  await page.screenshot({ path: `${out}/experiments.png` });
+  const [download] = await Promise.all([page.waitForEvent('download'), page.getByText('Export CSV').click()]);
+  const csv = await (await import('node:fs/promises')).readFile(await download.path(), 'utf8');
+  const lines = csv.trim().split('\n');
+  assert.equal(lines[0], 'id,name,domain,strategy,iteration,trajectories,transitions,model_version,last_activity');
+  assert.equal(lines.length, 3);
+  assert.match(lines[1], new RegExp(`^${grid},icy gridworld,icy_gridworld,active,\\d+,${e.n_trajectories},${e.n_transitions},`));
+});
+
+test('an experiment shows its settings, timeline and runs', async () => {
+  await page.getByRole('link', { name: 'icy gridworld' }).click();
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.match(await page.locator('#settings').innerText(), /icy_gridworld[\s\S]*batch size\s+4/);
+  assert.ok(await page.locator('#timeline figure').count() >= 6, 'model and iteration charts');
+  const statuses = await page.locator('#runs .badge').allInnerTexts();
+  for (const s of ['open', 'abandoned', 'executed', 'unsolicited']) assert.ok(statuses.includes(s), `${s} in ${statuses}`);
+  await page.screenshot({ path: `${out}/experiment.png`, fullPage: true });
+});
+
+test('a trajectory shows its steps with μ ± σ at the time and now', async () => {
+  const runs = await call(base, 'GET', `/v1/experiments/${grid}/runs?limit=100`);
+  const executed = runs.items.find(r => r.status === 'executed');
+  await page.locator(`a[href$="/trajectories/${executed.trajectory_id}"]`).click();
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.equal(await page.locator('#steps tbody tr').count(), executed.length);
+  const first = await page.locator('#steps tbody tr').first().innerText();
+  assert.match(first, /±[\s\S]*±/, 'μ ± σ at the time and now');
+  assert.match(await page.locator('main').innerText(), new RegExp(`Executed proposal\\s+#${executed.proposal_id}`));
+});
+
+test('the precondition map draws one grid per move and slides over model versions', async () => {
+  await open(`/ui/experiments/${grid}/map`);
+  // The version answering now (a background refit may have added one since seeding).
+  await page.waitForSelector('body[data-map-ready]');
+  assert.ok(+(await page.evaluate(() => document.body.dataset.mapReady)) >= e.model_version);
+  const canvases = page.locator('#map-panels canvas');
+  assert.equal(await canvases.count(), 4, 'one panel per discrete action');
+  const colours = await canvases.first().evaluate(c => {
+    const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
+    const seen = new Set();
+    for (let i = 0; i < d.length; i += 4 * 97) seen.add(`${d[i]},${d[i + 1]},${d[i + 2]}`);
+    return seen.size;
+  });
+  assert.ok(colours > 5, `the map is drawn (${colours} colours)`);
+  const caption = () => page.locator('#map-panels figure').first().innerText();
+  const before = await caption();
+  await page.locator('#map-beta').fill('-3');
+  assert.notEqual(await caption(), before, 'β changes the share inside');
+  await page.locator('#map-beta').fill('2');
+  await page.screenshot({ path: `${out}/map.png`, fullPage: true });
+  await page.locator('#map-version').fill('1');
+  await page.waitForSelector('body[data-map-ready="1"]');
+});
+
+test('the kinematic map has two continuous axes and sliders for the rest', async () => {
+  await open(`/ui/experiments/${kin}/map`);
+  await page.waitForSelector('body[data-map-ready]');
+  assert.equal(await page.locator('#map-panels canvas').count(), 1);
+  assert.equal(await page.locator('.controls input[type=range]').count(), 2 + 2, 'β, version and two fixed components');
+});
+
+test('diagnostics show leave-one-out calibration and the precondition rates', async () => {
+  await open(`/ui/experiments/${grid}/diagnostics`);
+  await page.waitForSelector('#diagnostics .kpi');
+  const text = await page.locator('#diagnostics').innerText();
+  assert.match(text, /inside μ ± 1σ[\s\S]*nominal 68\.3 %/);
+  assert.match(text, /TPR[\s\S]*TNR/);
+  await page.screenshot({ path: `${out}/diagnostics.png`, fullPage: true });
+  // Version 1 was fitted after the first batch: every later transition is judged by it.
+  await open(`/ui/experiments/${grid}/diagnostics?version=1`);
+  await page.waitForSelector('#later');
+  assert.match(await page.locator('#later').innerText(), /transitions posted after its training set[\s\S]*TPR[\s\S]*TNR/);
+});
+
+test('an unknown experiment shows the API error', async () => {
+  await page.goto(`${base}/ui/experiments/999`);
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.match(await page.locator('[role=alert]').innerText(), /404 not_found: no experiment 999/);
+  errors.length = 0; // the failed fetch is logged by the browser, as it should be
+});
+
+let failed = 0;
+for (const [name, fn] of tests) {
+  const started = Date.now();
+  try {
+    await fn();
+    assert.deepEqual(errors.splice(0), [], 'no errors in the browser console');
+    console.log(`ok   ${name} (${Date.now() - started} ms)`);
+  } catch (err) {
+    failed++;
+    console.log(`FAIL ${name}\n     ${String(err.stack ?? err).split('\n').slice(0, 4).join('\n     ')}`);
+    await page.screenshot({ path: `${out}/failure-${failed}.png`, fullPage: true }).catch(() => {});
+    errors.length = 0;
+  }
+}
+await browser.close();
+console.log(`${tests.length - failed} passed, ${failed} failed; screenshots in ${out}`);
+process.exit(failed ? 1 : 0);
