@@ -170,14 +170,23 @@ impl ApiClient {
         .await
     }
 
-    /// `POST /v1/experiments/{id}/model/refit`: fit now on everything stored.
+    /// `POST /v1/experiments/{id}/model/refit`: fit now on everything stored. A fit that
+    /// outlasts the service's deadline is answered `202` with the old version and goes on in
+    /// the background; this waits for it.
     pub async fn refit(&self, id: i64) -> anyhow::Result<ModelResponse> {
-        self.expect(
-            self.http
-                .post(self.url(&format!("/v1/experiments/{id}/model/refit"))),
-            "POST /model/refit",
-        )
-        .await
+        let before = self.model(id).await?.version;
+        let mut m: ModelResponse = self
+            .expect(
+                self.http
+                    .post(self.url(&format!("/v1/experiments/{id}/model/refit"))),
+                "POST /model/refit",
+            )
+            .await?;
+        while m.version <= before {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            m = self.model(id).await?;
+        }
+        Ok(m)
     }
 
     /// Waits until the served model covers `n_trajectories` trajectories (the background refit

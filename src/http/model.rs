@@ -9,6 +9,7 @@ use crate::api::{ModelResponse, Point, PointQuery, PreconditionRequest, Precondi
 use crate::service::Error;
 use axum::Json;
 use axum::extract::State;
+use axum::http::StatusCode;
 
 /// `GET /v1/experiments/{id}/model`.
 pub async fn get_model(
@@ -19,12 +20,19 @@ pub async fn get_model(
 }
 
 /// `POST /v1/experiments/{id}/model/refit`: fit now on every stored transition and answer with
-/// the new version.
+/// the new version (`200`), or, when the fit outlasts the planning deadline, with the version
+/// still answering (`202`: the fit goes on and is swapped in when done).
 pub async fn refit_model(
     State(state): State<AppState>,
     ApiPath(id): ApiPath<i64>,
-) -> ApiResult<Json<ModelResponse>> {
-    Ok(Json(render::model(state.service.refit(id).await?)))
+) -> ApiResult<(StatusCode, Json<ModelResponse>)> {
+    let refit = state.service.refit(id).await?;
+    let status = if refit.finished {
+        StatusCode::OK
+    } else {
+        StatusCode::ACCEPTED
+    };
+    Ok((status, Json(render::model(refit.view))))
 }
 
 /// `POST /v1/experiments/{id}/precondition`.

@@ -177,6 +177,15 @@ fn beta_or_test(beta: Option<f64>, test_beta: f64) -> Result<f64> {
     Ok(beta)
 }
 
+/// What a forced refit answers.
+#[derive(Debug, Clone)]
+pub struct Refit {
+    /// The new version, or (unfinished) the one still answering.
+    pub view: ModelView,
+    /// Whether the new version is done; if not it goes on in the background.
+    pub finished: bool,
+}
+
 impl Service {
     /// The version answering queries now.
     pub async fn model(&self, id: i64) -> Result<ModelView> {
@@ -190,22 +199,31 @@ impl Service {
 
     /// Fits a new version on every stored transition now (off the async workers) and answers
     /// with it. The fit runs in its own task: if it does not finish within the planning
-    /// deadline the answer is `DeadlineExceeded`, and the fit goes on, is stored and swapped in
-    /// when done (a client that goes away does not lose it either).
-    pub async fn refit(&self, id: i64) -> Result<ModelView> {
+    /// deadline the answer is the version answering now, marked unfinished, and the fit goes
+    /// on, is stored and swapped in when done (a client that goes away does not lose it either).
+    pub async fn refit(&self, id: i64) -> Result<Refit> {
         let live = self.live(id).await?;
         let fit = {
             let (live, store, work) = (live.clone(), self.store.clone(), self.work.clone());
             tokio::spawn(async move { live.refit(&store, &work, FitTrigger::Forced).await })
         };
-        let model = tokio::time::timeout(self.work.limits().plan_timeout, fit)
+        let (model, finished) = match tokio::time::timeout(self.work.limits().plan_timeout, fit)
             .await
-            .map_err(|_| self.work.deadline_exceeded(0))?
-            .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??;
-        Ok(ModelView {
-            experiment_id: id,
-            feature_names: live.domain.feature_names(),
-            model,
+        {
+            Ok(joined) => (
+                joined
+                    .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??,
+                true,
+            ),
+            Err(_elapsed) => (live.model(), false),
+        };
+        Ok(Refit {
+            view: ModelView {
+                experiment_id: id,
+                feature_names: live.domain.feature_names(),
+                model,
+            },
+            finished,
         })
     }
 

@@ -203,3 +203,56 @@ async fn metrics_and_request_ids_are_exposed() {
         .unwrap();
     assert_eq!(r.headers()["x-request-id"], "robot-7-req-42");
 }
+
+#[tokio::test]
+async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_the_background() {
+    let (_dir, db) = temp_db();
+    // 100 ms, the shortest deadline an operator may set, and a batch far larger than the data,
+    // so only the forced refit fits.
+    let app = spawn_app_with_limits(&db, limits(2, 4, 100)).await;
+    let id = app
+        .create_experiment(json!({"domain": {"kind": "kinematic"},
+                                  "mde": {"restarts": 20},
+                                  "learning": {"batch_size": 100}}))
+        .await;
+    // 400 transitions of the true (kinematic) world.
+    let mut rng = 7u64;
+    let mut next = || {
+        rng = rng
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (rng >> 11) as f64 / (1u64 << 53) as f64
+    };
+    for _ in 0..4 {
+        let transitions: Vec<Value> = (0..100)
+            .map(|_| {
+                let s = [0.1 + 0.8 * next(), 0.1 + 0.8 * next()];
+                let a = [0.2 * next() - 0.1, 0.2 * next() - 0.1];
+                json!({"s": s, "a": a, "s_next": [s[0] + a[0], s[1] + a[1]]})
+            })
+            .collect();
+        let (status, body) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &json!({"transitions": transitions}),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let (status, body) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 202, "{body}");
+    assert_eq!(body["version"], 0, "the version still answering: {body}");
+    // The fit goes on and is swapped in.
+    let started = Instant::now();
+    loop {
+        let (_, m) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        if m["version"] == 1 {
+            assert_eq!(m["n_train"], 400, "{m}");
+            break;
+        }
+        assert!(started.elapsed() < Duration::from_secs(120), "no fit: {m}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}

@@ -351,7 +351,10 @@ class Client:
         return Model.from_json(self._request("GET", self._path("/model")).json())
 
     def refit(self) -> Model:
-        """Fits the MDE now on everything stored and returns the new version."""
+        """Fits the MDE now on everything stored and returns the new version. A fit that
+        outlasts the server's deadline is answered ``202`` with the version still answering
+        and goes on in the background; then that version is returned (poll :meth:`model` for
+        the new one)."""
         r = self._request("POST", self._path("/model/refit"), idempotent=False)
         return Model.from_json(r.json())
 
