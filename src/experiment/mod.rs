@@ -7,6 +7,7 @@
 //! transitions from other seeds' executions ([`protocol`] has the details).
 //!
 //! - [`client`]: the HTTP client of the endpoints the harness drives.
+//! - [`layouts`]: gridworld layouts — the default map, a map file, seeded random maps.
 //! - [`protocol`]: held-out pools, one run's iterations, execution in the simulators.
 //! - [`report`]: the CSV files and the JSON summary (mean and standard error).
 //! - [`plot`]: the SVG figures (the paper's layout; the water plant's precondition maps).
