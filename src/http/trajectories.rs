@@ -20,12 +20,16 @@ fn idempotency_key(headers: &HeaderMap) -> ApiResult<Option<&str>> {
     headers
         .get("idempotency-key")
         .map(|v| {
-            v.to_str().map_err(|_| {
-                ApiError::validation(
-                    "Idempotency-Key",
-                    format!("must be 1 to {MAX_IDEMPOTENCY_KEY_LEN} visible ASCII characters"),
-                )
-            })
+            // `to_str` also lets a tab through; the key is printable ASCII only.
+            v.to_str()
+                .ok()
+                .filter(|s| s.bytes().all(|b| (b' '..=b'~').contains(&b)))
+                .ok_or_else(|| {
+                    ApiError::validation(
+                        "Idempotency-Key",
+                        format!("must be 1 to {MAX_IDEMPOTENCY_KEY_LEN} visible ASCII characters"),
+                    )
+                })
         })
         .transpose()
 }

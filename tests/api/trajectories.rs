@@ -54,6 +54,29 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
 }
 
 #[tokio::test]
+async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let r = app
+        .client
+        .post(app.url(&format!("/v1/experiments/{id}/trajectories")))
+        .header("Idempotency-Key", "run\t7")
+        .json(&free_row_trajectory(0, 0, 3))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 422);
+    let body: Value = r.json().await.unwrap();
+    assert_eq!(
+        body["error"]["details"]["field"], "Idempotency-Key",
+        "{body}"
+    );
+    let (_, list) = app.get(&format!("/v1/experiments/{id}/transitions")).await;
+    assert_eq!(list["items"].as_array().unwrap().len(), 0, "{list}");
+}
+
+#[tokio::test]
 async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;
