@@ -525,11 +525,9 @@ impl DynamicsModel for LinearModel {
         states: &[&[f64]],
         actions: &[&[f64]],
     ) -> Result<Vec<Predicted>, DynamicsError> {
-        Ok(states
-            .iter()
-            .zip(actions)
-            .map(|(s, a)| Predicted::valid(self.predict(s, a)))
-            .collect())
+        Ok(super::dynamics::predict_each(states, actions, |s, a| {
+            self.predict(s, a)
+        }))
     }
 }
 

@@ -113,10 +113,20 @@ impl<T: LocalModel> DynamicsModel for T {
         states: &[&[f64]],
         actions: &[&[f64]],
     ) -> Result<Vec<Predicted>, DynamicsError> {
-        Ok(states
-            .iter()
-            .zip(actions)
-            .map(|(s, a)| Predicted::valid(self.predict(s, a)))
-            .collect())
+        Ok(predict_each(states, actions, |s, a| self.predict(s, a)))
     }
+}
+
+/// A batch predicted one pair at a time by an in-process model that cannot fail and has no
+/// constraint check of its own (every prediction valid).
+pub fn predict_each(
+    states: &[&[f64]],
+    actions: &[&[f64]],
+    predict: impl Fn(&[f64], &[f64]) -> Vec<f64>,
+) -> Vec<Predicted> {
+    states
+        .iter()
+        .zip(actions)
+        .map(|(s, a)| Predicted::valid(predict(s, a)))
+        .collect()
 }
