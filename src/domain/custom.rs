@@ -196,20 +196,7 @@ impl CustomDomain {
             ));
         }
         for (k, o) in params.obstacles.iter().enumerate() {
-            if o.low.len() != n || o.high.len() != n {
-                return Err(DomainError::at(
-                    format!("obstacles[{k}]"),
-                    format!("low and high need {n} components, one per state component"),
-                ));
-            }
-            if o.low.iter().chain(&o.high).any(|x| !x.is_finite())
-                || o.low.iter().zip(&o.high).any(|(l, h)| l > h)
-            {
-                return Err(DomainError::at(
-                    format!("obstacles[{k}]"),
-                    "bounds must be finite with low ≤ high",
-                ));
-            }
+            o.check(k, n)?;
         }
         if !(1..=MAX_STEER_SAMPLES).contains(&params.steer_samples) {
             return Err(DomainError::at(

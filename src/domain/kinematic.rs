@@ -15,6 +15,26 @@ pub struct BoxObstacle {
 }
 
 impl BoxObstacle {
+    /// Checks obstacle `k` of a state space of dimension `n`: `n` finite components per corner,
+    /// `low ≤ high`.
+    pub fn check(&self, k: usize, n: usize) -> Result<(), DomainError> {
+        if self.low.len() != n || self.high.len() != n {
+            return Err(DomainError::at(
+                format!("obstacles[{k}]"),
+                format!("low and high need {n} components, one per state component"),
+            ));
+        }
+        if self.low.iter().chain(&self.high).any(|x| !x.is_finite())
+            || self.low.iter().zip(&self.high).any(|(l, h)| l > h)
+        {
+            return Err(DomainError::at(
+                format!("obstacles[{k}]"),
+                "bounds must be finite with low ≤ high",
+            ));
+        }
+        Ok(())
+    }
+
     fn contains(&self, p: &[f64]) -> bool {
         p.iter()
             .zip(self.low.iter().zip(&self.high))
@@ -130,20 +150,7 @@ impl Kinematic {
             }
         }
         for (k, o) in params.obstacles.iter().enumerate() {
-            if o.low.len() != n || o.high.len() != n {
-                return Err(DomainError::at(
-                    format!("obstacles[{k}]"),
-                    format!("low and high need {n} components"),
-                ));
-            }
-            if o.low.iter().chain(&o.high).any(|x| !x.is_finite())
-                || o.low.iter().zip(&o.high).any(|(l, h)| l > h)
-            {
-                return Err(DomainError::at(
-                    format!("obstacles[{k}]"),
-                    "bounds must be finite with low ≤ high",
-                ));
-            }
+            o.check(k, n)?;
         }
         if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
             return Err(DomainError::at("goal_radius", "must be a positive number"));
