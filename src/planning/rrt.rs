@@ -14,16 +14,24 @@
 //! earlier with [`PlanningError::Stopped`] when its [`Budget`] runs out (checked each round).
 //!
 //! **Batched rounds.** So that the deviation model sees many points at once, extensions are
-//! made in rounds: each round proposes up to `extension_batch` edges against the tree as it
-//! stood at the start of the round (never more edges than the tree has nodes, so a young tree
-//! still grows one edge at a time), asks the model about all of them in one call (through [`ModelCache`],
-//! which skips what it already knows), then adds the accepted edges in order. An extension is
-//! one examined edge, accepted or not; edges proposed in a round after the one that reached the
-//! goal are dropped and not counted. Rounds make the tree grow from a slightly stale tree, so
-//! they cost extensions (measured: about twice as many per goal-reaching run at 16 edges per
-//! round on the kinematic domain); the default is therefore one edge per round, the classic
-//! RRT, and `extension_batch` is a knob to turn when the model's batched predictions are much
-//! cheaper per point than single ones.
+//! made in rounds: each round proposes up to `extension_batch` edges (or the dynamics model's
+//! round size, 64 for a model behind the network) against the tree as it stood at the start of
+//! the round, asks the models about all of them in one call each (the deviation model through
+//! [`ModelCache`], which skips what it already knows), then adds the accepted edges in order.
+//! A round never proposes more edges than the tree has nodes after a round that grew it, so a
+//! young tree still grows one edge at a time; after a round that added nothing the allowance
+//! doubles, so a tree that cannot grow does not make one model call per extension. An
+//! extension is one examined edge, accepted or not; edges proposed in a round after the one
+//! that reached the goal are dropped and not counted. Rounds make the tree grow from a slightly
+//! stale tree, so they cost extensions (measured: about twice as many per goal-reaching run at
+//! 16 edges per round on the kinematic domain); for in-process models the default is therefore
+//! one edge per round, the classic RRT, and `extension_batch` is a knob to turn when the
+//! model's batched predictions are much cheaper per point than single ones.
+//!
+//! **Runs in lockstep.** `grow_together` advances several runs of one problem round by round,
+//! one call to each model serving a round of every run. Each run grows exactly the tree it
+//! would grow alone, so this changes the number of model calls (and the size of the batches
+//! the GP sees), never the outcome.
 //!
 //! **Prefetching.** In a discrete action space (the gridworld), when the model must be asked
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
@@ -201,9 +209,15 @@ pub fn rrt_within(
     settings.check()?;
     check_problem(domain, start, Some(goal), beta, d_max)?;
     let mut cache = ModelCache::new(mde, domain.feature_dim());
-    grow(
-        domain, &mut cache, start, goal, beta, d_max, settings, rng, budget,
-    )
+    let problem = SearchProblem {
+        domain,
+        start,
+        goal,
+        beta,
+        d_max,
+        settings,
+    };
+    grow(problem, &mut cache, rng, budget)
 }
 
 /// The test-time plan: one RRT run with the (conservative) test `β`, seeded by `seed`.
@@ -387,83 +401,128 @@ struct Steered {
 /// The most edges proposed in one round, whatever the model asks for.
 const MAX_ROUND: usize = 4096;
 
-/// The RRT proper, with a cache that may be shared by the runs of one proposal.
-/// Inputs are assumed checked.
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn grow(
-    domain: &dyn Domain,
-    cache: &mut ModelCache<'_>,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    settings: &PlannerSettings,
-    rng: &mut dyn RngCore,
-    budget: &Budget,
-) -> Result<RrtOutcome, PlanningError> {
-    let mut tree = Tree::new(start);
-    let mut outcome = RrtOutcome {
-        trajectory: None,
-        extensions: 0,
-        tree_size: 1,
-        dynamics_calls: 0,
-    };
-    if domain.is_goal(start, goal) {
-        outcome.trajectory = Some(tree.path_to(0));
-        return Ok(outcome);
-    }
-    let dynamics = domain.dynamics();
-    let round_size = settings
-        .extension_batch
-        .max(dynamics.round_size())
-        .min(MAX_ROUND);
-    let mut round: Vec<Proposed> = Vec::with_capacity(round_size);
-    let mut features: Vec<f64> = Vec::new();
-    let mut prefetch: Vec<f64> = Vec::new();
-    let discrete_actions = domain.action_space().values.as_ref();
-    while outcome.extensions < settings.max_extensions {
-        if let Some(reason) = budget.stop() {
-            return Err(PlanningError::Stopped {
-                reason,
-                extensions: outcome.extensions,
-            });
+/// The checked inputs every search of one proposal shares.
+#[derive(Clone, Copy)]
+pub(crate) struct SearchProblem<'a> {
+    pub domain: &'a dyn Domain,
+    pub start: &'a [f64],
+    pub goal: &'a [f64],
+    pub beta: f64,
+    pub d_max: f64,
+    pub settings: &'a PlannerSettings,
+}
+
+/// One RRT search in progress: its tree, its own random stream, what it has spent, and the
+/// scratch of the round it is in. A round has four steps, so that several searches can share
+/// each step's call to a model ([`grow_together`]): [`steer`](Self::steer) (the pairs to
+/// predict with `f̂`), [`choose`](Self::choose) (the edges and the pairs to prefetch),
+/// [`prefetched`](Self::prefetched) (the features to ask the deviation model about) and
+/// [`accept`](Self::accept).
+struct Search<'a, R> {
+    problem: SearchProblem<'a>,
+    rng: R,
+    tree: Tree,
+    outcome: RrtOutcome,
+    /// Whether the search has ended: it reached the goal or spent its extensions.
+    done: bool,
+    /// Edges the next round may propose at most (before the model's round size): the tree's
+    /// size after a round that grew it, doubled after a round that did not. A young tree thus
+    /// grows one edge at a time (edges are proposed against the tree as it stood at the start
+    /// of the round), while a tree that cannot grow does not make one model call per edge.
+    allowance: usize,
+    steered: Vec<Steered>,
+    round: Vec<Proposed>,
+    /// `(node, index into the discrete action values)` to predict after the edges.
+    to_prefetch: Vec<(usize, usize)>,
+    /// Feature rows of the asked edges, then of the allowed prefetched pairs.
+    features: Vec<f64>,
+}
+
+impl<'a, R: RngCore> Search<'a, R> {
+    fn new(problem: SearchProblem<'a>, rng: R) -> Self {
+        let tree = Tree::new(problem.start);
+        let done = problem.domain.is_goal(problem.start, problem.goal);
+        let outcome = RrtOutcome {
+            trajectory: done.then(|| tree.path_to(0)),
+            extensions: 0,
+            tree_size: 1,
+            dynamics_calls: 0,
+        };
+        Self {
+            problem,
+            rng,
+            tree,
+            outcome,
+            done,
+            allowance: 1,
+            steered: Vec::new(),
+            round: Vec::new(),
+            to_prefetch: Vec::new(),
+            features: Vec::new(),
         }
+    }
+
+    /// Samples this round's targets, their nearest nodes and the actions to steer with.
+    fn steer(&mut self) {
+        let SearchProblem {
+            domain,
+            goal,
+            settings,
+            ..
+        } = self.problem;
+        let round_size = settings
+            .extension_batch
+            .max(domain.dynamics().round_size())
+            .min(MAX_ROUND);
         let size = round_size
-            .min(tree.states.len())
-            .min(settings.max_extensions - outcome.extensions);
-        round.clear();
-        features.clear();
-        prefetch.clear();
-        let mut steered: Vec<Steered> = Vec::with_capacity(size);
+            .min(self.allowance)
+            .min(settings.max_extensions - self.outcome.extensions);
+        self.steered.clear();
         for _ in 0..size {
-            let target = if rng.random::<f64>() < settings.goal_bias {
-                domain.goal_target(goal, rng)
+            let target = if self.rng.random::<f64>() < settings.goal_bias {
+                domain.goal_target(goal, &mut self.rng)
             } else {
-                domain.sample_state(rng)
+                domain.sample_state(&mut self.rng)
             };
-            let parent = tree.nearest(domain, &target);
-            let actions = domain.steer(&tree.states[parent], &target, rng);
-            steered.push(Steered {
+            let parent = self.tree.nearest(domain, &target);
+            let actions = domain.steer(&self.tree.states[parent], &target, &mut self.rng);
+            self.steered.push(Steered {
                 parent,
                 target,
                 actions,
             });
         }
-        // One call predicts every action of every edge of the round.
-        let pairs: Vec<(usize, &[f64])> = steered
-            .iter()
-            .flat_map(|e| e.actions.iter().map(|a| (e.parent, a.as_slice())))
-            .collect();
-        let mut predicted =
-            predict(domain, &tree, &pairs, &mut outcome.dynamics_calls)?.into_iter();
-        let mut to_prefetch: Vec<(usize, &[f64])> = Vec::new();
-        for edge in &steered {
-            let s = &tree.states[edge.parent];
-            // The allowed, new prediction nearest the target.
+    }
+
+    /// The `(state, action)` pairs this round needs predicted, in order.
+    fn pairs(&self) -> impl Iterator<Item = (&[f64], &[f64])> {
+        self.steered.iter().flat_map(|e| {
+            let s = self.tree.states[e.parent].as_slice();
+            e.actions.iter().map(move |a| (s, a.as_slice()))
+        })
+    }
+
+    fn pair_count(&self) -> usize {
+        self.steered.iter().map(|e| e.actions.len()).sum()
+    }
+
+    /// Keeps, for each steered edge, the allowed and new prediction nearest its target, and
+    /// notes the pairs to prefetch. `predicted` answers [`pairs`](Self::pairs) in order.
+    fn choose(&mut self, predicted: Vec<Predicted>, cache: &ModelCache<'_>) {
+        let domain = self.problem.domain;
+        let discrete_actions = domain.action_space().values.as_ref();
+        let mut predicted = predicted.into_iter();
+        self.round.clear();
+        self.to_prefetch.clear();
+        self.features.clear();
+        for edge in &self.steered {
+            let s = &self.tree.states[edge.parent];
             let mut best: Option<(f64, usize, Vec<f64>)> = None;
             for (j, action) in edge.actions.iter().enumerate() {
                 let Some(p) = predicted.next() else { break };
-                if !(p.valid && domain.edge_allowed(s, action, &p.next) && !tree.contains(&p.next))
+                if !(p.valid
+                    && domain.edge_allowed(s, action, &p.next)
+                    && !self.tree.contains(&p.next))
                 {
                     continue;
                 }
@@ -477,7 +536,7 @@ pub(crate) fn grow(
                 }
             }
             let Some((_, j, next)) = best else {
-                round.push(Proposed {
+                self.round.push(Proposed {
                     parent: edge.parent,
                     action: Vec::new(),
                     next: Vec::new(),
@@ -492,75 +551,186 @@ pub(crate) fn grow(
             {
                 // A miss in a discrete action space: ask about the node's other moves in the
                 // same call, since the tree is likely to try them later.
-                to_prefetch.extend(
+                self.to_prefetch.extend(
                     values
                         .iter()
-                        .filter(|v| *v != action)
-                        .map(|v| (edge.parent, v.as_slice())),
+                        .enumerate()
+                        .filter(|(_, v)| *v != action)
+                        .map(|(k, _)| (edge.parent, k)),
                 );
             }
-            features.extend(phi);
-            round.push(Proposed {
+            self.features.extend(phi);
+            self.round.push(Proposed {
                 parent: edge.parent,
                 action: action.clone(),
                 next,
                 asked: true,
             });
         }
-        if !to_prefetch.is_empty() {
-            let next = predict(domain, &tree, &to_prefetch, &mut outcome.dynamics_calls)?;
-            for ((i, v), n) in to_prefetch.iter().zip(next) {
-                let s = &tree.states[*i];
-                if n.valid && domain.edge_allowed(s, v, &n.next) && !tree.contains(&n.next) {
-                    prefetch.extend(domain.features(s, v));
-                }
+    }
+
+    /// The pairs to prefetch, in order.
+    fn prefetch_pairs(&self) -> impl Iterator<Item = (&[f64], &[f64])> {
+        let values = self.problem.domain.action_space().values.as_deref();
+        self.to_prefetch.iter().filter_map(move |&(i, k)| {
+            Some((self.tree.states[i].as_slice(), values?[k].as_slice()))
+        })
+    }
+
+    /// Adds the feature rows of the prefetched pairs the tree could take; `predicted` answers
+    /// [`prefetch_pairs`](Self::prefetch_pairs) in order. Their answers are only cached.
+    fn prefetched(&mut self, predicted: Vec<Predicted>) {
+        let domain = self.problem.domain;
+        let Some(values) = domain.action_space().values.as_ref() else {
+            return;
+        };
+        for (&(i, k), n) in self.to_prefetch.iter().zip(predicted) {
+            let s = &self.tree.states[i];
+            let v = &values[k];
+            if n.valid && domain.edge_allowed(s, v, &n.next) && !self.tree.contains(&n.next) {
+                self.features.extend(domain.features(s, v));
             }
         }
-        // The answers to the prefetched rows come after those of the edges; they are cached.
-        features.append(&mut prefetch);
-        let answers = cache.predict(&features)?;
-        let mut answers = answers.into_iter();
-        for edge in round.drain(..) {
-            outcome.extensions += 1;
+    }
+
+    /// Adds the accepted edges in order; `answers` are the deviation model's `(μ, σ)` for
+    /// [`features`](Self::features), row by row.
+    fn accept(&mut self, answers: &[(f64, f64)]) {
+        let SearchProblem {
+            domain,
+            goal,
+            beta,
+            d_max,
+            settings,
+            ..
+        } = self.problem;
+        let before = self.tree.states.len();
+        let mut answers = answers.iter();
+        for edge in self.round.drain(..) {
+            self.outcome.extensions += 1;
             if !edge.asked {
                 continue;
             }
-            let Some((mu, sigma)) = answers.next() else {
+            let Some(&(mu, sigma)) = answers.next() else {
                 break;
             };
             // Written so that a NaN from the model keeps the edge out.
             let inside = mu + beta * sigma < d_max;
-            if !inside || tree.contains(&edge.next) {
+            if !inside || self.tree.contains(&edge.next) {
                 continue;
             }
             let reached = domain.is_goal(&edge.next, goal);
-            tree.add(edge.parent, edge.action, edge.next, mu, sigma);
+            self.tree
+                .add(edge.parent, edge.action, edge.next, mu, sigma);
             if reached {
-                let node = tree.states.len() - 1;
-                outcome.trajectory = Some(tree.path_to(node));
-                outcome.tree_size = tree.states.len();
-                return Ok(outcome);
+                let node = self.tree.states.len() - 1;
+                self.outcome.trajectory = Some(self.tree.path_to(node));
+                self.done = true;
+                break;
             }
         }
+        self.allowance = if self.tree.states.len() > before {
+            self.tree.states.len()
+        } else {
+            self.allowance.saturating_mul(2)
+        };
+        self.outcome.tree_size = self.tree.states.len();
+        if self.outcome.extensions >= settings.max_extensions {
+            self.done = true;
+        }
     }
-    outcome.tree_size = tree.states.len();
-    Ok(outcome)
 }
 
-/// Predicts `f̂(node, action)` for every pair in one call to the domain's dynamics model,
-/// counting the call.
-fn predict(
-    domain: &dyn Domain,
-    tree: &Tree,
-    pairs: &[(usize, &[f64])],
-    calls: &mut usize,
-) -> Result<Vec<Predicted>, PlanningError> {
-    let states: Vec<&[f64]> = pairs
-        .iter()
-        .map(|(i, _)| tree.states[*i].as_slice())
+/// One RRT run with a cache that may be shared by the runs of one proposal.
+/// Inputs are assumed checked.
+pub(crate) fn grow(
+    problem: SearchProblem<'_>,
+    cache: &mut ModelCache<'_>,
+    rng: &mut dyn RngCore,
+    budget: &Budget,
+) -> Result<RrtOutcome, PlanningError> {
+    let mut outcomes = grow_together(problem, cache, vec![rng], budget)?;
+    Ok(outcomes.pop().expect("one search, one outcome"))
+}
+
+/// Several RRT runs of the same problem in lockstep, run `i` drawing from `rngs[i]`: each
+/// round, one call to `f̂` predicts the pairs of every run still searching, and one call to the
+/// deviation model (through `cache`) answers all their edges. Each run grows exactly the tree
+/// it would grow alone (its choices depend only on its own stream and on the models' answers),
+/// so running them together changes the number of model calls, not the outcomes. Every
+/// outcome's `dynamics_calls` is the number of calls shared by the group.
+///
+/// On [`PlanningError::Stopped`], `extensions` is the sum over the runs until then.
+pub(crate) fn grow_together<R: RngCore>(
+    problem: SearchProblem<'_>,
+    cache: &mut ModelCache<'_>,
+    rngs: Vec<R>,
+    budget: &Budget,
+) -> Result<Vec<RrtOutcome>, PlanningError> {
+    let domain = problem.domain;
+    let mut searches: Vec<Search<'_, R>> = rngs
+        .into_iter()
+        .map(|rng| Search::new(problem, rng))
         .collect();
-    let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| *a).collect();
-    predict_pairs(domain, &states, &actions, calls)
+    let mut calls = 0;
+    loop {
+        let mut active: Vec<&mut Search<'_, R>> = searches.iter_mut().filter(|s| !s.done).collect();
+        if active.is_empty() {
+            break;
+        }
+        if let Some(reason) = budget.stop() {
+            return Err(PlanningError::Stopped {
+                reason,
+                extensions: searches.iter().map(|s| s.outcome.extensions).sum(),
+            });
+        }
+        for s in active.iter_mut() {
+            s.steer();
+        }
+        let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
+            active.iter().flat_map(|s| s.pairs()).unzip();
+        let predicted = predict_pairs(domain, &states, &actions, &mut calls)?;
+        let counts: Vec<usize> = active.iter().map(|s| s.pair_count()).collect();
+        for (s, p) in active.iter_mut().zip(split_by(predicted, &counts)) {
+            s.choose(p, cache);
+        }
+        let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
+            active.iter().flat_map(|s| s.prefetch_pairs()).unzip();
+        let prefetched = predict_pairs(domain, &states, &actions, &mut calls)?;
+        let counts: Vec<usize> = active.iter().map(|s| s.to_prefetch.len()).collect();
+        for (s, p) in active.iter_mut().zip(split_by(prefetched, &counts)) {
+            s.prefetched(p);
+        }
+        // The answers to the prefetched rows come after those of the edges; they are cached.
+        let features: Vec<f64> = active
+            .iter()
+            .flat_map(|s| s.features.iter().copied())
+            .collect();
+        let answers = cache.predict(&features)?;
+        let dim = domain.feature_dim().max(1);
+        let mut from = 0;
+        for s in active.iter_mut() {
+            let rows = s.features.len() / dim;
+            s.accept(&answers[from..from + rows]);
+            from += rows;
+        }
+    }
+    Ok(searches
+        .into_iter()
+        .map(|s| RrtOutcome {
+            dynamics_calls: calls,
+            ..s.outcome
+        })
+        .collect())
+}
+
+/// Splits `items` into consecutive parts of `counts[i]` items.
+fn split_by<T>(items: Vec<T>, counts: &[usize]) -> Vec<Vec<T>> {
+    let mut items = items.into_iter();
+    counts
+        .iter()
+        .map(|&n| items.by_ref().take(n).collect())
+        .collect()
 }
 
 /// Predicts `f̂(states[i], actions[i])` in one call, counting it and checking that the model

@@ -3,11 +3,14 @@
 //!
 //! **Candidates.** Up to `n_candidates` RRT runs, run `i` (from 0) seeded with stream `i + 1` of
 //! the proposal seed (stream 0 is the strategy's own choices), all sharing one [`ModelCache`] so
-//! the deviation model answers each distinct `φ(s, a)` once per proposal. Goal-reaching
-//! trajectories are kept if their action sequence is new (two runs often find the same path in
-//! a discrete domain), so there may be fewer candidates than runs. Each run has its own budget
-//! of `max_extensions`; once `max_failed_runs` runs have failed before any succeeded, the
-//! proposal gives up with [`PlanningError::NoPlan`]. `extensions` reports the sum over all runs.
+//! the deviation model answers each distinct `φ(s, a)` once per proposal. Runs are made one at a
+//! time until one reaches the goal; once `max_failed_runs` runs have failed before any
+//! succeeded, the proposal gives up with [`PlanningError::NoPlan`]. After the first success the
+//! remaining runs grow in lockstep (see [`rrt`](mod@super::rrt)), which gives the same trees with about
+//! `n_candidates` times fewer model calls. Each run has its own budget of `max_extensions`.
+//! Goal-reaching trajectories are kept, in run order, if their action sequence is new (two runs
+//! often find the same path in a discrete domain), so there may be fewer candidates than runs.
+//! `extensions` reports the sum over all runs.
 //!
 //! **Strategies.**
 //! - `active`: the candidate with the smallest acquisition value `α` (the first on ties).
@@ -21,7 +24,10 @@
 use super::acquisition::AcquisitionSettings;
 use super::budget::Budget;
 use super::cache::ModelCache;
-use super::rrt::{PlannerSettings, Trajectory, check_problem, grow, predict_pairs, seeded_rng};
+use super::rrt::{
+    PlannerSettings, RrtOutcome, SearchProblem, Trajectory, check_problem, grow, grow_together,
+    predict_pairs, seeded_rng,
+};
 use super::{DeviationModel, PlanningError};
 use crate::domain::Domain;
 use rand::Rng;
@@ -281,44 +287,61 @@ impl Problem<'_> {
             runs: 0,
             dynamics_calls: 0,
         };
-        let mut seen: HashSet<Vec<u64>> = HashSet::new();
-        let mut failed = 0;
-        for run in 0..planner.n_candidates {
-            let mut rng = seeded_rng(seed, run as u64 + 1);
-            let outcome = grow(
-                self.domain,
-                cache,
-                self.start,
-                self.goal,
-                self.beta,
-                self.d_max,
-                planner,
-                &mut rng,
-                budget,
-            )
-            .map_err(|e| match e {
+        let problem = SearchProblem {
+            domain: self.domain,
+            start: self.start,
+            goal: self.goal,
+            beta: self.beta,
+            d_max: self.d_max,
+            settings: planner,
+        };
+        let stopped = |spent: usize| {
+            move |e| match e {
                 PlanningError::Stopped { reason, extensions } => PlanningError::Stopped {
                     reason,
-                    extensions: found.extensions + extensions,
+                    extensions: spent + extensions,
                 },
                 e => e,
-            })?;
-            found.runs += 1;
+            }
+        };
+        // Runs one at a time until one reaches the goal (or enough fail to give up) ...
+        let mut outcomes: Vec<RrtOutcome> = Vec::new();
+        let mut failed = 0;
+        while outcomes.len() < planner.n_candidates {
+            let mut rng = seeded_rng(seed, outcomes.len() as u64 + 1);
+            let outcome =
+                grow(problem, cache, &mut rng, budget).map_err(stopped(found.extensions))?;
             found.extensions += outcome.extensions;
             found.dynamics_calls += outcome.dynamics_calls;
-            match outcome.trajectory {
-                Some(t) => {
-                    let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
-                    if seen.insert(key.collect()) {
-                        found.trajectories.push(t);
-                    }
-                }
-                None => {
-                    failed += 1;
-                    if found.trajectories.is_empty() && failed >= planner.max_failed_runs {
-                        break;
-                    }
-                }
+            let reached = outcome.trajectory.is_some();
+            outcomes.push(outcome);
+            if reached {
+                break;
+            }
+            failed += 1;
+            if failed >= planner.max_failed_runs {
+                break;
+            }
+        }
+        // ... then the others together, one model call serving a round of each.
+        if outcomes.last().is_some_and(|o| o.trajectory.is_some()) {
+            let rngs = (outcomes.len()..planner.n_candidates)
+                .map(|run| seeded_rng(seed, run as u64 + 1))
+                .collect::<Vec<_>>();
+            if !rngs.is_empty() {
+                let rest = grow_together(problem, cache, rngs, budget)
+                    .map_err(stopped(found.extensions))?;
+                found.dynamics_calls += rest.first().map_or(0, |o| o.dynamics_calls);
+                found.extensions += rest.iter().map(|o| o.extensions).sum::<usize>();
+                outcomes.extend(rest);
+            }
+        }
+        found.runs = outcomes.len();
+        let mut seen: HashSet<Vec<u64>> = HashSet::new();
+        for t in outcomes.into_iter().filter_map(|o| o.trajectory) {
+            let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
+            if seen.insert(key.collect()) {
+                found.trajectories.push(t);
             }
         }
         if found.trajectories.is_empty() {

@@ -771,3 +771,70 @@ fn a_cancelled_search_stops_before_its_next_round() {
         );
     }
 }
+
+/// Runs grown together give exactly the outcomes they give one at a time (each depends only on
+/// its own random stream and the models' answers), with fewer calls to the deviation model.
+#[test]
+fn runs_grown_together_grow_the_trees_they_grow_alone() {
+    use super::rrt::{SearchProblem, grow, grow_together, seeded_rng};
+    let grid = IcyGridworld::default_layout();
+    let kin = walled_kinematic();
+    let ice = IceModel::new(&grid, 0.02);
+    let bump = BumpModel {
+        centre: [0.3, 0.5],
+        height: 0.4,
+        sigma: 0.02,
+    };
+    type Case<'a> = (&'a dyn Domain, &'a dyn DeviationModel, [f64; 2], [f64; 2]);
+    let cases: [Case<'_>; 2] = [
+        (&grid, &ice, [0.0, 0.0], [11.0, 11.0]),
+        (&kin, &bump, [0.1, 0.1], [0.9, 0.9]),
+    ];
+    for (domain, model, start, goal) in cases {
+        let settings = small_settings();
+        let problem = SearchProblem {
+            domain,
+            start: &start,
+            goal: &goal,
+            beta: 1.0,
+            d_max: 0.1,
+            settings: &settings,
+        };
+        let alone_model = Counting {
+            inner: model,
+            calls: AtomicUsize::new(0),
+            points: AtomicUsize::new(0),
+        };
+        let mut cache = ModelCache::new(&alone_model, domain.feature_dim());
+        let alone: Vec<RrtOutcome> = (1..=6)
+            .map(|run| {
+                let mut rng = seeded_rng(7, run);
+                grow(problem, &mut cache, &mut rng, &Budget::unlimited()).unwrap()
+            })
+            .collect();
+        let together_model = Counting {
+            inner: model,
+            calls: AtomicUsize::new(0),
+            points: AtomicUsize::new(0),
+        };
+        let mut cache = ModelCache::new(&together_model, domain.feature_dim());
+        let rngs = (1..=6).map(|run| seeded_rng(7, run)).collect();
+        let together = grow_together(problem, &mut cache, rngs, &Budget::unlimited()).unwrap();
+        assert_eq!(together.len(), alone.len());
+        assert!(alone.iter().any(|o| o.trajectory.is_some()));
+        for (a, t) in alone.iter().zip(&together) {
+            assert_eq!(a.trajectory, t.trajectory, "{}", domain.kind());
+            assert_eq!(a.extensions, t.extensions);
+            assert_eq!(a.tree_size, t.tree_size);
+        }
+        let (alone_calls, together_calls) = (
+            alone_model.calls.into_inner(),
+            together_model.calls.into_inner(),
+        );
+        assert!(
+            together_calls < alone_calls,
+            "{}: {together_calls} calls together, {alone_calls} alone",
+            domain.kind()
+        );
+    }
+}
