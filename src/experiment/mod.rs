@@ -25,6 +25,7 @@ use crate::domain::GridFeatures;
 use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::planning::Strategy;
+use crate::settings::Preset;
 use crate::store::Store;
 use anyhow::Context;
 use clap::ValueEnum;
@@ -67,6 +68,11 @@ fn parse_strategy(s: &str) -> Result<Strategy, String> {
 fn parse_noise(s: &str) -> Result<NoiseMode, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
         .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
+}
+
+fn parse_preset(s: &str) -> Result<Preset, String> {
+    serde_json::from_value(serde_json::Value::String(s.to_string()))
+        .map_err(|_| format!("{s:?} is not a preset; use default or paper"))
 }
 
 fn parse_grid_features(s: &str) -> Result<GridFeatures, String> {
@@ -142,6 +148,13 @@ pub struct ExperimentArgs {
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
     pub grid_features: GridFeatures,
+    /// The experiments' preset: `default` (precond's) or `paper` (the paper's exact
+    /// configuration).
+    #[arg(long, value_parser = parse_preset, default_value = "default")]
+    pub preset: Preset,
+    /// Clip labels at this many `d_max` before fitting (0: raw labels). Default: the preset's.
+    #[arg(long)]
+    pub label_cap: Option<f64>,
 }
 
 impl ExperimentArgs {
@@ -182,6 +195,10 @@ pub struct Config {
     pub noise: Option<NoiseMode>,
     /// The gridworld's MDE features.
     pub grid_features: GridFeatures,
+    /// The experiments' preset.
+    pub preset: Preset,
+    /// The MDE's label cap in units of `d_max` (`None`: the preset's).
+    pub label_cap: Option<f64>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -241,6 +258,8 @@ impl Config {
             layout: None,
             noise: args.noise,
             grid_features: args.grid_features,
+            preset: args.preset,
+            label_cap: args.label_cap,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -280,9 +280,11 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
         seed,
         mde: MdeSettings {
             noise: cfg.noise.unwrap_or(MdeSettings::default().noise),
+            label_cap: cfg.label_cap,
             ..MdeSettings::default()
         },
         learning: LearningSettings {
+            preset: cfg.preset,
             strategy,
             batch_size: cfg.batch_size as u32,
             iterations: cfg.iterations as u32,

@@ -165,7 +165,7 @@ impl LiveExperiment {
         let mut labels = Vec::with_capacity(transitions.len());
         for t in transitions {
             features.extend(self.domain.features(&t.s, &t.a));
-            labels.push(t.deviation);
+            labels.push(self.settings.fit_label(t.deviation));
         }
         (features, labels)
     }

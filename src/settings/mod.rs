@@ -192,6 +192,13 @@ pub struct MdeSettings {
     /// Extra seeded optimiser starts beyond the first when fitting hyperparameters. Default 2;
     /// at most 20.
     pub restarts: usize,
+    /// Labels above `label_cap × d_max` are clipped to it before fitting; `0` fits the raw
+    /// labels (the paper's). Only whether a deviation is below `d_max` decides the
+    /// precondition, so how far above it a failure lands is noise to the MDE: fitted raw, a
+    /// few large deviations set the signal variance, and with it the uncertainty at every
+    /// unseen point. Absent: the preset's (`default`: 2, `paper`: 0); 0 or in `[1, 1000]`.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub label_cap: Option<f64>,
 }
 
 impl Default for MdeSettings {
@@ -200,6 +207,29 @@ impl Default for MdeSettings {
             noise: NoiseMode::Heteroscedastic,
             prior_mean: 0.0,
             restarts: 2,
+            label_cap: None,
+        }
+    }
+}
+
+/// A named set of defaults for the settings a preset decides (see [`LearningSettings::preset`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Preset {
+    /// precond's defaults: the paper's method with the changes measured to learn more from the
+    /// same executions (labels capped at `2 d_max`).
+    #[default]
+    Default,
+    /// The paper's exact configuration (raw labels), kept as the baseline.
+    Paper,
+}
+
+impl Preset {
+    /// The label cap this preset uses when `mde.label_cap` is absent.
+    pub fn label_cap(self) -> f64 {
+        match self {
+            Self::Default => 2.0,
+            Self::Paper => 0.0,
         }
     }
 }
@@ -208,6 +238,9 @@ impl Default for MdeSettings {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct LearningSettings {
+    /// Where the settings it decides come from when they are absent: `default` or `paper`
+    /// (the paper's exact configuration). Default `default`.
+    pub preset: Preset,
     /// Default strategy of proposals. Default `active`.
     pub strategy: Strategy,
     /// Executed trajectories per iteration; the MDE is refit after each batch. Default 5.
@@ -237,6 +270,7 @@ pub struct LearningSettings {
 impl Default for LearningSettings {
     fn default() -> Self {
         Self {
+            preset: Preset::Default,
             strategy: Strategy::Active,
             batch_size: 5,
             iterations: 20,
@@ -310,6 +344,17 @@ impl ExperimentRequest {
         }
         let d_max = self.d_max.unwrap_or_else(|| domain.default_d_max());
         positive("d_max", d_max)?;
+        let cap = self
+            .mde
+            .label_cap
+            .unwrap_or_else(|| self.learning.preset.label_cap());
+        if !(cap == 0.0 || (1.0..=1000.0).contains(&cap)) {
+            return Err(InvalidSetting::new(
+                "mde.label_cap",
+                format!("must be 0 (raw labels) or between 1 and 1000 (times d_max), got {cap}"),
+            ));
+        }
+        self.mde.label_cap = Some(cap);
         let m = &self.mde;
         finite("mde.prior_mean", m.prior_mean)?;
         if m.restarts > MAX_RESTARTS {
@@ -388,6 +433,16 @@ fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), InvalidSetting>
             field,
             format!("must be between {lo} and {hi}, got {v}"),
         ))
+    }
+}
+
+impl ExperimentSettings {
+    /// The label the MDE is fitted on for a deviation (see [`MdeSettings::label_cap`]).
+    pub fn fit_label(&self, deviation: f64) -> f64 {
+        match self.mde.label_cap {
+            Some(cap) if cap > 0.0 => deviation.min(cap * self.d_max),
+            _ => deviation,
+        }
     }
 }
 

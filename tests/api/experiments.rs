@@ -22,6 +22,8 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["learning"]["strategy"], "active");
     assert_eq!(e["learning"]["batch_size"], 5);
     assert_eq!(e["learning"]["k2"], 0.5);
+    assert_eq!(e["learning"]["preset"], "default");
+    assert_eq!(e["mde"]["label_cap"], 2.0);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
     let (status, listed) = app.get("/v1/experiments").await;
@@ -30,6 +32,24 @@ async fn an_empty_request_resolves_every_default() {
     let (status, one) = app.get(&format!("/v1/experiments/{}", e["id"])).await;
     assert_eq!(status, 200);
     assert_eq!(one["learning"], e["learning"]);
+}
+
+#[tokio::test]
+async fn the_paper_preset_fits_raw_labels_unless_told_otherwise() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    for (body, cap) in [
+        (json!({"learning": {"preset": "paper"}}), 0.0),
+        (
+            json!({"learning": {"preset": "paper"}, "mde": {"label_cap": 3}}),
+            3.0,
+        ),
+        (json!({"mde": {"label_cap": 0}}), 0.0),
+    ] {
+        let (status, e) = app.post("/v1/experiments", &body).await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(e["mde"]["label_cap"], cap, "{body}");
+    }
 }
 
 #[tokio::test]
@@ -61,6 +81,9 @@ async fn bad_settings_name_the_field() {
         ),
         (json!({"d_max": -1}), "d_max"),
         (json!({"mde": {"noise": "loud"}}), "mde.noise"),
+        (json!({"mde": {"label_cap": 0.5}}), "mde.label_cap"),
+        (json!({"mde": {"label_cap": -1}}), "mde.label_cap"),
+        (json!({"learning": {"preset": "cmax"}}), "learning.preset"),
         (json!({"learning": {"bogus": 1}}), "learning.bogus"),
         (
             json!({"domain": {"kind": "icy_gridworld", "map": ["..", "."]}}),

@@ -192,9 +192,9 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;
     let id = app
-        // Heteroscedastic noise (the default) is what makes this work: a homoscedastic fit of
-        // these 0-or-2 labels puts σ_noise ≈ 0.08 everywhere, so μ + 2σ > d_max = 0.1 even
-        // where the model is exact, and nothing is trusted.
+        // Heteroscedastic noise (the default) is what made this work with raw labels: a
+        // homoscedastic fit of 0-or-2 labels puts σ_noise ≈ 0.08 everywhere, so μ + 2σ > d_max
+        // = 0.1 even where the model is exact, and nothing is trusted.
         .create_experiment(json!({
             "mde": {"restarts": 0},
             "learning": {"batch_size": 1000}

@@ -5,6 +5,7 @@ mod contract;
 mod custom;
 mod dashboard;
 mod experiments;
+mod generalisation;
 mod helpers;
 mod learning;
 mod limits;
