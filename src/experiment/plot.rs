@@ -11,7 +11,7 @@
 //!   boundary, the training actions, and the scene).
 
 use super::Results;
-use super::protocol::{MapKind, PreconditionMap};
+use super::protocol::{IterationRecord, MapKind, PreconditionMap};
 use super::report::{by_iteration, mean_se, metric};
 use crate::domain::WaterPlant;
 use crate::domain::water_plant::{Rect, Scene};
@@ -49,6 +49,18 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             ("tpr", "TPR", true),
             ("tnr", "TNR", true),
         ],
+    )?;
+    metric_figure_over(
+        &dir.join("metrics_by_transitions.svg"),
+        &format!("{domain}: test-time evaluation against training transitions (mean over seeds)"),
+        results,
+        &[
+            ("plan_found_rate", "plan found", true),
+            ("success_rate", "success", true),
+            ("tpr", "TPR", true),
+            ("tnr", "TNR", true),
+        ],
+        Axis::Transitions,
     )?;
     metric_figure(
         &dir.join("training.svg"),
@@ -91,36 +103,68 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// One row of panels, one per metric: the mean over seeds per strategy with a ± s.e. band.
-/// Rates (`unit = true`) are drawn on `[0, 1]`.
+/// What the x axis of a metric figure counts.
+#[derive(Clone, Copy, PartialEq)]
+enum Axis {
+    /// Learning iterations.
+    Iterations,
+    /// Training transitions executed so far (the mean over seeds at each iteration), so that
+    /// strategies that execute more per iteration are compared at equal cost.
+    Transitions,
+}
+
+/// One row of panels, one per metric: the mean over seeds per strategy with a ± s.e. band,
+/// against iterations. Rates (`unit = true`) are drawn on `[0, 1]`.
 fn metric_figure(
     path: &Path,
     title: &str,
     results: &Results,
     panels: &[(&str, &str, bool)],
 ) -> anyhow::Result<()> {
+    metric_figure_over(path, title, results, panels, Axis::Iterations)
+}
+
+/// [`metric_figure`] against the given x axis.
+fn metric_figure_over(
+    path: &Path,
+    title: &str,
+    results: &Results,
+    panels: &[(&str, &str, bool)],
+    axis: Axis,
+) -> anyhow::Result<()> {
     let cfg = &results.config;
     let root = SVGBackend::new(path, (420 * panels.len() as u32, 380)).into_drawing_area();
     root.fill(&WHITE)?;
     let root = root.titled(title, (FONT, 22))?;
     let areas = root.split_evenly((1, panels.len()));
-    let x_max = (cfg.iterations.saturating_sub(1)).max(1) as f64;
-    for (area, (name, label, unit)) in areas.iter().zip(panels) {
+    let x_of = |j: usize, g: &[&IterationRecord]| match axis {
+        Axis::Iterations => Some(j as f64),
+        Axis::Transitions => mean_se(g.iter().map(|r| Some(r.n_train as f64))).map(|(m, _, _)| m),
+    };
+    let mut x_max: f64 = 1.0;
+    let mut all_series = Vec::new();
+    for (name, _, _) in panels {
         let series: Vec<(Strategy, Vec<MeanPoint>)> = cfg
             .strategies
             .iter()
             .map(|&s| {
-                let pts = by_iteration(results, s)
+                let pts: Vec<MeanPoint> = by_iteration(results, s)
                     .iter()
                     .enumerate()
                     .filter_map(|(j, g)| {
-                        mean_se(g.iter().map(|r| metric(r, name)))
-                            .map(|(m, se, _)| (j as f64, m, se))
+                        let (m, se, _) = mean_se(g.iter().map(|r| metric(r, name)))?;
+                        Some((x_of(j, g)?, m, se))
                     })
                     .collect();
                 (s, pts)
             })
             .collect();
+        for (_, pts) in &series {
+            x_max = pts.iter().map(|p| p.0).fold(x_max, f64::max);
+        }
+        all_series.push(series);
+    }
+    for ((area, (_, label, unit)), series) in areas.iter().zip(panels).zip(all_series) {
         let (lo, hi) = if *unit {
             (0.0, 1.02)
         } else {
@@ -138,7 +182,10 @@ fn metric_figure(
             .build_cartesian_2d(0.0..x_max, lo..hi)?;
         chart
             .configure_mesh()
-            .x_desc("iteration")
+            .x_desc(match axis {
+                Axis::Iterations => "iteration",
+                Axis::Transitions => "training transitions",
+            })
             .x_labels(cfg.iterations.clamp(2, 11))
             .x_label_formatter(&|x| format!("{x:.0}"))
             .light_line_style(WHITE.mix(0.0))
