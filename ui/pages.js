@@ -76,7 +76,9 @@ function settingsCard(e) {
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],
     ['acquisition', `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`],
     ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`],
-    ['MDE', `${m.noise}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts`],
+    ['preset', l.preset ?? 'paper (before presets)'],
+    ['MDE', `${m.noise}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
+      + (m.label_cap ? `labels capped at ${fmt(m.label_cap)} d_max` : 'raw labels')],
     ['state space', space(e.state_space)], ['action space', space(e.action_space)],
     ['features', e.feature_names.join(', ')], ['created', e.created_at],
   ];
