@@ -87,7 +87,7 @@ fn plane(model: Arc<dyn DynamicsModel>) -> CustomDomain {
         goal_radius: 0.05,
         obstacles: vec![],
         steer_samples: 8,
-        rollout_length: 20,
+        rollout_length: Some(20),
     };
     CustomDomain::new(params, model).expect("the benchmark's domain is valid")
 }

@@ -25,6 +25,9 @@ pub const MAX_STEER_SAMPLES: usize = 256;
 /// Longest `random`-strategy rollout.
 pub const MAX_ROLLOUT_LENGTH: usize = 10_000;
 
+/// Steps of a `random`-strategy rollout when none is declared and no plan was found to measure.
+pub const FALLBACK_ROLLOUT_LENGTH: usize = 20;
+
 /// Points checked along each edge by the approximate collision check.
 const COLLISION_SAMPLES: usize = 8;
 
@@ -49,8 +52,9 @@ pub struct CustomParams {
     pub obstacles: Vec<BoxObstacle>,
     /// Actions sampled per steering step (continuous action spaces).
     pub steer_samples: usize,
-    /// Steps of a `random`-strategy rollout.
-    pub rollout_length: usize,
+    /// Steps of a `random`-strategy rollout; `None`: as long as a goal-reaching plan for the
+    /// same problem (see [`Domain::rollout_like_plans`]), or [`FALLBACK_ROLLOUT_LENGTH`].
+    pub rollout_length: Option<usize>,
 }
 
 /// The default tolerance `d_max` of a custom domain, in the units of its distance (clients
@@ -204,7 +208,10 @@ impl CustomDomain {
                 format!("must be between 1 and {MAX_STEER_SAMPLES}"),
             ));
         }
-        if !(1..=MAX_ROLLOUT_LENGTH).contains(&params.rollout_length) {
+        if params
+            .rollout_length
+            .is_some_and(|n| !(1..=MAX_ROLLOUT_LENGTH).contains(&n))
+        {
             return Err(DomainError::at(
                 "rollout_length",
                 format!("must be between 1 and {MAX_ROLLOUT_LENGTH}"),
@@ -400,7 +407,13 @@ impl Domain for CustomDomain {
     }
 
     fn rollout_length(&self) -> usize {
-        self.params.rollout_length
+        self.params
+            .rollout_length
+            .unwrap_or(FALLBACK_ROLLOUT_LENGTH)
+    }
+
+    fn rollout_like_plans(&self) -> bool {
+        self.params.rollout_length.is_none()
     }
 
     /// A uniform start outside the obstacles and a goal (on the goal components) at least twice
@@ -559,7 +572,7 @@ mod tests {
             goal_radius: 0.05,
             obstacles: vec![],
             steer_samples: 8,
-            rollout_length: 20,
+            rollout_length: Some(20),
         }
     }
 

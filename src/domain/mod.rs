@@ -294,6 +294,14 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// Number of steps of a `random`-strategy rollout.
     fn rollout_length(&self) -> usize;
 
+    /// Whether a `random` rollout should instead be as long as a goal-reaching plan for the
+    /// same problem: for domains that cannot tell how far one step goes (a model behind the
+    /// network), so that `random` executes about as much as the goal-conditioned strategies.
+    /// [`rollout_length`](Self::rollout_length) is then the length when no plan is found.
+    fn rollout_like_plans(&self) -> bool {
+        false
+    }
+
     /// A random planning problem from the domain's distribution of problems.
     fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem;
 }

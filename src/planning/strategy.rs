@@ -15,7 +15,9 @@
 //! **Strategies.**
 //! - `active`: the candidate with the smallest acquisition value `α` (the first on ties).
 //! - `goal_conditioned`: a uniformly random candidate (its `α` is still reported).
-//! - `random`: a rollout of `Domain::rollout_length()` steps from the start with actions from
+//! - `random`: a rollout of `Domain::rollout_length()` steps (for a domain that asks for it,
+//!   `Domain::rollout_like_plans`, as many as one RRT run's plan for the problem has) from the
+//!   start with actions from
 //!   `Domain::sample_action`, ignoring the goal. Each step must satisfy the domain's constraints
 //!   and the precondition under `β`: up to `random_action_tries` actions are sampled per step
 //!   (each counts as an extension); when none fits the rollout stops there. It fails with
@@ -177,13 +179,23 @@ pub fn propose_within(
     };
     if strategy == Strategy::Random {
         let mut dynamics_calls = 0;
+        let (length, measured) = problem.rollout_length(&mut cache, planner, seed, budget)?;
         let (trajectory, extensions) = problem.rollout(
             &mut cache,
             planner,
+            length,
             &mut own_rng,
             &mut dynamics_calls,
             budget,
         )?;
+        let (runs, extensions, dynamics_calls) = match measured {
+            Some(m) => (
+                2,
+                extensions + m.extensions,
+                dynamics_calls + m.dynamics_calls,
+            ),
+            None => (1, extensions, dynamics_calls),
+        };
         let (alpha_step, alpha) = acquisition.score(&trajectory);
         return Ok(Proposal {
             strategy,
@@ -196,7 +208,7 @@ pub fn propose_within(
             alpha,
             chosen_index: 0,
             extensions,
-            runs: 1,
+            runs,
             model_points: cache.points(),
             model_calls: cache.calls(),
             dynamics_calls,
@@ -352,10 +364,42 @@ impl Problem<'_> {
         Ok(found)
     }
 
+    /// Steps of a `random` rollout: the domain's, or for a domain that asks for it
+    /// ([`Domain::rollout_like_plans`]) the length of one RRT run's plan for this problem
+    /// (stream `n_candidates + 1` of the seed), returned with that run.
+    fn rollout_length(
+        &self,
+        cache: &mut ModelCache<'_>,
+        planner: &PlannerSettings,
+        seed: u64,
+        budget: &Budget,
+    ) -> Result<(usize, Option<RrtOutcome>), PlanningError> {
+        let domain = self.domain;
+        if !domain.rollout_like_plans() {
+            return Ok((domain.rollout_length(), None));
+        }
+        let problem = SearchProblem {
+            domain,
+            start: self.start,
+            goal: self.goal,
+            beta: self.beta,
+            d_max: self.d_max,
+            settings: planner,
+        };
+        let mut rng = seeded_rng(seed, planner.n_candidates as u64 + 1);
+        let run = grow(problem, cache, &mut rng, budget)?;
+        let length = run
+            .trajectory
+            .as_ref()
+            .map_or(domain.rollout_length(), |t| t.len().max(1));
+        Ok((length, Some(run)))
+    }
+
     fn rollout(
         &self,
         cache: &mut ModelCache<'_>,
         planner: &PlannerSettings,
+        length: usize,
         rng: &mut dyn rand::RngCore,
         dynamics_calls: &mut usize,
         budget: &Budget,
@@ -368,7 +412,7 @@ impl Problem<'_> {
             sigma: Vec::new(),
         };
         let mut extensions = 0;
-        for _ in 0..domain.rollout_length() {
+        for _ in 0..length {
             if let Some(reason) = budget.stop() {
                 return Err(PlanningError::Stopped { reason, extensions });
             }

@@ -838,3 +838,85 @@ fn runs_grown_together_grow_the_trees_they_grow_alone() {
         );
     }
 }
+
+/// A custom domain that declares no rollout length rolls out as many random steps as a plan
+/// for the same problem has; one that declares it rolls out that many.
+#[test]
+fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
+    use crate::domain::{CustomDomain, CustomParams, LinearModel, Space};
+    use std::sync::Arc;
+    let space = |lo: f64, hi: f64| Space {
+        names: vec!["a".into(), "b".into()],
+        low: vec![lo; 2],
+        high: vec![hi; 2],
+        values: None,
+    };
+    let (st, ac) = (space(0.0, 1.0), space(-0.1, 0.1));
+    let eye = vec![vec![1.0, 0.0], vec![0.0, 1.0]];
+    let domain = |rollout_length: Option<usize>| {
+        let model = LinearModel::new(eye.clone(), eye.clone(), vec![0.0; 2], &st, &ac).unwrap();
+        CustomDomain::new(
+            CustomParams {
+                state: st.clone(),
+                action: ac.clone(),
+                feature_state: vec![0, 1],
+                feature_action: vec![0, 1],
+                weights: vec![1.0, 1.0],
+                goal_components: vec![0, 1],
+                goal_radius: 0.05,
+                obstacles: vec![],
+                steer_samples: 8,
+                rollout_length,
+            },
+            Arc::new(model),
+        )
+        .unwrap()
+    };
+    let trusted = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let random = |d: &CustomDomain, seed| {
+        propose(
+            Strategy::Random,
+            d,
+            &trusted,
+            &[0.1, 0.1],
+            &[0.35, 0.1],
+            0.0,
+            0.1,
+            &small_settings(),
+            &AcquisitionSettings::default(),
+            seed,
+        )
+        .unwrap()
+    };
+    let measured = domain(None);
+    for seed in 0..5 {
+        let p = random(&measured, seed);
+        let plan = propose(
+            Strategy::GoalConditioned,
+            &measured,
+            &trusted,
+            &[0.1, 0.1],
+            &[0.35, 0.1],
+            0.0,
+            0.1,
+            &small_settings(),
+            &AcquisitionSettings::default(),
+            seed,
+        )
+        .unwrap();
+        // The goal is 0.25 away, at most 0.14 a step: plans take a few steps, never 20.
+        assert!(
+            (2..=10).contains(&p.trajectory.len()),
+            "seed {seed}: {} random steps",
+            p.trajectory.len()
+        );
+        let longest = plan.candidates.iter().map(|c| c.length).max().unwrap();
+        assert!(p.trajectory.len() <= longest.max(2) * 2, "seed {seed}");
+        assert_eq!(p.runs, 2);
+    }
+    let declared = random(&domain(Some(20)), 0);
+    assert_eq!((declared.trajectory.len(), declared.runs), (20, 1));
+}

@@ -147,17 +147,15 @@ pub struct CustomSpec {
     /// Actions the planner samples per steering step (continuous actions). Default 8.
     #[serde(default = "default_steer_samples")]
     pub steer_samples: usize,
-    /// Steps of a `random`-strategy rollout. Default 20.
-    #[serde(default = "default_rollout_length")]
-    pub rollout_length: usize,
+    /// Steps of a `random`-strategy rollout. Absent: as long as a goal-reaching plan for the
+    /// same problem (one RRT run at the proposal's β), or 20 when the planner finds none — so
+    /// that `random` executes about as much per trajectory as the goal-conditioned strategies.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rollout_length: Option<usize>,
 }
 
 fn default_steer_samples() -> usize {
     8
-}
-
-fn default_rollout_length() -> usize {
-    20
 }
 
 fn invalid(e: DomainError) -> InvalidSetting {
