@@ -235,7 +235,9 @@ async fn learning_generalises_beyond_what_was_executed_and_keeps_exploring_once_
     let judged = l.inside().await;
     let inside = inside_set(&judged);
 
-    // Sound: (almost) nothing unsafe is trusted.
+    // Sound: (almost) nothing unsafe is trusted — TNR ≥ 0.9 on this small map (measured: 0 of
+    // 16), leaving room for one borderline move should the GP's arithmetic differ by a few ulps
+    // on another CPU.
     let unsafe_pairs: Vec<Pair> = judged
         .iter()
         .map(|(p, _)| *p)
@@ -243,7 +245,7 @@ async fn learning_generalises_beyond_what_was_executed_and_keeps_exploring_once_
         .collect();
     let unsafe_inside = unsafe_pairs.iter().filter(|p| inside.contains(p)).count();
     assert!(
-        unsafe_inside * 50 <= unsafe_pairs.len(),
+        unsafe_inside * 10 <= unsafe_pairs.len(),
         "{unsafe_inside} of {} unsafe state-actions trusted",
         unsafe_pairs.len()
     );
