@@ -36,6 +36,14 @@ pub fn strategy_color(s: Strategy) -> RGBColor {
     }
 }
 
+/// The test-time metrics plotted per strategy: (metric, panel label, is a rate).
+const TEST_METRICS: [(&str, &str, bool); 4] = [
+    ("plan_found_rate", "plan found", true),
+    ("success_rate", "success", true),
+    ("tpr", "TPR", true),
+    ("tnr", "TNR", true),
+];
+
 /// Writes every figure of a run into `dir`.
 pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     let domain = results.config.domain.as_str();
@@ -43,23 +51,13 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
         &dir.join("metrics.svg"),
         &format!("{domain}: test-time evaluation (mean ± s.e. over seeds)"),
         results,
-        &[
-            ("plan_found_rate", "plan found", true),
-            ("success_rate", "success", true),
-            ("tpr", "TPR", true),
-            ("tnr", "TNR", true),
-        ],
+        &TEST_METRICS,
     )?;
     metric_figure_over(
         &dir.join("metrics_by_transitions.svg"),
         &format!("{domain}: test-time evaluation against training transitions (mean over seeds)"),
         results,
-        &[
-            ("plan_found_rate", "plan found", true),
-            ("success_rate", "success", true),
-            ("tpr", "TPR", true),
-            ("tnr", "TNR", true),
-        ],
+        &TEST_METRICS,
         Axis::Transitions,
     )?;
     metric_figure(

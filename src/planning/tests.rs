@@ -876,9 +876,9 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
         mu: 0.0,
         sigma: 0.01,
     };
-    let random = |d: &CustomDomain, seed| {
+    let proposal = |strategy, d: &CustomDomain, seed| {
         propose(
-            Strategy::Random,
+            strategy,
             d,
             &trusted,
             &[0.1, 0.1],
@@ -893,20 +893,8 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
     };
     let measured = domain(None);
     for seed in 0..5 {
-        let p = random(&measured, seed);
-        let plan = propose(
-            Strategy::GoalConditioned,
-            &measured,
-            &trusted,
-            &[0.1, 0.1],
-            &[0.35, 0.1],
-            0.0,
-            0.1,
-            &small_settings(),
-            &AcquisitionSettings::default(),
-            seed,
-        )
-        .unwrap();
+        let p = proposal(Strategy::Random, &measured, seed);
+        let plan = proposal(Strategy::GoalConditioned, &measured, seed);
         // The goal is 0.25 away, at most 0.14 a step: plans take a few steps, never 20.
         assert!(
             (2..=10).contains(&p.trajectory.len()),
@@ -917,6 +905,6 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
         assert!(p.trajectory.len() <= longest.max(2) * 2, "seed {seed}");
         assert_eq!(p.runs, 2);
     }
-    let declared = random(&domain(Some(20)), 0);
+    let declared = proposal(Strategy::Random, &domain(Some(20)), 0);
     assert_eq!((declared.trajectory.len(), declared.runs), (20, 1));
 }
