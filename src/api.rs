@@ -8,6 +8,7 @@
 
 use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
+use crate::mde::HeldOutTrust;
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{
@@ -428,6 +429,15 @@ pub struct ModelResponse {
     pub fitted_at: Option<String>,
     /// Trajectories the fit covers.
     pub n_trajectories: i64,
+    /// The label cap the fit clipped deviations at (units of `d_max`; 0 = raw labels; `null`
+    /// for the prior).
+    pub label_cap: Option<f64>,
+    /// Each candidate cap's model judging its own training transitions, each held out in turn
+    /// (trust at `learning.test_beta`, and the log probability given to the right side of
+    /// `d_max`): with `mde.label_cap: "auto"` the fit keeps the best-scoring one, but replaces
+    /// raw labels only when a cap scores clearly better (see
+    /// [`crate::mde::fit_choosing_label_cap`]).
+    pub label_cap_trials: Vec<HeldOutTrust>,
 }
 
 /// One state-action to judge.

@@ -4,6 +4,7 @@
 use crate::gp::{GpModel, GpParams, Hyperparameters, NoiseMode, NoiseSummary};
 use crate::planning::DeviationModel;
 use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
 
 /// What answers queries.
 #[derive(Debug)]
@@ -23,6 +24,11 @@ pub struct FitRecord {
     pub fitted_at: String,
     /// Trajectories stored when the fit started (used to tell whether a batch is still unfitted).
     pub n_trajectories: i64,
+    /// The label cap the training labels were clipped at (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// Every candidate cap's held-out judgement of the training transitions (one entry for a
+    /// fixed cap; empty for versions stored before caps were recorded).
+    pub label_cap_trials: Vec<HeldOutTrust>,
 }
 
 /// One version of an experiment's MDE.
@@ -181,5 +187,316 @@ pub fn gp_params(noise: NoiseMode, prior_mean: f64, restarts: usize, seed: u64) 
         restarts,
         seed,
         ..GpParams::default()
+    }
+}
+
+/// The labels the MDE is fitted on for a label cap (units of `d_max`; 0 = the raw deviations).
+pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64> {
+    if label_cap > 0.0 {
+        deviations
+            .iter()
+            .map(|d| d.min(label_cap * d_max))
+            .collect()
+    } else {
+        deviations.to_vec()
+    }
+}
+
+/// How a model fitted with one label cap judges its own training transitions when each is
+/// left out in turn: the held-out precondition `μ₋ᵢ + β σ₋ᵢ < d_max` against the truth
+/// `deviation_i < d_max`, and the log probability it gives to the truth.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct HeldOutTrust {
+    /// The label cap the model was fitted with (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// Training transitions whose deviation is below `d_max`.
+    pub safe: usize,
+    /// Training transitions whose deviation is `d_max` or more.
+    pub unsafe_transitions: usize,
+    /// Safe transitions inside the held-out precondition.
+    pub trusted_safe: usize,
+    /// Unsafe transitions inside the held-out precondition (false trust).
+    pub trusted_unsafe: usize,
+    /// Mean log probability the held-out predictions give to the side of `d_max` each
+    /// transition's deviation fell on (`log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)`; 0 is perfect).
+    pub log_score: f64,
+}
+
+impl HeldOutTrust {
+    /// Leave-one-out judgement of `gp`'s training points, fitted on `labels` (the `deviations`
+    /// capped at `label_cap`); `None` when the model kept no inverse factor.
+    pub fn of(
+        gp: &GpModel,
+        label_cap: f64,
+        labels: &[f64],
+        deviations: &[f64],
+        beta: f64,
+        d_max: f64,
+    ) -> Option<Self> {
+        Self::with_log_probabilities(gp, label_cap, labels, deviations, beta, d_max).map(|(t, _)| t)
+    }
+
+    /// [`of`](Self::of), with each transition's held-out log probability of its side of `d_max`.
+    fn with_log_probabilities(
+        gp: &GpModel,
+        label_cap: f64,
+        labels: &[f64],
+        deviations: &[f64],
+        beta: f64,
+        d_max: f64,
+    ) -> Option<(Self, Vec<f64>)> {
+        let loo = gp.leave_one_out()?;
+        let mut log_p = Vec::with_capacity(loo.len());
+        let mut t = Self {
+            label_cap,
+            safe: 0,
+            unsafe_transitions: 0,
+            trusted_safe: 0,
+            trusted_unsafe: 0,
+            log_score: 0.0,
+        };
+        for ((&(residual, sd), &label), &deviation) in loo.iter().zip(labels).zip(deviations) {
+            let mu = label - residual;
+            let inside = mu + beta * sd < d_max;
+            let z = (d_max - mu) / sd;
+            let p_correct = if deviation < d_max {
+                normal_tail(-z)
+            } else {
+                normal_tail(z)
+            };
+            log_p.push(p_correct.max(1e-300).ln());
+            t.log_score += log_p[log_p.len() - 1] / deviations.len().max(1) as f64;
+            if deviation < d_max {
+                t.safe += 1;
+                t.trusted_safe += usize::from(inside);
+            } else {
+                t.unsafe_transitions += 1;
+                t.trusted_unsafe += usize::from(inside);
+            }
+        }
+        Some((t, log_p))
+    }
+}
+
+/// A model fitted with the label cap chosen from the data, and how every candidate did.
+#[derive(Debug)]
+pub struct CapChoice {
+    /// The model fitted with the chosen cap.
+    pub gp: GpModel,
+    /// The chosen cap (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// Every candidate's held-out judgement, in the order tried.
+    pub trials: Vec<HeldOutTrust>,
+}
+
+/// Fits one model per candidate label cap (units of `d_max`; 0 = raw labels) and keeps the one
+/// whose held-out predictions best say which side of `d_max` each training transition's
+/// deviation fell on: the highest mean `log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)` (a proper scoring rule of
+/// exactly what decides the precondition), ties to the larger cap (raw labels count as the
+/// largest). When raw labels are a candidate, a cap replaces them only if its gain is at least
+/// [`CAP_GAIN_STANDARD_ERRORS`] standard errors of the per-transition differences: the paper's
+/// labels stay unless the data clearly say otherwise. Each transition is left out in closed
+/// form, so a candidate costs one fit. With one candidate that one is kept. Errors when a fit
+/// fails.
+pub fn fit_choosing_label_cap(
+    x: &DMatrix<f64>,
+    deviations: &[f64],
+    d_max: f64,
+    beta: f64,
+    caps: &[f64],
+    params: &crate::gp::ValidGpParams,
+) -> Result<CapChoice, crate::gp::GpError> {
+    let mut fitted = Vec::with_capacity(caps.len());
+    for &cap in caps {
+        let labels = capped_labels(deviations, cap, d_max);
+        let gp = GpModel::fit(x, &DVector::from_column_slice(&labels), params)?;
+        let judged =
+            HeldOutTrust::with_log_probabilities(&gp, cap, &labels, deviations, beta, d_max);
+        fitted.push((cap, gp, judged));
+    }
+    let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
+    let score = |j: &Option<(HeldOutTrust, Vec<f64>)>| {
+        j.as_ref().map_or(f64::NEG_INFINITY, |(t, _)| t.log_score)
+    };
+    let mut best = (0..fitted.len())
+        .max_by(|&a, &b| {
+            let ((ca, _, ja), (cb, _, jb)) = (&fitted[a], &fitted[b]);
+            score(ja)
+                .total_cmp(&score(jb))
+                .then(size(*ca).total_cmp(&size(*cb)))
+        })
+        .ok_or_else(|| crate::gp::GpError::InvalidState("no label cap to fit with".into()))?;
+    if let Some(raw) = fitted.iter().position(|(cap, _, _)| *cap == 0.0)
+        && let (Some((_, lp_best)), Some((_, lp_raw))) = (&fitted[best].2, &fitted[raw].2)
+        && !clearly_better(lp_best, lp_raw)
+    {
+        best = raw;
+    }
+    let trials = fitted
+        .iter()
+        .filter_map(|(_, _, j)| j.as_ref().map(|(t, _)| *t))
+        .collect();
+    let (label_cap, gp, _) = fitted.swap_remove(best);
+    Ok(CapChoice {
+        gp,
+        label_cap,
+        trials,
+    })
+}
+
+/// How many standard errors of the paired per-transition differences in held-out log
+/// probability a label cap must gain over raw labels to replace them.
+pub const CAP_GAIN_STANDARD_ERRORS: f64 = 2.0;
+
+/// Whether log probabilities `a` beat `b` (paired, same transitions) by at least
+/// [`CAP_GAIN_STANDARD_ERRORS`] standard errors of their mean difference.
+fn clearly_better(a: &[f64], b: &[f64]) -> bool {
+    let n = a.len().min(b.len());
+    if n < 2 {
+        return false;
+    }
+    let d: Vec<f64> = a.iter().zip(b).map(|(x, y)| x - y).collect();
+    let mean = d.iter().sum::<f64>() / n as f64;
+    let var = d.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / (n - 1) as f64;
+    mean > 0.0 && mean >= CAP_GAIN_STANDARD_ERRORS * (var / n as f64).sqrt()
+}
+
+/// `Φ(−β)`, the standard normal's upper tail beyond `β`.
+pub fn normal_tail(beta: f64) -> f64 {
+    0.5 * libm::erfc(beta / std::f64::consts::SQRT_2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const D_MAX: f64 = 0.1;
+
+    fn params() -> crate::gp::ValidGpParams {
+        gp_params(NoiseMode::Homoscedastic, 0.0, 0, 7)
+            .check()
+            .expect("valid")
+    }
+
+    /// Points on a 2-D lattice with the deviation a function of the point.
+    fn world(f: impl Fn(f64, f64) -> f64) -> (DMatrix<f64>, Vec<f64>) {
+        let pts: Vec<(f64, f64)> = (0..12)
+            .flat_map(|i| (0..5).map(move |j| (i as f64 / 11.0, j as f64 / 4.0)))
+            .collect();
+        let x = DMatrix::from_fn(
+            pts.len(),
+            2,
+            |r, c| if c == 0 { pts[r].0 } else { pts[r].1 },
+        );
+        let d = pts.iter().map(|&(a, b)| f(a, b)).collect();
+        (x, d)
+    }
+
+    #[test]
+    fn the_chosen_cap_judges_the_held_out_transitions_best() {
+        // A world that jumps (a cliff, labels 0 or 20 d_max) and one that ramps (deviation
+        // grows linearly through d_max): the rule must hold on both, whatever it picks.
+        let worlds = [
+            world(|a, _| if a < 0.5 { 0.0 } else { 2.0 }),
+            world(|a, _| (a - 0.3).max(0.0) * 0.8),
+        ];
+        for (x, deviations) in &worlds {
+            let caps = [2.0, 5.0, 0.0];
+            let c =
+                fit_choosing_label_cap(x, deviations, D_MAX, 2.0, &caps, &params()).expect("fits");
+            assert_eq!(c.trials.len(), 3);
+            for t in &c.trials {
+                assert_eq!(t.safe + t.unsafe_transitions, deviations.len());
+                assert!(t.trusted_safe <= t.safe && t.trusted_unsafe <= t.unsafe_transitions);
+                assert!(t.log_score <= 0.0 && t.log_score.is_finite(), "{t:?}");
+            }
+            // The chosen cap scores best, or it is raw labels kept because no cap beat them
+            // clearly.
+            let chosen = c
+                .trials
+                .iter()
+                .find(|t| t.label_cap == c.label_cap)
+                .unwrap();
+            let top = c
+                .trials
+                .iter()
+                .map(|t| t.log_score)
+                .fold(f64::MIN, f64::max);
+            assert!(
+                chosen.log_score == top || c.label_cap == 0.0,
+                "{:?}",
+                c.trials
+            );
+            // The model returned is the one fitted with the chosen cap.
+            let labels = capped_labels(deviations, c.label_cap, D_MAX);
+            let again = GpModel::fit(x, &DVector::from_vec(labels), &params()).unwrap();
+            let q = DMatrix::from_row_slice(1, 2, &[0.42, 0.5]);
+            assert_eq!(c.gp.predict(&q).mean, again.predict(&q).mean);
+        }
+    }
+
+    #[test]
+    fn held_out_judgements_match_refitting_without_the_transition() {
+        let (x, deviations) = world(|a, b| if a < 0.5 && b < 0.6 { 0.0 } else { 0.4 });
+        let labels = capped_labels(&deviations, 2.0, D_MAX);
+        let p = params();
+        let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &p).unwrap();
+        let t = HeldOutTrust::of(&gp, 2.0, &labels, &deviations, 2.0, D_MAX).unwrap();
+        // Refit without each point with the same hyperparameters and judge it directly.
+        let mut state = gp.state();
+        state.n_train = deviations.len() - 1;
+        let noise = gp.hyperparameters().noise_variance + gp.jitter();
+        let (mut trusted_safe, mut trusted_unsafe, mut log_score) = (0, 0, 0.0);
+        for i in 0..deviations.len() {
+            let keep: Vec<usize> = (0..deviations.len()).filter(|&j| j != i).collect();
+            let xi = x.select_rows(&keep);
+            let yi = DVector::from_iterator(keep.len(), keep.iter().map(|&j| labels[j]));
+            let without = GpModel::from_state(&xi, &yi, &state).unwrap();
+            let pred = without.predict(&x.rows(i, 1).into_owned());
+            let (mu, sd) = (pred.mean[0], (pred.latent_variance[0] + noise).sqrt());
+            let z = (D_MAX - mu) / sd;
+            let safe = deviations[i] < D_MAX;
+            let inside = mu + 2.0 * sd < D_MAX;
+            trusted_safe += usize::from(safe && inside);
+            trusted_unsafe += usize::from(!safe && inside);
+            log_score += normal_tail(if safe { -z } else { z }).ln() / deviations.len() as f64;
+        }
+        assert_eq!(
+            (t.trusted_safe, t.trusted_unsafe),
+            (trusted_safe, trusted_unsafe)
+        );
+        assert!(
+            (t.log_score - log_score).abs() < 1e-6,
+            "{} vs {log_score}",
+            t.log_score
+        );
+    }
+
+    #[test]
+    fn a_cap_replaces_raw_labels_only_when_clearly_better() {
+        let raw = [-0.5, -0.4, -0.6, -0.5];
+        assert!(clearly_better(&[-0.1, -0.1, -0.2, -0.1], &raw));
+        // Better on average, but by less than its noise.
+        assert!(!clearly_better(&[-0.1, -0.9, -0.2, -0.7], &raw));
+        assert!(!clearly_better(&raw, &raw));
+        assert!(!clearly_better(&[-0.1], &[-0.5]));
+    }
+
+    #[test]
+    fn one_candidate_is_kept_and_judged() {
+        let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 1.0 });
+        let c = fit_choosing_label_cap(&x, &deviations, D_MAX, 2.0, &[0.0], &params()).unwrap();
+        assert_eq!(c.label_cap, 0.0);
+        assert_eq!(c.trials.len(), 1);
+        assert_eq!(c.trials[0].unsafe_transitions, 30);
+    }
+
+    #[test]
+    fn labels_are_clipped_at_the_cap_and_raw_at_zero() {
+        let d = [0.0, 0.05, 0.3, 2.0];
+        assert_eq!(capped_labels(&d, 2.0, D_MAX), vec![0.0, 0.05, 0.2, 0.2]);
+        assert_eq!(capped_labels(&d, 0.0, D_MAX), d.to_vec());
+        assert!((normal_tail(2.0) - 0.02275).abs() < 1e-5);
+        assert!((normal_tail(0.0) - 0.5).abs() < 1e-12);
     }
 }

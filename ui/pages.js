@@ -78,7 +78,8 @@ function settingsCard(e) {
     ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`],
     ['preset', l.preset ?? 'paper (before presets)'],
     ['MDE', `${m.noise}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
-      + (m.label_cap ? `labels capped at ${fmt(m.label_cap)} d_max` : 'raw labels')],
+      + (m.label_cap === 'auto' ? 'label cap chosen at each fit (auto)'
+        : m.label_cap ? `labels capped at ${fmt(m.label_cap)} d_max` : 'raw labels')],
     ['state space', space(e.state_space)], ['action space', space(e.action_space)],
     ['features', e.feature_names.join(', ')], ['created', e.created_at],
   ];
@@ -116,9 +117,10 @@ function timelineCharts(e, t) {
 function modelTable(t) {
   if (!t.models.length) return null;
   return h('details', {}, h('summary', {}, `Model versions (${t.models.length})`),
-    table([['version', 1], ['iteration', 1], ['n_train', 1], ['trajectories', 1], ['noise'], ['LML', 1], ['fit s', 1], ['fitted']],
+    table([['version', 1], ['iteration', 1], ['n_train', 1], ['trajectories', 1], ['noise'], ['label cap', 1], ['LML', 1], ['fit s', 1], ['fitted']],
       t.models.map(m => h('tr', {}, td(m.version, true), td(m.iteration, true), td(m.n_train, true), td(m.n_trajectories, true),
-        td(m.noise), td(fmt(m.log_marginal_likelihood, 5), true), td(fmt(m.fit_seconds), true), td(ago(m.fitted_at))))));
+        td(m.noise), td(m.label_cap == null ? '–' : m.label_cap === 0 ? 'raw' : `${fmt(m.label_cap)} d_max`, true),
+        td(fmt(m.log_marginal_likelihood, 5), true), td(fmt(m.fit_seconds), true), td(ago(m.fitted_at))))));
 }
 
 function runsTable(e, page, offset) {

@@ -25,7 +25,7 @@ use crate::domain::GridFeatures;
 use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::planning::Strategy;
-use crate::settings::Preset;
+use crate::settings::{LabelCap, Preset};
 use crate::store::Store;
 use anyhow::Context;
 use clap::ValueEnum;
@@ -73,6 +73,15 @@ fn parse_noise(s: &str) -> Result<NoiseMode, String> {
 fn parse_preset(s: &str) -> Result<Preset, String> {
     serde_json::from_value(serde_json::Value::String(s.to_string()))
         .map_err(|_| format!("{s:?} is not a preset; use default or paper"))
+}
+
+fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
+    if s == "auto" {
+        return Ok(LabelCap::Auto);
+    }
+    s.parse()
+        .map(LabelCap::Fixed)
+        .map_err(|_| format!("{s:?} is not a label cap; use auto or a number of d_max (0: raw)"))
 }
 
 fn parse_grid_features(s: &str) -> Result<GridFeatures, String> {
@@ -152,9 +161,10 @@ pub struct ExperimentArgs {
     /// configuration).
     #[arg(long, value_parser = parse_preset, default_value = "default")]
     pub preset: Preset,
-    /// Clip labels at this many `d_max` before fitting (0: raw labels). Default: the preset's.
-    #[arg(long)]
-    pub label_cap: Option<f64>,
+    /// Clip labels at this many `d_max` before fitting (0: raw labels), or `auto` (chosen at
+    /// every fit from held-out judgements). Default: the preset's.
+    #[arg(long, value_parser = parse_label_cap)]
+    pub label_cap: Option<LabelCap>,
 }
 
 impl ExperimentArgs {
@@ -197,8 +207,8 @@ pub struct Config {
     pub grid_features: GridFeatures,
     /// The experiments' preset.
     pub preset: Preset,
-    /// The MDE's label cap in units of `d_max` (`None`: the preset's).
-    pub label_cap: Option<f64>,
+    /// The MDE's label cap (`None`: the preset's).
+    pub label_cap: Option<LabelCap>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.

@@ -145,6 +145,12 @@ pub fn model(v: ModelView) -> ModelResponse {
         fit_seconds: m.fit.as_ref().map(|f| f.fit_seconds),
         fitted_at: m.fit.as_ref().map(|f| f.fitted_at.clone()),
         n_trajectories: m.fit.as_ref().map_or(0, |f| f.n_trajectories),
+        label_cap: m.fit.as_ref().map(|f| f.label_cap),
+        label_cap_trials: m
+            .fit
+            .as_ref()
+            .map(|f| f.label_cap_trials.clone())
+            .unwrap_or_default(),
     }
 }
 

@@ -9,12 +9,16 @@ use super::Error;
 use super::work::WorkGate;
 use crate::domain::Domain;
 use crate::gp::GpModel;
-use crate::mde::{Estimator, FitRecord, ServedModel, gp_params, training_data};
+use crate::mde::{
+    Estimator, FitRecord, ServedModel, capped_labels, fit_choosing_label_cap, gp_params,
+    training_data,
+};
 use crate::planning::beta_schedule;
 use crate::seed;
 use crate::settings::ExperimentSettings;
 use crate::store::{Store, StoredModel, StoredTransition};
 use anyhow::Context;
+use nalgebra::DMatrix;
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 use std::time::Instant;
@@ -159,15 +163,15 @@ impl LiveExperiment {
         beta_schedule(iteration.max(0) as usize, l.iterations as usize, l.k1, l.k2)
     }
 
-    /// Row-major features and labels of `transitions`.
+    /// Row-major features and deviations of `transitions`.
     fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
-        let mut labels = Vec::with_capacity(transitions.len());
+        let mut deviations = Vec::with_capacity(transitions.len());
         for t in transitions {
             features.extend(self.domain.features(&t.s, &t.a));
-            labels.push(self.settings.fit_label(t.deviation));
+            deviations.push(t.deviation);
         }
-        (features, labels)
+        (features, deviations)
     }
 
     /// Fits a new version on every stored transition, stores it and swaps it in. With
@@ -202,7 +206,7 @@ impl LiveExperiment {
             ));
         }
         let version = current.version + 1;
-        let (features, labels) = self.training_set(&transitions);
+        let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
         let params = gp_params(
             self.settings.mde.noise,
@@ -212,12 +216,14 @@ impl LiveExperiment {
         )
         .check()
         .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
+        let caps = self.settings.label_caps();
+        let (d_max, beta) = (self.settings.d_max, self.settings.learning.test_beta);
         let slot = gate.fit_slot().await?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {
             let _slot = slot;
-            let (x, y) = training_data(features, labels, dim);
-            GpModel::fit(&x, &y, &params)
+            let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
+            fit_choosing_label_cap(&x, &deviations, d_max, beta, &caps, &params)
         })
         .await?;
         let trigger_name = match trigger {
@@ -228,11 +234,14 @@ impl LiveExperiment {
         metrics::counter!("precond_fits_total", "trigger" => trigger_name, "result" => result)
             .increment(1);
         metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
-        let gp = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
+        let choice = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
+        let gp = choice.gp;
         let fit = FitRecord {
             fit_seconds: started.elapsed().as_secs_f64(),
             fitted_at: crate::store::now(),
             n_trajectories,
+            label_cap: choice.label_cap,
+            label_cap_trials: choice.trials,
         };
         let stored = StoredModel {
             version,
@@ -241,10 +250,13 @@ impl LiveExperiment {
             state: gp.state(),
             fit_seconds: fit.fit_seconds,
             fitted_at: fit.fitted_at.clone(),
+            label_cap: Some(fit.label_cap),
+            label_cap_trials: fit.label_cap_trials.clone(),
         };
         store
             .insert_model(self.id, &stored, gp.hyperparameters())
             .await?;
+        let label_cap = fit.label_cap;
         let served = Arc::new(ServedModel {
             version,
             estimator: Estimator::Gp(Box::new(gp)),
@@ -256,6 +268,7 @@ impl LiveExperiment {
             version,
             n_train = stored.n_train,
             seconds = stored.fit_seconds,
+            label_cap,
             "model fitted"
         );
         Ok(served)
@@ -286,9 +299,14 @@ impl LiveExperiment {
                 transitions.len()
             )));
         }
-        let (features, labels) = self.training_set(&transitions);
+        let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
         let state = stored.state.clone();
+        // Versions stored before caps were recorded used the experiment's one fixed cap.
+        let label_cap = stored
+            .label_cap
+            .unwrap_or_else(|| self.settings.label_caps()[0]);
+        let labels = capped_labels(&deviations, label_cap, self.settings.d_max);
         let gp = tokio::task::spawn_blocking(move || {
             let (x, y) = training_data(features, labels, dim);
             GpModel::from_state(&x, &y, &state)
@@ -303,6 +321,8 @@ impl LiveExperiment {
                 fit_seconds: stored.fit_seconds,
                 fitted_at: stored.fitted_at,
                 n_trajectories: stored.n_trajectories,
+                label_cap,
+                label_cap_trials: stored.label_cap_trials,
             }),
         })
     }

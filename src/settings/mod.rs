@@ -192,13 +192,16 @@ pub struct MdeSettings {
     /// Extra seeded optimiser starts beyond the first when fitting hyperparameters. Default 2;
     /// at most 20.
     pub restarts: usize,
-    /// Labels above `label_cap × d_max` are clipped to it before fitting; `0` fits the raw
-    /// labels (the paper's). Only whether a deviation is below `d_max` decides the
-    /// precondition, so how far above it a failure lands is noise to the MDE: fitted raw, a
-    /// few large deviations set the signal variance, and with it the uncertainty at every
-    /// unseen point. Absent: the preset's (`default`: 2, `paper`: 0); 0 or in `[1, 1000]`.
+    /// How deviations become the labels the MDE is fitted on: clipped at `label_cap × d_max`
+    /// (a number; `0` fits the raw labels, the paper's), or `"auto"`: at every fit, the cap
+    /// (2 or 5 `d_max`, or raw) whose model judges its own training transitions best when each
+    /// is held out (see [`crate::mde::fit_choosing_label_cap`]). Only whether a deviation is
+    /// below `d_max` decides the precondition, so how far above it a failure lands is noise to
+    /// the MDE: fitted raw, a few large deviations set the signal variance, and with it the
+    /// uncertainty at every unseen point. Absent: the preset's (`default`: auto, `paper`: 0); a
+    /// number must be 0 or in `[1, 1000]`.
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub label_cap: Option<f64>,
+    pub label_cap: Option<LabelCap>,
 }
 
 impl Default for MdeSettings {
@@ -226,11 +229,64 @@ pub enum Preset {
 
 impl Preset {
     /// The label cap this preset uses when `mde.label_cap` is absent.
-    pub fn label_cap(self) -> f64 {
+    pub fn label_cap(self) -> LabelCap {
         match self {
-            Self::Default => 2.0,
-            Self::Paper => 0.0,
+            Self::Default => LabelCap::Auto,
+            Self::Paper => LabelCap::Fixed(0.0),
         }
+    }
+}
+
+/// How deviations are capped before the MDE is fitted on them (see [`MdeSettings::label_cap`]).
+/// In JSON a number (units of `d_max`; 0 = raw labels) or the string `"auto"`.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum LabelCap {
+    /// Chosen at every fit from the data, among [`AUTO_LABEL_CAPS`] and raw labels.
+    Auto,
+    /// Clip at this many `d_max`; 0 = raw labels.
+    Fixed(f64),
+}
+
+/// The caps (units of `d_max`) [`LabelCap::Auto`] tries beside raw labels: 2 makes the midpoint
+/// between a safe and a failed neighbour `d_max`; 5 keeps gradual deviations up to half a
+/// typical spill's size.
+pub const AUTO_LABEL_CAPS: [f64; 2] = [2.0, 5.0];
+
+impl Serialize for LabelCap {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        match self {
+            Self::Auto => s.serialize_str("auto"),
+            Self::Fixed(cap) => s.serialize_f64(*cap),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for LabelCap {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        struct Visitor;
+        impl serde::de::Visitor<'_> for Visitor {
+            type Value = LabelCap;
+            fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+                f.write_str("a number (times d_max; 0 = raw labels) or \"auto\"")
+            }
+            fn visit_f64<E: serde::de::Error>(self, v: f64) -> Result<LabelCap, E> {
+                Ok(LabelCap::Fixed(v))
+            }
+            fn visit_i64<E: serde::de::Error>(self, v: i64) -> Result<LabelCap, E> {
+                Ok(LabelCap::Fixed(v as f64))
+            }
+            fn visit_u64<E: serde::de::Error>(self, v: u64) -> Result<LabelCap, E> {
+                Ok(LabelCap::Fixed(v as f64))
+            }
+            fn visit_str<E: serde::de::Error>(self, v: &str) -> Result<LabelCap, E> {
+                if v == "auto" {
+                    Ok(LabelCap::Auto)
+                } else {
+                    Err(E::invalid_value(serde::de::Unexpected::Str(v), &self))
+                }
+            }
+        }
+        d.deserialize_any(Visitor)
     }
 }
 
@@ -348,10 +404,14 @@ impl ExperimentRequest {
             .mde
             .label_cap
             .unwrap_or_else(|| self.learning.preset.label_cap());
-        if !(cap == 0.0 || (1.0..=1000.0).contains(&cap)) {
+        if let LabelCap::Fixed(cap) = cap
+            && !(cap == 0.0 || (1.0..=1000.0).contains(&cap))
+        {
             return Err(InvalidSetting::new(
                 "mde.label_cap",
-                format!("must be 0 (raw labels) or between 1 and 1000 (times d_max), got {cap}"),
+                format!(
+                    "must be \"auto\", 0 (raw labels) or between 1 and 1000 (times d_max), got {cap}"
+                ),
             ));
         }
         self.mde.label_cap = Some(cap);
@@ -437,11 +497,17 @@ fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), InvalidSetting>
 }
 
 impl ExperimentSettings {
-    /// The label the MDE is fitted on for a deviation (see [`MdeSettings::label_cap`]).
-    pub fn fit_label(&self, deviation: f64) -> f64 {
+    /// The label caps (units of `d_max`; 0 = raw labels) a fit tries: every candidate for
+    /// `"auto"`, else the one fixed cap. Settings stored before caps existed fit raw labels.
+    pub fn label_caps(&self) -> Vec<f64> {
         match self.mde.label_cap {
-            Some(cap) if cap > 0.0 => deviation.min(cap * self.d_max),
-            _ => deviation,
+            Some(LabelCap::Auto) => {
+                let mut caps = AUTO_LABEL_CAPS.to_vec();
+                caps.push(0.0);
+                caps
+            }
+            Some(LabelCap::Fixed(cap)) => vec![cap],
+            None => vec![0.0],
         }
     }
 }

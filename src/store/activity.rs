@@ -86,6 +86,9 @@ pub struct ModelSummary {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `None` for versions
+    /// stored before caps were recorded.
+    pub label_cap: Option<f64>,
 }
 
 /// Proposals (with the trajectory that executed each) and trajectories without a proposal, as
@@ -234,7 +237,7 @@ impl Store {
     ) -> Result<Vec<ModelSummary>, sqlx::Error> {
         sqlx::query(
             "SELECT version, n_train, n_trajectories, noise, log_marginal_likelihood,
-                    fit_seconds, fitted_at
+                    fit_seconds, fitted_at, label_cap
              FROM models WHERE experiment_id = ? ORDER BY version LIMIT ?",
         )
         .bind(experiment_id)
@@ -251,6 +254,7 @@ impl Store {
                 log_marginal_likelihood: row.try_get("log_marginal_likelihood")?,
                 fit_seconds: row.try_get("fit_seconds")?,
                 fitted_at: row.try_get("fitted_at")?,
+                label_cap: row.try_get("label_cap")?,
             })
         })
         .collect()

@@ -2,6 +2,7 @@
 
 use super::Store;
 use crate::gp::{Hyperparameters, ModelState};
+use crate::mde::HeldOutTrust;
 
 /// A stored model version.
 #[derive(Debug, Clone)]
@@ -18,6 +19,11 @@ pub struct StoredModel {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `None` for versions
+    /// stored before caps were recorded (fitted with the experiment's fixed cap).
+    pub label_cap: Option<f64>,
+    /// Every candidate cap's held-out judgement of the training transitions.
+    pub label_cap_trials: Vec<HeldOutTrust>,
 }
 
 fn json_err(e: serde_json::Error) -> sqlx::Error {
@@ -36,10 +42,12 @@ impl Store {
         let state = serde_json::to_string(&model.state).map_err(json_err)?;
         let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
         let noise = serde_json::to_value(model.state.noise).map_err(json_err)?;
+        let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
         sqlx::query(
             "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
-                                 hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                                 hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
+                                 label_cap, label_cap_trials)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(experiment_id)
         .bind(model.version)
@@ -51,6 +59,8 @@ impl Store {
         .bind(model.state.log_marginal_likelihood)
         .bind(model.fit_seconds)
         .bind(&model.fitted_at)
+        .bind(model.label_cap)
+        .bind(trials)
         .execute(&self.write)
         .await?;
         Ok(())
@@ -84,18 +94,29 @@ impl Store {
         version: Option<i64>,
     ) -> Result<Option<StoredModel>, sqlx::Error> {
         let sql = format!(
-            "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at FROM models
-             WHERE experiment_id = ? {clause}"
+            "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
+                    label_cap_trials
+             FROM models WHERE experiment_id = ? {clause}"
         );
-        let mut query =
-            sqlx::query_as::<_, (i64, i64, i64, String, f64, String)>(&sql).bind(experiment_id);
+        type Row = (
+            i64,
+            i64,
+            i64,
+            String,
+            f64,
+            String,
+            Option<f64>,
+            Option<String>,
+        );
+        let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
             query = query.bind(v);
         }
         let Some(row) = query.fetch_optional(&self.read).await? else {
             return Ok(None);
         };
-        let (version, n_train, n_trajectories, state, fit_seconds, fitted_at) = row;
+        let (version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap, trials) =
+            row;
         Ok(Some(StoredModel {
             version,
             n_train,
@@ -103,6 +124,11 @@ impl Store {
             state: serde_json::from_str(&state).map_err(json_err)?,
             fit_seconds,
             fitted_at,
+            label_cap,
+            label_cap_trials: match trials {
+                Some(t) => serde_json::from_str(&t).map_err(json_err)?,
+                None => Vec::new(),
+            },
         }))
     }
 }

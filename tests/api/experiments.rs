@@ -23,7 +23,7 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["learning"]["batch_size"], 5);
     assert_eq!(e["learning"]["k2"], 0.5);
     assert_eq!(e["learning"]["preset"], "default");
-    assert_eq!(e["mde"]["label_cap"], 2.0);
+    assert_eq!(e["mde"]["label_cap"], "auto");
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
     let (status, listed) = app.get("/v1/experiments").await;
@@ -39,12 +39,16 @@ async fn the_paper_preset_fits_raw_labels_unless_told_otherwise() {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;
     for (body, cap) in [
-        (json!({"learning": {"preset": "paper"}}), 0.0),
+        (json!({"learning": {"preset": "paper"}}), json!(0.0)),
         (
             json!({"learning": {"preset": "paper"}, "mde": {"label_cap": 3}}),
-            3.0,
+            json!(3.0),
         ),
-        (json!({"mde": {"label_cap": 0}}), 0.0),
+        (json!({"mde": {"label_cap": 0}}), json!(0.0)),
+        (
+            json!({"learning": {"preset": "paper"}, "mde": {"label_cap": "auto"}}),
+            json!("auto"),
+        ),
     ] {
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");
@@ -83,6 +87,7 @@ async fn bad_settings_name_the_field() {
         (json!({"mde": {"noise": "loud"}}), "mde.noise"),
         (json!({"mde": {"label_cap": 0.5}}), "mde.label_cap"),
         (json!({"mde": {"label_cap": -1}}), "mde.label_cap"),
+        (json!({"mde": {"label_cap": "max"}}), "mde.label_cap"),
         (json!({"learning": {"preset": "cmax"}}), "learning.preset"),
         (json!({"learning": {"bogus": 1}}), "learning.bogus"),
         (

@@ -146,6 +146,20 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
             .unwrap()
             .is_finite()
     );
+    // The default label cap is chosen at the fit among 2, 5 and raw labels; each candidate's
+    // held-out judgement covers every training transition.
+    let trials = model["label_cap_trials"].as_array().unwrap();
+    let caps: Vec<f64> = trials
+        .iter()
+        .map(|t| t["label_cap"].as_f64().unwrap())
+        .collect();
+    assert_eq!(caps, vec![2.0, 5.0, 0.0]);
+    assert!(caps.contains(&model["label_cap"].as_f64().unwrap()));
+    for t in trials {
+        let n = t["safe"].as_u64().unwrap() + t["unsafe_transitions"].as_u64().unwrap();
+        assert_eq!(n, 5 * 48);
+        assert!(t["trusted_safe"].as_u64() <= t["safe"].as_u64());
+    }
     let points = json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [0, 0], "a": [0, 1]}]});
     let (_, before) = app
         .post(&format!("/v1/experiments/{id}/precondition"), &points)
@@ -156,6 +170,8 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
     let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
     assert_eq!(restored["version"], 1);
     assert_eq!(restored["hyperparameters"], model["hyperparameters"]);
+    assert_eq!(restored["label_cap"], model["label_cap"]);
+    assert_eq!(restored["label_cap_trials"], model["label_cap_trials"]);
     let (lml0, lml1) = (
         model["log_marginal_likelihood"].as_f64().unwrap(),
         restored["log_marginal_likelihood"].as_f64().unwrap(),

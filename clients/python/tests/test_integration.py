@@ -165,7 +165,8 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         server = make_server([f"http://127.0.0.1:{served.port}/"])
         client = Client(server.url, timeout=60)
         client.create_experiment(settings(served.url, "queries"))
-        assert client.model().source == "prior"
+        prior = client.model()
+        assert prior.source == "prior" and prior.label_cap is None
 
         rng = np.random.default_rng(1)
         for _ in range(4):
@@ -176,6 +177,8 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         fitted = client.refit()
         assert fitted.source == "fit" and fitted.n_train == 32 and fitted.version >= 1
         assert len(fitted.hyperparameters.length_scales) == 4
+        assert fitted.label_cap in (2.0, 5.0, 0.0)  # chosen at the fit ("auto")
+        assert len(fitted.raw["label_cap_trials"]) == 3
 
         grid = np.array([[x, 0.5, 0.1, 0.0] for x in (0.2, 0.6, 0.9)])
         ans = client.precondition(grid, beta=0.0)

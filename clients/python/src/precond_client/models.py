@@ -416,6 +416,9 @@ class Model:
     fit_seconds: float | None
     fitted_at: str | None
     n_trajectories: int
+    label_cap: float | None
+    """The label cap the fit clipped deviations at (times ``d_max``; 0 = raw labels); ``None``
+    for the prior. Each candidate's held-out judgement is in ``raw["label_cap_trials"]``."""
     raw: dict[str, Any] = field(repr=False, compare=False)
 
     @classmethod
@@ -423,6 +426,7 @@ class Model:
         """Reads the JSON form (the noise model's summary stays in ``raw["noise_model"]``)."""
         lml = d.get("log_marginal_likelihood")
         fs = d.get("fit_seconds")
+        cap = d.get("label_cap")
         return cls(
             experiment_id=int(d["experiment_id"]),
             version=int(d["version"]),
@@ -435,6 +439,7 @@ class Model:
             fit_seconds=float(fs) if fs is not None else None,
             fitted_at=d.get("fitted_at"),
             n_trajectories=int(d["n_trajectories"]),
+            label_cap=float(cap) if cap is not None else None,
             raw=d,
         )
 
