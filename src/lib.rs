@@ -18,7 +18,8 @@
 //! - [`planning`]: RRT candidates inside the precondition, the trajectory acquisition function,
 //!   the β schedule and the `active` / `goal_conditioned` / `random` strategies.
 //! - [`mde`]: the model deviation estimator as served: the prior before any data, then a fitted
-//!   GP, under a version; precondition judgements.
+//!   GP, under a version; precondition judgements; the label cap chosen from held-out
+//!   judgements of the training transitions.
 //! - [`seed`]: seeds derived from seeds (one hashing helper for every seeded choice).
 //! - [`limits`]: the range of everything a client can set, in one place.
 //!

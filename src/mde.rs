@@ -1,5 +1,7 @@
 //! The model deviation estimator as the service serves it: before any data the GP prior, after
-//! that a fitted [`GpModel`], each under a version. Knows nothing of HTTP or SQL.
+//! that a fitted [`GpModel`], each under a version; and how deviations become training labels
+//! ([`capped_labels`], chosen per fit by [`fit_choosing_label_cap`]). Knows nothing of HTTP or
+//! SQL.
 
 use crate::gp::{GpModel, GpParams, Hyperparameters, NoiseMode, NoiseSummary};
 use crate::planning::DeviationModel;
