@@ -226,20 +226,9 @@ pub struct HeldOutTrust {
 
 impl HeldOutTrust {
     /// Leave-one-out judgement of `gp`'s training points, fitted on `labels` (the `deviations`
-    /// capped at `label_cap`); `None` when the model kept no inverse factor.
+    /// capped at `label_cap`), with each transition's held-out log probability of its side of
+    /// `d_max`; `None` when the model kept no inverse factor.
     pub fn of(
-        gp: &GpModel,
-        label_cap: f64,
-        labels: &[f64],
-        deviations: &[f64],
-        beta: f64,
-        d_max: f64,
-    ) -> Option<Self> {
-        Self::with_log_probabilities(gp, label_cap, labels, deviations, beta, d_max).map(|(t, _)| t)
-    }
-
-    /// [`of`](Self::of), with each transition's held-out log probability of its side of `d_max`.
-    fn with_log_probabilities(
         gp: &GpModel,
         label_cap: f64,
         labels: &[f64],
@@ -267,7 +256,6 @@ impl HeldOutTrust {
                 normal_tail(z)
             };
             log_p.push(p_correct.max(1e-300).ln());
-            t.log_score += log_p[log_p.len() - 1] / deviations.len().max(1) as f64;
             if deviation < d_max {
                 t.safe += 1;
                 t.trusted_safe += usize::from(inside);
@@ -276,6 +264,7 @@ impl HeldOutTrust {
                 t.trusted_unsafe += usize::from(inside);
             }
         }
+        t.log_score = log_p.iter().sum::<f64>() / log_p.len().max(1) as f64;
         Some((t, log_p))
     }
 }
@@ -312,8 +301,7 @@ pub fn fit_choosing_label_cap(
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
         let gp = GpModel::fit(x, &DVector::from_column_slice(&labels), params)?;
-        let judged =
-            HeldOutTrust::with_log_probabilities(&gp, cap, &labels, deviations, beta, d_max);
+        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, beta, d_max);
         fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
@@ -443,7 +431,7 @@ mod tests {
         let labels = capped_labels(&deviations, 2.0, D_MAX);
         let p = params();
         let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &p).unwrap();
-        let t = HeldOutTrust::of(&gp, 2.0, &labels, &deviations, 2.0, D_MAX).unwrap();
+        let (t, _) = HeldOutTrust::of(&gp, 2.0, &labels, &deviations, 2.0, D_MAX).unwrap();
         // Refit without each point with the same hyperparameters and judge it directly.
         let mut state = gp.state();
         state.n_train = deviations.len() - 1;
