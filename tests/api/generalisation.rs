@@ -168,17 +168,7 @@ impl Loop {
     }
 
     async fn wait_for_model(&self, n_trajectories: i64) {
-        for _ in 0..1500 {
-            let (_, model) = self
-                .app
-                .get(&format!("/v1/experiments/{}/model", self.id))
-                .await;
-            if model["n_trajectories"].as_i64() >= Some(n_trajectories) {
-                return;
-            }
-            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-        }
-        panic!("no model covering {n_trajectories} trajectories within 30 s");
+        self.app.wait_for_model(self.id, n_trajectories).await;
     }
 }
 

@@ -82,6 +82,19 @@ async fn spawn_state(db_path: &Path, state: AppState) -> TestApp {
 }
 
 impl TestApp {
+    /// Waits (up to 30 s) until experiment `id`'s answering model covers `n_trajectories`
+    /// trajectories, and returns it.
+    pub async fn wait_for_model(&self, id: i64, n_trajectories: i64) -> Value {
+        for _ in 0..1500 {
+            let (_, model) = self.get(&format!("/v1/experiments/{id}/model")).await;
+            if model["n_trajectories"].as_i64() >= Some(n_trajectories) {
+                return model;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        }
+        panic!("no model covering {n_trajectories} trajectories within 30 s");
+    }
+
     pub fn url(&self, path: &str) -> String {
         format!("http://{}{}", self.addr, path)
     }

@@ -6,17 +6,6 @@ use precond::sim::Simulated;
 use serde_json::{Value, json};
 
 /// Polls `/model` (bounded) until it covers `n_trajectories` trajectories.
-async fn wait_for_model(app: &TestApp, id: i64, n_trajectories: i64) -> Value {
-    for _ in 0..600 {
-        let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
-        if model["n_trajectories"].as_i64() >= Some(n_trajectories) {
-            return model;
-        }
-        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
-    }
-    panic!("no model covering {n_trajectories} trajectories within 12 s");
-}
-
 /// Every (cell, move) of the default gridworld, executed in the true world, as trajectories of
 /// at most 48 transitions.
 fn every_transition() -> Vec<Value> {
@@ -129,7 +118,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
             .await;
         assert_eq!(status, 201, "{body}");
     }
-    let model = wait_for_model(&app, id, 5).await;
+    let model = app.wait_for_model(id, 5).await;
     assert_eq!(model["version"], 1);
     assert_eq!(model["source"], "fit");
     assert_eq!(model["n_train"], 5 * 48);
