@@ -453,6 +453,7 @@ async fn learn_then_plan(
             }
         })
         .collect();
+    let mut executed = 0;
     for (start, goal) in &problems {
         let (status, p) = app
             .post(
@@ -472,6 +473,12 @@ async fn learn_then_plan(
             )
             .await;
         assert_eq!(status, 201, "{body}");
+        // The paper's loop: the next proposal waits for the fit on the finished batch, so the
+        // run does not depend on how fast the background fit is.
+        executed += 1;
+        if executed % 5 == 0 {
+            app.wait_for_model(id, executed).await;
+        }
     }
     let (status, model) = app
         .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
