@@ -34,8 +34,8 @@ pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose, judge_candidates};
 pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, plan_within, rrt};
-pub use schedule::{BetaSchedule, beta_schedule};
-pub use strategy::{CandidateScore, Proposal, Strategy, propose, propose_within};
+pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};
+pub use strategy::{CandidateScore, Proposal, Strategy, propose, propose_relaxing, propose_within};
 
 /// A model deviation estimator as the planner sees it: μ and σ (σ includes noise) of the
 /// deviation for feature vectors φ(s,a).

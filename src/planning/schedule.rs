@@ -13,6 +13,26 @@ pub fn beta_schedule(j: usize, total_iterations: usize, k1: f64, k2: f64) -> f64
     2.0 * k1 / (1.0 + x.exp()) - k1
 }
 
+/// Most βs a relaxed training proposal tries (see [`relaxation_ladder`]).
+pub const MAX_RELAXATION_STEPS: usize = 5;
+
+/// The βs a training proposal tries in turn when no trajectory reaches the goal inside the
+/// precondition at the iteration's `β_j` (`beta`): `β_j` itself, then lower values, evenly
+/// spaced by at least 1 and ending at `floor` (the schedule's most optimistic β, `−k1`), at most
+/// [`MAX_RELAXATION_STEPS`] in all. The first β with a plan is the smallest relaxation that
+/// lets the robot try to reach the goal; a `β_j` at or below `floor` is tried alone.
+pub fn relaxation_ladder(beta: f64, floor: f64) -> Vec<f64> {
+    if beta.is_nan() || floor.is_nan() || beta <= floor {
+        return vec![beta];
+    }
+    let steps = ((beta - floor).ceil() as usize).clamp(1, MAX_RELAXATION_STEPS - 1);
+    let step = (beta - floor) / steps as f64;
+    (0..steps)
+        .map(|i| beta - step * i as f64)
+        .chain([floor])
+        .collect()
+}
+
 /// The schedule's parameters as an experiment setting.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct BetaSchedule {
@@ -98,6 +118,25 @@ mod tests {
                 epsilon = 1e-12
             );
         }
+    }
+
+    #[test]
+    fn the_relaxation_ladder_steps_down_to_the_floor() {
+        let ladder = relaxation_ladder(1.5, -2.0);
+        assert_eq!(ladder.len(), 5);
+        assert_abs_diff_eq!(ladder[0], 1.5);
+        assert_abs_diff_eq!(ladder[1], 0.625, epsilon = 1e-12);
+        assert_abs_diff_eq!(ladder[4], -2.0);
+        assert!(ladder.windows(2).all(|w| w[1] < w[0]));
+        // Close to the floor: β_j then the floor.
+        assert_eq!(relaxation_ladder(-1.7, -2.0), vec![-1.7, -2.0]);
+        // At or below the floor, or with the schedule off (k1 = 0 at β_j = 0): β_j alone.
+        assert_eq!(relaxation_ladder(-2.0, -2.0), vec![-2.0]);
+        assert_eq!(relaxation_ladder(0.0, 0.0), vec![0.0]);
+        // A wide range is still at most MAX_RELAXATION_STEPS βs.
+        let wide = relaxation_ladder(100.0, -100.0);
+        assert_eq!(wide.len(), MAX_RELAXATION_STEPS);
+        assert_abs_diff_eq!(wide[1], 50.0, epsilon = 1e-9);
     }
 
     #[test]

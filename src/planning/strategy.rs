@@ -97,6 +97,8 @@ pub struct CandidateScore {
 pub struct Proposal {
     /// The strategy that chose it.
     pub strategy: Strategy,
+    /// The β of the precondition it was planned inside.
+    pub beta: f64,
     /// The chosen trajectory (predicted states, actions, per-step μ and σ).
     pub trajectory: Trajectory,
     /// `α_step` of each of its actions.
@@ -199,6 +201,7 @@ pub fn propose_within(
         let (alpha_step, alpha) = acquisition.score(&trajectory);
         return Ok(Proposal {
             strategy,
+            beta,
             candidates: vec![CandidateScore {
                 alpha,
                 length: trajectory.len(),
@@ -244,6 +247,7 @@ pub fn propose_within(
     let trajectory = trajectories.swap_remove(chosen_index);
     Ok(Proposal {
         strategy,
+        beta,
         trajectory,
         alpha_step,
         alpha,
@@ -255,6 +259,57 @@ pub fn propose_within(
         model_calls: cache.calls(),
         dynamics_calls: found.dynamics_calls,
     })
+}
+
+/// [`propose_within`] at each β of `betas` in turn (a
+/// [`relaxation_ladder`](super::relaxation_ladder)) until one finds a trajectory; the
+/// proposal's `beta` says which, and its `extensions` count the attempts before it too.
+/// [`PlanningError::NoPlan`] only when no β has a plan, with the extensions of every attempt;
+/// any other error ends the search at once. One shared `budget` bounds all attempts.
+#[allow(clippy::too_many_arguments)]
+pub fn propose_relaxing(
+    strategy: Strategy,
+    domain: &dyn Domain,
+    mde: &dyn DeviationModel,
+    start: &[f64],
+    goal: &[f64],
+    betas: &[f64],
+    d_max: f64,
+    planner: &PlannerSettings,
+    acquisition: &AcquisitionSettings,
+    seed: u64,
+    budget: &Budget,
+) -> Result<Proposal, PlanningError> {
+    let mut spent = 0;
+    for &beta in betas {
+        match propose_within(
+            strategy,
+            domain,
+            mde,
+            start,
+            goal,
+            beta,
+            d_max,
+            planner,
+            acquisition,
+            seed,
+            budget,
+        ) {
+            Ok(mut p) => {
+                p.extensions += spent;
+                return Ok(p);
+            }
+            Err(PlanningError::NoPlan { extensions }) => spent += extensions,
+            Err(PlanningError::Stopped { reason, extensions }) => {
+                return Err(PlanningError::Stopped {
+                    reason,
+                    extensions: spent + extensions,
+                });
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    Err(PlanningError::NoPlan { extensions: spent })
 }
 
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.

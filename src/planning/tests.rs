@@ -908,3 +908,79 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
     let declared = proposal(Strategy::Random, &domain(Some(20)), 0);
     assert_eq!((declared.trajectory.len(), declared.runs), (20, 1));
 }
+
+#[test]
+fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
+    let grid = IcyGridworld::default_layout();
+    // μ + βσ < d_max = 0.1 holds for β < −1: the ladder from 1.5 to −2 (1.5, 0.625, −0.25,
+    // −1.125, −2) first finds a plan at −1.125.
+    let doubtful = ConstantModel {
+        mu: 0.15,
+        sigma: 0.05,
+    };
+    let settings = PlannerSettings {
+        max_extensions: 300,
+        ..Default::default()
+    };
+    let acq = AcquisitionSettings::default();
+    let betas = relaxation_ladder(1.5, -2.0);
+    let relaxed = |mde: &dyn DeviationModel, betas: &[f64]| {
+        propose_relaxing(
+            Strategy::Active,
+            &grid,
+            mde,
+            &[0.0, 0.0],
+            &[3.0, 0.0],
+            betas,
+            0.1,
+            &settings,
+            &acq,
+            1,
+            &Budget::unlimited(),
+        )
+    };
+    let p = relaxed(&doubtful, &betas).unwrap();
+    assert_eq!(p.beta, betas[3]);
+    assert!(
+        p.trajectory
+            .mu
+            .iter()
+            .zip(&p.trajectory.sigma)
+            .all(|(m, s)| m + p.beta * s < 0.1)
+    );
+    let direct = propose(
+        Strategy::Active,
+        &grid,
+        &doubtful,
+        &[0.0, 0.0],
+        &[3.0, 0.0],
+        betas[3],
+        0.1,
+        &settings,
+        &acq,
+        1,
+    )
+    .unwrap();
+    assert_eq!(p.trajectory, direct.trajectory, "the same search at that β");
+    assert_eq!(
+        p.extensions,
+        3 * 300 + direct.extensions,
+        "the three failed attempts count"
+    );
+    // Only the schedule's β: no plan, as without relaxation.
+    assert_eq!(
+        relaxed(&doubtful, &betas[..1]).unwrap_err(),
+        PlanningError::NoPlan { extensions: 300 }
+    );
+    // Nothing trusted at any β: no plan, every attempt counted.
+    let distrust = ConstantModel {
+        mu: 1.0,
+        sigma: 0.1,
+    };
+    assert_eq!(
+        relaxed(&distrust, &betas).unwrap_err(),
+        PlanningError::NoPlan {
+            extensions: 5 * 300
+        }
+    );
+}
