@@ -608,8 +608,12 @@ pub struct ProposalContent {
     pub candidates: Vec<CandidateView>,
     /// Index of the chosen one in `candidates`.
     pub chosen_index: usize,
-    /// RRT extensions spent (for `random`, actions tried).
+    /// RRT extensions spent (for `random`, actions tried), over every β tried.
     pub extensions: usize,
+    /// The iteration's `β_j`, present when no trajectory reached the goal inside the
+    /// precondition at it and the proposal's `beta` is a lower one (`learning.relax_beta`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub relaxed_from_beta: Option<f64>,
 }
 
 /// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`).

@@ -75,7 +75,8 @@ function settingsCard(e) {
     ['strategy', l.strategy], ['batch size', l.batch_size], ['iterations J', l.iterations],
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],
     ['acquisition', `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`],
-    ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`],
+    ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`
+      + (l.relax_beta ? '; a training problem with no plan at β_j is planned at lower β' : '')],
     ['preset', l.preset ?? 'paper (before presets)'],
     ['MDE', `${m.noise}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
       + (m.label_cap === 'auto' ? 'label cap chosen at each fit (auto)'
@@ -180,7 +181,7 @@ export async function trajectoryPage(root, params, id, tid) {
   root.replaceChildren(
     h('h1', {}, `Trajectory ${tid}`, ' ', h('span', { class: 'muted' }, `${steps.length} steps${t.partial ? ' · partial' : ''}`)),
     h('p', {}, proposal
-      ? ['Executed proposal ', h('b', {}, `#${proposal.id}`), ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}, ${proposal.strategy}, client ${proposal.client_id ?? '–'}); `,
+      ? ['Executed proposal ', h('b', {}, `#${proposal.id}`), ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}, client ${proposal.client_id ?? '–'}); `,
         `μ ± σ "at the time" are the proposal's, from model version ${proposal.model_version}; "now" from version ${now.model_version}.`]
       : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`),
     h('div', { class: 'charts' }, lineChart({ title: 'Deviation per step', x: idx, xlabel: 'step', series, refs: [{ y: e.d_max, label: 'd_max' }] })),

@@ -33,8 +33,8 @@ impl ProposalRecord {
     }
 }
 
-/// What a strategy chose, as stored and shown.
-fn content(p: &Proposal) -> Result<ProposalContent> {
+/// What a strategy chose, as stored and shown; `schedule_beta` is the iteration's `β_j`.
+fn content(p: &Proposal, schedule_beta: f64) -> Result<ProposalContent> {
     check_finite(&p.trajectory)?;
     let scores = p.alpha_step.iter().chain([&p.alpha]);
     if !scores
@@ -58,12 +58,25 @@ fn content(p: &Proposal) -> Result<ProposalContent> {
             .collect(),
         chosen_index: p.chosen_index,
         extensions: p.extensions,
+        relaxed_from_beta: relaxed_from(p.beta, schedule_beta),
     })
 }
 
-/// What a strategy chose among the client's judged candidates, as stored and shown; `no_plan`
-/// with every verdict when there is nothing to choose.
-fn given_content(strategy: Strategy, verdicts: &[Verdict], seed: u64) -> Result<ProposalContent> {
+/// `Some(β_j)` when the proposal was made at a β other than the schedule's.
+fn relaxed_from(beta: f64, schedule_beta: f64) -> Option<f64> {
+    (beta != schedule_beta).then_some(schedule_beta)
+}
+
+/// What a strategy chose among the client's judged candidates (judged at `beta`; the iteration's
+/// is `schedule_beta`), as stored and shown; `no_plan` with every verdict when there is nothing
+/// to choose.
+fn given_content(
+    strategy: Strategy,
+    verdicts: &[Verdict],
+    seed: u64,
+    beta: f64,
+    schedule_beta: f64,
+) -> Result<ProposalContent> {
     let candidates: Vec<CandidateView> = verdicts.iter().map(CandidateView::judged).collect();
     let Some(chosen) = planning::choose(strategy, verdicts, seed) else {
         return Err(Error::NoPlan {
@@ -81,6 +94,7 @@ fn given_content(strategy: Strategy, verdicts: &[Verdict], seed: u64) -> Result<
         candidates,
         chosen_index: chosen,
         extensions: 0,
+        relaxed_from_beta: relaxed_from(beta, schedule_beta),
     })
 }
 
@@ -149,7 +163,8 @@ impl Service {
             .await?
             .map_or(0, |e| e.n_trajectories);
         let iteration = live.iteration(n_trajectories);
-        let beta = live.training_beta(iteration);
+        let schedule_beta = live.training_beta(iteration);
+        let betas = live.settings.learning.training_betas(schedule_beta);
         let strategy = request.strategy.unwrap_or(live.settings.learning.strategy);
         let model = live.model();
         let model_version = model.version;
@@ -158,12 +173,29 @@ impl Service {
             n_trajectories,
             request.start.iter().chain(&request.goal).copied(),
         );
-        let content = match request.candidates.clone() {
+        let (content, beta) = match request.candidates.clone() {
             Some(candidates) => {
                 let checked = check_candidates(&live, &request.start, candidates)?;
-                let verdicts =
-                    judge_given(&live, model, request.goal.clone(), checked, beta).await?;
-                given_content(strategy, &verdicts, seed)?
+                let mut answer = Err(Error::NoPlan {
+                    extensions: 0,
+                    candidates: Vec::new(),
+                });
+                for &beta in &betas {
+                    let verdicts = judge_given(
+                        &live,
+                        model.clone(),
+                        request.goal.clone(),
+                        checked.clone(),
+                        beta,
+                    )
+                    .await?;
+                    answer = given_content(strategy, &verdicts, seed, beta, schedule_beta)
+                        .map(|c| (c, beta));
+                    if !matches!(answer, Err(Error::NoPlan { .. })) {
+                        break;
+                    }
+                }
+                answer?
             }
             None => {
                 needs_candidates(&live)?;
@@ -172,13 +204,13 @@ impl Service {
                 let proposal = self
                     .search(arrived, move |budget| {
                         let l = &live.settings.learning;
-                        planning::propose_within(
+                        planning::propose_relaxing(
                             strategy,
                             live.domain.as_ref(),
                             model.as_ref(),
                             &start,
                             &goal,
-                            beta,
+                            &betas,
                             live.settings.d_max,
                             &l.planner(),
                             &l.acquisition(),
@@ -187,7 +219,7 @@ impl Service {
                         )
                     })
                     .await?;
-                content(&proposal)?
+                (content(&proposal, schedule_beta)?, proposal.beta)
             }
         };
         let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;

@@ -220,7 +220,8 @@ impl Default for MdeSettings {
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     /// precond's defaults: the paper's method with the changes measured to learn more from the
-    /// same executions (labels capped at `2 d_max`).
+    /// same executions (a label cap chosen from the data, training proposals that relax β
+    /// rather than give up).
     #[default]
     Default,
     /// The paper's exact configuration (raw labels), kept as the baseline.
@@ -234,6 +235,12 @@ impl Preset {
             Self::Default => LabelCap::Auto,
             Self::Paper => LabelCap::Fixed(0.0),
         }
+    }
+
+    /// Whether this preset relaxes β when a training problem has no plan (see
+    /// [`LearningSettings::relax_beta`]).
+    pub fn relax_beta(self) -> bool {
+        self == Self::Default
     }
 }
 
@@ -321,6 +328,15 @@ pub struct LearningSettings {
     pub test_beta: f64,
     /// Seconds an open proposal stays leased to its client. Default 600.
     pub proposal_ttl_seconds: u32,
+    /// When no training trajectory reaches the goal inside the precondition at the iteration's
+    /// `β_j`, plan again at lower β down to `−k1` (see
+    /// [`relaxation_ladder`](crate::planning::relaxation_ladder)) instead of answering
+    /// `no_plan`: the robot tries the least doubtful way to a goal it cannot yet reach, so
+    /// learning goes on where what is trusted ends (a passage the model doubts, after `β_j`
+    /// turned positive). Test-time plans are never relaxed. Absent: the preset's (`default`:
+    /// true, `paper`: false); settings stored before it existed: false.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub relax_beta: Option<bool>,
 }
 
 impl Default for LearningSettings {
@@ -339,6 +355,7 @@ impl Default for LearningSettings {
             k2: 0.5,
             test_beta: 2.0,
             proposal_ttl_seconds: 600,
+            relax_beta: None,
         }
     }
 }
@@ -415,6 +432,11 @@ impl ExperimentRequest {
             ));
         }
         self.mde.label_cap = Some(cap);
+        self.learning.relax_beta = Some(
+            self.learning
+                .relax_beta
+                .unwrap_or_else(|| self.learning.preset.relax_beta()),
+        );
         let m = &self.mde;
         finite("mde.prior_mean", m.prior_mean)?;
         if m.restarts > MAX_RESTARTS {
@@ -513,6 +535,22 @@ impl ExperimentSettings {
 }
 
 impl LearningSettings {
+    /// Whether training proposals relax β when they find no plan (see
+    /// [`Self::relax_beta`]; settings stored before the setting existed do not).
+    pub fn relaxes_beta(&self) -> bool {
+        self.relax_beta.unwrap_or(false)
+    }
+
+    /// The βs a training proposal at `beta` tries in turn: `beta` alone, or its
+    /// [`relaxation_ladder`](crate::planning::relaxation_ladder) down to `−k1`.
+    pub fn training_betas(&self, beta: f64) -> Vec<f64> {
+        if self.relaxes_beta() {
+            crate::planning::relaxation_ladder(beta, -self.k1)
+        } else {
+            vec![beta]
+        }
+    }
+
     /// The planner's settings.
     pub fn planner(&self) -> crate::planning::PlannerSettings {
         crate::planning::PlannerSettings {

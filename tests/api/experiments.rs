@@ -24,6 +24,7 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["learning"]["k2"], 0.5);
     assert_eq!(e["learning"]["preset"], "default");
     assert_eq!(e["mde"]["label_cap"], "auto");
+    assert_eq!(e["learning"]["relax_beta"], true);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
     let (status, listed) = app.get("/v1/experiments").await;
@@ -35,7 +36,7 @@ async fn an_empty_request_resolves_every_default() {
 }
 
 #[tokio::test]
-async fn the_paper_preset_fits_raw_labels_unless_told_otherwise() {
+async fn the_paper_preset_fits_raw_labels_and_never_relaxes_unless_told_otherwise() {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;
     for (body, cap) in [
@@ -53,6 +54,18 @@ async fn the_paper_preset_fits_raw_labels_unless_told_otherwise() {
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");
         assert_eq!(e["mde"]["label_cap"], cap, "{body}");
+    }
+    for (body, relaxes) in [
+        (json!({"learning": {"preset": "paper"}}), false),
+        (
+            json!({"learning": {"preset": "paper", "relax_beta": true}}),
+            true,
+        ),
+        (json!({"learning": {"relax_beta": false}}), false),
+    ] {
+        let (status, e) = app.post("/v1/experiments", &body).await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(e["learning"]["relax_beta"], relaxes, "{body}");
     }
 }
 

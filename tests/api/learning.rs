@@ -444,3 +444,82 @@ async fn no_plan_is_422_with_the_extensions_used() {
         (422, Some("start"))
     );
 }
+
+/// After β turned positive, a training problem whose every route leaves what is trusted is
+/// planned at a lower β (the default preset) rather than answered `no_plan` (the paper's).
+#[tokio::test]
+async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_not_by_the_paper() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let map = ["..#...", "......", "......", "......", "......", "......"];
+    // One iteration of one trajectory with a steep schedule: from the second trajectory on,
+    // β_j ≈ k1 = 2.
+    let learning = json!({"iterations": 1, "batch_size": 1, "k2": 10.0, "max_extensions": 2000});
+    let mut ids = Vec::new();
+    for preset in ["default", "paper"] {
+        let mut l = learning.clone();
+        l["preset"] = json!(preset);
+        let id = app
+            .create_experiment(json!({
+                "domain": {"kind": "icy_gridworld", "map": map},
+                "learning": l
+            }))
+            .await;
+        // A safe move and a bump into the obstacle, far from the problem below.
+        let (status, body) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &json!({"transitions": [
+                    {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
+                    {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}
+                ]}),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+        app.wait_for_model(id, 1).await;
+        ids.push(id);
+    }
+    let problem = json!({"start": [5, 1], "goal": [5, 5]});
+    let candidate = json!({
+        "states": [[5, 1], [5, 2], [5, 3], [5, 4], [5, 5]],
+        "actions": [[0, 1], [0, 1], [0, 1], [0, 1]]
+    });
+    let mut given = problem.clone();
+    given["candidates"] = json!([candidate]);
+
+    let path = format!("/v1/experiments/{}/proposals", ids[0]);
+    for ask in [&problem, &given] {
+        let (status, p) = app.post(&path, ask).await;
+        assert_eq!(status, 201, "{p}");
+        let schedule = p["relaxed_from_beta"].as_f64().expect("relaxed");
+        let beta = p["beta"].as_f64().unwrap();
+        assert!(schedule > 1.9, "β_j {schedule}");
+        assert!(beta < schedule, "planned at {beta}, below β_j {schedule}");
+        let t = &p["trajectory"];
+        let (mu, sigma) = (t["mu"].as_array().unwrap(), t["sigma"].as_array().unwrap());
+        assert!(
+            mu.iter()
+                .zip(sigma)
+                .any(|(m, s)| { m.as_f64().unwrap() + schedule * s.as_f64().unwrap() >= 0.1 }),
+            "some step lies outside the precondition at β_j"
+        );
+        assert!(
+            mu.iter()
+                .zip(sigma)
+                .all(|(m, s)| m.as_f64().unwrap() + beta * s.as_f64().unwrap() < 0.1),
+            "every step inside it at the β used"
+        );
+        let last = t["states"].as_array().unwrap().last().unwrap().clone();
+        assert_eq!(last, json!([5.0, 5.0]));
+    }
+
+    let path = format!("/v1/experiments/{}/proposals", ids[1]);
+    for ask in [&problem, &given] {
+        let (status, err) = app.post(&path, ask).await;
+        assert_eq!((status, code(&err)), (422, "no_plan"), "{err}");
+    }
+    for (id, relaxes) in ids.iter().zip([true, false]) {
+        let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+        assert_eq!(e["learning"]["relax_beta"], relaxes, "{e}");
+    }
+}

@@ -17,12 +17,13 @@ from precond_client import (
     Client,
     Conflict,
     ModelUnavailable,
+    NoPlan,
     NotFound,
     ValidationFailed,
     serve_model,
     transitions_from_states,
 )
-from precond_client.models import Array
+from precond_client.models import Array, Proposal
 
 pytestmark = pytest.mark.integration
 
@@ -194,6 +195,31 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         mine = Candidate([[0.1, 0.2], [0.2, 0.2], [0.3, 0.2]], [[0.1, 0.0], [0.1, 0.0]])
         scored = client.plan([0.1, 0.2], [0.3, 0.2], beta=-3.0, candidates=[mine])
         assert scored.candidates is not None and scored.candidates[0].reaches_goal
+
+
+def test_a_training_problem_beyond_the_precondition_is_relaxed_unless_the_paper_preset(
+    make_server: MakeServer,
+) -> None:
+    server = make_server()
+    client = Client(server.url, timeout=60)
+    grid = {"kind": "icy_gridworld", "map": ["..#...", *["......"] * 5]}
+    # One trajectory per iteration, one iteration, a steep schedule: β_j ≈ 2 from then on.
+    steep = {"iterations": 1, "batch_size": 1, "k2": 10.0}
+    executed = transitions_from_states([[0, 0], [1, 0], [1, 0]], [[1, 0], [1, 0]])
+    proposals: list[Proposal | None] = []
+    for preset in ("default", "paper"):
+        client.create_experiment(domain=grid, learning={**steep, "preset": preset})
+        client.post_trajectory(executed)
+        client.refit()
+        try:
+            proposals.append(client.propose([5, 1], [5, 5]))
+        except NoPlan:
+            proposals.append(None)
+    relaxed, paper = proposals
+    assert relaxed is not None and relaxed.relaxed_from_beta is not None
+    assert relaxed.beta < relaxed.relaxed_from_beta
+    assert relaxed.relaxed_from_beta > 1.9
+    assert paper is None  # the paper's method answers no_plan
 
 
 def test_server_errors_arrive_as_exceptions_with_code_and_details(

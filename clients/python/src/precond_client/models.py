@@ -318,6 +318,9 @@ class Proposal:
     chosen_index: int
     extensions: int
     raw: dict[str, Any] = field(repr=False, compare=False)
+    relaxed_from_beta: float | None = None
+    """The iteration's ``β_j`` when no trajectory reached the goal inside the precondition at
+    it and the proposal was planned at the lower :attr:`beta` (``learning.relax_beta``)."""
 
     @property
     def actions(self) -> Array:
@@ -349,6 +352,9 @@ class Proposal:
             chosen_index=int(d["chosen_index"]),
             extensions=int(d["extensions"]),
             raw=d,
+            relaxed_from_beta=(
+                float(d["relaxed_from_beta"]) if d.get("relaxed_from_beta") is not None else None
+            ),
         )
 
 
