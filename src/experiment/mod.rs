@@ -165,6 +165,10 @@ pub struct ExperimentArgs {
     /// every fit from held-out judgements). Default: the preset's.
     #[arg(long, value_parser = parse_label_cap)]
     pub label_cap: Option<LabelCap>,
+    /// Whether training proposals with no plan at `β_j` relax β (`true` or `false`). Default:
+    /// the preset's.
+    #[arg(long)]
+    pub relax_beta: Option<bool>,
 }
 
 impl ExperimentArgs {
@@ -209,6 +213,8 @@ pub struct Config {
     pub preset: Preset,
     /// The MDE's label cap (`None`: the preset's).
     pub label_cap: Option<LabelCap>,
+    /// Whether training proposals relax β (`None`: the preset's).
+    pub relax_beta: Option<bool>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -270,6 +276,7 @@ impl Config {
             grid_features: args.grid_features,
             preset: args.preset,
             label_cap: args.label_cap,
+            relax_beta: args.relax_beta,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -290,6 +290,7 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
             iterations: cfg.iterations as u32,
             n_candidates: cfg.n_candidates,
             max_extensions: cfg.max_extensions,
+            relax_beta: cfg.relax_beta,
             ..LearningSettings::default()
         },
         ..ExperimentRequest::default()
@@ -351,6 +352,9 @@ pub struct IterationRecord {
     pub train_no_plan: usize,
     /// Slots skipped after `problem_tries` `no_plan` answers.
     pub train_skipped: usize,
+    /// Proposals made at a β below `beta_train` because none reached the goal at it
+    /// (`learning.relax_beta`).
+    pub train_relaxed: usize,
     /// Mean number of transitions of the posted trajectories.
     pub mean_traj_length: Option<f64>,
     /// Posted trajectories that ended in a goal state.
@@ -410,6 +414,10 @@ pub struct TrainingRecord {
     pub slot: usize,
     /// `no_plan` answers before a proposal (or before giving up).
     pub no_plan: usize,
+    /// The β the executed proposal was planned at.
+    pub beta: Option<f64>,
+    /// Whether that β is below the iteration's (`learning.relax_beta`).
+    pub relaxed: bool,
     /// Whether a trajectory was executed and posted.
     pub executed: bool,
     /// Transitions.
@@ -570,6 +578,7 @@ impl Run<'_> {
         for slot in 0..self.cfg.batch_size {
             let train = self.train_slot(rec, slot).await?;
             rec.train_no_plan += train.no_plan;
+            rec.train_relaxed += usize::from(train.relaxed);
             if train.executed {
                 rec.train_trajectories += 1;
                 total_length += train.length;
@@ -605,6 +614,8 @@ impl Run<'_> {
             iteration: j,
             slot,
             no_plan: 0,
+            beta: None,
+            relaxed: false,
             executed: false,
             length: 0,
             goal_reached: false,
@@ -652,7 +663,9 @@ impl Run<'_> {
                 .post_trajectory(self.id, Some(p.proposal.id), transitions)
                 .await?;
             self.posted += 1;
-            rec.beta_train = Some(p.proposal.terms.beta);
+            rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.proposal.terms.beta));
+            train.beta = Some(p.proposal.terms.beta);
+            train.relaxed = p.content.relaxed_from_beta.is_some();
             train.executed = true;
             train.length = exec.steps.len();
             train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
@@ -798,6 +811,7 @@ impl IterationRecord {
             train_trajectories: 0,
             train_no_plan: 0,
             train_skipped: 0,
+            train_relaxed: 0,
             mean_traj_length: None,
             train_goal_reached: 0,
             train_high_deviation: 0,

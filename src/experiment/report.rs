@@ -13,7 +13,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 16] = [
+pub const METRICS: [&str; 17] = [
     "plan_found_rate",
     "success_rate",
     "oracle_rate",
@@ -22,6 +22,7 @@ pub const METRICS: [&str; 16] = [
     "tnr",
     "train_no_plan",
     "train_skipped",
+    "train_relaxed",
     "mean_traj_length",
     "train_goal_rate",
     "n_train",
@@ -33,7 +34,7 @@ pub const METRICS: [&str; 16] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 35] = [
+pub const ITERATION_COLUMNS: [&str; 36] = [
     "domain",
     "layout",
     "strategy",
@@ -43,6 +44,7 @@ pub const ITERATION_COLUMNS: [&str; 35] = [
     "train_trajectories",
     "train_no_plan",
     "train_skipped",
+    "train_relaxed",
     "mean_traj_length",
     "train_goal_reached",
     "train_high_deviation",
@@ -89,6 +91,7 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
         "tnr" => r.tnr,
         "train_no_plan" => Some(r.train_no_plan as f64),
         "train_skipped" => Some(r.train_skipped as f64),
+        "train_relaxed" => Some(r.train_relaxed as f64),
         "mean_traj_length" => r.mean_traj_length,
         "train_goal_rate" => (r.train_trajectories > 0)
             .then(|| r.train_goal_reached as f64 / r.train_trajectories as f64),
@@ -161,6 +164,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.train_trajectories.to_string(),
             r.train_no_plan.to_string(),
             r.train_skipped.to_string(),
+            r.train_relaxed.to_string(),
             opt(r.mean_traj_length),
             r.train_goal_reached.to_string(),
             r.train_high_deviation.to_string(),
@@ -192,17 +196,18 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     write(&dir.join("iterations.csv"), &csv)?;
 
     let mut csv = String::from(
-        "domain,strategy,seed,iteration,slot,no_plan,executed,length,goal_reached,max_deviation,pour_type\n",
+        "domain,strategy,seed,iteration,slot,no_plan,beta,executed,length,goal_reached,max_deviation,pour_type\n",
     );
     for t in results.runs.iter().flat_map(|run| &run.training) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
             t.slot,
             t.no_plan,
+            opt(t.beta),
             t.executed,
             t.length,
             t.goal_reached,
