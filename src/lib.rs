@@ -16,7 +16,8 @@
 //! - [`gp`]: the Gaussian-process regressor behind the MDE: Matérn 5/2 ARD kernel,
 //!   homoscedastic or most-likely heteroscedastic noise, LML-maximising fits, batched prediction.
 //! - [`planning`]: RRT candidates inside the precondition, the trajectory acquisition function,
-//!   the β schedule and the `active` / `goal_conditioned` / `random` strategies.
+//!   the β schedule (and its relaxation ladder for training problems with no plan) and the
+//!   `active` / `goal_conditioned` / `random` strategies.
 //! - [`mde`]: the model deviation estimator as served: the prior before any data, then a fitted
 //!   GP, under a version; precondition judgements; the label cap chosen from held-out
 //!   judgements of the training transitions.

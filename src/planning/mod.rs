@@ -2,7 +2,8 @@
 //! the trajectory-level acquisition function, the β schedule, and the strategies that turn a
 //! planning problem into a proposal (DESIGN.md §1).
 //!
-//! - [`schedule`]: `β_j` over the learning iterations.
+//! - [`schedule`]: `β_j` over the learning iterations, and the ladder of lower βs a training
+//!   problem with no plan at `β_j` tries ([`propose_relaxing`]).
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
 //! - [`budget`]: the deadline and cancel flag a search checks between rounds.
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
