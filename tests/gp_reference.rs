@@ -2,7 +2,7 @@
 //! heteroscedastic fit against known noise levels.
 
 use nalgebra::{DMatrix, DVector};
-use precond::gp::{GpModel, GpParams, Hyperparameters, ModelState, NoiseMode};
+use precond::gp::{GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
@@ -27,6 +27,9 @@ struct Fitted {
 #[derive(Deserialize)]
 struct Fixture {
     name: String,
+    /// The Matérn smoothness (2.5 when absent).
+    #[serde(default = "paper_nu")]
+    nu: f64,
     prior_mean: f64,
     x: Vec<Vec<f64>>,
     y: Vec<f64>,
@@ -35,10 +38,27 @@ struct Fixture {
     fitted: Fitted,
 }
 
-const FIXTURES: [&str; 3] = [
+fn paper_nu() -> f64 {
+    2.5
+}
+
+impl Fixture {
+    fn kernel(&self) -> Kernel {
+        match self.nu {
+            0.5 => Kernel::Matern12,
+            1.5 => Kernel::Matern32,
+            2.5 => Kernel::Matern52,
+            other => panic!("{}: no kernel with nu = {other}", self.name),
+        }
+    }
+}
+
+const FIXTURES: [&str; 5] = [
     include_str!("fixtures/gp/d2_n40.json"),
     include_str!("fixtures/gp/d3_n60_mean.json"),
     include_str!("fixtures/gp/d4_n80_small_noise.json"),
+    include_str!("fixtures/gp/d2_n40_nu05.json"),
+    include_str!("fixtures/gp/d3_n60_nu15.json"),
 ];
 
 fn fixtures() -> Vec<Fixture> {
@@ -74,6 +94,7 @@ fn predictions_and_lml_match_sklearn_at_fixed_hyperparameters() {
                 signal_variance: f.fixed.signal_variance,
                 noise_variance: f.fixed.noise_variance,
                 prior_mean: f.prior_mean,
+                kernel: f.kernel(),
             },
             jitter: 0.0,
             log_marginal_likelihood: f64::NAN,
@@ -102,6 +123,7 @@ fn fitted_lml_is_at_least_sklearns() {
         let y = DVector::from_vec(f.y.clone());
         let params = GpParams {
             noise: NoiseMode::Homoscedastic,
+            kernel: f.kernel(),
             prior_mean: f.prior_mean,
             restarts: f.fitted.restarts,
             seed: 7,

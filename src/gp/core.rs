@@ -4,13 +4,14 @@
 use faer::Par;
 
 use super::GpError;
-use super::kernel::{self, Inputs};
+use super::kernel::{self, Inputs, Kernel};
 use super::linalg;
 use super::lml::{self, Jitter};
 
 /// One conditioned GP: scaled training inputs, `L⁻¹` and `α = K⁻¹(y − m)`.
 #[derive(Clone, Debug)]
 pub(crate) struct Core {
+    pub kernel: Kernel,
     pub n: usize,
     pub d: usize,
     /// Training inputs divided by the length scales, column-major `n × d`.
@@ -34,6 +35,7 @@ impl Core {
     /// the first absolute jitter tried (0 for a new fit, the stored value for a rebuild).
     #[allow(clippy::too_many_arguments)]
     pub fn build(
+        kernel: Kernel,
         x: &Inputs,
         y: &[f64],
         mean: f64,
@@ -47,6 +49,7 @@ impl Core {
         let r: Vec<f64> = y.iter().map(|v| v - mean).collect();
         let xs = x.scaled(length_scales);
         let fac = lml::factorise(
+            kernel,
             &xs,
             n,
             d,
@@ -63,6 +66,7 @@ impl Core {
         let mut linv = fac.l.clone();
         linalg::invert_lower_row_major(&fac.l, n, &mut linv);
         Ok(Core {
+            kernel,
             n,
             d,
             xs,
@@ -124,7 +128,7 @@ impl Core {
                 qc.extend_from_slice(&qs[k * m + j0..k * m + j0 + mc]);
             }
             ks.resize(n * mc, 0.0);
-            kernel::build_cross(&self.xs, n, &qc, mc, d, self.s2, &mut ks);
+            kernel::build_cross(self.kernel, &self.xs, n, &qc, mc, d, self.s2, &mut ks);
             for col in ks.chunks_exact(n) {
                 mean.push(self.mean + col.iter().zip(&self.alpha).map(|(a, b)| a * b).sum::<f64>());
             }

@@ -5,7 +5,7 @@ use rand::seq::index::sample;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::kernel::Inputs;
+use super::kernel::{Inputs, Kernel};
 use super::lbfgs::{self, Settings};
 use super::lml::{Jitter, NoiseSpec, Objective};
 use super::{Bounds, GpError, GpParams};
@@ -99,6 +99,7 @@ fn run(
     x: &Inputs,
     r: &[f64],
     noise: NoiseSpec<'_>,
+    kernel: Kernel,
     p: &GpParams,
     settings: &Settings,
     (lo, hi): (&[f64], &[f64]),
@@ -106,7 +107,7 @@ fn run(
     warm: lbfgs::Memory,
     evals: &mut usize,
 ) -> Option<lbfgs::Outcome> {
-    let mut obj = Objective::new(x, r, noise, jitter(p));
+    let mut obj = Objective::new(x, r, noise, kernel, jitter(p));
     let mut fg = |t: &[f64], g: &mut [f64]| obj.eval(t, g);
     let out = lbfgs::minimize(&mut fg, start, lo, hi, settings, warm);
     *evals += obj.evaluations;
@@ -136,6 +137,7 @@ pub(crate) fn optimise(
     r: &[f64],
     noise: NoiseSpec<'_>,
     bounds: &Bounds,
+    kernel: Kernel,
     p: &GpParams,
     restarts: usize,
     warm: Option<Warm<'_>>,
@@ -189,6 +191,7 @@ pub(crate) fn optimise(
                 &xs,
                 &rs,
                 sub_noise,
+                kernel,
                 p,
                 &settings,
                 bounds,
@@ -234,6 +237,7 @@ pub(crate) fn optimise(
             x,
             r,
             noise,
+            kernel,
             p,
             &settings,
             bounds,

@@ -23,7 +23,7 @@
 
 use super::core::{Core, mean};
 use super::fit::{self, Warm, optimise};
-use super::kernel::Inputs;
+use super::kernel::{Inputs, Kernel};
 use super::lml::{Jitter, NoiseSpec};
 use super::{GpError, GpParams, Hyperparameters, NoiseModelState};
 
@@ -66,6 +66,10 @@ pub fn log_residual_bias(rho: f64) -> f64 {
 /// Relative function tolerance floor for the noise GP's optimiser: its targets are log
 /// residuals with a variance of several units, so optimising their LML to 1e-9 buys nothing.
 const NOISE_MODEL_FTOL: f64 = 1e-6;
+
+/// The noise GP's kernel, whatever the main GP's: the log noise level is a smooth summary of
+/// where the residuals are large, not a function that jumps.
+const NOISE_MODEL_KERNEL: Kernel = Kernel::Matern52;
 
 /// The fitted noise GP.
 #[derive(Clone, Debug)]
@@ -137,6 +141,7 @@ impl NoiseModel {
         }
         let h = &s.hyperparameters;
         let core = Core::build(
+            h.kernel,
             x,
             &s.log_noise_targets,
             h.prior_mean,
@@ -224,6 +229,7 @@ pub(crate) fn fit(
             &rz,
             NoiseSpec::Homoscedastic,
             &p.noise_model_bounds,
+            NOISE_MODEL_KERNEL,
             p,
             p.restarts,
             noise_theta.as_deref().map(|theta| Warm {
@@ -236,12 +242,23 @@ pub(crate) fn fit(
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());
-        let core = Core::build(x, &z, mz, &gls, gs2, vec![gn; x.n], jitter, 0.0)?;
+        let core = Core::build(
+            NOISE_MODEL_KERNEL,
+            x,
+            &z,
+            mz,
+            &gls,
+            gs2,
+            vec![gn; x.n],
+            jitter,
+            0.0,
+        )?;
         let hyper = Hyperparameters {
             length_scales: gls,
             signal_variance: gs2,
             noise_variance: gn,
             prior_mean: mz,
+            kernel: NOISE_MODEL_KERNEL,
         };
         let nm = NoiseModel {
             core,
@@ -257,6 +274,7 @@ pub(crate) fn fit(
             &r,
             NoiseSpec::Fixed(&noise),
             &p.bounds,
+            p.kernel,
             p,
             0,
             Some(Warm {
@@ -269,6 +287,7 @@ pub(crate) fn fit(
         )?;
         let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
         let main = Core::build(
+            p.kernel,
             x,
             y,
             p.prior_mean,

@@ -1,10 +1,15 @@
-//! The Matérn ν=5/2 ARD kernel and the dense matrices built from it.
+//! The Matérn ARD kernels (ν = 1/2, 3/2, 5/2) and the dense matrices built from them.
 //!
-//! `k(x, x') = s² (1 + √5 r + 5/3 r²) exp(−√5 r)`, with `r² = Σ_k ((x_k − x'_k) / ℓ_k)²`.
+//! With `r² = Σ_k ((x_k − x'_k) / ℓ_k)²`:
+//! - ν = 5/2: `k = s² (1 + √5 r + 5/3 r²) exp(−√5 r)` (twice differentiable sample paths);
+//! - ν = 3/2: `k = s² (1 + √3 r) exp(−√3 r)` (once differentiable);
+//! - ν = 1/2: `k = s² exp(−r)` (the exponential kernel: continuous, nowhere differentiable paths,
+//!   which follow a jump with long length scales where the smoother kernels need short ones).
 //!
-//! Its derivative with respect to a log length scale has no singularity at `r = 0`:
-//! `∂k/∂log ℓ_k = 5/3 s² (1 + √5 r) exp(−√5 r) · ((x_k − x'_k) / ℓ_k)²`; the factor in front of the
-//! squared scaled difference is what [`build_train`] stores as `G`.
+//! The derivative with respect to a log length scale is `∂k/∂log ℓ_k = G(r) · ((x_k − x'_k) / ℓ_k)²`
+//! with `G = 5/3 s² (1 + √5 r) exp(−√5 r)`, `3 s² exp(−√3 r)` and `s² exp(−r) / r` respectively;
+//! [`build_train`] stores `G`. For ν = 1/2 `G` grows like `1/r`, but the squared scaled difference
+//! it multiplies is at most `r²`, so the product vanishes at `r = 0`, where `G` is stored as 0.
 //!
 //! Matrices are plain column-major `Vec<f64>` (column stride = number of rows), so they can be
 //! split between threads by columns and viewed as faer matrices without copies. Only the lower
@@ -13,9 +18,120 @@
 use std::sync::OnceLock;
 
 use nalgebra::DMatrix;
+use serde::{Deserialize, Serialize};
 
 /// `√5`.
 pub(crate) const SQRT5: f64 = 2.236_067_977_499_79;
+/// `√3`.
+const SQRT3: f64 = 1.732_050_807_568_877_2;
+
+/// The Matérn kernel's smoothness `ν`: how rough the deviation function may be.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Kernel {
+    /// ν = 1/2, the exponential kernel `s² exp(−r)`: continuous but rough sample paths. A
+    /// deviation that jumps (a wall, a patch of ice, a contact) is fitted with long length
+    /// scales, so what is learned on either side of a jump still spreads along it.
+    Matern12,
+    /// ν = 3/2, `s² (1 + √3 r) exp(−√3 r)`: once-differentiable sample paths.
+    Matern32,
+    /// ν = 5/2, `s² (1 + √5 r + 5/3 r²) exp(−√5 r)`: twice-differentiable sample paths (the
+    /// paper's kernel). A jump forces its length scales down to the jump's width.
+    #[default]
+    Matern52,
+}
+
+impl Kernel {
+    /// Every kernel, roughest first.
+    pub const ALL: [Kernel; 3] = [Kernel::Matern12, Kernel::Matern32, Kernel::Matern52];
+
+    /// The kernel's name as the API spells it (`matern12`, `matern32`, `matern52`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Kernel::Matern12 => "matern12",
+            Kernel::Matern32 => "matern32",
+            Kernel::Matern52 => "matern52",
+        }
+    }
+
+    /// Covariance for a squared scaled distance `r2` and signal variance `s2`.
+    #[inline(always)]
+    pub fn value(self, r2: f64, s2: f64) -> f64 {
+        match self {
+            Kernel::Matern12 => matern12(r2, s2),
+            Kernel::Matern32 => matern32(r2, s2),
+            Kernel::Matern52 => matern52(r2, s2),
+        }
+    }
+}
+
+impl std::fmt::Display for Kernel {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// Covariance and `G` (see the module documentation) of kernel `K` at squared scaled distance
+/// `q`; a generic parameter so that each kernel's loops are compiled (and vectorised) apart.
+trait Form {
+    fn kg(q: f64, s2: f64) -> (f64, f64);
+    fn k(q: f64, s2: f64) -> f64;
+}
+
+struct M12;
+struct M32;
+struct M52;
+
+impl Form for M12 {
+    #[inline(always)]
+    fn kg(q: f64, s2: f64) -> (f64, f64) {
+        let r = q.sqrt();
+        let e = if q > FAR_R2 {
+            0.0
+        } else {
+            s2 * exp_nonpositive(-r)
+        };
+        (e, if r > 0.0 { e / r } else { 0.0 })
+    }
+    #[inline(always)]
+    fn k(q: f64, s2: f64) -> f64 {
+        matern12(q, s2)
+    }
+}
+
+impl Form for M32 {
+    #[inline(always)]
+    fn kg(q: f64, s2: f64) -> (f64, f64) {
+        let t = SQRT3 * q.sqrt();
+        let e = if q > FAR_R2 {
+            0.0
+        } else {
+            s2 * exp_nonpositive(-t)
+        };
+        ((1.0 + t) * e, 3.0 * e)
+    }
+    #[inline(always)]
+    fn k(q: f64, s2: f64) -> f64 {
+        matern32(q, s2)
+    }
+}
+
+impl Form for M52 {
+    #[inline(always)]
+    fn kg(q: f64, s2: f64) -> (f64, f64) {
+        let t = SQRT5 * q.sqrt();
+        let e = if q > FAR_R2 {
+            0.0
+        } else {
+            s2 * exp_nonpositive(-t)
+        };
+        ((1.0 + t + (5.0 / 3.0) * q) * e, (5.0 / 3.0) * (1.0 + t) * e)
+    }
+    #[inline(always)]
+    fn k(q: f64, s2: f64) -> f64 {
+        matern52(q, s2)
+    }
+}
 
 /// Training or query inputs, column-major `n × d` (dimension `k` is the contiguous slice
 /// `cols[k*n .. (k+1)*n]`), exactly nalgebra's layout.
@@ -110,6 +226,21 @@ pub(crate) fn matern52(r2: f64, s2: f64) -> f64 {
     if r2 > FAR_R2 { 0.0 } else { k }
 }
 
+/// Matérn 3/2 covariance for a squared scaled distance `r2`, signal variance `s2`.
+#[inline(always)]
+pub(crate) fn matern32(r2: f64, s2: f64) -> f64 {
+    let t = SQRT3 * r2.sqrt();
+    let k = s2 * (1.0 + t) * exp_nonpositive(-t);
+    if r2 > FAR_R2 { 0.0 } else { k }
+}
+
+/// Matérn 1/2 (exponential) covariance for a squared scaled distance `r2`, signal variance `s2`.
+#[inline(always)]
+pub(crate) fn matern12(r2: f64, s2: f64) -> f64 {
+    let k = s2 * exp_nonpositive(-r2.sqrt());
+    if r2 > FAR_R2 { 0.0 } else { k }
+}
+
 /// Squared scaled distance beyond which the kernel is exactly 0 (`r = 300`).
 const FAR_R2: f64 = 9.0e4;
 
@@ -166,7 +297,25 @@ fn split_columns<'a>(mut buf: &'a mut [f64], n: usize, bounds: &[usize]) -> Vec<
 /// `xs` are the length-scale-scaled inputs (`n × d`, column-major). Parallel over balanced
 /// column blocks; every element is computed independently, so the result does not depend on the
 /// number of threads.
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn build_train(
+    kernel: Kernel,
+    xs: &[f64],
+    n: usize,
+    d: usize,
+    s2: f64,
+    diag_add: &[f64],
+    a: &mut [f64],
+    g: Option<&mut [f64]>,
+) {
+    match kernel {
+        Kernel::Matern12 => build_train_with::<M12>(xs, n, d, s2, diag_add, a, g),
+        Kernel::Matern32 => build_train_with::<M32>(xs, n, d, s2, diag_add, a, g),
+        Kernel::Matern52 => build_train_with::<M52>(xs, n, d, s2, diag_add, a, g),
+    }
+}
+
+fn build_train_with<K: Form>(
     xs: &[f64],
     n: usize,
     d: usize,
@@ -202,19 +351,12 @@ pub(crate) fn build_train(
                 Some(gp) => {
                     let gcol = &mut gp[jc * n + c..(jc + 1) * n];
                     for ((av, gv), &q) in acol.iter_mut().zip(gcol.iter_mut()).zip(r2.iter()) {
-                        let t = SQRT5 * q.sqrt();
-                        let e = if q > FAR_R2 {
-                            0.0
-                        } else {
-                            s2 * exp_nonpositive(-t)
-                        };
-                        *av = (1.0 + t + (5.0 / 3.0) * q) * e;
-                        *gv = (5.0 / 3.0) * (1.0 + t) * e;
+                        (*av, *gv) = K::kg(q, s2);
                     }
                 }
                 None => {
                     for (av, &q) in acol.iter_mut().zip(r2.iter()) {
-                        *av = matern52(q, s2);
+                        *av = K::k(q, s2);
                     }
                 }
             }
@@ -237,7 +379,25 @@ pub(crate) fn build_train(
 
 /// Cross covariance `K*` between training inputs `xs` (`n × d`, scaled) and query inputs `qs`
 /// (`m × d`, scaled), written column-major `n × m` into `out` (query `j` is column `j`).
+#[allow(clippy::too_many_arguments)]
 pub(crate) fn build_cross(
+    kernel: Kernel,
+    xs: &[f64],
+    n: usize,
+    qs: &[f64],
+    m: usize,
+    d: usize,
+    s2: f64,
+    out: &mut [f64],
+) {
+    match kernel {
+        Kernel::Matern12 => build_cross_with::<M12>(xs, n, qs, m, d, s2, out),
+        Kernel::Matern32 => build_cross_with::<M32>(xs, n, qs, m, d, s2, out),
+        Kernel::Matern52 => build_cross_with::<M52>(xs, n, qs, m, d, s2, out),
+    }
+}
+
+fn build_cross_with<K: Form>(
     xs: &[f64],
     n: usize,
     qs: &[f64],
@@ -259,7 +419,7 @@ pub(crate) fn build_cross(
                 }
             }
             for v in col.iter_mut() {
-                *v = matern52(*v, s2);
+                *v = K::k(*v, s2);
             }
         }
     };

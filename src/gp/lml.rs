@@ -13,7 +13,7 @@
 //! [`length_scale_gradient`].
 
 use super::GpError;
-use super::kernel::{Inputs, build_train, length_scale_gradient};
+use super::kernel::{Inputs, Kernel, build_train, length_scale_gradient};
 use super::linalg;
 
 /// `½ log 2π`.
@@ -70,6 +70,7 @@ impl Factor {
 /// so the rebuilt matrix is bit-identical); each failure moves up the ladder.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn factorise(
+    kernel: Kernel,
     xs: &[f64],
     n: usize,
     d: usize,
@@ -89,7 +90,7 @@ pub(crate) fn factorise(
         noise.iter().map(|v| v + eps).collect()
     };
     loop {
-        build_train(xs, n, d, s2, &diag, &mut l, g.as_deref_mut());
+        build_train(kernel, xs, n, d, s2, &diag, &mut l, g.as_deref_mut());
         if linalg::cholesky_in_place(&mut l, n)
             && (0..n).all(|i| l[i * n + i] * l[i * n + i] >= MIN_PIVOT * mean_diag)
         {
@@ -129,6 +130,7 @@ pub(crate) struct Objective<'a> {
     x: &'a Inputs,
     r: &'a [f64],
     noise: NoiseSpec<'a>,
+    kernel: Kernel,
     jitter: Jitter,
     a: Vec<f64>,
     g: Vec<f64>,
@@ -139,12 +141,19 @@ pub(crate) struct Objective<'a> {
 
 impl<'a> Objective<'a> {
     /// A new objective for inputs `x`, centred targets `r`.
-    pub fn new(x: &'a Inputs, r: &'a [f64], noise: NoiseSpec<'a>, jitter: Jitter) -> Self {
+    pub fn new(
+        x: &'a Inputs,
+        r: &'a [f64],
+        noise: NoiseSpec<'a>,
+        kernel: Kernel,
+        jitter: Jitter,
+    ) -> Self {
         let nn = x.n * x.n;
         Objective {
             x,
             r,
             noise,
+            kernel,
             jitter,
             a: vec![0.0; nn],
             g: vec![0.0; nn],
@@ -180,6 +189,7 @@ impl<'a> Objective<'a> {
         let xs = self.x.scaled(&ls);
         let a = std::mem::take(&mut self.a);
         let fac = match factorise(
+            self.kernel,
             &xs,
             n,
             d,

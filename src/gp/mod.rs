@@ -1,9 +1,10 @@
 #![warn(missing_docs)]
-//! The Gaussian-process model deviation estimator (MDE): a Matérn ν=5/2 ARD GP with a constant
-//! prior mean and homoscedastic or *most likely heteroscedastic* noise (Kersting et al. 2007).
+//! The Gaussian-process model deviation estimator (MDE): a Matérn ARD GP (ν = 5/2, the paper's,
+//! or the rougher 3/2 and 1/2) with a constant prior mean and homoscedastic or *most likely
+//! heteroscedastic* noise (Kersting et al. 2007).
 //!
 //! - [`params`]: checked settings ([`GpParams`] → [`ValidGpParams`]); only valid ones can fit.
-//! - [`kernel`](self) (private): the kernel and the dense matrices built from it.
+//! - `kernel` (private): the kernels ([`Kernel`]) and the dense matrices built from them.
 //! - `lml` / `lbfgs` / `fit` (private): the log marginal likelihood with analytic gradients and
 //!   its maximisation over log-parameters by projected L-BFGS under box bounds, from seeded starts.
 //! - [`hetero`]: the heteroscedastic noise procedure.
@@ -41,6 +42,7 @@ mod tests;
 use serde::{Deserialize, Serialize};
 
 pub use error::GpError;
+pub use kernel::Kernel;
 pub use model::GpModel;
 pub use params::{Bounds, GpParams, NoiseMode, ValidGpParams};
 
@@ -54,8 +56,9 @@ pub const DEFAULT_PRIOR_LENGTH_SCALE: f64 = 0.5;
 
 /// The GP's hyperparameters in natural units.
 ///
-/// Covariance: `k(x, x') = s² (1 + √5 r + 5/3 r²) exp(−√5 r)` with
-/// `r² = Σ_k ((x_k − x'_k)/ℓ_k)²`, plus noise on the diagonal; prior mean constant `m`.
+/// Covariance: the Matérn [`Kernel`] of smoothness `ν` at `r² = Σ_k ((x_k − x'_k)/ℓ_k)²` times `s²`
+/// (for ν = 5/2, `s² (1 + √5 r + 5/3 r²) exp(−√5 r)`), plus noise on the diagonal; prior mean
+/// constant `m`.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Hyperparameters {
     /// ARD length scales `ℓ_k`, one per input dimension, in unit-box units (> 0).
@@ -67,6 +70,10 @@ pub struct Hyperparameters {
     pub noise_variance: f64,
     /// Constant prior mean `m` (not optimised).
     pub prior_mean: f64,
+    /// The Matérn kernel's smoothness (not optimised by the LML: chosen by the settings, or
+    /// among several fits; states stored before kernels were selectable are ν = 5/2).
+    #[serde(default)]
+    pub kernel: Kernel,
 }
 
 impl Hyperparameters {
@@ -79,6 +86,7 @@ impl Hyperparameters {
             signal_variance: DEFAULT_PRIOR_SIGNAL_VARIANCE,
             noise_variance: 0.0,
             prior_mean,
+            kernel: Kernel::default(),
         }
     }
 

@@ -100,6 +100,7 @@ impl GpModel {
             &r,
             NoiseSpec::Homoscedastic,
             &p.bounds,
+            p.kernel,
             p,
             p.restarts,
             None,
@@ -110,7 +111,17 @@ impl GpModel {
         let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
         let s2 = theta[d].exp();
         let noise = theta[d + 1].exp();
-        let homo = Core::build(&x, y, p.prior_mean, &ls, s2, vec![noise; x.n], jitter, 0.0)?;
+        let homo = Core::build(
+            p.kernel,
+            &x,
+            y,
+            p.prior_mean,
+            &ls,
+            s2,
+            vec![noise; x.n],
+            jitter,
+            0.0,
+        )?;
         let homo_lml = homo.lml;
         let hetero = p.noise == NoiseMode::Heteroscedastic && x.n >= p.hetero_min_points;
         if !hetero {
@@ -119,6 +130,7 @@ impl GpModel {
                 signal_variance: s2,
                 noise_variance: noise,
                 prior_mean: p.prior_mean,
+                kernel: p.kernel,
             };
             let stats = Some(FitStats {
                 evaluations,
@@ -141,6 +153,7 @@ impl GpModel {
             signal_variance: fitted.main.s2,
             noise_variance: mean(&fitted.main.noise),
             prior_mean: p.prior_mean,
+            kernel: p.kernel,
         };
         Ok(GpModel {
             x,
@@ -199,6 +212,7 @@ impl GpModel {
         match (state.noise, &state.noise_model) {
             (NoiseMode::Homoscedastic, None) => {
                 let main = Core::build(
+                    h.kernel,
                     &x,
                     y,
                     h.prior_mean,
@@ -223,6 +237,7 @@ impl GpModel {
                 let nm = NoiseModel::from_state(&x, ns)?;
                 let noise = nm.train_noise();
                 let main = Core::build(
+                    h.kernel,
                     &x,
                     y,
                     h.prior_mean,

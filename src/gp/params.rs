@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::GpError;
+use super::{GpError, Kernel};
 
 /// How the observation noise is modelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -82,6 +82,9 @@ pub struct GpParams {
     /// Noise model. Default [`NoiseMode::Heteroscedastic`]; falls back to homoscedastic when there
     /// are fewer than [`hetero_min_points`](Self::hetero_min_points) training points.
     pub noise: NoiseMode,
+    /// The main GP's kernel. Default [`Kernel::Matern52`] (the paper's). The heteroscedastic
+    /// noise GP always uses ν = 5/2.
+    pub kernel: Kernel,
     /// Constant prior mean `m` of the GP (finite). Default `0.0`: unexplored regions look
     /// trustworthy but uncertain, which drives exploration.
     pub prior_mean: f64,
@@ -128,6 +131,7 @@ impl Default for GpParams {
     fn default() -> Self {
         GpParams {
             noise: NoiseMode::Heteroscedastic,
+            kernel: Kernel::Matern52,
             prior_mean: 0.0,
             restarts: 2,
             seed: 0,

@@ -46,8 +46,9 @@ fn cholesky_factor_reproduces_the_covariance() {
     let n = inputs.n;
     let noise = vec![0.01; n];
     let mut k = vec![0.0; n * n];
-    build_train(&xs, n, 3, 0.9, &noise, &mut k, None);
+    build_train(Kernel::Matern52, &xs, n, 3, 0.9, &noise, &mut k, None);
     let fac = factorise(
+        Kernel::Matern52,
         &xs,
         n,
         3,
@@ -83,10 +84,53 @@ fn kernel_matches_the_matern_formula() {
     let expected = 1.7 * (1.0 + 5f64.sqrt() * r + 5.0 / 3.0 * r * r) * (-(5f64.sqrt()) * r).exp();
     assert_relative_eq!(matern52(r * r, 1.7), expected, max_relative = 1e-14);
     assert_eq!(matern52(0.0, 2.5), 2.5);
+    let m32 = 1.7 * (1.0 + 3f64.sqrt() * r) * (-(3f64.sqrt()) * r).exp();
+    assert_relative_eq!(
+        Kernel::Matern32.value(r * r, 1.7),
+        m32,
+        max_relative = 1e-14
+    );
+    assert_relative_eq!(
+        Kernel::Matern12.value(r * r, 1.7),
+        1.7 * (-r).exp(),
+        max_relative = 1e-14
+    );
+    assert_eq!(Kernel::Matern52.value(r * r, 1.7), matern52(r * r, 1.7));
+    for k in Kernel::ALL {
+        assert_eq!(k.value(0.0, 2.5), 2.5);
+        assert_eq!(k.value(f64::INFINITY, 2.5), 0.0);
+        // Correlation falls with distance, and the rougher kernel falls faster at first.
+        assert!(k.value(0.01, 1.0) > k.value(0.04, 1.0));
+    }
+    assert!(Kernel::Matern12.value(0.01, 1.0) < Kernel::Matern52.value(0.01, 1.0));
 }
 
-fn check_gradient(noise: NoiseSpec<'_>, x: &Inputs, r: &[f64], theta: &[f64]) {
-    let mut obj = Objective::new(x, r, noise, JITTER);
+#[test]
+fn every_kernel_builds_the_matrix_of_its_formula() {
+    let (x, _) = data(20, 2, 4);
+    let inputs = Inputs::from_matrix(&x);
+    let xs = inputs.scaled(&[0.3, 0.6]);
+    let n = inputs.n;
+    for kernel in Kernel::ALL {
+        let mut k = vec![0.0; n * n];
+        let mut g = vec![0.0; n * n];
+        build_train(kernel, &xs, n, 2, 0.8, &vec![0.0; n], &mut k, Some(&mut g));
+        let mut c = vec![0.0; n * n];
+        super::kernel::build_cross(kernel, &xs, n, &xs, n, 2, 0.8, &mut c);
+        for j in 0..n {
+            for i in j..n {
+                let r2: f64 = (0..2)
+                    .map(|d| (xs[d * n + i] - xs[d * n + j]).powi(2))
+                    .sum();
+                assert_relative_eq!(k[j * n + i], kernel.value(r2, 0.8), max_relative = 1e-13);
+                assert_relative_eq!(c[j * n + i], kernel.value(r2, 0.8), max_relative = 1e-13);
+            }
+        }
+    }
+}
+
+fn check_gradient(kernel: Kernel, noise: NoiseSpec<'_>, x: &Inputs, r: &[f64], theta: &[f64]) {
+    let mut obj = Objective::new(x, r, noise, kernel, JITTER);
     let p = obj.n_params();
     assert_eq!(p, theta.len());
     let mut g = vec![0.0; p];
@@ -110,25 +154,29 @@ fn gradient_matches_finite_differences() {
     let (x, y) = data(70, 3, 2);
     let inputs = Inputs::from_matrix(&x);
     let r: Vec<f64> = y.iter().map(|v| v - 0.2).collect();
-    check_gradient(
-        NoiseSpec::Homoscedastic,
-        &inputs,
-        &r,
-        &[
-            (0.4f64).ln(),
-            (0.9f64).ln(),
-            (2.0f64).ln(),
-            (0.7f64).ln(),
-            (0.02f64).ln(),
-        ],
-    );
     let fixed: Vec<f64> = (0..70).map(|i| 0.005 + 0.001 * i as f64).collect();
-    check_gradient(
-        NoiseSpec::Fixed(&fixed),
-        &inputs,
-        &r,
-        &[(0.2f64).ln(), (1.5f64).ln(), (0.6f64).ln(), (1.3f64).ln()],
-    );
+    for kernel in Kernel::ALL {
+        check_gradient(
+            kernel,
+            NoiseSpec::Homoscedastic,
+            &inputs,
+            &r,
+            &[
+                (0.4f64).ln(),
+                (0.9f64).ln(),
+                (2.0f64).ln(),
+                (0.7f64).ln(),
+                (0.02f64).ln(),
+            ],
+        );
+        check_gradient(
+            kernel,
+            NoiseSpec::Fixed(&fixed),
+            &inputs,
+            &r,
+            &[(0.2f64).ln(), (1.5f64).ln(), (0.6f64).ln(), (1.3f64).ln()],
+        );
+    }
 }
 
 #[test]
@@ -137,12 +185,15 @@ fn gradient_is_right_for_large_matrices_too() {
     // faer switches to its parallel kernels.
     let (x, y) = data(1300, 2, 3);
     let inputs = Inputs::from_matrix(&x);
-    check_gradient(
-        NoiseSpec::Homoscedastic,
-        &inputs,
-        y.as_slice(),
-        &[(0.3f64).ln(), (0.8f64).ln(), 0.0, (0.01f64).ln()],
-    );
+    for kernel in [Kernel::Matern12, Kernel::Matern52] {
+        check_gradient(
+            kernel,
+            NoiseSpec::Homoscedastic,
+            &inputs,
+            y.as_slice(),
+            &[(0.3f64).ln(), (0.8f64).ln(), 0.0, (0.01f64).ln()],
+        );
+    }
 }
 
 #[test]
@@ -340,6 +391,7 @@ fn duplicate_points_without_noise_use_jitter_or_fail_cleanly() {
         signal_variance: 1.0,
         noise_variance: 0.0,
         prior_mean: 0.0,
+        kernel: Kernel::Matern52,
     };
     let state = ModelState {
         format: 1,
@@ -607,7 +659,7 @@ proptest! {
             format: 1,
             noise: NoiseMode::Homoscedastic,
             n_train: n,
-            hyperparameters: Hyperparameters { length_scales: vec![ls, ls * 2.0], signal_variance: s2, noise_variance: noise, prior_mean: 0.1 },
+            hyperparameters: Hyperparameters { length_scales: vec![ls, ls * 2.0], signal_variance: s2, noise_variance: noise, prior_mean: 0.1, kernel: Kernel::Matern52 },
             jitter: 0.0,
             log_marginal_likelihood: 0.0,
             noise_model: None,
@@ -632,8 +684,8 @@ proptest! {
         let xs = inputs.scaled(&[ls, ls, ls]);
         let nv = vec![noise; n];
         let mut k = vec![0.0; n * n];
-        build_train(&xs, n, 3, 1.0, &nv, &mut k, None);
-        let fac = factorise(&xs, n, 3, 1.0, &nv, y.as_slice(), JITTER, 0.0, vec![0.0; n * n], None).ok().unwrap();
+        build_train(Kernel::Matern52, &xs, n, 3, 1.0, &nv, &mut k, None);
+        let fac = factorise(Kernel::Matern52, &xs, n, 3, 1.0, &nv, y.as_slice(), JITTER, 0.0, vec![0.0; n * n], None).ok().unwrap();
         for i in 0..n {
             let diag: f64 = (0..=i).map(|c| fac.l[c * n + i].powi(2)).sum();
             prop_assert!((diag - k[i * n + i] - fac.jitter).abs() <= 1e-10 * k[i * n + i]);
