@@ -432,9 +432,9 @@ pub struct ModelResponse {
     /// The label cap the fit clipped deviations at (units of `d_max`; 0 = raw labels; `null`
     /// for the prior).
     pub label_cap: Option<f64>,
-    /// Each candidate cap's model judging its own training transitions, each held out in turn
-    /// (trust at `learning.test_beta`, and the log probability given to the right side of
-    /// `d_max`): with `mde.label_cap: "auto"` the fit keeps the best-scoring one, but replaces
+    /// Each candidate cap's model judging its own training transitions, each state-action held
+    /// out in turn with all its copies (trust at `learning.test_beta`, and the log probability
+    /// given to the right side of `d_max`): with `mde.label_cap: "auto"` the fit keeps the best-scoring one, but replaces
     /// raw labels only when a cap scores clearly better (see
     /// [`crate::mde::fit_choosing_label_cap`]).
     pub label_cap_trials: Vec<HeldOutTrust>,

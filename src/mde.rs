@@ -204,9 +204,10 @@ pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64>
     }
 }
 
-/// How a model fitted with one label cap judges its own training transitions when each is
-/// left out in turn: the held-out precondition `μ₋ᵢ + β σ₋ᵢ < d_max` against the truth
-/// `deviation_i < d_max`, and the log probability it gives to the truth.
+/// How a model fitted with one label cap judges its own training transitions when each
+/// state-action is left out in turn, with all its copies: the held-out precondition
+/// `μ₋ᵢ + β σ₋ᵢ < d_max` against the truth `deviation_i < d_max`, and the log probability it
+/// gives to the truth.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct HeldOutTrust {
     /// The label cap the model was fitted with (units of `d_max`; 0 = raw labels).
@@ -220,24 +221,32 @@ pub struct HeldOutTrust {
     /// Unsafe transitions inside the held-out precondition (false trust).
     pub trusted_unsafe: usize,
     /// Mean log probability the held-out predictions give to the side of `d_max` each
-    /// transition's deviation fell on (`log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)`; 0 is perfect).
+    /// transition's deviation fell on (`log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)`; 0 is perfect), averaged
+    /// within each group of identical state-actions and then over the groups.
     pub log_score: f64,
+    /// Distinct state-actions (identical feature vectors) among the training transitions:
+    /// each is held out with all its copies, so every one is judged as an unseen input
+    /// (0 for judgements stored before groups were used, which left one transition out).
+    #[serde(default)]
+    pub held_out_groups: usize,
 }
 
 impl HeldOutTrust {
-    /// Leave-one-out judgement of `gp`'s training points, fitted on `labels` (the `deviations`
-    /// capped at `label_cap`), with each transition's held-out log probability of its side of
-    /// `d_max`; `None` when the model kept no inverse factor.
+    /// The judgement of `gp`'s training points, fitted on `labels` (the `deviations` capped at
+    /// `label_cap`), when each group of `groups` (see [`identical_rows`]) is left out in turn,
+    /// with each group's held-out log probability of its side of `d_max` (the mean over its
+    /// transitions); `None` when the model kept no inverse factor or a group is invalid.
     pub fn of(
         gp: &GpModel,
         label_cap: f64,
         labels: &[f64],
         deviations: &[f64],
+        groups: &[Vec<usize>],
         beta: f64,
         d_max: f64,
     ) -> Option<(Self, Vec<f64>)> {
-        let loo = gp.leave_one_out()?;
-        let mut log_p = Vec::with_capacity(loo.len());
+        let held_out = gp.leave_groups_out(groups)?;
+        let mut log_p = Vec::with_capacity(held_out.len());
         let mut t = Self {
             label_cap,
             safe: 0,
@@ -245,8 +254,9 @@ impl HeldOutTrust {
             trusted_safe: 0,
             trusted_unsafe: 0,
             log_score: 0.0,
+            held_out_groups: groups.len(),
         };
-        for ((&(residual, sd), &label), &deviation) in loo.iter().zip(labels).zip(deviations) {
+        for ((&(residual, sd), &label), &deviation) in held_out.iter().zip(labels).zip(deviations) {
             let mu = label - residual;
             let inside = mu + beta * sd < d_max;
             let z = (d_max - mu) / sd;
@@ -264,9 +274,29 @@ impl HeldOutTrust {
                 t.trusted_unsafe += usize::from(inside);
             }
         }
-        t.log_score = log_p.iter().sum::<f64>() / log_p.len().max(1) as f64;
-        Some((t, log_p))
+        let per_group: Vec<f64> = groups
+            .iter()
+            .map(|g| g.iter().map(|&i| log_p[i]).sum::<f64>() / g.len().max(1) as f64)
+            .collect();
+        t.log_score = per_group.iter().sum::<f64>() / per_group.len().max(1) as f64;
+        Some((t, per_group))
     }
+}
+
+/// The rows of `x` grouped by identical values (bit for bit), each group in row order, the
+/// groups in order of first appearance: every copy of one state-action in one group.
+pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
+    let mut index = std::collections::HashMap::<Vec<u64>, usize>::new();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (i, row) in x.row_iter().enumerate() {
+        let key = row.iter().map(|v| v.to_bits()).collect();
+        let g = *index.entry(key).or_insert_with(|| {
+            groups.push(Vec::new());
+            groups.len() - 1
+        });
+        groups[g].push(i);
+    }
+    groups
 }
 
 /// A model fitted with the label cap chosen from the data, and how every candidate did.
@@ -281,12 +311,16 @@ pub struct CapChoice {
 }
 
 /// Fits one model per candidate label cap (units of `d_max`; 0 = raw labels) and keeps the one
-/// whose held-out predictions best say which side of `d_max` each training transition's
+/// whose held-out predictions best say which side of `d_max` each training state-action's
 /// deviation fell on: the highest mean `log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)` (a proper scoring rule of
 /// exactly what decides the precondition), ties to the larger cap (raw labels count as the
-/// largest). When raw labels are a candidate, a cap replaces them only if its gain is at least
-/// [`CAP_GAIN_STANDARD_ERRORS`] standard errors of the per-transition differences: the paper's
-/// labels stay unless the data clearly say otherwise. Each transition is left out in closed
+/// largest). A state-action is held out with every copy of it ([`identical_rows`]): a
+/// deterministic world's robot executes the same moves again and again, and a copy left in
+/// would predict its twin, so leaving out one transition would judge the noise level, not how
+/// the model generalises to state-actions it has not seen, which is what planning asks of it.
+/// When raw labels are a candidate, a cap replaces them only if its gain is at least
+/// [`CAP_GAIN_STANDARD_ERRORS`] standard errors of the per-state-action differences: the
+/// paper's labels stay unless the data clearly say otherwise. Groups are left out in closed
 /// form, so a candidate costs one fit. With one candidate that one is kept. Errors when a fit
 /// fails.
 pub fn fit_choosing_label_cap(
@@ -297,11 +331,12 @@ pub fn fit_choosing_label_cap(
     caps: &[f64],
     params: &crate::gp::ValidGpParams,
 ) -> Result<CapChoice, crate::gp::GpError> {
+    let groups = identical_rows(x);
     let mut fitted = Vec::with_capacity(caps.len());
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
         let gp = GpModel::fit(x, &DVector::from_column_slice(&labels), params)?;
-        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, beta, d_max);
+        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, &groups, beta, d_max);
         fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
@@ -334,7 +369,7 @@ pub fn fit_choosing_label_cap(
     })
 }
 
-/// How many standard errors of the paired per-transition differences in held-out log
+/// How many standard errors of the paired per-state-action differences in held-out log
 /// probability a label cap must gain over raw labels to replace them.
 pub const CAP_GAIN_STANDARD_ERRORS: f64 = 2.0;
 
@@ -426,30 +461,42 @@ mod tests {
     }
 
     #[test]
-    fn held_out_judgements_match_refitting_without_the_transition() {
-        let (x, deviations) = world(|a, b| if a < 0.5 && b < 0.6 { 0.0 } else { 0.4 });
+    fn held_out_judgements_match_refitting_without_every_copy_of_the_state_action() {
+        let (x0, d0) = world(|a, b| if a < 0.5 && b < 0.6 { 0.0 } else { 0.4 });
+        // Some state-actions executed again: three more copies of point 7, one of 30 and 44.
+        let rows: Vec<usize> = (0..d0.len()).chain([7, 7, 7, 30, 44]).collect();
+        let x = x0.select_rows(&rows);
+        let deviations: Vec<f64> = rows.iter().map(|&i| d0[i]).collect();
+        let groups = identical_rows(&x);
+        assert_eq!(groups.len(), d0.len());
+        assert_eq!(groups[7], vec![7, 60, 61, 62]);
+        assert_eq!(groups[30], vec![30, 63]);
         let labels = capped_labels(&deviations, 2.0, D_MAX);
         let p = params();
         let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &p).unwrap();
-        let (t, _) = HeldOutTrust::of(&gp, 2.0, &labels, &deviations, 2.0, D_MAX).unwrap();
-        // Refit without each point with the same hyperparameters and judge it directly.
-        let mut state = gp.state();
-        state.n_train = deviations.len() - 1;
+        let (t, per_group) =
+            HeldOutTrust::of(&gp, 2.0, &labels, &deviations, &groups, 2.0, D_MAX).unwrap();
+        assert_eq!(t.held_out_groups, groups.len());
+        assert_eq!(per_group.len(), groups.len());
+        // Refit without each state-action's copies with the same hyperparameters and judge
+        // them directly.
         let noise = gp.hyperparameters().noise_variance + gp.jitter();
         let (mut trusted_safe, mut trusted_unsafe, mut log_score) = (0, 0, 0.0);
-        for i in 0..deviations.len() {
-            let keep: Vec<usize> = (0..deviations.len()).filter(|&j| j != i).collect();
+        for group in &groups {
+            let keep: Vec<usize> = (0..rows.len()).filter(|j| !group.contains(j)).collect();
             let xi = x.select_rows(&keep);
             let yi = DVector::from_iterator(keep.len(), keep.iter().map(|&j| labels[j]));
+            let mut state = gp.state();
+            state.n_train = keep.len();
             let without = GpModel::from_state(&xi, &yi, &state).unwrap();
-            let pred = without.predict(&x.rows(i, 1).into_owned());
+            let pred = without.predict(&x.rows(group[0], 1).into_owned());
             let (mu, sd) = (pred.mean[0], (pred.latent_variance[0] + noise).sqrt());
             let z = (D_MAX - mu) / sd;
-            let safe = deviations[i] < D_MAX;
+            let safe = deviations[group[0]] < D_MAX;
             let inside = mu + 2.0 * sd < D_MAX;
-            trusted_safe += usize::from(safe && inside);
-            trusted_unsafe += usize::from(!safe && inside);
-            log_score += normal_tail(if safe { -z } else { z }).ln() / deviations.len() as f64;
+            trusted_safe += group.len() * usize::from(safe && inside);
+            trusted_unsafe += group.len() * usize::from(!safe && inside);
+            log_score += normal_tail(if safe { -z } else { z }).ln() / groups.len() as f64;
         }
         assert_eq!(
             (t.trusted_safe, t.trusted_unsafe),

@@ -719,3 +719,50 @@ fn leave_one_out_matches_refitting_without_the_point() {
         assert_relative_eq!(sd, sd_ref, max_relative = 1e-6);
     }
 }
+
+#[test]
+fn leaving_a_group_out_matches_refitting_without_it() {
+    // 24 distinct points, four of them repeated (a robot that executed the same state-action
+    // again), so that a group is every copy of one input.
+    let (x0, y0) = data(24, 2, 13);
+    let copies = [(3, 2), (10, 3), (17, 1), (23, 2)];
+    let mut rows: Vec<usize> = (0..24).collect();
+    for &(i, extra) in &copies {
+        rows.extend(std::iter::repeat_n(i, extra));
+    }
+    let x = x0.select_rows(&rows);
+    let n = rows.len();
+    let y = DVector::from_iterator(
+        n,
+        rows.iter()
+            .enumerate()
+            .map(|(k, &i)| y0[i] + 0.01 * k as f64),
+    );
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let groups: Vec<Vec<usize>> = (0..24)
+        .map(|i| (0..n).filter(|&k| rows[k] == i).collect())
+        .collect();
+    let lgo = model.leave_groups_out(&groups).expect("the factor is kept");
+    assert_eq!(lgo.len(), n);
+    let noise = model.hyperparameters().noise_variance + model.jitter();
+    for group in groups.iter().filter(|g| g.len() > 1).chain([&groups[0]]) {
+        let keep: Vec<usize> = (0..n).filter(|k| !group.contains(k)).collect();
+        let xs = x.select_rows(&keep);
+        let ys = DVector::from_iterator(keep.len(), keep.iter().map(|&k| y[k]));
+        let mut state = model.state();
+        state.n_train = keep.len();
+        let without = GpModel::from_state(&xs, &ys, &state).unwrap();
+        for &i in group {
+            let p = without.predict(&x.rows(i, 1).into_owned());
+            let (residual, sd) = lgo[i];
+            assert_relative_eq!(y[i] - residual, p.mean[0], epsilon = 1e-6);
+            let sd_ref = (p.latent_variance[0] + noise).sqrt();
+            assert_relative_eq!(sd, sd_ref, max_relative = 1e-5);
+        }
+    }
+    // Singletons are exactly leave-one-out; a copy left out alone is predicted by its twins.
+    let loo = model.leave_one_out().unwrap();
+    assert_eq!(lgo[0], loo[0]);
+    assert!(lgo[3].1 > loo[3].1, "{:?} vs {:?}", lgo[3], loo[3]);
+    assert!(model.leave_groups_out(&[vec![0, n]]).is_none());
+}

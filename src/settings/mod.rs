@@ -195,7 +195,8 @@ pub struct MdeSettings {
     /// How deviations become the labels the MDE is fitted on: clipped at `label_cap × d_max`
     /// (a number; `0` fits the raw labels, the paper's), or `"auto"`: at every fit, the cap
     /// (2 or 5 `d_max`, or raw) whose model judges its own training transitions best when each
-    /// is held out (see [`crate::mde::fit_choosing_label_cap`]). Only whether a deviation is
+    /// state-action is held out with all its copies (see
+    /// [`crate::mde::fit_choosing_label_cap`]). Only whether a deviation is
     /// below `d_max` decides the precondition, so how far above it a failure lands is noise to
     /// the MDE: fitted raw, a few large deviations set the signal variance, and with it the
     /// uncertainty at every unseen point. Absent: the preset's (`default`: auto, `paper`: 0); a

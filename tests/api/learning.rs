@@ -148,6 +148,9 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         let n = t["safe"].as_u64().unwrap() + t["unsafe_transitions"].as_u64().unwrap();
         assert_eq!(n, 5 * 48);
         assert!(t["trusted_safe"].as_u64() <= t["safe"].as_u64());
+        // Each distinct state-action is held out with its copies.
+        let groups = t["held_out_groups"].as_u64().unwrap();
+        assert!((1..=n).contains(&groups), "{t}");
     }
     let points = json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [0, 0], "a": [0, 1]}]});
     let (_, before) = app
