@@ -13,7 +13,7 @@
 //!   and the built-in worlds' models: icy gridworld, kinematic, water plant.
 //! - [`sim`]: the built-in worlds' true dynamics (simulators), for experiments and tests; the
 //!   planner never sees them.
-//! - [`gp`]: the Gaussian-process regressor behind the MDE: Matérn 5/2 ARD kernel,
+//! - [`gp`]: the Gaussian-process regressor behind the MDE: Matérn ARD kernels (ν = 1/2, 3/2, 5/2),
 //!   homoscedastic or most-likely heteroscedastic noise, LML-maximising fits, batched prediction.
 //! - [`planning`]: RRT candidates inside the precondition, the trajectory acquisition function,
 //!   the β schedule (and its relaxation ladder for training problems with no plan) and the

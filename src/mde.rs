@@ -3,7 +3,7 @@
 //! ([`capped_labels`], chosen per fit by [`fit_choosing_label_cap`]). Knows nothing of HTTP or
 //! SQL.
 
-use crate::gp::{GpModel, GpParams, Hyperparameters, NoiseMode, NoiseSummary};
+use crate::gp::{GpModel, GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
 use crate::planning::DeviationModel;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -81,11 +81,14 @@ impl Judgement {
 }
 
 impl ServedModel {
-    /// The prior, version 0, for features of dimension `dim`.
-    pub fn prior(dim: usize, prior_mean: f64) -> Self {
+    /// The prior, version 0, for features of dimension `dim`, under the kernel later fits use.
+    pub fn prior(dim: usize, prior_mean: f64, kernel: Kernel) -> Self {
         Self {
             version: 0,
-            estimator: Estimator::Prior(Hyperparameters::prior(dim, prior_mean)),
+            estimator: Estimator::Prior(Hyperparameters {
+                kernel,
+                ..Hyperparameters::prior(dim, prior_mean)
+            }),
             fit: None,
         }
     }
@@ -182,9 +185,16 @@ pub fn training_data(
 }
 
 /// The GP parameters for an experiment's MDE settings and a fit's seed.
-pub fn gp_params(noise: NoiseMode, prior_mean: f64, restarts: usize, seed: u64) -> GpParams {
+pub fn gp_params(
+    noise: NoiseMode,
+    kernel: Kernel,
+    prior_mean: f64,
+    restarts: usize,
+    seed: u64,
+) -> GpParams {
     GpParams {
         noise,
+        kernel,
         prior_mean,
         restarts,
         seed,
@@ -398,7 +408,7 @@ mod tests {
     const D_MAX: f64 = 0.1;
 
     fn params() -> crate::gp::ValidGpParams {
-        gp_params(NoiseMode::Homoscedastic, 0.0, 0, 7)
+        gp_params(NoiseMode::Homoscedastic, Kernel::Matern52, 0.0, 0, 7)
             .check()
             .expect("valid")
     }

@@ -78,7 +78,7 @@ function settingsCard(e) {
     ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`
       + (l.relax_beta ? '; a training problem with no plan at β_j is planned at lower β' : '')],
     ['preset', l.preset ?? 'paper (before presets)'],
-    ['MDE', `${m.noise}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
+    ['MDE', `${m.noise}, ${m.kernel ?? 'matern52'} kernel, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
       + (m.label_cap === 'auto' ? 'label cap chosen at each fit (auto)'
         : m.label_cap ? `labels capped at ${fmt(m.label_cap)} d_max` : 'raw labels')],
     ['state space', space(e.state_space)], ['action space', space(e.action_space)],

@@ -22,7 +22,7 @@ pub mod protocol;
 pub mod report;
 
 use crate::domain::GridFeatures;
-use crate::gp::NoiseMode;
+use crate::gp::{Kernel, NoiseMode};
 use crate::http::{AppState, HttpConfig, serve};
 use crate::planning::Strategy;
 use crate::settings::{LabelCap, Preset};
@@ -68,6 +68,11 @@ fn parse_strategy(s: &str) -> Result<Strategy, String> {
 fn parse_noise(s: &str) -> Result<NoiseMode, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
         .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
+}
+
+fn parse_kernel(s: &str) -> Result<Kernel, String> {
+    serde_json::from_value(serde_json::Value::String(s.into()))
+        .map_err(|_| format!("{s:?} is not a kernel; use matern12, matern32 or matern52"))
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
@@ -154,6 +159,9 @@ pub struct ExperimentArgs {
     /// The MDE's noise model (`homoscedastic` or `heteroscedastic`). Default: the service's.
     #[arg(long, value_parser = parse_noise)]
     pub noise: Option<NoiseMode>,
+    /// The MDE's kernel (`matern12`, `matern32` or `matern52`). Default: the preset's.
+    #[arg(long, value_parser = parse_kernel)]
+    pub kernel: Option<Kernel>,
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
     pub grid_features: GridFeatures,
@@ -207,6 +215,8 @@ pub struct Config {
     pub layout: Option<Layout>,
     /// The MDE's noise model (`None`: the service's default).
     pub noise: Option<NoiseMode>,
+    /// The MDE's kernel (`None`: the preset's).
+    pub kernel: Option<Kernel>,
     /// The gridworld's MDE features.
     pub grid_features: GridFeatures,
     /// The experiments' preset.
@@ -273,6 +283,7 @@ impl Config {
             domain: args.domain,
             layout: None,
             noise: args.noise,
+            kernel: args.kernel,
             grid_features: args.grid_features,
             preset: args.preset,
             label_cap: args.label_cap,

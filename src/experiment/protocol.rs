@@ -281,6 +281,7 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
         mde: MdeSettings {
             noise: cfg.noise.unwrap_or(MdeSettings::default().noise),
             label_cap: cfg.label_cap,
+            kernel: cfg.kernel,
             ..MdeSettings::default()
         },
         learning: LearningSettings {

@@ -58,7 +58,11 @@ pub enum FitTrigger {
 impl LiveExperiment {
     /// A live experiment answering from the prior.
     pub fn new(id: i64, settings: ExperimentSettings, domain: Arc<dyn Domain>) -> Self {
-        let prior = ServedModel::prior(domain.feature_dim(), settings.mde.prior_mean);
+        let prior = ServedModel::prior(
+            domain.feature_dim(),
+            settings.mde.prior_mean,
+            settings.mde.kernel(),
+        );
         Self {
             id,
             settings,
@@ -88,7 +92,11 @@ impl LiveExperiment {
             return Ok(current);
         };
         if version == 0 {
-            let prior = ServedModel::prior(self.domain.feature_dim(), self.settings.mde.prior_mean);
+            let prior = ServedModel::prior(
+                self.domain.feature_dim(),
+                self.settings.mde.prior_mean,
+                self.settings.mde.kernel(),
+            );
             return Ok(Arc::new(prior));
         }
         {
@@ -210,6 +218,7 @@ impl LiveExperiment {
         let dim = self.domain.feature_dim();
         let params = gp_params(
             self.settings.mde.noise,
+            self.settings.mde.kernel(),
             self.settings.mde.prior_mean,
             self.settings.mde.restarts,
             seed::mix(self.settings.seed, version),

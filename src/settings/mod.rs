@@ -13,7 +13,7 @@ use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, GridFeatures, IcyGridworld, Kinematic,
     KinematicParams, WaterPlant,
 };
-use crate::gp::NoiseMode;
+use crate::gp::{Kernel, NoiseMode};
 use crate::limits::{
     MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_ITERATIONS, MAX_NAME_LEN,
     MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
@@ -203,6 +203,14 @@ pub struct MdeSettings {
     /// number must be 0 or in `[1, 1000]`.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub label_cap: Option<LabelCap>,
+    /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32` or
+    /// `matern52` (the paper's). Where the model is wrong, its deviation usually jumps (a
+    /// leaf, a patch of ice, a wall): a ν = 5/2 GP can only follow a jump with length scales as
+    /// short as the jump is sharp, so what it learns spreads no further than that; the rough
+    /// ν = 1/2 kernel follows the jump and keeps long length scales. Absent: the preset's
+    /// (`default`: `matern12`, `paper`: `matern52`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub kernel: Option<Kernel>,
 }
 
 impl Default for MdeSettings {
@@ -212,7 +220,15 @@ impl Default for MdeSettings {
             prior_mean: 0.0,
             restarts: 2,
             label_cap: None,
+            kernel: None,
         }
+    }
+}
+
+impl MdeSettings {
+    /// The kernel fits use (settings stored before kernels were selectable used ν = 5/2).
+    pub fn kernel(&self) -> Kernel {
+        self.kernel.unwrap_or(Kernel::Matern52)
     }
 }
 
@@ -221,11 +237,11 @@ impl Default for MdeSettings {
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     /// precond's defaults: the paper's method with the changes measured to learn more from the
-    /// same executions (a label cap chosen from the data, training proposals that relax β
-    /// rather than give up).
+    /// same executions (a label cap chosen from the data, the rough ν = 1/2 kernel, training
+    /// proposals that relax β rather than give up).
     #[default]
     Default,
-    /// The paper's exact configuration (raw labels), kept as the baseline.
+    /// The paper's exact configuration (raw labels, Matérn 5/2), kept as the baseline.
     Paper,
 }
 
@@ -235,6 +251,14 @@ impl Preset {
         match self {
             Self::Default => LabelCap::Auto,
             Self::Paper => LabelCap::Fixed(0.0),
+        }
+    }
+
+    /// The kernel this preset uses when `mde.kernel` is absent.
+    pub fn kernel(self) -> Kernel {
+        match self {
+            Self::Default => Kernel::Matern12,
+            Self::Paper => Kernel::Matern52,
         }
     }
 
@@ -433,6 +457,11 @@ impl ExperimentRequest {
             ));
         }
         self.mde.label_cap = Some(cap);
+        self.mde.kernel = Some(
+            self.mde
+                .kernel
+                .unwrap_or_else(|| self.learning.preset.kernel()),
+        );
         self.learning.relax_beta = Some(
             self.learning
                 .relax_beta

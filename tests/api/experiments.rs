@@ -24,6 +24,7 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["learning"]["k2"], 0.5);
     assert_eq!(e["learning"]["preset"], "default");
     assert_eq!(e["mde"]["label_cap"], "auto");
+    assert_eq!(e["mde"]["kernel"], "matern12");
     assert_eq!(e["learning"]["relax_beta"], true);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
@@ -36,7 +37,8 @@ async fn an_empty_request_resolves_every_default() {
 }
 
 #[tokio::test]
-async fn the_paper_preset_fits_raw_labels_and_never_relaxes_unless_told_otherwise() {
+async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relaxes_unless_told_otherwise()
+ {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;
     for (body, cap) in [
@@ -54,6 +56,19 @@ async fn the_paper_preset_fits_raw_labels_and_never_relaxes_unless_told_otherwis
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");
         assert_eq!(e["mde"]["label_cap"], cap, "{body}");
+    }
+    for (body, kernel) in [
+        (json!({"learning": {"preset": "paper"}}), "matern52"),
+        (
+            json!({"learning": {"preset": "paper"}, "mde": {"kernel": "matern12"}}),
+            "matern12",
+        ),
+        (json!({"mde": {"kernel": "matern32"}}), "matern32"),
+        (json!({"mde": {"kernel": null}}), "matern12"),
+    ] {
+        let (status, e) = app.post("/v1/experiments", &body).await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(e["mde"]["kernel"], kernel, "{body}");
     }
     for (body, relaxes) in [
         (json!({"learning": {"preset": "paper"}}), false),
@@ -101,6 +116,7 @@ async fn bad_settings_name_the_field() {
         (json!({"mde": {"label_cap": 0.5}}), "mde.label_cap"),
         (json!({"mde": {"label_cap": -1}}), "mde.label_cap"),
         (json!({"mde": {"label_cap": "max"}}), "mde.label_cap"),
+        (json!({"mde": {"kernel": "rbf"}}), "mde.kernel"),
         (json!({"learning": {"preset": "cmax"}}), "learning.preset"),
         (json!({"learning": {"bogus": 1}}), "learning.bogus"),
         (

@@ -55,6 +55,7 @@ test('an experiment shows its settings, timeline and runs', async () => {
   await page.getByRole('link', { name: 'icy gridworld' }).click();
   await page.waitForSelector('body[data-ready="true"]');
   assert.match(await page.locator('#settings').innerText(), /icy_gridworld[\s\S]*batch size\s+4/);
+  assert.match(await page.locator('#settings').innerText(), /heteroscedastic, matern(12|32|52) kernel/);
   assert.ok(await page.locator('#timeline figure').count() >= 6, 'model and iteration charts');
   const statuses = await page.locator('#runs .badge').allInnerTexts();
   for (const s of ['open', 'abandoned', 'executed', 'unsolicited']) assert.ok(statuses.includes(s), `${s} in ${statuses}`);

@@ -180,6 +180,9 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         assert len(fitted.hyperparameters.length_scales) == 4
         assert fitted.label_cap in (2.0, 5.0, 0.0)  # chosen at the fit ("auto")
         assert len(fitted.raw["label_cap_trials"]) == 3
+        # The prior already names the kernel every fit of the experiment uses.
+        assert fitted.hyperparameters.kernel in ("matern12", "matern32", "matern52")
+        assert prior.hyperparameters.kernel == fitted.hyperparameters.kernel
 
         grid = np.array([[x, 0.5, 0.1, 0.0] for x in (0.2, 0.6, 0.9)])
         ans = client.precondition(grid, beta=0.0)

@@ -394,15 +394,18 @@ class Hyperparameters:
     signal_variance: float
     noise_variance: float
     prior_mean: float
+    kernel: str
+    """The Matérn kernel: ``matern12``, ``matern32`` or ``matern52``."""
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Hyperparameters:
-        """Reads the JSON form."""
+        """Reads the JSON form (``matern52`` when a server too old to say omits the kernel)."""
         return cls(
             length_scales=vec(d["length_scales"]),
             signal_variance=float(d["signal_variance"]),
             noise_variance=float(d["noise_variance"]),
             prior_mean=float(d["prior_mean"]),
+            kernel=str(d.get("kernel", "matern52")),
         )
 
 
