@@ -24,7 +24,7 @@ pub mod report;
 use crate::domain::GridFeatures;
 use crate::gp::{Kernel, NoiseMode};
 use crate::http::{AppState, HttpConfig, serve};
-use crate::planning::Strategy;
+use crate::planning::{Aggregation, Strategy};
 use crate::settings::{LabelCap, Preset};
 use crate::store::Store;
 use anyhow::Context;
@@ -73,6 +73,11 @@ fn parse_noise(s: &str) -> Result<NoiseMode, String> {
 fn parse_kernel(s: &str) -> Result<Kernel, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
         .map_err(|_| format!("{s:?} is not a kernel; use matern12, matern32 or matern52"))
+}
+
+fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
+    serde_json::from_value(serde_json::Value::String(s.into()))
+        .map_err(|_| format!("{s:?} is not an aggregation; use max or sum"))
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
@@ -177,6 +182,13 @@ pub struct ExperimentArgs {
     /// the preset's.
     #[arg(long)]
     pub relax_beta: Option<bool>,
+    /// The acquisition's exploration weight `c` in `α_step = μ − cσ`. Default: the service's (1).
+    #[arg(long)]
+    pub c: Option<f64>,
+    /// How step utilities combine into a trajectory's (`max` or `sum`). Default: the service's
+    /// (`max`).
+    #[arg(long, value_parser = parse_aggregation)]
+    pub aggregation: Option<Aggregation>,
 }
 
 impl ExperimentArgs {
@@ -225,6 +237,10 @@ pub struct Config {
     pub label_cap: Option<LabelCap>,
     /// Whether training proposals relax β (`None`: the preset's).
     pub relax_beta: Option<bool>,
+    /// The acquisition's `c` (`None`: the service's).
+    pub c: Option<f64>,
+    /// The acquisition's aggregation (`None`: the service's).
+    pub aggregation: Option<Aggregation>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -288,6 +304,8 @@ impl Config {
             preset: args.preset,
             label_cap: args.label_cap,
             relax_beta: args.relax_beta,
+            c: args.c,
+            aggregation: args.aggregation,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -292,6 +292,10 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
             n_candidates: cfg.n_candidates,
             max_extensions: cfg.max_extensions,
             relax_beta: cfg.relax_beta,
+            c: cfg.c.unwrap_or(LearningSettings::default().c),
+            aggregation: cfg
+                .aggregation
+                .unwrap_or(LearningSettings::default().aggregation),
             ..LearningSettings::default()
         },
         ..ExperimentRequest::default()
