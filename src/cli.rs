@@ -92,6 +92,9 @@ pub struct GpBenchArgs {
     /// Largest n at which scikit-learn is run.
     #[arg(long, default_value_t = 2000)]
     pub sklearn_max_n: usize,
+    /// The kernel (`matern12`, `matern32` or `matern52`), for both libraries.
+    #[arg(long, default_value = "matern52")]
+    pub kernel: crate::gp::Kernel,
 }
 
 /// Log output format.
@@ -304,6 +307,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 restarts: args.restarts,
                 sklearn: !args.no_sklearn,
                 sklearn_max_n: args.sklearn_max_n,
+                kernel: args.kernel,
                 ..defaults
             })?;
             Ok(())

@@ -6,9 +6,9 @@
 //! - single-point prediction latency (median of repeated calls, μ and σ);
 //! - batched prediction throughput (μ and σ for a batch of query points, best of three);
 //! - when `python3 -c "import sklearn"` works and `n ≤ sklearn_max_n`: the same for scikit-learn's
-//!   `GaussianProcessRegressor` with `ConstantKernel * Matern(ν=2.5, ARD) + WhiteKernel`, the same
-//!   bounds, `n_restarts_optimizer = restarts`, `alpha = 0`, on the same data, in the same run,
-//!   and the ratios.
+//!   `GaussianProcessRegressor` with `ConstantKernel * Matern(ν, ARD) + WhiteKernel` (ν = 2.5
+//!   unless `--kernel` says otherwise), the same bounds, `n_restarts_optimizer = restarts`,
+//!   `alpha = 0`, on the same data, in the same run, and the ratios.
 //!
 //! The table goes to stdout; the figures are returned as a [`GpBenchReport`].
 
@@ -22,7 +22,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use serde::{Deserialize, Serialize};
 
-use crate::gp::{GpError, GpModel, GpParams, NoiseMode};
+use crate::gp::{GpError, GpModel, GpParams, Kernel, NoiseMode};
 
 /// What to benchmark.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -46,6 +46,8 @@ pub struct GpBenchOptions {
     pub python: String,
     /// Seed of the data and of the fits. Default 0.
     pub seed: u64,
+    /// The kernel, ours and scikit-learn's (`Matern(nu=…)`). Default [`Kernel::Matern52`].
+    pub kernel: Kernel,
 }
 
 impl Default for GpBenchOptions {
@@ -60,6 +62,7 @@ impl Default for GpBenchOptions {
             sklearn_max_n: 2000,
             python: "python3".into(),
             seed: 0,
+            kernel: Kernel::Matern52,
         }
     }
 }
@@ -179,7 +182,7 @@ warnings.filterwarnings("ignore")
 job = json.load(open(sys.argv[1]))
 x = np.array(job["x"]); y = np.array(job["y"]); q = np.array(job["q"]); d = x.shape[1]
 v = float(np.mean(y ** 2))
-k = ConstantKernel(v, tuple(job["signal_bounds"])) * Matern([0.5] * d, tuple(job["ls_bounds"]), nu=2.5) \
+k = ConstantKernel(v, tuple(job["signal_bounds"])) * Matern([0.5] * d, tuple(job["ls_bounds"]), nu=job["nu"]) \
     + WhiteKernel(0.1 * v, tuple(job["noise_bounds"]))
 gp = GaussianProcessRegressor(k, alpha=0.0, normalize_y=False, n_restarts_optimizer=job["restarts"], random_state=job["seed"])
 t = time.perf_counter(); gp.fit(x, y); fit = time.perf_counter() - t
@@ -220,6 +223,14 @@ fn run_sklearn(
         ("y", JsonVal::Vec(y.iter().copied().collect())),
         ("q", JsonVal::Rows(rows(q))),
         ("restarts", JsonVal::Num(opts.restarts as f64)),
+        (
+            "nu",
+            JsonVal::Num(match opts.kernel {
+                Kernel::Matern12 => 0.5,
+                Kernel::Matern32 => 1.5,
+                Kernel::Matern52 => 2.5,
+            }),
+        ),
         ("seed", JsonVal::Num((opts.seed % 1_000_000) as f64)),
         (
             "single_reps",
@@ -328,8 +339,9 @@ pub fn run(opts: &GpBenchOptions) -> Result<GpBenchReport, GpError> {
     };
     let mut note = sk.as_ref().err().cloned();
     println!(
-        "GP benchmark: d = {}, Matérn 5/2 ARD, restarts = {} (same for scikit-learn), batch = {} points, {} thread(s)",
+        "GP benchmark: d = {}, {} ARD, restarts = {} (same for scikit-learn), batch = {} points, {} thread(s)",
         opts.dim,
+        opts.kernel,
         opts.restarts,
         opts.batch,
         std::thread::available_parallelism().map_or(1, |p| p.get())
@@ -361,6 +373,7 @@ pub fn run(opts: &GpBenchOptions) -> Result<GpBenchReport, GpError> {
         let (x, y) = bench_data(n, opts.dim, opts.seed);
         let (q, _) = bench_data(opts.batch.max(1), opts.dim, opts.seed.wrapping_add(1));
         let base = GpParams {
+            kernel: opts.kernel,
             restarts: opts.restarts,
             seed: opts.seed,
             ..GpParams::default()

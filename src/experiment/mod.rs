@@ -70,11 +70,6 @@ fn parse_noise(s: &str) -> Result<NoiseMode, String> {
         .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
 }
 
-fn parse_kernel(s: &str) -> Result<Kernel, String> {
-    serde_json::from_value(serde_json::Value::String(s.into()))
-        .map_err(|_| format!("{s:?} is not a kernel; use matern12, matern32 or matern52"))
-}
-
 fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
         .map_err(|_| format!("{s:?} is not an aggregation; use max or sum"))
@@ -165,7 +160,7 @@ pub struct ExperimentArgs {
     #[arg(long, value_parser = parse_noise)]
     pub noise: Option<NoiseMode>,
     /// The MDE's kernel (`matern12`, `matern32` or `matern52`). Default: the preset's.
-    #[arg(long, value_parser = parse_kernel)]
+    #[arg(long)]
     pub kernel: Option<Kernel>,
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
