@@ -50,11 +50,13 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
     assert!(body["error"]["details"]["extensions"].as_u64().unwrap() > 0);
     assert_eq!(body["error"]["details"]["timeout_ms"], 300);
     assert!(took < Duration::from_secs(3), "{took:?}");
-    // A test-time plan has the same deadline; nothing was stored for either.
+    // A test-time plan has the same deadline; nothing was stored for either. (At the test β
+    // the prior trusts nothing, so the tree cannot grow and the search ends in about the
+    // deadline's time; at β = −2, as in the proposal above, it grows a large tree and cannot.)
     let (status, body) = app
         .post(
             &format!("/v1/experiments/{id}/plans"),
-            &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
+            &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5], "beta": -2.0}),
         )
         .await;
     assert_eq!((status, code(&body)), (503, "deadline_exceeded"));
