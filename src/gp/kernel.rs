@@ -58,9 +58,9 @@ impl Kernel {
     #[inline(always)]
     pub fn value(self, r2: f64, s2: f64) -> f64 {
         match self {
-            Kernel::Matern12 => matern12(r2, s2),
-            Kernel::Matern32 => matern32(r2, s2),
-            Kernel::Matern52 => matern52(r2, s2),
+            Kernel::Matern12 => M12::k(r2, s2),
+            Kernel::Matern32 => M32::k(r2, s2),
+            Kernel::Matern52 => M52::k(r2, s2),
         }
     }
 }
@@ -83,11 +83,39 @@ impl std::fmt::Display for Kernel {
     }
 }
 
-/// Covariance and `G` (see the module documentation) of kernel `K` at squared scaled distance
-/// `q`; a generic parameter so that each kernel's loops are compiled (and vectorised) apart.
+/// One Matérn kernel's shape: with `t = C r`, `k = s² P(t, r²) e^{−t}` and
+/// `G = s² Q(t, r) e^{−t}` (see the module documentation). A generic parameter, so that each
+/// kernel's loops are compiled (and vectorised) apart.
 trait Form {
-    fn kg(q: f64, s2: f64) -> (f64, f64);
-    fn k(q: f64, s2: f64) -> f64;
+    /// `√(2ν)`, the scale of the exponent.
+    const C: f64;
+    /// `P(t, r²)`.
+    fn k_poly(t: f64, q: f64) -> f64;
+    /// `Q(t, r)`.
+    fn g_poly(t: f64, r: f64) -> f64;
+
+    /// Covariance and `G` at squared scaled distance `q`.
+    #[inline(always)]
+    fn kg(q: f64, s2: f64) -> (f64, f64) {
+        let r = q.sqrt();
+        let t = Self::C * r;
+        let e = if q > FAR_R2 {
+            0.0
+        } else {
+            s2 * exp_nonpositive(-t)
+        };
+        (Self::k_poly(t, q) * e, Self::g_poly(t, r) * e)
+    }
+
+    /// Covariance at squared scaled distance `q`.
+    #[inline(always)]
+    fn k(q: f64, s2: f64) -> f64 {
+        let t = Self::C * q.sqrt();
+        let k = s2 * Self::k_poly(t, q) * exp_nonpositive(-t);
+        // Beyond r = 300 the true value underflows to 0; the clamped exponential would instead
+        // give `poly · e^−708` (and inf · 0 = NaN for q = inf). A select keeps loops vectorised.
+        if q > FAR_R2 { 0.0 } else { k }
+    }
 }
 
 struct M12;
@@ -95,53 +123,38 @@ struct M32;
 struct M52;
 
 impl Form for M12 {
+    const C: f64 = 1.0;
     #[inline(always)]
-    fn kg(q: f64, s2: f64) -> (f64, f64) {
-        let r = q.sqrt();
-        let e = if q > FAR_R2 {
-            0.0
-        } else {
-            s2 * exp_nonpositive(-r)
-        };
-        (e, if r > 0.0 { e / r } else { 0.0 })
+    fn k_poly(_: f64, _: f64) -> f64 {
+        1.0
     }
     #[inline(always)]
-    fn k(q: f64, s2: f64) -> f64 {
-        matern12(q, s2)
+    fn g_poly(_: f64, r: f64) -> f64 {
+        if r > 0.0 { 1.0 / r } else { 0.0 }
     }
 }
 
 impl Form for M32 {
+    const C: f64 = SQRT3;
     #[inline(always)]
-    fn kg(q: f64, s2: f64) -> (f64, f64) {
-        let t = SQRT3 * q.sqrt();
-        let e = if q > FAR_R2 {
-            0.0
-        } else {
-            s2 * exp_nonpositive(-t)
-        };
-        ((1.0 + t) * e, 3.0 * e)
+    fn k_poly(t: f64, _: f64) -> f64 {
+        1.0 + t
     }
     #[inline(always)]
-    fn k(q: f64, s2: f64) -> f64 {
-        matern32(q, s2)
+    fn g_poly(_: f64, _: f64) -> f64 {
+        3.0
     }
 }
 
 impl Form for M52 {
+    const C: f64 = SQRT5;
     #[inline(always)]
-    fn kg(q: f64, s2: f64) -> (f64, f64) {
-        let t = SQRT5 * q.sqrt();
-        let e = if q > FAR_R2 {
-            0.0
-        } else {
-            s2 * exp_nonpositive(-t)
-        };
-        ((1.0 + t + (5.0 / 3.0) * q) * e, (5.0 / 3.0) * (1.0 + t) * e)
+    fn k_poly(t: f64, q: f64) -> f64 {
+        1.0 + t + (5.0 / 3.0) * q
     }
     #[inline(always)]
-    fn k(q: f64, s2: f64) -> f64 {
-        matern52(q, s2)
+    fn g_poly(t: f64, _: f64) -> f64 {
+        (5.0 / 3.0) * (1.0 + t)
     }
 }
 
@@ -229,28 +242,9 @@ pub(crate) fn exp_nonpositive(x: f64) -> f64 {
 }
 
 /// Matérn 5/2 covariance for a squared scaled distance `r2`, signal variance `s2`.
-#[inline(always)]
+#[cfg(test)]
 pub(crate) fn matern52(r2: f64, s2: f64) -> f64 {
-    let t = SQRT5 * r2.sqrt();
-    let k = s2 * (1.0 + t + (5.0 / 3.0) * r2) * exp_nonpositive(-t);
-    // Beyond r = 300 the true value underflows to 0; the clamped exponential would instead give
-    // `poly · e^−708` (and inf · 0 = NaN for r2 = inf). A select keeps the loop vectorised.
-    if r2 > FAR_R2 { 0.0 } else { k }
-}
-
-/// Matérn 3/2 covariance for a squared scaled distance `r2`, signal variance `s2`.
-#[inline(always)]
-pub(crate) fn matern32(r2: f64, s2: f64) -> f64 {
-    let t = SQRT3 * r2.sqrt();
-    let k = s2 * (1.0 + t) * exp_nonpositive(-t);
-    if r2 > FAR_R2 { 0.0 } else { k }
-}
-
-/// Matérn 1/2 (exponential) covariance for a squared scaled distance `r2`, signal variance `s2`.
-#[inline(always)]
-pub(crate) fn matern12(r2: f64, s2: f64) -> f64 {
-    let k = s2 * exp_nonpositive(-r2.sqrt());
-    if r2 > FAR_R2 { 0.0 } else { k }
+    M52::k(r2, s2)
 }
 
 /// Squared scaled distance beyond which the kernel is exactly 0 (`r = 300`).
