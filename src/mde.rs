@@ -293,13 +293,14 @@ impl HeldOutTrust {
     }
 }
 
-/// The rows of `x` grouped by identical values (bit for bit), each group in row order, the
-/// groups in order of first appearance: every copy of one state-action in one group.
+/// The rows of `x` grouped by identical values (bit for bit, `−0.0` folded into `0.0`, as the
+/// planner's caches key them), each group in row order, the groups in order of first
+/// appearance: every copy of one state-action in one group.
 pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
     let mut index = std::collections::HashMap::<Vec<u64>, usize>::new();
     let mut groups: Vec<Vec<usize>> = Vec::new();
     for (i, row) in x.row_iter().enumerate() {
-        let key = row.iter().map(|v| v.to_bits()).collect();
+        let key = row.iter().map(|v| (v + 0.0).to_bits()).collect();
         let g = *index.entry(key).or_insert_with(|| {
             groups.push(Vec::new());
             groups.len() - 1

@@ -65,19 +65,26 @@ fn parse_strategy(s: &str) -> Result<Strategy, String> {
         .map_err(|e: crate::planning::PlanningError| e.to_string())
 }
 
-fn parse_noise(s: &str) -> Result<NoiseMode, String> {
+/// A setting spelled as the API spells it (its serde name), or an error naming the choices.
+fn parse_named<T: serde::de::DeserializeOwned>(
+    s: &str,
+    what: &str,
+    choices: &str,
+) -> Result<T, String> {
     serde_json::from_value(serde_json::Value::String(s.into()))
-        .map_err(|_| format!("{s:?} is not a noise model; use homoscedastic or heteroscedastic"))
+        .map_err(|_| format!("{s:?} is not {what}; use {choices}"))
+}
+
+fn parse_noise(s: &str) -> Result<NoiseMode, String> {
+    parse_named(s, "a noise model", "homoscedastic or heteroscedastic")
 }
 
 fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
-    serde_json::from_value(serde_json::Value::String(s.into()))
-        .map_err(|_| format!("{s:?} is not an aggregation; use max or sum"))
+    parse_named(s, "an aggregation", "max or sum")
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
-    serde_json::from_value(serde_json::Value::String(s.to_string()))
-        .map_err(|_| format!("{s:?} is not a preset; use default or paper"))
+    parse_named(s, "a preset", "default or paper")
 }
 
 fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
@@ -90,8 +97,7 @@ fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
 }
 
 fn parse_grid_features(s: &str) -> Result<GridFeatures, String> {
-    serde_json::from_value(serde_json::Value::String(s.into()))
-        .map_err(|_| format!("{s:?} is not a feature map; use scaled or per_move"))
+    parse_named(s, "a feature map", "scaled or per_move")
 }
 
 /// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`
