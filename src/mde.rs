@@ -4,7 +4,7 @@
 //! SQL.
 
 use crate::gp::{GpModel, GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
-use crate::planning::DeviationModel;
+use crate::planning::{DeviationModel, Precondition};
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
@@ -67,15 +67,15 @@ pub struct Judgement {
 }
 
 impl Judgement {
-    /// The judgement of `answer` at confidence `beta` and tolerance `d_max`; `None` when the
-    /// model answered a non-finite value (which must never reach a client).
-    pub fn of(answer: &Answer, beta: f64, d_max: f64) -> Option<Self> {
-        let upper = answer.mu + beta * answer.sigma;
+    /// The judgement of `answer` by `precondition`; `None` when the model answered a
+    /// non-finite value (which must never reach a client).
+    pub fn of(answer: &Answer, precondition: Precondition) -> Option<Self> {
+        let upper = precondition.upper(answer.mu, answer.sigma);
         upper.is_finite().then_some(Self {
             mu: answer.mu,
             sigma: answer.sigma,
             upper,
-            inside: upper < d_max,
+            inside: precondition.inside(answer.mu, answer.sigma),
         })
     }
 }
@@ -245,16 +245,17 @@ impl HeldOutTrust {
     /// The judgement of `gp`'s training points, fitted on `labels` (the `deviations` capped at
     /// `label_cap`), when each group of `groups` (see [`identical_rows`]) is left out in turn,
     /// with each group's held-out log probability of its side of `d_max` (the mean over its
-    /// transitions); `None` when the model kept no inverse factor or a group is invalid.
+    /// transitions), judged by `precondition`; `None` when the model kept no inverse factor
+    /// or a group is invalid.
     pub fn of(
         gp: &GpModel,
         label_cap: f64,
         labels: &[f64],
         deviations: &[f64],
         groups: &[Vec<usize>],
-        beta: f64,
-        d_max: f64,
+        precondition: Precondition,
     ) -> Option<(Self, Vec<f64>)> {
+        let d_max = precondition.d_max();
         let held_out = gp.leave_groups_out(groups)?;
         let mut log_p = Vec::with_capacity(held_out.len());
         let mut t = Self {
@@ -268,7 +269,7 @@ impl HeldOutTrust {
         };
         for ((&(residual, sd), &label), &deviation) in held_out.iter().zip(labels).zip(deviations) {
             let mu = label - residual;
-            let inside = mu + beta * sd < d_max;
+            let inside = precondition.inside(mu, sd);
             let z = (d_max - mu) / sd;
             let p_correct = if deviation < d_max {
                 normal_tail(-z)
@@ -337,17 +338,17 @@ pub struct CapChoice {
 pub fn fit_choosing_label_cap(
     x: &DMatrix<f64>,
     deviations: &[f64],
-    d_max: f64,
-    beta: f64,
+    precondition: Precondition,
     caps: &[f64],
     params: &crate::gp::ValidGpParams,
 ) -> Result<CapChoice, crate::gp::GpError> {
+    let d_max = precondition.d_max();
     let groups = identical_rows(x);
     let mut fitted = Vec::with_capacity(caps.len());
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
         let gp = GpModel::fit(x, &DVector::from_column_slice(&labels), params)?;
-        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, &groups, beta, d_max);
+        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, &groups, precondition);
         fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
@@ -408,6 +409,11 @@ mod tests {
 
     const D_MAX: f64 = 0.1;
 
+    /// The precondition at β = 2 and `D_MAX`.
+    fn at_beta_2() -> Precondition {
+        Precondition::new(2.0, D_MAX).unwrap()
+    }
+
     fn params() -> crate::gp::ValidGpParams {
         gp_params(NoiseMode::Homoscedastic, Kernel::Matern52, 0.0, 0, 7)
             .check()
@@ -439,7 +445,7 @@ mod tests {
         for (x, deviations) in &worlds {
             let caps = [2.0, 5.0, 0.0];
             let c =
-                fit_choosing_label_cap(x, deviations, D_MAX, 2.0, &caps, &params()).expect("fits");
+                fit_choosing_label_cap(x, deviations, at_beta_2(), &caps, &params()).expect("fits");
             assert_eq!(c.trials.len(), 3);
             for t in &c.trials {
                 assert_eq!(t.safe + t.unsafe_transitions, deviations.len());
@@ -486,7 +492,7 @@ mod tests {
         let p = params();
         let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &p).unwrap();
         let (t, per_group) =
-            HeldOutTrust::of(&gp, 2.0, &labels, &deviations, &groups, 2.0, D_MAX).unwrap();
+            HeldOutTrust::of(&gp, 2.0, &labels, &deviations, &groups, at_beta_2()).unwrap();
         assert_eq!(t.held_out_groups, groups.len());
         assert_eq!(per_group.len(), groups.len());
         // Refit without each state-action's copies with the same hyperparameters and judge
@@ -533,7 +539,7 @@ mod tests {
     #[test]
     fn one_candidate_is_kept_and_judged() {
         let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 1.0 });
-        let c = fit_choosing_label_cap(&x, &deviations, D_MAX, 2.0, &[0.0], &params()).unwrap();
+        let c = fit_choosing_label_cap(&x, &deviations, at_beta_2(), &[0.0], &params()).unwrap();
         assert_eq!(c.label_cap, 0.0);
         assert_eq!(c.trials.len(), 1);
         assert_eq!(c.trials[0].unsafe_transitions, 30);

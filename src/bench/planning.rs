@@ -2,11 +2,13 @@
 //! the icy gridworld with the real MDE (the service's default GP) fitted on 1000 transitions of
 //! the true world, and a test-time plan, each timed (median over several runs) and printed.
 
+use crate::domain::Problem;
 use crate::domain::{Domain, IcyGridworld, LabelledTransition, LocalModel, Transition};
 use crate::gp::{GpModel, GpParams};
 use crate::mde::{Estimator, ServedModel, training_data};
 use crate::planning::{
-    AcquisitionSettings, DeviationModel, PlannerSettings, Strategy, plan, propose,
+    AcquisitionSettings, DeviationModel, Planner, PlannerSettings, PlanningSettings, Precondition,
+    Strategy,
 };
 use crate::sim::Simulated;
 use rand::{Rng, SeedableRng};
@@ -76,13 +78,16 @@ pub struct BenchFigures {
     pub random: Duration,
 }
 
-/// Runs the benchmark on `grid` with `model` and prints the figures.
+/// Runs the benchmark on `grid` with `model` and prints the figures; an error when the
+/// options' problem or settings are not acceptable.
 pub fn run(
     grid: &IcyGridworld,
     model: &dyn DeviationModel,
     options: &BenchOptions,
-) -> BenchFigures {
-    let acq = AcquisitionSettings::default();
+) -> anyhow::Result<BenchFigures> {
+    let settings = PlanningSettings::new(options.planner.clone(), AcquisitionSettings::default())?;
+    let planner = Planner::new(grid, model, &settings);
+    let problem = Problem::new(grid, options.start.clone(), options.goal.clone())?;
     let d_max = grid.default_d_max();
     let repeats = options.repeats.max(1);
     println!(
@@ -97,22 +102,12 @@ pub fn run(
 
     let mut proposal = Vec::new();
     for &beta in &options.proposal_betas {
+        let at = Precondition::new(beta, d_max)?;
         let mut times = Vec::new();
         let mut last = None;
         for seed in 0..repeats as u64 {
             let t0 = Instant::now();
-            let p = propose(
-                Strategy::Active,
-                grid,
-                model,
-                &options.start,
-                &options.goal,
-                beta,
-                d_max,
-                &options.planner,
-                &acq,
-                seed,
-            );
+            let p = planner.propose(Strategy::Active, &problem, at, seed);
             times.push(t0.elapsed());
             last = Some(p);
         }
@@ -142,16 +137,7 @@ pub fn run(
     let mut last = None;
     for seed in 0..repeats as u64 {
         let t0 = Instant::now();
-        let out = plan(
-            grid,
-            model,
-            &options.start,
-            &options.goal,
-            options.test_beta,
-            d_max,
-            &options.planner,
-            seed,
-        );
+        let out = planner.plan(&problem, Precondition::new(options.test_beta, d_max)?, seed);
         times.push(t0.elapsed());
         last = Some(out);
     }
@@ -179,16 +165,10 @@ pub fn run(
     let mut times = Vec::new();
     for seed in 0..repeats as u64 {
         let t0 = Instant::now();
-        let _ = propose(
+        let _ = planner.propose(
             Strategy::Random,
-            grid,
-            model,
-            &options.start,
-            &options.goal,
-            0.0,
-            d_max,
-            &options.planner,
-            &acq,
+            &problem,
+            Precondition::new(0.0, d_max)?,
             seed,
         );
         times.push(t0.elapsed());
@@ -196,11 +176,11 @@ pub fn run(
     let random = median(&mut times);
     println!("  proposal (random, β =    0):   {:>8.2} ms", ms(random));
 
-    BenchFigures {
+    Ok(BenchFigures {
         proposal,
         plan: plan_time,
         random,
-    }
+    })
 }
 
 /// Times `model` alone: microseconds per point, one point per call and in batches of 64.
@@ -263,7 +243,7 @@ pub fn fit_mde(
 }
 
 /// The whole benchmark with the real MDE fitted on 1000 transitions of the default layout.
-pub fn run_default() -> Result<BenchFigures, crate::gp::GpError> {
+pub fn run_default() -> anyhow::Result<BenchFigures> {
     let grid = IcyGridworld::default_layout();
     let t0 = Instant::now();
     let model = fitted_model(&grid, 1000, 7)?;
@@ -275,7 +255,7 @@ pub fn run_default() -> Result<BenchFigures, crate::gp::GpError> {
     println!(
         "  model cost: {single:.1} µs/point one at a time, {batched:.1} µs/point in batches of 64"
     );
-    Ok(run(&grid, &model, &BenchOptions::default()))
+    run(&grid, &model, &BenchOptions::default())
 }
 
 fn median(times: &mut [Duration]) -> Duration {

@@ -6,11 +6,12 @@
 //! the points they carried.
 
 use super::planning::fit_mde;
+use crate::domain::Problem;
 use crate::domain::{
     CustomDomain, CustomParams, Domain, DynamicsModel, LabelledTransition, LinearModel, Space,
     Transition,
 };
-use crate::planning::{AcquisitionSettings, PlannerSettings, Strategy, plan, propose};
+use crate::planning::{Planner, PlanningSettings, Precondition, Strategy};
 use crate::remote_model::RemoteModel;
 use axum::Json;
 use axum::Router;
@@ -134,9 +135,8 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
          actions per steering step, median of {repeats}",
         t0.elapsed().as_secs_f64() * 1e3
     );
-    let planner = PlannerSettings::default();
-    let acq = AcquisitionSettings::default();
-    let (start, goal) = (vec![0.1, 0.3], vec![0.9, 0.3]);
+    let settings = PlanningSettings::default();
+    let problem = Problem::new(&domain, vec![0.1, 0.3], vec![0.9, 0.3])?;
     let d_max = 0.05;
     // The same domain with the same model in-process: what the network adds.
     let eye = vec![vec![1.0, 0.0], vec![0.0, 1.0]];
@@ -149,6 +149,7 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         ac,
     )?));
     for beta in [-2.0, 0.0, 2.0] {
+        let at = Precondition::new(beta, d_max)?;
         let mut runs: Vec<(Duration, u64, u64, String)> = Vec::new();
         for seed in 0..repeats as u64 {
             let (c0, p0) = (
@@ -156,16 +157,10 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
                 served.points.load(Ordering::Relaxed),
             );
             let t = Instant::now();
-            let p = propose(
+            let p = Planner::new(&domain, &mde, &settings).propose(
                 Strategy::Active,
-                &domain,
-                &mde,
-                &start,
-                &goal,
-                beta,
-                d_max,
-                &planner,
-                &acq,
+                &problem,
+                at,
                 seed,
             );
             let elapsed = t.elapsed();
@@ -188,16 +183,10 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         let mut local_times: Vec<Duration> = (0..repeats as u64)
             .map(|seed| {
                 let t = Instant::now();
-                let _ = propose(
+                let _ = Planner::new(&local, &mde, &settings).propose(
                     Strategy::Active,
-                    &local,
-                    &mde,
-                    &start,
-                    &goal,
-                    beta,
-                    d_max,
-                    &planner,
-                    &acq,
+                    &problem,
+                    at,
                     seed,
                 );
                 t.elapsed()
@@ -215,7 +204,8 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         served.points.load(Ordering::Relaxed),
     );
     let t = Instant::now();
-    let out = plan(&domain, &mde, &start, &goal, 2.0, d_max, &planner, 0)?;
+    let planner = Planner::new(&domain, &mde, &settings);
+    let out = planner.plan(&problem, Precondition::new(2.0, d_max)?, 0)?;
     println!(
         "  test-time plan (β =    2):     {:>8.1} ms, {} model calls, {} points  [found: {}, {} extensions]",
         t.elapsed().as_secs_f64() * 1e3,
@@ -225,16 +215,10 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         out.extensions
     );
     let t = Instant::now();
-    let _ = propose(
+    let _ = planner.propose(
         Strategy::Random,
-        &domain,
-        &mde,
-        &start,
-        &goal,
-        0.0,
-        d_max,
-        &planner,
-        &acq,
+        &problem,
+        Precondition::new(0.0, d_max)?,
         0,
     );
     println!(

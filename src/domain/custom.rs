@@ -439,10 +439,7 @@ impl Domain for CustomDomain {
             }
             goal_state = free(rng);
         }
-        Problem {
-            goal: goal_of(&goal_state),
-            start,
-        }
+        Problem::sampled(start, goal_of(&goal_state))
     }
 }
 
@@ -680,8 +677,8 @@ mod tests {
         assert!(actions.iter().all(|a| d.validate_action(a).is_ok()));
         for _ in 0..50 {
             let p = d.sample_problem(&mut rng);
-            assert!(d.validate_goal(&p.goal).is_ok());
-            assert!(!d.is_goal(&p.start, &p.goal));
+            assert!(d.validate_goal(p.goal()).is_ok());
+            assert!(!d.is_goal(p.start(), p.goal()));
         }
     }
 

@@ -356,10 +356,7 @@ impl Domain for IcyGridworld {
         if j >= i {
             j += 1;
         }
-        Problem {
-            start: open[i].to_vec(),
-            goal: open[j].to_vec(),
-        }
+        Problem::sampled(open[i].to_vec(), open[j].to_vec())
     }
 }
 

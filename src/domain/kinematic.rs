@@ -188,9 +188,9 @@ impl Kinematic {
         let total: f64 = (0..n)
             .map(|_| {
                 let p = self.sample_problem(&mut rng);
-                p.start
+                p.start()
                     .iter()
-                    .zip(&p.goal)
+                    .zip(p.goal())
                     .enumerate()
                     .map(|(i, (s, g))| {
                         let limit = if g > s {
@@ -357,7 +357,7 @@ impl Domain for Kinematic {
             }
             goal = self.sample_free(rng);
         }
-        Problem { start, goal }
+        Problem::sampled(start, goal)
     }
 }
 

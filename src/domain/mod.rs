@@ -181,13 +181,43 @@ impl Transition {
     }
 }
 
-/// A planning problem: where to start and what counts as arriving.
+/// A planning problem: where to start and what counts as arriving, checked against the domain
+/// it belongs to — made only by [`Problem::new`], which checks it, or by a domain's own sampler
+/// ([`Problem::sampled`]), so a `Problem` in hand is one the planner can take as it is.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Problem {
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Domain-specific goal vector (see [`Domain::validate_goal`]).
-    pub goal: Vec<f64>,
+    start: Vec<f64>,
+    goal: Vec<f64>,
+}
+
+impl Problem {
+    /// `start → goal` in `domain`: `start` must be a state of it ([`Domain::validate_state`])
+    /// and `goal` one of its goals ([`Domain::validate_goal`]). The error's `field` is the
+    /// path of the offending value under `start` or `goal` (`start`, `goal[2]`).
+    pub fn new(domain: &dyn Domain, start: Vec<f64>, goal: Vec<f64>) -> Result<Self, DomainError> {
+        let under = |prefix: &str, e: DomainError| DomainError::at(e.path_under(prefix), e.reason);
+        domain
+            .validate_state(&start)
+            .map_err(|e| under("start", e))?;
+        domain.validate_goal(&goal).map_err(|e| under("goal", e))?;
+        Ok(Self { start, goal })
+    }
+
+    /// A problem a domain's own sampler drew ([`Domain::sample_problem`]); the sampler vouches
+    /// that `start` is a state of its domain and `goal` one of its goals.
+    pub fn sampled(start: Vec<f64>, goal: Vec<f64>) -> Self {
+        Self { start, goal }
+    }
+
+    /// The start state.
+    pub fn start(&self) -> &[f64] {
+        &self.start
+    }
+
+    /// The domain-specific goal vector (see [`Domain::validate_goal`]).
+    pub fn goal(&self) -> &[f64] {
+        &self.goal
+    }
 }
 
 /// Everything the learner and the planner know about a world.

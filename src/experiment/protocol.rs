@@ -82,10 +82,10 @@ impl Bench {
         };
         let mut world = g.world();
         let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
-        let mut seen = std::collections::HashSet::from([key(&problem.start)]);
-        let mut queue = std::collections::VecDeque::from([problem.start.clone()]);
+        let mut seen = std::collections::HashSet::from([key(problem.start())]);
+        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
         while let Some(s) = queue.pop_front() {
-            if g.is_goal(&s, &problem.goal) {
+            if g.is_goal(&s, problem.goal()) {
                 return Some(true);
             }
             for m in MOVES {
@@ -328,7 +328,7 @@ pub async fn build_pool(
             Some(Strategy::Random)
         };
         let Proposed::Trajectory(p) = client
-            .propose(exp.id, &problem.start, &problem.goal, None, strategy)
+            .propose(exp.id, problem.start(), problem.goal(), None, strategy)
             .await?
         else {
             continue;
@@ -636,8 +636,8 @@ impl Run<'_> {
                 .client
                 .propose(
                     self.id,
-                    &problem.start,
-                    &problem.goal,
+                    problem.start(),
+                    problem.goal(),
                     Some("precond-experiment"),
                     None,
                 )
@@ -655,10 +655,10 @@ impl Run<'_> {
                     .trajectory
                     .states
                     .first()
-                    .is_some_and(|s0| close(s0, &problem.start)),
+                    .is_some_and(|s0| close(s0, problem.start())),
                 "proposal {} does not start at the problem's start {:?}",
                 p.proposal.id,
-                problem.start
+                problem.start()
             );
             self.world
                 .reset(&mut stream(seed, purpose::TRAIN_EPISODE, j as u64, key));
@@ -673,7 +673,7 @@ impl Run<'_> {
             train.relaxed = p.content.relaxed_from_beta.is_some();
             train.executed = true;
             train.length = exec.steps.len();
-            train.goal_reached = domain.is_goal(&exec.final_state, &problem.goal);
+            train.goal_reached = domain.is_goal(&exec.final_state, problem.goal());
             train.max_deviation = exec.steps.iter().map(|l| l.deviation).fold(0.0, f64::max);
             train.pour_type = classify(self.bench, &exec);
             rec.train_high_deviation += exec
@@ -717,15 +717,15 @@ impl Run<'_> {
                 domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j, k as u64));
             let plan = self
                 .client
-                .plan(self.id, &problem.start, &problem.goal)
+                .plan(self.id, problem.start(), problem.goal())
                 .await?;
             let mut test = TestRecord {
                 strategy: self.spec.strategy,
                 seed,
                 iteration: rec.iteration,
                 problem: k,
-                start: problem.start.clone(),
-                goal: problem.goal.clone(),
+                start: problem.start().to_vec(),
+                goal: problem.goal().to_vec(),
                 found: false,
                 extensions: plan.extensions as u64,
                 plan_length: 0,
@@ -738,7 +738,7 @@ impl Run<'_> {
                 self.world
                     .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
                 let exec = execute(self.bench, self.world.as_mut(), traj);
-                test.success = domain.is_goal(&exec.final_state, &problem.goal);
+                test.success = domain.is_goal(&exec.final_state, problem.goal());
             }
             rec.plans_found += usize::from(test.found);
             rec.successes += usize::from(test.success);

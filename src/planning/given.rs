@@ -5,14 +5,12 @@
 //!
 //! Every step of every candidate goes to the deviation model in one batch.
 
-use super::acquisition::AcquisitionSettings;
+use super::PlanningError;
 use super::cache::ModelCache;
-use super::rrt::{Trajectory, seeded_rng};
-use super::strategy::{Strategy, argmin};
-use super::{DeviationModel, PlanningError};
-use crate::domain::Domain;
-use rand::seq::IndexedRandom;
-use std::ops::Not;
+use super::planner::Planner;
+use super::precondition::Precondition;
+use super::rrt::Trajectory;
+use super::strategy::Strategy;
 
 /// A candidate as posted: its states (starting with the start state) and the actions between
 /// them.
@@ -43,20 +41,17 @@ impl Verdict {
 }
 
 /// Scores every step of every candidate `(states, actions)` (states start with the start
-/// state; one more state than actions) at `β`, and judges each against `d_max` and the goal.
-/// Inputs are assumed validated against the domain.
-#[allow(clippy::too_many_arguments)]
-pub fn judge_candidates(
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
+/// state; one more state than actions) inside `precondition`, and judges each against it and
+/// the goal. Inputs are assumed validated against the domain.
+pub(crate) fn judge(
+    planner: &Planner<'_>,
     goal: &[f64],
     candidates: Vec<Path>,
-    beta: f64,
-    d_max: f64,
-    acquisition: &AcquisitionSettings,
+    precondition: Precondition,
 ) -> Result<Vec<Verdict>, PlanningError> {
-    acquisition.check()?;
-    let mut cache = ModelCache::new(mde, domain.feature_dim());
+    let domain = planner.domain;
+    let acquisition = planner.settings.acquisition();
+    let mut cache = ModelCache::new(planner.model, domain.feature_dim());
     let features: Vec<f64> = candidates
         .iter()
         .flat_map(|(states, actions)| {
@@ -74,7 +69,7 @@ pub fn judge_candidates(
             let first_outside = mu
                 .iter()
                 .zip(&sigma)
-                .position(|(m, s)| (m + beta * s < d_max).not());
+                .position(|(m, s)| !precondition.inside(*m, *s));
             let reaches_goal = states.last().is_some_and(|s| domain.is_goal(s, goal));
             let trajectory = Trajectory {
                 states,
@@ -95,9 +90,10 @@ pub fn judge_candidates(
         .collect())
 }
 
-/// The candidate the strategy executes: `active` the eligible one with the smallest `α`,
-/// `goal_conditioned` a uniformly random eligible one, `random` a uniformly random one inside
-/// the precondition whether or not it reaches the goal. `None` when there is none to choose.
+/// The candidate the strategy executes ([`Strategy::choose`]) among those it may take:
+/// `active` and `goal_conditioned` the [eligible](Verdict::eligible) ones, `random` those
+/// inside the precondition whether or not they reach the goal. `None` when there is none to
+/// choose.
 pub fn choose(strategy: Strategy, verdicts: &[Verdict], seed: u64) -> Option<usize> {
     let pool: Vec<usize> = (0..verdicts.len())
         .filter(|&i| match strategy {
@@ -105,18 +101,31 @@ pub fn choose(strategy: Strategy, verdicts: &[Verdict], seed: u64) -> Option<usi
             _ => verdicts[i].eligible(),
         })
         .collect();
-    match strategy {
-        _ if pool.is_empty() => None,
-        Strategy::Active => Some(pool[argmin(pool.iter().map(|&i| verdicts[i].alpha))]),
-        _ => pool.choose(&mut seeded_rng(seed, 0)).copied(),
-    }
+    let alphas: Vec<f64> = pool.iter().map(|&i| verdicts[i].alpha).collect();
+    strategy.choose(&alphas, seed).map(|k| pool[k])
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::domain::IcyGridworld;
-    use crate::planning::Aggregation;
+    use crate::planning::{
+        AcquisitionSettings, Aggregation, DeviationModel, PlannerSettings, PlanningSettings,
+    };
+
+    /// The verdicts of `candidates` for the goal `goal` on the default map under [`Wall`], at
+    /// β = 2 and d_max = 0.1.
+    fn judge_candidates(
+        goal: &[f64],
+        candidates: Vec<Path>,
+        acquisition: &AcquisitionSettings,
+    ) -> Vec<Verdict> {
+        let grid = IcyGridworld::default_layout();
+        let settings = PlanningSettings::new(PlannerSettings::default(), *acquisition).unwrap();
+        Planner::new(&grid, &Wall, &settings)
+            .judge(goal, candidates, Precondition::new(2.0, 0.1).unwrap())
+            .unwrap()
+    }
 
     /// μ = 0.3 on x-moves from x ≥ 5 (in grid units), else 0; σ = 0.01.
     struct Wall;
@@ -150,7 +159,6 @@ mod tests {
 
     #[test]
     fn candidates_are_judged_step_by_step_and_the_strategies_choose_among_the_eligible() {
-        let g = IcyGridworld::default_layout();
         let acq = AcquisitionSettings {
             c: 1.0,
             gamma: 0.9,
@@ -164,7 +172,7 @@ mod tests {
             // Stays at x ≤ 4: inside, but does not reach [6, 1].
             walk([4.0, 0.0], &[[0.0, 1.0], [-1.0, 0.0]]),
         ];
-        let v = judge_candidates(&g, &Wall, &[6.0, 1.0], candidates, 2.0, 0.1, &acq).unwrap();
+        let v = judge_candidates(&[6.0, 1.0], candidates, &acq);
         assert_eq!(v[0].first_outside, Some(1));
         assert_eq!(v[1].first_outside, Some(2));
         assert!(v[2].inside && !v[2].reaches_goal);
@@ -186,7 +194,7 @@ mod tests {
             walk([4.0, 0.0], &[[0.0, 1.0], [-1.0, 0.0]]),
             walk([4.0, 0.0], &[[1.0, 0.0], [1.0, 0.0]]),
         ];
-        let v = judge_candidates(&g, &Wall, &[3.0, 1.0], candidates, 2.0, 0.1, &acq).unwrap();
+        let v = judge_candidates(&[3.0, 1.0], candidates, &acq);
         assert!(v[0].eligible() && v[1].eligible() && !v[2].eligible());
         let best = if v[0].alpha <= v[1].alpha { 0 } else { 1 };
         assert_ne!(v[0].alpha, v[1].alpha);

@@ -2,14 +2,21 @@
 //! the trajectory-level acquisition function, the β schedule, and the strategies that turn a
 //! planning problem into a proposal (DESIGN.md §1).
 //!
+//! - [`planner`]: the front door — a [`Planner`] (domain, deviation model, checked
+//!   [`PlanningSettings`], budget) that plans, proposes and judges for a checked
+//!   [`Problem`](crate::domain::Problem) inside a [`Precondition`].
+//! - [`precondition`]: `μ + β σ < d_max`, the one definition of "trusted".
 //! - [`schedule`]: `β_j` over the learning iterations, and the ladder of lower βs a training
-//!   problem with no plan at `β_j` tries ([`propose_relaxing`]).
+//!   problem with no plan at `β_j` tries ([`Planner::propose_relaxing`]).
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
-//! - [`budget`]: the deadline and cancel flag a search checks between rounds.
+//! - [`budget`]: the deadline and cancel flag a search checks between rounds (a planner's
+//!   [`Planner::within`]).
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
-//! - [`rrt`](mod@rrt): one RRT run (and the test-time [`plan`]), the planner settings, trajectories.
+//! - [`rrt`](mod@rrt): one RRT run (behind [`Planner::rrt`] and the test-time
+//!   [`Planner::plan`]), the planner settings, trajectories.
 //! - [`strategy`]: candidate generation and the `active` / `goal_conditioned` / `random`
-//!   strategies behind [`propose`].
+//!   strategies behind [`Planner::propose`]; [`Strategy::choose`], the one choice among
+//!   candidates.
 //! - [`given`]: candidates posted by the client, judged step by step and chosen by the same
 //!   strategies.
 //! - [`synthetic`]: cheap deviation models with known answers, for tests, benchmarks and demos.
@@ -22,6 +29,8 @@ pub mod acquisition;
 pub mod budget;
 pub mod cache;
 pub mod given;
+pub mod planner;
+pub mod precondition;
 pub mod rrt;
 pub mod schedule;
 pub mod strategy;
@@ -33,10 +42,12 @@ mod tests;
 pub use acquisition::{AcquisitionSettings, Aggregation, aggregate, alpha_step};
 pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
-pub use given::{Path, Verdict, choose, judge_candidates};
-pub use rrt::{PlannerSettings, RrtOutcome, Trajectory, plan, plan_within, rrt};
+pub use given::{Path, Verdict, choose};
+pub use planner::{Planner, PlanningSettings};
+pub use precondition::Precondition;
+pub use rrt::{PlannerSettings, RrtOutcome, Trajectory};
 pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};
-pub use strategy::{CandidateScore, Proposal, Strategy, propose, propose_relaxing, propose_within};
+pub use strategy::{CandidateScore, Proposal, Strategy};
 
 /// A model deviation estimator as the planner sees it: μ and σ (σ includes noise) of the
 /// deviation for feature vectors φ(s,a).

@@ -8,10 +8,10 @@
 //!   progress),
 //! - `ŝ'` is not already a node (exact equality; it matters for discrete domains, where the
 //!   tree would otherwise fill with copies of the same cells), and
-//! - `(s, a)` lies in the precondition: `μ + β σ < d_max` at `φ(s, a)`.
+//! - `(s, a)` lies in the [`Precondition`] at `φ(s, a)`.
 //!
 //! It stops when a new node satisfies the goal test or after `max_extensions` extensions, or
-//! earlier with [`PlanningError::Stopped`] when its [`Budget`] runs out (checked each round).
+//! earlier with [`PlanningError::Stopped`] when the planner's [`Budget`] runs out (checked each round).
 //!
 //! **Batched rounds.** So that the deviation model sees many points at once, extensions are
 //! made in rounds: each round proposes up to `extension_batch` edges (or the dynamics model's
@@ -36,10 +36,12 @@
 //! **Prefetching.** In a discrete action space (the gridworld), when the model must be asked
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
 
+use super::PlanningError;
 use super::budget::Budget;
 use super::cache::ModelCache;
-use super::{DeviationModel, PlanningError};
-use crate::domain::{Domain, DynamicsError, Predicted};
+use super::planner::Planner;
+use super::precondition::Precondition;
+use crate::domain::{Domain, DynamicsError, Predicted, Problem};
 use crate::limits::{MAX_CANDIDATES, MAX_EXTENSIONS};
 use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -167,102 +169,19 @@ pub struct RrtOutcome {
     pub dynamics_calls: usize,
 }
 
-/// One RRT run from `start` towards `goal`, keeping only edges with `μ + β σ < d_max`
-/// (see the module docs). `rng` drives every random choice.
-#[allow(clippy::too_many_arguments)]
-pub fn rrt(
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    settings: &PlannerSettings,
+/// One RRT run of `planner` for `problem` inside `precondition` (see the module docs).
+pub(crate) fn run(
+    planner: &Planner<'_>,
+    problem: &Problem,
+    precondition: Precondition,
     rng: &mut dyn RngCore,
 ) -> Result<RrtOutcome, PlanningError> {
-    rrt_within(
-        domain,
-        mde,
-        start,
-        goal,
-        beta,
-        d_max,
-        settings,
+    let mut cache = ModelCache::new(planner.model, planner.domain.feature_dim());
+    grow(
+        Task::new(planner, problem, precondition),
+        &mut cache,
         rng,
-        &Budget::unlimited(),
-    )
-}
-
-/// [`rrt`] that stops with [`PlanningError::Stopped`] once `budget` says so.
-#[allow(clippy::too_many_arguments)]
-pub fn rrt_within(
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    settings: &PlannerSettings,
-    rng: &mut dyn RngCore,
-    budget: &Budget,
-) -> Result<RrtOutcome, PlanningError> {
-    settings.check()?;
-    check_problem(domain, start, Some(goal), beta, d_max)?;
-    let mut cache = ModelCache::new(mde, domain.feature_dim());
-    let problem = SearchProblem {
-        domain,
-        start,
-        goal,
-        beta,
-        d_max,
-        settings,
-    };
-    grow(problem, &mut cache, rng, budget)
-}
-
-/// The test-time plan: one RRT run with the (conservative) test `β`, seeded by `seed`.
-/// `trajectory` is `None` when no plan was found within `max_extensions`; an `Err` means the
-/// inputs or settings were invalid.
-#[allow(clippy::too_many_arguments)]
-pub fn plan(
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    settings: &PlannerSettings,
-    seed: u64,
-) -> Result<RrtOutcome, PlanningError> {
-    plan_within(
-        domain,
-        mde,
-        start,
-        goal,
-        beta,
-        d_max,
-        settings,
-        seed,
-        &Budget::unlimited(),
-    )
-}
-
-/// [`plan`] that stops with [`PlanningError::Stopped`] once `budget` says so.
-#[allow(clippy::too_many_arguments)]
-pub fn plan_within(
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    settings: &PlannerSettings,
-    seed: u64,
-    budget: &Budget,
-) -> Result<RrtOutcome, PlanningError> {
-    let mut rng = seeded_rng(seed, 0);
-    rrt_within(
-        domain, mde, start, goal, beta, d_max, settings, &mut rng, budget,
+        &planner.budget,
     )
 }
 
@@ -271,31 +190,6 @@ pub(crate) fn seeded_rng(seed: u64, stream: u64) -> ChaCha8Rng {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     rng.set_stream(stream);
     rng
-}
-
-/// Checks start, goal (when the strategy uses one), β and d_max; errors name the input.
-pub(crate) fn check_problem(
-    domain: &dyn Domain,
-    start: &[f64],
-    goal: Option<&[f64]>,
-    beta: f64,
-    d_max: f64,
-) -> Result<(), PlanningError> {
-    domain
-        .validate_state(start)
-        .map_err(|e| PlanningError::input("start", e.to_string()))?;
-    if let Some(goal) = goal {
-        domain
-            .validate_goal(goal)
-            .map_err(|e| PlanningError::input("goal", e.to_string()))?;
-    }
-    if !beta.is_finite() {
-        return Err(PlanningError::input("beta", "must be a finite number"));
-    }
-    if !(d_max.is_finite() && d_max > 0.0) {
-        return Err(PlanningError::input("d_max", "must be a positive number"));
-    }
-    Ok(())
 }
 
 /// The tree: node `i` was reached from `parent[i]` by `action[i]` (node 0 is the start).
@@ -401,15 +295,25 @@ struct Steered {
 /// The most edges proposed in one round, whatever the model asks for.
 const MAX_ROUND: usize = 4096;
 
-/// The checked inputs every search of one proposal shares.
+/// What every search of one proposal shares: the domain, the checked problem, the
+/// precondition and the planner's settings.
 #[derive(Clone, Copy)]
-pub(crate) struct SearchProblem<'a> {
+pub(crate) struct Task<'a> {
     pub domain: &'a dyn Domain,
-    pub start: &'a [f64],
-    pub goal: &'a [f64],
-    pub beta: f64,
-    pub d_max: f64,
+    pub problem: &'a Problem,
+    pub precondition: Precondition,
     pub settings: &'a PlannerSettings,
+}
+
+impl<'a> Task<'a> {
+    pub fn new(planner: &Planner<'a>, problem: &'a Problem, precondition: Precondition) -> Self {
+        Self {
+            domain: planner.domain,
+            problem,
+            precondition,
+            settings: planner.settings.planner(),
+        }
+    }
 }
 
 /// One RRT search in progress: its tree, its own random stream, what it has spent, and the
@@ -419,7 +323,7 @@ pub(crate) struct SearchProblem<'a> {
 /// [`prefetched`](Self::prefetched) (the features to ask the deviation model about) and
 /// [`accept`](Self::accept).
 struct Search<'a, R> {
-    problem: SearchProblem<'a>,
+    task: Task<'a>,
     rng: R,
     tree: Tree,
     outcome: RrtOutcome,
@@ -439,9 +343,11 @@ struct Search<'a, R> {
 }
 
 impl<'a, R: RngCore> Search<'a, R> {
-    fn new(problem: SearchProblem<'a>, rng: R) -> Self {
-        let tree = Tree::new(problem.start);
-        let done = problem.domain.is_goal(problem.start, problem.goal);
+    fn new(task: Task<'a>, rng: R) -> Self {
+        let tree = Tree::new(task.problem.start());
+        let done = task
+            .domain
+            .is_goal(task.problem.start(), task.problem.goal());
         let outcome = RrtOutcome {
             trajectory: done.then(|| tree.path_to(0)),
             extensions: 0,
@@ -449,7 +355,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             dynamics_calls: 0,
         };
         Self {
-            problem,
+            task,
             rng,
             tree,
             outcome,
@@ -464,12 +370,13 @@ impl<'a, R: RngCore> Search<'a, R> {
 
     /// Samples this round's targets, their nearest nodes and the actions to steer with.
     fn steer(&mut self) {
-        let SearchProblem {
+        let Task {
             domain,
-            goal,
+            problem,
             settings,
             ..
-        } = self.problem;
+        } = self.task;
+        let goal = problem.goal();
         let round_size = settings
             .extension_batch
             .max(domain.dynamics().round_size())
@@ -509,7 +416,7 @@ impl<'a, R: RngCore> Search<'a, R> {
     /// Keeps, for each steered edge, the allowed and new prediction nearest its target, and
     /// notes the pairs to prefetch. `predicted` answers [`pairs`](Self::pairs) in order.
     fn choose(&mut self, predicted: Vec<Predicted>, cache: &ModelCache<'_>) {
-        let domain = self.problem.domain;
+        let domain = self.task.domain;
         let discrete_actions = domain.action_space().values.as_ref();
         let mut predicted = predicted.into_iter();
         self.round.clear();
@@ -571,7 +478,7 @@ impl<'a, R: RngCore> Search<'a, R> {
 
     /// The pairs to prefetch, in order.
     fn prefetch_pairs(&self) -> impl Iterator<Item = (&[f64], &[f64])> {
-        let values = self.problem.domain.action_space().values.as_deref();
+        let values = self.task.domain.action_space().values.as_deref();
         self.to_prefetch.iter().filter_map(move |&(i, k)| {
             Some((self.tree.states[i].as_slice(), values?[k].as_slice()))
         })
@@ -580,7 +487,7 @@ impl<'a, R: RngCore> Search<'a, R> {
     /// Adds the feature rows of the prefetched pairs the tree could take; `predicted` answers
     /// [`prefetch_pairs`](Self::prefetch_pairs) in order. Their answers are only cached.
     fn prefetched(&mut self, predicted: Vec<Predicted>) {
-        let domain = self.problem.domain;
+        let domain = self.task.domain;
         let Some(values) = domain.action_space().values.as_ref() else {
             return;
         };
@@ -596,14 +503,13 @@ impl<'a, R: RngCore> Search<'a, R> {
     /// Adds the accepted edges in order; `answers` are the deviation model's `(μ, σ)` for
     /// [`features`](Self::features), row by row.
     fn accept(&mut self, answers: &[(f64, f64)]) {
-        let SearchProblem {
+        let Task {
             domain,
-            goal,
-            beta,
-            d_max,
+            problem,
+            precondition,
             settings,
-            ..
-        } = self.problem;
+        } = self.task;
+        let goal = problem.goal();
         let before = self.tree.states.len();
         let mut answers = answers.iter();
         for edge in self.round.drain(..) {
@@ -614,9 +520,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             let Some(&(mu, sigma)) = answers.next() else {
                 break;
             };
-            // Written so that a NaN from the model keeps the edge out.
-            let inside = mu + beta * sigma < d_max;
-            if !inside || self.tree.contains(&edge.next) {
+            if !precondition.inside(mu, sigma) || self.tree.contains(&edge.next) {
                 continue;
             }
             let reached = domain.is_goal(&edge.next, goal);
@@ -644,12 +548,12 @@ impl<'a, R: RngCore> Search<'a, R> {
 /// One RRT run with a cache that may be shared by the runs of one proposal.
 /// Inputs are assumed checked.
 pub(crate) fn grow(
-    problem: SearchProblem<'_>,
+    task: Task<'_>,
     cache: &mut ModelCache<'_>,
     rng: &mut dyn RngCore,
     budget: &Budget,
 ) -> Result<RrtOutcome, PlanningError> {
-    let mut outcomes = grow_together(problem, cache, vec![rng], budget)?;
+    let mut outcomes = grow_together(task, cache, vec![rng], budget)?;
     Ok(outcomes.pop().expect("one search, one outcome"))
 }
 
@@ -662,16 +566,14 @@ pub(crate) fn grow(
 ///
 /// On [`PlanningError::Stopped`], `extensions` is the sum over the runs until then.
 pub(crate) fn grow_together<R: RngCore>(
-    problem: SearchProblem<'_>,
+    task: Task<'_>,
     cache: &mut ModelCache<'_>,
     rngs: Vec<R>,
     budget: &Budget,
 ) -> Result<Vec<RrtOutcome>, PlanningError> {
-    let domain = problem.domain;
-    let mut searches: Vec<Search<'_, R>> = rngs
-        .into_iter()
-        .map(|rng| Search::new(problem, rng))
-        .collect();
+    let domain = task.domain;
+    let mut searches: Vec<Search<'_, R>> =
+        rngs.into_iter().map(|rng| Search::new(task, rng)).collect();
     let mut calls = 0;
     loop {
         let mut active: Vec<&mut Search<'_, R>> = searches.iter_mut().filter(|s| !s.done).collect();

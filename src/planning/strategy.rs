@@ -23,15 +23,13 @@
 //!   (each counts as an extension); when none fits the rollout stops there. It fails with
 //!   `NoPlan` only when not even the first step is possible.
 
-use super::acquisition::AcquisitionSettings;
+use super::PlanningError;
 use super::budget::Budget;
 use super::cache::ModelCache;
-use super::rrt::{
-    PlannerSettings, RrtOutcome, SearchProblem, Trajectory, check_problem, grow, grow_together,
-    predict_pairs, seeded_rng,
-};
-use super::{DeviationModel, PlanningError};
-use crate::domain::Domain;
+use super::planner::Planner;
+use super::precondition::Precondition;
+use super::rrt::{RrtOutcome, Task, Trajectory, grow, grow_together, predict_pairs, seeded_rng};
+use crate::domain::Problem;
 use rand::Rng;
 use std::collections::HashSet;
 use std::fmt;
@@ -58,6 +56,23 @@ impl Strategy {
             Self::GoalConditioned => "goal_conditioned",
             Self::Random => "random",
         }
+    }
+
+    /// The index of the candidate this strategy executes among candidates with acquisition
+    /// values `alphas`, all eligible: `active` the smallest `α` (the first on ties), the others
+    /// a uniformly random one (the first draw of stream 0 of `seed`). `None` when there is no
+    /// candidate. The one place a strategy chooses, for the planner's candidates and the
+    /// client's alike.
+    pub fn choose(self, alphas: &[f64], seed: u64) -> Option<usize> {
+        if alphas.is_empty() {
+            return None;
+        }
+        Some(match self {
+            Self::Active => argmin(alphas.iter().copied()),
+            Self::GoalConditioned | Self::Random => {
+                seeded_rng(seed, 0).random_range(..alphas.len())
+            }
+        })
     }
 }
 
@@ -121,70 +136,27 @@ pub struct Proposal {
     pub dynamics_calls: usize,
 }
 
-/// Proposes the trajectory to execute next for the problem `start → goal` under the current
-/// `β` and `d_max` (see the module docs). The same inputs and `seed` give the same proposal.
-#[allow(clippy::too_many_arguments)]
-pub fn propose(
+/// The proposal of `strategy` for `problem` inside `precondition` (see the module docs). The
+/// same inputs and `seed` give the same proposal.
+pub(crate) fn propose(
+    planner: &Planner<'_>,
     strategy: Strategy,
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    planner: &PlannerSettings,
-    acquisition: &AcquisitionSettings,
+    problem: &Problem,
+    precondition: Precondition,
     seed: u64,
 ) -> Result<Proposal, PlanningError> {
-    propose_within(
-        strategy,
-        domain,
-        mde,
-        start,
-        goal,
-        beta,
-        d_max,
-        planner,
-        acquisition,
-        seed,
-        &Budget::unlimited(),
-    )
-}
-
-/// [`propose`] that stops with [`PlanningError::Stopped`] once `budget` says so (the
-/// extensions reported are those of every run until then).
-#[allow(clippy::too_many_arguments)]
-pub fn propose_within(
-    strategy: Strategy,
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    beta: f64,
-    d_max: f64,
-    planner: &PlannerSettings,
-    acquisition: &AcquisitionSettings,
-    seed: u64,
-    budget: &Budget,
-) -> Result<Proposal, PlanningError> {
-    planner.check()?;
-    acquisition.check()?;
-    check_problem(domain, start, Some(goal), beta, d_max)?;
-    let mut cache = ModelCache::new(mde, domain.feature_dim());
-    let mut own_rng = seeded_rng(seed, 0);
-    let problem = Problem {
-        domain,
-        start,
-        goal,
-        beta,
-        d_max,
-    };
+    let domain = planner.domain;
+    let acquisition = planner.settings.acquisition();
+    let budget = &planner.budget;
+    let mut cache = ModelCache::new(planner.model, domain.feature_dim());
+    let task = Task::new(planner, problem, precondition);
     if strategy == Strategy::Random {
+        let mut own_rng = seeded_rng(seed, 0);
         let mut dynamics_calls = 0;
-        let (length, measured) = problem.rollout_length(&mut cache, planner, seed, budget)?;
-        let (trajectory, extensions) = problem.rollout(
+        let (length, measured) = rollout_length(task, &mut cache, seed, budget)?;
+        let (trajectory, extensions) = rollout(
+            task,
             &mut cache,
-            planner,
             length,
             &mut own_rng,
             &mut dynamics_calls,
@@ -201,7 +173,7 @@ pub fn propose_within(
         let (alpha_step, alpha) = acquisition.score(&trajectory);
         return Ok(Proposal {
             strategy,
-            beta,
+            beta: precondition.beta(),
             candidates: vec![CandidateScore {
                 alpha,
                 length: trajectory.len(),
@@ -217,27 +189,26 @@ pub fn propose_within(
             dynamics_calls,
         });
     }
-    if domain.is_goal(start, goal) {
+    if domain.is_goal(problem.start(), problem.goal()) {
         return Err(PlanningError::input(
             "goal",
             "the start already satisfies the goal: there is nothing to plan",
         ));
     }
-    let found = problem.candidates(&mut cache, planner, seed, budget)?;
+    let found = candidates(task, &mut cache, seed, budget)?;
     let scored: Vec<(Vec<f64>, f64)> = found
         .trajectories
         .iter()
         .map(|t| acquisition.score(t))
         .collect();
-    let chosen_index = match strategy {
-        Strategy::Active => argmin(scored.iter().map(|(_, alpha)| *alpha)),
-        _ => own_rng.random_range(0..found.trajectories.len()),
-    };
+    let alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
+    // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
+    let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
     let candidates = found
         .trajectories
         .iter()
-        .zip(&scored)
-        .map(|(t, (_, alpha))| CandidateScore {
+        .zip(&alphas)
+        .map(|(t, alpha)| CandidateScore {
             alpha: *alpha,
             length: t.len(),
         })
@@ -247,7 +218,7 @@ pub fn propose_within(
     let trajectory = trajectories.swap_remove(chosen_index);
     Ok(Proposal {
         strategy,
-        beta,
+        beta: precondition.beta(),
         trajectory,
         alpha_step,
         alpha,
@@ -261,59 +232,8 @@ pub fn propose_within(
     })
 }
 
-/// [`propose_within`] at each β of `betas` in turn (a
-/// [`relaxation_ladder`](super::relaxation_ladder)) until one finds a trajectory; the
-/// proposal's `beta` says which, and its `extensions` count the attempts before it too.
-/// [`PlanningError::NoPlan`] only when no β has a plan, with the extensions of every attempt;
-/// any other error ends the search at once. One shared `budget` bounds all attempts.
-#[allow(clippy::too_many_arguments)]
-pub fn propose_relaxing(
-    strategy: Strategy,
-    domain: &dyn Domain,
-    mde: &dyn DeviationModel,
-    start: &[f64],
-    goal: &[f64],
-    betas: &[f64],
-    d_max: f64,
-    planner: &PlannerSettings,
-    acquisition: &AcquisitionSettings,
-    seed: u64,
-    budget: &Budget,
-) -> Result<Proposal, PlanningError> {
-    let mut spent = 0;
-    for &beta in betas {
-        match propose_within(
-            strategy,
-            domain,
-            mde,
-            start,
-            goal,
-            beta,
-            d_max,
-            planner,
-            acquisition,
-            seed,
-            budget,
-        ) {
-            Ok(mut p) => {
-                p.extensions += spent;
-                return Ok(p);
-            }
-            Err(PlanningError::NoPlan { extensions }) => spent += extensions,
-            Err(PlanningError::Stopped { reason, extensions }) => {
-                return Err(PlanningError::Stopped {
-                    reason,
-                    extensions: spent + extensions,
-                });
-            }
-            Err(e) => return Err(e),
-        }
-    }
-    Err(PlanningError::NoPlan { extensions: spent })
-}
-
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.
-pub(crate) fn argmin(values: impl Iterator<Item = f64>) -> usize {
+fn argmin(values: impl Iterator<Item = f64>) -> usize {
     let mut best: Option<(usize, f64)> = None;
     for (i, v) in values.enumerate() {
         if best.is_none_or(|(_, b)| v.total_cmp(&b).is_lt()) {
@@ -321,15 +241,6 @@ pub(crate) fn argmin(values: impl Iterator<Item = f64>) -> usize {
         }
     }
     best.map_or(0, |(i, _)| i)
-}
-
-/// The checked planning problem shared by the strategies.
-struct Problem<'a> {
-    domain: &'a dyn Domain,
-    start: &'a [f64],
-    goal: &'a [f64],
-    beta: f64,
-    d_max: f64,
 }
 
 /// The distinct goal-reaching trajectories of one proposal's runs.
@@ -340,182 +251,162 @@ struct Candidates {
     dynamics_calls: usize,
 }
 
-impl Problem<'_> {
-    fn candidates(
-        &self,
-        cache: &mut ModelCache<'_>,
-        planner: &PlannerSettings,
-        seed: u64,
-        budget: &Budget,
-    ) -> Result<Candidates, PlanningError> {
-        let mut found = Candidates {
-            trajectories: Vec::new(),
-            extensions: 0,
-            runs: 0,
-            dynamics_calls: 0,
-        };
-        let problem = SearchProblem {
-            domain: self.domain,
-            start: self.start,
-            goal: self.goal,
-            beta: self.beta,
-            d_max: self.d_max,
-            settings: planner,
-        };
-        let stopped = |spent: usize| {
-            move |e| match e {
-                PlanningError::Stopped { reason, extensions } => PlanningError::Stopped {
-                    reason,
-                    extensions: spent + extensions,
-                },
-                e => e,
-            }
-        };
-        // Runs one at a time until one reaches the goal (or enough fail to give up) ...
-        let mut outcomes: Vec<RrtOutcome> = Vec::new();
-        let mut failed = 0;
-        while outcomes.len() < planner.n_candidates {
-            let mut rng = seeded_rng(seed, outcomes.len() as u64 + 1);
-            let outcome =
-                grow(problem, cache, &mut rng, budget).map_err(stopped(found.extensions))?;
-            found.extensions += outcome.extensions;
-            found.dynamics_calls += outcome.dynamics_calls;
-            let reached = outcome.trajectory.is_some();
-            outcomes.push(outcome);
-            if reached {
-                break;
-            }
-            failed += 1;
-            if failed >= planner.max_failed_runs {
-                break;
-            }
+fn candidates(
+    task: Task<'_>,
+    cache: &mut ModelCache<'_>,
+    seed: u64,
+    budget: &Budget,
+) -> Result<Candidates, PlanningError> {
+    let planner = task.settings;
+    let mut found = Candidates {
+        trajectories: Vec::new(),
+        extensions: 0,
+        runs: 0,
+        dynamics_calls: 0,
+    };
+    let stopped = |spent: usize| {
+        move |e| match e {
+            PlanningError::Stopped { reason, extensions } => PlanningError::Stopped {
+                reason,
+                extensions: spent + extensions,
+            },
+            e => e,
         }
-        // ... then the others together, one model call serving a round of each.
-        if outcomes.last().is_some_and(|o| o.trajectory.is_some()) {
-            let rngs = (outcomes.len()..planner.n_candidates)
-                .map(|run| seeded_rng(seed, run as u64 + 1))
-                .collect::<Vec<_>>();
-            if !rngs.is_empty() {
-                let rest = grow_together(problem, cache, rngs, budget)
-                    .map_err(stopped(found.extensions))?;
-                found.dynamics_calls += rest.first().map_or(0, |o| o.dynamics_calls);
-                found.extensions += rest.iter().map(|o| o.extensions).sum::<usize>();
-                outcomes.extend(rest);
-            }
+    };
+    // Runs one at a time until one reaches the goal (or enough fail to give up) ...
+    let mut outcomes: Vec<RrtOutcome> = Vec::new();
+    let mut failed = 0;
+    while outcomes.len() < planner.n_candidates {
+        let mut rng = seeded_rng(seed, outcomes.len() as u64 + 1);
+        let outcome = grow(task, cache, &mut rng, budget).map_err(stopped(found.extensions))?;
+        found.extensions += outcome.extensions;
+        found.dynamics_calls += outcome.dynamics_calls;
+        let reached = outcome.trajectory.is_some();
+        outcomes.push(outcome);
+        if reached {
+            break;
         }
-        found.runs = outcomes.len();
-        let mut seen: HashSet<Vec<u64>> = HashSet::new();
-        for t in outcomes.into_iter().filter_map(|o| o.trajectory) {
-            let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
-            if seen.insert(key.collect()) {
-                found.trajectories.push(t);
-            }
+        failed += 1;
+        if failed >= planner.max_failed_runs {
+            break;
         }
-        if found.trajectories.is_empty() {
-            return Err(PlanningError::NoPlan {
-                extensions: found.extensions,
-            });
-        }
-        Ok(found)
     }
+    // ... then the others together, one model call serving a round of each.
+    if outcomes.last().is_some_and(|o| o.trajectory.is_some()) {
+        let rngs = (outcomes.len()..planner.n_candidates)
+            .map(|run| seeded_rng(seed, run as u64 + 1))
+            .collect::<Vec<_>>();
+        if !rngs.is_empty() {
+            let rest =
+                grow_together(task, cache, rngs, budget).map_err(stopped(found.extensions))?;
+            found.dynamics_calls += rest.first().map_or(0, |o| o.dynamics_calls);
+            found.extensions += rest.iter().map(|o| o.extensions).sum::<usize>();
+            outcomes.extend(rest);
+        }
+    }
+    found.runs = outcomes.len();
+    let mut seen: HashSet<Vec<u64>> = HashSet::new();
+    for t in outcomes.into_iter().filter_map(|o| o.trajectory) {
+        let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
+        if seen.insert(key.collect()) {
+            found.trajectories.push(t);
+        }
+    }
+    if found.trajectories.is_empty() {
+        return Err(PlanningError::NoPlan {
+            extensions: found.extensions,
+        });
+    }
+    Ok(found)
+}
 
-    /// Steps of a `random` rollout: the domain's, or for a domain that asks for it
-    /// ([`Domain::rollout_like_plans`]) the length of one RRT run's plan for this problem
-    /// (stream `n_candidates + 1` of the seed), returned with that run.
-    fn rollout_length(
-        &self,
-        cache: &mut ModelCache<'_>,
-        planner: &PlannerSettings,
-        seed: u64,
-        budget: &Budget,
-    ) -> Result<(usize, Option<RrtOutcome>), PlanningError> {
-        let domain = self.domain;
-        if !domain.rollout_like_plans() {
-            return Ok((domain.rollout_length(), None));
-        }
-        let problem = SearchProblem {
-            domain,
-            start: self.start,
-            goal: self.goal,
-            beta: self.beta,
-            d_max: self.d_max,
-            settings: planner,
-        };
-        let mut rng = seeded_rng(seed, planner.n_candidates as u64 + 1);
-        let run = grow(problem, cache, &mut rng, budget)?;
-        let length = run
-            .trajectory
-            .as_ref()
-            .map_or(domain.rollout_length(), |t| t.len().max(1));
-        Ok((length, Some(run)))
+/// Steps of a `random` rollout: the domain's, or for a domain that asks for it
+/// ([`Domain::rollout_like_plans`]) the length of one RRT run's plan for this problem
+/// (stream `n_candidates + 1` of the seed), returned with that run.
+fn rollout_length(
+    task: Task<'_>,
+    cache: &mut ModelCache<'_>,
+    seed: u64,
+    budget: &Budget,
+) -> Result<(usize, Option<RrtOutcome>), PlanningError> {
+    let domain = task.domain;
+    if !domain.rollout_like_plans() {
+        return Ok((domain.rollout_length(), None));
     }
+    let mut rng = seeded_rng(seed, task.settings.n_candidates as u64 + 1);
+    let run = grow(task, cache, &mut rng, budget)?;
+    let length = run
+        .trajectory
+        .as_ref()
+        .map_or(domain.rollout_length(), |t| t.len().max(1));
+    Ok((length, Some(run)))
+}
 
-    fn rollout(
-        &self,
-        cache: &mut ModelCache<'_>,
-        planner: &PlannerSettings,
-        length: usize,
-        rng: &mut dyn rand::RngCore,
-        dynamics_calls: &mut usize,
-        budget: &Budget,
-    ) -> Result<(Trajectory, usize), PlanningError> {
-        let domain = self.domain;
-        let mut t = Trajectory {
-            states: vec![self.start.to_vec()],
-            actions: Vec::new(),
-            mu: Vec::new(),
-            sigma: Vec::new(),
+fn rollout(
+    task: Task<'_>,
+    cache: &mut ModelCache<'_>,
+    length: usize,
+    rng: &mut dyn rand::RngCore,
+    dynamics_calls: &mut usize,
+    budget: &Budget,
+) -> Result<(Trajectory, usize), PlanningError> {
+    let domain = task.domain;
+    let planner = task.settings;
+    let mut t = Trajectory {
+        states: vec![task.problem.start().to_vec()],
+        actions: Vec::new(),
+        mu: Vec::new(),
+        sigma: Vec::new(),
+    };
+    let mut extensions = 0;
+    for _ in 0..length {
+        if let Some(reason) = budget.stop() {
+            return Err(PlanningError::Stopped { reason, extensions });
+        }
+        let s = t
+            .states
+            .last()
+            .expect("a trajectory has a first state")
+            .clone();
+        // Every try of a step is predicted in one call; the first allowed one inside the
+        // precondition is taken.
+        let tries: Vec<Vec<f64>> = (0..planner.random_action_tries)
+            .map(|_| domain.sample_action(&s, rng))
+            .collect();
+        let states = vec![s.as_slice(); tries.len()];
+        let actions: Vec<&[f64]> = tries.iter().map(Vec::as_slice).collect();
+        let predicted = predict_pairs(domain, &states, &actions, dynamics_calls)?;
+        let allowed: Vec<(usize, Vec<f64>, Vec<f64>)> = tries
+            .into_iter()
+            .zip(predicted)
+            .enumerate()
+            .filter(|(_, (a, p))| p.valid && domain.edge_allowed(&s, a, &p.next))
+            .map(|(k, (a, p))| (k, a, p.next))
+            .collect();
+        let features: Vec<f64> = allowed
+            .iter()
+            .flat_map(|(_, a, _)| domain.features(&s, a))
+            .collect();
+        let answers = cache.predict(&features)?;
+        let chosen = allowed
+            .into_iter()
+            .zip(answers)
+            .find(|(_, (mu, sigma))| task.precondition.inside(*mu, *sigma));
+        let Some(((k, a, next), (mu, sigma))) = chosen else {
+            extensions += planner.random_action_tries;
+            break;
         };
-        let mut extensions = 0;
-        for _ in 0..length {
-            if let Some(reason) = budget.stop() {
-                return Err(PlanningError::Stopped { reason, extensions });
-            }
-            let s = t
-                .states
-                .last()
-                .expect("a trajectory has a first state")
-                .clone();
-            // Every try of a step is predicted in one call; the first allowed one inside the
-            // precondition is taken.
-            let tries: Vec<Vec<f64>> = (0..planner.random_action_tries)
-                .map(|_| domain.sample_action(&s, rng))
-                .collect();
-            let states = vec![s.as_slice(); tries.len()];
-            let actions: Vec<&[f64]> = tries.iter().map(Vec::as_slice).collect();
-            let predicted = predict_pairs(domain, &states, &actions, dynamics_calls)?;
-            let allowed: Vec<(usize, Vec<f64>, Vec<f64>)> = tries
-                .into_iter()
-                .zip(predicted)
-                .enumerate()
-                .filter(|(_, (a, p))| p.valid && domain.edge_allowed(&s, a, &p.next))
-                .map(|(k, (a, p))| (k, a, p.next))
-                .collect();
-            let features: Vec<f64> = allowed
-                .iter()
-                .flat_map(|(_, a, _)| domain.features(&s, a))
-                .collect();
-            let answers = cache.predict(&features)?;
-            let chosen = allowed
-                .into_iter()
-                .zip(answers)
-                .find(|(_, (mu, sigma))| mu + self.beta * sigma < self.d_max);
-            let Some(((k, a, next), (mu, sigma))) = chosen else {
-                extensions += planner.random_action_tries;
-                break;
-            };
-            // Actions tried until this one.
-            extensions += k + 1;
-            t.states.push(next);
-            t.actions.push(a);
-            t.mu.push(mu);
-            t.sigma.push(sigma);
-        }
-        if t.is_empty() {
-            return Err(PlanningError::NoPlan { extensions });
-        }
-        Ok((t, extensions))
+        // Actions tried until this one.
+        extensions += k + 1;
+        t.states.push(next);
+        t.actions.push(a);
+        t.mu.push(mu);
+        t.sigma.push(sigma);
     }
+    if t.is_empty() {
+        return Err(PlanningError::NoPlan { extensions });
+    }
+    Ok((t, extensions))
 }
 
 #[cfg(test)]

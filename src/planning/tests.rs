@@ -2,7 +2,7 @@
 
 use super::synthetic::{ConstantModel, IceModel};
 use super::*;
-use crate::domain::{BoxObstacle, Domain, IcyGridworld, Kinematic, KinematicParams};
+use crate::domain::{BoxObstacle, Domain, IcyGridworld, Kinematic, KinematicParams, Problem};
 use proptest::prelude::{Just, ProptestConfig, any, prop_assert, prop_oneof, proptest};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -71,6 +71,125 @@ fn walled_kinematic() -> Kinematic {
     .unwrap()
 }
 
+/// One planning question of a test, spelled by name: a domain and a deviation model, the
+/// problem, the precondition (β 2, d_max 0.1 unless [`at`](Self::at) says otherwise), the
+/// settings (defaults unless given) and the budget (unlimited unless given). Its answers go
+/// through the public [`Planner`]; a problem the domain refuses is the planner's
+/// `InvalidInput` naming `start` or `goal`, as a client would see it.
+struct Ask<'a> {
+    domain: &'a dyn Domain,
+    mde: &'a dyn DeviationModel,
+    start: Vec<f64>,
+    goal: Vec<f64>,
+    beta: f64,
+    d_max: f64,
+    planner: PlannerSettings,
+    acquisition: AcquisitionSettings,
+    budget: Budget,
+}
+
+impl<'a> Ask<'a> {
+    fn new(
+        domain: &'a dyn Domain,
+        mde: &'a dyn DeviationModel,
+        start: &[f64],
+        goal: &[f64],
+    ) -> Self {
+        Self {
+            domain,
+            mde,
+            start: start.to_vec(),
+            goal: goal.to_vec(),
+            beta: 2.0,
+            d_max: 0.1,
+            planner: PlannerSettings::default(),
+            acquisition: AcquisitionSettings::default(),
+            budget: Budget::unlimited(),
+        }
+    }
+
+    fn at(self, beta: f64, d_max: f64) -> Self {
+        Self {
+            beta,
+            d_max,
+            ..self
+        }
+    }
+
+    fn planner(self, planner: &PlannerSettings) -> Self {
+        Self {
+            planner: planner.clone(),
+            ..self
+        }
+    }
+
+    fn acquisition(self, acquisition: &AcquisitionSettings) -> Self {
+        Self {
+            acquisition: *acquisition,
+            ..self
+        }
+    }
+
+    fn within(self, budget: &Budget) -> Self {
+        Self {
+            budget: budget.clone(),
+            ..self
+        }
+    }
+
+    /// The checked values, or the first check that fails.
+    fn checked(&self) -> Result<(PlanningSettings, Problem, Precondition), PlanningError> {
+        let settings = PlanningSettings::new(self.planner.clone(), self.acquisition)?;
+        let problem =
+            Problem::new(self.domain, self.start.clone(), self.goal.clone()).map_err(|e| {
+                let field = if e.field.starts_with("start") {
+                    "start"
+                } else {
+                    "goal"
+                };
+                PlanningError::input(field, e.reason)
+            })?;
+        Ok((settings, problem, Precondition::new(self.beta, self.d_max)?))
+    }
+
+    fn with_planner<T>(
+        &self,
+        f: impl FnOnce(&Planner<'_>, &Problem, Precondition) -> Result<T, PlanningError>,
+    ) -> Result<T, PlanningError> {
+        let (settings, problem, precondition) = self.checked()?;
+        let planner = Planner::new(self.domain, self.mde, &settings).within(self.budget.clone());
+        f(&planner, &problem, precondition)
+    }
+
+    fn propose(&self, strategy: Strategy, seed: u64) -> Result<Proposal, PlanningError> {
+        self.with_planner(|planner, problem, pre| planner.propose(strategy, problem, pre, seed))
+    }
+
+    fn plan(&self, seed: u64) -> Result<RrtOutcome, PlanningError> {
+        self.with_planner(|planner, problem, pre| planner.plan(problem, pre, seed))
+    }
+
+    fn rrt(&self, rng: &mut dyn rand::RngCore) -> Result<RrtOutcome, PlanningError> {
+        self.with_planner(|planner, problem, pre| planner.rrt(problem, pre, rng))
+    }
+
+    /// Proposes inside the precondition at each of `betas` in turn (this ask's `d_max`).
+    fn propose_relaxing(
+        &self,
+        strategy: Strategy,
+        betas: &[f64],
+        seed: u64,
+    ) -> Result<Proposal, PlanningError> {
+        self.with_planner(|planner, problem, pre| {
+            let ladder = betas
+                .iter()
+                .map(|&b| pre.at_beta(b))
+                .collect::<Result<Vec<_>, _>>()?;
+            planner.propose_relaxing(strategy, problem, &ladder, seed)
+        })
+    }
+}
+
 fn small_settings() -> PlannerSettings {
     PlannerSettings {
         max_extensions: 2000,
@@ -129,21 +248,20 @@ proptest! {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(problem_seed);
         let p = grid.sample_problem(&mut rng);
         let settings = PlannerSettings { extension_batch: batch, ..small_settings() };
-        let result = propose(strategy, &grid, &mde, &p.start, &p.goal, beta, 0.1,
-            &settings, &AcquisitionSettings::default(), seed);
+        let result = Ask::new(&grid, &mde, p.start(), p.goal()).at(beta, 0.1).planner(&settings).acquisition(&AcquisitionSettings::default()).propose(strategy, seed);
         match result {
             Ok(prop) => {
-                assert_valid(&grid, &mde, &prop.trajectory, &p.start, beta, 0.1);
+                assert_valid(&grid, &mde, &prop.trajectory, p.start(), beta, 0.1);
                 if strategy != Strategy::Random {
-                    prop_assert!(grid.is_goal(prop.trajectory.states.last().unwrap(), &p.goal));
+                    prop_assert!(grid.is_goal(prop.trajectory.states.last().unwrap(), p.goal()));
                 }
             }
             Err(PlanningError::NoPlan { .. }) => {}
             Err(e) => panic!("unexpected error {e}"),
         }
-        let out = plan(&grid, &mde, &p.start, &p.goal, beta, 0.1, &settings, seed).unwrap();
+        let out = Ask::new(&grid, &mde, p.start(), p.goal()).at(beta, 0.1).planner(&settings).plan(seed).unwrap();
         if let Some(t) = out.trajectory {
-            assert_valid(&grid, &mde, &t, &p.start, beta, 0.1);
+            assert_valid(&grid, &mde, &t, p.start(), beta, 0.1);
         }
     }
 
@@ -160,11 +278,11 @@ proptest! {
         let p = domain.sample_problem(&mut rng);
         let settings = PlannerSettings { extension_batch: batch, ..small_settings() };
         let mut run_rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
-        let out = rrt(&domain, &mde, &p.start, &p.goal, beta, 0.1, &settings, &mut run_rng).unwrap();
+        let out = Ask::new(&domain, &mde, p.start(), p.goal()).at(beta, 0.1).planner(&settings).rrt(&mut run_rng).unwrap();
         prop_assert!(out.extensions <= settings.max_extensions);
         if let Some(t) = out.trajectory {
-            assert_valid(&domain, &mde, &t, &p.start, beta, 0.1);
-            prop_assert!(domain.is_goal(t.states.last().unwrap(), &p.goal));
+            assert_valid(&domain, &mde, &t, p.start(), beta, 0.1);
+            prop_assert!(domain.is_goal(t.states.last().unwrap(), p.goal()));
         }
     }
 }
@@ -179,17 +297,11 @@ fn a_test_beta_plan_never_takes_an_x_move_from_ice() {
     let mut found = 0;
     for seed in 0..40 {
         let p = grid.sample_problem(&mut rng);
-        let out = plan(
-            &grid,
-            &mde,
-            &p.start,
-            &p.goal,
-            2.0,
-            0.1,
-            &PlannerSettings::default(),
-            seed,
-        )
-        .unwrap();
+        let out = Ask::new(&grid, &mde, p.start(), p.goal())
+            .at(2.0, 0.1)
+            .planner(&PlannerSettings::default())
+            .plan(seed)
+            .unwrap();
         let Some(t) = out.trajectory else { continue };
         found += 1;
         for (s, a) in t.states.iter().zip(&t.actions) {
@@ -209,34 +321,22 @@ fn without_the_ice_knowledge_the_plan_crosses_the_ice() {
         mu: 0.0,
         sigma: 0.01,
     };
-    let t = plan(
-        &grid,
-        &trusting,
-        &start,
-        &goal,
-        2.0,
-        0.1,
-        &PlannerSettings::default(),
-        3,
-    )
-    .unwrap()
-    .trajectory
-    .unwrap();
+    let t = Ask::new(&grid, &trusting, &start, &goal)
+        .at(2.0, 0.1)
+        .planner(&PlannerSettings::default())
+        .plan(3)
+        .unwrap()
+        .trajectory
+        .unwrap();
     assert!(t.actions.iter().any(|a| a[0] != 0.0));
     let knowing = IceModel::new(&grid, 0.01);
-    let t = plan(
-        &grid,
-        &knowing,
-        &start,
-        &goal,
-        2.0,
-        0.1,
-        &PlannerSettings::default(),
-        3,
-    )
-    .unwrap()
-    .trajectory
-    .unwrap();
+    let t = Ask::new(&grid, &knowing, &start, &goal)
+        .at(2.0, 0.1)
+        .planner(&PlannerSettings::default())
+        .plan(3)
+        .unwrap()
+        .trajectory
+        .unwrap();
     assert!(t.len() > 7, "the plan must leave the ice row to move in x");
 }
 
@@ -245,19 +345,12 @@ fn active_picks_the_argmin_of_the_candidates() {
     let grid = IcyGridworld::default_layout();
     let acq = AcquisitionSettings::default();
     for seed in 0..5 {
-        let p = propose(
-            Strategy::Active,
-            &grid,
-            &SlopeModel,
-            &[0.0, 0.0],
-            &[11.0, 11.0],
-            0.0,
-            0.1,
-            &PlannerSettings::default(),
-            &acq,
-            seed,
-        )
-        .unwrap();
+        let p = Ask::new(&grid, &SlopeModel, &[0.0, 0.0], &[11.0, 11.0])
+            .at(0.0, 0.1)
+            .planner(&PlannerSettings::default())
+            .acquisition(&acq)
+            .propose(Strategy::Active, seed)
+            .unwrap();
         assert!(p.candidates.len() > 1);
         let min = p
             .candidates
@@ -279,19 +372,12 @@ fn goal_conditioned_picks_some_goal_reaching_candidate() {
     let acq = AcquisitionSettings::default();
     let mut not_argmin = 0;
     for seed in 0..10 {
-        let p = propose(
-            Strategy::GoalConditioned,
-            &grid,
-            &SlopeModel,
-            &[0.0, 0.0],
-            &[11.0, 11.0],
-            0.0,
-            0.1,
-            &PlannerSettings::default(),
-            &acq,
-            seed,
-        )
-        .unwrap();
+        let p = Ask::new(&grid, &SlopeModel, &[0.0, 0.0], &[11.0, 11.0])
+            .at(0.0, 0.1)
+            .planner(&PlannerSettings::default())
+            .acquisition(&acq)
+            .propose(Strategy::GoalConditioned, seed)
+            .unwrap();
         assert!(grid.is_goal(p.trajectory.states.last().unwrap(), &[11.0, 11.0]));
         assert_eq!(p.candidates[p.chosen_index].alpha, p.alpha);
         assert_eq!(acq.score(&p.trajectory).1, p.alpha);
@@ -317,32 +403,18 @@ fn random_ignores_the_goal() {
     let settings = PlannerSettings::default();
     let acq = AcquisitionSettings::default();
     let start = [5.0, 5.0];
-    let a = propose(
-        Strategy::Random,
-        &grid,
-        &mde,
-        &start,
-        &[5.0, 4.0],
-        2.0,
-        0.1,
-        &settings,
-        &acq,
-        11,
-    )
-    .unwrap();
-    let b = propose(
-        Strategy::Random,
-        &grid,
-        &mde,
-        &start,
-        &[0.0, 11.0],
-        2.0,
-        0.1,
-        &settings,
-        &acq,
-        11,
-    )
-    .unwrap();
+    let a = Ask::new(&grid, &mde, &start, &[5.0, 4.0])
+        .at(2.0, 0.1)
+        .planner(&settings)
+        .acquisition(&acq)
+        .propose(Strategy::Random, 11)
+        .unwrap();
+    let b = Ask::new(&grid, &mde, &start, &[0.0, 11.0])
+        .at(2.0, 0.1)
+        .planner(&settings)
+        .acquisition(&acq)
+        .propose(Strategy::Random, 11)
+        .unwrap();
     assert_eq!(
         a.trajectory, b.trajectory,
         "the goal does not change the rollout"
@@ -368,18 +440,12 @@ fn random_stops_early_where_no_move_is_trusted() {
             random_action_tries: 2,
             ..Default::default()
         };
-        match propose(
-            Strategy::Random,
-            &grid,
-            &mde,
-            &[2.0, 2.0],
-            &[0.0, 0.0],
-            2.0,
-            0.1,
-            &settings,
-            &acq,
-            seed,
-        ) {
+        match Ask::new(&grid, &mde, &[2.0, 2.0], &[0.0, 0.0])
+            .at(2.0, 0.1)
+            .planner(&settings)
+            .acquisition(&acq)
+            .propose(Strategy::Random, seed)
+        {
             Ok(p) => {
                 assert!(p.trajectory.len() <= grid.rollout_length());
                 assert_valid(&grid, &mde, &p.trajectory, &[2.0, 2.0], 2.0, 0.1);
@@ -403,38 +469,24 @@ fn no_plan_when_nothing_is_trusted() {
     };
     let acq = AcquisitionSettings::default();
     for strategy in [Strategy::Active, Strategy::GoalConditioned] {
-        let err = propose(
-            strategy,
-            &grid,
-            &distrust,
-            &[0.0, 0.0],
-            &[3.0, 0.0],
-            0.0,
-            0.1,
-            &settings,
-            &acq,
-            1,
-        )
-        .unwrap_err();
+        let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
+            .at(0.0, 0.1)
+            .planner(&settings)
+            .acquisition(&acq)
+            .propose(strategy, 1)
+            .unwrap_err();
         assert_eq!(
             err,
             PlanningError::NoPlan { extensions: 300 },
             "one failed run is final"
         );
     }
-    let err = propose(
-        Strategy::Random,
-        &grid,
-        &distrust,
-        &[0.0, 0.0],
-        &[3.0, 0.0],
-        0.0,
-        0.1,
-        &settings,
-        &acq,
-        1,
-    )
-    .unwrap_err();
+    let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
+        .at(0.0, 0.1)
+        .planner(&settings)
+        .acquisition(&acq)
+        .propose(Strategy::Random, 1)
+        .unwrap_err();
     assert_eq!(
         err,
         PlanningError::NoPlan {
@@ -445,31 +497,18 @@ fn no_plan_when_nothing_is_trusted() {
         max_failed_runs: 3,
         ..settings
     };
-    let err = propose(
-        Strategy::Active,
-        &grid,
-        &distrust,
-        &[0.0, 0.0],
-        &[3.0, 0.0],
-        0.0,
-        0.1,
-        &patient,
-        &acq,
-        1,
-    )
-    .unwrap_err();
+    let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
+        .at(0.0, 0.1)
+        .planner(&patient)
+        .acquisition(&acq)
+        .propose(Strategy::Active, 1)
+        .unwrap_err();
     assert_eq!(err, PlanningError::NoPlan { extensions: 900 });
-    let out = plan(
-        &grid,
-        &distrust,
-        &[0.0, 0.0],
-        &[3.0, 0.0],
-        0.0,
-        0.1,
-        &settings,
-        1,
-    )
-    .unwrap();
+    let out = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
+        .at(0.0, 0.1)
+        .planner(&settings)
+        .plan(1)
+        .unwrap();
     assert_eq!(
         (out.trajectory, out.extensions, out.tree_size),
         (None, 300, 1)
@@ -486,19 +525,12 @@ fn kinematic_edges_never_cross_the_wall() {
     let acq = AcquisitionSettings::default();
     let (start, goal) = ([0.1, 0.1], [0.9, 0.9]);
     for seed in 0..4 {
-        let p = propose(
-            Strategy::Active,
-            &domain,
-            &mde,
-            &start,
-            &goal,
-            2.0,
-            0.1,
-            &PlannerSettings::default(),
-            &acq,
-            seed,
-        )
-        .unwrap();
+        let p = Ask::new(&domain, &mde, &start, &goal)
+            .at(2.0, 0.1)
+            .planner(&PlannerSettings::default())
+            .acquisition(&acq)
+            .propose(Strategy::Active, seed)
+            .unwrap();
         let t = &p.trajectory;
         assert_valid(&domain, &mde, t, &start, 2.0, 0.1);
         assert!(domain.is_goal(t.states.last().unwrap(), &goal));
@@ -538,19 +570,12 @@ fn same_seed_same_proposal() {
         Strategy::Random,
     ] {
         let run = |seed| {
-            propose(
-                strategy,
-                &grid,
-                &mde,
-                &[0.0, 0.0],
-                &[11.0, 11.0],
-                0.5,
-                0.2,
-                &settings,
-                &acq,
-                seed,
-            )
-            .unwrap()
+            Ask::new(&grid, &mde, &[0.0, 0.0], &[11.0, 11.0])
+                .at(0.5, 0.2)
+                .planner(&settings)
+                .acquisition(&acq)
+                .propose(strategy, seed)
+                .unwrap()
         };
         assert_eq!(run(42), run(42));
         assert_ne!(run(42).trajectory, run(43).trajectory);
@@ -562,17 +587,11 @@ fn same_seed_same_proposal() {
         sigma: 0.02,
     };
     let run = |seed| {
-        plan(
-            &domain,
-            &mde,
-            &[0.1, 0.5],
-            &[0.9, 0.5],
-            1.0,
-            0.1,
-            &settings,
-            seed,
-        )
-        .unwrap()
+        Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
+            .at(1.0, 0.1)
+            .planner(&settings)
+            .plan(seed)
+            .unwrap()
     };
     assert_eq!(run(5), run(5));
 }
@@ -586,19 +605,12 @@ fn the_model_sees_each_gridworld_pair_once_per_proposal_in_batches() {
         calls: AtomicUsize::new(0),
         points: AtomicUsize::new(0),
     };
-    let p = propose(
-        Strategy::Active,
-        &grid,
-        &mde,
-        &[0.0, 0.0],
-        &[11.0, 11.0],
-        2.0,
-        0.1,
-        &PlannerSettings::default(),
-        &AcquisitionSettings::default(),
-        9,
-    )
-    .unwrap();
+    let p = Ask::new(&grid, &mde, &[0.0, 0.0], &[11.0, 11.0])
+        .at(2.0, 0.1)
+        .planner(&PlannerSettings::default())
+        .acquisition(&AcquisitionSettings::default())
+        .propose(Strategy::Active, 9)
+        .unwrap();
     let (calls, points) = (mde.calls.into_inner(), mde.points.into_inner());
     assert_eq!(points, p.model_points);
     assert!(
@@ -629,18 +641,11 @@ fn inputs_and_settings_are_checked_by_name() {
         other => panic!("expected a field error, got {other:?}"),
     };
     let go = |start: &[f64], goal: &[f64], beta, d_max, s: &PlannerSettings| {
-        propose(
-            Strategy::Active,
-            &grid,
-            &mde,
-            start,
-            goal,
-            beta,
-            d_max,
-            s,
-            &acq,
-            0,
-        )
+        Ask::new(&grid, &mde, start, goal)
+            .at(beta, d_max)
+            .planner(s)
+            .acquisition(&acq)
+            .propose(Strategy::Active, 0)
     };
     assert_eq!(field(go(&[0.5, 0.0], &[3.0, 3.0], 0.0, 0.1, &s)), "start");
     assert_eq!(field(go(&[0.0, 0.0], &[3.0], 0.0, 0.1, &s)), "goal");
@@ -667,7 +672,11 @@ fn inputs_and_settings_are_checked_by_name() {
         "max_extensions"
     );
     // A test-time plan from the goal itself is found, and empty.
-    let out = plan(&grid, &mde, &[3.0, 3.0], &[3.0, 3.0], 2.0, 0.1, &s, 0).unwrap();
+    let out = Ask::new(&grid, &mde, &[3.0, 3.0], &[3.0, 3.0])
+        .at(2.0, 0.1)
+        .planner(&s)
+        .plan(0)
+        .unwrap();
     assert_eq!(out.trajectory.map(|t| t.len()), Some(0));
 }
 
@@ -696,20 +705,13 @@ fn a_search_stops_at_its_deadline_with_the_extensions_spent() {
     };
     let started = std::time::Instant::now();
     let budget = Budget::until(started + std::time::Duration::from_millis(100));
-    let err = propose_within(
-        Strategy::Active,
-        &domain,
-        &mde,
-        &[0.1, 0.5],
-        &[0.9, 0.5],
-        0.0,
-        0.1,
-        &settings,
-        &AcquisitionSettings::default(),
-        3,
-        &budget,
-    )
-    .unwrap_err();
+    let err = Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
+        .at(0.0, 0.1)
+        .planner(&settings)
+        .acquisition(&AcquisitionSettings::default())
+        .within(&budget)
+        .propose(Strategy::Active, 3)
+        .unwrap_err();
     let PlanningError::Stopped { reason, extensions } = err else {
         panic!("expected Stopped, got {err:?}");
     };
@@ -721,18 +723,12 @@ fn a_search_stops_at_its_deadline_with_the_extensions_spent() {
         max_extensions: 300,
         ..settings
     };
-    let out = plan_within(
-        &domain,
-        &mde,
-        &[0.1, 0.5],
-        &[0.9, 0.5],
-        0.0,
-        0.1,
-        &small,
-        3,
-        &Budget::unlimited(),
-    )
-    .unwrap();
+    let out = Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
+        .at(0.0, 0.1)
+        .planner(&small)
+        .within(&Budget::unlimited())
+        .plan(3)
+        .unwrap();
     assert!(out.trajectory.is_none());
     assert_eq!(out.extensions, 300);
 }
@@ -747,20 +743,13 @@ fn a_cancelled_search_stops_before_its_next_round() {
     let flag = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
     let budget = Budget::unlimited().cancelled_by(flag);
     for strategy in [Strategy::Active, Strategy::Random] {
-        let err = propose_within(
-            strategy,
-            &domain,
-            &mde,
-            &[0.1, 0.5],
-            &[0.9, 0.5],
-            0.0,
-            0.1,
-            &PlannerSettings::default(),
-            &AcquisitionSettings::default(),
-            3,
-            &budget,
-        )
-        .unwrap_err();
+        let err = Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
+            .at(0.0, 0.1)
+            .planner(&PlannerSettings::default())
+            .acquisition(&AcquisitionSettings::default())
+            .within(&budget)
+            .propose(strategy, 3)
+            .unwrap_err();
         assert_eq!(
             err,
             PlanningError::Stopped {
@@ -776,7 +765,7 @@ fn a_cancelled_search_stops_before_its_next_round() {
 /// its own random stream and the models' answers), with fewer calls to the deviation model.
 #[test]
 fn runs_grown_together_grow_the_trees_they_grow_alone() {
-    use super::rrt::{SearchProblem, grow, grow_together, seeded_rng};
+    use super::rrt::{Task, grow, grow_together, seeded_rng};
     let grid = IcyGridworld::default_layout();
     let kin = walled_kinematic();
     let ice = IceModel::new(&grid, 0.02);
@@ -791,15 +780,11 @@ fn runs_grown_together_grow_the_trees_they_grow_alone() {
         (&kin, &bump, [0.1, 0.1], [0.9, 0.9]),
     ];
     for (domain, model, start, goal) in cases {
-        let settings = small_settings();
-        let problem = SearchProblem {
-            domain,
-            start: &start,
-            goal: &goal,
-            beta: 1.0,
-            d_max: 0.1,
-            settings: &settings,
-        };
+        let settings =
+            PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
+        let checked = Problem::new(domain, start.to_vec(), goal.to_vec()).unwrap();
+        let planner = Planner::new(domain, model, &settings);
+        let problem = Task::new(&planner, &checked, Precondition::new(1.0, 0.1).unwrap());
         let alone_model = Counting {
             inner: model,
             calls: AtomicUsize::new(0),
@@ -877,19 +862,12 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
         sigma: 0.01,
     };
     let proposal = |strategy, d: &CustomDomain, seed| {
-        propose(
-            strategy,
-            d,
-            &trusted,
-            &[0.1, 0.1],
-            &[0.35, 0.1],
-            0.0,
-            0.1,
-            &small_settings(),
-            &AcquisitionSettings::default(),
-            seed,
-        )
-        .unwrap()
+        Ask::new(d, &trusted, &[0.1, 0.1], &[0.35, 0.1])
+            .at(0.0, 0.1)
+            .planner(&small_settings())
+            .acquisition(&AcquisitionSettings::default())
+            .propose(strategy, seed)
+            .unwrap()
     };
     let measured = domain(None);
     for seed in 0..5 {
@@ -925,19 +903,12 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
     let acq = AcquisitionSettings::default();
     let betas = relaxation_ladder(1.5, -2.0);
     let relaxed = |mde: &dyn DeviationModel, betas: &[f64]| {
-        propose_relaxing(
-            Strategy::Active,
-            &grid,
-            mde,
-            &[0.0, 0.0],
-            &[3.0, 0.0],
-            betas,
-            0.1,
-            &settings,
-            &acq,
-            1,
-            &Budget::unlimited(),
-        )
+        Ask::new(&grid, mde, &[0.0, 0.0], &[3.0, 0.0])
+            .at(0.0, 0.1)
+            .planner(&settings)
+            .acquisition(&acq)
+            .within(&Budget::unlimited())
+            .propose_relaxing(Strategy::Active, betas, 1)
     };
     let p = relaxed(&doubtful, &betas).unwrap();
     assert_eq!(p.beta, betas[3]);
@@ -948,19 +919,12 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
             .zip(&p.trajectory.sigma)
             .all(|(m, s)| m + p.beta * s < 0.1)
     );
-    let direct = propose(
-        Strategy::Active,
-        &grid,
-        &doubtful,
-        &[0.0, 0.0],
-        &[3.0, 0.0],
-        betas[3],
-        0.1,
-        &settings,
-        &acq,
-        1,
-    )
-    .unwrap();
+    let direct = Ask::new(&grid, &doubtful, &[0.0, 0.0], &[3.0, 0.0])
+        .at(betas[3], 0.1)
+        .planner(&settings)
+        .acquisition(&acq)
+        .propose(Strategy::Active, 1)
+        .unwrap();
     assert_eq!(p.trajectory, direct.trajectory, "the same search at that β");
     assert_eq!(
         p.extensions,

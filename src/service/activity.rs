@@ -4,7 +4,6 @@
 use super::experiments::{check_page, next_offset};
 use super::{Result, Service};
 use crate::limits::{DEFAULT_PAGE, MAX_TIMELINE_ROWS};
-use crate::planning::beta_schedule;
 use crate::store::{IterationStats, ModelSummary, Run};
 
 /// A page of runs with the total count and the next page's offset.
@@ -55,14 +54,14 @@ impl Service {
             .iteration_stats(id, batch, e.settings.d_max, MAX_TIMELINE_ROWS)
             .await?;
         let models = self.store.model_summaries(id, MAX_TIMELINE_ROWS).await?;
-        let beta = |j: i64| beta_schedule(j.max(0) as usize, l.iterations as usize, l.k1, l.k2);
+        let beta = |j: i64| l.training_beta(j);
         Ok(LearningTimeline {
             batch_size: batch,
             iterations_planned: i64::from(l.iterations),
             iterations: stats.into_iter().map(|s| (beta(s.iteration), s)).collect(),
             models: models
                 .into_iter()
-                .map(|m| (m.n_trajectories / batch, m))
+                .map(|m| (l.iteration(m.n_trajectories), m))
                 .collect(),
         })
     }

@@ -20,8 +20,10 @@ pub struct ExperimentState {
 impl ExperimentState {
     /// The current learning iteration: completed batches.
     pub fn iteration(&self) -> i64 {
-        let batch = i64::from(self.experiment.settings.learning.batch_size.max(1));
-        self.experiment.n_trajectories / batch
+        self.experiment
+            .settings
+            .learning
+            .iteration(self.experiment.n_trajectories)
     }
 }
 
@@ -37,8 +39,12 @@ impl Service {
             )));
         }
         let experiment = self.store.insert_experiment(&settings).await?;
-        self.live
-            .insert(LiveExperiment::new(experiment.id, settings, domain.clone()));
+        // Resolved settings make valid planning settings (`resolve` checked them).
+        self.live.insert(LiveExperiment::new(
+            experiment.id,
+            settings,
+            domain.clone(),
+        )?);
         tracing::info!(
             experiment = experiment.id,
             kind = domain.kind(),

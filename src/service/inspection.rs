@@ -8,6 +8,7 @@ use crate::limits::{
     DEFAULT_MAP_SIDE, MAX_LATER_TRANSITIONS, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS,
 };
 use crate::mde::{Estimator, ServedModel};
+use crate::planning::Precondition;
 use crate::store::StoredTransition;
 use std::sync::Arc;
 
@@ -70,7 +71,8 @@ const NOMINAL: [(f64, f64); 6] = [
 /// never saw them): coverage of `μ ± zσ`,
 /// RMSE, mean log predictive density, and the precondition `μ + βσ < d_max` against the truth
 /// `y < d_max`.
-pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], beta: f64, d_max: f64) -> LooSummary {
+pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], precondition: Precondition) -> LooSummary {
+    let d_max = precondition.d_max();
     let n = labels.len().min(loo.len());
     let share = |count: usize| if n == 0 { 0.0 } else { count as f64 / n as f64 };
     let coverage = NOMINAL
@@ -89,7 +91,7 @@ pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], beta: f64, d_max: f64) ->
         / n.max(1) as f64;
     let (mut positives, mut negatives, mut tp, mut tn) = (0, 0, 0, 0);
     for (y, (r, sd)) in labels.iter().zip(loo) {
-        let inside = (y - r) + beta * sd < d_max;
+        let inside = precondition.inside(y - r, *sd);
         if *y < d_max {
             positives += 1;
             tp += usize::from(inside);
@@ -105,7 +107,7 @@ pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], beta: f64, d_max: f64) ->
         mean_log_density,
         coverage,
         precondition: PreconditionRates {
-            beta,
+            beta: precondition.beta(),
             d_max,
             positives,
             negatives,
@@ -306,10 +308,7 @@ impl Service {
         beta: Option<f64>,
     ) -> Result<LooDiagnostics> {
         let live = self.live(id).await?;
-        let beta = beta.unwrap_or(live.settings.learning.test_beta);
-        if !beta.is_finite() {
-            return Err(Error::validation("beta", "must be a finite number"));
-        }
+        let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
         let model = live.model_at(&self.store, version).await?;
         let Estimator::Gp(gp) = &model.estimator else {
             return Err(Error::Conflict(format!(
@@ -362,11 +361,11 @@ impl Service {
                     "the model answered a non-finite deviation on a later transition"
                 )));
             }
-            Some(loo_summary(&labels, &residuals, beta, live.settings.d_max))
+            Some(loo_summary(&labels, &residuals, precondition))
         };
         Ok(LooDiagnostics {
             model_version: model.version,
-            summary: loo_summary(&labels, &loo, beta, live.settings.d_max),
+            summary: loo_summary(&labels, &loo, precondition),
             later,
         })
     }
@@ -381,7 +380,7 @@ mod tests {
         // Residuals of 0.5σ, 1.5σ, 2.5σ and 0 with σ = 0.1.
         let labels = [0.0, 0.3, 0.05, 0.2];
         let loo = [(0.05, 0.1), (0.15, 0.1), (-0.25, 0.1), (0.0, 0.1)];
-        let s = loo_summary(&labels, &loo, 1.0, 0.2);
+        let s = loo_summary(&labels, &loo, Precondition::new(1.0, 0.2).unwrap());
         assert_eq!(s.n, 4);
         let observed: Vec<f64> = s.coverage.iter().map(|c| c.observed).collect();
         assert_eq!(observed, vec![0.5, 0.5, 0.75, 0.75, 1.0, 1.0]);

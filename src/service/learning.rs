@@ -6,7 +6,7 @@ use super::{Error, Result, Service};
 use crate::api::{CandidateTrajectory, Point};
 use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, ServedModel};
-use crate::planning::{self, Path, RrtOutcome, Strategy, Trajectory, Verdict};
+use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
 use crate::store::ListOrder;
 use std::sync::Arc;
@@ -128,28 +128,19 @@ pub(crate) fn check_candidates(
         .collect()
 }
 
-/// Judges the client's (checked) candidates with the current model at β, off the async
+/// Judges the client's (checked) candidates with `model` inside `precondition`, off the async
 /// workers.
 pub(crate) async fn judge_given(
     live: &Arc<LiveExperiment>,
     model: Arc<ServedModel>,
     goal: Vec<f64>,
     candidates: Vec<Path>,
-    beta: f64,
+    precondition: Precondition,
 ) -> Result<Vec<Verdict>> {
     let live = live.clone();
-    let verdicts = Service::blocking(move || {
-        planning::judge_candidates(
-            live.domain.as_ref(),
-            model.as_ref(),
-            &goal,
-            candidates,
-            beta,
-            live.settings.d_max,
-            &live.settings.learning.acquisition(),
-        )
-    })
-    .await??;
+    let verdicts =
+        Service::blocking(move || live.planner(&model).judge(&goal, candidates, precondition))
+            .await??;
     for v in &verdicts {
         check_finite(&v.trajectory)?;
     }
@@ -168,13 +159,9 @@ pub(crate) fn needs_candidates(live: &LiveExperiment) -> Result<()> {
     Ok(())
 }
 
-/// `beta` of a request, or the experiment's test β.
-fn beta_or_test(beta: Option<f64>, test_beta: f64) -> Result<f64> {
-    let beta = beta.unwrap_or(test_beta);
-    if !beta.is_finite() {
-        return Err(Error::validation("beta", "must be a finite number"));
-    }
-    Ok(beta)
+/// The precondition at the request's `beta`, or at the experiment's test β.
+fn at_beta_or_test(live: &LiveExperiment, beta: Option<f64>) -> Result<Precondition> {
+    live.precondition(beta.unwrap_or(live.settings.learning.test_beta))
 }
 
 /// What a forced refit answers.
@@ -233,13 +220,15 @@ impl Service {
     pub async fn resume_refits(&self) -> Result<usize> {
         let mut scheduled = 0;
         for e in self.store.experiments(ListOrder::Oldest, 0, None).await? {
-            let batch = i64::from(e.settings.learning.batch_size);
             let covered = self
                 .store
                 .latest_model(e.id)
                 .await?
                 .map_or(0, |m| m.n_trajectories);
-            if e.n_trajectories / batch > covered / batch && self.live.cached(e.id).is_none() {
+            let l = &e.settings.learning;
+            if l.iteration(e.n_trajectories) > l.iteration(covered)
+                && self.live.cached(e.id).is_none()
+            {
                 self.live(e.id).await?;
                 scheduled += 1;
             }
@@ -261,7 +250,7 @@ impl Service {
                 format!("at most {MAX_POINTS} points"),
             ));
         }
-        let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
+        let precondition = at_beta_or_test(&live, beta)?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
         let mut features = Vec::with_capacity(points.len() * dim);
@@ -276,11 +265,10 @@ impl Service {
         } else {
             model.answer(&features, dim)
         };
-        let d_max = live.settings.d_max;
         let judgements = answers
             .iter()
             .map(|a| {
-                Judgement::of(a, beta, d_max).ok_or_else(|| {
+                Judgement::of(a, precondition).ok_or_else(|| {
                     Error::Internal(anyhow::anyhow!(
                         "the model answered a non-finite deviation (μ = {}, σ = {})",
                         a.mu,
@@ -291,8 +279,8 @@ impl Service {
             .collect::<Result<_>>()?;
         Ok(Judged {
             model,
-            beta,
-            d_max,
+            beta: precondition.beta(),
+            d_max: precondition.d_max(),
             judgements,
         })
     }
@@ -310,14 +298,15 @@ impl Service {
     ) -> Result<Planned> {
         let arrived = std::time::Instant::now();
         let live = self.live(id).await?;
-        live.check_problem(&start, &goal)?;
-        let beta = beta_or_test(beta, live.settings.learning.test_beta)?;
+        let problem = live.problem(start, goal)?;
+        let precondition = at_beta_or_test(&live, beta)?;
+        let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model = live.model();
         let model_version = model.version;
-        let d_max = live.settings.d_max;
         if let Some(candidates) = candidates {
-            let checked = check_candidates(&live, &start, candidates)?;
-            let verdicts = judge_given(&live, model, goal, checked, beta).await?;
+            let checked = check_candidates(&live, problem.start(), candidates)?;
+            let verdicts =
+                judge_given(&live, model, problem.goal().to_vec(), checked, precondition).await?;
             let chosen = planning::choose(Strategy::Active, &verdicts, 0);
             return Ok(Planned {
                 outcome: RrtOutcome {
@@ -336,21 +325,13 @@ impl Service {
         let seed = seed::mix_values(
             live.settings.seed,
             model.version,
-            start.iter().chain(&goal).copied(),
+            problem.start().iter().chain(problem.goal()).copied(),
         );
         let outcome = self
             .search(arrived, move |budget| {
-                planning::plan_within(
-                    live.domain.as_ref(),
-                    model.as_ref(),
-                    &start,
-                    &goal,
-                    beta,
-                    d_max,
-                    &live.settings.learning.planner(),
-                    seed,
-                    budget,
-                )
+                live.planner(&model)
+                    .within(budget.clone())
+                    .plan(&problem, precondition, seed)
             })
             .await?;
         if let Some(t) = &outcome.trajectory {

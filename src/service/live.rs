@@ -7,15 +7,15 @@
 
 use super::Error;
 use super::work::WorkGate;
-use crate::domain::Domain;
+use crate::domain::{Domain, Problem};
 use crate::gp::GpModel;
 use crate::mde::{
     Estimator, FitRecord, ServedModel, capped_labels, fit_choosing_label_cap, gp_params,
     training_data,
 };
-use crate::planning::beta_schedule;
+use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::seed;
-use crate::settings::ExperimentSettings;
+use crate::settings::{ExperimentSettings, InvalidSetting};
 use crate::store::{Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use nalgebra::DMatrix;
@@ -32,6 +32,8 @@ pub struct LiveExperiment {
     pub settings: ExperimentSettings,
     /// The domain built from `settings.domain`.
     pub domain: Arc<dyn Domain>,
+    /// The planner's and acquisition's settings, checked once from `settings.learning`.
+    pub planning: PlanningSettings,
     model: RwLock<Arc<ServedModel>>,
     fit_lock: tokio::sync::Mutex<()>,
     /// Older versions rebuilt on request (most recent use last), at most [`KEPT_VERSIONS`]
@@ -56,21 +58,27 @@ pub enum FitTrigger {
 }
 
 impl LiveExperiment {
-    /// A live experiment answering from the prior.
-    pub fn new(id: i64, settings: ExperimentSettings, domain: Arc<dyn Domain>) -> Self {
+    /// A live experiment answering from the prior; an error when its learning settings do
+    /// not make valid planning settings (resolved settings always do).
+    pub fn new(
+        id: i64,
+        settings: ExperimentSettings,
+        domain: Arc<dyn Domain>,
+    ) -> Result<Self, InvalidSetting> {
         let prior = ServedModel::prior(
             domain.feature_dim(),
             settings.mde.prior_mean,
             settings.mde.kernel(),
         );
-        Self {
+        Ok(Self {
             id,
+            planning: settings.learning.planning()?,
             settings,
             domain,
             model: RwLock::new(Arc::new(prior)),
             fit_lock: tokio::sync::Mutex::new(()),
             older: std::sync::Mutex::new(Vec::new()),
-        }
+        })
     }
 
     /// The version answering queries now.
@@ -138,14 +146,20 @@ impl LiveExperiment {
         *self.model.write().unwrap_or_else(|p| p.into_inner()) = model;
     }
 
-    /// Checks a planning problem's start state and goal; errors name `start` or `goal`.
-    pub fn check_problem(&self, start: &[f64], goal: &[f64]) -> Result<(), Error> {
-        self.domain
-            .validate_state(start)
-            .map_err(|e| Error::invalid_at("start", e))?;
-        self.domain
-            .validate_goal(goal)
-            .map_err(|e| Error::invalid_at("goal", e))
+    /// The planning problem `start → goal`, checked against the domain; errors name `start`
+    /// or `goal` (and the component, where the domain says which).
+    pub fn problem(&self, start: Vec<f64>, goal: Vec<f64>) -> Result<Problem, Error> {
+        Problem::new(self.domain.as_ref(), start, goal).map_err(|e| Error::invalid_at("", e))
+    }
+
+    /// The precondition at `beta` under the experiment's `d_max`; errors name `beta`.
+    pub fn precondition(&self, beta: f64) -> Result<Precondition, Error> {
+        Ok(Precondition::new(beta, self.settings.d_max)?)
+    }
+
+    /// A planner over this experiment's domain and `model` under its planning settings.
+    pub fn planner<'a>(&'a self, model: &'a ServedModel) -> Planner<'a> {
+        Planner::new(self.domain.as_ref(), model, &self.planning)
     }
 
     /// Checks a state-action that sits at `at` in a request (`transitions[3]`, `points[0]`):
@@ -162,13 +176,7 @@ impl LiveExperiment {
 
     /// The learning iteration after `n_trajectories` executed trajectories.
     pub fn iteration(&self, n_trajectories: i64) -> i64 {
-        n_trajectories / i64::from(self.settings.learning.batch_size)
-    }
-
-    /// `β_j` of the learning schedule at iteration `j`.
-    pub fn training_beta(&self, iteration: i64) -> f64 {
-        let l = &self.settings.learning;
-        beta_schedule(iteration.max(0) as usize, l.iterations as usize, l.k1, l.k2)
+        self.settings.learning.iteration(n_trajectories)
     }
 
     /// Row-major features and deviations of `transitions`.
@@ -226,13 +234,13 @@ impl LiveExperiment {
         .check()
         .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
         let caps = self.settings.label_caps();
-        let (d_max, beta) = (self.settings.d_max, self.settings.learning.test_beta);
+        let precondition = self.precondition(self.settings.learning.test_beta)?;
         let slot = gate.fit_slot().await?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {
             let _slot = slot;
             let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
-            fit_choosing_label_cap(&x, &deviations, d_max, beta, &caps, &params)
+            fit_choosing_label_cap(&x, &deviations, precondition, &caps, &params)
         })
         .await?;
         let trigger_name = match trigger {
@@ -385,7 +393,11 @@ impl Registry {
             .await?
             .ok_or_else(|| Error::no_experiment(id))?;
         let domain = build_stored_domain(id, &stored.settings)?;
-        let live = LiveExperiment::new(id, stored.settings, domain);
+        let live = LiveExperiment::new(id, stored.settings, domain).map_err(|e| {
+            Error::Internal(anyhow::anyhow!(
+                "stored experiment {id} no longer has valid settings: {e}"
+            ))
+        })?;
         let mut covered = 0;
         if let Some(model) = store.latest_model(id).await? {
             covered = model.n_trajectories;

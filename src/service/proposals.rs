@@ -145,7 +145,7 @@ impl Service {
     ) -> Result<(ProposalRecord, bool)> {
         let arrived = Instant::now();
         let live = self.live(id).await?;
-        live.check_problem(&request.start, &request.goal)?;
+        let problem = live.problem(request.start.clone(), request.goal.clone())?;
         if let Some(client) = &request.client_id {
             if client.is_empty() || client.chars().count() > MAX_CLIENT_ID_LEN {
                 return Err(Error::validation(
@@ -163,8 +163,14 @@ impl Service {
             .await?
             .map_or(0, |e| e.n_trajectories);
         let iteration = live.iteration(n_trajectories);
-        let schedule_beta = live.training_beta(iteration);
-        let betas = live.settings.learning.training_betas(schedule_beta);
+        let schedule_beta = live.settings.learning.training_beta(iteration);
+        let ladder = live
+            .settings
+            .learning
+            .training_betas(schedule_beta)
+            .into_iter()
+            .map(|beta| live.precondition(beta))
+            .collect::<Result<Vec<_>>>()?;
         let strategy = request.strategy.unwrap_or(live.settings.learning.strategy);
         let model = live.model();
         let model_version = model.version;
@@ -175,20 +181,21 @@ impl Service {
         );
         let (content, beta) = match request.candidates.clone() {
             Some(candidates) => {
-                let checked = check_candidates(&live, &request.start, candidates)?;
+                let checked = check_candidates(&live, problem.start(), candidates)?;
                 let mut answer = Err(Error::NoPlan {
                     extensions: 0,
                     candidates: Vec::new(),
                 });
-                for &beta in &betas {
+                for &precondition in &ladder {
                     let verdicts = judge_given(
                         &live,
                         model.clone(),
-                        request.goal.clone(),
+                        problem.goal().to_vec(),
                         checked.clone(),
-                        beta,
+                        precondition,
                     )
                     .await?;
+                    let beta = precondition.beta();
                     answer = given_content(strategy, &verdicts, seed, beta, schedule_beta)
                         .map(|c| (c, beta));
                     if !matches!(answer, Err(Error::NoPlan { .. })) {
@@ -200,23 +207,11 @@ impl Service {
             None => {
                 needs_candidates(&live)?;
                 let live = live.clone();
-                let (start, goal) = (request.start.clone(), request.goal.clone());
                 let proposal = self
                     .search(arrived, move |budget| {
-                        let l = &live.settings.learning;
-                        planning::propose_relaxing(
-                            strategy,
-                            live.domain.as_ref(),
-                            model.as_ref(),
-                            &start,
-                            &goal,
-                            &betas,
-                            live.settings.d_max,
-                            &l.planner(),
-                            &l.acquisition(),
-                            seed,
-                            budget,
-                        )
+                        live.planner(&model)
+                            .within(budget.clone())
+                            .propose_relaxing(strategy, &problem, &ladder, seed)
                     })
                     .await?;
                 (content(&proposal, schedule_beta)?, proposal.beta)

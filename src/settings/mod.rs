@@ -18,7 +18,10 @@ use crate::limits::{
     MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_ITERATIONS, MAX_NAME_LEN,
     MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
 };
-use crate::planning::{Aggregation, Strategy};
+use crate::planning::{
+    AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings, PlanningError,
+    PlanningSettings, Strategy,
+};
 use crate::remote_model::ModelUrlPolicy;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -504,6 +507,7 @@ impl ExperimentRequest {
         }
         positive("learning.k2", l.k2)?;
         finite("learning.test_beta", l.test_beta)?;
+        l.planning()?;
         Ok((
             ExperimentSettings {
                 name: self.name,
@@ -581,21 +585,47 @@ impl LearningSettings {
         }
     }
 
-    /// The planner's settings.
-    pub fn planner(&self) -> crate::planning::PlannerSettings {
-        crate::planning::PlannerSettings {
-            max_extensions: self.max_extensions as usize,
-            n_candidates: self.n_candidates as usize,
-            ..Default::default()
+    /// The planner's and the acquisition's settings, checked; the error names the setting
+    /// under `learning`.
+    pub fn planning(&self) -> Result<PlanningSettings, InvalidSetting> {
+        PlanningSettings::new(
+            PlannerSettings {
+                max_extensions: self.max_extensions as usize,
+                n_candidates: self.n_candidates as usize,
+                ..Default::default()
+            },
+            AcquisitionSettings {
+                c: self.c,
+                gamma: self.gamma,
+                aggregation: self.aggregation,
+            },
+        )
+        .map_err(|e| match e {
+            PlanningError::InvalidSettings { field, reason } => {
+                InvalidSetting::new(format!("learning.{field}"), reason)
+            }
+            other => InvalidSetting::new("learning", other.to_string()),
+        })
+    }
+
+    /// The learning iteration after `n_trajectories` executed trajectories: the batches
+    /// completed. The one place this is computed (the timeline's SQL groups trajectories the
+    /// same way).
+    pub fn iteration(&self, n_trajectories: i64) -> i64 {
+        n_trajectories / i64::from(self.batch_size.max(1))
+    }
+
+    /// The β schedule over the planned iterations.
+    pub fn beta_schedule(&self) -> BetaSchedule {
+        BetaSchedule {
+            k1: self.k1,
+            k2: self.k2,
+            iterations: self.iterations as usize,
         }
     }
 
-    /// The acquisition settings.
-    pub fn acquisition(&self) -> crate::planning::AcquisitionSettings {
-        crate::planning::AcquisitionSettings {
-            c: self.c,
-            gamma: self.gamma,
-            aggregation: self.aggregation,
-        }
+    /// `β_j` of the schedule at iteration `j` (`j < 0` counts as 0).
+    pub fn training_beta(&self, iteration: i64) -> f64 {
+        self.beta_schedule().beta(iteration.max(0) as usize)
     }
 }

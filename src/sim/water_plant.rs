@@ -634,7 +634,7 @@ mod tests {
         w.reset(&mut rng);
         for _ in 0..300 {
             let p = d.sample_problem(&mut rng);
-            let mut s = p.start;
+            let mut s = p.start().to_vec();
             for _ in 0..4 {
                 let a = if rand::Rng::random_bool(&mut rng, 0.5) {
                     d.sample_action(&s, &mut rng)
@@ -747,7 +747,7 @@ mod tests {
         let start = std::time::Instant::now();
         let n = 200;
         for _ in 0..n {
-            let s = d.sample_problem(&mut rng).start;
+            let s = d.sample_problem(&mut rng).start().to_vec();
             let g = d.goal_target(&[1.0], &mut rng);
             let a = d.steer_toward(&s, &g, &mut rng);
             let s2 = w.step(&s, &a);
@@ -764,7 +764,7 @@ mod tests {
             let (d, mut w) = setup();
             let mut rng = ChaCha8Rng::seed_from_u64(seed);
             w.reset(&mut rng);
-            let mut s = d.sample_problem(&mut rng).start;
+            let mut s = d.sample_problem(&mut rng).start().to_vec();
             for _ in 0..4 {
                 let a = d.sample_action(&s, &mut rng);
                 let next = w.step(&s, &a);

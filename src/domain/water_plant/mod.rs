@@ -491,13 +491,13 @@ impl Domain for WaterPlant {
     /// target); the goal `[1.0]`.
     fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem {
         let (lo, hi) = (self.scene.start_low, self.scene.start_high);
-        Problem {
-            start: self.start_state(
+        Problem::sampled(
+            self.start_state(
                 Self::uniform(rng, lo[0], hi[0]),
                 Self::uniform(rng, lo[1], hi[1]),
             ),
-            goal: vec![TOTAL_WATER],
-        }
+            vec![TOTAL_WATER],
+        )
     }
 }
 
@@ -712,14 +712,14 @@ mod tests {
         let mut r = rng();
         for _ in 0..100 {
             let p = w.sample_problem(&mut r);
-            assert!(w.validate_state(&p.start).is_ok());
-            assert!(w.validate_goal(&p.goal).is_ok());
-            assert_eq!(p.goal, vec![1.0]);
-            let corners = w.scene().source_corners(Pose::from_slice(&p.start));
+            assert!(w.validate_state(p.start()).is_ok());
+            assert!(w.validate_goal(p.goal()).is_ok());
+            assert_eq!(p.goal().to_vec(), vec![1.0]);
+            let corners = w.scene().source_corners(Pose::from_slice(p.start()));
             assert!(corners.iter().all(|c| c.x < w.scene().target.low.x));
-            assert_eq!(p.start[SRC_THETA], 0.0);
-            assert_eq!(p.start[SRC_VOLUME], 1.0);
-            assert!(!w.is_goal(&p.start, &p.goal));
+            assert_eq!(p.start()[SRC_THETA], 0.0);
+            assert_eq!(p.start()[SRC_VOLUME], 1.0);
+            assert!(!w.is_goal(p.start(), p.goal()));
         }
     }
 
@@ -845,7 +845,7 @@ mod tests {
         fn planned_actions_satisfy_the_form_and_the_bounds(seed in 0u64..1000) {
             let w = plant();
             let mut r = ChaCha8Rng::seed_from_u64(seed);
-            let s = w.sample_problem(&mut r).start;
+            let s = w.sample_problem(&mut r).start().to_vec();
             let target = w.sample_state(&mut r);
             let goal = w.goal_target(&[1.0], &mut r);
             for a in [w.steer_toward(&s, &target, &mut r), w.steer_toward(&s, &goal, &mut r), w.sample_action(&s, &mut r)] {

@@ -1,0 +1,185 @@
+//! The planner's front door: a [`Planner`] holds what stays fixed while an experiment plans —
+//! its domain, its deviation model, its checked [`PlanningSettings`] and the search's
+//! [`Budget`] — and answers for checked values: a [`Problem`] and a [`Precondition`].
+//!
+//! ```
+//! use precond::domain::{Domain, IcyGridworld, Problem};
+//! use precond::planning::{Planner, PlanningSettings, Precondition, Strategy};
+//! use precond::planning::synthetic::ConstantModel;
+//!
+//! let grid = IcyGridworld::default_layout();
+//! let model = ConstantModel { mu: 0.0, sigma: 0.01 };
+//! let settings = PlanningSettings::default();
+//! let planner = Planner::new(&grid, &model, &settings);
+//! let problem = Problem::new(&grid, vec![0.0, 0.0], vec![3.0, 0.0]).unwrap();
+//! let proposal = planner
+//!     .propose(Strategy::Active, &problem, Precondition::new(2.0, 0.1).unwrap(), 7)
+//!     .unwrap();
+//! assert!(grid.is_goal(proposal.trajectory.states.last().unwrap(), problem.goal()));
+//! ```
+
+use super::acquisition::AcquisitionSettings;
+use super::budget::Budget;
+use super::given::{self, Path, Verdict};
+use super::precondition::Precondition;
+use super::rrt::{self, PlannerSettings, RrtOutcome};
+use super::strategy::{self, Proposal, Strategy};
+use super::{DeviationModel, PlanningError};
+use crate::domain::{Domain, Problem};
+use rand::RngCore;
+
+/// The planner's and the acquisition's settings, checked together once: only valid settings
+/// can plan ([`PlanningSettings::new`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct PlanningSettings {
+    planner: PlannerSettings,
+    acquisition: AcquisitionSettings,
+}
+
+impl Default for PlanningSettings {
+    /// The defaults of both (valid by construction).
+    fn default() -> Self {
+        Self {
+            planner: PlannerSettings::default(),
+            acquisition: AcquisitionSettings::default(),
+        }
+    }
+}
+
+impl PlanningSettings {
+    /// Checks both; the error names the field.
+    pub fn new(
+        planner: PlannerSettings,
+        acquisition: AcquisitionSettings,
+    ) -> Result<Self, PlanningError> {
+        planner.check()?;
+        acquisition.check()?;
+        Ok(Self {
+            planner,
+            acquisition,
+        })
+    }
+
+    /// The planner's settings.
+    pub fn planner(&self) -> &PlannerSettings {
+        &self.planner
+    }
+
+    /// The acquisition's settings.
+    pub fn acquisition(&self) -> &AcquisitionSettings {
+        &self.acquisition
+    }
+}
+
+/// Plans in one domain with one deviation model under checked settings, within a budget
+/// (unlimited unless [`within`](Self::within) says otherwise). Cheap to build: it only borrows.
+/// Every answer is determined by its inputs and `seed`.
+#[derive(Clone)]
+pub struct Planner<'a> {
+    pub(crate) domain: &'a dyn Domain,
+    pub(crate) model: &'a dyn DeviationModel,
+    pub(crate) settings: &'a PlanningSettings,
+    pub(crate) budget: Budget,
+}
+
+impl<'a> Planner<'a> {
+    /// A planner with no deadline.
+    pub fn new(
+        domain: &'a dyn Domain,
+        model: &'a dyn DeviationModel,
+        settings: &'a PlanningSettings,
+    ) -> Self {
+        Self {
+            domain,
+            model,
+            settings,
+            budget: Budget::unlimited(),
+        }
+    }
+
+    /// The same planner stopping with [`PlanningError::Stopped`] once `budget` says so.
+    pub fn within(mut self, budget: Budget) -> Self {
+        self.budget = budget;
+        self
+    }
+
+    /// One RRT run inside `precondition`, `rng` driving every random choice (see
+    /// [`rrt`](mod@super::rrt)).
+    pub fn rrt(
+        &self,
+        problem: &Problem,
+        precondition: Precondition,
+        rng: &mut dyn RngCore,
+    ) -> Result<RrtOutcome, PlanningError> {
+        rrt::run(self, problem, precondition, rng)
+    }
+
+    /// The test-time plan: one RRT run inside `precondition` (the conservative test β),
+    /// seeded by `seed`. `trajectory` is `None` when no plan was found within
+    /// `max_extensions`.
+    pub fn plan(
+        &self,
+        problem: &Problem,
+        precondition: Precondition,
+        seed: u64,
+    ) -> Result<RrtOutcome, PlanningError> {
+        self.rrt(problem, precondition, &mut rrt::seeded_rng(seed, 0))
+    }
+
+    /// The trajectory `strategy` chooses for the robot to execute next for `problem` inside
+    /// `precondition` (see [`strategy`](mod@super::strategy)).
+    pub fn propose(
+        &self,
+        strategy: Strategy,
+        problem: &Problem,
+        precondition: Precondition,
+        seed: u64,
+    ) -> Result<Proposal, PlanningError> {
+        strategy::propose(self, strategy, problem, precondition, seed)
+    }
+
+    /// [`propose`](Self::propose) inside each precondition of `ladder` in turn (a
+    /// [`relaxation_ladder`](super::relaxation_ladder)'s βs) until one has a trajectory; the
+    /// proposal's `beta` says which, and its `extensions` count the attempts before it too.
+    /// [`PlanningError::NoPlan`] only when none has a plan, with the extensions of every
+    /// attempt; any other error ends the search at once. The planner's one budget bounds all
+    /// attempts.
+    pub fn propose_relaxing(
+        &self,
+        strategy: Strategy,
+        problem: &Problem,
+        ladder: &[Precondition],
+        seed: u64,
+    ) -> Result<Proposal, PlanningError> {
+        let mut spent = 0;
+        for &precondition in ladder {
+            match self.propose(strategy, problem, precondition, seed) {
+                Ok(mut p) => {
+                    p.extensions += spent;
+                    return Ok(p);
+                }
+                Err(PlanningError::NoPlan { extensions }) => spent += extensions,
+                Err(PlanningError::Stopped { reason, extensions }) => {
+                    return Err(PlanningError::Stopped {
+                        reason,
+                        extensions: spent + extensions,
+                    });
+                }
+                Err(e) => return Err(e),
+            }
+        }
+        Err(PlanningError::NoPlan { extensions: spent })
+    }
+
+    /// Scores every step of every candidate given by the client inside `precondition`, and
+    /// judges each against the precondition and `goal` (see [`given`](mod@super::given)).
+    /// The candidates are assumed validated against the domain.
+    pub fn judge(
+        &self,
+        goal: &[f64],
+        candidates: Vec<Path>,
+        precondition: Precondition,
+    ) -> Result<Vec<Verdict>, PlanningError> {
+        given::judge(self, goal, candidates, precondition)
+    }
+}
