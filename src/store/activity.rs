@@ -159,7 +159,8 @@ impl Store {
             "SELECT r.*, (SELECT MAX(x.deviation) FROM transitions x
                           WHERE x.trajectory_id = r.trajectory_id) AS max_deviation
              FROM ({RUNS}) r
-             ORDER BY julianday(r.created_at) DESC, r.proposal_id DESC, r.trajectory_id DESC
+             ORDER BY julianday(r.created_at) DESC, r.created_at DESC, r.proposal_id DESC,
+                      r.trajectory_id DESC
              LIMIT ?3 OFFSET ?4"
         ))
         .bind(experiment_id)

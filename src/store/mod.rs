@@ -129,8 +129,18 @@ pub struct StoreSize {
 
 /// The current time as an RFC 3339 UTC string, the store's time format.
 pub fn now() -> String {
-    time::OffsetDateTime::now_utc()
-        .format(&time::format_description::well_known::Rfc3339)
+    timestamp(time::OffsetDateTime::now_utc())
+}
+
+/// `t` as the store writes times: RFC 3339 in UTC with exactly nine fractional digits, so that
+/// comparing two as text compares them in time (SQLite's date functions keep milliseconds only,
+/// and rows stored within one millisecond must still sort in the order they were made).
+pub fn timestamp(t: time::OffsetDateTime) -> String {
+    const FORMAT: &[time::format_description::BorrowedFormatItem<'_>] = time::macros::format_description!(
+        "[year]-[month]-[day]T[hour]:[minute]:[second].[subsecond digits:9]Z"
+    );
+    t.to_offset(time::UtcOffset::UTC)
+        .format(FORMAT)
         .unwrap_or_default()
 }
 

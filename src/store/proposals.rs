@@ -218,10 +218,7 @@ impl Store {
         }
         let created = time::OffsetDateTime::now_utc();
         let expires = created + time::Duration::seconds(i64::from(p.ttl_seconds));
-        let fmt = |t: time::OffsetDateTime| {
-            t.format(&time::format_description::well_known::Rfc3339)
-                .unwrap_or_default()
-        };
+        let fmt = super::timestamp;
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO proposals (experiment_id, client_id, status, iteration, beta, strategy,
                                     model_version, start, goal, body, created_at, expires_at,
