@@ -11,10 +11,7 @@ use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::mde::HeldOutTrust;
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
-use crate::store::{
-    IterationStats, ListOrder, ModelSummary, Run, StoredProposal, StoredTrajectory,
-    StoredTransition,
-};
+use crate::store::{ListOrder, ProposalStatus, RunStatus};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -121,36 +118,89 @@ pub struct PageQuery {
     pub limit: Option<i64>,
 }
 
+/// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct RunView {
+    /// The proposal, if there was one.
+    pub proposal_id: Option<i64>,
+    /// The executed trajectory, if one was posted.
+    pub trajectory_id: Option<i64>,
+    /// Where it stands.
+    pub status: RunStatus,
+    /// The client the proposal was leased to.
+    pub client_id: Option<String>,
+    /// The learning iteration the proposal was made in (`null` without a proposal).
+    pub iteration: Option<i64>,
+    /// β the proposal was planned with (`null` without a proposal).
+    pub beta: Option<f64>,
+    /// The MDE version that scored the proposal (`null` without a proposal).
+    pub model_version: Option<i64>,
+    /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
+    pub created_at: String,
+    /// Actions: executed transitions when a trajectory was posted, else the proposal's planned
+    /// actions.
+    pub length: i64,
+    /// Whether the posted trajectory stopped early.
+    pub partial: bool,
+    /// The largest deviation label of the executed trajectory (`null` before one was posted).
+    pub max_deviation: Option<f64>,
+}
+
 /// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them and
 /// trajectories posted without a proposal, newest first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct RunPage {
     /// The page's runs.
-    pub items: Vec<Run>,
+    pub items: Vec<RunView>,
     /// Runs in all.
     pub total: i64,
     /// The `offset` of the next page, or `null` on the last.
     pub next: Option<i64>,
 }
 
-/// One learning iteration of `GET /v1/experiments/{id}/timeline`.
+/// One learning iteration of `GET /v1/experiments/{id}/timeline`: what was executed in it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TimelineIteration {
     /// `β_j` of the learning schedule at this iteration.
     pub beta: f64,
-    /// What was executed in it.
-    #[serde(flatten)]
-    pub stats: IterationStats,
+    /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
+    /// next batch's first, in ingest order).
+    pub iteration: i64,
+    /// Trajectories posted in it.
+    pub n_trajectories: i64,
+    /// Their transitions.
+    pub n_transitions: i64,
+    /// Mean deviation label of those transitions.
+    pub mean_deviation: f64,
+    /// Largest deviation label.
+    pub max_deviation: f64,
+    /// Share of the transitions with a deviation below `d_max` (the model was right there).
+    pub share_within_d_max: f64,
 }
 
-/// One model version of `GET /v1/experiments/{id}/timeline`.
+/// One model version of `GET /v1/experiments/{id}/timeline` (no training data, no noise
+/// model).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TimelineModel {
     /// The learning iteration its training data reached (`n_trajectories / batch_size`).
     pub iteration: i64,
-    /// The version's summary.
-    #[serde(flatten)]
-    pub model: ModelSummary,
+    /// Version (1, 2, …).
+    pub version: i64,
+    /// Training transitions (the experiment's first `n_train`).
+    pub n_train: i64,
+    /// Trajectories stored when the fit started.
+    pub n_trajectories: i64,
+    /// Noise mode of the fit.
+    pub noise: String,
+    /// Log marginal likelihood of the fit.
+    pub log_marginal_likelihood: f64,
+    /// Seconds the fit took.
+    pub fit_seconds: f64,
+    /// When it finished (RFC 3339).
+    pub fitted_at: String,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `null` for
+    /// versions fitted before caps were recorded.
+    pub label_cap: Option<f64>,
 }
 
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.
@@ -362,12 +412,42 @@ pub struct TrajectoryCreated {
     pub created_at: String,
 }
 
+/// A stored transition with its prediction and label.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TransitionView {
+    /// Identifier; ascending in ingest order.
+    pub id: i64,
+    /// The trajectory it belongs to.
+    pub trajectory_id: i64,
+    /// Position in the trajectory, from 0.
+    pub step: i64,
+    /// State.
+    pub s: Vec<f64>,
+    /// Action.
+    pub a: Vec<f64>,
+    /// Observed next state.
+    pub s_next: Vec<f64>,
+    /// Predicted next state.
+    pub s_pred: Vec<f64>,
+    /// Deviation label.
+    pub deviation: f64,
+}
+
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TrajectoryResponse {
-    /// The trajectory and its transitions, in order, with their predictions and labels.
-    #[serde(flatten)]
-    pub trajectory: StoredTrajectory,
+    /// Identifier.
+    pub id: i64,
+    /// Owning experiment.
+    pub experiment_id: i64,
+    /// The proposal it executed, if any.
+    pub proposal_id: Option<i64>,
+    /// Whether the robot stopped before the end.
+    pub partial: bool,
+    /// Ingest time (RFC 3339).
+    pub created_at: String,
+    /// Its transitions in order, with their predictions and labels.
+    pub transitions: Vec<TransitionView>,
     /// Transitions stored.
     pub n_transitions: usize,
 }
@@ -387,7 +467,7 @@ pub struct TransitionsQuery {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TransitionPage {
     /// Transitions in id order.
-    pub items: Vec<StoredTransition>,
+    pub items: Vec<TransitionView>,
     /// Cursor of the next page (`after=`), or `null` on the last.
     pub next: Option<i64>,
 }
@@ -616,13 +696,32 @@ pub struct ProposalContent {
     pub relaxed_from_beta: Option<f64>,
 }
 
-/// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`).
+/// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`): its lease,
+/// the terms it answered under, and what it chose.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProposalResponse {
-    /// Identifier, lease status (`open`, `executed`, `abandoned`, `expired`), terms (client,
-    /// iteration, β, strategy, model version, start, goal) and lease times.
-    #[serde(flatten)]
-    pub proposal: StoredProposal,
+    /// Identifier.
+    pub id: i64,
+    /// Where its lease stands: `open`, `executed`, `abandoned` or `expired`.
+    pub status: ProposalStatus,
+    /// The client it is leased to.
+    pub client_id: Option<String>,
+    /// The learning iteration it was made in.
+    pub iteration: i64,
+    /// β it was planned with.
+    pub beta: f64,
+    /// The strategy that chose it.
+    pub strategy: Strategy,
+    /// The MDE version that scored it.
+    pub model_version: i64,
+    /// Start state.
+    pub start: Vec<f64>,
+    /// Goal.
+    pub goal: Vec<f64>,
+    /// Creation time (RFC 3339).
+    pub created_at: String,
+    /// End of the lease (RFC 3339).
+    pub expires_at: String,
     /// The chosen trajectory and the candidates.
     #[serde(flatten)]
     pub content: ProposalContent,

@@ -657,7 +657,7 @@ impl Run<'_> {
                     .first()
                     .is_some_and(|s0| close(s0, problem.start())),
                 "proposal {} does not start at the problem's start {:?}",
-                p.proposal.id,
+                p.id,
                 problem.start()
             );
             self.world
@@ -665,11 +665,11 @@ impl Run<'_> {
             let exec = execute(self.bench, self.world.as_mut(), &p.content.trajectory);
             let transitions: Vec<Transition> = exec.steps.iter().map(|l| l.t.clone()).collect();
             self.client
-                .post_trajectory(self.id, Some(p.proposal.id), transitions)
+                .post_trajectory(self.id, Some(p.id), transitions)
                 .await?;
             self.posted += 1;
-            rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.proposal.terms.beta));
-            train.beta = Some(p.proposal.terms.beta);
+            rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.beta));
+            train.beta = Some(p.beta);
             train.relaxed = p.content.relaxed_from_beta.is_some();
             train.executed = true;
             train.length = exec.steps.len();

@@ -4,14 +4,15 @@
 use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
     ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RunPage,
-    Timeline, TimelineIteration, TimelineModel, TrajectoryResponse,
+    RunView, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated, TrajectoryResponse,
+    TransitionView,
 };
 use crate::mde::ServedModel;
 use crate::service::{
-    ExperimentState, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
+    ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::StoredTrajectory;
+use crate::store::{Run, StoredProposal, StoredTrajectory, StoredTransition};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -44,9 +45,26 @@ pub fn experiment(s: ExperimentState) -> ExperimentResponse {
 /// A page of runs.
 pub fn runs(r: Runs) -> RunPage {
     RunPage {
-        items: r.items,
+        items: r.items.into_iter().map(run).collect(),
         total: r.total,
         next: r.next,
+    }
+}
+
+/// One run.
+fn run(r: Run) -> RunView {
+    RunView {
+        proposal_id: r.proposal_id,
+        trajectory_id: r.trajectory_id,
+        status: r.status,
+        client_id: r.client_id,
+        iteration: r.iteration,
+        beta: r.beta,
+        model_version: r.model_version,
+        created_at: r.created_at,
+        length: r.length,
+        partial: r.partial,
+        max_deviation: r.max_deviation,
     }
 }
 
@@ -59,12 +77,30 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
         iterations: t
             .iterations
             .into_iter()
-            .map(|(beta, stats)| TimelineIteration { beta, stats })
+            .map(|(beta, s)| TimelineIteration {
+                beta,
+                iteration: s.iteration,
+                n_trajectories: s.n_trajectories,
+                n_transitions: s.n_transitions,
+                mean_deviation: s.mean_deviation,
+                max_deviation: s.max_deviation,
+                share_within_d_max: s.share_within_d_max,
+            })
             .collect(),
         models: t
             .models
             .into_iter()
-            .map(|(iteration, model)| TimelineModel { iteration, model })
+            .map(|(iteration, m)| TimelineModel {
+                iteration,
+                version: m.version,
+                n_train: m.n_train,
+                n_trajectories: m.n_trajectories,
+                noise: m.noise,
+                log_marginal_likelihood: m.log_marginal_likelihood,
+                fit_seconds: m.fit_seconds,
+                fitted_at: m.fitted_at,
+                label_cap: m.label_cap,
+            })
             .collect(),
     }
 }
@@ -122,10 +158,29 @@ pub fn diagnostics(experiment_id: i64, d: LooDiagnostics) -> Diagnostics {
 }
 
 /// A trajectory with its transitions.
-pub fn trajectory(trajectory: StoredTrajectory) -> TrajectoryResponse {
+pub fn trajectory(t: StoredTrajectory) -> TrajectoryResponse {
     TrajectoryResponse {
-        n_transitions: trajectory.transitions.len(),
-        trajectory,
+        id: t.id,
+        experiment_id: t.experiment_id,
+        proposal_id: t.proposal_id,
+        partial: t.partial,
+        created_at: t.created_at,
+        n_transitions: t.transitions.len(),
+        transitions: t.transitions.into_iter().map(transition).collect(),
+    }
+}
+
+/// One transition.
+pub fn transition(t: StoredTransition) -> TransitionView {
+    TransitionView {
+        id: t.id,
+        trajectory_id: t.trajectory_id,
+        step: t.step,
+        s: t.s,
+        a: t.a,
+        s_next: t.s_next,
+        s_pred: t.s_pred,
+        deviation: t.deviation,
     }
 }
 
@@ -169,8 +224,26 @@ pub fn judged(j: Judged) -> PreconditionResponse {
 
 /// A proposal.
 pub fn proposal(p: ProposalRecord) -> ProposalResponse {
+    let StoredProposal {
+        id,
+        status,
+        terms,
+        created_at,
+        expires_at,
+        ..
+    } = p.stored;
     ProposalResponse {
-        proposal: p.stored,
+        id,
+        status,
+        client_id: terms.client_id,
+        iteration: terms.iteration,
+        beta: terms.beta,
+        strategy: terms.strategy,
+        model_version: terms.model_version,
+        start: terms.start,
+        goal: terms.goal,
+        created_at,
+        expires_at,
         content: p.content,
     }
 }
@@ -187,5 +260,23 @@ pub fn plan(p: Planned) -> PlanResponse {
         candidates: p
             .candidates
             .map(|verdicts| verdicts.iter().map(CandidateView::judged).collect()),
+    }
+}
+
+/// The `201` answer to a posted trajectory (the same for a retry with the same
+/// `Idempotency-Key`: the first ingest's record).
+pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
+    let r = &i.record;
+    TrajectoryCreated {
+        id: r.trajectory_id,
+        experiment_id: i.experiment_id,
+        proposal_id: r.proposal_id,
+        partial: r.partial,
+        n_transitions: r.deviations.len(),
+        deviations: r.deviations.clone(),
+        iteration: i.iteration,
+        model_version: r.model_version,
+        n_trajectories: r.n_trajectories,
+        created_at: r.created_at.clone(),
     }
 }

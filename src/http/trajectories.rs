@@ -7,32 +7,12 @@ use super::extract::{ApiJson, ApiPath, ApiQuery};
 use super::render;
 use crate::api::{TrajectoryRequest, TrajectoryResponse, TransitionPage, TransitionsQuery};
 use crate::domain::Domain;
-use crate::limits::{DEFAULT_PAGE, MAX_CSV_ROWS, MAX_IDEMPOTENCY_KEY_LEN, MAX_PAGE};
-use crate::service::Ingested;
+use crate::limits::{DEFAULT_PAGE, MAX_CSV_ROWS, MAX_PAGE};
 use crate::store::StoredTransition;
 use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-
-/// The `Idempotency-Key` header, if sent (the service checks its length).
-fn idempotency_key(headers: &HeaderMap) -> ApiResult<Option<&str>> {
-    headers
-        .get("idempotency-key")
-        .map(|v| {
-            // `to_str` also lets a tab through; the key is printable ASCII only.
-            v.to_str()
-                .ok()
-                .filter(|s| s.bytes().all(|b| (b' '..=b'~').contains(&b)))
-                .ok_or_else(|| {
-                    ApiError::validation(
-                        "Idempotency-Key",
-                        format!("must be 1 to {MAX_IDEMPOTENCY_KEY_LEN} visible ASCII characters"),
-                    )
-                })
-        })
-        .transpose()
-}
 
 /// `POST /v1/experiments/{id}/trajectories`: validate, label and store one trajectory
 /// atomically; a retry with the same `Idempotency-Key` replays the first answer.
@@ -42,18 +22,19 @@ pub async fn create_trajectory(
     headers: HeaderMap,
     ApiJson(request): ApiJson<TrajectoryRequest>,
 ) -> ApiResult<Response> {
-    let key = idempotency_key(&headers)?;
-    Ok(match state.service.ingest(id, request, key).await? {
-        Ingested::Created(created) => (StatusCode::CREATED, Json(created)).into_response(),
-        Ingested::Replayed { status, response } => {
-            let status = StatusCode::from_u16(status).unwrap_or(StatusCode::CREATED);
-            let mut replay = (status, Json(response)).into_response();
-            replay
-                .headers_mut()
-                .insert("idempotent-replayed", HeaderValue::from_static("true"));
-            replay
-        }
-    })
+    let key = headers.get("idempotency-key").map(|v| v.as_bytes());
+    let ingested = state.service.ingest(id, request, key).await?;
+    let mut answer = (
+        StatusCode::CREATED,
+        Json(render::trajectory_created(&ingested)),
+    )
+        .into_response();
+    if ingested.replayed {
+        answer
+            .headers_mut()
+            .insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    Ok(answer)
 }
 
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
@@ -99,6 +80,7 @@ pub async fn list_transitions(
     let limit = query.limit.or(if csv { None } else { Some(DEFAULT_PAGE) });
     let (items, next) = state.service.transitions(id, query.after, limit).await?;
     if !csv {
+        let items = items.into_iter().map(render::transition).collect();
         return Ok(Json(TransitionPage { items, next }).into_response());
     }
     let domain = state.service.experiment(id).await?.domain;

@@ -4,40 +4,41 @@
 
 use super::live::LiveExperiment;
 use super::{Error, Result, Service};
-use crate::api::{TrajectoryCreated, TrajectoryRequest};
+use crate::api::TrajectoryRequest;
 use crate::domain::{DynamicsError, LabelledTransition, Transition};
 use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_TRANSITIONS};
-use crate::store::{IdempotencyKey, IngestOutcome, StoredTrajectory, StoredTransition};
+use crate::store::{
+    IdempotencyKey, IngestOutcome, IngestRecord, StoredTrajectory, StoredTransition,
+};
 use std::sync::Arc;
 
-/// What an ingest answered.
+/// What an ingest answered: what was stored (or, for a retry with the same `Idempotency-Key`
+/// and body, what the first request stored), with the learning iteration it reached.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Ingested {
-    /// The trajectory was stored.
-    Created(TrajectoryCreated),
-    /// A retry with the same `Idempotency-Key` and body: the first answer, nothing stored.
-    Replayed {
-        /// The first answer's HTTP status.
-        status: u16,
-        /// The first answer.
-        response: TrajectoryCreated,
-    },
+pub struct Ingested {
+    /// The experiment.
+    pub experiment_id: i64,
+    /// The stored trajectory and the state it found.
+    pub record: IngestRecord,
+    /// The learning iteration after it.
+    pub iteration: i64,
+    /// Whether this answers a retry: nothing was stored this time.
+    pub replayed: bool,
 }
 
-/// Checks an `Idempotency-Key`: 1 to [`MAX_IDEMPOTENCY_KEY_LEN`] visible ASCII characters.
-pub fn check_idempotency_key(key: &str) -> Result<()> {
-    if key.is_empty()
-        || key.len() > MAX_IDEMPOTENCY_KEY_LEN
-        || !key
-            .bytes()
-            .all(|b| (b' '..=b'~').contains(&b) || b == b'\t')
-    {
-        return Err(Error::validation(
+/// An `Idempotency-Key` as sent (the header's bytes), checked: 1 to
+/// [`MAX_IDEMPOTENCY_KEY_LEN`] visible ASCII characters (space to `~`). The one rule for keys.
+pub fn check_idempotency_key(key: &[u8]) -> Result<&str> {
+    let visible = |b: &u8| (b' '..=b'~').contains(b);
+    match std::str::from_utf8(key) {
+        Ok(k) if !k.is_empty() && k.len() <= MAX_IDEMPOTENCY_KEY_LEN && key.iter().all(visible) => {
+            Ok(k)
+        }
+        _ => Err(Error::validation(
             "Idempotency-Key",
             format!("must be 1 to {MAX_IDEMPOTENCY_KEY_LEN} visible ASCII characters"),
-        ));
+        )),
     }
-    Ok(())
 }
 
 /// Validates every transition against the domain (the field named by its index) and labels it
@@ -149,12 +150,10 @@ impl Service {
         &self,
         id: i64,
         request: TrajectoryRequest,
-        idempotency_key: Option<&str>,
+        idempotency_key: Option<&[u8]>,
     ) -> Result<Ingested> {
         let live = self.live(id).await?;
-        if let Some(key) = idempotency_key {
-            check_idempotency_key(key)?;
-        }
+        let idempotency_key = idempotency_key.map(check_idempotency_key).transpose()?;
         let canonical = serde_json::to_string(&request).map_err(anyhow::Error::from)?;
         let TrajectoryRequest {
             proposal_id,
@@ -162,9 +161,6 @@ impl Service {
             transitions,
         } = request;
         let labelled = label(&live, transitions, self.work.limits().max_transitions).await?;
-        let deviations: Vec<f64> = labelled.iter().map(|t| t.deviation).collect();
-        let batch_size = i64::from(live.settings.learning.batch_size);
-        let model_version = live.model().version;
         let outcome = self
             .store
             .ingest_trajectory(
@@ -176,34 +172,27 @@ impl Service {
                     key,
                     request: &canonical,
                 }),
-                |stored| TrajectoryCreated {
-                    id: stored.trajectory_id,
-                    experiment_id: id,
-                    proposal_id,
-                    partial,
-                    n_transitions: deviations.len(),
-                    deviations,
-                    iteration: stored.n_trajectories / batch_size,
-                    model_version,
-                    n_trajectories: stored.n_trajectories,
-                    created_at: stored.created_at.clone(),
-                },
+                live.model().version,
             )
             .await?;
         let proposal = || proposal_id.unwrap_or_default();
+        let answer = |record: IngestRecord, replayed| Ingested {
+            experiment_id: id,
+            iteration: live.iteration(record.n_trajectories),
+            record,
+            replayed,
+        };
         match outcome {
-            IngestOutcome::Created(response) => {
+            IngestOutcome::Created(record) => {
                 tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
-                if response.n_trajectories % batch_size == 0 {
+                // A batch just completed: the iteration moved on.
+                if live.iteration(record.n_trajectories) > live.iteration(record.n_trajectories - 1)
+                {
                     live.schedule_refit(&self.store, &self.work);
                 }
-                Ok(Ingested::Created(response))
+                Ok(answer(record, false))
             }
-            IngestOutcome::Replayed { status, body } => Ok(Ingested::Replayed {
-                status,
-                response: serde_json::from_str(&body)
-                    .map_err(|e| anyhow::Error::new(e).context("a stored response"))?,
-            }),
+            IngestOutcome::Replayed(record) => Ok(answer(record, true)),
             IngestOutcome::KeyReused => Err(Error::Conflict(
                 "this Idempotency-Key was already used with a different request".into(),
             )),

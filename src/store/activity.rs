@@ -24,7 +24,7 @@ pub enum RunStatus {
 }
 
 /// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct Run {
     /// The proposal, if there was one.
     pub proposal_id: Option<i64>,
@@ -52,7 +52,7 @@ pub struct Run {
 }
 
 /// Executed trajectories and transitions of one learning iteration.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct IterationStats {
     /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
     /// next batch's first, in ingest order).
@@ -70,7 +70,7 @@ pub struct IterationStats {
 }
 
 /// A stored model version's summary (no training data, no noise model).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ModelSummary {
     /// Version (1, 2, …).
     pub version: i64,

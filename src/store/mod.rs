@@ -17,7 +17,7 @@ pub use experiments::{Experiment, ListOrder};
 pub use models::StoredModel;
 pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, Ingested, StoredTrajectory, StoredTransition,
+    IdempotencyKey, IngestOutcome, IngestRecord, StoredTrajectory, StoredTransition,
 };
 
 use anyhow::Context;

@@ -52,7 +52,7 @@ fn parse_strategy(s: &str) -> Result<Strategy, sqlx::Error> {
 
 /// What a proposal answered and under which conditions: the problem, the client it is leased
 /// to, and the learning state that shaped it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct ProposalTerms {
     /// The client it is leased to.
     pub client_id: Option<String>,
@@ -81,22 +81,20 @@ pub struct NewProposal {
     pub ttl_seconds: u32,
 }
 
-/// A stored proposal; serialised (without its body) as the API shows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+/// A stored proposal.
+#[derive(Debug, Clone, PartialEq)]
 pub struct StoredProposal {
     /// Identifier.
     pub id: i64,
     /// Where its lease stands.
     pub status: ProposalStatus,
     /// Its terms.
-    #[serde(flatten)]
     pub terms: ProposalTerms,
     /// Creation time (RFC 3339).
     pub created_at: String,
     /// End of the lease (RFC 3339).
     pub expires_at: String,
     /// Trajectory and candidates (JSON, as stored).
-    #[serde(skip)]
     pub body: String,
 }
 

@@ -6,8 +6,8 @@ use crate::domain::LabelledTransition;
 use sqlx::Row;
 use sqlx::sqlite::SqliteRow;
 
-/// A stored transition; serialised as the API shows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+/// A stored transition.
+#[derive(Debug, Clone, PartialEq)]
 pub struct StoredTransition {
     /// Identifier; ascending in ingest order.
     pub id: i64,
@@ -27,8 +27,8 @@ pub struct StoredTransition {
     pub deviation: f64,
 }
 
-/// A stored trajectory with its transitions; serialised as the API shows it.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+/// A stored trajectory with its transitions.
+#[derive(Debug, Clone, PartialEq)]
 pub struct StoredTrajectory {
     /// Identifier.
     pub id: i64,
@@ -44,29 +44,34 @@ pub struct StoredTrajectory {
     pub transitions: Vec<StoredTransition>,
 }
 
-/// What an ingest stored, for the response.
+/// What one ingest did: the trajectory it stored and the state it found, recorded under the
+/// idempotency key (when there is one) so that a retry learns the same.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Ingested {
-    /// The new trajectory's identifier.
+pub struct IngestRecord {
+    /// The stored trajectory's identifier.
     pub trajectory_id: i64,
+    /// The proposal it executed, if any.
+    pub proposal_id: Option<i64>,
+    /// Whether the robot stopped before the end.
+    pub partial: bool,
+    /// Each transition's deviation label, in order.
+    pub deviations: Vec<f64>,
+    /// The model version answering when it was stored.
+    pub model_version: i64,
+    /// Trajectories of the experiment, this one included.
+    pub n_trajectories: i64,
     /// Ingest time (RFC 3339).
     pub created_at: String,
-    /// Trajectories of the experiment after this one.
-    pub n_trajectories: i64,
 }
 
 /// What an ingest did.
 #[derive(Debug)]
-pub enum IngestOutcome<R> {
-    /// Stored; the response that was also recorded (as JSON) under the idempotency key.
-    Created(R),
-    /// The idempotency key was seen with the same request: the first response, nothing stored.
-    Replayed {
-        /// The first response's status.
-        status: u16,
-        /// The first response's body (JSON).
-        body: String,
-    },
+pub enum IngestOutcome {
+    /// Stored, and recorded under the idempotency key if there was one.
+    Created(IngestRecord),
+    /// The idempotency key was seen with the same request: what the first ingest did;
+    /// nothing stored.
+    Replayed(IngestRecord),
     /// The idempotency key was seen with a different request; nothing stored.
     KeyReused,
     /// `proposal_id` names no proposal of this experiment; nothing stored.
@@ -100,26 +105,29 @@ fn transition_from_row(row: &SqliteRow) -> Result<StoredTransition, sqlx::Error>
 const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
 
 impl Store {
-    /// Stores one trajectory and all its transitions in one transaction, or nothing.
+    /// Stores one trajectory and all its transitions in one transaction, or nothing;
+    /// `model_version` is the version answering now, recorded with it.
     ///
-    /// With an idempotency key, a retry of the same request replays the first response and a
-    /// different request under the same key is refused. `respond` builds the response body
-    /// (JSON) from what was stored; the body is recorded with the key in the same transaction.
-    #[tracing::instrument(skip(self, transitions, idempotency, respond), fields(n = transitions.len()))]
-    pub async fn ingest_trajectory<R: serde::Serialize>(
+    /// With an idempotency key, a retry of the same request learns what the first one did and
+    /// stores nothing, and a different request under the same key is refused; the record is
+    /// written in the same transaction as the trajectory.
+    #[tracing::instrument(skip(self, transitions, idempotency), fields(n = transitions.len()))]
+    pub async fn ingest_trajectory(
         &self,
         experiment_id: i64,
         proposal_id: Option<i64>,
         partial: bool,
         transitions: &[LabelledTransition],
         idempotency: Option<IdempotencyKey<'_>>,
-        respond: impl FnOnce(&Ingested) -> R,
-    ) -> Result<IngestOutcome<R>, sqlx::Error> {
+        model_version: i64,
+    ) -> Result<IngestOutcome, sqlx::Error> {
         let mut tx = self.write.begin().await?;
         if let Some(k) = idempotency {
             let seen = sqlx::query(
-                "SELECT request, status, response FROM idempotency_keys
-                 WHERE experiment_id = ? AND key = ?",
+                "SELECT k.request, k.trajectory_id, k.model_version, k.n_trajectories,
+                        k.created_at, t.proposal_id, t.partial
+                 FROM idempotency_keys k JOIN trajectories t ON t.id = k.trajectory_id
+                 WHERE k.experiment_id = ? AND k.key = ?",
             )
             .bind(experiment_id)
             .bind(k.key)
@@ -130,12 +138,22 @@ impl Store {
                 if request != k.request {
                     return Ok(IngestOutcome::KeyReused);
                 }
-                let status: i64 = row.try_get("status")?;
-                let body: String = row.try_get("response")?;
-                return Ok(IngestOutcome::Replayed {
-                    status: status as u16,
-                    body,
-                });
+                let trajectory_id: i64 = row.try_get("trajectory_id")?;
+                let deviations: Vec<f64> = sqlx::query_scalar(
+                    "SELECT deviation FROM transitions WHERE trajectory_id = ? ORDER BY step",
+                )
+                .bind(trajectory_id)
+                .fetch_all(&mut *tx)
+                .await?;
+                return Ok(IngestOutcome::Replayed(IngestRecord {
+                    trajectory_id,
+                    proposal_id: row.try_get("proposal_id")?,
+                    partial: row.try_get("partial")?,
+                    deviations,
+                    model_version: row.try_get("model_version")?,
+                    n_trajectories: row.try_get("n_trajectories")?,
+                    created_at: row.try_get("created_at")?,
+                }));
             }
         }
         if let Some(pid) = proposal_id {
@@ -180,28 +198,33 @@ impl Store {
                 .bind(experiment_id)
                 .fetch_one(&mut *tx)
                 .await?;
-        let response = respond(&Ingested {
-            trajectory_id,
-            created_at: created_at.clone(),
-            n_trajectories,
-        });
-        let body =
-            serde_json::to_string(&response).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
         if let Some(k) = idempotency {
             sqlx::query(
-                "INSERT INTO idempotency_keys (experiment_id, key, request, status, response, created_at)
-                 VALUES (?, ?, ?, 201, ?, ?)",
+                "INSERT INTO idempotency_keys
+                   (experiment_id, key, request, trajectory_id, model_version, n_trajectories,
+                    created_at)
+                 VALUES (?, ?, ?, ?, ?, ?, ?)",
             )
             .bind(experiment_id)
             .bind(k.key)
             .bind(k.request)
-            .bind(&body)
+            .bind(trajectory_id)
+            .bind(model_version)
+            .bind(n_trajectories)
             .bind(&created_at)
             .execute(&mut *tx)
             .await?;
         }
         tx.commit().await?;
-        Ok(IngestOutcome::Created(response))
+        Ok(IngestOutcome::Created(IngestRecord {
+            trajectory_id,
+            proposal_id,
+            partial,
+            deviations: transitions.iter().map(|t| t.deviation).collect(),
+            model_version,
+            n_trajectories,
+            created_at,
+        }))
     }
 
     /// One trajectory of an experiment with its transitions, or `None`.
