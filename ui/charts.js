@@ -1,5 +1,6 @@
 // Small SVG charts and the canvas precondition map; no libraries.
-import { h, fmt } from './app.js';
+import { h } from './dom.js';
+import { fmt } from './format.js';
 
 const SVG = 'http://www.w3.org/2000/svg';
 function s(tag, attrs = {}, ...children) {

@@ -1,5 +1,7 @@
 // The dashboard's pages. Each renders into `root` from the JSON API only.
-import { api, h, fmt, vec, ago, crumbs, API } from './app.js';
+import { API, api } from './api.js';
+import { crumbs, h } from './dom.js';
+import { ago, fmt, vec } from './format.js';
 import { lineChart, drawMap, colourLegend } from './charts.js';
 
 const PAGE = 25;

@@ -16,6 +16,11 @@ const INDEX: &str = include_str!("../../ui/index.html");
 /// `(file name, content type, content)` of each asset under `/ui/assets/`.
 const ASSETS: &[(&str, &str, &str)] = &[
     (
+        "api.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/api.js"),
+    ),
+    (
         "app.js",
         "text/javascript; charset=utf-8",
         include_str!("../../ui/app.js"),
@@ -24,6 +29,16 @@ const ASSETS: &[(&str, &str, &str)] = &[
         "charts.js",
         "text/javascript; charset=utf-8",
         include_str!("../../ui/charts.js"),
+    ),
+    (
+        "dom.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/dom.js"),
+    ),
+    (
+        "format.js",
+        "text/javascript; charset=utf-8",
+        include_str!("../../ui/format.js"),
     ),
     (
         "pages.js",

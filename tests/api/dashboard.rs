@@ -417,12 +417,14 @@ async fn the_dashboard_is_served_from_the_binary() {
         let body = r.text().await.unwrap();
         assert!(body.contains(r#"src="/ui/assets/app.js""#), "{path}");
     }
-    for (asset, kind) in [
-        ("app.js", "text/javascript"),
-        ("pages.js", "text/javascript"),
-        ("charts.js", "text/javascript"),
-        ("style.css", "text/css"),
-    ] {
+    // The stylesheet, the entry module and every module reachable by its imports (`from './x.js'`):
+    // a new module missing from the embedded assets fails here.
+    let mut queue = vec!["style.css".to_string(), "app.js".to_string()];
+    let mut served = std::collections::BTreeSet::new();
+    while let Some(asset) = queue.pop() {
+        if !served.insert(asset.clone()) {
+            continue;
+        }
         let r = app
             .client
             .get(app.url(&format!("/ui/assets/{asset}")))
@@ -430,12 +432,32 @@ async fn the_dashboard_is_served_from_the_binary() {
             .await
             .unwrap();
         assert_eq!(r.status(), 200, "{asset}");
+        let kind = if asset.ends_with(".css") {
+            "text/css"
+        } else {
+            "text/javascript"
+        };
         assert!(
             r.headers()["content-type"]
                 .to_str()
                 .unwrap()
-                .starts_with(kind)
+                .starts_with(kind),
+            "{asset}"
         );
+        let body = r.text().await.unwrap();
+        for import in body.split("from './").skip(1) {
+            queue.push(import.split('\'').next().unwrap().to_string());
+        }
+    }
+    for module in [
+        "app.js",
+        "api.js",
+        "dom.js",
+        "format.js",
+        "pages.js",
+        "charts.js",
+    ] {
+        assert!(served.contains(module), "{module} in {served:?}");
     }
     let (status, err) = app.get("/ui/assets/missing.js").await;
     assert_eq!((status, code(&err)), (404, "not_found"));
