@@ -6,7 +6,8 @@
 const params = new URLSearchParams(location.search);
 if (params.has('api')) {
   const api = params.get('api').replace(/\/+$/, '');
-  if (api) localStorage.setItem('precond.api', api); else localStorage.removeItem('precond.api');
+  if (api) localStorage.setItem('precond.api', api);
+  else localStorage.removeItem('precond.api');
 }
 export const API = localStorage.getItem('precond.api') || '';
 
@@ -14,7 +15,8 @@ export const API = localStorage.getItem('precond.api') || '';
 // only, and taken out of the address bar so it does not stay in the history).
 if (params.has('token')) {
   const token = params.get('token');
-  if (token) sessionStorage.setItem('precond.token', token); else sessionStorage.removeItem('precond.token');
+  if (token) sessionStorage.setItem('precond.token', token);
+  else sessionStorage.removeItem('precond.token');
   params.delete('token');
   const rest = params.toString();
   history.replaceState(null, '', location.pathname + (rest ? `?${rest}` : '') + location.hash);
@@ -33,9 +35,14 @@ export class ApiError extends Error {
 /** GET (or POST with `body`) a JSON API path. */
 export async function api(path, body) {
   const headers = TOKEN ? { authorization: `Bearer ${TOKEN}` } : {};
-  const init = body === undefined ? { headers } : {
-    method: 'POST', headers: { ...headers, 'content-type': 'application/json' }, body: JSON.stringify(body),
-  };
+  const init =
+    body === undefined
+      ? { headers }
+      : {
+          method: 'POST',
+          headers: { ...headers, 'content-type': 'application/json' },
+          body: JSON.stringify(body),
+        };
   const r = await fetch(API + path, init);
   const json = await r.json().catch(() => null);
   if (!r.ok) throw new ApiError(r.status, json);

@@ -28,8 +28,13 @@ async function main() {
     await page(root, params, ...args);
   } catch (e) {
     console.error(e);
-    root.replaceChildren(h('div', { class: 'error', role: 'alert' },
-      e instanceof ApiError ? `${e.status} ${e.code ?? ''}: ${e.message}` : `Error: ${e.message}`));
+    root.replaceChildren(
+      h(
+        'div',
+        { class: 'error', role: 'alert' },
+        e instanceof ApiError ? `${e.status} ${e.code ?? ''}: ${e.message}` : `Error: ${e.message}`,
+      ),
+    );
   }
   performance.mark('dashboard-ready');
   document.body.dataset.ready = 'true';

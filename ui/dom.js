@@ -19,6 +19,10 @@ export function h(tag, attrs = {}, ...children) {
 /** Sets the breadcrumbs: `[[text, href], …, [text]]`. */
 export function crumbs(items) {
   const nav = document.getElementById('crumbs');
-  nav.replaceChildren(...items.map(([text, href]) => href ? h('a', { href }, text) : h('span', {}, text)));
-  document.title = items.map(i => i[0]).reverse().concat('precond').join(' · ');
+  nav.replaceChildren(...items.map(([text, href]) => (href ? h('a', { href }, text) : h('span', {}, text))));
+  document.title = items
+    .map(i => i[0])
+    .reverse()
+    .concat('precond')
+    .join(' · ');
 }

@@ -15,8 +15,14 @@ export const vec = (v, digits = 3) => '[' + v.map(x => fmt(x, digits)).join(', '
 /** "3 min ago" for an RFC 3339 time, with the exact time as a tooltip. */
 export function ago(t) {
   const s = (Date.now() - Date.parse(t)) / 1000;
-  const text = !isFinite(s) ? t : s < 60 ? `${Math.max(0, Math.round(s))} s ago`
-    : s < 3600 ? `${Math.round(s / 60)} min ago` : s < 86400 ? `${Math.round(s / 3600)} h ago`
-    : `${Math.round(s / 86400)} d ago`;
+  const text = !isFinite(s)
+    ? t
+    : s < 60
+      ? `${Math.max(0, Math.round(s))} s ago`
+      : s < 3600
+        ? `${Math.round(s / 60)} min ago`
+        : s < 86400
+          ? `${Math.round(s / 3600)} h ago`
+          : `${Math.round(s / 86400)} d ago`;
   return h('time', { datetime: t, title: t }, text);
 }

@@ -8,25 +8,68 @@ const PAGE = 25;
 const expUrl = id => `/ui/experiments/${id}`;
 
 function pager(offset, limit, total, href) {
-  const prev = offset > 0, next = offset + limit < total;
-  return h('div', { class: 'pager' },
-    h('a', { href: prev ? href(Math.max(0, offset - limit)) : null, 'aria-disabled': !prev, class: prev ? '' : 'muted' }, '← newer'),
+  const prev = offset > 0,
+    next = offset + limit < total;
+  return h(
+    'div',
+    { class: 'pager' },
+    h(
+      'a',
+      { href: prev ? href(Math.max(0, offset - limit)) : null, 'aria-disabled': !prev, class: prev ? '' : 'muted' },
+      '← newer',
+    ),
     h('span', { class: 'muted' }, total ? `${offset + 1}–${Math.min(total, offset + limit)} of ${total}` : 'none yet'),
-    h('a', { href: next ? href(offset + limit) : null, 'aria-disabled': !next, class: next ? '' : 'muted' }, 'older →'));
+    h('a', { href: next ? href(offset + limit) : null, 'aria-disabled': !next, class: next ? '' : 'muted' }, 'older →'),
+  );
 }
 
 function table(headers, rows, opts = {}) {
-  return h('div', { class: 'table-wrap' }, h('table', { id: opts.id },
-    h('thead', {}, h('tr', {}, headers.map(([t, num]) => h('th', { class: num ? 'num' : '' }, t)))),
-    h('tbody', {}, rows)));
+  return h(
+    'div',
+    { class: 'table-wrap' },
+    h(
+      'table',
+      { id: opts.id },
+      h(
+        'thead',
+        {},
+        h(
+          'tr',
+          {},
+          headers.map(([t, num]) => h('th', { class: num ? 'num' : '' }, t)),
+        ),
+      ),
+      h('tbody', {}, rows),
+    ),
+  );
 }
 
 const td = (x, num) => h('td', { class: num ? 'num' : '' }, x);
 
 // ---------------------------------------------------------------- experiments
 
-const EXP_COLUMNS = ['id', 'name', 'domain', 'strategy', 'iteration', 'trajectories', 'transitions', 'model_version', 'last_activity'];
-const expRow = e => [e.id, e.name, e.domain.kind, e.learning.strategy, e.iteration, e.n_trajectories, e.n_transitions, e.model_version, e.last_activity];
+const EXP_COLUMNS = [
+  'id',
+  'name',
+  'domain',
+  'strategy',
+  'iteration',
+  'trajectories',
+  'transitions',
+  'model_version',
+  'last_activity',
+];
+const expRow = e => [
+  e.id,
+  e.name,
+  e.domain.kind,
+  e.learning.strategy,
+  e.iteration,
+  e.n_trajectories,
+  e.n_transitions,
+  e.model_version,
+  e.last_activity,
+];
 
 function csvCell(v) {
   const s = String(v ?? '');
@@ -45,73 +88,199 @@ async function exportCsv(button) {
     }
     const blob = new Blob([rows.map(r => r.map(csvCell).join(',')).join('\n') + '\n'], { type: 'text/csv' });
     const a = h('a', { href: URL.createObjectURL(blob), download: 'experiments.csv' });
-    document.body.append(a); a.click(); a.remove();
-  } finally { button.disabled = false; }
+    document.body.append(a);
+    a.click();
+    a.remove();
+  } finally {
+    button.disabled = false;
+  }
 }
 
 export async function experimentList(root, params) {
   crumbs([['Experiments']]);
   const offset = Math.max(0, parseInt(params.get('offset') ?? '0', 10) || 0);
   const page = await api(`/v1/experiments?order=newest&offset=${offset}&limit=${PAGE}`);
-  const rows = page.items.map(e => h('tr', {},
-    td(e.id, true),
-    td(h('a', { href: expUrl(e.id) }, e.name || `experiment ${e.id}`)),
-    td(e.domain.kind), td(e.learning.strategy),
-    td(e.iteration, true), td(e.n_trajectories, true), td(e.n_transitions, true), td(e.model_version, true),
-    td(ago(e.last_activity))));
+  const rows = page.items.map(e =>
+    h(
+      'tr',
+      {},
+      td(e.id, true),
+      td(h('a', { href: expUrl(e.id) }, e.name || `experiment ${e.id}`)),
+      td(e.domain.kind),
+      td(e.learning.strategy),
+      td(e.iteration, true),
+      td(e.n_trajectories, true),
+      td(e.n_transitions, true),
+      td(e.model_version, true),
+      td(ago(e.last_activity)),
+    ),
+  );
   const csv = h('button', { onclick: ev => exportCsv(ev.target) }, 'Export CSV');
   root.replaceChildren(
     h('h1', {}, 'Experiments'),
-    h('div', { class: 'pager' }, pager(offset, PAGE, page.total, o => `/ui/experiments?offset=${o}`), csv),
-    table([['id', 1], ['name'], ['domain'], ['strategy'], ['iteration', 1], ['trajectories', 1], ['transitions', 1], ['model version', 1], ['last activity']], rows, { id: 'experiments' }));
+    h(
+      'div',
+      { class: 'pager' },
+      pager(offset, PAGE, page.total, o => `/ui/experiments?offset=${o}`),
+      csv,
+    ),
+    table(
+      [
+        ['id', 1],
+        ['name'],
+        ['domain'],
+        ['strategy'],
+        ['iteration', 1],
+        ['trajectories', 1],
+        ['transitions', 1],
+        ['model version', 1],
+        ['last activity'],
+      ],
+      rows,
+      { id: 'experiments' },
+    ),
+  );
 }
 
 // ---------------------------------------------------------------- one experiment
 
 function settingsCard(e) {
-  const l = e.learning, m = e.mde;
-  const space = sp => sp.names.map((n, i) => `${n} ∈ [${fmt(sp.low[i])}, ${fmt(sp.high[i])}]`).join(', ')
-    + (sp.values ? ` — values ${sp.values.map(v => vec(v)).join(' ')}` : '');
+  const l = e.learning,
+    m = e.mde;
+  const space = sp =>
+    sp.names.map((n, i) => `${n} ∈ [${fmt(sp.low[i])}, ${fmt(sp.high[i])}]`).join(', ') +
+    (sp.values ? ` — values ${sp.values.map(v => vec(v)).join(' ')}` : '');
   const items = [
-    ['domain', e.domain.kind], ['d_max', fmt(e.d_max)], ['seed', e.seed],
-    ['strategy', l.strategy], ['batch size', l.batch_size], ['iterations J', l.iterations],
+    ['domain', e.domain.kind],
+    ['d_max', fmt(e.d_max)],
+    ['seed', e.seed],
+    ['strategy', l.strategy],
+    ['batch size', l.batch_size],
+    ['iterations J', l.iterations],
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],
     ['acquisition', `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`],
-    ['β schedule', `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}`
-      + (l.relax_beta ? '; a training problem with no plan at β_j is planned at lower β' : '')],
+    [
+      'β schedule',
+      `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}` +
+        (l.relax_beta ? '; a training problem with no plan at β_j is planned at lower β' : ''),
+    ],
     ['preset', l.preset ?? 'paper (before presets)'],
-    ['MDE', `${m.noise}, ${m.kernel ?? 'matern52'} kernel, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, `
-      + (m.label_cap === 'auto' ? 'label cap chosen at each fit (auto)'
-        : m.label_cap ? `labels capped at ${fmt(m.label_cap)} d_max` : 'raw labels')],
-    ['state space', space(e.state_space)], ['action space', space(e.action_space)],
-    ['features', e.feature_names.join(', ')], ['created', e.created_at],
+    [
+      'MDE',
+      `${m.noise}, ${m.kernel ?? 'matern52'} kernel, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, ` +
+        (m.label_cap === 'auto'
+          ? 'label cap chosen at each fit (auto)'
+          : m.label_cap
+            ? `labels capped at ${fmt(m.label_cap)} d_max`
+            : 'raw labels'),
+    ],
+    ['state space', space(e.state_space)],
+    ['action space', space(e.action_space)],
+    ['features', e.feature_names.join(', ')],
+    ['created', e.created_at],
   ];
-  const { id, state_space, action_space, feature_names, created_at, n_trajectories, n_transitions, iteration, model_version, last_activity, ...settings } = e;
-  return h('section', { class: 'card' }, h('h2', {}, 'Settings'),
-    h('dl', { class: 'settings', id: 'settings' }, items.flatMap(([k, v]) => [h('dt', {}, k), h('dd', {}, v)])),
-    h('details', {}, h('summary', {}, 'All settings (JSON)'), h('pre', {}, JSON.stringify(settings, null, 2))));
+  const {
+    id,
+    state_space,
+    action_space,
+    feature_names,
+    created_at,
+    n_trajectories,
+    n_transitions,
+    iteration,
+    model_version,
+    last_activity,
+    ...settings
+  } = e;
+  return h(
+    'section',
+    { class: 'card' },
+    h('h2', {}, 'Settings'),
+    h(
+      'dl',
+      { class: 'settings', id: 'settings' },
+      items.flatMap(([k, v]) => [h('dt', {}, k), h('dd', {}, v)]),
+    ),
+    h('details', {}, h('summary', {}, 'All settings (JSON)'), h('pre', {}, JSON.stringify(settings, null, 2))),
+  );
 }
 
 function progress(e) {
   const kpi = (label, value) => h('div', {}, h('b', {}, value), h('span', { class: 'muted' }, label));
-  return h('section', { class: 'card' }, h('h2', {}, 'Progress'), h('div', { class: 'kpi' },
-    kpi('iteration', e.iteration), kpi('trajectories', e.n_trajectories), kpi('transitions', e.n_transitions),
-    kpi('model version', e.model_version), kpi('last activity', ago(e.last_activity))));
+  return h(
+    'section',
+    { class: 'card' },
+    h('h2', {}, 'Progress'),
+    h(
+      'div',
+      { class: 'kpi' },
+      kpi('iteration', e.iteration),
+      kpi('trajectories', e.n_trajectories),
+      kpi('transitions', e.n_transitions),
+      kpi('model version', e.model_version),
+      kpi('last activity', ago(e.last_activity)),
+    ),
+  );
 }
 
 function timelineCharts(e, t) {
   const charts = [];
   if (t.models.length) {
     const v = t.models.map(m => m.version);
-    charts.push(lineChart({ title: 'Training transitions per model version', x: v, xlabel: 'version', series: [{ name: 'n_train', values: t.models.map(m => m.n_train) }] }));
-    charts.push(lineChart({ title: 'Log marginal likelihood per version', x: v, xlabel: 'version', series: [{ name: 'LML', values: t.models.map(m => m.log_marginal_likelihood) }] }));
-    charts.push(lineChart({ title: 'Fit seconds per version', x: v, xlabel: 'version', series: [{ name: 'seconds', values: t.models.map(m => m.fit_seconds) }] }));
+    charts.push(
+      lineChart({
+        title: 'Training transitions per model version',
+        x: v,
+        xlabel: 'version',
+        series: [{ name: 'n_train', values: t.models.map(m => m.n_train) }],
+      }),
+    );
+    charts.push(
+      lineChart({
+        title: 'Log marginal likelihood per version',
+        x: v,
+        xlabel: 'version',
+        series: [{ name: 'LML', values: t.models.map(m => m.log_marginal_likelihood) }],
+      }),
+    );
+    charts.push(
+      lineChart({
+        title: 'Fit seconds per version',
+        x: v,
+        xlabel: 'version',
+        series: [{ name: 'seconds', values: t.models.map(m => m.fit_seconds) }],
+      }),
+    );
   }
   if (t.iterations.length) {
     const it = t.iterations.map(r => r.iteration);
-    charts.push(lineChart({ title: 'Trajectories per iteration', x: it, xlabel: 'iteration', series: [{ name: 'trajectories', values: t.iterations.map(r => r.n_trajectories), bars: true }] }));
-    charts.push(lineChart({ title: 'β per iteration (learning schedule)', x: it, xlabel: 'iteration', series: [{ name: 'β', values: t.iterations.map(r => r.beta) }], refs: [{ y: e.learning.test_beta, label: 'test β' }] }));
-    charts.push(lineChart({ title: 'Transitions within d_max per iteration', x: it, xlabel: 'iteration', yMin: 0, yMax: 1, series: [{ name: 'share', values: t.iterations.map(r => r.share_within_d_max) }] }));
+    charts.push(
+      lineChart({
+        title: 'Trajectories per iteration',
+        x: it,
+        xlabel: 'iteration',
+        series: [{ name: 'trajectories', values: t.iterations.map(r => r.n_trajectories), bars: true }],
+      }),
+    );
+    charts.push(
+      lineChart({
+        title: 'β per iteration (learning schedule)',
+        x: it,
+        xlabel: 'iteration',
+        series: [{ name: 'β', values: t.iterations.map(r => r.beta) }],
+        refs: [{ y: e.learning.test_beta, label: 'test β' }],
+      }),
+    );
+    charts.push(
+      lineChart({
+        title: 'Transitions within d_max per iteration',
+        x: it,
+        xlabel: 'iteration',
+        yMin: 0,
+        yMax: 1,
+        series: [{ name: 'share', values: t.iterations.map(r => r.share_within_d_max) }],
+      }),
+    );
   }
   if (!charts.length) return h('p', { class: 'muted' }, 'No trajectories yet.');
   return h('div', { class: 'charts', id: 'timeline' }, charts);
@@ -119,40 +288,111 @@ function timelineCharts(e, t) {
 
 function modelTable(t) {
   if (!t.models.length) return null;
-  return h('details', {}, h('summary', {}, `Model versions (${t.models.length})`),
-    table([['version', 1], ['iteration', 1], ['n_train', 1], ['trajectories', 1], ['noise'], ['label cap', 1], ['LML', 1], ['fit s', 1], ['fitted']],
-      t.models.map(m => h('tr', {}, td(m.version, true), td(m.iteration, true), td(m.n_train, true), td(m.n_trajectories, true),
-        td(m.noise), td(m.label_cap == null ? '–' : m.label_cap === 0 ? 'raw' : `${fmt(m.label_cap)} d_max`, true),
-        td(fmt(m.log_marginal_likelihood, 5), true), td(fmt(m.fit_seconds), true), td(ago(m.fitted_at))))));
+  return h(
+    'details',
+    {},
+    h('summary', {}, `Model versions (${t.models.length})`),
+    table(
+      [
+        ['version', 1],
+        ['iteration', 1],
+        ['n_train', 1],
+        ['trajectories', 1],
+        ['noise'],
+        ['label cap', 1],
+        ['LML', 1],
+        ['fit s', 1],
+        ['fitted'],
+      ],
+      t.models.map(m =>
+        h(
+          'tr',
+          {},
+          td(m.version, true),
+          td(m.iteration, true),
+          td(m.n_train, true),
+          td(m.n_trajectories, true),
+          td(m.noise),
+          td(m.label_cap == null ? '–' : m.label_cap === 0 ? 'raw' : `${fmt(m.label_cap)} d_max`, true),
+          td(fmt(m.log_marginal_likelihood, 5), true),
+          td(fmt(m.fit_seconds), true),
+          td(ago(m.fitted_at)),
+        ),
+      ),
+    ),
+  );
 }
 
 function runsTable(e, page, offset) {
-  const rows = page.items.map(r => h('tr', {},
-    td(ago(r.created_at)),
-    td(r.proposal_id ?? '–', true),
-    td(r.trajectory_id ? h('a', { href: `${expUrl(e.id)}/trajectories/${r.trajectory_id}` }, `#${r.trajectory_id} steps`) : '–'),
-    td(h('span', { class: `badge ${r.status}` }, r.status)),
-    td(r.client_id ?? '–'), td(r.iteration ?? '–', true), td(r.length, true),
-    td(r.max_deviation === null ? '–' : h('span', { class: r.max_deviation >= e.d_max ? 'bad' : 'ok' }, fmt(r.max_deviation)), true)));
-  return [pager(offset, PAGE, page.total, o => `${expUrl(e.id)}?offset=${o}#runs`),
-    table([['when'], ['proposal', 1], ['trajectory'], ['status'], ['client'], ['iteration', 1], ['length', 1], ['max deviation', 1]], rows, { id: 'runs' })];
+  const rows = page.items.map(r =>
+    h(
+      'tr',
+      {},
+      td(ago(r.created_at)),
+      td(r.proposal_id ?? '–', true),
+      td(
+        r.trajectory_id
+          ? h('a', { href: `${expUrl(e.id)}/trajectories/${r.trajectory_id}` }, `#${r.trajectory_id} steps`)
+          : '–',
+      ),
+      td(h('span', { class: `badge ${r.status}` }, r.status)),
+      td(r.client_id ?? '–'),
+      td(r.iteration ?? '–', true),
+      td(r.length, true),
+      td(
+        r.max_deviation === null
+          ? '–'
+          : h('span', { class: r.max_deviation >= e.d_max ? 'bad' : 'ok' }, fmt(r.max_deviation)),
+        true,
+      ),
+    ),
+  );
+  return [
+    pager(offset, PAGE, page.total, o => `${expUrl(e.id)}?offset=${o}#runs`),
+    table(
+      [
+        ['when'],
+        ['proposal', 1],
+        ['trajectory'],
+        ['status'],
+        ['client'],
+        ['iteration', 1],
+        ['length', 1],
+        ['max deviation', 1],
+      ],
+      rows,
+      { id: 'runs' },
+    ),
+  ];
 }
 
 export async function experimentPage(root, params, id) {
   const offset = Math.max(0, parseInt(params.get('offset') ?? '0', 10) || 0);
   const [e, t, runs] = await Promise.all([
-    api(`/v1/experiments/${id}`), api(`/v1/experiments/${id}/timeline`),
-    api(`/v1/experiments/${id}/runs?offset=${offset}&limit=${PAGE}`)]);
+    api(`/v1/experiments/${id}`),
+    api(`/v1/experiments/${id}/timeline`),
+    api(`/v1/experiments/${id}/runs?offset=${offset}&limit=${PAGE}`),
+  ]);
   const name = e.name || `experiment ${id}`;
   crumbs([['Experiments', '/ui/experiments'], [name]]);
   root.replaceChildren(
     h('h1', {}, name, ' ', h('span', { class: 'muted' }, `#${id} · ${e.domain.kind}`)),
-    h('p', {}, h('a', { href: `${expUrl(id)}/map` }, 'Precondition map'), ' · ',
-      h('a', { href: `${expUrl(id)}/diagnostics` }, 'Model diagnostics'), ' · ',
-      h('a', { href: `${API}/v1/experiments/${id}` }, 'JSON')),
+    h(
+      'p',
+      {},
+      h('a', { href: `${expUrl(id)}/map` }, 'Precondition map'),
+      ' · ',
+      h('a', { href: `${expUrl(id)}/diagnostics` }, 'Model diagnostics'),
+      ' · ',
+      h('a', { href: `${API}/v1/experiments/${id}` }, 'JSON'),
+    ),
     h('div', { class: 'row' }, settingsCard(e), progress(e)),
-    h('h2', {}, 'Learning timeline'), timelineCharts(e, t), modelTable(t),
-    h('h2', { id: 'runs-title' }, 'Proposals and trajectories'), ...runsTable(e, runs, offset));
+    h('h2', {}, 'Learning timeline'),
+    timelineCharts(e, t),
+    modelTable(t),
+    h('h2', { id: 'runs-title' }, 'Proposals and trajectories'),
+    ...runsTable(e, runs, offset),
+  );
 }
 
 // ---------------------------------------------------------------- one trajectory
@@ -165,38 +405,100 @@ export async function trajectoryPage(root, params, id, tid) {
   crumbs([['Experiments', '/ui/experiments'], [name, expUrl(id)], [`trajectory ${tid}`]]);
   const planned = proposal?.trajectory;
   const steps = t.transitions;
-  const pm = i => planned && i < planned.mu.length ? `${fmt(planned.mu[i])} ± ${fmt(planned.sigma[i])}` : '–';
-  const rows = steps.map((x, i) => h('tr', {},
-    td(x.step, true), td(vec(x.s)), td(vec(x.a)), td(vec(x.s_pred)), td(vec(x.s_next)),
-    td(h('span', { class: x.deviation >= e.d_max ? 'bad' : 'ok' }, fmt(x.deviation)), true),
-    td(pm(i), true), td(`${fmt(now.results[i].mu)} ± ${fmt(now.results[i].sigma)}`, true),
-    td(now.results[i].inside ? 'inside' : 'outside')));
+  const pm = i => (planned && i < planned.mu.length ? `${fmt(planned.mu[i])} ± ${fmt(planned.sigma[i])}` : '–');
+  const rows = steps.map((x, i) =>
+    h(
+      'tr',
+      {},
+      td(x.step, true),
+      td(vec(x.s)),
+      td(vec(x.a)),
+      td(vec(x.s_pred)),
+      td(vec(x.s_next)),
+      td(h('span', { class: x.deviation >= e.d_max ? 'bad' : 'ok' }, fmt(x.deviation)), true),
+      td(pm(i), true),
+      td(`${fmt(now.results[i].mu)} ± ${fmt(now.results[i].sigma)}`, true),
+      td(now.results[i].inside ? 'inside' : 'outside'),
+    ),
+  );
   const idx = steps.map((_, i) => i);
   const series = [{ name: 'deviation', values: steps.map(x => x.deviation) }];
   if (planned) {
-    const mu = idx.map(i => planned.mu[i] ?? NaN), sd = idx.map(i => planned.sigma[i] ?? NaN);
-    series.push({ name: `μ±σ (v${proposal.model_version})`, values: mu, band: [mu.map((m, i) => m - sd[i]), mu.map((m, i) => m + sd[i])] });
+    const mu = idx.map(i => planned.mu[i] ?? NaN),
+      sd = idx.map(i => planned.sigma[i] ?? NaN);
+    series.push({
+      name: `μ±σ (v${proposal.model_version})`,
+      values: mu,
+      band: [mu.map((m, i) => m - sd[i]), mu.map((m, i) => m + sd[i])],
+    });
   } else {
-    const mu = now.results.map(r => r.mu), sd = now.results.map(r => r.sigma);
-    series.push({ name: `μ±σ (v${now.model_version})`, values: mu, band: [mu.map((m, i) => m - sd[i]), mu.map((m, i) => m + sd[i])] });
+    const mu = now.results.map(r => r.mu),
+      sd = now.results.map(r => r.sigma);
+    series.push({
+      name: `μ±σ (v${now.model_version})`,
+      values: mu,
+      band: [mu.map((m, i) => m - sd[i]), mu.map((m, i) => m + sd[i])],
+    });
   }
   root.replaceChildren(
-    h('h1', {}, `Trajectory ${tid}`, ' ', h('span', { class: 'muted' }, `${steps.length} steps${t.partial ? ' · partial' : ''}`)),
-    h('p', {}, proposal
-      ? ['Executed proposal ', h('b', {}, `#${proposal.id}`), ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}, client ${proposal.client_id ?? '–'}); `,
-        `μ ± σ "at the time" are the proposal's, from model version ${proposal.model_version}; "now" from version ${now.model_version}.`]
-      : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`),
-    h('div', { class: 'charts' }, lineChart({ title: 'Deviation per step', x: idx, xlabel: 'step', series, refs: [{ y: e.d_max, label: 'd_max' }] })),
+    h(
+      'h1',
+      {},
+      `Trajectory ${tid}`,
+      ' ',
+      h('span', { class: 'muted' }, `${steps.length} steps${t.partial ? ' · partial' : ''}`),
+    ),
+    h(
+      'p',
+      {},
+      proposal
+        ? [
+            'Executed proposal ',
+            h('b', {}, `#${proposal.id}`),
+            ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}, client ${proposal.client_id ?? '–'}); `,
+            `μ ± σ "at the time" are the proposal's, from model version ${proposal.model_version}; "now" from version ${now.model_version}.`,
+          ]
+        : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`,
+    ),
+    h(
+      'div',
+      { class: 'charts' },
+      lineChart({
+        title: 'Deviation per step',
+        x: idx,
+        xlabel: 'step',
+        series,
+        refs: [{ y: e.d_max, label: 'd_max' }],
+      }),
+    ),
     h('h2', {}, 'Steps'),
-    table([['step', 1], ['s'], ['a'], ['predicted s′'], ['observed s′'], ['deviation', 1], ['μ ± σ at the time', 1], ['μ ± σ now', 1], [`now (β=${fmt(now.beta)})`]], rows, { id: 'steps' }));
+    table(
+      [
+        ['step', 1],
+        ['s'],
+        ['a'],
+        ['predicted s′'],
+        ['observed s′'],
+        ['deviation', 1],
+        ['μ ± σ at the time', 1],
+        ['μ ± σ now', 1],
+        [`now (β=${fmt(now.beta)})`],
+      ],
+      rows,
+      { id: 'steps' },
+    ),
+  );
 }
 
 // ---------------------------------------------------------------- precondition map
 
 function gridMarks(e, m) {
   if (e.domain.kind !== 'icy_gridworld' || m.x.name !== 's.x' || m.y.name !== 's.y') return null;
-  const nx = m.x.values.length, ny = m.y.values.length, marks = new Array(nx * ny).fill('.');
-  for (let j = 0; j < ny; j++) for (let i = 0; i < nx; i++) marks[j * nx + i] = e.domain.map[m.y.values[j]]?.[m.x.values[i]] ?? '.';
+  const nx = m.x.values.length,
+    ny = m.y.values.length,
+    marks = new Array(nx * ny).fill('.');
+  for (let j = 0; j < ny; j++)
+    for (let i = 0; i < nx; i++) marks[j * nx + i] = e.domain.map[m.y.values[j]]?.[m.x.values[i]] ?? '.';
   return marks;
 }
 
@@ -206,31 +508,95 @@ export async function mapPage(root, params, id) {
   const e = await api(`/v1/experiments/${id}`);
   const name = e.name || `experiment ${id}`;
   crumbs([['Experiments', '/ui/experiments'], [name, expUrl(id)], ['precondition map']]);
-  const S = e.state_space, A = e.action_space;
+  const S = e.state_space,
+    A = e.action_space;
   const discrete = Array.isArray(A.values) && A.values.length > 0;
   const grid = e.domain.kind === 'icy_gridworld';
-  const comps = S.names.map((n, i) => ({ name: `s.${n}`, low: S.low[i], high: S.high[i], action: false, i }))
-    .concat(discrete ? [] : A.names.map((n, i) => ({ name: `a.${n}`, low: A.low[i], high: A.high[i], action: true, i })));
+  const comps = S.names
+    .map((n, i) => ({ name: `s.${n}`, low: S.low[i], high: S.high[i], action: false, i }))
+    .concat(
+      discrete ? [] : A.names.map((n, i) => ({ name: `a.${n}`, low: A.low[i], high: A.high[i], action: true, i })),
+    );
   const state = {
-    x: params.get('x') ?? comps[0].name, y: params.get('y') ?? comps[1]?.name ?? comps[0].name,
-    s: S.low.map((l, i) => grid ? Math.round((l + S.high[i]) / 2) : (l + S.high[i]) / 2),
+    x: params.get('x') ?? comps[0].name,
+    y: params.get('y') ?? comps[1]?.name ?? comps[0].name,
+    s: S.low.map((l, i) => (grid ? Math.round((l + S.high[i]) / 2) : (l + S.high[i]) / 2)),
     a: discrete ? A.values[0] : A.low.map((l, i) => (l + A.high[i]) / 2),
-    beta: e.learning.test_beta, version: e.model_version, res: 41, maps: [], span: null,
+    beta: e.learning.test_beta,
+    version: e.model_version,
+    res: 41,
+    maps: [],
+    span: null,
   };
   const panels = h('div', { class: 'panels', id: 'map-panels' });
   const status = h('span', { class: 'muted' });
   const legend = h('div');
   const fixed = h('div', { class: 'controls' });
   const opt = (v, sel) => h('option', { value: v, selected: v === sel }, v);
-  const xSel = h('select', { id: 'map-x', onchange: ev => { state.x = ev.target.value; load(); } }, comps.map(c => opt(c.name, state.x)));
-  const ySel = h('select', { id: 'map-y', onchange: ev => { state.y = ev.target.value; load(); } }, comps.map(c => opt(c.name, state.y)));
+  const xSel = h(
+    'select',
+    {
+      id: 'map-x',
+      onchange: ev => {
+        state.x = ev.target.value;
+        load();
+      },
+    },
+    comps.map(c => opt(c.name, state.x)),
+  );
+  const ySel = h(
+    'select',
+    {
+      id: 'map-y',
+      onchange: ev => {
+        state.y = ev.target.value;
+        load();
+      },
+    },
+    comps.map(c => opt(c.name, state.y)),
+  );
   const betaOut = h('output', {}, fmt(state.beta));
-  const betaIn = h('input', { type: 'range', id: 'map-beta', min: -3, max: 5, step: 0.05, value: state.beta, oninput: ev => { state.beta = +ev.target.value; betaOut.textContent = fmt(state.beta); paint(); } });
+  const betaIn = h('input', {
+    type: 'range',
+    id: 'map-beta',
+    min: -3,
+    max: 5,
+    step: 0.05,
+    value: state.beta,
+    oninput: ev => {
+      state.beta = +ev.target.value;
+      betaOut.textContent = fmt(state.beta);
+      paint();
+    },
+  });
   const verOut = h('output', {}, `v${state.version}`);
   let timer = null;
-  const verIn = h('input', { type: 'range', id: 'map-version', min: 0, max: e.model_version, step: 1, value: state.version, disabled: e.model_version === 0,
-    oninput: ev => { state.version = +ev.target.value; verOut.textContent = `v${state.version}`; clearTimeout(timer); timer = setTimeout(load, 200); } });
-  const resSel = h('select', { onchange: ev => { state.res = +ev.target.value; load(); }, disabled: grid }, [21, 41, 81, 121].map(n => h('option', { value: n, selected: n === 41 }, n)));
+  const verIn = h('input', {
+    type: 'range',
+    id: 'map-version',
+    min: 0,
+    max: e.model_version,
+    step: 1,
+    value: state.version,
+    disabled: e.model_version === 0,
+    oninput: ev => {
+      state.version = +ev.target.value;
+      verOut.textContent = `v${state.version}`;
+      clearTimeout(timer);
+      timer = setTimeout(load, 200);
+    },
+  });
+  const resSel = h(
+    'select',
+    {
+      onchange: ev => {
+        state.res = +ev.target.value;
+        load();
+      },
+      disabled: grid,
+    },
+    [21, 41, 81, 121].map(n => h('option', { value: n, selected: n === 41 }, n)),
+  );
 
   function fixedControls() {
     const rows = [];
@@ -239,8 +605,23 @@ export async function mapPage(root, params, id) {
       const vecRef = c.action ? state.a : state.s;
       const out = h('output', {}, fmt(vecRef[c.i]));
       const step = grid && !c.action ? 1 : (c.high - c.low) / 100;
-      rows.push(h('label', {}, c.name), h('input', { type: 'range', min: c.low, max: c.high, step, value: vecRef[c.i],
-        oninput: ev => { vecRef[c.i] = +ev.target.value; out.textContent = fmt(vecRef[c.i]); clearTimeout(timer); timer = setTimeout(load, 200); } }), out);
+      rows.push(
+        h('label', {}, c.name),
+        h('input', {
+          type: 'range',
+          min: c.low,
+          max: c.high,
+          step,
+          value: vecRef[c.i],
+          oninput: ev => {
+            vecRef[c.i] = +ev.target.value;
+            out.textContent = fmt(vecRef[c.i]);
+            clearTimeout(timer);
+            timer = setTimeout(load, 200);
+          },
+        }),
+        out,
+      );
     }
     fixed.replaceChildren(...rows);
   }
@@ -249,37 +630,85 @@ export async function mapPage(root, params, id) {
     if (!state.maps.length) return;
     const m0 = state.maps[0].m;
     if (state.span === null) {
-      const dev = state.maps.flatMap(({ m }) => m.mu.map((mu, k) => Math.abs(mu + state.beta * m.sigma[k] - m.d_max))).sort((a, b) => a - b);
+      const dev = state.maps
+        .flatMap(({ m }) => m.mu.map((mu, k) => Math.abs(mu + state.beta * m.sigma[k] - m.d_max)))
+        .sort((a, b) => a - b);
       state.span = Math.max(m0.d_max, dev[Math.floor(dev.length * 0.9)] ?? m0.d_max);
     }
     legend.replaceChildren(colourLegend(m0.d_max, state.span));
     for (const p of state.maps) {
       const marks = gridMarks(e, p.m);
-      const xc = comps.find(c => c.name === p.m.x.name), yc = comps.find(c => c.name === p.m.y.name);
+      const xc = comps.find(c => c.name === p.m.x.name),
+        yc = comps.find(c => c.name === p.m.y.name);
       const get = (c, t) => (c.action ? t.a : t.s)[c.i];
-      const pts = p.m.training.filter(t => !discrete || sameVec(t.a, p.a)).map((t, k) => ({
-        x: get(xc, t), y: get(yc, t), deviation: t.deviation, t,
-        jx: grid ? ((k * 7) % 9 - 4) * 1.3 : 0, jy: grid ? ((k * 5) % 9 - 4) * 1.3 : 0 }));
-      const r = drawMap(p.canvas, p.m, state.beta, { cells: grid, marks, points: pts, span: state.span, size: grid ? 300 : 380,
-        onPick: pt => { state.s = [...pt.t.s]; if (!discrete) state.a = [...pt.t.a]; fixedControls(); load(); } });
+      const pts = p.m.training
+        .filter(t => !discrete || sameVec(t.a, p.a))
+        .map((t, k) => ({
+          x: get(xc, t),
+          y: get(yc, t),
+          deviation: t.deviation,
+          t,
+          jx: grid ? (((k * 7) % 9) - 4) * 1.3 : 0,
+          jy: grid ? (((k * 5) % 9) - 4) * 1.3 : 0,
+        }));
+      const r = drawMap(p.canvas, p.m, state.beta, {
+        cells: grid,
+        marks,
+        points: pts,
+        span: state.span,
+        size: grid ? 300 : 380,
+        onPick: pt => {
+          state.s = [...pt.t.s];
+          if (!discrete) state.a = [...pt.t.a];
+          fixedControls();
+          load();
+        },
+      });
       const inside = r.upper.filter(u => u < p.m.d_max).length;
-      p.caption.textContent = `${fmt(100 * inside / r.upper.length)} % of the grid inside · ${pts.length} training points`;
+      p.caption.textContent = `${fmt((100 * inside) / r.upper.length)} % of the grid inside · ${pts.length} training points`;
     }
   }
 
   async function load() {
     const actions = discrete ? A.values : [state.a];
-    const side = (name) => { const c = comps.find(k => k.name === name); return grid && !c.action ? c.high - c.low + 1 : state.res; };
+    const side = name => {
+      const c = comps.find(k => k.name === name);
+      return grid && !c.action ? c.high - c.low + 1 : state.res;
+    };
     status.textContent = 'loading…';
-    const query = a => new URLSearchParams({ x: state.x, y: state.y, s: state.s.join(','), a: a.join(','), nx: side(state.x), ny: side(state.y), version: state.version });
+    const query = a =>
+      new URLSearchParams({
+        x: state.x,
+        y: state.y,
+        s: state.s.join(','),
+        a: a.join(','),
+        nx: side(state.x),
+        ny: side(state.y),
+        version: state.version,
+      });
     const maps = await Promise.all(actions.map(a => api(`/v1/experiments/${id}/precondition/map?${query(a)}`)));
     state.maps = maps.map((m, k) => {
       const canvas = h('canvas', { 'aria-label': `precondition map for action ${vec(actions[k])}` });
       const caption = h('div', { class: 'muted' });
       return { m, a: actions[k], canvas, caption };
     });
-    panels.replaceChildren(...state.maps.map(p => h('figure', { class: 'panel' },
-      h('h3', {}, discrete ? `action ${A.names.map((n, i) => `${n}=${fmt(p.a[i])}`).join(', ')}` : `${p.m.y.name} against ${p.m.x.name}`), p.canvas, p.caption)));
+    panels.replaceChildren(
+      ...state.maps.map(p =>
+        h(
+          'figure',
+          { class: 'panel' },
+          h(
+            'h3',
+            {},
+            discrete
+              ? `action ${A.names.map((n, i) => `${n}=${fmt(p.a[i])}`).join(', ')}`
+              : `${p.m.y.name} against ${p.m.x.name}`,
+          ),
+          p.canvas,
+          p.caption,
+        ),
+      ),
+    );
     const m0 = maps[0];
     status.textContent = `model version ${m0.model_version} (${m0.source}, ${m0.n_train} training transitions)`;
     state.span = null;
@@ -290,17 +719,42 @@ export async function mapPage(root, params, id) {
   fixedControls();
   root.replaceChildren(
     h('h1', {}, 'Precondition map ', h('span', { class: 'muted' }, name)),
-    h('p', { class: 'muted' }, `Colour: μ + βσ of the model deviation estimator; inside the precondition where it is below d_max = ${fmt(e.d_max)}. `,
+    h(
+      'p',
+      { class: 'muted' },
+      `Colour: μ + βσ of the model deviation estimator; inside the precondition where it is below d_max = ${fmt(e.d_max)}. `,
       'Dots: training transitions, green where the model was right (deviation < d_max), red where not; click one to fix the other components at it.',
-      grid ? ' Gridworld: each panel is the grid for one move; dark cells are obstacles, ≈ marks ice.' : ''),
-    h('section', { class: 'card' }, h('div', { class: 'controls' },
-      h('label', { for: 'map-x' }, 'x axis'), xSel, h('span'),
-      h('label', { for: 'map-y' }, 'y axis'), ySel, h('span'),
-      h('label', { for: 'map-beta' }, 'β'), betaIn, betaOut,
-      h('label', { for: 'map-version' }, 'model version'), verIn, verOut,
-      h('label', {}, 'grid points per side'), resSel, h('span')),
-      h('h3', {}, 'Other components'), fixed, status),
-    legend, panels);
+      grid ? ' Gridworld: each panel is the grid for one move; dark cells are obstacles, ≈ marks ice.' : '',
+    ),
+    h(
+      'section',
+      { class: 'card' },
+      h(
+        'div',
+        { class: 'controls' },
+        h('label', { for: 'map-x' }, 'x axis'),
+        xSel,
+        h('span'),
+        h('label', { for: 'map-y' }, 'y axis'),
+        ySel,
+        h('span'),
+        h('label', { for: 'map-beta' }, 'β'),
+        betaIn,
+        betaOut,
+        h('label', { for: 'map-version' }, 'model version'),
+        verIn,
+        verOut,
+        h('label', {}, 'grid points per side'),
+        resSel,
+        h('span'),
+      ),
+      h('h3', {}, 'Other components'),
+      fixed,
+      status,
+    ),
+    legend,
+    panels,
+  );
   await load();
 }
 
@@ -308,14 +762,28 @@ export async function mapPage(root, params, id) {
 
 function laterCard(d, pct, kpi) {
   const l = d.later;
-  if (!l) return h('section', { class: 'card' }, h('h2', {}, 'Later transitions'),
-    h('p', { class: 'muted' }, `No transitions were posted after version ${d.model_version}'s training set yet.`));
-  const c1 = l.coverage.find(c => c.z === 1), c2 = l.coverage.find(c => c.z === 2);
-  return h('section', { class: 'card', id: 'later' }, h('h2', {}, `The ${l.n} transitions posted after its training set (never seen by version ${d.model_version})`), h('div', { class: 'kpi' },
-    kpi('TPR', pct(l.tpr), `${l.true_positives} of ${l.positives} below d_max judged inside`),
-    kpi('TNR', pct(l.tnr), `${l.true_negatives} of ${l.negatives} at or above d_max judged outside`),
-    kpi('inside μ ± 1σ', pct(c1.observed), `nominal ${pct(c1.nominal)}`),
-    kpi('inside μ ± 2σ', pct(c2.observed), `nominal ${pct(c2.nominal)}`)));
+  if (!l)
+    return h(
+      'section',
+      { class: 'card' },
+      h('h2', {}, 'Later transitions'),
+      h('p', { class: 'muted' }, `No transitions were posted after version ${d.model_version}'s training set yet.`),
+    );
+  const c1 = l.coverage.find(c => c.z === 1),
+    c2 = l.coverage.find(c => c.z === 2);
+  return h(
+    'section',
+    { class: 'card', id: 'later' },
+    h('h2', {}, `The ${l.n} transitions posted after its training set (never seen by version ${d.model_version})`),
+    h(
+      'div',
+      { class: 'kpi' },
+      kpi('TPR', pct(l.tpr), `${l.true_positives} of ${l.positives} below d_max judged inside`),
+      kpi('TNR', pct(l.tnr), `${l.true_negatives} of ${l.negatives} at or above d_max judged outside`),
+      kpi('inside μ ± 1σ', pct(c1.observed), `nominal ${pct(c1.nominal)}`),
+      kpi('inside μ ± 2σ', pct(c2.observed), `nominal ${pct(c2.nominal)}`),
+    ),
+  );
 }
 
 export async function diagnosticsPage(root, params, id) {
@@ -325,39 +793,119 @@ export async function diagnosticsPage(root, params, id) {
   const out = h('div', { id: 'diagnostics' });
   const versions = t.models.map(m => m.version);
   const state = { version: +(params.get('version') ?? e.model_version), beta: e.learning.test_beta };
-  const verSel = h('select', { onchange: ev => { state.version = +ev.target.value; load(); } },
-    versions.map(v => h('option', { value: v, selected: v === state.version }, `v${v}`)));
-  const betaIn = h('input', { type: 'number', step: 0.1, value: state.beta, onchange: ev => { state.beta = +ev.target.value; load(); } });
+  const verSel = h(
+    'select',
+    {
+      onchange: ev => {
+        state.version = +ev.target.value;
+        load();
+      },
+    },
+    versions.map(v => h('option', { value: v, selected: v === state.version }, `v${v}`)),
+  );
+  const betaIn = h('input', {
+    type: 'number',
+    step: 0.1,
+    value: state.beta,
+    onchange: ev => {
+      state.beta = +ev.target.value;
+      load();
+    },
+  });
 
   async function load() {
     out.replaceChildren(h('p', { class: 'muted' }, 'computing leave-one-out predictions…'));
     const d = await api(`/v1/experiments/${id}/model/diagnostics?version=${state.version}&beta=${state.beta}`);
-    const pct = x => x === null ? '–' : `${fmt(100 * x, 3)} %`;
-    const c1 = d.coverage.find(c => c.z === 1), c2 = d.coverage.find(c => c.z === 2);
-    const kpi = (label, value, note) => h('div', {}, h('b', {}, value), h('span', { class: 'muted' }, label), note ? h('div', { class: 'muted' }, note) : null);
+    const pct = x => (x === null ? '–' : `${fmt(100 * x, 3)} %`);
+    const c1 = d.coverage.find(c => c.z === 1),
+      c2 = d.coverage.find(c => c.z === 2);
+    const kpi = (label, value, note) =>
+      h(
+        'div',
+        {},
+        h('b', {}, value),
+        h('span', { class: 'muted' }, label),
+        note ? h('div', { class: 'muted' }, note) : null,
+      );
     const p = d.precondition;
     out.replaceChildren(
-      h('section', { class: 'card' }, h('h2', {}, `Calibration of version ${d.model_version} (leave-one-out, ${d.n} labels)`), h('div', { class: 'kpi' },
-        kpi('inside μ ± 1σ', pct(c1.observed), `nominal ${pct(c1.nominal)}`),
-        kpi('inside μ ± 2σ', pct(c2.observed), `nominal ${pct(c2.nominal)}`),
-        kpi('RMSE', fmt(d.rmse)), kpi('mean log density', fmt(d.mean_log_density)))),
-      h('section', { class: 'card' }, h('h2', {}, `Precondition μ + ${fmt(p.beta)}σ < ${fmt(p.d_max)} against the labels`), h('div', { class: 'kpi' },
-        kpi('TPR', pct(p.tpr), `${p.true_positives} of ${p.positives} labels below d_max judged inside`),
-        kpi('TNR', pct(p.tnr), `${p.true_negatives} of ${p.negatives} labels at or above d_max judged outside`))),
+      h(
+        'section',
+        { class: 'card' },
+        h('h2', {}, `Calibration of version ${d.model_version} (leave-one-out, ${d.n} labels)`),
+        h(
+          'div',
+          { class: 'kpi' },
+          kpi('inside μ ± 1σ', pct(c1.observed), `nominal ${pct(c1.nominal)}`),
+          kpi('inside μ ± 2σ', pct(c2.observed), `nominal ${pct(c2.nominal)}`),
+          kpi('RMSE', fmt(d.rmse)),
+          kpi('mean log density', fmt(d.mean_log_density)),
+        ),
+      ),
+      h(
+        'section',
+        { class: 'card' },
+        h('h2', {}, `Precondition μ + ${fmt(p.beta)}σ < ${fmt(p.d_max)} against the labels`),
+        h(
+          'div',
+          { class: 'kpi' },
+          kpi('TPR', pct(p.tpr), `${p.true_positives} of ${p.positives} labels below d_max judged inside`),
+          kpi('TNR', pct(p.tnr), `${p.true_negatives} of ${p.negatives} labels at or above d_max judged outside`),
+        ),
+      ),
       laterCard(d, pct, kpi),
-      h('div', { class: 'charts' }, lineChart({ title: 'Coverage of μ ± zσ: observed against nominal', x: d.coverage.map(c => c.nominal), xlabel: 'nominal share',
-        yMin: 0, yMax: 1, diagonal: true, series: [{ name: 'observed', values: d.coverage.map(c => c.observed) }] })),
-      table([['z', 1], ['nominal', 1], ['observed', 1]], d.coverage.map(c => h('tr', {}, td(fmt(c.z), true), td(pct(c.nominal), true), td(pct(c.observed), true)))));
+      h(
+        'div',
+        { class: 'charts' },
+        lineChart({
+          title: 'Coverage of μ ± zσ: observed against nominal',
+          x: d.coverage.map(c => c.nominal),
+          xlabel: 'nominal share',
+          yMin: 0,
+          yMax: 1,
+          diagonal: true,
+          series: [{ name: 'observed', values: d.coverage.map(c => c.observed) }],
+        }),
+      ),
+      table(
+        [
+          ['z', 1],
+          ['nominal', 1],
+          ['observed', 1],
+        ],
+        d.coverage.map(c => h('tr', {}, td(fmt(c.z), true), td(pct(c.nominal), true), td(pct(c.observed), true))),
+      ),
+    );
   }
 
   root.replaceChildren(
     h('h1', {}, 'Model diagnostics ', h('span', { class: 'muted' }, name)),
-    h('p', { class: 'muted' }, 'Each training label is predicted by the model conditioned on all the others (closed-form leave-one-out, same hyperparameters). ',
-      'A calibrated model has about 68 % of labels inside μ ± 1σ and 95 % inside μ ± 2σ. TPR/TNR: how often "inside the precondition" agrees with the truth deviation < d_max.'),
-    h('section', { class: 'card' }, h('div', { class: 'controls' },
-      h('label', {}, 'model version'), verSel, h('span'), h('label', {}, 'β'), betaIn, h('span'))),
-    out);
-  if (!versions.length) { out.replaceChildren(h('p', { class: 'muted' }, 'No fitted model yet: the prior has no labels to check.')); return; }
+    h(
+      'p',
+      { class: 'muted' },
+      'Each training label is predicted by the model conditioned on all the others (closed-form leave-one-out, same hyperparameters). ',
+      'A calibrated model has about 68 % of labels inside μ ± 1σ and 95 % inside μ ± 2σ. TPR/TNR: how often "inside the precondition" agrees with the truth deviation < d_max.',
+    ),
+    h(
+      'section',
+      { class: 'card' },
+      h(
+        'div',
+        { class: 'controls' },
+        h('label', {}, 'model version'),
+        verSel,
+        h('span'),
+        h('label', {}, 'β'),
+        betaIn,
+        h('span'),
+      ),
+    ),
+    out,
+  );
+  if (!versions.length) {
+    out.replaceChildren(h('p', { class: 'muted' }, 'No fitted model yet: the prior has no labels to check.'));
+    return;
+  }
   await load();
 }
 

@@ -10,27 +10,42 @@ const [base, out] = process.argv.slice(2);
 if (!base || !out) throw new Error('usage: node dashboard.mjs BASE_URL OUT_DIR');
 mkdirSync(out, { recursive: true });
 
-const CHROMIUM_ARGS = ['--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
-  '--disable-background-networking', '--disable-component-update', '--disable-sync'];
+const CHROMIUM_ARGS = [
+  '--headless',
+  '--no-sandbox',
+  '--disable-gpu',
+  '--disable-quic',
+  '--no-first-run',
+  '--disable-background-networking',
+  '--disable-component-update',
+  '--disable-sync',
+];
 
 const t0 = Date.now();
 const kin = await seedKinematic(base);
 const grid = await seedGridworld(base);
 const e = await call(base, 'GET', `/v1/experiments/${grid}`);
-console.log(`seeded: gridworld #${grid} (${e.n_trajectories} trajectories, model v${e.model_version}), kinematic #${kin} in ${Date.now() - t0} ms`);
+console.log(
+  `seeded: gridworld #${grid} (${e.n_trajectories} trajectories, model v${e.model_version}), kinematic #${kin} in ${Date.now() - t0} ms`,
+);
 
-const browser = await chromium.launch({ executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium', args: CHROMIUM_ARGS });
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium',
+  args: CHROMIUM_ARGS,
+});
 const context = await browser.newContext({ viewport: { width: 1280, height: 900 }, acceptDownloads: true });
 const page = await context.newPage();
 const errors = [];
 page.on('pageerror', err => errors.push(String(err)));
-page.on('console', msg => { if (msg.type() === 'error') errors.push(msg.text()); });
+page.on('console', msg => {
+  if (msg.type() === 'error') errors.push(msg.text());
+});
 
 async function open(path) {
   await page.goto(base + path);
   await page.waitForSelector('body[data-ready="true"]', { timeout: 20000 });
   const alert = await page.locator('[role=alert]').count();
-  assert.equal(alert, 0, `${path} shows an error: ${alert && await page.locator('[role=alert]').innerText()}`);
+  assert.equal(alert, 0, `${path} shows an error: ${alert && (await page.locator('[role=alert]').innerText())}`);
 }
 
 const tests = [];
@@ -48,7 +63,10 @@ test('the experiment list shows every experiment, newest first, and exports CSV'
   const lines = csv.trim().split('\n');
   assert.equal(lines[0], 'id,name,domain,strategy,iteration,trajectories,transitions,model_version,last_activity');
   assert.equal(lines.length, 3);
-  assert.match(lines[1], new RegExp(`^${grid},icy gridworld,icy_gridworld,active,\\d+,${e.n_trajectories},${e.n_transitions},`));
+  assert.match(
+    lines[1],
+    new RegExp(`^${grid},icy gridworld,icy_gridworld,active,\\d+,${e.n_trajectories},${e.n_transitions},`),
+  );
 });
 
 test('an experiment shows its settings, timeline and runs', async () => {
@@ -56,9 +74,10 @@ test('an experiment shows its settings, timeline and runs', async () => {
   await page.waitForSelector('body[data-ready="true"]');
   assert.match(await page.locator('#settings').innerText(), /icy_gridworld[\s\S]*batch size\s+4/);
   assert.match(await page.locator('#settings').innerText(), /heteroscedastic, matern(12|32|52) kernel/);
-  assert.ok(await page.locator('#timeline figure').count() >= 6, 'model and iteration charts');
+  assert.ok((await page.locator('#timeline figure').count()) >= 6, 'model and iteration charts');
   const statuses = await page.locator('#runs .badge').allInnerTexts();
-  for (const s of ['open', 'abandoned', 'executed', 'unsolicited']) assert.ok(statuses.includes(s), `${s} in ${statuses}`);
+  for (const s of ['open', 'abandoned', 'executed', 'unsolicited'])
+    assert.ok(statuses.includes(s), `${s} in ${statuses}`);
   await page.screenshot({ path: `${out}/experiment.png`, fullPage: true });
 });
 
@@ -114,7 +133,10 @@ test('diagnostics show leave-one-out calibration and the precondition rates', as
   // Version 1 was fitted after the first batch: every later transition is judged by it.
   await open(`/ui/experiments/${grid}/diagnostics?version=1`);
   await page.waitForSelector('#later');
-  assert.match(await page.locator('#later').innerText(), /transitions posted after its training set[\s\S]*TPR[\s\S]*TNR/);
+  assert.match(
+    await page.locator('#later').innerText(),
+    /transitions posted after its training set[\s\S]*TPR[\s\S]*TNR/,
+  );
 });
 
 test('an unknown experiment shows the API error', async () => {
@@ -133,7 +155,12 @@ for (const [name, fn] of tests) {
     console.log(`ok   ${name} (${Date.now() - started} ms)`);
   } catch (err) {
     failed++;
-    console.log(`FAIL ${name}\n     ${String(err.stack ?? err).split('\n').slice(0, 4).join('\n     ')}`);
+    console.log(
+      `FAIL ${name}\n     ${String(err.stack ?? err)
+        .split('\n')
+        .slice(0, 4)
+        .join('\n     ')}`,
+    );
     await page.screenshot({ path: `${out}/failure-${failed}.png`, fullPage: true }).catch(() => {});
     errors.length = 0;
   }

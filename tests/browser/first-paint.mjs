@@ -12,13 +12,24 @@ async function seed() {
   const rand = rng(11);
   const started = Date.now();
   for (let k = 0; k < 99; k++) {
-    const e = await call(base, 'POST', '/v1/experiments', { name: `small ${k}`, seed: k, learning: { batch_size: 100 } });
+    const e = await call(base, 'POST', '/v1/experiments', {
+      name: `small ${k}`,
+      seed: k,
+      learning: { batch_size: 100 },
+    });
     const transitions = [0, 1, 2].map(x => ({ s: [x, 0], a: [1, 0], s_next: [x + 1, 0] }));
     await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, { transitions });
   }
   const big = await call(base, 'POST', '/v1/experiments', {
-    name: 'fifty thousand', seed: 1,
-    domain: { kind: 'kinematic', state_low: [0, 0], state_high: [1, 1], action_low: [-0.05, -0.05], action_high: [0.05, 0.05] },
+    name: 'fifty thousand',
+    seed: 1,
+    domain: {
+      kind: 'kinematic',
+      state_low: [0, 0],
+      state_high: [1, 1],
+      action_low: [-0.05, -0.05],
+      action_high: [0.05, 0.05],
+    },
     // No refit: an exact GP on 50,000 points is out of reach (O(n³)); the pages are measured.
     learning: { batch_size: 10000 },
   });
@@ -45,8 +56,16 @@ console.log(`${all.total} experiments; the largest, #${big.id}, has ${big.n_tran
 
 const browser = await chromium.launch({
   executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium',
-  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-quic', '--no-first-run',
-    '--disable-background-networking', '--disable-component-update', '--disable-sync'],
+  args: [
+    '--headless',
+    '--no-sandbox',
+    '--disable-gpu',
+    '--disable-quic',
+    '--no-first-run',
+    '--disable-background-networking',
+    '--disable-component-update',
+    '--disable-sync',
+  ],
 });
 const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
 const median = xs => xs.slice().sort((a, b) => a - b)[Math.floor(xs.length / 2)];
@@ -57,14 +76,17 @@ for (const [what, path] of [
   ['trajectory page (100 steps)', `/ui/experiments/${big.id}/trajectories/${traj}`],
   ['precondition map (41 × 41)', `/ui/experiments/${big.id}/map`],
 ]) {
-  const fcp = [], ready = [];
+  const fcp = [],
+    ready = [];
   for (let k = 0; k < 5; k++) {
     await page.goto(base + path);
     await page.waitForSelector('body[data-ready="true"]', { timeout: 30000 });
     const [f, r] = await page.evaluate(() => [
       performance.getEntriesByName('first-contentful-paint')[0]?.startTime ?? NaN,
-      performance.getEntriesByName('dashboard-ready')[0]?.startTime ?? NaN]);
-    fcp.push(f); ready.push(r);
+      performance.getEntriesByName('dashboard-ready')[0]?.startTime ?? NaN,
+    ]);
+    fcp.push(f);
+    ready.push(r);
   }
   rows.push(`| ${what} | ${median(fcp).toFixed(0)} ms | ${median(ready).toFixed(0)} ms |`);
 }

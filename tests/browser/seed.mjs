@@ -16,7 +16,8 @@ export function rng(seed) {
 
 export async function call(base, method, path, body) {
   const r = await fetch(base + path, {
-    method, headers: { 'content-type': 'application/json' },
+    method,
+    headers: { 'content-type': 'application/json' },
     body: body === undefined ? undefined : JSON.stringify(body),
   });
   const json = await r.json().catch(() => null);
@@ -35,7 +36,8 @@ export function trueStep(map, [x, y], [dx, dy]) {
 
 function freeCell(map, rand) {
   for (;;) {
-    const y = Math.floor(rand() * map.length), x = Math.floor(rand() * map[0].length);
+    const y = Math.floor(rand() * map.length),
+      x = Math.floor(rand() * map[0].length);
     if (map[y][x] !== '#') return [x, y];
   }
 }
@@ -44,7 +46,10 @@ function freeCell(map, rand) {
 export async function seedGridworld(base, { name = 'icy gridworld', n = 12, seed = 7 } = {}) {
   const rand = rng(seed);
   const e = await call(base, 'POST', '/v1/experiments', {
-    name, seed, mde: { restarts: 0 }, learning: { batch_size: 4, iterations: 6, n_candidates: 4, max_extensions: 1500 },
+    name,
+    seed,
+    mde: { restarts: 0 },
+    learning: { batch_size: 4, iterations: 6, n_candidates: 4, max_extensions: 1500 },
   });
   const map = e.domain.map;
   for (let k = 0; k < n; k++) {
@@ -69,14 +74,26 @@ export async function seedGridworld(base, { name = 'icy gridworld', n = 12, seed
   }
   // Every move from every free cell of two rows crossing the ice, posted without a proposal.
   const logged = [];
-  for (const y of [2, 3]) for (let x = 0; x < map[0].length; x++) for (const a of [[1, 0], [-1, 0], [0, 1], [0, -1]]) {
-    logged.push({ s: [x, y], a, s_next: trueStep(map, [x, y], a) });
-  }
+  for (const y of [2, 3])
+    for (let x = 0; x < map[0].length; x++)
+      for (const a of [
+        [1, 0],
+        [-1, 0],
+        [0, 1],
+        [0, -1],
+      ]) {
+        logged.push({ s: [x, y], a, s_next: trueStep(map, [x, y], a) });
+      }
   await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, { transitions: logged });
   await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, {
-    partial: true, transitions: [{ s: [0, 0], a: [1, 0], s_next: [1, 0] }],
+    partial: true,
+    transitions: [{ s: [0, 0], a: [1, 0], s_next: [1, 0] }],
   });
-  const quit = await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, { start: [0, 0], goal: [0, 4], client_id: 'quitter' });
+  const quit = await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, {
+    start: [0, 0],
+    goal: [0, 4],
+    client_id: 'quitter',
+  });
   await call(base, 'POST', `/v1/experiments/${e.id}/proposals/${quit.id}/abandon`, {});
   await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, { start: [1, 1], goal: [4, 1], client_id: 'waiting' });
   await call(base, 'POST', `/v1/experiments/${e.id}/model/refit`, {});
@@ -87,8 +104,17 @@ export async function seedGridworld(base, { name = 'icy gridworld', n = 12, seed
 export async function seedKinematic(base, { name = 'kinematic arm', seed = 3 } = {}) {
   const rand = rng(seed);
   const e = await call(base, 'POST', '/v1/experiments', {
-    name, seed, domain: { kind: 'kinematic', state_low: [0, 0], state_high: [1, 1], action_low: [-0.1, -0.1], action_high: [0.1, 0.1] },
-    mde: { restarts: 0, noise: 'homoscedastic' }, learning: { batch_size: 100 },
+    name,
+    seed,
+    domain: {
+      kind: 'kinematic',
+      state_low: [0, 0],
+      state_high: [1, 1],
+      action_low: [-0.1, -0.1],
+      action_high: [0.1, 0.1],
+    },
+    mde: { restarts: 0, noise: 'homoscedastic' },
+    learning: { batch_size: 100 },
   });
   for (let k = 0; k < 4; k++) {
     let s = [rand(), rand()];
