@@ -4,10 +4,30 @@
 # temp database, fills it through the API (tests/browser/seed.mjs), opens the pages with
 # Playwright and checks them (tests/browser/dashboard.mjs). Screenshots go to target/browser-tests/screenshots/.
 # Installs what it needs: Debian's chromium (apt) if /usr/bin/chromium is missing, and
-# playwright-core (npm ci from tests/browser/package-lock.json) into target/browser-tests/.
+# playwright-core, eslint and prettier (npm ci from tests/browser/package-lock.json) into
+# target/browser-tests/. First, before any build, the lint and format gate: eslint
+# (tests/browser/eslint.config.mjs) and prettier --check (.prettierrc.json) on ui/ and
+# tests/browser/*.mjs; any finding fails the script.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 started=$(date +%s)
+
+work=target/browser-tests
+mkdir -p "$work"
+cp tests/browser/package.json tests/browser/package-lock.json tests/browser/*.mjs "$work/"
+if ! cmp -s tests/browser/package-lock.json "$work/node_modules/.package-lock.json.copy" 2>/dev/null; then
+    (cd "$work" && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error)
+    cp tests/browser/package-lock.json "$work/node_modules/.package-lock.json.copy"
+fi
+
+# The eslint config imports @eslint/js and globals, so it runs from its copy beside node_modules;
+# its file patterns are relative to the working directory (the repository root) all the same.
+echo "== eslint and prettier --check: ui/ tests/browser/*.mjs"
+"$work/node_modules/.bin/eslint" --config "$work/eslint.config.mjs" --max-warnings 0 ui tests/browser/*.mjs
+"$work/node_modules/.bin/prettier" --check --log-level warn ui tests/browser/*.mjs || {
+    echo "not formatted: $work/node_modules/.bin/prettier --write ui tests/browser/*.mjs"
+    exit 1
+}
 
 bin=${PRECOND_BIN:-${CARGO_TARGET_DIR:-target}/debug/precond}
 if [ ! -x "$bin" ]; then
@@ -19,14 +39,6 @@ if [ ! -x /usr/bin/chromium ]; then
     [ "$(id -u)" -eq 0 ] || sudo="sudo"
     $sudo apt-get update -qq
     $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null
-fi
-
-work=target/browser-tests
-mkdir -p "$work"
-cp tests/browser/package.json tests/browser/package-lock.json tests/browser/*.mjs "$work/"
-if ! cmp -s tests/browser/package-lock.json "$work/node_modules/.package-lock.json.copy" 2>/dev/null; then
-    (cd "$work" && npm ci --ignore-scripts --no-audit --no-fund --loglevel=error)
-    cp tests/browser/package-lock.json "$work/node_modules/.package-lock.json.copy"
 fi
 
 db_dir=$(mktemp -d)
