@@ -48,6 +48,38 @@ async function open(path) {
   assert.equal(alert, 0, `${path} shows an error: ${alert && (await page.locator('[role=alert]').innerText())}`);
 }
 
+/**
+ * The line charts on this page draw lines, not filled polygons: every `polyline` has computed
+ * `fill: none` (the series colour rules must not fill it), while each point and legend entry is
+ * filled in the colour of its series' line.
+ */
+async function assertChartLines(what) {
+  const charts = await page.locator('.chart svg').evaluateAll(svgs =>
+    svgs.map(svg => {
+      const lines = {};
+      for (const l of svg.querySelectorAll('polyline')) lines[l.getAttribute('class')] = getComputedStyle(l);
+      return {
+        fills: [...svg.querySelectorAll('polyline')].map(l => getComputedStyle(l).fill),
+        marks: [...svg.querySelectorAll('circle, .legend')].map(m => {
+          const series = m.getAttribute('class').match(/series-\d+/)[0];
+          return { series, fill: getComputedStyle(m).fill, line: lines[series]?.stroke };
+        }),
+      };
+    }),
+  );
+  const fills = charts.flatMap(c => c.fills);
+  assert.ok(fills.length > 0, `${what} draws line charts`);
+  const filled = fills.filter(f => f !== 'none');
+  assert.equal(
+    filled.length,
+    0,
+    `${what}: ${filled.length} of ${fills.length} chart lines are filled (${[...new Set(filled)]}), not fill none`,
+  );
+  const marks = charts.flatMap(c => c.marks);
+  assert.ok(marks.length > 0, `${what} draws points`);
+  for (const m of marks) assert.equal(m.fill, m.line, `${what}: ${m.series} points and legend filled as its line`);
+}
+
 const tests = [];
 const test = (name, fn) => tests.push([name, fn]);
 
@@ -75,6 +107,7 @@ test('an experiment shows its settings, timeline and runs', async () => {
   assert.match(await page.locator('#settings').innerText(), /icy_gridworld[\s\S]*batch size\s+4/);
   assert.match(await page.locator('#settings').innerText(), /heteroscedastic, matern(12|32|52) kernel/);
   assert.ok((await page.locator('#timeline figure').count()) >= 6, 'model and iteration charts');
+  await assertChartLines('the learning timeline');
   const statuses = await page.locator('#runs .badge').allInnerTexts();
   for (const s of ['open', 'abandoned', 'executed', 'unsolicited'])
     assert.ok(statuses.includes(s), `${s} in ${statuses}`);
@@ -90,6 +123,7 @@ test('a trajectory shows its steps with μ ± σ at the time and now', async () 
   const first = await page.locator('#steps tbody tr').first().innerText();
   assert.match(first, /±[\s\S]*±/, 'μ ± σ at the time and now');
   assert.match(await page.locator('main').innerText(), new RegExp(`Executed proposal\\s+#${executed.proposal_id}`));
+  await assertChartLines('the trajectory page');
 });
 
 test('the precondition map draws one grid per move and slides over model versions', async () => {
@@ -129,6 +163,7 @@ test('diagnostics show leave-one-out calibration and the precondition rates', as
   const text = await page.locator('#diagnostics').innerText();
   assert.match(text, /inside μ ± 1σ[\s\S]*nominal 68\.3 %/);
   assert.match(text, /TPR[\s\S]*TNR/);
+  await assertChartLines('the diagnostics page');
   await page.screenshot({ path: `${out}/diagnostics.png`, fullPage: true });
   // Version 1 was fitted after the first batch: every later transition is judged by it.
   await open(`/ui/experiments/${grid}/diagnostics?version=1`);
