@@ -42,7 +42,7 @@
 //! - [`experiment`]: `precond experiment`, the paper's evaluation run end to end as an HTTP
 //!   client of the service (simulators, CSV/JSON results, SVG plots).
 //!
-//! ## Layers and where things plug in
+//! ## Layers, and what plugs in
 //!
 //! ```text
 //! cli ─▶ http ─▶ service ─▶ store (SQLite)
@@ -57,10 +57,16 @@
 //! - **A new dynamics model** (e.g. one served by a robot over the network): implement
 //!   [`domain::DynamicsModel`] and return it from [`domain::Domain::dynamics`]; the planner and
 //!   the labeller call it in batches and turn its [`domain::DynamicsError`] into `502`/`504`.
-//! - **A new regressor** for the MDE: answer [`planning::DeviationModel`] (μ and σ for feature
-//!   rows) and add a variant to [`mde::Estimator`]; the planner only sees the trait.
-//! - **A new store backend**: the service calls [`store::Store`]'s methods only; they take and
-//!   return plain values, so another backend implements the same methods.
+//!
+//! Two things are fixed today rather than pluggable:
+//! - **The MDE is a Gaussian process.** The planner sees it only through the
+//!   [`planning::DeviationModel`] trait (μ and σ for feature rows), and the planner's tests plug
+//!   stand-ins in there; but the served model, [`mde::Estimator`], is the prior or a fitted
+//!   [`gp::GpModel`], and fitting, the label cap, the stored hyperparameters, rebuilding older
+//!   versions and the diagnostics are all written for the GP.
+//! - **The store is SQLite.** [`store::Store`] is one concrete type over sqlx SQLite pools,
+//!   held by the service directly; every query lives in [`store`], and its methods take and
+//!   return plain values.
 
 pub mod api;
 pub mod bench;
