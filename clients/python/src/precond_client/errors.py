@@ -14,6 +14,10 @@ from __future__ import annotations
 
 from typing import Any
 
+AT_GOAL_REASON = "the start already satisfies the goal"
+"""How the server's ``validation_failed`` on ``goal`` begins when a proposal's start already
+satisfies its goal."""
+
 
 class PrecondError(Exception):
     """Base class of every error this package raises."""
@@ -46,8 +50,22 @@ class BadRequest(ApiError):
     """``400 bad_request``: the body was not well-formed JSON."""
 
 
+class Unauthorized(ApiError):
+    """``401 unauthorized``: the server checks access tokens and the request had none, or one
+    it does not know (pass ``token=`` to :class:`~precond_client.Client`)."""
+
+
+class Forbidden(ApiError):
+    """``403 forbidden``: the token lacks the route's role (``read`` < ``write`` < ``admin``)
+    or does not reach the experiment."""
+
+
 class NotFound(ApiError):
     """``404 not_found``: no such experiment, trajectory, proposal or route."""
+
+
+class MethodNotAllowed(ApiError):
+    """``405 method_not_allowed``: the path exists but not with this method."""
 
 
 class Conflict(ApiError):
@@ -67,6 +85,11 @@ class Conflict(ApiError):
         return None
 
 
+class LimitReached(ApiError):
+    """``409 limit_reached``: creating an experiment on a server that holds its limit of
+    experiments (``--max-experiments``)."""
+
+
 class PayloadTooLarge(ApiError):
     """``413 payload_too_large``: the body exceeds the server's ``--max-body-bytes``."""
 
@@ -80,9 +103,27 @@ class ValidationFailed(ApiError):
         d = self.details
         return str(d["field"]) if isinstance(d, dict) and "field" in d else None
 
+    @property
+    def reason(self) -> str | None:
+        """Why the field is wrong."""
+        d = self.details
+        return str(d["reason"]) if isinstance(d, dict) and "reason" in d else None
+
+    @property
+    def start_satisfies_goal(self) -> bool:
+        """Whether the answer is to a proposal whose start already satisfies its goal (there is
+        nothing to plan; the spec's ``at_goal`` example of ``create_proposal``)."""
+        return self.field == "goal" and AT_GOAL_REASON in (self.reason or "")
+
 
 class NoPlan(ApiError):
     """``422 no_plan``: no goal-reaching trajectory inside the precondition was found."""
+
+
+class Overloaded(ApiError):
+    """``429 overloaded``: too many planning requests wait for a slot; nothing was planned.
+    Retried by the client (after the server's ``Retry-After``) before it is raised;
+    ``details["retry_after_seconds"]`` says when to try again."""
 
 
 class ModelUnavailable(ApiError):
@@ -98,22 +139,43 @@ class Unavailable(ApiError):
     """``503 unavailable``: the server's database does not answer."""
 
 
+class DeadlineExceeded(ApiError):
+    """``503 deadline_exceeded``: a proposal or plan did not finish within the server's
+    deadline (nothing was stored), or a forced refit did not (it goes on in the background).
+    Retried by the client before it is raised; ``details`` has ``extensions``, ``timeout_ms``
+    and ``retry_after_seconds``."""
+
+
+class Cancelled(ApiError):
+    """``503 cancelled``: the server cancelled the request's search because the client went
+    away; a client only sees it when a proxy kept the connection open."""
+
+
 class InternalError(ApiError):
     """``500 internal``: a bug in the server (logged there)."""
 
 
 _BY_CODE: dict[str, type[ApiError]] = {
     "bad_request": BadRequest,
+    "unauthorized": Unauthorized,
+    "forbidden": Forbidden,
     "not_found": NotFound,
+    "method_not_allowed": MethodNotAllowed,
     "conflict": Conflict,
+    "limit_reached": LimitReached,
     "payload_too_large": PayloadTooLarge,
     "validation_failed": ValidationFailed,
     "no_plan": NoPlan,
-    "model_unavailable": ModelUnavailable,
-    "model_timeout": ModelTimeout,
-    "unavailable": Unavailable,
+    "overloaded": Overloaded,
     "internal": InternalError,
+    "model_unavailable": ModelUnavailable,
+    "unavailable": Unavailable,
+    "deadline_exceeded": DeadlineExceeded,
+    "cancelled": Cancelled,
+    "model_timeout": ModelTimeout,
 }
+"""The exception class of each error code the server answers (the spec's
+``ErrorBody.code`` enum; ``tests/test_wire.py`` checks they are the same list)."""
 
 
 def from_response(status: int, body: Any) -> ApiError:
