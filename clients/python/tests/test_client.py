@@ -55,6 +55,7 @@ def experiment_json(eid: int = 1, name: str = "e", n: int = 2, m: int = 2) -> di
         "n_transitions": 0,
         "iteration": 0,
         "model_version": 0,
+        "last_activity": "t",
     }
 
 

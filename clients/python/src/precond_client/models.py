@@ -2,21 +2,29 @@
 
 Responses are read into frozen dataclasses whose vectors are numpy arrays (``float64``; a
 trajectory's ``states`` is ``(T + 1, n)``, its ``actions`` ``(T, m)``). Unknown fields are
-ignored, so the client keeps working when the server adds one; every dataclass keeps the JSON it
-was read from in ``raw``.
+ignored, so the client keeps working when the server adds one; the larger answers keep the JSON
+they were read from in ``raw``.
+
+Every dataclass names the schema it mirrors in ``SCHEMA`` (a tuple when one class reads several
+schemas); its fields are that schema's properties, except those marked :data:`CLIENT_ONLY`.
+``tests/test_wire.py`` checks both against ``api/openapi.yaml``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 Array = NDArray[np.float64]
 """A float64 numpy array."""
+
+CLIENT_ONLY: Mapping[str, Any] = {"client_only": True}
+"""``field(metadata=CLIENT_ONLY)``: a field the client adds that is no property of the schema
+(e.g. ``raw``, or what a header said)."""
 
 
 def vec(x: ArrayLike) -> Array:
@@ -52,6 +60,8 @@ def as_lists(x: ArrayLike) -> list[list[float]]:
 class Space:
     """A state or action space (schema ``Space``)."""
 
+    SCHEMA: ClassVar[str] = "Space"
+
     names: list[str]
     low: Array
     high: Array
@@ -79,6 +89,8 @@ class Space:
 class Experiment:
     """An experiment with its resolved settings, spaces and progress (schema ``Experiment``)."""
 
+    SCHEMA: ClassVar[str] = "Experiment"
+
     id: int
     name: str
     domain: dict[str, Any]
@@ -94,7 +106,9 @@ class Experiment:
     n_transitions: int
     iteration: int
     model_version: int
-    raw: dict[str, Any] = field(repr=False, compare=False)
+    last_activity: str
+    """The latest of its creation, its last posted trajectory and its last proposal."""
+    raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Experiment:
@@ -115,6 +129,7 @@ class Experiment:
             n_transitions=int(d["n_transitions"]),
             iteration=int(d["iteration"]),
             model_version=int(d["model_version"]),
+            last_activity=str(d["last_activity"]),
             raw=d,
         )
 
@@ -126,6 +141,8 @@ class Transition:
     ``s_pred`` is the client's own prediction ``f̂(s, a)``: required when the experiment's model
     is the client's (``model.kind`` ``client``), refused otherwise.
     """
+
+    SCHEMA: ClassVar[str] = "TransitionRequest"
 
     s: ArrayLike
     a: ArrayLike
@@ -165,6 +182,8 @@ def transitions_from_states(
 class StoredTransition:
     """A stored, labelled transition (schema ``Transition``)."""
 
+    SCHEMA: ClassVar[str] = "Transition"
+
     id: int
     trajectory_id: int
     step: int
@@ -193,6 +212,8 @@ class StoredTransition:
 class TrajectoryCreated:
     """The answer to a posted trajectory (schema ``TrajectoryCreated``)."""
 
+    SCHEMA: ClassVar[str] = "TrajectoryCreated"
+
     id: int
     experiment_id: int
     proposal_id: int | None
@@ -203,7 +224,7 @@ class TrajectoryCreated:
     model_version: int
     n_trajectories: int
     created_at: str
-    replayed: bool = False
+    replayed: bool = field(default=False, metadata=CLIENT_ONLY)
     """Whether the server replayed the answer to an earlier request with the same
     ``Idempotency-Key`` (nothing new was stored)."""
 
@@ -231,6 +252,8 @@ class Candidate:
     """A trajectory the client planned itself (schema ``CandidateTrajectory``): its predicted
     states, starting with the start state, and the actions between them."""
 
+    SCHEMA: ClassVar[str] = "CandidateTrajectory"
+
     states: ArrayLike
     actions: ArrayLike
 
@@ -242,7 +265,9 @@ class Candidate:
 @dataclass(frozen=True)
 class PlannedTrajectory:
     """A planned trajectory with the MDE's answer per step (schemas ``PlannedTrajectory`` and
-    ``ProposedTrajectory``)."""
+    ``ProposedTrajectory``: a proposal's trajectory also has ``alpha_step`` and ``alpha``)."""
+
+    SCHEMA: ClassVar[tuple[str, ...]] = ("PlannedTrajectory", "ProposedTrajectory")
 
     states: Array
     """Predicted states ``(T + 1, n)``, the start first."""
@@ -274,6 +299,8 @@ class CandidateScore:
     """A scored candidate of a proposal or plan (schema ``CandidateScore``); the verdict
     fields are set only for the client's own candidates."""
 
+    SCHEMA: ClassVar[str] = "CandidateScore"
+
     alpha: float
     length: int
     inside: bool | None = None
@@ -301,6 +328,8 @@ class CandidateScore:
 class Proposal:
     """A proposal: the trajectory to execute next, leased to a client (schema ``Proposal``)."""
 
+    SCHEMA: ClassVar[str] = "Proposal"
+
     id: int
     status: str
     """``open``, ``executed``, ``abandoned`` or ``expired``."""
@@ -317,7 +346,7 @@ class Proposal:
     candidates: list[CandidateScore]
     chosen_index: int
     extensions: int
-    raw: dict[str, Any] = field(repr=False, compare=False)
+    raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
     relaxed_from_beta: float | None = None
     """The iteration's ``β_j`` when no trajectory reached the goal inside the precondition at
     it and the proposal was planned at the lower :attr:`beta` (``learning.relax_beta``)."""
@@ -362,6 +391,8 @@ class Proposal:
 class Plan:
     """A test-time plan (schema ``Plan``)."""
 
+    SCHEMA: ClassVar[str] = "Plan"
+
     found: bool
     extensions: int
     beta: float
@@ -390,6 +421,8 @@ class Plan:
 class Hyperparameters:
     """A GP's hyperparameters in natural units (schema ``Hyperparameters``)."""
 
+    SCHEMA: ClassVar[str] = "Hyperparameters"
+
     length_scales: Array
     signal_variance: float
     noise_variance: float
@@ -410,8 +443,71 @@ class Hyperparameters:
 
 
 @dataclass(frozen=True)
+class NoiseSummary:
+    """A heteroscedastic model's noise, summarised (schema ``NoiseSummary``)."""
+
+    SCHEMA: ClassVar[str] = "NoiseSummary"
+
+    min_noise_variance: float
+    mean_noise_variance: float
+    max_noise_variance: float
+    noise_model: Hyperparameters
+    """The GP on log noise variances."""
+    rounds: int
+    homoscedastic_lml: float
+    """Log marginal likelihood of the initial homoscedastic fit."""
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> NoiseSummary:
+        """Reads the JSON form."""
+        return cls(
+            min_noise_variance=float(d["min_noise_variance"]),
+            mean_noise_variance=float(d["mean_noise_variance"]),
+            max_noise_variance=float(d["max_noise_variance"]),
+            noise_model=Hyperparameters.from_json(d["noise_model"]),
+            rounds=int(d["rounds"]),
+            homoscedastic_lml=float(d["homoscedastic_lml"]),
+        )
+
+
+@dataclass(frozen=True)
+class HeldOutTrust:
+    """How a candidate label cap's model judged its own training transitions, each distinct
+    state-action held out in turn (schema ``HeldOutTrust``)."""
+
+    SCHEMA: ClassVar[str] = "HeldOutTrust"
+
+    label_cap: float
+    """The candidate cap (times ``d_max``; 0 = raw labels)."""
+    safe: int
+    unsafe_transitions: int
+    trusted_safe: int
+    trusted_unsafe: int
+    """Unsafe transitions inside the held-out precondition (false trust)."""
+    log_score: float
+    """Mean log probability given to the side of ``d_max`` each deviation fell on (0 is
+    perfect); ``"auto"`` keeps the highest."""
+    held_out_groups: int
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> HeldOutTrust:
+        """Reads the JSON form."""
+        return cls(
+            label_cap=float(d["label_cap"]),
+            safe=int(d["safe"]),
+            unsafe_transitions=int(d["unsafe_transitions"]),
+            trusted_safe=int(d["trusted_safe"]),
+            trusted_unsafe=int(d["trusted_unsafe"]),
+            log_score=float(d["log_score"]),
+            held_out_groups=int(d["held_out_groups"]),
+        )
+
+
+@dataclass(frozen=True)
 class Model:
     """The MDE version answering queries (schema ``Model``)."""
+
+    SCHEMA: ClassVar[str] = "Model"
 
     experiment_id: int
     version: int
@@ -421,21 +517,26 @@ class Model:
     noise: str | None
     feature_names: list[str]
     hyperparameters: Hyperparameters
+    noise_model: NoiseSummary | None
+    """The heteroscedastic noise model; ``None`` for the prior and homoscedastic fits."""
     log_marginal_likelihood: float | None
     fit_seconds: float | None
     fitted_at: str | None
     n_trajectories: int
     label_cap: float | None
     """The label cap the fit clipped deviations at (times ``d_max``; 0 = raw labels); ``None``
-    for the prior. Each candidate's held-out judgement is in ``raw["label_cap_trials"]``."""
-    raw: dict[str, Any] = field(repr=False, compare=False)
+    for the prior."""
+    label_cap_trials: list[HeldOutTrust]
+    """Each candidate cap's held-out judgement (empty for the prior)."""
+    raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Model:
-        """Reads the JSON form (the noise model's summary stays in ``raw["noise_model"]``)."""
+        """Reads the JSON form."""
         lml = d.get("log_marginal_likelihood")
         fs = d.get("fit_seconds")
         cap = d.get("label_cap")
+        noise_model = d.get("noise_model")
         return cls(
             experiment_id=int(d["experiment_id"]),
             version=int(d["version"]),
@@ -444,11 +545,13 @@ class Model:
             noise=d.get("noise"),
             feature_names=list(d["feature_names"]),
             hyperparameters=Hyperparameters.from_json(d["hyperparameters"]),
+            noise_model=NoiseSummary.from_json(noise_model) if noise_model is not None else None,
             log_marginal_likelihood=float(lml) if lml is not None else None,
             fit_seconds=float(fs) if fs is not None else None,
             fitted_at=d.get("fitted_at"),
             n_trajectories=int(d["n_trajectories"]),
             label_cap=float(cap) if cap is not None else None,
+            label_cap_trials=[HeldOutTrust.from_json(t) for t in d["label_cap_trials"]],
             raw=d,
         )
 
@@ -456,7 +559,12 @@ class Model:
 @dataclass(frozen=True)
 class Precondition:
     """The answer to a precondition query, one entry per point in every array
-    (schema ``PreconditionAnswer``)."""
+    (schema ``PreconditionAnswer``, its ``results`` (schema ``PreconditionResult``) read
+    column by column into ``mu``, ``sigma``, ``upper`` and ``inside``)."""
+
+    SCHEMA: ClassVar[str] = "PreconditionAnswer"
+    COLUMNS: ClassVar[Mapping[str, str]] = {"results": "PreconditionResult"}
+    """Array properties whose items' properties become one array field each."""
 
     model_version: int
     source: str
