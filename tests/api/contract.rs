@@ -1,6 +1,9 @@
-//! The router and `api/openapi.yaml` describe the same routes.
+//! The router and `api/openapi.yaml` describe the same routes and the same error codes.
 
+use precond::domain::DynamicsError;
+use precond::http::error::ApiError;
 use precond::http::routes;
+use precond::service::Error;
 use std::collections::BTreeSet;
 
 fn spec() -> serde_yaml::Value {
@@ -50,4 +53,109 @@ fn the_spec_describes_the_error_shape() {
     for field in ["code", "message", "details"] {
         assert!(!inner[field].is_null(), "Error.error.{field} is described");
     }
+}
+
+/// One error of every kind the server can answer. The match below has no wildcard, so a new
+/// variant of `ApiError`, `service::Error` or `DynamicsError` does not compile until it is
+/// listed here, and the test below then checks its code against the spec.
+fn one_of_every_error() -> Vec<ApiError> {
+    let errors = vec![
+        ApiError::BadRequest("malformed".into()),
+        ApiError::PayloadTooLarge { limit: 1 },
+        ApiError::MethodNotAllowed,
+        ApiError::Unavailable("database".into()),
+        ApiError::Unauthorized,
+        ApiError::Forbidden("role".into()),
+        ApiError::Service(Error::validation("field", "reason")),
+        ApiError::Service(Error::NotFound("nothing".into())),
+        ApiError::Service(Error::Conflict("twice".into())),
+        ApiError::Service(Error::LeaseHeld {
+            proposal_id: 1,
+            client_id: "r1".into(),
+            start: vec![0.0],
+            goal: vec![1.0],
+        }),
+        ApiError::Service(Error::NoPlan {
+            extensions: 1,
+            candidates: Vec::new(),
+        }),
+        ApiError::Service(Error::Overloaded {
+            retry_after_secs: 1,
+        }),
+        ApiError::Service(Error::DeadlineExceeded {
+            extensions: 1,
+            timeout_ms: 1,
+            retry_after_secs: 1,
+        }),
+        ApiError::Service(Error::Cancelled),
+        ApiError::Service(Error::LimitReached("full".into())),
+        ApiError::Service(Error::Dynamics(DynamicsError::Timeout {
+            model: "m".into(),
+            timeout_ms: 1,
+        })),
+        ApiError::Service(Error::Dynamics(DynamicsError::Unavailable {
+            model: "m".into(),
+            reason: "down".into(),
+        })),
+        ApiError::Service(Error::Dynamics(DynamicsError::ClientSide)),
+        ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
+    ];
+    for e in &errors {
+        match e {
+            ApiError::BadRequest(_)
+            | ApiError::PayloadTooLarge { .. }
+            | ApiError::MethodNotAllowed
+            | ApiError::Unavailable(_)
+            | ApiError::Unauthorized
+            | ApiError::Forbidden(_) => {}
+            ApiError::Service(s) => match s {
+                Error::Validation { .. }
+                | Error::NotFound(_)
+                | Error::Conflict(_)
+                | Error::LeaseHeld { .. }
+                | Error::NoPlan { .. }
+                | Error::Overloaded { .. }
+                | Error::DeadlineExceeded { .. }
+                | Error::Cancelled
+                | Error::LimitReached(_)
+                | Error::Internal(_) => {}
+                Error::Dynamics(d) => match d {
+                    DynamicsError::Timeout { .. }
+                    | DynamicsError::Unavailable { .. }
+                    | DynamicsError::ClientSide => {}
+                },
+            },
+        }
+    }
+    errors
+}
+
+#[test]
+fn the_error_codes_the_server_answers_are_the_specs_enum() {
+    let spec = spec();
+    let enumerated: BTreeSet<String> =
+        spec["components"]["schemas"]["ErrorBody"]["properties"]["code"]["enum"]
+            .as_sequence()
+            .expect("ErrorBody.code has an enum: the one list of codes (clients check against it)")
+            .iter()
+            .map(|c| c.as_str().unwrap().to_string())
+            .collect();
+    let answered: BTreeSet<String> = one_of_every_error()
+        .iter()
+        .map(|e| {
+            let body = serde_json::to_value(e.body()).unwrap();
+            assert_eq!(body["error"]["code"], e.code(), "the body carries the code");
+            e.code().to_string()
+        })
+        .collect();
+    let not_in_spec: Vec<_> = answered.difference(&enumerated).collect();
+    let never_answered: Vec<_> = enumerated.difference(&answered).collect();
+    assert!(
+        not_in_spec.is_empty(),
+        "answered but not in ErrorBody.code: {not_in_spec:?}"
+    );
+    assert!(
+        never_answered.is_empty(),
+        "in ErrorBody.code but never answered: {never_answered:?}"
+    );
 }
