@@ -53,8 +53,17 @@ class Client:
 
     Args:
         base_url: The server, e.g. ``http://127.0.0.1:8080``.
-        token: Sent as ``Authorization: Bearer <token>`` (for a server behind an authenticating
-            proxy; precond itself does not check it).
+        token: The access token, sent as ``Authorization: Bearer <token>``. A server started
+            with ``--token-file`` checks it on every route but ``/healthz`` and ``/readyz``:
+            none or an unknown one raises :class:`~precond_client.errors.Unauthorized` (401);
+            a token without the route's role or whose experiments do not include the one asked
+            for raises :class:`~precond_client.errors.Forbidden` (403). Roles are cumulative:
+            ``read`` for reads, precondition queries and test-time plans; ``write`` also for
+            proposals and trajectories (what a robot needs); ``admin`` also for creating
+            experiments and forced refits. A token scoped to some experiments lists only those
+            and cannot create any (so :meth:`ensure_experiment` with a robot's ``write`` token
+            finds an experiment but cannot create one). A server without a token file
+            (loopback only, unless ``--insecure-no-auth``) ignores the header.
         timeout: Seconds to wait for each answer (proposals plan on the server: allow a few
             seconds).
         experiment_id: The current experiment for the experiment-scoped calls.
