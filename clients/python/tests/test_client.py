@@ -385,14 +385,48 @@ def test_propose_sends_candidates_and_the_default_client_id() -> None:
     assert p.trajectory.alpha == -1.0
 
 
-class FakeLoopServer:
-    """Proposals with leases, as the server keeps them, for the loop's unit tests."""
+def model_json(version: int, n_trajectories: int) -> dict[str, Any]:
+    return {
+        "experiment_id": 1,
+        "version": version,
+        "source": "fit" if version else "prior",
+        "n_train": 3 * n_trajectories,
+        "noise": None,
+        "feature_names": ["s0", "s1", "a0", "a1"],
+        "hyperparameters": {
+            "length_scales": [0.5] * 4,
+            "signal_variance": 1.0,
+            "noise_variance": 0.0,
+            "prior_mean": 0.0,
+            "kernel": "matern12",
+        },
+        "noise_model": None,
+        "log_marginal_likelihood": None,
+        "fit_seconds": None,
+        "fitted_at": None,
+        "n_trajectories": n_trajectories,
+        "label_cap": None,
+        "label_cap_trials": [],
+    }
 
-    def __init__(self) -> None:
+
+class FakeLoopServer:
+    """Proposals with leases, as the server keeps them, for the loop's unit tests; with
+    ``batch_size``, a background refit after each batch that answers ``GET …/model`` only after
+    ``fit_polls`` polls."""
+
+    def __init__(self, batch_size: int | None = None, fit_polls: int = 0) -> None:
         self.proposals: dict[int, dict[str, Any]] = {}
         self.posted: list[int] = []
         self.abandoned: list[int] = []
         self.no_plan_goals: set[tuple[float, ...]] = set()
+        self.at_goal_starts: set[tuple[float, ...]] = set()
+        self.batch_size = batch_size
+        self.fit_polls = fit_polls
+        self.polls_left = 0
+        self.model = model_json(0, 0)
+        self.fitted = model_json(0, 0)
+        self.log: list[str] = []
 
     def held(self, client_id: str) -> dict[str, Any] | None:
         for p in self.proposals.values():
@@ -402,8 +436,25 @@ class FakeLoopServer:
 
     def __call__(self, req: httpx.Request) -> httpx.Response:
         path = req.url.path
+        if path.endswith("/model"):
+            if self.polls_left > 0:
+                self.polls_left -= 1
+            else:
+                self.model = self.fitted
+            self.log.append(f"model {self.model['n_trajectories']}")
+            return httpx.Response(200, json=self.model)
+        if path == "/v1/experiments/1":
+            exp = experiment_json(1)
+            exp["learning"] = {"batch_size": self.batch_size}
+            return httpx.Response(200, json=exp)
         if path.endswith("/proposals"):
             body = json.loads(req.content)
+            self.log.append("propose")
+            if tuple(body["start"]) in self.at_goal_starts:
+                reason = "the start already satisfies the goal: there is nothing to plan"
+                return error(
+                    422, "validation_failed", f"goal: {reason}", {"field": "goal", "reason": reason}
+                )
             held = self.held(body["client_id"])
             if held is not None:
                 if held["start"] == body["start"] and held["goal"] == body["goal"]:
@@ -430,7 +481,15 @@ class FakeLoopServer:
             assert req.headers["Idempotency-Key"] == f"proposal-{pid}"
             self.proposals[pid]["status"] = "executed"
             self.posted.append(pid)
-            return httpx.Response(201, json=created_json(len(self.posted), pid))
+            self.log.append("post")
+            created = created_json(len(self.posted), pid)
+            if self.batch_size is not None:
+                created["iteration"] = len(self.posted) // self.batch_size
+                created["model_version"] = self.fitted["version"]
+                if len(self.posted) % self.batch_size == 0:  # the batch's refit starts
+                    self.fitted = model_json(self.fitted["version"] + 1, len(self.posted))
+                    self.polls_left = self.fit_polls
+            return httpx.Response(201, json=created)
         return error(404, "not_found")
 
 
@@ -549,3 +608,128 @@ def test_learn_sends_the_clients_own_candidates_for_each_problem() -> None:
     for ep in c.learn([([0.0, 0.0], [0.5, 0.0])], candidates=planner):
         ep.post(np.vstack([ep.start, ep.start + ep.actions[0]]))
     assert sent == [[{"states": [[0.0, 0.0], [0.5, 0.0]], "actions": [[0.5, 0.0]]}]]
+
+
+def run_loop(learner: Any) -> list[int]:
+    """Executes every episode exactly as proposed; the proposal ids in order."""
+    ids = []
+    for ep in learner:
+        ids.append(ep.proposal.id)
+        ep.post(np.vstack([ep.start, ep.start + ep.actions[0]]))
+    return ids
+
+
+def test_learn_skips_a_start_that_already_satisfies_its_goal_and_says_so(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    server = FakeLoopServer()
+    server.at_goal_starts.add((0.5, 0.5))
+    c = make_client(server, experiment_id=1, client_id="r1")
+    problems = [([0.0, 0.0], [1.0, 0.0]), ([0.5, 0.5], [0.51, 0.5]), ([0.0, 0.0], [0.0, 1.0])]
+    with caplog.at_level("WARNING", logger="precond_client"):
+        learner = c.learn(problems)
+        assert run_loop(learner) == [1, 2]
+    assert (learner.episodes, learner.posted, learner.at_goal, learner.no_plan) == (2, 2, 1, 0)
+    assert any(
+        "problem 1" in r.message and "already satisfies the goal" in r.message
+        for r in caplog.records
+    )
+
+
+def test_learn_still_raises_other_validation_failures() -> None:
+    def handler(req: httpx.Request) -> httpx.Response:
+        return error(422, "validation_failed", "goal: outside", {"field": "goal", "reason": "x"})
+
+    c = make_client(handler, experiment_id=1, client_id="r1")
+    with pytest.raises(ValidationFailed):
+        list(c.learn([([0.0, 0.0], [9.0, 0.0])]))
+
+
+def test_learn_waits_for_the_refit_of_each_completed_batch_before_proposing() -> None:
+    server = FakeLoopServer(batch_size=2, fit_polls=3)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    problems = [([0.0, 0.0], [float(i), 1.0]) for i in range(1, 6)]
+    learner = c.learn(problems)
+    assert run_loop(learner) == [1, 2, 3, 4, 5]
+    # After the 2nd and 4th posts the loop polls until the model covers the batch (3 polls
+    # answer the old model, the 4th the refit), and it proposes only then; after the 5th (an
+    # incomplete batch) it does not wait.
+    assert server.log == [
+        *["propose", "post", "propose", "post"],
+        *["model 0"] * 3,
+        "model 2",
+        *["propose", "post", "propose", "post"],
+        *["model 2"] * 3,
+        "model 4",
+        *["propose", "post"],
+    ]
+    assert learner.model_version == 2
+
+
+def test_learn_waits_for_the_last_batch_when_the_problems_run_out() -> None:
+    server = FakeLoopServer(batch_size=2, fit_polls=1)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    learner = c.learn([([0.0, 0.0], [1.0, 1.0]), ([0.0, 0.0], [2.0, 1.0])])
+    run_loop(learner)
+    assert server.log[-2:] == ["model 0", "model 2"]
+    assert learner.model_version == 1
+
+
+def test_learn_need_not_wait_for_the_model() -> None:
+    server = FakeLoopServer(batch_size=1, fit_polls=5)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    run_loop(c.learn([([0.0, 0.0], [float(i), 1.0]) for i in range(1, 4)], wait_for_model=False))
+    assert server.log == ["propose", "post"] * 3
+
+
+def test_a_model_that_does_not_come_is_waited_for_once_then_the_loop_goes_on(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    server = FakeLoopServer(batch_size=1, fit_polls=10**9)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    with caplog.at_level("WARNING", logger="precond_client"):
+        learner = c.learn([([0.0, 0.0], [1.0, 1.0]), ([0.0, 0.0], [2.0, 1.0])], model_timeout=0.0)
+        assert run_loop(learner) == [1, 2]
+    assert server.log.count("propose") == 2 and server.log.count("post") == 2
+    timeouts = [r for r in caplog.records if "going on with the model that answers" in r.message]
+    assert len(timeouts) == 2  # after each post, once
+
+
+def test_learn_reports_its_progress_to_a_callback_and_the_log(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from precond_client import Progress
+
+    server = FakeLoopServer(batch_size=2)
+    server.no_plan_goals.add((9.0, 9.0))
+    server.at_goal_starts.add((0.5, 0.5))
+    c = make_client(server, experiment_id=1, client_id="r1")
+    seen: list[Progress] = []
+    problems = [
+        ([0.0, 0.0], [1.0, 0.0]),
+        ([0.0, 0.0], [9.0, 9.0]),
+        ([0.5, 0.5], [0.5, 0.5]),
+        ([0.0, 0.0], [2.0, 0.0]),
+    ]
+    with caplog.at_level("INFO", logger="precond_client"):
+        run_loop(c.learn(problems, progress=seen.append))
+    assert [(p.event, p.problem) for p in seen] == [
+        ("posted", 0),
+        ("no_plan", 1),
+        ("at_goal", 2),
+        ("posted", 3),
+        ("model", 3),
+    ]
+    last = seen[-1]
+    assert (last.episodes, last.posted, last.no_plan, last.at_goal, last.model_version) == (
+        2,
+        2,
+        1,
+        1,
+        1,
+    )
+    assert seen[0].result is not None and seen[0].proposal_id == 1
+    messages = [r.message for r in caplog.records]
+    assert any(m.startswith("episode 1: proposal 1 posted") for m in messages)
+    assert any("problem 1: no trajectory" in m for m in messages)
+    assert any(m.startswith("model version 1 covers 2 trajectories") for m in messages)

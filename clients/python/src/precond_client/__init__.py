@@ -50,7 +50,7 @@ from .models import (
     Transition,
     transitions_from_states,
 )
-from .robot import Episode, Learner
+from .robot import Episode, Learner, Progress
 
 __all__ = [
     "ApiError",
@@ -83,6 +83,7 @@ __all__ = [
     "PlannedTrajectory",
     "PrecondError",
     "Precondition",
+    "Progress",
     "Proposal",
     "Space",
     "StoredTransition",

@@ -41,7 +41,7 @@ from .models import (
 )
 
 if TYPE_CHECKING:
-    from .robot import CandidateFn, Learner, Problem
+    from .robot import CandidateFn, Learner, Problem, ProgressFn
 
 PRECONDITION_CHUNK = 10_000
 """Points per precondition request (the server accepts up to 100 000, but the request body
@@ -432,10 +432,19 @@ class Client:
         candidates: CandidateFn | None = None,
         resume: bool = True,
         skip_no_plan: bool = True,
+        wait_for_model: bool = True,
+        model_timeout: float = 300.0,
+        progress: ProgressFn | None = None,
     ) -> Learner:
         """The active-learning loop over ``problems`` (pairs ``(start, goal)``): an iterator of
         :class:`~precond_client.robot.Episode`, each a proposal to execute and report with
-        ``episode.post(observed_states)`` (or ``episode.abandon()``). See
+        ``episode.post(observed_states)`` (or ``episode.abandon()``).
+
+        A problem whose start already satisfies its goal is skipped (logged), as is one with
+        no plan unless ``skip_no_plan=False``. With ``wait_for_model`` (default) the loop waits
+        up to ``model_timeout`` seconds, after each completed batch, for the background refit
+        before the next proposal. ``progress`` receives a
+        :class:`~precond_client.robot.Progress` after each event. See
         :class:`~precond_client.robot.Learner`."""
         from .robot import Learner
 
@@ -446,4 +455,7 @@ class Client:
             candidates=candidates,
             resume=resume,
             skip_no_plan=skip_no_plan,
+            wait_for_model=wait_for_model,
+            model_timeout=model_timeout,
+            progress=progress,
         )
