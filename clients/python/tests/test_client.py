@@ -733,3 +733,52 @@ def test_learn_reports_its_progress_to_a_callback_and_the_log(
     assert any(m.startswith("episode 1: proposal 1 posted") for m in messages)
     assert any("problem 1: no trajectory" in m for m in messages)
     assert any(m.startswith("model version 1 covers 2 trajectories") for m in messages)
+
+
+def test_ensure_experiment_refuses_an_experiment_with_other_settings() -> None:
+    from precond_client import ExperimentMismatch
+
+    stored = experiment_json(1, "arm")
+    stored["d_max"] = 0.05
+    stored["domain"] = {
+        "kind": "custom",
+        "state": {"names": ["s0", "s1"], "low": [0.0, 0.0], "high": [1.0, 1.0]},
+        "goal": {"components": None, "radius": 0.05},
+        "model": {"kind": "remote", "url": "http://127.0.0.1:9000/predict", "timeout_ms": 2000},
+    }
+    stored["learning"] = {"batch_size": 5, "preset": "default"}
+    created: list[Any] = []
+
+    def handler(req: httpx.Request) -> httpx.Response:
+        if req.method == "GET":
+            return httpx.Response(200, json={"items": [stored]})
+        created.append(req)
+        return httpx.Response(201, json=stored)
+
+    c = make_client(handler)
+    # Only what is asked is compared: the defaults the server resolved do not count, integers
+    # equal floats, None means "the default".
+    same = {
+        "kind": "custom",
+        "state": {"low": [0, 0], "high": [1, 1]},
+        "model": {"kind": "remote", "url": "http://127.0.0.1:9000/predict"},
+        "goal": {"components": None},
+    }
+    assert c.ensure_experiment("arm", d_max=0.05, domain=same, learning={"batch_size": 5}).id == 1
+    assert c.ensure_experiment("arm", {"name": "ignored", "d_max": None}).id == 1
+
+    c.experiment_id = None
+    other = {**same, "model": {"kind": "remote", "url": "http://127.0.0.1:9001/predict"}}
+    with pytest.raises(ExperimentMismatch) as e:
+        c.ensure_experiment("arm", d_max=0.03, domain=other, learning={"relax_beta": False})
+    assert e.value.differences == [
+        ("d_max", 0.03, 0.05),
+        ("domain.model.url", "http://127.0.0.1:9001/predict", "http://127.0.0.1:9000/predict"),
+        ("learning.relax_beta", False, "<absent>"),
+    ]
+    assert e.value.experiment.id == 1
+    assert "experiment 1 'arm' exists with other settings" in str(e.value)
+    assert "d_max: asked 0.03, stored 0.05" in str(e.value)
+    assert c.experiment_id is None and created == []
+    with pytest.raises(ExperimentMismatch):
+        c.ensure_experiment("arm", domain={"state": {"low": [0, 0, 0]}})

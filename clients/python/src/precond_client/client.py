@@ -15,6 +15,7 @@ surely did not arrive; :meth:`Client.ensure_experiment` makes creation safe to r
 
 from __future__ import annotations
 
+import math
 import random
 import socket
 import time
@@ -23,6 +24,7 @@ from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import httpx
+import numpy as np
 from numpy.typing import ArrayLike
 
 from . import errors
@@ -46,6 +48,47 @@ if TYPE_CHECKING:
 PRECONDITION_CHUNK = 10_000
 """Points per precondition request (the server accepts up to 100 000, but the request body
 is limited to 4 MiB by default)."""
+
+
+def settings_differences(asked: Any, stored: Any, path: str = "") -> list[tuple[str, Any, Any]]:
+    """``(path, asked, stored)`` wherever ``stored`` (an experiment's resolved settings, as
+    JSON) differs from ``asked``: only what ``asked`` gives is compared (its keys, recursively;
+    ``None`` means "the default" and is not compared); lists item by item; numbers as
+    numbers, so ``0`` equals ``0.0``."""
+    if asked is None:
+        return []
+    if isinstance(asked, Mapping):
+        if not isinstance(stored, Mapping):
+            return [(path, asked, stored)]
+        out = []
+        for key, value in asked.items():
+            at = f"{path}.{key}" if path else str(key)
+            if key not in stored:
+                if value is not None:
+                    out.append((at, value, errors.ABSENT))
+                continue
+            out += settings_differences(value, stored[key], at)
+        return out
+    if isinstance(asked, np.ndarray):
+        asked = asked.tolist()
+    if isinstance(asked, (list, tuple)):
+        if not isinstance(stored, list) or len(stored) != len(asked):
+            return [(path, asked, stored)]
+        out = []
+        for i, (a, s) in enumerate(zip(asked, stored, strict=True)):
+            out += settings_differences(a, s, f"{path}[{i}]")
+        return out
+    numbers = (int, float, np.integer, np.floating)
+    if (
+        isinstance(asked, numbers)
+        and not isinstance(asked, bool)
+        and isinstance(stored, numbers)
+        and not isinstance(stored, bool)
+    ):
+        same = math.isclose(float(asked), float(stored), rel_tol=1e-12, abs_tol=0.0)
+    else:
+        same = asked == stored
+    return [] if same else [(path, asked, stored)]
 
 
 class Client:
@@ -221,13 +264,26 @@ class Client:
     ) -> Experiment:
         """The newest experiment called ``name``, created with ``settings`` if there is none;
         it becomes the current one. Safe to call again after a crash or a lost answer (an
-        experiment whose creation answer was lost is found by its name)."""
+        experiment whose creation answer was lost is found by its name).
+
+        An experiment found by its name must have the settings asked for: each setting given
+        (``settings`` merged with the keyword arguments, nested objects and lists compared
+        item by item, numbers as numbers) is compared with the resolved settings the server
+        returns; settings not given, and those given as ``None`` (the default), are not
+        compared. Any difference raises :class:`~precond_client.errors.ExperimentMismatch`
+        listing them (nothing is created or used). Without settings the experiment is used as
+        it is.
+        """
         if not name:
             raise ValueError("ensure_experiment needs a non-empty name")
+        asked = {k: v for k, v in {**(settings or {}), **fields}.items() if k != "name"}
         for attempt in range(self.retries + 1):
             found = [e for e in self.list_experiments() if e.name == name]
             if found:
                 exp = found[-1]
+                differences = settings_differences(asked, exp.raw)
+                if differences:
+                    raise errors.ExperimentMismatch(exp, differences)
                 self.experiment_id = exp.id
                 return exp
             try:

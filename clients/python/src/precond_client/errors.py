@@ -27,6 +27,36 @@ class TransportError(PrecondError):
     """The server could not be reached (or kept failing) after every retry."""
 
 
+class ExperimentMismatch(PrecondError):
+    """:meth:`~precond_client.Client.ensure_experiment` found an experiment by its name whose
+    stored settings differ from the ones asked for (creating another with the same name would
+    hide it; learning on in it would mix two setups).
+
+    Attributes:
+        experiment: The experiment found (an :class:`~precond_client.models.Experiment`).
+        differences: ``(path, asked, stored)`` per differing setting, e.g.
+            ``("domain.model.url", "http://…:9001/predict", "http://…:9000/predict")``;
+            ``stored`` is :data:`ABSENT` when the experiment has no such setting.
+    """
+
+    def __init__(self, experiment: Any, differences: list[tuple[str, Any, Any]]) -> None:
+        listed = "; ".join(
+            f"{path}: asked {asked!r}, stored {stored!r}" for path, asked, stored in differences
+        )
+        super().__init__(
+            f"experiment {experiment.id} {experiment.name!r} exists with other settings "
+            f"({listed}); choose another name, or ensure_experiment(name) without settings to "
+            f"use it as it is"
+        )
+        self.experiment = experiment
+        self.differences = differences
+
+
+ABSENT = "<absent>"
+"""The stored value in :attr:`ExperimentMismatch.differences` of a setting the experiment
+does not have."""
+
+
 class ApiError(PrecondError):
     """An error answered by the server.
 
