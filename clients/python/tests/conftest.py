@@ -29,10 +29,17 @@ class PrecondServer:
     """A ``precond serve`` process that can be stopped and started again on the same port and
     database (a server restart)."""
 
-    def __init__(self, binary: Path, db: Path, allow_model_urls: list[str]) -> None:
+    def __init__(
+        self,
+        binary: Path,
+        db: Path,
+        allow_model_urls: list[str],
+        extra_args: list[str] | None = None,
+    ) -> None:
         self.binary = binary
         self.db = db
         self.allow = allow_model_urls
+        self.extra_args = extra_args or []
         self.addr = "127.0.0.1:0"
         self.proc: subprocess.Popen[str] | None = None
         self.log: list[str] = []
@@ -47,6 +54,7 @@ class PrecondServer:
         args = [str(self.binary), "serve", "--addr", self.addr, "--database-url", str(self.db)]
         for prefix in self.allow:
             args += ["--allow-model-url", prefix]
+        args += self.extra_args
         env = {**os.environ, "NO_COLOR": "1", "RUST_LOG": "info"}
         proc = subprocess.Popen(
             args,
@@ -104,12 +112,15 @@ def precond_binary() -> Path:
 
 @pytest.fixture
 def make_server(precond_binary: Path, tmp_path: Path) -> Iterator[Callable[..., PrecondServer]]:
-    """A factory ``make_server(allow_model_urls)`` of started servers, stopped at the end."""
+    """A factory ``make_server(allow_model_urls, extra_args)`` of started servers, stopped at
+    the end."""
     servers: list[PrecondServer] = []
 
-    def factory(allow_model_urls: list[str] | None = None) -> PrecondServer:
+    def factory(
+        allow_model_urls: list[str] | None = None, extra_args: list[str] | None = None
+    ) -> PrecondServer:
         db = tmp_path / f"precond-{len(servers)}.db"
-        s = PrecondServer(precond_binary, db, allow_model_urls or [])
+        s = PrecondServer(precond_binary, db, allow_model_urls or [], extra_args)
         servers.append(s)
         s.start()
         return s

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -16,9 +17,11 @@ from precond_client import (
     Candidate,
     Client,
     Conflict,
+    Forbidden,
     ModelUnavailable,
     NoPlan,
     NotFound,
+    Unauthorized,
     ValidationFailed,
     serve_model,
     transitions_from_states,
@@ -253,3 +256,43 @@ def test_server_errors_arrive_as_exceptions_with_code_and_details(
         client.propose([0.1, 0.5], [0.4, 0.5])
     assert served.url in str(down.value.details)
     assert time.monotonic() - t0 < 30
+
+
+def test_the_server_checks_tokens_by_role_and_experiment(
+    make_server: MakeServer, tmp_path: Path
+) -> None:
+    admin, robot, reader = "a" * 32, "w" * 32, "r" * 32
+    tokens = tmp_path / "tokens"
+    tokens.write_text(f"{admin} admin *\n{robot} write 1\n{reader} read *\n")
+    server = make_server(extra_args=["--token-file", str(tokens)])
+    grid = {"kind": "icy_gridworld"}
+
+    with pytest.raises(Unauthorized):
+        Client(server.url, retries=0).list_experiments()
+    with pytest.raises(Unauthorized):
+        Client(server.url, token="x" * 32, retries=0).list_experiments()
+
+    operator = Client(server.url, token=admin, timeout=60)
+    first = operator.ensure_experiment("bench 2", domain=grid)
+    second = operator.create_experiment(domain=grid, name="elsewhere")
+    assert (first.id, second.id) == (1, 2)
+
+    # The robot's write token reaches experiment 1 only: it finds it by name, proposes and
+    # posts there, but cannot create an experiment nor reach experiment 2.
+    arm = Client(server.url, token=robot, timeout=60, client_id="arm")
+    assert [e.id for e in arm.list_experiments()] == [1]
+    assert arm.ensure_experiment("bench 2", domain=grid).id == 1
+    with pytest.raises(Forbidden):
+        arm.ensure_experiment("new bench", domain=grid)
+    with pytest.raises(Forbidden):
+        arm.get_experiment(2)
+    proposal = arm.propose([0, 0], [3, 0])
+    arm.post_trajectory(
+        transitions_from_states(proposal.states, proposal.actions), proposal_id=proposal.id
+    )
+
+    # A read token queries but does not propose.
+    dashboard = Client(server.url, token=reader, timeout=60, experiment_id=1)
+    assert dashboard.get_experiment().n_trajectories == 1
+    with pytest.raises(Forbidden):
+        dashboard.propose([0, 0], [3, 0])
