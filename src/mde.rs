@@ -29,7 +29,7 @@ pub struct FitRecord {
     /// The label cap the training labels were clipped at (units of `d_max`; 0 = raw labels).
     pub label_cap: f64,
     /// Every candidate cap's held-out judgement of the training transitions (one entry for a
-    /// fixed cap; empty for versions stored before caps were recorded).
+    /// fixed cap; none for versions fitted before caps were recorded).
     pub label_cap_trials: Vec<HeldOutTrust>,
 }
 
@@ -236,8 +236,7 @@ pub struct HeldOutTrust {
     pub log_score: f64,
     /// Distinct state-actions (identical feature vectors) among the training transitions:
     /// each is held out with all its copies, so every one is judged as an unseen input
-    /// (0 for judgements stored before groups were used, which left one transition out).
-    #[serde(default)]
+    /// (0 for judgements made before groups were used, which left one transition out).
     pub held_out_groups: usize,
 }
 

@@ -32,7 +32,7 @@ use crate::domain::{
     DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, LocalModel, MOVES, Problem, WaterPlant,
 };
 use crate::planning::Strategy;
-use crate::settings::{DomainSpec, LearningSettings, MdeSettings};
+use crate::settings::{DomainSpec, LearningRequest, MdeRequest};
 use crate::sim::{Simulated, World};
 use indicatif::ProgressBar;
 use rand::SeedableRng;
@@ -278,13 +278,13 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
         name,
         domain,
         seed,
-        mde: MdeSettings {
-            noise: cfg.noise.unwrap_or(MdeSettings::default().noise),
+        mde: MdeRequest {
+            noise: cfg.noise.unwrap_or(MdeRequest::default().noise),
             label_cap: cfg.label_cap,
             kernel: cfg.kernel,
-            ..MdeSettings::default()
+            ..MdeRequest::default()
         },
-        learning: LearningSettings {
+        learning: LearningRequest {
             preset: cfg.preset,
             strategy,
             batch_size: cfg.batch_size as u32,
@@ -292,11 +292,11 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
             n_candidates: cfg.n_candidates,
             max_extensions: cfg.max_extensions,
             relax_beta: cfg.relax_beta,
-            c: cfg.c.unwrap_or(LearningSettings::default().c),
+            c: cfg.c.unwrap_or(LearningRequest::default().c),
             aggregation: cfg
                 .aggregation
-                .unwrap_or(LearningSettings::default().aggregation),
-            ..LearningSettings::default()
+                .unwrap_or(LearningRequest::default().aggregation),
+            ..LearningRequest::default()
         },
         ..ExperimentRequest::default()
     }

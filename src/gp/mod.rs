@@ -71,8 +71,7 @@ pub struct Hyperparameters {
     /// Constant prior mean `m` (not optimised).
     pub prior_mean: f64,
     /// The Matérn kernel's smoothness (not optimised by the LML: chosen by the settings, or
-    /// among several fits; states stored before kernels were selectable are ν = 5/2).
-    #[serde(default)]
+    /// among several fits).
     pub kernel: Kernel,
 }
 

@@ -68,7 +68,7 @@ impl LiveExperiment {
         let prior = ServedModel::prior(
             domain.feature_dim(),
             settings.mde.prior_mean,
-            settings.mde.kernel(),
+            settings.mde.kernel,
         );
         Ok(Self {
             id,
@@ -103,7 +103,7 @@ impl LiveExperiment {
             let prior = ServedModel::prior(
                 self.domain.feature_dim(),
                 self.settings.mde.prior_mean,
-                self.settings.mde.kernel(),
+                self.settings.mde.kernel,
             );
             return Ok(Arc::new(prior));
         }
@@ -226,7 +226,7 @@ impl LiveExperiment {
         let dim = self.domain.feature_dim();
         let params = gp_params(
             self.settings.mde.noise,
-            self.settings.mde.kernel(),
+            self.settings.mde.kernel,
             self.settings.mde.prior_mean,
             self.settings.mde.restarts,
             seed::mix(self.settings.seed, version),
@@ -267,7 +267,7 @@ impl LiveExperiment {
             state: gp.state(),
             fit_seconds: fit.fit_seconds,
             fitted_at: fit.fitted_at.clone(),
-            label_cap: Some(fit.label_cap),
+            label_cap: fit.label_cap,
             label_cap_trials: fit.label_cap_trials.clone(),
         };
         store
@@ -319,11 +319,7 @@ impl LiveExperiment {
         let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
         let state = stored.state.clone();
-        // Versions stored before caps were recorded used the experiment's one fixed cap.
-        let label_cap = stored
-            .label_cap
-            .unwrap_or_else(|| self.settings.label_caps()[0]);
-        let labels = capped_labels(&deviations, label_cap, self.settings.d_max);
+        let labels = capped_labels(&deviations, stored.label_cap, self.settings.d_max);
         let gp = tokio::task::spawn_blocking(move || {
             let (x, y) = training_data(features, labels, dim);
             GpModel::from_state(&x, &y, &state)
@@ -338,7 +334,7 @@ impl LiveExperiment {
                 fit_seconds: stored.fit_seconds,
                 fitted_at: stored.fitted_at,
                 n_trajectories: stored.n_trajectories,
-                label_cap,
+                label_cap: stored.label_cap,
                 label_cap_trials: stored.label_cap_trials,
             }),
         })

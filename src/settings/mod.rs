@@ -183,40 +183,27 @@ impl DomainSpec {
     }
 }
 
-/// The model deviation estimator's settings.
+/// The model deviation estimator's settings as a client posts them: every field optional;
+/// `label_cap` and `kernel` absent take the preset's (see [`MdeSettings`] for what each means).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct MdeSettings {
-    /// Noise model. Default `heteroscedastic`.
+pub struct MdeRequest {
+    /// [`MdeSettings::noise`]. Default `heteroscedastic`.
     pub noise: NoiseMode,
-    /// Constant prior mean of the deviation. Default 0 (unexplored regions look trustworthy but
-    /// uncertain, which drives exploration).
+    /// [`MdeSettings::prior_mean`]. Default 0.
     pub prior_mean: f64,
-    /// Extra seeded optimiser starts beyond the first when fitting hyperparameters. Default 2;
-    /// at most 20.
+    /// [`MdeSettings::restarts`]. Default 2.
     pub restarts: usize,
-    /// How deviations become the labels the MDE is fitted on: clipped at `label_cap × d_max`
-    /// (a number; `0` fits the raw labels, the paper's), or `"auto"`: at every fit, the cap
-    /// (2 or 5 `d_max`, or raw) whose model judges its own training transitions best when each
-    /// state-action is held out with all its copies (see
-    /// [`crate::mde::fit_choosing_label_cap`]). Only whether a deviation is
-    /// below `d_max` decides the precondition, so how far above it a failure lands is noise to
-    /// the MDE: fitted raw, a few large deviations set the signal variance, and with it the
-    /// uncertainty at every unseen point. Absent: the preset's (`default`: auto, `paper`: 0); a
-    /// number must be 0 or in `[1, 1000]`.
+    /// [`MdeSettings::label_cap`]. Absent: the preset's (`default`: auto, `paper`: 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub label_cap: Option<LabelCap>,
-    /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32` or
-    /// `matern52` (the paper's). Where the model is wrong, its deviation usually jumps (a
-    /// leaf, a patch of ice, a wall): a ν = 5/2 GP can only follow a jump with length scales as
-    /// short as the jump is sharp, so what it learns spreads no further than that; the rough
-    /// ν = 1/2 kernel follows the jump and keeps long length scales. Absent: the preset's
-    /// (`default`: `matern12`, `paper`: `matern52`).
+    /// [`MdeSettings::kernel`]. Absent: the preset's (`default`: `matern12`, `paper`:
+    /// `matern52`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kernel: Option<Kernel>,
 }
 
-impl Default for MdeSettings {
+impl Default for MdeRequest {
     fn default() -> Self {
         Self {
             noise: NoiseMode::Heteroscedastic,
@@ -228,11 +215,33 @@ impl Default for MdeSettings {
     }
 }
 
-impl MdeSettings {
-    /// The kernel fits use (settings stored before kernels were selectable used ν = 5/2).
-    pub fn kernel(&self) -> Kernel {
-        self.kernel.unwrap_or(Kernel::Matern52)
-    }
+/// The model deviation estimator's settings, resolved: what an experiment fits with, as stored
+/// and shown.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MdeSettings {
+    /// Noise model: `heteroscedastic` or `homoscedastic`.
+    pub noise: NoiseMode,
+    /// Constant prior mean of the deviation (0 by default: unexplored regions look trustworthy
+    /// but uncertain, which drives exploration).
+    pub prior_mean: f64,
+    /// Extra seeded optimiser starts beyond the first when fitting hyperparameters; at most 20.
+    pub restarts: usize,
+    /// How deviations become the labels the MDE is fitted on: clipped at `label_cap × d_max`
+    /// (a number; `0` fits the raw labels, the paper's), or `"auto"`: at every fit, the cap
+    /// (2 or 5 `d_max`, or raw) whose model judges its own training transitions best when each
+    /// state-action is held out with all its copies (see
+    /// [`crate::mde::fit_choosing_label_cap`]). Only whether a deviation is
+    /// below `d_max` decides the precondition, so how far above it a failure lands is noise to
+    /// the MDE: fitted raw, a few large deviations set the signal variance, and with it the
+    /// uncertainty at every unseen point. A number is 0 or in `[1, 1000]`.
+    pub label_cap: LabelCap,
+    /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32` or
+    /// `matern52` (the paper's). Where the model is wrong, its deviation usually jumps (a
+    /// leaf, a patch of ice, a wall): a ν = 5/2 GP can only follow a jump with length scales as
+    /// short as the jump is sharp, so what it learns spreads no further than that; the rough
+    /// ν = 1/2 kernel follows the jump and keeps long length scales.
+    pub kernel: Kernel,
 }
 
 /// A named set of defaults for the settings a preset decides (see [`LearningSettings::preset`]).
@@ -325,49 +334,44 @@ impl<'de> Deserialize<'de> for LabelCap {
     }
 }
 
-/// The active-learning settings.
+/// The active-learning settings as a client posts them: every field optional; `relax_beta`
+/// absent takes the preset's (see [`LearningSettings`] for what each means).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
-pub struct LearningSettings {
-    /// Where the settings it decides come from when they are absent: `default` or `paper`
-    /// (the paper's exact configuration). Default `default`.
+pub struct LearningRequest {
+    /// [`LearningSettings::preset`]. Default `default`.
     pub preset: Preset,
-    /// Default strategy of proposals. Default `active`.
+    /// [`LearningSettings::strategy`]. Default `active`.
     pub strategy: Strategy,
-    /// Executed trajectories per iteration; the MDE is refit after each batch. Default 5.
+    /// [`LearningSettings::batch_size`]. Default 5.
     pub batch_size: u32,
-    /// Planned iterations `J` of the β schedule. Default 20.
+    /// [`LearningSettings::iterations`]. Default 20.
     pub iterations: u32,
-    /// Candidate trajectories per proposal. Default 20.
+    /// [`LearningSettings::n_candidates`]. Default 20.
     pub n_candidates: u32,
-    /// RRT extension budget per search. Default 5000.
+    /// [`LearningSettings::max_extensions`]. Default 5000.
     pub max_extensions: u32,
-    /// Exploration weight `c` in `α_step = μ − c σ`. Default 1.
+    /// [`LearningSettings::c`]. Default 1.
     pub c: f64,
-    /// Discount `γ` of the aggregation. Default 0.9.
+    /// [`LearningSettings::gamma`]. Default 0.9.
     pub gamma: f64,
-    /// Aggregation `h`. Default `max`.
+    /// [`LearningSettings::aggregation`]. Default `max`.
     pub aggregation: Aggregation,
-    /// β schedule amplitude `k1`. Default 2.
+    /// [`LearningSettings::k1`]. Default 2.
     pub k1: f64,
-    /// β schedule steepness `k2`. Default 0.5.
+    /// [`LearningSettings::k2`]. Default 0.5.
     pub k2: f64,
-    /// β used by test-time plans. Default 2 (about 98 % confidence).
+    /// [`LearningSettings::test_beta`]. Default 2.
     pub test_beta: f64,
-    /// Seconds an open proposal stays leased to its client. Default 600.
+    /// [`LearningSettings::proposal_ttl_seconds`]. Default 600.
     pub proposal_ttl_seconds: u32,
-    /// When no training trajectory reaches the goal inside the precondition at the iteration's
-    /// `β_j`, plan again at lower β down to `−k1` (see
-    /// [`relaxation_ladder`](crate::planning::relaxation_ladder)) instead of answering
-    /// `no_plan`: the robot tries the least doubtful way to a goal it cannot yet reach, so
-    /// learning goes on where what is trusted ends (a passage the model doubts, after `β_j`
-    /// turned positive). Test-time plans are never relaxed. Absent: the preset's (`default`:
-    /// true, `paper`: false); settings stored before it existed: false.
+    /// [`LearningSettings::relax_beta`]. Absent: the preset's (`default`: true, `paper`:
+    /// false).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub relax_beta: Option<bool>,
 }
 
-impl Default for LearningSettings {
+impl Default for LearningRequest {
     fn default() -> Self {
         Self {
             preset: Preset::Default,
@@ -388,6 +392,46 @@ impl Default for LearningSettings {
     }
 }
 
+/// The active-learning settings, resolved: what an experiment learns with, as stored and shown.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LearningSettings {
+    /// Where the settings it decides came from: `default` or `paper` (the paper's exact
+    /// configuration).
+    pub preset: Preset,
+    /// Default strategy of proposals.
+    pub strategy: Strategy,
+    /// Executed trajectories per iteration; the MDE is refit after each batch.
+    pub batch_size: u32,
+    /// Planned iterations `J` of the β schedule.
+    pub iterations: u32,
+    /// Candidate trajectories per proposal.
+    pub n_candidates: u32,
+    /// RRT extension budget per search.
+    pub max_extensions: u32,
+    /// Exploration weight `c` in `α_step = μ − c σ`.
+    pub c: f64,
+    /// Discount `γ` of the aggregation.
+    pub gamma: f64,
+    /// Aggregation `h`.
+    pub aggregation: Aggregation,
+    /// β schedule amplitude `k1`.
+    pub k1: f64,
+    /// β schedule steepness `k2`.
+    pub k2: f64,
+    /// β used by test-time plans (2: about 98 % confidence).
+    pub test_beta: f64,
+    /// Seconds an open proposal stays leased to its client.
+    pub proposal_ttl_seconds: u32,
+    /// When no training trajectory reaches the goal inside the precondition at the iteration's
+    /// `β_j`, plan again at lower β down to `−k1` (see
+    /// [`relaxation_ladder`](crate::planning::relaxation_ladder)) instead of answering
+    /// `no_plan`: the robot tries the least doubtful way to a goal it cannot yet reach, so
+    /// learning goes on where what is trusted ends (a passage the model doubts, after `β_j`
+    /// turned positive). Test-time plans are never relaxed.
+    pub relax_beta: bool,
+}
+
 /// An experiment's settings as a client posts them; every field optional.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -406,10 +450,10 @@ pub struct ExperimentRequest {
     pub seed: u64,
     /// MDE settings.
     #[serde(default)]
-    pub mde: MdeSettings,
+    pub mde: MdeRequest,
     /// Learning settings.
     #[serde(default)]
-    pub learning: LearningSettings,
+    pub learning: LearningRequest,
 }
 
 /// An experiment's fully resolved, validated settings.
@@ -459,17 +503,6 @@ impl ExperimentRequest {
                 ),
             ));
         }
-        self.mde.label_cap = Some(cap);
-        self.mde.kernel = Some(
-            self.mde
-                .kernel
-                .unwrap_or_else(|| self.learning.preset.kernel()),
-        );
-        self.learning.relax_beta = Some(
-            self.learning
-                .relax_beta
-                .unwrap_or_else(|| self.learning.preset.relax_beta()),
-        );
         let m = &self.mde;
         finite("mde.prior_mean", m.prior_mean)?;
         if m.restarts > MAX_RESTARTS {
@@ -478,7 +511,14 @@ impl ExperimentRequest {
                 format!("at most {MAX_RESTARTS}"),
             ));
         }
-        let l = &self.learning;
+        let mde = MdeSettings {
+            noise: m.noise,
+            prior_mean: m.prior_mean,
+            restarts: m.restarts,
+            label_cap: cap,
+            kernel: m.kernel.unwrap_or_else(|| self.learning.preset.kernel()),
+        };
+        let l = self.learning;
         in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;
         in_range("learning.iterations", l.iterations, 1, MAX_ITERATIONS)?;
         in_range("learning.n_candidates", l.n_candidates, 1, MAX_CANDIDATES)?;
@@ -507,15 +547,31 @@ impl ExperimentRequest {
         }
         positive("learning.k2", l.k2)?;
         finite("learning.test_beta", l.test_beta)?;
-        l.planning()?;
+        let learning = LearningSettings {
+            preset: l.preset,
+            strategy: l.strategy,
+            batch_size: l.batch_size,
+            iterations: l.iterations,
+            n_candidates: l.n_candidates,
+            max_extensions: l.max_extensions,
+            c: l.c,
+            gamma: l.gamma,
+            aggregation: l.aggregation,
+            k1: l.k1,
+            k2: l.k2,
+            test_beta: l.test_beta,
+            proposal_ttl_seconds: l.proposal_ttl_seconds,
+            relax_beta: l.relax_beta.unwrap_or_else(|| l.preset.relax_beta()),
+        };
+        learning.planning()?;
         Ok((
             ExperimentSettings {
                 name: self.name,
                 domain: self.domain,
                 d_max,
                 seed: self.seed,
-                mde: self.mde,
-                learning: self.learning,
+                mde,
+                learning,
             },
             domain,
         ))
@@ -554,31 +610,24 @@ fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), InvalidSetting>
 
 impl ExperimentSettings {
     /// The label caps (units of `d_max`; 0 = raw labels) a fit tries: every candidate for
-    /// `"auto"`, else the one fixed cap. Settings stored before caps existed fit raw labels.
+    /// `"auto"`, else the one fixed cap.
     pub fn label_caps(&self) -> Vec<f64> {
         match self.mde.label_cap {
-            Some(LabelCap::Auto) => {
+            LabelCap::Auto => {
                 let mut caps = AUTO_LABEL_CAPS.to_vec();
                 caps.push(0.0);
                 caps
             }
-            Some(LabelCap::Fixed(cap)) => vec![cap],
-            None => vec![0.0],
+            LabelCap::Fixed(cap) => vec![cap],
         }
     }
 }
 
 impl LearningSettings {
-    /// Whether training proposals relax β when they find no plan (see
-    /// [`Self::relax_beta`]; settings stored before the setting existed do not).
-    pub fn relaxes_beta(&self) -> bool {
-        self.relax_beta.unwrap_or(false)
-    }
-
     /// The βs a training proposal at `beta` tries in turn: `beta` alone, or its
     /// [`relaxation_ladder`](crate::planning::relaxation_ladder) down to `−k1`.
     pub fn training_betas(&self, beta: f64) -> Vec<f64> {
-        if self.relaxes_beta() {
+        if self.relax_beta {
             crate::planning::relaxation_ladder(beta, -self.k1)
         } else {
             vec![beta]

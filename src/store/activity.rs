@@ -86,9 +86,8 @@ pub struct ModelSummary {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `None` for versions
-    /// stored before caps were recorded.
-    pub label_cap: Option<f64>,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
 }
 
 /// Proposals (with the trajectory that executed each) and trajectories without a proposal, as

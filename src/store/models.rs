@@ -19,9 +19,8 @@ pub struct StoredModel {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `None` for versions
-    /// stored before caps were recorded (fitted with the experiment's fixed cap).
-    pub label_cap: Option<f64>,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
     /// Every candidate cap's held-out judgement of the training transitions.
     pub label_cap_trials: Vec<HeldOutTrust>,
 }
@@ -98,16 +97,7 @@ impl Store {
                     label_cap_trials
              FROM models WHERE experiment_id = ? {clause}"
         );
-        type Row = (
-            i64,
-            i64,
-            i64,
-            String,
-            f64,
-            String,
-            Option<f64>,
-            Option<String>,
-        );
+        type Row = (i64, i64, i64, String, f64, String, f64, String);
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
             query = query.bind(v);
@@ -125,10 +115,7 @@ impl Store {
             fit_seconds,
             fitted_at,
             label_cap,
-            label_cap_trials: match trials {
-                Some(t) => serde_json::from_str(&t).map_err(json_err)?,
-                None => Vec::new(),
-            },
+            label_cap_trials: serde_json::from_str(&trials).map_err(json_err)?,
         }))
     }
 }

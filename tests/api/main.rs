@@ -11,3 +11,4 @@ mod learning;
 mod limits;
 mod model_server;
 mod trajectories;
+mod upgrade;
