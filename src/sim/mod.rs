@@ -7,9 +7,19 @@
 //! - [`gridworld`]: the icy gridworld (ice reverses x-moves, obstacles and edges block).
 //! - [`water_plant`]: the 2D plant-watering scene (swept collisions, water as falling particles
 //!   deflected by leaves that move a little between episodes).
+//! - [`continuous`]: the continuous worlds whose robots model themselves kinematically —
+//!   [`arm`] (a three-joint arm under gravity with weak actuators and contact), [`base`] (a
+//!   mobile base with slip, wind and a hidden box), [`pusher`] (a puck that slides on after
+//!   each push).
 
+pub mod arm;
+pub mod base;
+pub mod continuous;
 pub mod gridworld;
+pub mod pusher;
 pub mod water_plant;
+
+pub use continuous::ContinuousWorld;
 
 pub use gridworld::IcyGridworldSim;
 pub use water_plant::{PourOutcome, WaterPlantSim, WaterPlantSimParams};
