@@ -58,6 +58,24 @@ pub enum BenchCommand {
     /// Latency of `/healthz` and a cheap read, idle and while concurrent clients saturate the
     /// planner with proposals that run into their deadline.
     Saturation(SaturationArgs),
+    /// The continuous worlds before any learning: the share of state-actions truly within
+    /// `d_max`, the simulator's cost, and the oracle and the no-precondition baseline on random
+    /// problems.
+    Worlds(WorldsArgs),
+}
+
+/// Options of `precond bench worlds`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct WorldsArgs {
+    /// Uniform state-actions sampled per world.
+    #[arg(long, default_value_t = 4000)]
+    pub samples: usize,
+    /// Random problems per world.
+    #[arg(long, default_value_t = 100)]
+    pub problems: usize,
+    /// Extension budget of the baseline's plans (the oracle's is twice this).
+    #[arg(long, default_value_t = 5000)]
+    pub max_extensions: u32,
 }
 
 /// Options of `precond bench saturation`.
@@ -315,6 +333,13 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Planning) => {
             tokio::task::spawn_blocking(crate::bench::planning::run_default).await??;
             crate::bench::remote::run(5).await
+        }
+        Command::Bench(BenchCommand::Worlds(args)) => {
+            tokio::task::spawn_blocking(move || {
+                crate::bench::worlds::run(args.samples, args.problems, args.max_extensions)
+            })
+            .await?;
+            Ok(())
         }
         Command::Bench(BenchCommand::Saturation(args)) => {
             crate::bench::saturation::run(&crate::bench::saturation::SaturationOptions {

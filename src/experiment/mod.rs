@@ -19,6 +19,7 @@ pub mod client;
 pub mod layouts;
 pub mod plot;
 pub mod protocol;
+pub mod reference;
 pub mod report;
 
 use crate::domain::GridFeatures;
@@ -48,6 +49,16 @@ pub enum DomainKind {
     /// The water plant (default scene).
     #[value(name = "water_plant")]
     WaterPlant,
+    /// A three-joint arm under gravity with weak actuators and contact (`sim::arm`); the robot
+    /// models it kinematically.
+    #[value(name = "arm")]
+    Arm,
+    /// A mobile base with a slippery slope, a crosswind and a hidden box (`sim::base`).
+    #[value(name = "base")]
+    Base,
+    /// A pushed puck that slides on after each push (`sim::pusher`).
+    #[value(name = "pusher")]
+    Pusher,
 }
 
 impl DomainKind {
@@ -56,6 +67,9 @@ impl DomainKind {
         match self {
             Self::IcyGridworld => "icy_gridworld",
             Self::WaterPlant => "water_plant",
+            Self::Arm => "arm",
+            Self::Base => "base",
+            Self::Pusher => "pusher",
         }
     }
 }
@@ -527,6 +541,7 @@ async fn run_protocol(
     };
     let mut specs = Vec::with_capacity(n_runs);
     for seed in 0..cfg.seeds {
+        let references = Arc::new(tokio::sync::Mutex::new(protocol::ReferenceCache::new()));
         let held_out: Vec<Labelled> = pools
             .iter()
             .enumerate()
@@ -540,6 +555,7 @@ async fn run_protocol(
                 seed: seed as u64,
                 held_out: held_out.clone(),
                 maps: seed == 0 && strategy == map_strategy,
+                references: references.clone(),
             });
         }
     }

@@ -24,16 +24,17 @@
 
 use super::client::{ApiClient, Proposed};
 use super::layouts::Layout;
+use super::reference::{self, ClosedLoop, References};
 use super::{Config, DomainKind};
 use crate::api::{ExperimentRequest, PlannedTrajectory};
-use crate::domain::Transition;
 use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
 use crate::domain::{
-    DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, LocalModel, MOVES, Problem, WaterPlant,
+    DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, Kinematic, LocalModel, MOVES, Problem,
+    Transition, WaterPlant,
 };
-use crate::planning::Strategy;
+use crate::planning::{Strategy, Trajectory};
 use crate::settings::{DomainSpec, LearningRequest, MdeRequest};
-use crate::sim::{Simulated, World};
+use crate::sim::{ContinuousWorld, Simulated, World};
 use indicatif::ProgressBar;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -50,6 +51,13 @@ pub enum Bench {
     Grid(IcyGridworld),
     /// The water plant in its default scene.
     Plant(WaterPlant),
+    /// A continuous world ([`ContinuousWorld`]) and its robot's kinematic model.
+    Continuous {
+        /// The world.
+        world: ContinuousWorld,
+        /// The robot's model of it.
+        domain: Kinematic,
+    },
 }
 
 impl Bench {
@@ -70,6 +78,68 @@ impl Bench {
                 .with_features(features),
             ),
             DomainKind::WaterPlant => Self::Plant(WaterPlant::default()),
+            DomainKind::Arm | DomainKind::Base | DomainKind::Pusher => {
+                let world = match kind {
+                    DomainKind::Arm => ContinuousWorld::arm(),
+                    DomainKind::Base => ContinuousWorld::base(),
+                    _ => ContinuousWorld::pusher(),
+                };
+                Self::Continuous {
+                    domain: world.domain(),
+                    world,
+                }
+            }
+        })
+    }
+
+    /// A problem of the world's distribution (for a continuous world: one whose start and goal
+    /// are states the robot can be in).
+    pub fn sample_problem(&self, rng: &mut dyn rand::RngCore) -> Problem {
+        match self {
+            Self::Continuous { world, domain } => world.sample_problem(domain, rng),
+            _ => self.domain().sample_problem(rng),
+        }
+    }
+
+    /// The oracle's and the baseline's answers to `problem` (see [`reference`]); `None` for
+    /// the water plant, whose episodes vary and whose true precondition is not known.
+    pub async fn references(
+        &self,
+        problem: &Problem,
+        d_max: f64,
+        max_extensions: u32,
+        seed: u64,
+    ) -> anyhow::Result<Option<References>> {
+        Ok(match self {
+            Self::Plant(_) => None,
+            Self::Grid(g) => {
+                let solvable = self.oracle(problem, d_max) == Some(true);
+                let mut world = g.world();
+                Some(References {
+                    oracle_solvable: solvable,
+                    // A gridworld plan of exact steps arrives whether executed open or closed
+                    // loop.
+                    oracle_open_loop: solvable,
+                    oracle_closed_loop: solvable,
+                    baseline: reference::baseline(
+                        world.as_mut(),
+                        g,
+                        problem,
+                        d_max,
+                        max_extensions,
+                        seed,
+                    ),
+                })
+            }
+            Self::Continuous { world, domain } => {
+                let (world, domain, problem) = (world.clone(), domain.clone(), problem.clone());
+                Some(
+                    tokio::task::spawn_blocking(move || {
+                        reference::continuous(&world, &domain, &problem, max_extensions, seed)
+                    })
+                    .await?,
+                )
+            }
         })
     }
 
@@ -107,6 +177,7 @@ impl Bench {
         match self {
             Self::Grid(g) => g,
             Self::Plant(p) => p,
+            Self::Continuous { domain, .. } => domain,
         }
     }
 
@@ -115,7 +186,14 @@ impl Bench {
         match self {
             Self::Grid(g) => g.world(),
             Self::Plant(p) => p.world(),
+            Self::Continuous { world, .. } => world.world(),
         }
+    }
+
+    /// Whether plans are executed closed loop too (not the water plant, whose plans are a pour
+    /// or two).
+    pub fn closed_loop(&self) -> bool {
+        !matches!(self, Self::Plant(_))
     }
 
     /// The action to execute from `actual` for the planned action `a` planned from `planned`:
@@ -123,7 +201,7 @@ impl Bench {
     /// gridworld moves are executed as they are.
     pub fn reanchor(&self, planned: &[f64], a: &[f64], actual: &[f64]) -> Vec<f64> {
         match self {
-            Self::Grid(_) => a.to_vec(),
+            Self::Grid(_) | Self::Continuous { .. } => a.to_vec(),
             Self::Plant(p) => p.reanchor(planned, a, actual),
         }
     }
@@ -260,7 +338,14 @@ pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
 }
 
 /// The request that creates the experiment of one run.
-fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) -> ExperimentRequest {
+fn experiment_body(
+    cfg: &Config,
+    bench: &Bench,
+    name: String,
+    strategy: Strategy,
+    seed: u64,
+) -> ExperimentRequest {
+    let mut d_max = None;
     let domain = match cfg.domain {
         DomainKind::IcyGridworld => match &cfg.layout {
             Some(l) => DomainSpec::IcyGridworld {
@@ -273,10 +358,26 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
             },
         },
         DomainKind::WaterPlant => DomainSpec::WaterPlant {},
+        DomainKind::Arm | DomainKind::Base | DomainKind::Pusher => {
+            let Bench::Continuous { world, .. } = bench else {
+                unreachable!("a continuous kind builds a continuous bench")
+            };
+            d_max = Some(world.d_max());
+            let p = world.params();
+            DomainSpec::Kinematic {
+                state_low: p.state_low,
+                state_high: p.state_high,
+                action_low: p.action_low,
+                action_high: p.action_high,
+                obstacles: Vec::new(),
+                goal_radius: p.goal_radius,
+            }
+        }
     };
     ExperimentRequest {
         name,
         domain,
+        d_max,
         seed,
         mde: MdeRequest {
             noise: cfg.noise.unwrap_or(MdeRequest::default().noise),
@@ -298,7 +399,6 @@ fn experiment_body(cfg: &Config, name: String, strategy: Strategy, seed: u64) ->
                 .unwrap_or(LearningRequest::default().aggregation),
             ..LearningRequest::default()
         },
-        ..ExperimentRequest::default()
     }
 }
 
@@ -312,16 +412,16 @@ pub async fn build_pool(
     let exp = client
         .create_experiment(&experiment_body(
             cfg,
+            bench,
             format!("held-out pool, seed {seed}"),
             Strategy::GoalConditioned,
             seed,
         ))
         .await?;
-    let domain = bench.domain();
     let mut world = bench.world();
     let mut out = Vec::new();
     for i in 0..cfg.pool_trajectories as u64 {
-        let problem = domain.sample_problem(&mut stream(seed, purpose::POOL_PROBLEM, i, 0));
+        let problem = bench.sample_problem(&mut stream(seed, purpose::POOL_PROBLEM, i, 0));
         let strategy = if i % 2 == 0 {
             None
         } else {
@@ -386,6 +486,23 @@ pub struct IterationRecord {
     pub plan_found_rate: f64,
     /// `successes / test_problems`.
     pub success_rate: f64,
+    /// Test problems reached executing the learned plan closed loop (re-planning at test β
+    /// from where the robot is whenever it strays more than `d_max` from the plan).
+    pub closed_loop_successes: usize,
+    /// `closed_loop_successes / test_problems` (`None` for the water plant).
+    pub closed_loop_rate: Option<f64>,
+    /// Plans asked for after the first, over the closed-loop executions.
+    pub replans: usize,
+    /// Test problems whose oracle plan reached the goal executed open loop.
+    pub oracle_open_successes: usize,
+    /// Test problems the oracle reached executing closed loop.
+    pub oracle_closed_successes: usize,
+    /// Test problems the model's own plan (no precondition) reached, executed open loop.
+    pub baseline_successes: usize,
+    /// `baseline_successes / test_problems`, where known.
+    pub baseline_rate: Option<f64>,
+    /// Median σ of the model at the held-out state-actions.
+    pub held_out_median_sigma: Option<f64>,
     /// Held-out transitions judged.
     pub held_out: usize,
     /// Held-out transitions with a true deviation below `d_max`.
@@ -460,6 +577,16 @@ pub struct TestRecord {
     pub success: bool,
     /// The problem is solvable inside the true precondition (`None` where that is unknown).
     pub oracle: Option<bool>,
+    /// The learned plan executed closed loop reached the goal (`None`: not measured).
+    pub closed_loop_success: Option<bool>,
+    /// Plans asked for after the first in the closed-loop execution.
+    pub replans: usize,
+    /// The oracle's plan reached the goal open loop (`None` where the oracle is unknown).
+    pub oracle_open_loop: Option<bool>,
+    /// The oracle reached the goal closed loop.
+    pub oracle_closed_loop: Option<bool>,
+    /// The model's own plan, with no precondition, reached the goal open loop.
+    pub baseline: Option<bool>,
 }
 
 /// Which slice of the water plant's action space a precondition map shows.
@@ -513,6 +640,45 @@ pub struct RunSpec {
     pub held_out: Arc<Vec<Labelled>>,
     /// Whether to take precondition maps.
     pub maps: bool,
+    /// The oracle's and the baseline's answers per `(seed, iteration, problem)`, shared by the
+    /// runs of one seed.
+    pub references: Arc<tokio::sync::Mutex<ReferenceCache>>,
+}
+
+/// The oracle's and the baseline's answers to test problem `k` of iteration `j`, computed once
+/// per seed and shared by the strategies' runs (they see the same problems).
+async fn references(
+    spec: &RunSpec,
+    bench: &Bench,
+    cfg: &Config,
+    d_max: f64,
+    problem: &Problem,
+    j: u64,
+    k: usize,
+) -> anyhow::Result<Option<References>> {
+    let key = (spec.seed, j, k);
+    if let Some(r) = spec.references.lock().await.get(&key) {
+        return Ok(*r);
+    }
+    let seed = crate::seed::mix(spec.seed, (j * 1_000_003 + k as u64) as i64);
+    let r = bench
+        .references(problem, d_max, cfg.max_extensions, seed)
+        .await?;
+    spec.references.lock().await.insert(key, r);
+    Ok(r)
+}
+
+/// Reference answers by `(seed, iteration, problem)`.
+pub type ReferenceCache = std::collections::HashMap<(u64, u64, usize), Option<References>>;
+
+/// The planner's view of a planned trajectory as the API shows it.
+fn trajectory(p: &PlannedTrajectory) -> Trajectory {
+    Trajectory {
+        states: p.states.clone(),
+        actions: p.actions.clone(),
+        mu: p.mu.clone(),
+        sigma: p.sigma.clone(),
+    }
 }
 
 /// Runs the protocol for one strategy and seed (see the module docs).
@@ -530,7 +696,7 @@ pub async fn run_one(
         spec.seed
     );
     let exp = client
-        .create_experiment(&experiment_body(cfg, name, spec.strategy, spec.seed))
+        .create_experiment(&experiment_body(cfg, bench, name, spec.strategy, spec.seed))
         .await?;
     let mut run = Run {
         client,
@@ -631,7 +797,8 @@ impl Run<'_> {
         for t in 0..tries {
             let key = (slot * tries + t) as u64;
             let problem =
-                domain.sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
+                self.bench
+                    .sample_problem(&mut stream(seed, purpose::TRAIN_PROBLEM, j as u64, key));
             let proposed = self
                 .client
                 .propose(
@@ -707,18 +874,23 @@ impl Run<'_> {
     }
 
     /// Evaluation: the same fresh problems for every strategy at this seed and iteration, each
-    /// planned at test β and, if a plan is found, executed.
+    /// planned at test β and, if a plan is found, executed open loop (the paper's protocol) and
+    /// closed loop; beside them the oracle's and the baseline's answers to the same problems.
     async fn evaluate(&mut self, rec: &mut IterationRecord) -> anyhow::Result<()> {
         let (seed, j) = (self.spec.seed, rec.iteration as u64);
         let domain = self.bench.domain();
         let mut known_oracle = false;
+        let mut known_baseline = false;
         for k in 0..self.cfg.test_problems {
             let problem =
-                domain.sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j, k as u64));
+                self.bench
+                    .sample_problem(&mut stream(seed, purpose::TEST_PROBLEM, j, k as u64));
             let plan = self
                 .client
                 .plan(self.id, problem.start(), problem.goal())
                 .await?;
+            let references =
+                references(self.spec, self.bench, self.cfg, self.d_max, &problem, j, k).await?;
             let mut test = TestRecord {
                 strategy: self.spec.strategy,
                 seed,
@@ -730,7 +902,12 @@ impl Run<'_> {
                 extensions: plan.extensions as u64,
                 plan_length: 0,
                 success: false,
-                oracle: self.bench.oracle(&problem, self.d_max),
+                oracle: references.map(|r| r.oracle_solvable),
+                closed_loop_success: self.bench.closed_loop().then_some(false),
+                replans: 0,
+                oracle_open_loop: references.map(|r| r.oracle_open_loop),
+                oracle_closed_loop: references.map(|r| r.oracle_closed_loop),
+                baseline: references.map(|r| r.baseline),
             };
             if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
                 test.found = true;
@@ -739,18 +916,41 @@ impl Run<'_> {
                     .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
                 let exec = execute(self.bench, self.world.as_mut(), traj);
                 test.success = domain.is_goal(&exec.final_state, problem.goal());
+                if self.bench.closed_loop() {
+                    self.world
+                        .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
+                    let mut closed = ClosedLoop::new(&problem, trajectory(traj), self.d_max);
+                    while let Some(s) = closed.advance(self.world.as_mut(), domain, &problem) {
+                        let again = self.client.plan(self.id, &s, problem.goal()).await?;
+                        closed.replanned(again.trajectory.as_ref().map(trajectory));
+                    }
+                    test.closed_loop_success = Some(closed.executed().success);
+                    test.replans = closed.executed().replans;
+                }
             }
             rec.plans_found += usize::from(test.found);
             rec.successes += usize::from(test.success);
+            rec.closed_loop_successes += usize::from(test.closed_loop_success == Some(true));
+            rec.replans += test.replans;
             rec.oracle_solvable += usize::from(test.oracle == Some(true));
+            rec.oracle_open_successes += usize::from(test.oracle_open_loop == Some(true));
+            rec.oracle_closed_successes += usize::from(test.oracle_closed_loop == Some(true));
+            rec.baseline_successes += usize::from(test.baseline == Some(true));
             known_oracle |= test.oracle.is_some();
+            known_baseline |= test.baseline.is_some();
             self.result.tests.push(test);
         }
-        if self.cfg.test_problems > 0 {
-            rec.plan_found_rate = rec.plans_found as f64 / self.cfg.test_problems as f64;
-            rec.success_rate = rec.successes as f64 / self.cfg.test_problems as f64;
-            rec.oracle_rate =
-                known_oracle.then(|| rec.oracle_solvable as f64 / self.cfg.test_problems as f64);
+        let n = self.cfg.test_problems;
+        if n > 0 {
+            let rate = |k: usize| k as f64 / n as f64;
+            rec.plan_found_rate = rate(rec.plans_found);
+            rec.success_rate = rate(rec.successes);
+            rec.closed_loop_rate = self
+                .bench
+                .closed_loop()
+                .then(|| rate(rec.closed_loop_successes));
+            rec.oracle_rate = known_oracle.then(|| rate(rec.oracle_solvable));
+            rec.baseline_rate = known_baseline.then(|| rate(rec.baseline_successes));
         }
         Ok(())
     }
@@ -766,6 +966,9 @@ impl Run<'_> {
             .map(|l| (l.t.s.as_slice(), l.t.a.as_slice()))
             .collect();
         let judged = self.client.precondition(self.id, &points).await?;
+        let mut sigmas: Vec<f64> = judged.iter().map(|j| j.sigma).collect();
+        sigmas.sort_by(f64::total_cmp);
+        rec.held_out_median_sigma = sigmas.get(sigmas.len() / 2).copied();
         for (l, j) in held.iter().zip(&judged) {
             if l.deviation < self.d_max {
                 rec.held_out_low += 1;
@@ -830,6 +1033,14 @@ impl IterationRecord {
             oracle_rate: None,
             plan_found_rate: 0.0,
             success_rate: 0.0,
+            closed_loop_successes: 0,
+            closed_loop_rate: None,
+            replans: 0,
+            oracle_open_successes: 0,
+            oracle_closed_successes: 0,
+            baseline_successes: 0,
+            baseline_rate: None,
+            held_out_median_sigma: None,
             held_out: spec.held_out.len(),
             held_out_low: 0,
             held_out_high: 0,
@@ -855,15 +1066,19 @@ fn close(a: &[f64], b: &[f64]) -> bool {
 fn report(progress: &ProgressBar, rec: &IterationRecord) {
     progress.inc(1);
     let line = format!(
-        "{} seed {} iteration {}: plan found {:.2}, success {:.2}, TPR {}, TNR {}, \
-         n_train {}, no_plan {}, {:.1} s",
+        "{} seed {} iteration {}: plan found {:.2}, success {:.2}, closed loop {}, oracle {}, \
+         baseline {}, TPR {}, TNR {}, σ {}, n_train {}, no_plan {}, {:.1} s",
         rec.strategy.as_str(),
         rec.seed,
         rec.iteration,
         rec.plan_found_rate,
         rec.success_rate,
+        fmt_opt(rec.closed_loop_rate),
+        fmt_opt(rec.oracle_rate),
+        fmt_opt(rec.baseline_rate),
         fmt_opt(rec.tpr),
         fmt_opt(rec.tnr),
+        fmt_opt(rec.held_out_median_sigma),
         rec.n_train,
         rec.train_no_plan,
         rec.seconds

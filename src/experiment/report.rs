@@ -13,11 +13,20 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 17] = [
+pub const METRICS: [&str; 26] = [
     "plan_found_rate",
     "success_rate",
     "oracle_rate",
     "success_of_oracle",
+    "closed_loop_rate",
+    "oracle_open_loop_rate",
+    "oracle_closed_loop_rate",
+    "baseline_rate",
+    "plans_of_oracle",
+    "closed_loop_of_oracle",
+    "open_loop_of_oracle_open_loop",
+    "held_out_median_sigma",
+    "replans",
     "tpr",
     "tnr",
     "train_no_plan",
@@ -34,7 +43,7 @@ pub const METRICS: [&str; 17] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 36] = [
+pub const ITERATION_COLUMNS: [&str; 44] = [
     "domain",
     "layout",
     "strategy",
@@ -58,6 +67,14 @@ pub const ITERATION_COLUMNS: [&str; 36] = [
     "success_rate",
     "oracle_solvable",
     "oracle_rate",
+    "closed_loop_successes",
+    "closed_loop_rate",
+    "replans",
+    "oracle_open_successes",
+    "oracle_closed_successes",
+    "baseline_successes",
+    "baseline_rate",
+    "held_out_median_sigma",
     "held_out",
     "held_out_low",
     "held_out_high",
@@ -87,6 +104,25 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
         "success_of_oracle" => {
             (r.oracle_solvable > 0).then(|| r.successes as f64 / r.oracle_solvable as f64)
         }
+        "closed_loop_rate" => r.closed_loop_rate,
+        "oracle_open_loop_rate" => r
+            .oracle_rate
+            .map(|_| r.oracle_open_successes as f64 / r.test_problems.max(1) as f64),
+        "oracle_closed_loop_rate" => r
+            .oracle_rate
+            .map(|_| r.oracle_closed_successes as f64 / r.test_problems.max(1) as f64),
+        "baseline_rate" => r.baseline_rate,
+        "plans_of_oracle" => {
+            (r.oracle_solvable > 0).then(|| r.plans_found as f64 / r.oracle_solvable as f64)
+        }
+        "closed_loop_of_oracle" => r
+            .closed_loop_rate
+            .filter(|_| r.oracle_solvable > 0)
+            .map(|_| r.closed_loop_successes as f64 / r.oracle_solvable as f64),
+        "open_loop_of_oracle_open_loop" => (r.oracle_open_successes > 0)
+            .then(|| r.successes as f64 / r.oracle_open_successes as f64),
+        "held_out_median_sigma" => r.held_out_median_sigma,
+        "replans" => r.closed_loop_rate.map(|_| r.replans as f64),
         "tpr" => r.tpr,
         "tnr" => r.tnr,
         "train_no_plan" => Some(r.train_no_plan as f64),
@@ -140,6 +176,10 @@ pub fn by_iteration(results: &Results, strategy: Strategy) -> Vec<Vec<&Iteration
     out
 }
 
+fn flag(v: Option<bool>) -> String {
+    v.map_or_else(String::new, |o| o.to_string())
+}
+
 fn opt(v: Option<f64>) -> String {
     v.map_or_else(String::new, |v| format!("{v}"))
 }
@@ -178,6 +218,14 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.success_rate.to_string(),
             r.oracle_solvable.to_string(),
             opt(r.oracle_rate),
+            r.closed_loop_successes.to_string(),
+            opt(r.closed_loop_rate),
+            r.replans.to_string(),
+            r.oracle_open_successes.to_string(),
+            r.oracle_closed_successes.to_string(),
+            r.baseline_successes.to_string(),
+            opt(r.baseline_rate),
+            opt(r.held_out_median_sigma),
             r.held_out.to_string(),
             r.held_out_low.to_string(),
             r.held_out_high.to_string(),
@@ -218,7 +266,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     write(&dir.join("training.csv"), &csv)?;
 
     let mut csv = String::from(
-        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle\n",
+        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle,\
+         closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
     );
     let vector = |v: &[f64]| {
         v.iter()
@@ -229,7 +278,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
@@ -240,7 +289,12 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             t.extensions,
             t.plan_length,
             t.success,
-            t.oracle.map_or_else(String::new, |o| o.to_string())
+            flag(t.oracle),
+            flag(t.closed_loop_success),
+            t.replans,
+            flag(t.oracle_open_loop),
+            flag(t.oracle_closed_loop),
+            flag(t.baseline)
         );
     }
     write(&dir.join("tests.csv"), &csv)?;
