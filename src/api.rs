@@ -12,6 +12,7 @@ use crate::mde::HeldOutTrust;
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{ListOrder, ProposalStatus, RunStatus};
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
@@ -19,14 +20,14 @@ pub use crate::mde::Judgement;
 pub use crate::settings::ExperimentRequest;
 
 /// `GET /healthz` and `GET /readyz`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct HealthResponse {
     /// `ok` (alive) or `ready` (the database answers).
     pub status: String,
 }
 
 /// A state or action space as clients see it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct SpaceView {
     /// Component names.
     pub names: Vec<String>,
@@ -52,7 +53,7 @@ impl From<&Space> for SpaceView {
 
 /// An experiment with its resolved settings, spaces and progress (`POST /v1/experiments`,
 /// `GET /v1/experiments/{id}`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ExperimentResponse {
     /// Identifier.
     pub id: i64,
@@ -95,7 +96,7 @@ pub struct ExperimentsQuery {
 }
 
 /// `GET /v1/experiments`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ExperimentList {
     /// The page's experiments, in the order asked (every experiment, oldest first, by default).
     pub items: Vec<ExperimentResponse>,
@@ -119,7 +120,7 @@ pub struct PageQuery {
 }
 
 /// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunView {
     /// The proposal, if there was one.
     pub proposal_id: Option<i64>,
@@ -148,7 +149,7 @@ pub struct RunView {
 
 /// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them and
 /// trajectories posted without a proposal, newest first.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunPage {
     /// The page's runs.
     pub items: Vec<RunView>,
@@ -159,7 +160,7 @@ pub struct RunPage {
 }
 
 /// One learning iteration of `GET /v1/experiments/{id}/timeline`: what was executed in it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TimelineIteration {
     /// `β_j` of the learning schedule at this iteration.
     pub beta: f64,
@@ -180,7 +181,7 @@ pub struct TimelineIteration {
 
 /// One model version of `GET /v1/experiments/{id}/timeline` (no training data, no noise
 /// model).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TimelineModel {
     /// The learning iteration its training data reached (`n_trajectories / batch_size`).
     pub iteration: i64,
@@ -204,7 +205,7 @@ pub struct TimelineModel {
 }
 
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Timeline {
     /// Its experiment.
     pub experiment_id: i64,
@@ -240,7 +241,7 @@ pub struct MapQuery {
 }
 
 /// One axis of a precondition map.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct MapAxis {
     /// `s.<name>` or `a.<name>`.
     pub name: String,
@@ -250,7 +251,7 @@ pub struct MapAxis {
 }
 
 /// A training transition drawn on a map.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct MapPoint {
     /// State.
     pub s: Vec<f64>,
@@ -263,7 +264,7 @@ pub struct MapPoint {
 /// `GET /v1/experiments/{id}/precondition/map`: `μ` and `σ` of a model version on a grid over
 /// two components of `(s, a)`, the others fixed; the precondition at any β is
 /// `μ + βσ < d_max`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PreconditionMap {
     /// The version evaluated.
     pub model_version: i64,
@@ -302,7 +303,7 @@ pub struct DiagnosticsQuery {
 }
 
 /// The share of labels inside `μ ± zσ` against the nominal Gaussian share.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Coverage {
     /// The interval's half-width in σ.
     pub z: f64,
@@ -313,7 +314,7 @@ pub struct Coverage {
 }
 
 /// How often the precondition agrees with the labels' truth `y < d_max`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PreconditionRates {
     /// β used.
     pub beta: f64,
@@ -336,7 +337,7 @@ pub struct PreconditionRates {
 /// `GET /v1/experiments/{id}/model/diagnostics`: leave-one-out calibration of a fitted model
 /// version and the rates of its precondition on its own training labels, each predicted by the
 /// model conditioned on every other label.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Diagnostics {
     /// Its experiment.
     pub experiment_id: i64,
@@ -361,7 +362,7 @@ pub struct Diagnostics {
 }
 
 /// The precondition's rates on transitions a version never saw.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct LaterRates {
     /// Transitions judged.
     pub n: usize,
@@ -373,7 +374,7 @@ pub struct LaterRates {
 }
 
 /// `POST /v1/experiments/{id}/trajectories` body.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TrajectoryRequest {
     /// The proposal this trajectory executed; closes its lease.
@@ -388,7 +389,7 @@ pub struct TrajectoryRequest {
 
 /// `201` answer to a posted trajectory (replayed as it was for a retry with the same
 /// `Idempotency-Key`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TrajectoryCreated {
     /// Identifier of the stored trajectory.
     pub id: i64,
@@ -413,7 +414,7 @@ pub struct TrajectoryCreated {
 }
 
 /// A stored transition with its prediction and label.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TransitionView {
     /// Identifier; ascending in ingest order.
     pub id: i64,
@@ -434,7 +435,7 @@ pub struct TransitionView {
 }
 
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TrajectoryResponse {
     /// Identifier.
     pub id: i64,
@@ -464,7 +465,7 @@ pub struct TransitionsQuery {
 }
 
 /// A page of `GET /v1/experiments/{id}/transitions`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TransitionPage {
     /// Transitions in id order.
     pub items: Vec<TransitionView>,
@@ -473,7 +474,7 @@ pub struct TransitionPage {
 }
 
 /// Whether a model version was fitted or is the prior.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ModelSource {
     /// No data yet: μ = prior mean, σ = prior standard deviation everywhere.
@@ -483,7 +484,7 @@ pub enum ModelSource {
 }
 
 /// `GET /v1/experiments/{id}/model` and `POST .../model/refit`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ModelResponse {
     /// Its experiment.
     pub experiment_id: i64,
@@ -521,7 +522,7 @@ pub struct ModelResponse {
 }
 
 /// One state-action to judge.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Point {
     /// State.
@@ -531,7 +532,7 @@ pub struct Point {
 }
 
 /// `POST /v1/experiments/{id}/precondition` body.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PreconditionRequest {
     /// The state-actions to judge.
@@ -554,7 +555,7 @@ pub struct PointQuery {
 }
 
 /// The answer to a precondition query.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PreconditionResponse {
     /// The MDE version that answered.
     pub model_version: i64,
@@ -575,7 +576,7 @@ pub struct PreconditionResponse {
 }
 
 /// `POST /v1/experiments/{id}/proposals` body.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ProposalRequest {
     /// Start state.
@@ -596,7 +597,7 @@ pub struct ProposalRequest {
 
 /// A trajectory the client planned: its predicted states (starting with the start state) and
 /// the actions between them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CandidateTrajectory {
     /// Predicted states `s_0 = start, s_1, …`; one more than `actions`.
@@ -607,7 +608,7 @@ pub struct CandidateTrajectory {
 
 /// A planned trajectory with the MDE's answer at each step (and, for proposals, the
 /// acquisition).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PlannedTrajectory {
     /// Predicted states `s_0 = start, s_{t+1} = f̂(s_t, a_t)`; one more than `actions`.
     pub states: Vec<Vec<f64>>,
@@ -628,7 +629,7 @@ pub struct PlannedTrajectory {
 /// A scored candidate of a proposal or plan. Candidates the service planned itself lie inside
 /// the precondition and reach the goal by construction and carry `alpha` and `length` only; a
 /// client's candidates also carry their verdict and per-step answers.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct CandidateView {
     /// Its acquisition value `α` (the aggregated `α_step = μ − cσ`).
     pub alpha: f64,
@@ -680,7 +681,7 @@ impl CandidateView {
 }
 
 /// What a proposal chose and from what: stored with the proposal exactly as shown.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ProposalContent {
     /// The trajectory to execute.
     pub trajectory: PlannedTrajectory,
@@ -698,7 +699,7 @@ pub struct ProposalContent {
 
 /// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`): its lease,
 /// the terms it answered under, and what it chose.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ProposalResponse {
     /// Identifier.
     pub id: i64,
@@ -728,7 +729,7 @@ pub struct ProposalResponse {
 }
 
 /// `POST /v1/experiments/{id}/plans` body.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PlanRequest {
     /// Start state.
@@ -746,7 +747,7 @@ pub struct PlanRequest {
 }
 
 /// A test-time plan.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct PlanResponse {
     /// Whether a plan was found within the extension budget.
     pub found: bool,
@@ -766,14 +767,14 @@ pub struct PlanResponse {
 }
 
 /// Every error's body: `{"error": {"code", "message", "details"}}`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ErrorBody {
     /// The error.
     pub error: ErrorDetail,
 }
 
 /// What went wrong, for machines (`code`, `details`) and people (`message`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ErrorDetail {
     /// Stable machine-readable code, e.g. `validation_failed`.
     pub code: String,

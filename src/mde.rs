@@ -54,7 +54,9 @@ pub struct Answer {
 }
 
 /// Whether one state-action lies in the model precondition `μ + βσ < d_max`.
-#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
 pub struct Judgement {
     /// Mean deviation μ.
     pub mu: f64,
@@ -218,7 +220,7 @@ pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64>
 /// state-action is left out in turn, with all its copies: the held-out precondition
 /// `μ₋ᵢ + β σ₋ᵢ < d_max` against the truth `deviation_i < d_max`, and the log probability it
 /// gives to the truth.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct HeldOutTrust {
     /// The label cap the model was fitted with (units of `d_max`; 0 = raw labels).
     pub label_cap: f64,

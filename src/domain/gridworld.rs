@@ -37,7 +37,17 @@ pub enum Cell {
 }
 
 /// How a gridworld state-action is fed to the MDE.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    Default,
+    PartialEq,
+    Eq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum GridFeatures {
     /// `(x, y, dx, dy)` scaled to the unit box: one set of length scales for every move (the

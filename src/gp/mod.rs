@@ -59,7 +59,7 @@ pub const DEFAULT_PRIOR_LENGTH_SCALE: f64 = 0.5;
 /// Covariance: the Matérn [`Kernel`] of smoothness `ν` at `r² = Σ_k ((x_k − x'_k)/ℓ_k)²` times `s²`
 /// (for ν = 5/2, `s² (1 + √5 r + 5/3 r²) exp(−√5 r)`), plus noise on the diagonal; prior mean
 /// constant `m`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Hyperparameters {
     /// ARD length scales `ℓ_k`, one per input dimension, in unit-box units (> 0).
     pub length_scales: Vec<f64>,
@@ -167,7 +167,7 @@ pub struct ModelState {
 }
 
 /// A heteroscedastic model's noise, summarised.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct NoiseSummary {
     /// Smallest per-point noise variance over the training inputs.
     pub min_noise_variance: f64,

@@ -5,7 +5,7 @@ use serde::{Deserialize, Serialize};
 use super::{GpError, Kernel};
 
 /// How the observation noise is modelled.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum NoiseMode {
     /// One noise variance for the whole input space (optimised with the other hyperparameters).

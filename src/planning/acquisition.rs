@@ -7,7 +7,17 @@ use std::fmt;
 use std::str::FromStr;
 
 /// How per-step utilities combine into a trajectory utility.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Aggregation {
     /// `h_max = max_t γ^t α_step(t)`: a trajectory scores its (discounted) step whose lower

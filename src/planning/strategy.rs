@@ -36,7 +36,17 @@ use std::fmt;
 use std::str::FromStr;
 
 /// How a proposal chooses the trajectory to execute.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum Strategy {
     /// Goal-reaching candidates, argmin of the acquisition function: the method. The default.

@@ -22,11 +22,12 @@ use crate::domain::{
     Space,
 };
 use crate::remote_model::{MAX_TIMEOUT_MS, ModelUrlPolicy, RemoteModel};
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
 /// A state or action space as declared.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SpaceSpec {
     /// One name per component. Default `s0, s1, …` / `a0, a1, …`.
@@ -44,7 +45,7 @@ pub struct SpaceSpec {
 }
 
 /// Which components feed the MDE.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct FeaturesSpec {
     /// State components, by index.
@@ -56,7 +57,7 @@ pub struct FeaturesSpec {
 }
 
 /// The weighted Euclidean distance `d = sqrt(Σ w_i (ŝ_i − s_i)²)`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DistanceSpec {
     /// One weight ≥ 0 per state component, not all 0.
@@ -64,7 +65,7 @@ pub struct DistanceSpec {
 }
 
 /// The goal test: the chosen state components within `radius` of the goal.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct GoalSpec {
     /// State components compared with the goal vector. Default: all.
@@ -89,7 +90,7 @@ impl Default for GoalSpec {
 }
 
 /// Where the model `f̂` lives. The tag is `kind`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum ModelSpec {
     /// Served by the robot's own process: `POST url {"states", "actions"} → {"next_states",
@@ -123,7 +124,7 @@ fn default_timeout_ms() -> u64 {
 }
 
 /// A client-declared domain as posted (see the module docs).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CustomSpec {
     /// The state space (continuous, bounded).

@@ -23,6 +23,7 @@ use crate::planning::{
     PlanningSettings, Strategy,
 };
 use crate::remote_model::ModelUrlPolicy;
+use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
 
@@ -48,7 +49,7 @@ impl InvalidSetting {
 }
 
 /// Which world, with its parameters. The tag is `kind`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum DomainSpec {
     /// The icy gridworld; `map` rows are strings of `.` (free), `#` (obstacle), `~` (ice), row
@@ -93,7 +94,7 @@ pub enum DomainSpec {
 }
 
 /// An axis-aligned box.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObstacleSpec {
     /// Lower corner.
@@ -185,7 +186,7 @@ impl DomainSpec {
 
 /// The model deviation estimator's settings as a client posts them: every field optional;
 /// `label_cap` and `kernel` absent take the preset's (see [`MdeSettings`] for what each means).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct MdeRequest {
     /// [`MdeSettings::noise`]. Default `heteroscedastic`.
@@ -217,7 +218,7 @@ impl Default for MdeRequest {
 
 /// The model deviation estimator's settings, resolved: what an experiment fits with, as stored
 /// and shown.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MdeSettings {
     /// Noise model: `heteroscedastic` or `homoscedastic`.
@@ -245,7 +246,7 @@ pub struct MdeSettings {
 }
 
 /// A named set of defaults for the settings a preset decides (see [`LearningSettings::preset`]).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     /// precond's defaults: the paper's method with the changes measured to learn more from the
@@ -305,6 +306,22 @@ impl Serialize for LabelCap {
     }
 }
 
+/// Written by hand like the serde impls above: a number or the string `"auto"`.
+impl JsonSchema for LabelCap {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "LabelCap".into()
+    }
+
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "oneOf": [
+                {"type": "number", "minimum": 0, "maximum": 1000},
+                {"type": "string", "const": "auto"}
+            ]
+        })
+    }
+}
+
 impl<'de> Deserialize<'de> for LabelCap {
     fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
         struct Visitor;
@@ -336,7 +353,7 @@ impl<'de> Deserialize<'de> for LabelCap {
 
 /// The active-learning settings as a client posts them: every field optional; `relax_beta`
 /// absent takes the preset's (see [`LearningSettings`] for what each means).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(default, deny_unknown_fields)]
 pub struct LearningRequest {
     /// [`LearningSettings::preset`]. Default `default`.
@@ -393,7 +410,7 @@ impl Default for LearningRequest {
 }
 
 /// The active-learning settings, resolved: what an experiment learns with, as stored and shown.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LearningSettings {
     /// Where the settings it decides came from: `default` or `paper` (the paper's exact
@@ -433,7 +450,7 @@ pub struct LearningSettings {
 }
 
 /// An experiment's settings as a client posts them; every field optional.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExperimentRequest {
     /// Free-form name. Default `""`.
@@ -457,7 +474,7 @@ pub struct ExperimentRequest {
 }
 
 /// An experiment's fully resolved, validated settings.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct ExperimentSettings {
     /// Free-form name.
     pub name: String,
