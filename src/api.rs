@@ -199,9 +199,9 @@ pub struct TimelineModel {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels); `null` for
-    /// versions fitted before caps were recorded.
-    pub label_cap: Option<f64>,
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels; migration 0007
+    /// recorded one for every version fitted before caps were).
+    pub label_cap: f64,
 }
 
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.

@@ -99,7 +99,7 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
                 log_marginal_likelihood: m.log_marginal_likelihood,
                 fit_seconds: m.fit_seconds,
                 fitted_at: m.fitted_at,
-                label_cap: Some(m.label_cap),
+                label_cap: m.label_cap,
             })
             .collect(),
     }
