@@ -82,7 +82,7 @@ pub struct ExperimentResponse {
 }
 
 /// Query of `GET /v1/experiments`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ExperimentsQuery {
     /// `oldest` (ascending id, the default) or `newest` first.
@@ -109,7 +109,7 @@ pub struct ExperimentList {
 }
 
 /// Query of the offset-paginated lists (`GET …/runs`).
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PageQuery {
     /// Rows to skip. Default 0.
@@ -220,7 +220,7 @@ pub struct Timeline {
 }
 
 /// Query of `GET /v1/experiments/{id}/precondition/map`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct MapQuery {
     /// The horizontal axis: a state component `s.<name>` or an action component `a.<name>`.
@@ -293,7 +293,7 @@ pub struct PreconditionMap {
 }
 
 /// Query of `GET /v1/experiments/{id}/model/diagnostics`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DiagnosticsQuery {
     /// The model version to check; default the one answering now.
@@ -454,7 +454,7 @@ pub struct TrajectoryResponse {
 }
 
 /// Query of `GET /v1/experiments/{id}/transitions`.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct TransitionsQuery {
     /// Return transitions with an id greater than this cursor. Default 0.
@@ -543,7 +543,7 @@ pub struct PreconditionRequest {
 }
 
 /// Query of `GET /v1/experiments/{id}/precondition`: one point, comma-separated.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PointQuery {
     /// State, e.g. `s=3,2`.

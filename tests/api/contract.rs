@@ -1,4 +1,7 @@
-//! The router and `api/openapi.yaml` describe the same routes and the same error codes.
+//! The router and `api/openapi.yaml` describe the same routes and the same error codes, and
+//! (`bodies`) the same request and response bodies.
+
+mod bodies;
 
 use precond::domain::DynamicsError;
 use precond::http::error::ApiError;
