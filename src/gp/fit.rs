@@ -76,7 +76,7 @@ fn random_start(rng: &mut ChaCha8Rng, d: usize, r: &[f64], homoscedastic: bool) 
     t
 }
 
-fn settings(p: &GpParams, ftol_floor: f64) -> Settings {
+pub(crate) fn settings(p: &GpParams, ftol_floor: f64) -> Settings {
     Settings {
         max_iter: p.max_iterations,
         ftol: p.function_tolerance.max(ftol_floor),
@@ -114,6 +114,20 @@ fn run(
     out
 }
 
+/// One optimiser run of some objective (the exact LML or the sparse bound) on data `(x, r)` with
+/// noise `noise`: L-BFGS `settings`, log-bounds, start, warm correction pairs. Returns the
+/// outcome (`None` if the start is infeasible) and the number of objective evaluations.
+pub(crate) type Runner<'r> = dyn FnMut(
+        &Inputs,
+        &[f64],
+        NoiseSpec<'_>,
+        &Settings,
+        (&[f64], &[f64]),
+        &[f64],
+        lbfgs::Memory,
+    ) -> (Option<lbfgs::Outcome>, usize)
+    + 'r;
+
 /// Maximises the LML of a GP with inputs `x`, centred targets `r` and noise `noise`.
 ///
 /// Starts: `warm` if given (then no random starts are added, and no screening), otherwise the
@@ -145,11 +159,57 @@ pub(crate) fn optimise(
     ftol_floor: f64,
     default_on_full_data: bool,
 ) -> Result<Optimum, GpError> {
+    let mut runner = |x: &Inputs,
+                      r: &[f64],
+                      noise: NoiseSpec<'_>,
+                      settings: &Settings,
+                      bounds: (&[f64], &[f64]),
+                      start: &[f64],
+                      memory: lbfgs::Memory| {
+        let mut evals = 0;
+        let out = run(
+            x, r, noise, kernel, p, settings, bounds, start, memory, &mut evals,
+        );
+        (out, evals)
+    };
+    optimise_with(
+        &mut runner,
+        x,
+        r,
+        noise,
+        bounds,
+        p,
+        p.screen_subset,
+        restarts,
+        warm,
+        seed,
+        ftol_floor,
+        default_on_full_data,
+    )
+}
+
+/// [`optimise`] for any objective: `runner` performs one optimiser run, `screen_subset` replaces
+/// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one).
+#[allow(clippy::too_many_arguments)] // internal; each call site names its arguments
+pub(crate) fn optimise_with(
+    runner: &mut Runner<'_>,
+    x: &Inputs,
+    r: &[f64],
+    noise: NoiseSpec<'_>,
+    bounds: &Bounds,
+    p: &GpParams,
+    screen_subset: usize,
+    restarts: usize,
+    warm: Option<Warm<'_>>,
+    seed: u64,
+    ftol_floor: f64,
+    default_on_full_data: bool,
+) -> Result<Optimum, GpError> {
     let settings = settings(p, ftol_floor);
     let homo = matches!(noise, NoiseSpec::Homoscedastic);
     let (lo, hi) = log_bounds(x.d, bounds, homo);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let screen = p.screen_subset > 0 && x.n > p.screen_subset && warm.is_none() && restarts > 0;
+    let screen = screen_subset > 0 && x.n > screen_subset && warm.is_none() && restarts > 0;
     let mut warm_memory = Vec::new();
     let starts: Vec<Vec<f64>> = match warm {
         Some(w) => {
@@ -168,7 +228,7 @@ pub(crate) fn optimise(
     let bounds = (lo.as_slice(), hi.as_slice());
     // Full-data candidates: (start, warm correction pairs).
     let candidates: Vec<(Vec<f64>, lbfgs::Memory)> = if screen {
-        let mut idx = sample(&mut rng, x.n, p.screen_subset).into_vec();
+        let mut idx = sample(&mut rng, x.n, screen_subset).into_vec();
         idx.sort_unstable();
         let xs = x.subset(&idx);
         let rs: Vec<f64> = idx.iter().map(|&i| r[i]).collect();
@@ -187,18 +247,10 @@ pub(crate) fn optimise(
         };
         let mut best: Option<lbfgs::Outcome> = None;
         for s in screened {
-            if let Some(o) = run(
-                &xs,
-                &rs,
-                sub_noise,
-                kernel,
-                p,
-                &settings,
-                bounds,
-                s,
-                Vec::new(),
-                &mut evaluations,
-            ) && best.as_ref().is_none_or(|b| o.f < b.f)
+            let (out, evals) = runner(&xs, &rs, sub_noise, &settings, bounds, s, Vec::new());
+            evaluations += evals;
+            if let Some(o) = out
+                && best.as_ref().is_none_or(|b| o.f < b.f)
             {
                 best = Some(o);
             }
@@ -212,7 +264,7 @@ pub(crate) fn optimise(
             Vec::new()
         };
         if let Some(b) = best {
-            let scale = x.n as f64 / p.screen_subset as f64;
+            let scale = x.n as f64 / screen_subset as f64;
             let memory = b
                 .memory
                 .into_iter()
@@ -233,18 +285,10 @@ pub(crate) fn optimise(
     };
     let mut best: Option<lbfgs::Outcome> = None;
     for (s, memory) in candidates.iter().cloned() {
-        if let Some(o) = run(
-            x,
-            r,
-            noise,
-            kernel,
-            p,
-            &settings,
-            bounds,
-            &s,
-            memory,
-            &mut evaluations,
-        ) && best.as_ref().is_none_or(|b| o.f < b.f)
+        let (out, evals) = runner(x, r, noise, &settings, bounds, &s, memory);
+        evaluations += evals;
+        if let Some(o) = out
+            && best.as_ref().is_none_or(|b| o.f < b.f)
         {
             best = Some(o);
         }

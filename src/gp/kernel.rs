@@ -444,6 +444,68 @@ fn build_cross_with<K: Form>(
     });
 }
 
+/// Cross covariance (and, when `g` is given, `G`) between `m` points `zs` (scaled, column-major
+/// `m × d`) and `c` points `qs` (scaled; coordinate `k` of point `j` at `qs[k * q_stride + j]`),
+/// written column-major `m × c` (point `j` is column `j`). Sequential: for callers that already
+/// split the work between threads (the sparse GP's chunked passes).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn cross_seq(
+    kernel: Kernel,
+    zs: &[f64],
+    m: usize,
+    qs: &[f64],
+    q_stride: usize,
+    c: usize,
+    d: usize,
+    s2: f64,
+    k_out: &mut [f64],
+    g_out: Option<&mut [f64]>,
+) {
+    match kernel {
+        Kernel::Matern12 => cross_seq_with::<M12>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
+        Kernel::Matern32 => cross_seq_with::<M32>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
+        Kernel::Matern52 => cross_seq_with::<M52>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn cross_seq_with<K: Form>(
+    zs: &[f64],
+    m: usize,
+    qs: &[f64],
+    q_stride: usize,
+    c: usize,
+    d: usize,
+    s2: f64,
+    k_out: &mut [f64],
+    mut g_out: Option<&mut [f64]>,
+) {
+    for j in 0..c {
+        let col = &mut k_out[j * m..(j + 1) * m];
+        col.iter_mut().for_each(|v| *v = 0.0);
+        for k in 0..d {
+            let q = qs[k * q_stride + j];
+            for (acc, &v) in col.iter_mut().zip(&zs[k * m..(k + 1) * m]) {
+                let t = v - q;
+                *acc += t * t;
+            }
+        }
+        match g_out.as_deref_mut() {
+            Some(g) => {
+                let gcol = &mut g[j * m..(j + 1) * m];
+                for (kv, gv) in col.iter_mut().zip(gcol.iter_mut()) {
+                    (*kv, *gv) = K::kg(*kv, s2);
+                }
+            }
+            None => {
+                for v in col.iter_mut() {
+                    *v = K::k(*v, s2);
+                }
+            }
+        }
+    }
+}
+
 /// `Σ_{i>j} W_ij G_ij ((x_ik − x_jk)/ℓ_k)²` for every dimension `k`, where
 /// `W_ij = α_i α_j − (K⁻¹)_ij` and `kinv`, `g` hold lower triangles (column-major `n × n`).
 ///

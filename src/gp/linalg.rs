@@ -132,3 +132,63 @@ pub(crate) fn lower_matmul(
         par,
     );
 }
+
+/// `out (r × c) = α op(A) op(B) + (out if accumulate)`, all column-major; `op(A)` is `A` or `Aᵀ`
+/// as `ta` says (`a` is stored `a_rows × a_cols` before transposition), likewise `B`.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn gemm(
+    out: &mut [f64],
+    (a, a_rows, a_cols, ta): (&[f64], usize, usize, bool),
+    (b, b_rows, b_cols, tb): (&[f64], usize, usize, bool),
+    alpha: f64,
+    accumulate: bool,
+    par: Par,
+) {
+    let av = view(a, a_rows, a_cols);
+    let bv = view(b, b_rows, b_cols);
+    let av = if ta { av.transpose() } else { av };
+    let bv = if tb { bv.transpose() } else { bv };
+    let (r, c) = (av.nrows(), bv.ncols());
+    faer::linalg::matmul::matmul(
+        view_mut(out, r, c),
+        if accumulate {
+            Accum::Add
+        } else {
+            Accum::Replace
+        },
+        av,
+        bv,
+        alpha,
+        par,
+    );
+}
+
+/// Adds `A Aᵀ` to the lower triangle of `out` (`m × m`), `A` column-major `m × c`.
+pub(crate) fn syrk_lower_add(out: &mut [f64], m: usize, a: &[f64], c: usize, par: Par) {
+    let av = view(a, m, c);
+    faer::linalg::matmul::triangular::matmul(
+        view_mut(out, m, m),
+        BlockStructure::TriangularLower,
+        Accum::Add,
+        av,
+        BlockStructure::Rectangular,
+        av.transpose(),
+        BlockStructure::Rectangular,
+        1.0,
+        par,
+    );
+}
+
+/// Updates the lower Cholesky factor `l` (`n × n`) of `M` to that of `M + W Wᵀ` (`W` is
+/// `n × k`, clobbered). `false` when the update fails (it cannot for a positive definite `M`
+/// and finite `W`, but a non-finite input would).
+pub(crate) fn cholesky_rank_update(l: &mut [f64], n: usize, w: &mut [f64], k: usize) -> bool {
+    let mut alpha = vec![1.0; k];
+    faer::linalg::cholesky::llt::update::rank_r_update_clobber(
+        view_mut(l, n, n),
+        view_mut(w, n, k),
+        faer::diag::DiagMut::from_slice_mut(&mut alpha),
+    )
+    .is_ok()
+        && (0..n).all(|i| l[i * n + i].is_finite() && l[i * n + i] > 0.0)
+}

@@ -9,6 +9,8 @@
 //!   its maximisation over log-parameters by projected L-BFGS under box bounds, from seeded starts.
 //! - [`hetero`]: the heteroscedastic noise procedure.
 //! - [`model`]: [`GpModel`] — fit, rebuild from a [`ModelState`], batched prediction.
+//! - [`sparse`]: [`SparseGp`] — the sparse variational GP (SGPR/VFE, `m` inducing points) for
+//!   large `n`: O(n m²) fits, O(m²) predictions, online updates, save/restore without the data.
 //!
 //! The API speaks nalgebra (`DMatrix` rows are points, already scaled to the unit box); the
 //! O(n²)/O(n³) work runs on faer's blocked kernels. Numerical failure is a [`GpError`], never a panic.
@@ -36,6 +38,7 @@ mod linalg;
 mod lml;
 pub mod model;
 pub mod params;
+pub mod sparse;
 #[cfg(test)]
 mod tests;
 
@@ -45,6 +48,7 @@ pub use error::GpError;
 pub use kernel::Kernel;
 pub use model::GpModel;
 pub use params::{Bounds, GpParams, NoiseMode, ValidGpParams};
+pub use sparse::{SparseGp, SparseParams, SparseState, ValidSparseParams};
 
 /// Signal variance of the prior before any data ([`Hyperparameters::prior`]): `1.0`, i.e. a prior
 /// standard deviation of 1 in target units — large next to typical deviation thresholds, so an

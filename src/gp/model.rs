@@ -30,7 +30,7 @@ pub struct GpModel {
 }
 
 /// Checks the training data and converts it.
-fn check_data(x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Inputs, GpError> {
+pub(crate) fn check_data(x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Inputs, GpError> {
     if x.nrows() == 0 {
         return Err(GpError::EmptyData("no training points"));
     }
@@ -54,7 +54,7 @@ fn check_data(x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Inputs, GpError> {
     Ok(Inputs::from_matrix(x))
 }
 
-fn check_finite_matrix(x: &DMatrix<f64>, what: &'static str) -> Result<(), GpError> {
+pub(crate) fn check_finite_matrix(x: &DMatrix<f64>, what: &'static str) -> Result<(), GpError> {
     for i in 0..x.nrows() {
         for j in 0..x.ncols() {
             if !x[(i, j)].is_finite() {

@@ -1,0 +1,767 @@
+//! [`SparseGp`]: a fitted sparse GP — fit, online update, batched prediction, save and restore.
+
+use nalgebra::{DMatrix, DVector};
+use rand::SeedableRng;
+use rand::seq::index::sample;
+use rand_chacha::ChaCha8Rng;
+
+use super::super::core::mean;
+use super::super::fit::{Optimum, Warm, default_start, optimise_with};
+use super::super::hetero::log_residual_bias;
+use super::super::kernel::{Inputs, Kernel};
+use super::super::lbfgs::{self, Settings};
+use super::super::lml::NoiseSpec;
+use super::super::model::{check_data, check_finite_matrix};
+use super::super::{
+    Bounds, FitStats, GpError, Hyperparameters, NoiseMode, NoiseSummary, Prediction,
+};
+use super::bound::Bound;
+use super::core::{Ladder, Lambda, SparseCore};
+use super::inducing::greedy_variance;
+use super::{SparseNoiseState, SparseParams, SparseState, ValidSparseParams};
+
+/// The noise GP's kernel (as in the exact heteroscedastic GP).
+const NOISE_MODEL_KERNEL: Kernel = Kernel::Matern52;
+
+/// Relative function tolerance floor of the noise GP's optimiser (as in the exact GP).
+const NOISE_MODEL_FTOL: f64 = 1e-6;
+
+/// The sparse noise GP and its clip.
+#[derive(Clone, Debug)]
+struct SparseNoise {
+    core: SparseCore,
+    /// Its homoscedastic noise variance (on log-variance targets).
+    noise: f64,
+    clip: (f64, f64),
+    /// Min, mean, max of the training points' noise variances at fit time.
+    train: (f64, f64, f64),
+}
+
+impl SparseNoise {
+    fn predict(&self, q: &Inputs) -> Vec<f64> {
+        self.core
+            .predict_parts(q, false)
+            .0
+            .iter()
+            .map(|z| z.exp().clamp(self.clip.0, self.clip.1))
+            .collect()
+    }
+}
+
+/// A fitted sparse GP model deviation estimator (SGPR/VFE with `m` inducing points; see the
+/// [module documentation](super)).
+///
+/// Holds the inducing points, `chol(K_mm)`, the factor `L_B` and the sufficient statistics — not
+/// the training data: O(m²) memory whatever `n`. `Send + Sync`.
+#[derive(Clone, Debug)]
+pub struct SparseGp {
+    mode: NoiseMode,
+    main: SparseCore,
+    noise_model: Option<SparseNoise>,
+    hyper: Hyperparameters,
+    homo_bound: f64,
+    rounds: usize,
+    stats: Option<FitStats>,
+}
+
+/// Everything the optimisation of one sparse GP needs besides the data.
+struct Setup<'a> {
+    p: &'a SparseParams,
+    z: &'a Inputs,
+    kernel: Kernel,
+    bounds: &'a Bounds,
+    ladder: Ladder,
+}
+
+/// Maximises the bound for inducing inputs `z` (see `fit::optimise_with` for the starts and the
+/// screening). With `presolve_subset` set and `n > 2 · presolve_subset`, the optimisation first
+/// runs on a seeded subset and is then refined on all data from that optimum, its L-BFGS pairs'
+/// `y` scaled by `n / subset` (the bound's curvature grows about linearly with `n`).
+#[allow(clippy::too_many_arguments)]
+fn optimise_sparse(
+    s: &Setup<'_>,
+    x: &Inputs,
+    r: &[f64],
+    noise: NoiseSpec<'_>,
+    restarts: usize,
+    warm: Option<Warm<'_>>,
+    seed: u64,
+    ftol_floor: f64,
+    default_on_full_data: bool,
+) -> Result<Optimum, GpError> {
+    let (z, kernel, ladder) = (s.z, s.kernel, s.ladder);
+    let mut runner = |x: &Inputs,
+                      r: &[f64],
+                      noise: NoiseSpec<'_>,
+                      settings: &Settings,
+                      (lo, hi): (&[f64], &[f64]),
+                      start: &[f64],
+                      memory: lbfgs::Memory| {
+        let mut obj = Bound::new(x, z, r, noise, kernel, ladder);
+        let mut fg = |t: &[f64], g: &mut [f64]| obj.eval(t, g);
+        let out = lbfgs::minimize(&mut fg, start, lo, hi, settings, memory);
+        (out, obj.evaluations)
+    };
+    let p = &s.p.gp;
+    let sub = s.p.presolve_subset;
+    if sub == 0 || x.n <= 2 * sub {
+        return optimise_with(
+            &mut runner,
+            x,
+            r,
+            noise,
+            s.bounds,
+            p,
+            s.p.screen_subset,
+            restarts,
+            warm,
+            seed,
+            ftol_floor,
+            default_on_full_data,
+        );
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_5EED_5EED_5EED);
+    let mut idx = sample(&mut rng, x.n, sub).into_vec();
+    idx.sort_unstable();
+    let xs = x.subset(&idx);
+    let rs: Vec<f64> = idx.iter().map(|&i| r[i]).collect();
+    let fixed: Vec<f64>;
+    let sub_noise = match noise {
+        NoiseSpec::Homoscedastic => NoiseSpec::Homoscedastic,
+        NoiseSpec::Fixed(v) => {
+            fixed = idx.iter().map(|&i| v[i]).collect();
+            NoiseSpec::Fixed(&fixed)
+        }
+    };
+    let first = optimise_with(
+        &mut runner,
+        &xs,
+        &rs,
+        sub_noise,
+        s.bounds,
+        p,
+        s.p.screen_subset,
+        restarts,
+        warm,
+        seed,
+        ftol_floor,
+        true,
+    )?;
+    let scale = x.n as f64 / sub as f64;
+    let memory = first
+        .memory
+        .iter()
+        .map(|(s, y)| (s.clone(), y.iter().map(|v| v * scale).collect()))
+        .collect();
+    let mut out = optimise_with(
+        &mut runner,
+        x,
+        r,
+        noise,
+        s.bounds,
+        p,
+        s.p.screen_subset,
+        0,
+        Some(Warm {
+            theta: &first.theta,
+            memory,
+        }),
+        seed,
+        ftol_floor,
+        true,
+    )?;
+    out.evaluations += first.evaluations;
+    Ok(out)
+}
+
+/// The `m × d` matrix of an [`Inputs`] (rows are points).
+fn to_matrix(x: &Inputs) -> DMatrix<f64> {
+    DMatrix::from_column_slice(x.n, x.d, &x.cols)
+}
+
+/// `z_i = log e_i + b(ρ_i)` with `e_i = (y_i − μ_i)² + k_iᵀΣ⁻¹k_i` and
+/// `ρ_i = 1 − k_iᵀΣ⁻¹k_i / λ_i` (see the module documentation).
+fn log_noise_targets(core: &SparseCore, x: &Inputs, y: &[f64], lambda: Lambda<'_>) -> Vec<f64> {
+    let (mu, _, v2) = core.predict_parts(x, true);
+    let n = y.len();
+    let target = |i: usize| {
+        let res = y[i] - mu[i];
+        let rho = (1.0 - v2[i] / lambda.at(i)).clamp(0.0, 1.0);
+        (res * res + v2[i]).max(1e-300).ln() + log_residual_bias(rho)
+    };
+    // b(ρ) is a 397-node quadrature: split large sets between threads.
+    let threads = super::super::kernel::threads_for(n * 400);
+    if threads <= 1 {
+        return (0..n).map(target).collect();
+    }
+    let per = n.div_ceil(threads);
+    let mut out = vec![0.0; n];
+    std::thread::scope(|scope| {
+        for (t, part) in out.chunks_mut(per).enumerate() {
+            let target = &target;
+            scope.spawn(move || {
+                for (j, v) in part.iter_mut().enumerate() {
+                    *v = target(t * per + j);
+                }
+            });
+        }
+    });
+    out
+}
+
+/// Min, mean and max of a non-empty slice.
+fn min_mean_max(v: &[f64]) -> (f64, f64, f64) {
+    (
+        v.iter().copied().fold(f64::INFINITY, f64::min),
+        mean(v),
+        v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
+    )
+}
+
+impl SparseGp {
+    /// Fits a sparse GP to training inputs `x` (rows are points, already scaled to the unit box)
+    /// and targets `y`: selects inducing points, maximises the collapsed bound over the
+    /// hyperparameters, and (heteroscedastic mode, `n ≥ gp.hetero_min_points`) runs the
+    /// heteroscedastic rounds. O(n m²) time per bound evaluation, O(n + m²) memory beyond the
+    /// data. Same data and seed, same model.
+    ///
+    /// # Errors
+    /// As [`GpModel::fit`](super::super::GpModel::fit).
+    pub fn fit(
+        x: &DMatrix<f64>,
+        y: &DVector<f64>,
+        params: &ValidSparseParams,
+    ) -> Result<SparseGp, GpError> {
+        let xi = check_data(x, y)?;
+        Self::fit_inner(&xi, y.as_slice(), params, None)
+    }
+
+    /// Like [`fit`](Self::fit) with the inducing inputs given (rows are points, unit box) instead
+    /// of selected; [`SparseParams::inducing_rounds`] is then ignored.
+    ///
+    /// # Errors
+    /// As [`fit`](Self::fit), and [`GpError::DimensionMismatch`] / [`GpError::NonFinite`] /
+    /// [`GpError::EmptyData`] for bad inducing inputs.
+    pub fn fit_with_inducing(
+        x: &DMatrix<f64>,
+        y: &DVector<f64>,
+        z: &DMatrix<f64>,
+        params: &ValidSparseParams,
+    ) -> Result<SparseGp, GpError> {
+        let xi = check_data(x, y)?;
+        if z.nrows() == 0 {
+            return Err(GpError::EmptyData("no inducing points"));
+        }
+        if z.ncols() != x.ncols() {
+            return Err(GpError::DimensionMismatch {
+                what: "columns of inducing points vs input dimension",
+                expected: x.ncols(),
+                found: z.ncols(),
+            });
+        }
+        check_finite_matrix(z, "inducing points")?;
+        Self::fit_inner(&xi, y.as_slice(), params, Some(Inputs::from_matrix(z)))
+    }
+
+    fn fit_inner(
+        x: &Inputs,
+        y: &[f64],
+        params: &ValidSparseParams,
+        fixed_z: Option<Inputs>,
+    ) -> Result<SparseGp, GpError> {
+        let sp = params.params();
+        let p = &sp.gp;
+        let d = x.d;
+        let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
+        let ladder = Ladder::Relative {
+            initial: sp.jitter,
+            max: p.jitter_max.max(sp.jitter),
+        };
+        let select = |ls: &[f64], s2: f64, round: u64| -> Inputs {
+            let pool = sp.selection_candidates.max(4 * sp.inducing_points);
+            let seed = p
+                .seed
+                .wrapping_add(0xD1B5_4A32_D192_ED03u64.wrapping_mul(round + 1));
+            let idx = greedy_variance(
+                p.kernel,
+                x,
+                ls,
+                s2,
+                sp.inducing_points,
+                pool,
+                sp.jitter.max(1e-10),
+                seed,
+            );
+            x.subset(&idx)
+        };
+        let theta0 = default_start(d, &r, true);
+        let ls0: Vec<f64> = theta0[..d].iter().map(|v| v.exp()).collect();
+        let reselect = fixed_z.is_none();
+        let mut z = match fixed_z {
+            Some(z) => z,
+            None => select(&ls0, theta0[d].exp(), 0),
+        };
+        let build = |z: &Inputs, theta: &[f64]| {
+            let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
+            SparseCore::build(
+                p.kernel,
+                x,
+                y,
+                p.prior_mean,
+                z,
+                &ls,
+                theta[d].exp(),
+                Lambda::Homo(theta[d + 1].exp()),
+                ladder,
+            )
+        };
+        fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
+            Setup {
+                p: sp,
+                z,
+                kernel: sp.gp.kernel,
+                bounds: &sp.gp.bounds,
+                ladder,
+            }
+        }
+        let mut opt = optimise_sparse(
+            &setup(sp, &z, ladder),
+            x,
+            &r,
+            NoiseSpec::Homoscedastic,
+            p.restarts,
+            None,
+            p.seed,
+            0.0,
+            true,
+        )?;
+        let mut evaluations = opt.evaluations;
+        let mut homo = build(&z, &opt.theta)?;
+        if reselect {
+            for round in 1..sp.inducing_rounds {
+                let ls: Vec<f64> = opt.theta[..d].iter().map(|v| v.exp()).collect();
+                let z2 = select(&ls, opt.theta[d].exp(), round as u64);
+                let o2 = optimise_sparse(
+                    &setup(sp, &z2, ladder),
+                    x,
+                    &r,
+                    NoiseSpec::Homoscedastic,
+                    0,
+                    Some(Warm {
+                        theta: &opt.theta,
+                        memory: opt.memory.clone(),
+                    }),
+                    p.seed,
+                    0.0,
+                    true,
+                )?;
+                evaluations += o2.evaluations;
+                let c2 = build(&z2, &o2.theta)?;
+                if c2.bound > homo.bound {
+                    (z, opt, homo) = (z2, o2, c2);
+                } else {
+                    break;
+                }
+            }
+        }
+        let theta = opt.theta.clone();
+        let sigma2 = theta[d + 1].exp();
+        let homo_bound = homo.bound;
+        let hetero = p.noise == NoiseMode::Heteroscedastic && x.n >= p.hetero_min_points;
+        if !hetero {
+            return Ok(SparseGp {
+                mode: NoiseMode::Homoscedastic,
+                hyper: homo.hyperparameters(sigma2),
+                main: homo,
+                noise_model: None,
+                homo_bound,
+                rounds: 0,
+                stats: Some(FitStats {
+                    evaluations,
+                    converged: opt.converged,
+                }),
+            });
+        }
+        // The heteroscedastic rounds (see `hetero` for the procedure).
+        let my = mean(y);
+        let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
+        let (clip_lo, clip_hi) = p.bounds.noise_variance;
+        let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
+        let noise_z = z.subset(&(0..z.n.min(sp.noise_inducing_points)).collect::<Vec<_>>());
+        let noise_setup = Setup {
+            p: sp,
+            z: &noise_z,
+            kernel: NOISE_MODEL_KERNEL,
+            bounds: &p.noise_model_bounds,
+            ladder,
+        };
+        let main_setup = setup(sp, &z, ladder);
+        let mut best: Option<(SparseCore, SparseNoise, Vec<f64>, usize)> = None;
+        let mut current_theta = theta[..d + 1].to_vec();
+        let mut main_memory = Vec::new();
+        let mut noise_theta: Option<Vec<f64>> = None;
+        let mut noise_memory = Vec::new();
+        let mut converged = opt.converged;
+        for round in 0..p.hetero_rounds {
+            let targets = match &best {
+                None => log_noise_targets(&homo, x, y, Lambda::Homo(sigma2)),
+                Some((core, _, lambda, _)) => log_noise_targets(core, x, y, Lambda::Per(lambda)),
+            };
+            let mz = mean(&targets);
+            let rz: Vec<f64> = targets.iter().map(|v| v - mz).collect();
+            let seed = p
+                .seed
+                .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
+            let g = optimise_sparse(
+                &noise_setup,
+                x,
+                &rz,
+                NoiseSpec::Homoscedastic,
+                p.restarts,
+                noise_theta.as_deref().map(|theta| Warm {
+                    theta,
+                    memory: noise_memory.clone(),
+                }),
+                seed,
+                NOISE_MODEL_FTOL,
+                false,
+            )?;
+            let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
+            let gn = g.theta[d + 1].exp();
+            let ncore = SparseCore::build(
+                NOISE_MODEL_KERNEL,
+                x,
+                &targets,
+                mz,
+                &noise_z,
+                &gls,
+                g.theta[d].exp(),
+                Lambda::Homo(gn),
+                ladder,
+            )?;
+            let mut nm = SparseNoise {
+                core: ncore,
+                noise: gn,
+                clip,
+                train: (0.0, 0.0, 0.0),
+            };
+            let lambda = nm.predict(x);
+            nm.train = min_mean_max(&lambda);
+            let f = optimise_sparse(
+                &main_setup,
+                x,
+                &r,
+                NoiseSpec::Fixed(&lambda),
+                0,
+                Some(Warm {
+                    theta: &current_theta,
+                    memory: main_memory.clone(),
+                }),
+                p.seed,
+                0.0,
+                true,
+            )?;
+            let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
+            let main = SparseCore::build(
+                p.kernel,
+                x,
+                y,
+                p.prior_mean,
+                &z,
+                &ls,
+                f.theta[d].exp(),
+                Lambda::Per(&lambda),
+                ladder,
+            )?;
+            evaluations += g.evaluations + f.evaluations;
+            let improved = match &best {
+                None => true,
+                Some((b, ..)) => main.bound > b.bound + p.hetero_tolerance * b.bound.abs(),
+            };
+            if !improved {
+                break;
+            }
+            noise_theta = Some(g.theta);
+            noise_memory = g.memory;
+            current_theta = f.theta;
+            main_memory = f.memory;
+            converged &= g.converged && f.converged;
+            best = Some((main, nm, lambda, round + 1));
+        }
+        let (main, nm, _, rounds) = best.ok_or_else(|| {
+            GpError::OptimisationFailed("no heteroscedastic round succeeded".into())
+        })?;
+        Ok(SparseGp {
+            mode: NoiseMode::Heteroscedastic,
+            hyper: main.hyperparameters(nm.train.1),
+            main,
+            noise_model: Some(nm),
+            homo_bound,
+            rounds,
+            stats: Some(FitStats {
+                evaluations,
+                converged,
+            }),
+        })
+    }
+
+    /// Per-point noise variances at `x` under this model's noise model.
+    fn noise_at(&self, x: &Inputs) -> Vec<f64> {
+        match &self.noise_model {
+            Some(nm) => nm.predict(x),
+            None => vec![self.hyper.noise_variance; x.n],
+        }
+    }
+
+    /// Checks new data against the model's input dimension.
+    fn check_new(&self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Inputs, GpError> {
+        if x.ncols() != self.main.d {
+            return Err(GpError::DimensionMismatch {
+                what: "columns of x vs input dimension",
+                expected: self.main.d,
+                found: x.ncols(),
+            });
+        }
+        check_data(x, y)
+    }
+
+    /// Absorbs a batch of new points (e.g. one executed trajectory) at fixed hyperparameters,
+    /// inducing points and noise model: `L_B` takes a rank-k Cholesky update and the statistics
+    /// grow by sums. Afterwards the model equals [`condition`](Self::condition) on all the
+    /// data at once (to rounding). O(k m²) time; the bound is updated too. An empty batch is a
+    /// no-op; on error the model is unchanged.
+    ///
+    /// # Errors
+    /// Data errors as for [`fit`](Self::fit) (a wrong column count is a
+    /// [`GpError::DimensionMismatch`]).
+    pub fn update(&mut self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<(), GpError> {
+        if x.nrows() == 0 && y.is_empty() {
+            return Ok(());
+        }
+        let xi = self.check_new(x, y)?;
+        let lambda = self.noise_at(&xi);
+        let l = match self.mode {
+            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
+            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
+        };
+        self.main.update(&xi, y.as_slice(), l)
+    }
+
+    /// The same hyperparameters, inducing points and noise model conditioned afresh on `(x, y)`
+    /// (no optimisation): what [`update`](Self::update)s add up to, or a rebuild after the data
+    /// changed. O(n m²).
+    ///
+    /// # Errors
+    /// Data errors as for [`fit`](Self::fit); [`GpError::NotPositiveDefinite`] if `K_mm` no longer
+    /// factorises with the stored jitter (it always does for a model this crate fitted).
+    pub fn condition(&self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<SparseGp, GpError> {
+        let xi = self.check_new(x, y)?;
+        let lambda = self.noise_at(&xi);
+        let l = match self.mode {
+            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
+            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
+        };
+        let c = &self.main;
+        let main = SparseCore::build(
+            c.kernel,
+            &xi,
+            y.as_slice(),
+            c.mean,
+            &c.z,
+            &c.length_scales,
+            c.s2,
+            l,
+            Ladder::Exact(c.jitter),
+        )?;
+        Ok(SparseGp {
+            main,
+            stats: None,
+            ..self.clone()
+        })
+    }
+
+    /// Predicts at the rows of `x`: mean, latent variance and noise variance per point.
+    /// O(m²) per point after the fit; batches run on several threads.
+    ///
+    /// Never panics: a wrong column count gives NaN everywhere, a row with a non-finite
+    /// coordinate NaN for that row ([`try_predict`](Self::try_predict) returns errors instead).
+    pub fn predict(&self, x: &DMatrix<f64>) -> Prediction {
+        let nq = x.nrows();
+        if x.ncols() != self.main.d {
+            return Prediction {
+                mean: vec![f64::NAN; nq],
+                latent_variance: vec![f64::NAN; nq],
+                noise_variance: vec![f64::NAN; nq],
+            };
+        }
+        let q = Inputs::from_matrix(x);
+        let (mean, latent_variance) = self.main.predict(&q);
+        let noise_variance = self.noise_at(&q);
+        let mut p = Prediction {
+            mean,
+            latent_variance,
+            noise_variance,
+        };
+        for i in 0..q.n {
+            if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
+                p.mean[i] = f64::NAN;
+                p.latent_variance[i] = f64::NAN;
+                p.noise_variance[i] = f64::NAN;
+            }
+        }
+        p
+    }
+
+    /// Like [`predict`](Self::predict) but rejects a wrong column count or non-finite inputs.
+    pub fn try_predict(&self, x: &DMatrix<f64>) -> Result<Prediction, GpError> {
+        if x.ncols() != self.main.d {
+            return Err(GpError::DimensionMismatch {
+                what: "columns of query x vs input dimension",
+                expected: self.main.d,
+                found: x.ncols(),
+            });
+        }
+        check_finite_matrix(x, "query x")?;
+        Ok(self.predict(x))
+    }
+
+    /// The state to store; [`from_state`](Self::from_state) rebuilds this model from it alone
+    /// (no training data), predicting exactly as this one (serde_json round-trips floats
+    /// exactly with this crate's `float_roundtrip` feature).
+    pub fn state(&self) -> SparseState {
+        SparseState {
+            format: 1,
+            noise: self.mode,
+            main: self.main.state(self.hyper.noise_variance),
+            noise_model: self.noise_model.as_ref().map(|nm| SparseNoiseState {
+                core: nm.core.state(nm.noise),
+                noise_variance_clip: nm.clip,
+                rounds: self.rounds,
+                homoscedastic_bound: self.homo_bound,
+                train_noise_variance: nm.train,
+            }),
+        }
+    }
+
+    /// Rebuilds a model from its [`SparseState`] (no data, no optimisation): `K_mm` is
+    /// refactorised with the stored jitter, everything else is taken as stored.
+    ///
+    /// # Errors
+    /// [`GpError::InvalidState`], [`GpError::DimensionMismatch`] or [`GpError::NonFinite`] for a
+    /// malformed or inconsistent state; [`GpError::NotPositiveDefinite`] if `K_mm` does not
+    /// factorise with the stored jitter.
+    pub fn from_state(state: &SparseState) -> Result<SparseGp, GpError> {
+        if state.format != 1 {
+            return Err(GpError::InvalidState(format!(
+                "unsupported sparse format {}",
+                state.format
+            )));
+        }
+        let main = SparseCore::from_state(&state.main, "sparse main GP")?;
+        let hyper = state.main.hyperparameters.clone();
+        let (noise_model, rounds, homo_bound) = match (state.noise, &state.noise_model) {
+            (NoiseMode::Homoscedastic, None) => (None, 0, main.bound),
+            (NoiseMode::Heteroscedastic, Some(ns)) => {
+                let core = SparseCore::from_state(&ns.core, "sparse noise GP")?;
+                if core.d != main.d {
+                    return Err(GpError::DimensionMismatch {
+                        what: "noise GP vs main GP input dimension",
+                        expected: main.d,
+                        found: core.d,
+                    });
+                }
+                let (lo, hi) = ns.noise_variance_clip;
+                if !(lo.is_finite() && hi.is_finite() && lo > 0.0 && lo <= hi) {
+                    return Err(GpError::InvalidState(
+                        "noise_variance_clip must satisfy 0 < low <= high < inf".into(),
+                    ));
+                }
+                let nm = SparseNoise {
+                    core,
+                    noise: ns.core.hyperparameters.noise_variance,
+                    clip: ns.noise_variance_clip,
+                    train: ns.train_noise_variance,
+                };
+                (Some(nm), ns.rounds, ns.homoscedastic_bound)
+            }
+            _ => {
+                return Err(GpError::InvalidState(
+                    "noise mode and noise model disagree".into(),
+                ));
+            }
+        };
+        Ok(SparseGp {
+            mode: state.noise,
+            main,
+            noise_model,
+            hyper,
+            homo_bound,
+            rounds,
+            stats: None,
+        })
+    }
+
+    /// The collapsed variational bound `F ≤ log p(y)` of the data absorbed so far (natural
+    /// log; comparable with [`GpModel::log_marginal_likelihood`](super::super::GpModel::log_marginal_likelihood),
+    /// which it equals when the inducing inputs are the training inputs).
+    pub fn bound(&self) -> f64 {
+        self.main.bound
+    }
+
+    /// The main GP's hyperparameters (for heteroscedastic models `noise_variance` is the mean
+    /// per-point training noise variance at fit time).
+    pub fn hyperparameters(&self) -> &Hyperparameters {
+        &self.hyper
+    }
+
+    /// The noise model actually used (heteroscedastic requests fall back to homoscedastic when
+    /// `n < gp.hetero_min_points`).
+    pub fn noise_mode(&self) -> NoiseMode {
+        self.mode
+    }
+
+    /// The inducing inputs, rows are points (unit box).
+    pub fn inducing_points(&self) -> DMatrix<f64> {
+        to_matrix(&self.main.z)
+    }
+
+    /// Number of inducing points `m`.
+    pub fn n_inducing(&self) -> usize {
+        self.main.m
+    }
+
+    /// Training points absorbed (by the fit and by [`update`](Self::update)s).
+    pub fn n_train(&self) -> usize {
+        self.main.stats.n
+    }
+
+    /// Input dimension.
+    pub fn input_dim(&self) -> usize {
+        self.main.d
+    }
+
+    /// Absolute jitter on `K_mm`'s diagonal.
+    pub fn jitter(&self) -> f64 {
+        self.main.jitter
+    }
+
+    /// How the optimisation went; `None` for a model rebuilt from a state or conditioned anew.
+    pub fn fit_stats(&self) -> Option<&FitStats> {
+        self.stats.as_ref()
+    }
+
+    /// For heteroscedastic models: the training noise variances' min/mean/max at fit time, the
+    /// noise GP's hyperparameters, the rounds kept and the homoscedastic fit's bound (in the
+    /// `homoscedastic_lml` field). `None` for homoscedastic models.
+    pub fn noise_summary(&self) -> Option<NoiseSummary> {
+        let nm = self.noise_model.as_ref()?;
+        Some(NoiseSummary {
+            min_noise_variance: nm.train.0,
+            mean_noise_variance: nm.train.1,
+            max_noise_variance: nm.train.2,
+            noise_model: nm.core.hyperparameters(nm.noise),
+            rounds: self.rounds,
+            homoscedastic_lml: self.homo_bound,
+        })
+    }
+}
