@@ -67,9 +67,10 @@ pub use model::SparseGp;
 
 use super::{GpError, GpParams, Hyperparameters, NoiseMode};
 
-/// Default number of inducing points: 256 (measured: at n = 100 000, d = 6 a fit with 256 takes
-/// about a third of the time of one with 512 and predicts about 4× faster; see the README's
-/// sparse benchmark).
+/// Default number of inducing points: 256. Measured on the benchmark's data (n = 100 000, d = 6,
+/// homoscedastic, release build, 2 cores): m = 256 fits in 25 s, predicts 260 000 points/s and
+/// one point in 0.014 ms; m = 512 fits in 81 s, predicts 90 000 points/s and one point in
+/// 0.08 ms, for a held-out NLL better by 0.5 % (−0.410 vs −0.408).
 pub const DEFAULT_INDUCING_POINTS: usize = 256;
 
 /// Settings for fitting a [`SparseGp`]. Build one (or start from [`Default`]), then call
@@ -101,10 +102,13 @@ pub struct SparseParams {
     /// exact GP (whose own `gp.screen_subset` is smaller). `0` disables screening. Default 4096;
     /// must be `0` or at least 64.
     pub screen_subset: usize,
-    /// When `n` exceeds twice this, every optimisation first runs on a seeded subset of this many
-    /// points and is then refined on all the data from that optimum (with its L-BFGS pairs
-    /// rescaled), so the expensive full-data evaluations are few. `0` disables it. Default
-    /// 16384; must be `0` or at least 256.
+    /// When `n` exceeds twice this, the whole procedure (selection rounds, restarts,
+    /// heteroscedastic rounds) runs on a seeded subset of this many points, and is then refined
+    /// once on all the data with the subset's inducing points: the homoscedastic optimum
+    /// warm-started from the subset's (its L-BFGS pairs rescaled by `n / subset`), and in
+    /// heteroscedastic mode one round whose noise and main GPs start from the subset's optima.
+    /// Full-data evaluations, the expensive ones, are then few (about 30 at n = 100 000 instead of
+    /// about 75). `0` disables it. Default 16384; must be `0` or at least 256.
     pub presolve_subset: usize,
     /// Jitter added to `K_mm`'s diagonal, relative to the signal variance (the first rung of a
     /// ladder that grows ×10 up to `gp.jitter_max`). Default `1e-6`; range `(0, 1e-2]`.

@@ -74,9 +74,7 @@ struct Setup<'a> {
 }
 
 /// Maximises the bound for inducing inputs `z` (see `fit::optimise_with` for the starts and the
-/// screening). With `presolve_subset` set and `n > 2 · presolve_subset`, the optimisation first
-/// runs on a seeded subset and is then refined on all data from that optimum, its L-BFGS pairs'
-/// `y` scaled by `n / subset` (the bound's curvature grows about linearly with `n`).
+/// screening).
 #[allow(clippy::too_many_arguments)]
 fn optimise_sparse(
     s: &Setup<'_>,
@@ -102,76 +100,42 @@ fn optimise_sparse(
         let out = lbfgs::minimize(&mut fg, start, lo, hi, settings, memory);
         (out, obj.evaluations)
     };
-    let p = &s.p.gp;
-    let sub = s.p.presolve_subset;
-    if sub == 0 || x.n <= 2 * sub {
-        return optimise_with(
-            &mut runner,
-            x,
-            r,
-            noise,
-            s.bounds,
-            p,
-            s.p.screen_subset,
-            restarts,
-            warm,
-            seed,
-            ftol_floor,
-            default_on_full_data,
-        );
-    }
-    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x5EED_5EED_5EED_5EED);
-    let mut idx = sample(&mut rng, x.n, sub).into_vec();
-    idx.sort_unstable();
-    let xs = x.subset(&idx);
-    let rs: Vec<f64> = idx.iter().map(|&i| r[i]).collect();
-    let fixed: Vec<f64>;
-    let sub_noise = match noise {
-        NoiseSpec::Homoscedastic => NoiseSpec::Homoscedastic,
-        NoiseSpec::Fixed(v) => {
-            fixed = idx.iter().map(|&i| v[i]).collect();
-            NoiseSpec::Fixed(&fixed)
-        }
-    };
-    let first = optimise_with(
-        &mut runner,
-        &xs,
-        &rs,
-        sub_noise,
-        s.bounds,
-        p,
-        s.p.screen_subset,
-        restarts,
-        warm,
-        seed,
-        ftol_floor,
-        true,
-    )?;
-    let scale = x.n as f64 / sub as f64;
-    let memory = first
-        .memory
-        .iter()
-        .map(|(s, y)| (s.clone(), y.iter().map(|v| v * scale).collect()))
-        .collect();
-    let mut out = optimise_with(
+    optimise_with(
         &mut runner,
         x,
         r,
         noise,
         s.bounds,
-        p,
+        &s.p.gp,
         s.p.screen_subset,
-        0,
-        Some(Warm {
-            theta: &first.theta,
-            memory,
-        }),
+        restarts,
+        warm,
         seed,
         ftol_floor,
-        true,
-    )?;
-    out.evaluations += first.evaluations;
-    Ok(out)
+        default_on_full_data,
+    )
+}
+
+/// A fit's model with what a warm-started refinement on more data needs.
+struct Fitted {
+    model: SparseGp,
+    z: Inputs,
+    /// Homoscedastic optimum and its L-BFGS pairs.
+    homo: (Vec<f64>, lbfgs::Memory),
+    /// Heteroscedastic noise GP and main GP optima (heteroscedastic mode).
+    hetero: Option<((Vec<f64>, lbfgs::Memory), (Vec<f64>, lbfgs::Memory))>,
+    /// Number of points fitted.
+    n: usize,
+}
+
+/// L-BFGS pairs from a fit on `from` points, for a run on `to` points: the bound's curvature
+/// grows about linearly with `n`, so `y` is scaled by `to / from`.
+fn rescale(memory: &lbfgs::Memory, from: usize, to: usize) -> lbfgs::Memory {
+    let scale = to as f64 / from.max(1) as f64;
+    memory
+        .iter()
+        .map(|(s, y)| (s.clone(), y.iter().map(|v| v * scale).collect()))
+        .collect()
 }
 
 /// The `m × d` matrix of an [`Inputs`] (rows are points).
@@ -216,6 +180,211 @@ fn min_mean_max(v: &[f64]) -> (f64, f64, f64) {
         mean(v),
         v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
     )
+}
+
+fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
+    Setup {
+        p: sp,
+        z,
+        kernel: sp.gp.kernel,
+        bounds: &sp.gp.bounds,
+        ladder,
+    }
+}
+
+/// `K_mm`'s jitter ladder: `jitter · s²` up to `max(gp.jitter_max, jitter) · s²`.
+fn ladder(sp: &SparseParams) -> Ladder {
+    Ladder::Relative {
+        initial: sp.jitter,
+        max: sp.gp.jitter_max.max(sp.jitter),
+    }
+}
+
+/// The homoscedastic core at `θ = [log ℓ, log s², log σ²]`.
+fn build_homo(
+    x: &Inputs,
+    y: &[f64],
+    sp: &SparseParams,
+    z: &Inputs,
+    theta: &[f64],
+) -> Result<SparseCore, GpError> {
+    let d = x.d;
+    let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
+    SparseCore::build(
+        sp.gp.kernel,
+        x,
+        y,
+        sp.gp.prior_mean,
+        z,
+        &ls,
+        theta[d].exp(),
+        Lambda::Homo(theta[d + 1].exp()),
+        ladder(sp),
+    )
+}
+
+/// Where the heteroscedastic rounds start.
+struct Rounds {
+    /// The model whose residuals give the first round's noise targets, and its per-point noise
+    /// (`None`: homoscedastic, `σ²` passed separately).
+    targets_from: (SparseCore, Option<Vec<f64>>),
+    /// Warm start of the noise GP (`None`: default start plus restarts).
+    noise: Option<(Vec<f64>, lbfgs::Memory)>,
+    /// Warm start of the main GP, `[log ℓ, log s²]`.
+    main: (Vec<f64>, lbfgs::Memory),
+    /// At most this many rounds.
+    rounds: usize,
+}
+
+/// What the heteroscedastic rounds produced.
+struct RoundsOut {
+    model: SparseGp,
+    optima: Option<((Vec<f64>, lbfgs::Memory), (Vec<f64>, lbfgs::Memory))>,
+}
+
+/// The heteroscedastic rounds (see `hetero` for the procedure) with sparse GPs, from `start`;
+/// the LML-best round is kept, as in the exact GP.
+fn hetero_rounds(
+    x: &Inputs,
+    y: &[f64],
+    sp: &SparseParams,
+    z: &Inputs,
+    start: Rounds,
+    sigma2: f64,
+) -> Result<RoundsOut, GpError> {
+    let p = &sp.gp;
+    let d = x.d;
+    let ladder = ladder(sp);
+    let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
+    let my = mean(y);
+    let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
+    let (clip_lo, clip_hi) = p.bounds.noise_variance;
+    let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
+    let noise_z = z.subset(&(0..z.n.min(sp.noise_inducing_points)).collect::<Vec<_>>());
+    let noise_setup = Setup {
+        p: sp,
+        z: &noise_z,
+        kernel: NOISE_MODEL_KERNEL,
+        bounds: &p.noise_model_bounds,
+        ladder,
+    };
+    let main_setup = setup(sp, z, ladder);
+    type Best = (SparseCore, SparseNoise, Vec<f64>, usize);
+    let mut best: Option<Best> = None;
+    let (mut current_theta, mut main_memory) = start.main;
+    let (mut noise_theta, mut noise_memory) = match start.noise {
+        Some((t, m)) => (Some(t), m),
+        None => (None, Vec::new()),
+    };
+    let mut optima = None;
+    let mut evaluations = 0;
+    let mut converged = true;
+    let first = start.targets_from;
+    for round in 0..start.rounds {
+        let targets = match (&best, &first) {
+            (None, (core, None)) => log_noise_targets(core, x, y, Lambda::Homo(sigma2)),
+            (None, (core, Some(l))) => log_noise_targets(core, x, y, Lambda::Per(l)),
+            (Some((core, _, lambda, _)), _) => log_noise_targets(core, x, y, Lambda::Per(lambda)),
+        };
+        let mz = mean(&targets);
+        let rz: Vec<f64> = targets.iter().map(|v| v - mz).collect();
+        let seed = p
+            .seed
+            .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
+        let g = optimise_sparse(
+            &noise_setup,
+            x,
+            &rz,
+            NoiseSpec::Homoscedastic,
+            p.restarts,
+            noise_theta.as_deref().map(|theta| Warm {
+                theta,
+                memory: noise_memory.clone(),
+            }),
+            seed,
+            NOISE_MODEL_FTOL,
+            false,
+        )?;
+        let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
+        let gn = g.theta[d + 1].exp();
+        let ncore = SparseCore::build(
+            NOISE_MODEL_KERNEL,
+            x,
+            &targets,
+            mz,
+            &noise_z,
+            &gls,
+            g.theta[d].exp(),
+            Lambda::Homo(gn),
+            ladder,
+        )?;
+        let mut nm = SparseNoise {
+            core: ncore,
+            noise: gn,
+            clip,
+            train: (0.0, 0.0, 0.0),
+        };
+        let lambda = nm.predict(x);
+        nm.train = min_mean_max(&lambda);
+        let f = optimise_sparse(
+            &main_setup,
+            x,
+            &r,
+            NoiseSpec::Fixed(&lambda),
+            0,
+            Some(Warm {
+                theta: &current_theta,
+                memory: main_memory.clone(),
+            }),
+            p.seed,
+            0.0,
+            true,
+        )?;
+        let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
+        let main = SparseCore::build(
+            p.kernel,
+            x,
+            y,
+            p.prior_mean,
+            z,
+            &ls,
+            f.theta[d].exp(),
+            Lambda::Per(&lambda),
+            ladder,
+        )?;
+        evaluations += g.evaluations + f.evaluations;
+        let improved = match &best {
+            None => true,
+            Some((b, ..)) => main.bound > b.bound + p.hetero_tolerance * b.bound.abs(),
+        };
+        if !improved {
+            break;
+        }
+        noise_theta = Some(g.theta.clone());
+        noise_memory = g.memory.clone();
+        current_theta = f.theta.clone();
+        main_memory = f.memory.clone();
+        optima = Some(((g.theta, g.memory), (f.theta, f.memory)));
+        converged &= g.converged && f.converged;
+        best = Some((main, nm, lambda, round + 1));
+    }
+    let (main, nm, _, rounds) = best
+        .ok_or_else(|| GpError::OptimisationFailed("no heteroscedastic round succeeded".into()))?;
+    Ok(RoundsOut {
+        model: SparseGp {
+            mode: NoiseMode::Heteroscedastic,
+            hyper: main.hyperparameters(nm.train.1),
+            main,
+            noise_model: Some(nm),
+            homo_bound: f64::NAN,
+            rounds,
+            stats: Some(FitStats {
+                evaluations,
+                converged,
+            }),
+        },
+        optima,
+    })
 }
 
 impl SparseGp {
@@ -263,6 +432,8 @@ impl SparseGp {
         Self::fit_inner(&xi, y.as_slice(), params, Some(Inputs::from_matrix(z)))
     }
 
+    /// With `presolve_subset` set and `n > 2 · presolve_subset`: the whole procedure on a seeded
+    /// subset, then one warm-started refinement on all the data ([`refine`](Self::refine)).
     fn fit_inner(
         x: &Inputs,
         y: &[f64],
@@ -270,13 +441,31 @@ impl SparseGp {
         fixed_z: Option<Inputs>,
     ) -> Result<SparseGp, GpError> {
         let sp = params.params();
+        let sub = sp.presolve_subset;
+        if sub == 0 || x.n <= 2 * sub {
+            return Ok(Self::fit_all(x, y, sp, fixed_z)?.model);
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(sp.gp.seed ^ 0x5EED_5EED_5EED_5EED);
+        let mut idx = sample(&mut rng, x.n, sub).into_vec();
+        idx.sort_unstable();
+        let xs = x.subset(&idx);
+        let ys: Vec<f64> = idx.iter().map(|&i| y[i]).collect();
+        let pre = Self::fit_all(&xs, &ys, sp, fixed_z)?;
+        Self::refine(x, y, sp, pre)
+    }
+
+    /// The full procedure on `(x, y)`: inducing selection rounds with restarts, then the
+    /// heteroscedastic rounds.
+    fn fit_all(
+        x: &Inputs,
+        y: &[f64],
+        sp: &SparseParams,
+        fixed_z: Option<Inputs>,
+    ) -> Result<Fitted, GpError> {
         let p = &sp.gp;
         let d = x.d;
         let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
-        let ladder = Ladder::Relative {
-            initial: sp.jitter,
-            max: p.jitter_max.max(sp.jitter),
-        };
+        let ladder = ladder(sp);
         let select = |ls: &[f64], s2: f64, round: u64| -> Inputs {
             let pool = sp.selection_candidates.max(4 * sp.inducing_points);
             let seed = p
@@ -301,29 +490,6 @@ impl SparseGp {
             Some(z) => z,
             None => select(&ls0, theta0[d].exp(), 0),
         };
-        let build = |z: &Inputs, theta: &[f64]| {
-            let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
-            SparseCore::build(
-                p.kernel,
-                x,
-                y,
-                p.prior_mean,
-                z,
-                &ls,
-                theta[d].exp(),
-                Lambda::Homo(theta[d + 1].exp()),
-                ladder,
-            )
-        };
-        fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
-            Setup {
-                p: sp,
-                z,
-                kernel: sp.gp.kernel,
-                bounds: &sp.gp.bounds,
-                ladder,
-            }
-        }
         let mut opt = optimise_sparse(
             &setup(sp, &z, ladder),
             x,
@@ -336,7 +502,7 @@ impl SparseGp {
             true,
         )?;
         let mut evaluations = opt.evaluations;
-        let mut homo = build(&z, &opt.theta)?;
+        let mut homo = build_homo(x, y, sp, &z, &opt.theta)?;
         if reselect {
             for round in 1..sp.inducing_rounds {
                 let ls: Vec<f64> = opt.theta[..d].iter().map(|v| v.exp()).collect();
@@ -356,7 +522,7 @@ impl SparseGp {
                     true,
                 )?;
                 evaluations += o2.evaluations;
-                let c2 = build(&z2, &o2.theta)?;
+                let c2 = build_homo(x, y, sp, &z2, &o2.theta)?;
                 if c2.bound > homo.bound {
                     (z, opt, homo) = (z2, o2, c2);
                 } else {
@@ -364,144 +530,137 @@ impl SparseGp {
                 }
             }
         }
-        let theta = opt.theta.clone();
-        let sigma2 = theta[d + 1].exp();
-        let homo_bound = homo.bound;
+        let converged = opt.converged;
+        let homo_opt = (opt.theta, opt.memory);
         let hetero = p.noise == NoiseMode::Heteroscedastic && x.n >= p.hetero_min_points;
         if !hetero {
-            return Ok(SparseGp {
-                mode: NoiseMode::Homoscedastic,
-                hyper: homo.hyperparameters(sigma2),
-                main: homo,
-                noise_model: None,
-                homo_bound,
-                rounds: 0,
-                stats: Some(FitStats {
-                    evaluations,
-                    converged: opt.converged,
-                }),
+            return Ok(Fitted {
+                model: SparseGp::homoscedastic(homo, &homo_opt.0, evaluations, converged),
+                z,
+                homo: homo_opt,
+                hetero: None,
+                n: x.n,
             });
         }
-        // The heteroscedastic rounds (see `hetero` for the procedure).
-        let my = mean(y);
-        let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
-        let (clip_lo, clip_hi) = p.bounds.noise_variance;
-        let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
-        let noise_z = z.subset(&(0..z.n.min(sp.noise_inducing_points)).collect::<Vec<_>>());
-        let noise_setup = Setup {
-            p: sp,
-            z: &noise_z,
-            kernel: NOISE_MODEL_KERNEL,
-            bounds: &p.noise_model_bounds,
-            ladder,
+        let sigma2 = homo_opt.0[d + 1].exp();
+        let start = Rounds {
+            targets_from: (homo, None),
+            noise: None,
+            main: (homo_opt.0[..d + 1].to_vec(), Vec::new()),
+            rounds: p.hetero_rounds,
         };
-        let main_setup = setup(sp, &z, ladder);
-        let mut best: Option<(SparseCore, SparseNoise, Vec<f64>, usize)> = None;
-        let mut current_theta = theta[..d + 1].to_vec();
-        let mut main_memory = Vec::new();
-        let mut noise_theta: Option<Vec<f64>> = None;
-        let mut noise_memory = Vec::new();
-        let mut converged = opt.converged;
-        for round in 0..p.hetero_rounds {
-            let targets = match &best {
-                None => log_noise_targets(&homo, x, y, Lambda::Homo(sigma2)),
-                Some((core, _, lambda, _)) => log_noise_targets(core, x, y, Lambda::Per(lambda)),
-            };
-            let mz = mean(&targets);
-            let rz: Vec<f64> = targets.iter().map(|v| v - mz).collect();
-            let seed = p
-                .seed
-                .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
-            let g = optimise_sparse(
-                &noise_setup,
-                x,
-                &rz,
-                NoiseSpec::Homoscedastic,
-                p.restarts,
-                noise_theta.as_deref().map(|theta| Warm {
-                    theta,
-                    memory: noise_memory.clone(),
-                }),
-                seed,
-                NOISE_MODEL_FTOL,
-                false,
-            )?;
-            let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
-            let gn = g.theta[d + 1].exp();
-            let ncore = SparseCore::build(
-                NOISE_MODEL_KERNEL,
-                x,
-                &targets,
-                mz,
-                &noise_z,
-                &gls,
-                g.theta[d].exp(),
-                Lambda::Homo(gn),
-                ladder,
-            )?;
-            let mut nm = SparseNoise {
-                core: ncore,
-                noise: gn,
-                clip,
-                train: (0.0, 0.0, 0.0),
-            };
-            let lambda = nm.predict(x);
-            nm.train = min_mean_max(&lambda);
-            let f = optimise_sparse(
-                &main_setup,
-                x,
-                &r,
-                NoiseSpec::Fixed(&lambda),
-                0,
-                Some(Warm {
-                    theta: &current_theta,
-                    memory: main_memory.clone(),
-                }),
-                p.seed,
-                0.0,
-                true,
-            )?;
-            let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
-            let main = SparseCore::build(
-                p.kernel,
-                x,
-                y,
-                p.prior_mean,
-                &z,
-                &ls,
-                f.theta[d].exp(),
-                Lambda::Per(&lambda),
-                ladder,
-            )?;
-            evaluations += g.evaluations + f.evaluations;
-            let improved = match &best {
-                None => true,
-                Some((b, ..)) => main.bound > b.bound + p.hetero_tolerance * b.bound.abs(),
-            };
-            if !improved {
-                break;
-            }
-            noise_theta = Some(g.theta);
-            noise_memory = g.memory;
-            current_theta = f.theta;
-            main_memory = f.memory;
-            converged &= g.converged && f.converged;
-            best = Some((main, nm, lambda, round + 1));
+        let homo_bound = start.targets_from.0.bound;
+        let mut out = hetero_rounds(x, y, sp, &z, start, sigma2)?;
+        out.model.homo_bound = homo_bound;
+        if let Some(s) = out.model.stats.as_mut() {
+            s.evaluations += evaluations;
+            s.converged &= converged;
         }
-        let (main, nm, _, rounds) = best.ok_or_else(|| {
-            GpError::OptimisationFailed("no heteroscedastic round succeeded".into())
-        })?;
-        Ok(SparseGp {
-            mode: NoiseMode::Heteroscedastic,
-            hyper: main.hyperparameters(nm.train.1),
-            main,
-            noise_model: Some(nm),
-            homo_bound,
-            rounds,
+        Ok(Fitted {
+            model: out.model,
+            z,
+            homo: homo_opt,
+            hetero: out.optima,
+            n: x.n,
+        })
+    }
+
+    /// Refines a fit `pre` (on a subset) on all of `(x, y)` with its inducing points: the
+    /// homoscedastic optimum warm-started from the subset's; in heteroscedastic mode, one round
+    /// whose noise targets come from the subset's final model conditioned on all the data, with
+    /// the noise GP and the main GP warm-started from the subset's optima.
+    fn refine(x: &Inputs, y: &[f64], sp: &SparseParams, pre: Fitted) -> Result<SparseGp, GpError> {
+        let p = &sp.gp;
+        let ladder = ladder(sp);
+        let z = &pre.z;
+        let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
+        let pre_evals = pre.model.stats.as_ref().map_or(0, |s| s.evaluations);
+        match pre.hetero {
+            None => {
+                let o = optimise_sparse(
+                    &setup(sp, z, ladder),
+                    x,
+                    &r,
+                    NoiseSpec::Homoscedastic,
+                    0,
+                    Some(Warm {
+                        theta: &pre.homo.0,
+                        memory: rescale(&pre.homo.1, pre.n, x.n),
+                    }),
+                    p.seed,
+                    0.0,
+                    true,
+                )?;
+                let core = build_homo(x, y, sp, z, &o.theta)?;
+                Ok(SparseGp::homoscedastic(
+                    core,
+                    &o.theta,
+                    pre_evals + o.evaluations,
+                    o.converged,
+                ))
+            }
+            Some((noise_opt, main_opt)) => {
+                // The subset's final model, conditioned on all the data.
+                let conditioned = pre.model.condition_inputs(x, y)?;
+                let lambda = pre.model.noise_at(x);
+                let homo_bound = build_homo(x, y, sp, z, &pre.homo.0)?.bound;
+                let start = Rounds {
+                    targets_from: (conditioned.main, Some(lambda)),
+                    noise: Some((noise_opt.0, rescale(&noise_opt.1, pre.n, x.n))),
+                    main: (main_opt.0, rescale(&main_opt.1, pre.n, x.n)),
+                    rounds: 1,
+                };
+                let mut out = hetero_rounds(x, y, sp, z, start, f64::NAN)?;
+                out.model.homo_bound = homo_bound;
+                out.model.rounds = pre.model.rounds;
+                if let Some(s) = out.model.stats.as_mut() {
+                    s.evaluations += pre_evals;
+                }
+                Ok(out.model)
+            }
+        }
+    }
+
+    /// A homoscedastic model from its core and optimum.
+    fn homoscedastic(core: SparseCore, theta: &[f64], evaluations: usize, converged: bool) -> Self {
+        let sigma2 = theta[core.d + 1].exp();
+        SparseGp {
+            mode: NoiseMode::Homoscedastic,
+            hyper: core.hyperparameters(sigma2),
+            homo_bound: core.bound,
+            main: core,
+            noise_model: None,
+            rounds: 0,
             stats: Some(FitStats {
                 evaluations,
                 converged,
             }),
+        }
+    }
+
+    /// [`condition`](Self::condition) on checked inputs.
+    fn condition_inputs(&self, xi: &Inputs, y: &[f64]) -> Result<SparseGp, GpError> {
+        let lambda = self.noise_at(xi);
+        let l = match self.mode {
+            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
+            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
+        };
+        let c = &self.main;
+        let main = SparseCore::build(
+            c.kernel,
+            xi,
+            y,
+            c.mean,
+            &c.z,
+            &c.length_scales,
+            c.s2,
+            l,
+            Ladder::Exact(c.jitter),
+        )?;
+        Ok(SparseGp {
+            main,
+            stats: None,
+            ..self.clone()
         })
     }
 
@@ -556,28 +715,7 @@ impl SparseGp {
     /// factorises with the stored jitter (it always does for a model this crate fitted).
     pub fn condition(&self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<SparseGp, GpError> {
         let xi = self.check_new(x, y)?;
-        let lambda = self.noise_at(&xi);
-        let l = match self.mode {
-            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
-            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
-        };
-        let c = &self.main;
-        let main = SparseCore::build(
-            c.kernel,
-            &xi,
-            y.as_slice(),
-            c.mean,
-            &c.z,
-            &c.length_scales,
-            c.s2,
-            l,
-            Ladder::Exact(c.jitter),
-        )?;
-        Ok(SparseGp {
-            main,
-            stats: None,
-            ..self.clone()
-        })
+        self.condition_inputs(&xi, y.as_slice())
     }
 
     /// Predicts at the rows of `x`: mean, latent variance and noise variance per point.

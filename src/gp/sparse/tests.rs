@@ -8,7 +8,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::super::kernel::Inputs;
 use super::super::lml::{Jitter, NoiseSpec, Objective};
-use super::super::{GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode};
+use super::super::{GpError, GpModel, GpParams, Kernel, ModelState, NoiseMode};
 use super::bound::Bound;
 use super::core::Ladder;
 use super::*;
@@ -192,5 +192,425 @@ fn predictions_match_the_exact_gp_when_inducing_inputs_are_the_training_inputs()
     );
 }
 
-#[allow(dead_code)]
-fn unused(_: Hyperparameters) {}
+fn rel_close(a: f64, b: f64, tol: f64) -> bool {
+    (a - b).abs() <= tol * a.abs().max(b.abs()).max(1e-3)
+}
+
+fn assert_predictions_close(a: &crate::gp::Prediction, b: &crate::gp::Prediction, tol: f64) {
+    for j in 0..a.len() {
+        assert!(
+            rel_close(a.mean[j], b.mean[j], tol),
+            "mean {j}: {} vs {}",
+            a.mean[j],
+            b.mean[j]
+        );
+        assert!(
+            rel_close(a.latent_variance[j], b.latent_variance[j], tol),
+            "latent variance {j}: {} vs {}",
+            a.latent_variance[j],
+            b.latent_variance[j]
+        );
+        assert!(rel_close(a.noise_variance[j], b.noise_variance[j], tol));
+    }
+}
+
+#[test]
+fn online_updates_equal_conditioning_on_all_the_data() {
+    let (x, y) = data(400, 3, 8);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let p = SparseParams {
+            gp: GpParams {
+                noise,
+                restarts: 0,
+                seed: 3,
+                ..GpParams::default()
+            },
+            inducing_points: 40,
+            inducing_rounds: 1,
+            ..SparseParams::default()
+        }
+        .check()
+        .unwrap();
+        let first = x.rows(0, 200).into_owned();
+        let y_first = y.rows(0, 200).into_owned();
+        let mut online = SparseGp::fit(&first, &y_first, &p).unwrap();
+        // Four 50-step trajectories, one at a time.
+        for t in 0..4 {
+            let xb = x.rows(200 + 50 * t, 50).into_owned();
+            let yb = y.rows(200 + 50 * t, 50).into_owned();
+            online.update(&xb, &yb).unwrap();
+        }
+        assert_eq!(online.n_train(), 400);
+        let refit = online.condition(&x, &y).unwrap();
+        let (q, _) = data(30, 3, 9);
+        assert_predictions_close(&online.predict(&q), &refit.predict(&q), 1e-8);
+        assert!(rel_close(online.bound(), refit.bound(), 1e-9));
+        // An empty batch changes nothing; a bad one is an error and changes nothing either.
+        let before = online.predict(&q);
+        online
+            .update(&DMatrix::zeros(0, 3), &DVector::zeros(0))
+            .unwrap();
+        assert!(
+            online
+                .update(&DMatrix::zeros(2, 4), &DVector::zeros(2))
+                .is_err()
+        );
+        let mut bad = DMatrix::zeros(2, 3);
+        bad[(1, 2)] = f64::NAN;
+        assert!(online.update(&bad, &DVector::zeros(2)).is_err());
+        assert_eq!(online.predict(&q), before);
+    }
+}
+
+#[test]
+fn state_round_trips_exactly_through_json() {
+    let (x, y) = data(300, 2, 10);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let p = SparseParams {
+            gp: GpParams {
+                noise,
+                restarts: 1,
+                seed: 11,
+                ..GpParams::default()
+            },
+            inducing_points: 30,
+            ..SparseParams::default()
+        }
+        .check()
+        .unwrap();
+        let mut model = SparseGp::fit(&x, &y, &p).unwrap();
+        assert_eq!(model.noise_mode(), noise);
+        let (xb, yb) = data(50, 2, 12);
+        model.update(&xb, &yb).unwrap();
+        let json = serde_json::to_string(&model.state()).unwrap();
+        let state: SparseState = serde_json::from_str(&json).unwrap();
+        assert_eq!(state, model.state());
+        let rebuilt = SparseGp::from_state(&state).unwrap();
+        let (q, _) = data(40, 2, 13);
+        assert_eq!(rebuilt.predict(&q), model.predict(&q));
+        assert_eq!(rebuilt.bound(), model.bound());
+        assert_eq!(rebuilt.n_train(), 350);
+        assert_eq!(rebuilt.state(), model.state());
+        // Updates continue identically after a round trip.
+        let (xc, yc) = data(20, 2, 14);
+        let (mut a, mut b) = (model.clone(), rebuilt);
+        a.update(&xc, &yc).unwrap();
+        b.update(&xc, &yc).unwrap();
+        assert_eq!(a.predict(&q), b.predict(&q));
+    }
+}
+
+#[test]
+fn malformed_states_are_errors() {
+    let (x, y) = data(60, 2, 15);
+    let model = SparseGp::fit(&x, &y, &homo_sparse(10).check().unwrap()).unwrap();
+    let good = model.state();
+    let mut s = good.clone();
+    s.format = 2;
+    assert!(matches!(
+        SparseGp::from_state(&s),
+        Err(GpError::InvalidState(_))
+    ));
+    let mut s = good.clone();
+    s.main.factor_b.pop();
+    assert!(matches!(
+        SparseGp::from_state(&s),
+        Err(GpError::DimensionMismatch { .. })
+    ));
+    let mut s = good.clone();
+    s.main.inducing_points.pop();
+    assert!(SparseGp::from_state(&s).is_err());
+    let mut s = good.clone();
+    s.main.projected_targets[0] = f64::NAN;
+    assert!(matches!(
+        SparseGp::from_state(&s),
+        Err(GpError::NonFinite { .. })
+    ));
+    let mut s = good.clone();
+    s.main.hyperparameters.signal_variance = -1.0;
+    assert!(SparseGp::from_state(&s).is_err());
+    let mut s = good.clone();
+    s.main.factor_b[0] = -1.0;
+    assert!(matches!(
+        SparseGp::from_state(&s),
+        Err(GpError::InvalidState(_))
+    ));
+    let mut s = good;
+    s.noise = NoiseMode::Heteroscedastic;
+    assert!(matches!(
+        SparseGp::from_state(&s),
+        Err(GpError::InvalidState(_))
+    ));
+}
+
+#[test]
+fn the_bound_is_below_the_exact_lml_and_rises_with_more_inducing_points() {
+    let (x, y) = data(150, 2, 16);
+    let inputs = Inputs::from_matrix(&x);
+    let r = y.as_slice();
+    let theta = [0.4f64.ln(), 0.6f64.ln(), 0.5f64.ln(), 0.01f64.ln()];
+    let (lml, _) = exact_lml(&inputs, r, Kernel::Matern52, &theta);
+    let mut last = f64::NEG_INFINITY;
+    for m in [5, 20, 60, 150] {
+        let z = first_rows(&x, m);
+        let tiny = Ladder::Relative {
+            initial: 1e-12,
+            max: 1e-4,
+        };
+        let mut b = Bound::new(
+            &inputs,
+            &z,
+            r,
+            NoiseSpec::Homoscedastic,
+            Kernel::Matern52,
+            tiny,
+        );
+        let f = -b.eval(&theta, &mut [0.0; 4]);
+        assert!(
+            f <= lml + 1e-6 * lml.abs(),
+            "m = {m}: bound {f} above the LML {lml}"
+        );
+        assert!(
+            f >= last - 1e-9 * f.abs(),
+            "m = {m}: bound {f} fell from {last}"
+        );
+        last = f;
+    }
+    assert_relative_eq!(last, lml, max_relative = 1e-7);
+}
+
+#[test]
+fn a_large_fit_is_quick_and_predicts_well() {
+    // 20 000 points in d = 4, m = 256 (the default): the default presolve would not engage below 32 768 points, so a
+    // smaller subset is set to exercise the subset-then-refine path.
+    let mut rng = ChaCha8Rng::seed_from_u64(17);
+    let n = 20_000;
+    let f = |x: &[f64]| (3.0 * x[0]).sin() + 0.5 * (5.0 * x[1]).cos() + x[2] * x[2] - 0.5 * x[3];
+    let x = DMatrix::from_fn(n, 4, |_, _| rng.random::<f64>());
+    let y = DVector::from_fn(n, |i, _| {
+        let row: Vec<f64> = x.row(i).iter().copied().collect();
+        f(&row) + 0.1 * (rng.random::<f64>() - 0.5) * 3.46
+    });
+    let p = SparseParams {
+        gp: GpParams {
+            noise: NoiseMode::Homoscedastic,
+            restarts: 1,
+            seed: 1,
+            ..GpParams::default()
+        },
+        presolve_subset: 4096,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    let t = std::time::Instant::now();
+    let model = SparseGp::fit(&x, &y, &p).unwrap();
+    let secs = t.elapsed().as_secs_f64();
+    assert!(secs < 30.0, "fit took {secs:.1} s");
+    let q = DMatrix::from_fn(500, 4, |_, _| rng.random::<f64>());
+    let pred = model.predict(&q);
+    let rmse = ((0..500)
+        .map(|i| {
+            let row: Vec<f64> = q.row(i).iter().copied().collect();
+            (pred.mean[i] - f(&row)).powi(2)
+        })
+        .sum::<f64>()
+        / 500.0)
+        .sqrt();
+    // Noise sd 0.1; the latent function is recovered far better than that.
+    assert!(rmse < 0.05, "rmse {rmse}");
+    let noise = model.hyperparameters().noise_variance;
+    assert!((0.007..0.013).contains(&noise), "noise variance {noise}");
+    assert!(
+        pred.latent_variance
+            .iter()
+            .all(|v| *v >= 0.0 && v.is_finite())
+    );
+}
+
+#[test]
+fn heteroscedastic_noise_follows_the_data() {
+    // Noise sd 0.02 on the left half, 0.3 on the right.
+    let mut rng = ChaCha8Rng::seed_from_u64(18);
+    let n = 1500;
+    let x = DMatrix::from_fn(n, 2, |_, _| rng.random::<f64>());
+    let y = DVector::from_fn(n, |i, _| {
+        let sd = if x[(i, 0)] < 0.5 { 0.02 } else { 0.3 };
+        (3.0 * x[(i, 1)]).sin() + sd * 1.732 * (2.0 * rng.random::<f64>() - 1.0)
+    });
+    let p = SparseParams {
+        gp: GpParams {
+            restarts: 1,
+            seed: 2,
+            ..GpParams::default()
+        },
+        inducing_points: 48,
+        noise_inducing_points: 24,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    let model = SparseGp::fit(&x, &y, &p).unwrap();
+    assert_eq!(model.noise_mode(), NoiseMode::Heteroscedastic);
+    let summary = model.noise_summary().unwrap();
+    assert!(summary.rounds >= 1);
+    let q = DMatrix::from_row_slice(2, 2, &[0.2, 0.5, 0.8, 0.5]);
+    let pred = model.predict(&q);
+    let (lo, hi) = (pred.noise_variance[0], pred.noise_variance[1]);
+    assert!((0.0002..0.0008).contains(&lo), "left noise {lo}");
+    assert!((0.06..0.14).contains(&hi), "right noise {hi}");
+    assert!(model.bound() > summary.homoscedastic_lml);
+}
+
+#[test]
+fn degenerate_data_give_models_or_errors_never_panics() {
+    let p = homo_sparse(16).check().unwrap();
+    let het = SparseParams {
+        gp: GpParams {
+            restarts: 1,
+            ..GpParams::default()
+        },
+        inducing_points: 16,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    let q = DMatrix::from_fn(5, 2, |i, j| 0.1 * (i + j) as f64);
+    let sane = |m: &SparseGp| {
+        let pr = m.predict(&q);
+        assert!(
+            pr.mean
+                .iter()
+                .chain(&pr.latent_variance)
+                .all(|v| v.is_finite())
+        );
+        assert!(pr.latent_variance.iter().all(|v| *v >= 0.0));
+    };
+    // Every point the same input: one inducing point.
+    let x = DMatrix::from_element(30, 2, 0.3);
+    let y = DVector::from_fn(30, |i, _| 0.1 * (i % 3) as f64);
+    for params in [&p, &het] {
+        let m = SparseGp::fit(&x, &y, params).unwrap();
+        assert_eq!(m.n_inducing(), 1);
+        sane(&m);
+    }
+    // Constant targets.
+    let (x, _) = data(40, 2, 19);
+    let y = DVector::from_element(40, 0.7);
+    for params in [&p, &het] {
+        let m = SparseGp::fit(&x, &y, params).unwrap();
+        sane(&m);
+        assert!((m.predict(&q).mean[0] - 0.7).abs() < 1e-2);
+    }
+    // Fewer points than inducing points, and a single point.
+    let (x, y) = data(6, 2, 20);
+    let m = SparseGp::fit(&x, &y, &p).unwrap();
+    assert_eq!(m.n_inducing(), 6);
+    sane(&m);
+    let m = SparseGp::fit(&x.rows(0, 1).into_owned(), &y.rows(0, 1).into_owned(), &het).unwrap();
+    assert_eq!(m.noise_mode(), NoiseMode::Homoscedastic);
+    sane(&m);
+    // Duplicated rows among distinct ones.
+    let (x0, y0) = data(20, 2, 21);
+    let rows: Vec<usize> = (0..60).map(|i| i % 20).collect();
+    let x = x0.select_rows(&rows);
+    let y = DVector::from_fn(60, |i, _| y0[i % 20] + 0.01 * (i / 20) as f64);
+    sane(&SparseGp::fit(&x, &y, &het).unwrap());
+    // Bad inputs are errors.
+    assert!(matches!(
+        SparseGp::fit(&DMatrix::zeros(0, 2), &DVector::zeros(0), &p),
+        Err(GpError::EmptyData(_))
+    ));
+    let mut xn = x.clone();
+    xn[(0, 0)] = f64::INFINITY;
+    assert!(matches!(
+        SparseGp::fit(&xn, &y, &p),
+        Err(GpError::NonFinite { .. })
+    ));
+    assert!(SparseGp::fit_with_inducing(&x, &y, &DMatrix::zeros(3, 5), &p).is_err());
+    let model = SparseGp::fit(&x, &y, &p).unwrap();
+    assert!(
+        model
+            .predict(&DMatrix::zeros(2, 3))
+            .mean
+            .iter()
+            .all(|v| v.is_nan())
+    );
+    assert!(model.try_predict(&DMatrix::zeros(2, 3)).is_err());
+    assert!(model.predict(&DMatrix::zeros(0, 2)).is_empty());
+}
+
+#[test]
+fn invalid_sparse_params_name_the_field() {
+    let name = |p: SparseParams| match p.check() {
+        Err(GpError::InvalidParameter { name, .. }) => name,
+        other => panic!("expected an invalid parameter, got {other:?}"),
+    };
+    let d = SparseParams::default;
+    assert_eq!(
+        name(SparseParams {
+            inducing_points: 0,
+            ..d()
+        }),
+        "inducing_points"
+    );
+    assert_eq!(
+        name(SparseParams {
+            noise_inducing_points: 5000,
+            ..d()
+        }),
+        "noise_inducing_points"
+    );
+    assert_eq!(
+        name(SparseParams {
+            inducing_rounds: 0,
+            ..d()
+        }),
+        "inducing_rounds"
+    );
+    assert_eq!(
+        name(SparseParams {
+            selection_candidates: 0,
+            ..d()
+        }),
+        "selection_candidates"
+    );
+    assert_eq!(
+        name(SparseParams {
+            screen_subset: 10,
+            ..d()
+        }),
+        "screen_subset"
+    );
+    assert_eq!(
+        name(SparseParams {
+            presolve_subset: 100,
+            ..d()
+        }),
+        "presolve_subset"
+    );
+    assert_eq!(name(SparseParams { jitter: 0.0, ..d() }), "jitter");
+    let mut bad_gp = d();
+    bad_gp.gp.restarts = 65;
+    assert_eq!(name(bad_gp), "restarts");
+    assert!(d().check().is_ok());
+    let p: SparseParams =
+        serde_json::from_str(r#"{"inducing_points": 64, "gp": {"restarts": 0}}"#).unwrap();
+    assert_eq!((p.inducing_points, p.gp.restarts, p.jitter), (64, 0, 1e-6));
+}
+
+#[test]
+fn sparse_model_is_send_and_sync_and_deterministic() {
+    fn assert_send_sync<T: Send + Sync>() {}
+    assert_send_sync::<SparseGp>();
+    let (x, y) = data(200, 2, 22);
+    let p = SparseParams {
+        inducing_points: 20,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    let a = SparseGp::fit(&x, &y, &p).unwrap();
+    let b = SparseGp::fit(&x, &y, &p).unwrap();
+    assert_eq!(a.state(), b.state());
+}
