@@ -9,6 +9,8 @@
 //!   its maximisation over log-parameters by projected L-BFGS under box bounds, from seeded starts.
 //! - [`hetero`]: the heteroscedastic noise procedure.
 //! - [`model`]: [`GpModel`] — fit, rebuild from a [`ModelState`], batched prediction.
+//! - [`cost`]: a fit's peak memory and work, estimated before it allocates ([`exact_fit_cost`],
+//!   [`sparse_fit_cost`]), so a server can refuse an exact fit over its budget.
 //! - [`sparse`]: [`SparseGp`] — the sparse variational GP (SGPR/VFE, `m` inducing points) for
 //!   large `n`: O(n m²) fits, O(m²) predictions, online updates, save/restore without the data.
 //!
@@ -29,6 +31,7 @@
 //! ```
 
 mod core;
+pub mod cost;
 mod error;
 mod fit;
 pub mod hetero;
@@ -44,6 +47,7 @@ mod tests;
 
 use serde::{Deserialize, Serialize};
 
+pub use cost::{FitCost, exact_fit_cost, sparse_fit_cost};
 pub use error::GpError;
 pub use kernel::Kernel;
 pub use model::GpModel;
