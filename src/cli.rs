@@ -49,7 +49,8 @@ pub struct BackupArgs {
 #[derive(Debug, Subcommand)]
 pub enum BenchCommand {
     /// GP fit time, single-point latency and batched throughput for n = 500 … 4000 in d = 6,
-    /// side by side with scikit-learn where `python3` can import it.
+    /// side by side with scikit-learn where `python3` can import it; with `--sparse`, the
+    /// sparse GP up to n = 100 000 beside the exact GP and GPyTorch's SGPR.
     Gp(GpBenchArgs),
     /// A 20-candidate, 5000-extension proposal and a test-time plan on the icy gridworld with the
     /// MDE fitted on 1000 transitions; then the same with a model served over HTTP on loopback
@@ -113,6 +114,40 @@ pub struct GpBenchArgs {
     /// The kernel (`matern12`, `matern32` or `matern52`), for both libraries.
     #[arg(long, default_value = "matern52")]
     pub kernel: crate::gp::Kernel,
+    /// Benchmark the sparse GP instead (`--sparse-sizes`, `--dims`, `--inducing`, `--noise`),
+    /// beside the exact GP up to `--exact-max-n` and GPyTorch's SGPR (installed into
+    /// target/venv-sgpr-reference on first use; `--no-reference` skips it). Each fit runs in
+    /// its own process so that its peak RSS is its own.
+    #[arg(long)]
+    pub sparse: bool,
+    /// Training-set sizes of the sparse benchmark, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "2000,10000,50000,100000")]
+    pub sparse_sizes: Vec<usize>,
+    /// Input dimensions of the sparse benchmark, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "6,21")]
+    pub dims: Vec<usize>,
+    /// Inducing points of the sparse benchmark (ours and the reference's).
+    #[arg(long, default_value_t = 256)]
+    pub inducing: usize,
+    /// Noise model of the sparse benchmark's own fits (`homoscedastic` or `heteroscedastic`;
+    /// the reference is always homoscedastic).
+    #[arg(long, default_value = "homoscedastic")]
+    pub noise: String,
+    /// Largest n at which the sparse benchmark also runs the exact GP.
+    #[arg(long, default_value_t = 4000)]
+    pub exact_max_n: usize,
+    /// Do not run the reference sparse GP (GPyTorch).
+    #[arg(long)]
+    pub no_reference: bool,
+    /// Largest n at which the reference is run.
+    #[arg(long, default_value_t = 100_000)]
+    pub reference_max_n: usize,
+    /// Adam iterations of the reference.
+    #[arg(long, default_value_t = 100)]
+    pub reference_iterations: usize,
+    /// Internal: run one fit of the sparse benchmark (a JSON spec) and print its figures.
+    #[arg(long, hide = true)]
+    pub child: Option<String>,
 }
 
 /// Log output format.
@@ -312,6 +347,32 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 },
             );
             serve(listener, state, shutdown_signal()).await
+        }
+        Command::Bench(BenchCommand::Gp(args)) if args.child.is_some() => {
+            crate::bench::sparse::run_child(args.child.as_deref().unwrap_or_default())
+                .map_err(anyhow::Error::msg)
+        }
+        Command::Bench(BenchCommand::Gp(args)) if args.sparse => {
+            let noise = match args.noise.as_str() {
+                "homoscedastic" => crate::gp::NoiseMode::Homoscedastic,
+                "heteroscedastic" => crate::gp::NoiseMode::Heteroscedastic,
+                other => anyhow::bail!("--noise {other}: use homoscedastic or heteroscedastic"),
+            };
+            crate::bench::sparse::run(&crate::bench::sparse::SparseBenchOptions {
+                sizes: args.sparse_sizes,
+                dims: args.dims,
+                inducing: args.inducing,
+                noise,
+                restarts: args.restarts,
+                exact_max_n: args.exact_max_n,
+                reference: !args.no_reference,
+                reference_max_n: args.reference_max_n,
+                reference_iterations: args.reference_iterations,
+                kernel: args.kernel,
+                ..crate::bench::sparse::SparseBenchOptions::default()
+            })
+            .map_err(anyhow::Error::msg)?;
+            Ok(())
         }
         Command::Bench(BenchCommand::Gp(args)) => {
             let defaults = crate::bench::gp::GpBenchOptions::default();

@@ -1,11 +1,12 @@
-//! Benchmarks that print figures: `precond bench gp` and `precond bench planning` (build with
-//! `--release`). `planning` also times proposals with a model served over HTTP ([`remote`]);
-//! `saturation` measures health checks and cheap reads while the planner is saturated;
-//! `worlds` characterises the continuous worlds (share of safe state-actions, the oracle and
-//! the baseline on random problems).
+//! Benchmarks that print figures: `precond bench gp` (with `--sparse`: [`sparse`]) and
+//! `precond bench planning` (build with `--release`). `planning` also times proposals with a
+//! model served over HTTP ([`remote`]); `saturation` measures health checks and cheap reads
+//! while the planner is saturated; `worlds` characterises the continuous worlds (share of safe
+//! state-actions, the oracle and the baseline on random problems).
 
 pub mod gp;
 pub mod planning;
 pub mod remote;
 pub mod saturation;
+pub mod sparse;
 pub mod worlds;

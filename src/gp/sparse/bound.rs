@@ -116,18 +116,7 @@ impl<'a> Bound<'a> {
     /// `−F(θ)`, writing `−∇F` into `grad`. `+∞` when `K_mm` cannot be factorised.
     pub fn eval(&mut self, theta: &[f64], grad: &mut [f64]) -> f64 {
         self.evaluations += 1;
-        let t0 = std::time::Instant::now();
-        let res = self.eval_inner(theta, grad);
-        if std::env::var("SPARSE_TRACE").is_ok() {
-            eprintln!(
-                "eval n={} m={} t={:.3}s f={:?}",
-                self.x.n,
-                self.z.n,
-                t0.elapsed().as_secs_f64(),
-                res
-            );
-        }
-        match res {
+        match self.eval_inner(theta, grad) {
             Some(f) if f.is_finite() && grad.iter().all(|g| g.is_finite()) => -f,
             _ => {
                 grad.iter_mut().for_each(|v| *v = 0.0);

@@ -54,7 +54,8 @@ pub(crate) fn greedy_variance(
                 .fold((0, f64::NEG_INFINITY), |(bj, bv), (i, &v)| {
                     if v > bv { (i, v) } else { (bj, bv) }
                 });
-        if !(best > min_rel * s2) {
+        // NaN-safe: a NaN variance also stops the selection.
+        if best.is_nan() || best <= min_rel * s2 {
             break;
         }
         cross_seq(kernel, &xs, c, &xs[j..], c, 1, d, s2, &mut kcol, None);

@@ -116,6 +116,9 @@ fn optimise_sparse(
     )
 }
 
+/// An optimum `θ` with its final L-BFGS correction pairs.
+type Point = (Vec<f64>, lbfgs::Memory);
+
 /// A fit's model with what a warm-started refinement on more data needs.
 struct Fitted {
     model: SparseGp,
@@ -123,7 +126,7 @@ struct Fitted {
     /// Homoscedastic optimum and its L-BFGS pairs.
     homo: (Vec<f64>, lbfgs::Memory),
     /// Heteroscedastic noise GP and main GP optima (heteroscedastic mode).
-    hetero: Option<((Vec<f64>, lbfgs::Memory), (Vec<f64>, lbfgs::Memory))>,
+    hetero: Option<(Point, Point)>,
     /// Number of points fitted.
     n: usize,
 }
@@ -239,7 +242,7 @@ struct Rounds {
 /// What the heteroscedastic rounds produced.
 struct RoundsOut {
     model: SparseGp,
-    optima: Option<((Vec<f64>, lbfgs::Memory), (Vec<f64>, lbfgs::Memory))>,
+    optima: Option<(Point, Point)>,
 }
 
 /// The heteroscedastic rounds (see `hetero` for the procedure) with sparse GPs, from `start`;
