@@ -182,6 +182,7 @@ pub(crate) fn optimise(
         p.screen_subset,
         restarts,
         warm,
+        None,
         seed,
         ftol_floor,
         default_on_full_data,
@@ -189,7 +190,9 @@ pub(crate) fn optimise(
 }
 
 /// [`optimise`] for any objective: `runner` performs one optimiser run, `screen_subset` replaces
-/// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one).
+/// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one), and `first`,
+/// when given, replaces the deterministic default start (the sparse GP starts from an exact fit
+/// on a small subset).
 #[allow(clippy::too_many_arguments)] // internal; each call site names its arguments
 pub(crate) fn optimise_with(
     runner: &mut Runner<'_>,
@@ -201,6 +204,7 @@ pub(crate) fn optimise_with(
     screen_subset: usize,
     restarts: usize,
     warm: Option<Warm<'_>>,
+    first: Option<&[f64]>,
     seed: u64,
     ftol_floor: f64,
     default_on_full_data: bool,
@@ -217,7 +221,7 @@ pub(crate) fn optimise_with(
             vec![w.theta.to_vec()]
         }
         None => {
-            let mut s = vec![default_start(x.d, r, homo)];
+            let mut s = vec![first.map_or_else(|| default_start(x.d, r, homo), <[f64]>::to_vec)];
             for _ in 0..restarts {
                 s.push(random_start(&mut rng, x.d, r, homo));
             }

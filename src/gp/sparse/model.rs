@@ -6,14 +6,14 @@ use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
 use super::super::core::mean;
-use super::super::fit::{Optimum, Warm, default_start, optimise_with};
+use super::super::fit::{self, Optimum, Warm, default_start, optimise_with};
 use super::super::hetero::log_residual_bias;
 use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
 use super::super::model::{check_data, check_finite_matrix};
 use super::super::{
-    Bounds, FitStats, GpError, Hyperparameters, NoiseMode, NoiseSummary, Prediction,
+    Bounds, FitStats, GpError, GpParams, Hyperparameters, NoiseMode, NoiseSummary, Prediction,
 };
 use super::bound::Bound;
 use super::core::{Ladder, Lambda, SparseCore};
@@ -83,6 +83,7 @@ fn optimise_sparse(
     noise: NoiseSpec<'_>,
     restarts: usize,
     warm: Option<Warm<'_>>,
+    first: Option<&[f64]>,
     seed: u64,
     ftol_floor: f64,
     default_on_full_data: bool,
@@ -110,6 +111,7 @@ fn optimise_sparse(
         s.p.screen_subset,
         restarts,
         warm,
+        first,
         seed,
         ftol_floor,
         default_on_full_data,
@@ -183,6 +185,37 @@ fn min_mean_max(v: &[f64]) -> (f64, f64, f64) {
         mean(v),
         v.iter().copied().fold(f64::NEG_INFINITY, f64::max),
     )
+}
+
+/// Points of the exact fit that gives the sparse fit its first start.
+const EXACT_START_POINTS: usize = 512;
+
+/// The exact GP's homoscedastic optimum `[log ℓ, log s², log σ²]` on a seeded subset of at most
+/// [`EXACT_START_POINTS`] points (with `p.restarts`); `None` if that fit fails.
+fn exact_start(x: &Inputs, r: &[f64], p: &GpParams) -> Option<Vec<f64>> {
+    let (xs, rs) = if x.n <= EXACT_START_POINTS {
+        (x.clone(), r.to_vec())
+    } else {
+        let mut rng = ChaCha8Rng::seed_from_u64(p.seed ^ 0x0E8A_C757_A127_0000);
+        let mut idx = sample(&mut rng, x.n, EXACT_START_POINTS).into_vec();
+        idx.sort_unstable();
+        (x.subset(&idx), idx.iter().map(|&i| r[i]).collect())
+    };
+    fit::optimise(
+        &xs,
+        &rs,
+        NoiseSpec::Homoscedastic,
+        &p.bounds,
+        p.kernel,
+        p,
+        p.restarts,
+        None,
+        p.seed,
+        0.0,
+        true,
+    )
+    .ok()
+    .map(|o| o.theta)
 }
 
 fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
@@ -304,6 +337,7 @@ fn hetero_rounds(
                 theta,
                 memory: noise_memory.clone(),
             }),
+            None,
             seed,
             NOISE_MODEL_FTOL,
             false,
@@ -339,6 +373,7 @@ fn hetero_rounds(
                 theta: &current_theta,
                 memory: main_memory.clone(),
             }),
+            None,
             p.seed,
             0.0,
             true,
@@ -486,7 +521,11 @@ impl SparseGp {
             );
             x.subset(&idx)
         };
-        let theta0 = default_start(d, &r, true);
+        // The first start, and the hyperparameters of the first selection: the exact GP's
+        // optimum on a seeded subset of at most 512 points. It finds which inputs matter, so the
+        // inducing points spread over those (measured at d = 21 with 6 relevant inputs, n = 2000:
+        // held-out NLL −0.218 from the default start, see the sparse benchmark).
+        let theta0 = exact_start(x, &r, p).unwrap_or_else(|| default_start(d, &r, true));
         let ls0: Vec<f64> = theta0[..d].iter().map(|v| v.exp()).collect();
         let reselect = fixed_z.is_none();
         let mut z = match fixed_z {
@@ -500,6 +539,7 @@ impl SparseGp {
             NoiseSpec::Homoscedastic,
             p.restarts,
             None,
+            Some(&theta0),
             p.seed,
             0.0,
             true,
@@ -520,6 +560,7 @@ impl SparseGp {
                         theta: &opt.theta,
                         memory: opt.memory.clone(),
                     }),
+                    None,
                     p.seed,
                     0.0,
                     true,
@@ -590,6 +631,7 @@ impl SparseGp {
                         theta: &pre.homo.0,
                         memory: rescale(&pre.homo.1, pre.n, x.n),
                     }),
+                    None,
                     p.seed,
                     0.0,
                     true,
