@@ -8,7 +8,7 @@
 
 use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
-use crate::mde::HeldOutTrust;
+use crate::mde::{EstimatorKind, HeldOutTrust};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{ListOrder, ProposalStatus, RunStatus};
@@ -217,6 +217,8 @@ pub struct Timeline {
     pub iterations: Vec<TimelineIteration>,
     /// Fitted model versions, oldest first (at most 10 000).
     pub models: Vec<TimelineModel>,
+    /// Fits refused for the memory budget, oldest first (at most 10 000).
+    pub fit_refusals: Vec<FitRefusalView>,
 }
 
 /// Query of `GET /v1/experiments/{id}/precondition/map`.
@@ -519,6 +521,35 @@ pub struct ModelResponse {
     /// raw labels only when a cap scores clearly better (see
     /// [`crate::mde::fit_choosing_label_cap`]).
     pub label_cap_trials: Vec<HeldOutTrust>,
+    /// The regressor of the fit: `exact` (the exact GP) or `sparse` (the sparse GP; `null` for
+    /// the prior).
+    pub estimator: Option<EstimatorKind>,
+    /// Trajectories taken in since the fit by online updates at its hyperparameters (the
+    /// sparse GP takes each posted trajectory in at once; the exact GP waits for its batch's
+    /// refit, so 0).
+    pub online_trajectories: usize,
+    /// The latest fit refused since this version because it would not fit the server's memory
+    /// budget (`null` if none): this version kept answering.
+    pub last_fit_refusal: Option<FitRefusalView>,
+}
+
+/// A fit the server did not attempt because its estimated peak memory exceeded the budget.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct FitRefusalView {
+    /// Transitions the fit would have been trained on.
+    pub n_train: i64,
+    /// Trajectories stored then.
+    pub n_trajectories: i64,
+    /// The regressor it would have fitted: `exact` or `sparse`.
+    pub estimator: EstimatorKind,
+    /// Its estimated peak memory (bytes).
+    pub needed_bytes: f64,
+    /// The server's budget (bytes, `--max-fit-memory-mib`).
+    pub budget_bytes: f64,
+    /// Why, in words.
+    pub reason: String,
+    /// When (RFC 3339).
+    pub refused_at: String,
 }
 
 /// One state-action to judge.

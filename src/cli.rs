@@ -63,6 +63,30 @@ pub enum BenchCommand {
     /// `d_max`, the simulator's cost, and the oracle and the no-precondition baseline on random
     /// problems.
     Worlds(WorldsArgs),
+    /// Refits a harness run's training transitions (a continuous world's) under each MDE
+    /// setting — kernel, noise model, label cap — and judges uniform held-out state-actions
+    /// against their true deviations.
+    Mde(MdeArgs),
+}
+
+/// Options of `precond bench mde`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct MdeArgs {
+    /// The harness database (`<out>/<world>/precond.db`; work on a copy, migrations may run).
+    #[arg(long)]
+    pub db: String,
+    /// The experiment whose transitions to refit.
+    #[arg(long)]
+    pub experiment: i64,
+    /// Its first N transitions (default all).
+    #[arg(long)]
+    pub n: Option<i64>,
+    /// The world: `arm`, `base` or `pusher`.
+    #[arg(long)]
+    pub world: String,
+    /// Held-out state-actions.
+    #[arg(long, default_value_t = 2000)]
+    pub held_out: usize,
 }
 
 /// Options of `precond bench worlds`.
@@ -209,6 +233,11 @@ pub struct ServeArgs {
     /// Transitions in one posted trajectory (1 ..= 10 000).
     #[arg(long, env = "PRECOND_MAX_TRANSITIONS", default_value_t = crate::limits::MAX_TRANSITIONS)]
     pub max_transitions: usize,
+    /// Memory one MDE fit may use at its peak, in MiB (64 ..= 1 048 576; default a quarter of
+    /// the machine's memory): a fit estimated beyond it is not attempted but recorded as
+    /// refused, and `mde.estimator: auto` switches to the sparse GP first.
+    #[arg(long, env = "PRECOND_MAX_FIT_MEMORY_MIB")]
+    pub max_fit_memory_mib: Option<u64>,
     /// Seconds in-flight requests may run on after SIGTERM before they are dropped.
     #[arg(long, env = "PRECOND_SHUTDOWN_GRACE_SECS", default_value_t = 20)]
     pub shutdown_grace_secs: u64,
@@ -237,6 +266,9 @@ impl ServeArgs {
             plan_timeout: std::time::Duration::from_millis(self.plan_timeout_ms),
             max_experiments: self.max_experiments,
             max_transitions: self.max_transitions,
+            max_fit_memory: self
+                .max_fit_memory_mib
+                .map_or(defaults.max_fit_memory, |m| m.saturating_mul(1 << 20)),
         };
         limits.check().map_err(anyhow::Error::msg)?;
         Ok(limits)
@@ -394,6 +426,22 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Planning) => {
             tokio::task::spawn_blocking(crate::bench::planning::run_default).await??;
             crate::bench::remote::run(5).await
+        }
+        Command::Bench(BenchCommand::Mde(args)) => {
+            let world = match args.world.as_str() {
+                "arm" => crate::sim::ContinuousWorld::arm(),
+                "base" => crate::sim::ContinuousWorld::base(),
+                "pusher" => crate::sim::ContinuousWorld::pusher(),
+                other => anyhow::bail!("{other:?} is not a continuous world; use arm, base or pusher"),
+            };
+            crate::bench::mde::run(crate::bench::mde::MdeBenchOptions {
+                db: args.db,
+                experiment: args.experiment,
+                n: args.n,
+                world,
+                held_out: args.held_out,
+            })
+            .await
         }
         Command::Bench(BenchCommand::Worlds(args)) => {
             tokio::task::spawn_blocking(move || {

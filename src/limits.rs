@@ -15,6 +15,12 @@ pub const MAX_BATCH_SIZE: u32 = 10_000;
 pub const MAX_ITERATIONS: u32 = 100_000;
 /// Extra seeded hyperparameter-optimiser starts: `0 ..= 20`.
 pub const MAX_RESTARTS: usize = 20;
+
+/// Fewest inducing points of the sparse GP (`mde.inducing_points`).
+pub const MIN_INDUCING_POINTS: usize = 16;
+
+/// Most inducing points of the sparse GP: its fit costs `O(n m²)` and its memory `O(n m)`.
+pub const MAX_INDUCING_POINTS: usize = 4096;
 /// Seconds an open proposal stays leased: `1 ..= 604 800` (a week).
 pub const MAX_PROPOSAL_TTL_SECONDS: u32 = 7 * 24 * 3600;
 /// Characters of an experiment's name: `0 ..= 200`.

@@ -2,9 +2,11 @@
 //! `precond bench planning` (build with `--release`). `planning` also times proposals with a
 //! model served over HTTP ([`remote`]); `saturation` measures health checks and cheap reads
 //! while the planner is saturated; `worlds` characterises the continuous worlds (share of safe
-//! state-actions, the oracle and the baseline on random problems).
+//! state-actions, the oracle and the baseline on random problems); `mde` refits a run's
+//! training data under each MDE setting and judges a continuous world's true deviations.
 
 pub mod gp;
+pub mod mde;
 pub mod planning;
 pub mod remote;
 pub mod saturation;

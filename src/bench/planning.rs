@@ -237,7 +237,7 @@ pub fn fit_mde(
     let gp = GpModel::fit(&x, &y, &params)?;
     Ok(ServedModel {
         version: 1,
-        estimator: Estimator::Gp(Box::new(gp)),
+        estimator: Estimator::Fitted(Box::new(gp)),
         fit: None,
     })
 }

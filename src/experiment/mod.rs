@@ -25,6 +25,7 @@ pub mod report;
 use crate::domain::GridFeatures;
 use crate::gp::{Kernel, NoiseMode};
 use crate::http::{AppState, HttpConfig, serve};
+use crate::mde::EstimatorChoice;
 use crate::planning::{Aggregation, Strategy};
 use crate::settings::{LabelCap, Preset};
 use crate::store::Store;
@@ -91,6 +92,10 @@ fn parse_named<T: serde::de::DeserializeOwned>(
 
 fn parse_noise(s: &str) -> Result<NoiseMode, String> {
     parse_named(s, "a noise model", "homoscedastic or heteroscedastic")
+}
+
+fn parse_estimator(s: &str) -> Result<EstimatorChoice, String> {
+    parse_named(s, "an estimator", "auto, exact or sparse")
 }
 
 fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
@@ -182,6 +187,9 @@ pub struct ExperimentArgs {
     /// The MDE's kernel (`matern12`, `matern32` or `matern52`). Default: the preset's.
     #[arg(long)]
     pub kernel: Option<Kernel>,
+    /// The MDE's regressor (`auto`, `exact` or `sparse`). Default: the service's (`auto`).
+    #[arg(long, value_parser = parse_estimator)]
+    pub estimator: Option<EstimatorChoice>,
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
     pub grid_features: GridFeatures,
@@ -244,6 +252,8 @@ pub struct Config {
     pub noise: Option<NoiseMode>,
     /// The MDE's kernel (`None`: the preset's).
     pub kernel: Option<Kernel>,
+    /// The MDE's regressor (`None`: the service's).
+    pub estimator: Option<EstimatorChoice>,
     /// The gridworld's MDE features.
     pub grid_features: GridFeatures,
     /// The experiments' preset.
@@ -315,6 +325,7 @@ impl Config {
             layout: None,
             noise: args.noise,
             kernel: args.kernel,
+            estimator: args.estimator,
             grid_features: args.grid_features,
             preset: args.preset,
             label_cap: args.label_cap,

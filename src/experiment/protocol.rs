@@ -383,6 +383,7 @@ fn experiment_body(
             noise: cfg.noise.unwrap_or(MdeRequest::default().noise),
             label_cap: cfg.label_cap,
             kernel: cfg.kernel,
+            estimator: cfg.estimator.unwrap_or_default(),
             ..MdeRequest::default()
         },
         learning: LearningRequest {

@@ -4,7 +4,7 @@
 use super::experiments::{check_page, next_offset};
 use super::{Result, Service};
 use crate::limits::{DEFAULT_PAGE, MAX_TIMELINE_ROWS};
-use crate::store::{IterationStats, ModelSummary, Run};
+use crate::store::{FitRefusal, IterationStats, ModelSummary, Run};
 
 /// A page of runs with the total count and the next page's offset.
 #[derive(Debug, Clone)]
@@ -29,6 +29,8 @@ pub struct LearningTimeline {
     pub iterations: Vec<(f64, IterationStats)>,
     /// `(iteration, summary)` per model version.
     pub models: Vec<(i64, ModelSummary)>,
+    /// Fits refused for the memory budget.
+    pub fit_refusals: Vec<FitRefusal>,
 }
 
 impl Service {
@@ -54,6 +56,7 @@ impl Service {
             .iteration_stats(id, batch, e.settings.d_max, MAX_TIMELINE_ROWS)
             .await?;
         let models = self.store.model_summaries(id, MAX_TIMELINE_ROWS).await?;
+        let fit_refusals = self.store.fit_refusals(id, MAX_TIMELINE_ROWS).await?;
         let beta = |j: i64| l.training_beta(j);
         Ok(LearningTimeline {
             batch_size: batch,
@@ -63,6 +66,7 @@ impl Service {
                 .into_iter()
                 .map(|m| (l.iteration(m.n_trajectories), m))
                 .collect(),
+            fit_refusals,
         })
     }
 }

@@ -185,6 +185,10 @@ impl Service {
         match outcome {
             IngestOutcome::Created(record) => {
                 tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
+                if live.model().kind() == Some(crate::mde::EstimatorKind::Sparse) {
+                    let absorbing = live.clone();
+                    Service::blocking(move || absorbing.absorb(&labelled, 1)).await?;
+                }
                 // A batch just completed: the iteration moved on.
                 if live.iteration(record.n_trajectories) > live.iteration(record.n_trajectories - 1)
                 {

@@ -310,7 +310,7 @@ impl Service {
         let live = self.live(id).await?;
         let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
         let model = live.model_at(&self.store, version).await?;
-        let Estimator::Gp(gp) = &model.estimator else {
+        let Estimator::Fitted(gp) = &model.estimator else {
             return Err(Error::Conflict(format!(
                 "model version {} is the prior: there are no training labels to check",
                 model.version
@@ -319,11 +319,17 @@ impl Service {
         let labels = self.store.first_deviations(id, gp.n_train() as i64).await?;
         let evaluated = model.clone();
         let loo = Self::blocking(move || match &evaluated.estimator {
-            Estimator::Gp(gp) => gp.leave_one_out(),
+            Estimator::Fitted(gp) => gp.leave_one_out(),
             Estimator::Prior(_) => None,
         })
         .await?
-        .ok_or_else(|| Error::Internal(anyhow::anyhow!("the model keeps no factor")))?;
+        .ok_or_else(|| {
+            Error::Conflict(format!(
+                "model version {} is a sparse GP, which has no closed-form leave-one-out: \
+                 diagnostics need an exact GP version",
+                model.version
+            ))
+        })?;
         if labels.len() != loo.len() {
             return Err(Error::Internal(anyhow::anyhow!(
                 "model {} has {} training points but {} labels are stored",

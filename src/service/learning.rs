@@ -8,7 +8,7 @@ use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, ServedModel};
 use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
-use crate::store::ListOrder;
+use crate::store::{FitRefusal, ListOrder};
 use std::sync::Arc;
 
 /// Judgements of more points than this are computed on the blocking pool.
@@ -23,6 +23,8 @@ pub struct ModelView {
     pub feature_names: Vec<String>,
     /// The version.
     pub model: Arc<ServedModel>,
+    /// The latest fit refused since the version (see [`crate::store::FitRefusal`]).
+    pub last_refusal: Option<FitRefusal>,
 }
 
 /// Precondition judgements of a batch of points.
@@ -177,11 +179,23 @@ impl Service {
     /// The version answering queries now.
     pub async fn model(&self, id: i64) -> Result<ModelView> {
         let live = self.live(id).await?;
+        let model = live.model();
         Ok(ModelView {
             experiment_id: id,
             feature_names: live.domain.feature_names(),
-            model: live.model(),
+            last_refusal: self.last_refusal(id, &model).await?,
+            model,
         })
+    }
+
+    /// The latest refused fit of experiment `id` made after `model`'s fit, if any.
+    async fn last_refusal(&self, id: i64, model: &ServedModel) -> Result<Option<FitRefusal>> {
+        let covered = model.fit.as_ref().map_or(0, |f| f.n_trajectories);
+        Ok(self
+            .store
+            .latest_fit_refusal(id)
+            .await?
+            .filter(|r| r.n_trajectories > covered))
     }
 
     /// Fits a new version on every stored transition now (off the async workers) and answers
@@ -208,6 +222,7 @@ impl Service {
             view: ModelView {
                 experiment_id: id,
                 feature_names: live.domain.feature_names(),
+                last_refusal: self.last_refusal(id, &model).await?,
                 model,
             },
             finished,

@@ -7,16 +7,15 @@
 
 use super::Error;
 use super::work::WorkGate;
-use crate::domain::{Domain, Problem};
-use crate::gp::GpModel;
+use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
-    Estimator, FitRecord, ServedModel, capped_labels, fit_choosing_label_cap, gp_params,
-    training_data,
+    Estimator, EstimatorKind, EstimatorParams, FitRecord, ServedModel, capped_labels,
+    fit_choosing_label_cap, gp_params, training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
-use crate::store::{Store, StoredModel, StoredTransition};
+use crate::store::{FitRefusal, Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
@@ -55,6 +54,16 @@ pub enum FitTrigger {
     Batch,
     /// A client asked: fit now on everything stored.
     Forced,
+}
+
+impl FitTrigger {
+    /// The metric label: `batch` or `forced`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Batch => "batch",
+            Self::Forced => "forced",
+        }
+    }
 }
 
 impl LiveExperiment {
@@ -128,9 +137,7 @@ impl LiveExperiment {
         let mut kept = self.older_versions();
         kept.retain(|m| m.version != version);
         kept.push(rebuilt.clone());
-        let floats = |kept: &[Arc<ServedModel>]| -> usize {
-            kept.iter().map(|m| m.n_train() * m.n_train()).sum()
-        };
+        let floats = |kept: &[Arc<ServedModel>]| -> usize { kept.iter().map(|m| m.floats()).sum() };
         while kept.len() > 1 && (kept.len() > KEPT_VERSIONS || floats(&kept) > KEPT_VERSIONS_FLOATS)
         {
             kept.remove(0);
@@ -224,15 +231,30 @@ impl LiveExperiment {
         let version = current.version + 1;
         let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
-        let params = gp_params(
-            self.settings.mde.noise,
-            self.settings.mde.kernel,
-            self.settings.mde.prior_mean,
-            self.settings.mde.restarts,
-            seed::mix(self.settings.seed, version),
+        let mde = &self.settings.mde;
+        let params = EstimatorParams::new(
+            gp_params(
+                mde.noise,
+                mde.kernel,
+                mde.prior_mean,
+                mde.restarts,
+                seed::mix(self.settings.seed, version),
+            ),
+            mde.inducing_points,
         )
-        .check()
-        .map_err(|e| Error::Internal(anyhow::anyhow!("GP parameters: {e}")))?;
+        .map_err(|e| Error::Internal(anyhow::anyhow!("estimator parameters: {e}")))?;
+        let n = deviations.len();
+        let budget = gate.limits().max_fit_memory;
+        let kind = mde.estimator.kind_for(n, dim, &params, budget);
+        let needed = params.cost(kind, n, dim).peak_bytes;
+        if needed > budget as f64 {
+            let refusal = FitRefusal::now(n as i64, n_trajectories, kind, needed, budget as f64);
+            store.insert_fit_refusal(self.id, &refusal).await?;
+            metrics::counter!("precond_fits_total", "trigger" => trigger.as_str(), "result" => "refused")
+                .increment(1);
+            tracing::warn!(experiment = self.id, n_train = n, reason = %refusal.reason, "fit refused");
+            return Err(Error::LimitReached(refusal.reason));
+        }
         let caps = self.settings.label_caps();
         let precondition = self.precondition(self.settings.learning.test_beta)?;
         let slot = gate.fit_slot().await?;
@@ -240,15 +262,11 @@ impl LiveExperiment {
         let gp = super::work::run_niced(move || {
             let _slot = slot;
             let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
-            fit_choosing_label_cap(&x, &deviations, precondition, &caps, &params)
+            fit_choosing_label_cap(&x, &deviations, precondition, &caps, kind, &params)
         })
         .await?;
-        let trigger_name = match trigger {
-            FitTrigger::Batch => "batch",
-            FitTrigger::Forced => "forced",
-        };
         let result = if gp.is_ok() { "ok" } else { "failed" };
-        metrics::counter!("precond_fits_total", "trigger" => trigger_name, "result" => result)
+        metrics::counter!("precond_fits_total", "trigger" => trigger.as_str(), "result" => result)
             .increment(1);
         metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
         let choice = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
@@ -259,12 +277,14 @@ impl LiveExperiment {
             n_trajectories,
             label_cap: choice.label_cap,
             label_cap_trials: choice.trials,
+            online_trajectories: 0,
         };
         let stored = StoredModel {
             version,
             n_train: gp.n_train() as i64,
             n_trajectories,
             state: gp.state(),
+            log_marginal_likelihood: gp.log_marginal_likelihood(),
             fit_seconds: fit.fit_seconds,
             fitted_at: fit.fitted_at.clone(),
             label_cap: fit.label_cap,
@@ -276,19 +296,56 @@ impl LiveExperiment {
         let label_cap = fit.label_cap;
         let served = Arc::new(ServedModel {
             version,
-            estimator: Estimator::Gp(Box::new(gp)),
+            estimator: Estimator::Fitted(gp),
             fit: Some(fit),
         });
         self.swap_model(served.clone());
         tracing::info!(
             experiment = self.id,
             version,
+            estimator = kind.as_str(),
             n_train = stored.n_train,
             seconds = stored.fit_seconds,
             label_cap,
             "model fitted"
         );
         Ok(served)
+    }
+
+    /// Takes a posted trajectory into the answering version at its hyperparameters, when that
+    /// version is a regressor that updates online (the sparse GP): queries reflect the new data
+    /// at once, between refits. `transitions` are the trajectory's, stored after the version's
+    /// training data. Does nothing for the prior and the exact GP (they wait for the batch's
+    /// refit); a failed update leaves the version as it was (logged).
+    pub fn absorb(&self, transitions: &[LabelledTransition], trajectories: usize) {
+        let current = self.model();
+        let (Estimator::Fitted(gp), Some(fit)) = (&current.estimator, &current.fit) else {
+            return;
+        };
+        if gp.kind() != EstimatorKind::Sparse || transitions.is_empty() {
+            return;
+        }
+        let dim = self.domain.feature_dim();
+        let mut features = Vec::with_capacity(transitions.len() * dim);
+        let mut deviations = Vec::with_capacity(transitions.len());
+        for t in transitions {
+            features.extend(self.domain.features(&t.observed.s, &t.observed.a));
+            deviations.push(t.deviation);
+        }
+        let labels = capped_labels(&deviations, fit.label_cap, self.settings.d_max);
+        let (x, y) = training_data(features, labels, dim);
+        match gp.update(&x, &y) {
+            Ok(updated) => {
+                let mut fit = fit.clone();
+                fit.online_trajectories += trajectories;
+                self.swap_model(Arc::new(ServedModel {
+                    version: current.version,
+                    estimator: Estimator::Fitted(updated),
+                    fit: Some(fit),
+                }));
+            }
+            Err(e) => tracing::warn!(experiment = self.id, error = %e, "online update failed"),
+        }
     }
 
     /// Starts a [`FitTrigger::Batch`] refit in the background; failures are logged.
@@ -303,39 +360,45 @@ impl LiveExperiment {
         });
     }
 
-    /// Rebuilds a stored version from its hyperparameters and training data, without
-    /// re-optimising.
+    /// Rebuilds a stored version without re-optimising: the exact GP from its hyperparameters
+    /// and training data, the sparse GP from its stored factors.
     async fn restore(&self, store: &Store, stored: StoredModel) -> Result<ServedModel, Error> {
-        let transitions = store.transitions(self.id, 0, Some(stored.n_train)).await?;
-        if transitions.len() as i64 != stored.n_train {
-            return Err(Error::Internal(anyhow::anyhow!(
-                "model {} of experiment {} was fitted on {} transitions but {} are stored",
-                stored.version,
-                self.id,
-                stored.n_train,
-                transitions.len()
-            )));
-        }
-        let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
+        let (features, labels) = if stored.state.needs_training_data() {
+            let transitions = store.transitions(self.id, 0, Some(stored.n_train)).await?;
+            if transitions.len() as i64 != stored.n_train {
+                return Err(Error::Internal(anyhow::anyhow!(
+                    "model {} of experiment {} was fitted on {} transitions but {} are stored",
+                    stored.version,
+                    self.id,
+                    stored.n_train,
+                    transitions.len()
+                )));
+            }
+            let (features, deviations) = self.training_set(&transitions);
+            let labels = capped_labels(&deviations, stored.label_cap, self.settings.d_max);
+            (features, labels)
+        } else {
+            (Vec::new(), Vec::new())
+        };
         let state = stored.state.clone();
-        let labels = capped_labels(&deviations, stored.label_cap, self.settings.d_max);
         let gp = tokio::task::spawn_blocking(move || {
             let (x, y) = training_data(features, labels, dim);
-            GpModel::from_state(&x, &y, &state)
+            state.restore(&x, &y)
         })
         .await
         .context("restore task")?
         .map_err(|e| Error::Internal(anyhow::anyhow!("rebuilding the stored MDE: {e}")))?;
         Ok(ServedModel {
             version: stored.version,
-            estimator: Estimator::Gp(Box::new(gp)),
+            estimator: Estimator::Fitted(gp),
             fit: Some(FitRecord {
                 fit_seconds: stored.fit_seconds,
                 fitted_at: stored.fitted_at,
                 n_trajectories: stored.n_trajectories,
                 label_cap: stored.label_cap,
                 label_cap_trials: stored.label_cap_trials,
+                online_trajectories: 0,
             }),
         })
     }
@@ -395,12 +458,35 @@ impl Registry {
             ))
         })?;
         let mut covered = 0;
+        let mut online_from = None;
         if let Some(model) = store.latest_model(id).await? {
             covered = model.n_trajectories;
+            let n_train = model.n_train;
             let served = live.restore(store, model).await?;
+            if served.kind() == Some(EstimatorKind::Sparse) && stored.n_trajectories > covered {
+                online_from = Some(n_train);
+            }
             live.swap_model(Arc::new(served));
         }
         let live = self.insert(live);
+        if let Some(n_train) = online_from {
+            // What was taken in online before the restart is taken in again.
+            let later: Vec<LabelledTransition> = store
+                .transitions_after_first(id, n_train, i64::MAX)
+                .await?
+                .into_iter()
+                .map(|t| LabelledTransition {
+                    observed: Transition::new(t.s, t.a, t.s_next),
+                    s_pred: t.s_pred,
+                    deviation: t.deviation,
+                })
+                .collect();
+            let trajectories = (stored.n_trajectories - covered) as usize;
+            let absorbing = live.clone();
+            tokio::task::spawn_blocking(move || absorbing.absorb(&later, trajectories))
+                .await
+                .context("online update task")?;
+        }
         if live.iteration(stored.n_trajectories) > live.iteration(covered) {
             live.schedule_refit(store, gate);
         }

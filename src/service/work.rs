@@ -43,6 +43,22 @@ pub struct Limits {
     pub max_experiments: usize,
     /// Transitions in one posted trajectory: `1 ..=` [`MAX_TRANSITIONS`]; default the same.
     pub max_transitions: usize,
+    /// Bytes one MDE fit may use at its peak (estimated before it allocates, see
+    /// [`crate::gp::FitCost`]): a fit beyond it is not attempted but recorded as refused, and
+    /// with `mde.estimator: auto` the sparse GP takes over before the exact GP would need it.
+    /// `64 MiB ..= 1 TiB`; default a quarter of the machine's memory (4 GiB where unknown).
+    pub max_fit_memory: u64,
+}
+
+/// A quarter of the machine's physical memory (`/proc/meminfo`), or 4 GiB where unknown.
+pub fn default_fit_memory() -> u64 {
+    let total = std::fs::read_to_string("/proc/meminfo").ok().and_then(|m| {
+        m.lines()
+            .find(|l| l.starts_with("MemTotal:"))
+            .and_then(|l| l.split_whitespace().nth(1)?.parse::<u64>().ok())
+            .map(|kib| kib * 1024)
+    });
+    total.map_or(4 << 30, |t| (t / 4).max(64 << 20))
 }
 
 impl Default for Limits {
@@ -54,6 +70,7 @@ impl Default for Limits {
             plan_timeout: Duration::from_secs(30),
             max_experiments: 1000,
             max_transitions: MAX_TRANSITIONS,
+            max_fit_memory: default_fit_memory(),
         }
     }
 }
@@ -72,6 +89,12 @@ impl Limits {
         range("max-queued-plans", self.max_queued_plans, 0, 10_000)?;
         range("max-experiments", self.max_experiments, 1, 1_000_000)?;
         range("max-transitions", self.max_transitions, 1, MAX_TRANSITIONS)?;
+        let mib = self.max_fit_memory >> 20;
+        if !(64..=(1 << 20)).contains(&mib) {
+            return Err(format!(
+                "--max-fit-memory-mib must lie in 64 ..= 1048576, got {mib}"
+            ));
+        }
         if !(MIN_PLAN_TIMEOUT..=MAX_PLAN_TIMEOUT).contains(&self.plan_timeout) {
             return Err(format!(
                 "--plan-timeout-ms must lie in {} ..= {}, got {}",

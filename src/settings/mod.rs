@@ -13,11 +13,12 @@ use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, GridFeatures, IcyGridworld, Kinematic,
     KinematicParams, WaterPlant,
 };
-use crate::gp::{Kernel, NoiseMode};
+use crate::gp::{DEFAULT_INDUCING_POINTS, Kernel, NoiseMode};
 use crate::limits::{
-    MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_ITERATIONS, MAX_NAME_LEN,
-    MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
+    MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_INDUCING_POINTS, MAX_ITERATIONS,
+    MAX_NAME_LEN, MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS, MIN_INDUCING_POINTS,
 };
+use crate::mde::EstimatorChoice;
 use crate::planning::{
     AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings, PlanningError,
     PlanningSettings, Strategy,
@@ -202,6 +203,10 @@ pub struct MdeRequest {
     /// `matern52`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub kernel: Option<Kernel>,
+    /// [`MdeSettings::estimator`]. Default `auto`.
+    pub estimator: EstimatorChoice,
+    /// [`MdeSettings::inducing_points`]. Default 256.
+    pub inducing_points: usize,
 }
 
 impl Default for MdeRequest {
@@ -212,6 +217,8 @@ impl Default for MdeRequest {
             restarts: 2,
             label_cap: None,
             kernel: None,
+            estimator: EstimatorChoice::Auto,
+            inducing_points: DEFAULT_INDUCING_POINTS,
         }
     }
 }
@@ -243,6 +250,12 @@ pub struct MdeSettings {
     /// short as the jump is sharp, so what it learns spreads no further than that; the rough
     /// ν = 1/2 kernel follows the jump and keeps long length scales.
     pub kernel: Kernel,
+    /// The regressor fits use: `auto` (the exact GP up to 3000 transitions while its fit fits
+    /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
+    /// [`EstimatorChoice`]).
+    pub estimator: EstimatorChoice,
+    /// Inducing points of the sparse GP; 16 to 4096.
+    pub inducing_points: usize,
 }
 
 /// A named set of defaults for the settings a preset decides (see [`LearningSettings::preset`]).
@@ -534,7 +547,18 @@ impl ExperimentRequest {
             restarts: m.restarts,
             label_cap: cap,
             kernel: m.kernel.unwrap_or_else(|| self.learning.preset.kernel()),
+            estimator: m.estimator,
+            inducing_points: m.inducing_points,
         };
+        if !(MIN_INDUCING_POINTS..=MAX_INDUCING_POINTS).contains(&mde.inducing_points) {
+            return Err(InvalidSetting::new(
+                "mde.inducing_points",
+                format!(
+                    "must be between {MIN_INDUCING_POINTS} and {MAX_INDUCING_POINTS}, got {}",
+                    mde.inducing_points
+                ),
+            ));
+        }
         let l = self.learning;
         in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;
         in_range("learning.iterations", l.iterations, 1, MAX_ITERATIONS)?;

@@ -14,7 +14,7 @@ mod trajectories;
 
 pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use experiments::{Experiment, ListOrder};
-pub use models::StoredModel;
+pub use models::{FitRefusal, StoredModel};
 pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
 pub use trajectories::{
     IdempotencyKey, IngestOutcome, IngestRecord, StoredTrajectory, StoredTransition,

@@ -1,8 +1,8 @@
 //! Fitted model versions.
 
-use super::Store;
-use crate::gp::{Hyperparameters, ModelState};
-use crate::mde::HeldOutTrust;
+use super::{Store, now};
+use crate::gp::Hyperparameters;
+use crate::mde::{EstimatorKind, EstimatorState, HeldOutTrust};
 
 /// A stored model version.
 #[derive(Debug, Clone)]
@@ -13,8 +13,10 @@ pub struct StoredModel {
     pub n_train: i64,
     /// Trajectories stored when the fit started.
     pub n_trajectories: i64,
-    /// Everything needed to rebuild the model from its training data.
-    pub state: ModelState,
+    /// Everything needed to rebuild the model (with its training data, for the exact GP).
+    pub state: EstimatorState,
+    /// The fit's objective: log marginal likelihood (exact) or its bound (sparse).
+    pub log_marginal_likelihood: f64,
     /// Seconds the fit took.
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
@@ -40,7 +42,7 @@ impl Store {
     ) -> Result<(), sqlx::Error> {
         let state = serde_json::to_string(&model.state).map_err(json_err)?;
         let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
-        let noise = serde_json::to_value(model.state.noise).map_err(json_err)?;
+        let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
         let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
         sqlx::query(
             "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
@@ -55,7 +57,7 @@ impl Store {
         .bind(noise.as_str().unwrap_or_default())
         .bind(state)
         .bind(hyper)
-        .bind(model.state.log_marginal_likelihood)
+        .bind(model.log_marginal_likelihood)
         .bind(model.fit_seconds)
         .bind(&model.fitted_at)
         .bind(model.label_cap)
@@ -94,10 +96,10 @@ impl Store {
     ) -> Result<Option<StoredModel>, sqlx::Error> {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
-                    label_cap_trials
+                    label_cap_trials, log_marginal_likelihood
              FROM models WHERE experiment_id = ? {clause}"
         );
-        type Row = (i64, i64, i64, String, f64, String, f64, String);
+        type Row = (i64, i64, i64, String, f64, String, f64, String, f64);
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
             query = query.bind(v);
@@ -105,17 +107,165 @@ impl Store {
         let Some(row) = query.fetch_optional(&self.read).await? else {
             return Ok(None);
         };
-        let (version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap, trials) =
-            row;
+        let (
+            version,
+            n_train,
+            n_trajectories,
+            state,
+            fit_seconds,
+            fitted_at,
+            label_cap,
+            trials,
+            lml,
+        ) = row;
         Ok(Some(StoredModel {
             version,
             n_train,
             n_trajectories,
             state: serde_json::from_str(&state).map_err(json_err)?,
+            log_marginal_likelihood: lml,
             fit_seconds,
             fitted_at,
             label_cap,
             label_cap_trials: serde_json::from_str(&trials).map_err(json_err)?,
         }))
+    }
+
+    /// Records a fit that was not attempted (see [`FitRefusal`]).
+    #[tracing::instrument(skip(self))]
+    pub async fn insert_fit_refusal(
+        &self,
+        experiment_id: i64,
+        r: &FitRefusal,
+    ) -> Result<(), sqlx::Error> {
+        sqlx::query(
+            "INSERT INTO fit_refusals (experiment_id, n_train, n_trajectories, estimator,
+                                       needed_bytes, budget_bytes, reason, refused_at)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+        )
+        .bind(experiment_id)
+        .bind(r.n_train)
+        .bind(r.n_trajectories)
+        .bind(r.estimator.as_str())
+        .bind(r.needed_bytes)
+        .bind(r.budget_bytes)
+        .bind(&r.reason)
+        .bind(&r.refused_at)
+        .execute(&self.write)
+        .await?;
+        Ok(())
+    }
+
+    /// The experiment's latest refused fit, if any.
+    #[tracing::instrument(skip(self))]
+    pub async fn latest_fit_refusal(
+        &self,
+        experiment_id: i64,
+    ) -> Result<Option<FitRefusal>, sqlx::Error> {
+        let count: i64 =
+            sqlx::query_scalar("SELECT COUNT(*) FROM fit_refusals WHERE experiment_id = ?")
+                .bind(experiment_id)
+                .fetch_one(&self.read)
+                .await?;
+        Ok(self
+            .fit_refusals_from(experiment_id, (count - 1).max(0), 1)
+            .await?
+            .pop())
+    }
+
+    /// The experiment's refused fits, oldest first, at most `limit`.
+    #[tracing::instrument(skip(self))]
+    pub async fn fit_refusals(
+        &self,
+        experiment_id: i64,
+        limit: i64,
+    ) -> Result<Vec<FitRefusal>, sqlx::Error> {
+        self.fit_refusals_from(experiment_id, 0, limit).await
+    }
+
+    async fn fit_refusals_from(
+        &self,
+        experiment_id: i64,
+        offset: i64,
+        limit: i64,
+    ) -> Result<Vec<FitRefusal>, sqlx::Error> {
+        type Row = (i64, i64, String, f64, f64, String, String);
+        let rows = sqlx::query_as::<_, Row>(
+            "SELECT n_train, n_trajectories, estimator, needed_bytes, budget_bytes, reason,
+                    refused_at
+             FROM fit_refusals WHERE experiment_id = ? ORDER BY id LIMIT ? OFFSET ?",
+        )
+        .bind(experiment_id)
+        .bind(limit)
+        .bind(offset)
+        .fetch_all(&self.read)
+        .await?;
+        rows.into_iter()
+            .map(
+                |(n_train, n_trajectories, estimator, needed, budget, reason, at)| {
+                    Ok(FitRefusal {
+                        n_train,
+                        n_trajectories,
+                        estimator: match estimator.as_str() {
+                            "sparse" => EstimatorKind::Sparse,
+                            _ => EstimatorKind::Exact,
+                        },
+                        needed_bytes: needed,
+                        budget_bytes: budget,
+                        reason,
+                        refused_at: at,
+                    })
+                },
+            )
+            .collect()
+    }
+}
+
+/// A fit the server did not attempt because its estimated peak memory exceeded the budget; the
+/// version before it kept answering.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitRefusal {
+    /// Transitions the fit would have been trained on.
+    pub n_train: i64,
+    /// Trajectories stored then.
+    pub n_trajectories: i64,
+    /// The regressor it would have fitted.
+    pub estimator: EstimatorKind,
+    /// Its estimated peak memory (bytes).
+    pub needed_bytes: f64,
+    /// The server's budget (bytes, `--max-fit-memory`).
+    pub budget_bytes: f64,
+    /// Why, in words.
+    pub reason: String,
+    /// When (RFC 3339).
+    pub refused_at: String,
+}
+
+impl FitRefusal {
+    /// A refusal now.
+    pub fn now(
+        n_train: i64,
+        n_trajectories: i64,
+        estimator: EstimatorKind,
+        needed_bytes: f64,
+        budget_bytes: f64,
+    ) -> Self {
+        let gib = |b: f64| b / (1u64 << 30) as f64;
+        Self {
+            n_train,
+            n_trajectories,
+            estimator,
+            needed_bytes,
+            budget_bytes,
+            reason: format!(
+                "a {} fit on {n_train} transitions needs about {:.2} GiB, beyond the server's \
+                 fit memory budget of {:.2} GiB (--max-fit-memory); the previous version keeps \
+                 answering",
+                estimator.as_str(),
+                gib(needed_bytes),
+                gib(budget_bytes)
+            ),
+            refused_at: now(),
+        }
     }
 }

@@ -4,6 +4,7 @@ mod auth;
 mod contract;
 mod custom;
 mod dashboard;
+mod estimators;
 mod experiments;
 mod generalisation;
 mod helpers;

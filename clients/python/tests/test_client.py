@@ -407,6 +407,9 @@ def model_json(version: int, n_trajectories: int) -> dict[str, Any]:
         "n_trajectories": n_trajectories,
         "label_cap": None,
         "label_cap_trials": [],
+        "estimator": "exact",
+        "online_trajectories": 0,
+        "last_fit_refusal": None,
     }
 
 

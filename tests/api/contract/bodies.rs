@@ -160,6 +160,7 @@ const ENTRIES: &[Entry] = &[
     entry::<NoiseSummary>("NoiseSummary", Response),
     entry::<api::ModelResponse>("Model", Response),
     entry::<HeldOutTrust>("HeldOutTrust", Response),
+    entry::<api::FitRefusalView>("FitRefusal", Response),
     // precondition
     entry::<api::Point>("PointRequest", Request),
     entry::<api::PreconditionRequest>("PreconditionRequest", Request),
@@ -1126,7 +1127,9 @@ fn the_wire_types_skip_only_absent_options() {
         "src/settings/mod.rs",
         "src/settings/custom.rs",
         "src/gp/mod.rs",
-        "src/mde.rs",
+        "src/mde/mod.rs",
+        "src/mde/estimator.rs",
+        "src/mde/labels.rs",
         "src/domain/mod.rs",
     ] {
         let text = std::fs::read_to_string(format!("{}/{file}", env!("CARGO_MANIFEST_DIR")))

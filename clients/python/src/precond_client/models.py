@@ -504,6 +504,37 @@ class HeldOutTrust:
 
 
 @dataclass(frozen=True)
+class FitRefusal:
+    """A fit the server did not attempt because its estimated peak memory exceeded the server's
+    budget; the version before it kept answering (schema ``FitRefusal``)."""
+
+    SCHEMA: ClassVar[str] = "FitRefusal"
+
+    n_train: int
+    """Transitions the fit would have been trained on."""
+    n_trajectories: int
+    estimator: str
+    """``exact`` or ``sparse``."""
+    needed_bytes: float
+    budget_bytes: float
+    reason: str
+    refused_at: str
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> FitRefusal:
+        """Reads the JSON form."""
+        return cls(
+            n_train=int(d["n_train"]),
+            n_trajectories=int(d["n_trajectories"]),
+            estimator=str(d["estimator"]),
+            needed_bytes=float(d["needed_bytes"]),
+            budget_bytes=float(d["budget_bytes"]),
+            reason=str(d["reason"]),
+            refused_at=str(d["refused_at"]),
+        )
+
+
+@dataclass(frozen=True)
 class Model:
     """The MDE version answering queries (schema ``Model``)."""
 
@@ -528,6 +559,12 @@ class Model:
     for the prior."""
     label_cap_trials: list[HeldOutTrust]
     """Each candidate cap's held-out judgement (empty for the prior)."""
+    estimator: str | None
+    """``exact`` or ``sparse`` (``None`` for the prior)."""
+    online_trajectories: int
+    """Trajectories taken in by online updates since the fit (sparse GP)."""
+    last_fit_refusal: FitRefusal | None
+    """The latest fit refused since this version for the memory budget."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
@@ -552,6 +589,13 @@ class Model:
             n_trajectories=int(d["n_trajectories"]),
             label_cap=float(cap) if cap is not None else None,
             label_cap_trials=[HeldOutTrust.from_json(t) for t in d["label_cap_trials"]],
+            estimator=d.get("estimator"),
+            online_trajectories=int(d["online_trajectories"]),
+            last_fit_refusal=(
+                FitRefusal.from_json(d["last_fit_refusal"])
+                if d.get("last_fit_refusal") is not None
+                else None
+            ),
             raw=d,
         )
 

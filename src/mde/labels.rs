@@ -1,208 +1,12 @@
-//! The model deviation estimator as the service serves it: before any data the GP prior, after
-//! that a fitted [`GpModel`], each under a version; and how deviations become training labels
-//! ([`capped_labels`], chosen per fit by [`fit_choosing_label_cap`]). Knows nothing of HTTP or
-//! SQL.
+//! How deviations become the MDE's training labels: capped at a multiple of `d_max`
+//! ([`capped_labels`]), with the cap chosen per fit by how the fitted model judges its own
+//! training transitions held out ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
 
-use crate::gp::{GpModel, GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
-use crate::planning::{DeviationModel, Precondition};
+use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
+use crate::gp::GpError;
+use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
-
-/// What answers queries.
-#[derive(Debug)]
-pub enum Estimator {
-    /// No data yet: μ = prior mean, σ = prior standard deviation, everywhere.
-    Prior(Hyperparameters),
-    /// A fitted GP.
-    Gp(Box<GpModel>),
-}
-
-/// How a version was fitted.
-#[derive(Debug, Clone)]
-pub struct FitRecord {
-    /// Seconds the fit took.
-    pub fit_seconds: f64,
-    /// When it finished (RFC 3339).
-    pub fitted_at: String,
-    /// Trajectories stored when the fit started (used to tell whether a batch is still unfitted).
-    pub n_trajectories: i64,
-    /// The label cap the training labels were clipped at (units of `d_max`; 0 = raw labels).
-    pub label_cap: f64,
-    /// Every candidate cap's held-out judgement of the training transitions (one entry for a
-    /// fixed cap; none for versions fitted before caps were recorded).
-    pub label_cap_trials: Vec<HeldOutTrust>,
-}
-
-/// One version of an experiment's MDE.
-#[derive(Debug)]
-pub struct ServedModel {
-    /// 0 for the prior, then 1, 2, … one per fit.
-    pub version: i64,
-    /// The estimator.
-    pub estimator: Estimator,
-    /// Absent for the prior.
-    pub fit: Option<FitRecord>,
-}
-
-/// The MDE's answer at one point.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Answer {
-    /// Mean deviation μ.
-    pub mu: f64,
-    /// Standard deviation σ (latent and noise).
-    pub sigma: f64,
-}
-
-/// Whether one state-action lies in the model precondition `μ + βσ < d_max`.
-#[derive(
-    Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
-pub struct Judgement {
-    /// Mean deviation μ.
-    pub mu: f64,
-    /// Standard deviation σ (latent and noise).
-    pub sigma: f64,
-    /// `μ + βσ`.
-    pub upper: f64,
-    /// `upper < d_max`.
-    pub inside: bool,
-}
-
-impl Judgement {
-    /// The judgement of `answer` by `precondition`; `None` when the model answered a
-    /// non-finite value (which must never reach a client).
-    pub fn of(answer: &Answer, precondition: Precondition) -> Option<Self> {
-        let upper = precondition.upper(answer.mu, answer.sigma);
-        upper.is_finite().then_some(Self {
-            mu: answer.mu,
-            sigma: answer.sigma,
-            upper,
-            inside: precondition.inside(answer.mu, answer.sigma),
-        })
-    }
-}
-
-impl ServedModel {
-    /// The prior, version 0, for features of dimension `dim`, under the kernel later fits use.
-    pub fn prior(dim: usize, prior_mean: f64, kernel: Kernel) -> Self {
-        Self {
-            version: 0,
-            estimator: Estimator::Prior(Hyperparameters {
-                kernel,
-                ..Hyperparameters::prior(dim, prior_mean)
-            }),
-            fit: None,
-        }
-    }
-
-    /// Training-set size (0 for the prior).
-    pub fn n_train(&self) -> usize {
-        match &self.estimator {
-            Estimator::Prior(_) => 0,
-            Estimator::Gp(gp) => gp.n_train(),
-        }
-    }
-
-    /// The hyperparameters answering queries.
-    pub fn hyperparameters(&self) -> &Hyperparameters {
-        match &self.estimator {
-            Estimator::Prior(h) => h,
-            Estimator::Gp(gp) => gp.hyperparameters(),
-        }
-    }
-
-    /// Log marginal likelihood of the fitted model (`None` for the prior).
-    pub fn log_marginal_likelihood(&self) -> Option<f64> {
-        match &self.estimator {
-            Estimator::Prior(_) => None,
-            Estimator::Gp(gp) => Some(gp.log_marginal_likelihood()),
-        }
-    }
-
-    /// Noise mode used (`None` for the prior).
-    pub fn noise_mode(&self) -> Option<NoiseMode> {
-        match &self.estimator {
-            Estimator::Prior(_) => None,
-            Estimator::Gp(gp) => Some(gp.noise_mode()),
-        }
-    }
-
-    /// Heteroscedastic noise model summary, when there is one.
-    pub fn noise_summary(&self) -> Option<NoiseSummary> {
-        match &self.estimator {
-            Estimator::Prior(_) => None,
-            Estimator::Gp(gp) => gp.noise_summary(),
-        }
-    }
-
-    /// μ and σ for `n = features.len() / dim` row-major feature vectors. A GP that cannot
-    /// answer (which the service's validation should make impossible) answers NaN, which
-    /// every caller checks before it leaves the process.
-    pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
-        if dim == 0 {
-            return Vec::new();
-        }
-        let n = features.len() / dim;
-        match &self.estimator {
-            Estimator::Prior(h) => vec![
-                Answer {
-                    mu: h.prior_mean,
-                    sigma: h.prior_std(),
-                };
-                n
-            ],
-            Estimator::Gp(gp) => {
-                let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
-                let p = gp.predict(&x);
-                p.mean
-                    .iter()
-                    .zip(p.std())
-                    .map(|(mu, sigma)| Answer { mu: *mu, sigma })
-                    .collect()
-            }
-        }
-    }
-}
-
-impl DeviationModel for ServedModel {
-    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
-        self.answer(features, dim)
-            .into_iter()
-            .map(|a| (a.mu, a.sigma))
-            .collect()
-    }
-}
-
-/// Row-major features and labels as the GP wants them.
-pub fn training_data(
-    features: Vec<f64>,
-    labels: Vec<f64>,
-    dim: usize,
-) -> (DMatrix<f64>, DVector<f64>) {
-    let n = labels.len();
-    (
-        DMatrix::from_row_slice(n, dim, &features),
-        DVector::from_vec(labels),
-    )
-}
-
-/// The GP parameters for an experiment's MDE settings and a fit's seed.
-pub fn gp_params(
-    noise: NoiseMode,
-    kernel: Kernel,
-    prior_mean: f64,
-    restarts: usize,
-    seed: u64,
-) -> GpParams {
-    GpParams {
-        noise,
-        kernel,
-        prior_mean,
-        restarts,
-        seed,
-        ..GpParams::default()
-    }
-}
 
 /// The labels the MDE is fitted on for a label cap (units of `d_max`; 0 = the raw deviations).
 pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64> {
@@ -249,7 +53,7 @@ impl HeldOutTrust {
     /// transitions), judged by `precondition`; `None` when the model kept no inverse factor
     /// or a group is invalid.
     pub fn of(
-        gp: &GpModel,
+        gp: &dyn Regressor,
         label_cap: f64,
         labels: &[f64],
         deviations: &[f64],
@@ -316,7 +120,7 @@ pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
 #[derive(Debug)]
 pub struct CapChoice {
     /// The model fitted with the chosen cap.
-    pub gp: GpModel,
+    pub gp: Box<dyn Regressor>,
     /// The chosen cap (units of `d_max`; 0 = raw labels).
     pub label_cap: f64,
     /// Every candidate's held-out judgement, in the order tried.
@@ -336,20 +140,71 @@ pub struct CapChoice {
 /// paper's labels stay unless the data clearly say otherwise. Groups are left out in closed
 /// form, so a candidate costs one fit. With one candidate that one is kept. Errors when a fit
 /// fails.
+///
+/// The regressor is `kind`. The sparse GP has no closed-form leave-out, so with it the cap is
+/// chosen the same way by exact GPs on an evenly spaced subset of at most
+/// [`CAP_CHOICE_SUBSET`] transitions, and the sparse GP is then fitted on all of them with
+/// that cap.
 pub fn fit_choosing_label_cap(
     x: &DMatrix<f64>,
     deviations: &[f64],
     precondition: Precondition,
     caps: &[f64],
-    params: &crate::gp::ValidGpParams,
-) -> Result<CapChoice, crate::gp::GpError> {
+    kind: EstimatorKind,
+    params: &EstimatorParams,
+) -> Result<CapChoice, GpError> {
+    if kind == EstimatorKind::Sparse {
+        let (label_cap, trials) = if caps.len() > 1 {
+            let rows = evenly_spaced(x.nrows(), CAP_CHOICE_SUBSET);
+            let xs = x.select_rows(&rows);
+            let ds: Vec<f64> = rows.iter().map(|&i| deviations[i]).collect();
+            let c = choose_exact(&xs, &ds, precondition, caps, params)?;
+            (c.label_cap, c.trials)
+        } else {
+            (caps.first().copied().unwrap_or(0.0), Vec::new())
+        };
+        let labels = capped_labels(deviations, label_cap, precondition.d_max());
+        let gp = fit(kind, x, &DVector::from_vec(labels), params)?;
+        return Ok(CapChoice {
+            gp,
+            label_cap,
+            trials,
+        });
+    }
+    choose_exact(x, deviations, precondition, caps, params)
+}
+
+/// With the sparse GP, the label cap is chosen on at most this many transitions.
+pub const CAP_CHOICE_SUBSET: usize = 2000;
+
+/// `k` indices evenly spaced over `0..n` (all of them when `n ≤ k`).
+fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
+    if n <= k {
+        return (0..n).collect();
+    }
+    (0..k).map(|i| i * n / k).collect()
+}
+
+/// [`fit_choosing_label_cap`] with exact GPs.
+fn choose_exact(
+    x: &DMatrix<f64>,
+    deviations: &[f64],
+    precondition: Precondition,
+    caps: &[f64],
+    params: &EstimatorParams,
+) -> Result<CapChoice, GpError> {
     let d_max = precondition.d_max();
     let groups = identical_rows(x);
     let mut fitted = Vec::with_capacity(caps.len());
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
-        let gp = GpModel::fit(x, &DVector::from_column_slice(&labels), params)?;
-        let judged = HeldOutTrust::of(&gp, cap, &labels, deviations, &groups, precondition);
+        let gp = fit(
+            EstimatorKind::Exact,
+            x,
+            &DVector::from_column_slice(&labels),
+            params,
+        )?;
+        let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
         fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
@@ -363,7 +218,7 @@ pub fn fit_choosing_label_cap(
                 .total_cmp(&score(jb))
                 .then(size(*ca).total_cmp(&size(*cb)))
         })
-        .ok_or_else(|| crate::gp::GpError::InvalidState("no label cap to fit with".into()))?;
+        .ok_or_else(|| GpError::InvalidState("no label cap to fit with".into()))?;
     if let Some(raw) = fitted.iter().position(|(cap, _, _)| *cap == 0.0)
         && let (Some((_, lp_best)), Some((_, lp_raw))) = (&fitted[best].2, &fitted[raw].2)
         && !clearly_better(lp_best, lp_raw)
@@ -407,6 +262,8 @@ pub fn normal_tail(beta: f64) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::gp::{GpModel, Kernel, NoiseMode};
+    use crate::mde::gp_params;
 
     const D_MAX: f64 = 0.1;
 
@@ -415,10 +272,14 @@ mod tests {
         Precondition::new(2.0, D_MAX).unwrap()
     }
 
-    fn params() -> crate::gp::ValidGpParams {
+    fn gp() -> crate::gp::ValidGpParams {
         gp_params(NoiseMode::Homoscedastic, Kernel::Matern52, 0.0, 0, 7)
             .check()
             .expect("valid")
+    }
+
+    fn params() -> EstimatorParams {
+        EstimatorParams::new(gp().params().clone(), 64).expect("valid")
     }
 
     /// Points on a 2-D lattice with the deviation a function of the point.
@@ -445,8 +306,15 @@ mod tests {
         ];
         for (x, deviations) in &worlds {
             let caps = [2.0, 5.0, 0.0];
-            let c =
-                fit_choosing_label_cap(x, deviations, at_beta_2(), &caps, &params()).expect("fits");
+            let c = fit_choosing_label_cap(
+                x,
+                deviations,
+                at_beta_2(),
+                &caps,
+                EstimatorKind::Exact,
+                &params(),
+            )
+            .expect("fits");
             assert_eq!(c.trials.len(), 3);
             for t in &c.trials {
                 assert_eq!(t.safe + t.unsafe_transitions, deviations.len());
@@ -472,7 +340,7 @@ mod tests {
             );
             // The model returned is the one fitted with the chosen cap.
             let labels = capped_labels(deviations, c.label_cap, D_MAX);
-            let again = GpModel::fit(x, &DVector::from_vec(labels), &params()).unwrap();
+            let again = GpModel::fit(x, &DVector::from_vec(labels), &gp()).unwrap();
             let q = DMatrix::from_row_slice(1, 2, &[0.42, 0.5]);
             assert_eq!(c.gp.predict(&q).mean, again.predict(&q).mean);
         }
@@ -490,8 +358,7 @@ mod tests {
         assert_eq!(groups[7], vec![7, 60, 61, 62]);
         assert_eq!(groups[30], vec![30, 63]);
         let labels = capped_labels(&deviations, 2.0, D_MAX);
-        let p = params();
-        let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &p).unwrap();
+        let gp = GpModel::fit(&x, &DVector::from_vec(labels.clone()), &gp()).unwrap();
         let (t, per_group) =
             HeldOutTrust::of(&gp, 2.0, &labels, &deviations, &groups, at_beta_2()).unwrap();
         assert_eq!(t.held_out_groups, groups.len());
@@ -540,7 +407,15 @@ mod tests {
     #[test]
     fn one_candidate_is_kept_and_judged() {
         let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 1.0 });
-        let c = fit_choosing_label_cap(&x, &deviations, at_beta_2(), &[0.0], &params()).unwrap();
+        let c = fit_choosing_label_cap(
+            &x,
+            &deviations,
+            at_beta_2(),
+            &[0.0],
+            EstimatorKind::Exact,
+            &params(),
+        )
+        .unwrap();
         assert_eq!(c.label_cap, 0.0);
         assert_eq!(c.trials.len(), 1);
         assert_eq!(c.trials[0].unsafe_transitions, 30);

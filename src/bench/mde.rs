@@ -1,0 +1,166 @@
+//! `precond bench mde`: how the MDE's settings judge a continuous world, on a run's own training
+//! data. Reads the first `n` transitions an experiment of a harness database was trained on,
+//! refits them under each candidate setting (kernel, noise model, label cap), and judges
+//! uniform held-out state-actions whose true deviation the world's simulator gives: the share
+//! of truly safe ones trusted (TPR) and of unsafe ones refused (TNR) at β = 2, with σ as served
+//! (latent and noise) and with the latent part alone, and the median σ.
+
+use crate::domain::{Domain, LocalModel};
+use crate::gp::{Kernel, NoiseMode};
+use crate::mde::{EstimatorKind, EstimatorParams, fit_choosing_label_cap, gp_params};
+use crate::planning::Precondition;
+use crate::sim::ContinuousWorld;
+use crate::store::Store;
+use nalgebra::DMatrix;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use std::time::Instant;
+
+/// What to refit.
+#[derive(Debug, Clone)]
+pub struct MdeBenchOptions {
+    /// The harness database (opened read-write on a copy is safest: migrations may run).
+    pub db: String,
+    /// The experiment whose transitions to refit.
+    pub experiment: i64,
+    /// Its first `n` transitions (all when `None`).
+    pub n: Option<i64>,
+    /// The world that produced them.
+    pub world: ContinuousWorld,
+    /// Held-out state-actions.
+    pub held_out: usize,
+}
+
+/// Runs the comparison and prints a table.
+pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
+    let store = Store::open(&o.db).await?;
+    let transitions = store.transitions(o.experiment, 0, o.n).await?;
+    anyhow::ensure!(!transitions.is_empty(), "experiment {} has no transitions", o.experiment);
+    let world = o.world;
+    let domain = world.domain();
+    let dim = domain.feature_dim();
+    let d_max = world.d_max();
+    let mut features = Vec::with_capacity(transitions.len() * dim);
+    let mut deviations = Vec::with_capacity(transitions.len());
+    for t in &transitions {
+        features.extend(domain.features(&t.s, &t.a));
+        deviations.push(t.deviation);
+    }
+    let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut held = Vec::with_capacity(o.held_out);
+    while held.len() < o.held_out {
+        let s = domain.sample_state(&mut rng);
+        if !world.possible(&s) {
+            continue;
+        }
+        let a = domain.sample_action(&s, &mut rng);
+        let d = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a));
+        held.push((domain.features(&s, &a), d));
+    }
+    let q = DMatrix::from_row_slice(
+        held.len(),
+        dim,
+        &held.iter().flat_map(|(f, _)| f.clone()).collect::<Vec<_>>(),
+    );
+    let safe_share =
+        held.iter().filter(|(_, d)| *d < d_max).count() as f64 / held.len() as f64;
+    println!(
+        "{} experiment {}: {} training transitions ({:.2} within d_max = {d_max}), {} held-out \
+         state-actions ({safe_share:.2} within)",
+        world.name(),
+        o.experiment,
+        deviations.len(),
+        deviations.iter().filter(|d| **d < d_max).count() as f64 / deviations.len() as f64,
+        held.len()
+    );
+    println!(
+        "{:<10} {:<15} {:>6} | {:>5} {:>5} {:>7} | {:>5} {:>5} {:>7} | {:>9} {:>9} {:>7} {:>9} {:>6}",
+        "kernel",
+        "noise",
+        "cap",
+        "TPR",
+        "TNR",
+        "σ med",
+        "TPR·l",
+        "TNR·l",
+        "σl med",
+        "noise var",
+        "min ℓ",
+        "LOO lp",
+        "LML",
+        "s"
+    );
+    let precondition = Precondition::new(2.0, d_max)?;
+    for kernel in [Kernel::Matern12, Kernel::Matern32, Kernel::Matern52] {
+        for noise in [NoiseMode::Heteroscedastic, NoiseMode::Homoscedastic] {
+            for caps in [vec![2.0, 5.0, 0.0], vec![0.0]] {
+                let params = EstimatorParams::new(gp_params(noise, kernel, 0.0, 2, 7), 256)?;
+                let t0 = Instant::now();
+                let (x, deviations, caps) = (x.clone(), deviations.clone(), caps.clone());
+                let auto = caps.len() > 1;
+                let choice = tokio::task::spawn_blocking(move || {
+                    fit_choosing_label_cap(
+                        &x,
+                        &deviations,
+                        precondition,
+                        &caps,
+                        EstimatorKind::Exact,
+                        &params,
+                    )
+                })
+                .await??;
+                let seconds = t0.elapsed().as_secs_f64();
+                let p = choice.gp.predict(&q);
+                let judge = |latent_only: bool| {
+                    let (mut tp, mut pos, mut tn, mut neg) = (0, 0, 0, 0);
+                    let mut sigmas: Vec<f64> = Vec::with_capacity(held.len());
+                    for (k, (_, d)) in held.iter().enumerate() {
+                        let var = p.latent_variance[k]
+                            + if latent_only { 0.0 } else { p.noise_variance[k] };
+                        let sd = var.max(0.0).sqrt();
+                        sigmas.push(sd);
+                        let inside = precondition.inside(p.mean[k], sd);
+                        if *d < d_max {
+                            pos += 1;
+                            tp += usize::from(inside);
+                        } else {
+                            neg += 1;
+                            tn += usize::from(!inside);
+                        }
+                    }
+                    sigmas.sort_by(f64::total_cmp);
+                    (
+                        tp as f64 / pos.max(1) as f64,
+                        tn as f64 / neg.max(1) as f64,
+                        sigmas[sigmas.len() / 2],
+                    )
+                };
+                let (tpr, tnr, med) = judge(false);
+                let (tpr_l, tnr_l, med_l) = judge(true);
+                let h = choice.gp.hyperparameters();
+                let min_l = h.length_scales.iter().copied().fold(f64::INFINITY, f64::min);
+                let loo = choice
+                    .trials
+                    .iter()
+                    .find(|t| t.label_cap == choice.label_cap)
+                    .map_or(f64::NAN, |t| t.log_score);
+                let lml = choice.gp.log_marginal_likelihood();
+                println!(
+                    "{:<10} {:<15} {:>6} | {tpr:>5.2} {tnr:>5.2} {med:>7.4} | {tpr_l:>5.2} \
+                     {tnr_l:>5.2} {med_l:>7.4} | {:>9.2e} {min_l:>9.3} {loo:>7.4} {lml:>9.1} \
+                     {seconds:>6.1}",
+                    kernel.name(),
+                    format!("{noise:?}").to_lowercase(),
+                    if auto {
+                        format!("a:{}", choice.label_cap)
+                    } else {
+                        "raw".into()
+                    },
+                    h.noise_variance,
+                );
+            }
+        }
+    }
+    Ok(())
+}

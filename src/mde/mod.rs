@@ -1,0 +1,238 @@
+//! The model deviation estimator as the service serves it: before any data the GP prior, after
+//! that a fitted regressor, each under a version. Knows nothing of HTTP or SQL.
+//!
+//! - [`estimator`]: the seam — the [`Regressor`] trait every fitted estimator answers through
+//!   (the exact GP, the sparse GP), [`fit`], the stored [`EstimatorState`], and the
+//!   `mde.estimator` choice ([`EstimatorChoice`]).
+//! - [`labels`]: how deviations become training labels ([`capped_labels`]), with the cap chosen
+//!   per fit from held-out judgements ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
+
+pub mod estimator;
+pub mod labels;
+
+pub use estimator::{
+    AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorState, Regressor,
+    fit,
+};
+pub use labels::{
+    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, capped_labels,
+    fit_choosing_label_cap, identical_rows, normal_tail,
+};
+
+use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
+use crate::planning::{DeviationModel, Precondition};
+use nalgebra::{DMatrix, DVector};
+
+/// What answers queries.
+#[derive(Debug)]
+pub enum Estimator {
+    /// No data yet: μ = prior mean, σ = prior standard deviation, everywhere.
+    Prior(Hyperparameters),
+    /// A fitted regressor.
+    Fitted(Box<dyn Regressor>),
+}
+
+/// How a version was fitted.
+#[derive(Debug, Clone)]
+pub struct FitRecord {
+    /// Seconds the fit took.
+    pub fit_seconds: f64,
+    /// When it finished (RFC 3339).
+    pub fitted_at: String,
+    /// Trajectories stored when the fit started (used to tell whether a batch is still unfitted).
+    pub n_trajectories: i64,
+    /// The label cap the training labels were clipped at (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// Every candidate cap's held-out judgement of the training transitions (one entry for a
+    /// fixed cap; none for versions fitted before caps were recorded).
+    pub label_cap_trials: Vec<HeldOutTrust>,
+    /// Trajectories taken in by online updates since the fit (sparse GP; 0 otherwise).
+    pub online_trajectories: usize,
+}
+
+/// One version of an experiment's MDE.
+#[derive(Debug)]
+pub struct ServedModel {
+    /// 0 for the prior, then 1, 2, … one per fit.
+    pub version: i64,
+    /// The estimator.
+    pub estimator: Estimator,
+    /// Absent for the prior.
+    pub fit: Option<FitRecord>,
+}
+
+/// The MDE's answer at one point.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    /// Mean deviation μ.
+    pub mu: f64,
+    /// Standard deviation σ (latent and noise).
+    pub sigma: f64,
+}
+
+/// Whether one state-action lies in the model precondition `μ + βσ < d_max`.
+#[derive(
+    Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+pub struct Judgement {
+    /// Mean deviation μ.
+    pub mu: f64,
+    /// Standard deviation σ (latent and noise).
+    pub sigma: f64,
+    /// `μ + βσ`.
+    pub upper: f64,
+    /// `upper < d_max`.
+    pub inside: bool,
+}
+
+impl Judgement {
+    /// The judgement of `answer` by `precondition`; `None` when the model answered a
+    /// non-finite value (which must never reach a client).
+    pub fn of(answer: &Answer, precondition: Precondition) -> Option<Self> {
+        let upper = precondition.upper(answer.mu, answer.sigma);
+        upper.is_finite().then_some(Self {
+            mu: answer.mu,
+            sigma: answer.sigma,
+            upper,
+            inside: precondition.inside(answer.mu, answer.sigma),
+        })
+    }
+}
+
+impl ServedModel {
+    /// The prior, version 0, for features of dimension `dim`, under the kernel later fits use.
+    pub fn prior(dim: usize, prior_mean: f64, kernel: Kernel) -> Self {
+        Self {
+            version: 0,
+            estimator: Estimator::Prior(Hyperparameters {
+                kernel,
+                ..Hyperparameters::prior(dim, prior_mean)
+            }),
+            fit: None,
+        }
+    }
+
+    /// Which regressor answers (`None` for the prior).
+    pub fn kind(&self) -> Option<EstimatorKind> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Fitted(gp) => Some(gp.kind()),
+        }
+    }
+
+    /// Floats the version keeps in memory.
+    pub fn floats(&self) -> usize {
+        match &self.estimator {
+            Estimator::Prior(_) => 0,
+            Estimator::Fitted(gp) => gp.floats(),
+        }
+    }
+
+    /// Training-set size (0 for the prior).
+    pub fn n_train(&self) -> usize {
+        match &self.estimator {
+            Estimator::Prior(_) => 0,
+            Estimator::Fitted(gp) => gp.n_train(),
+        }
+    }
+
+    /// The hyperparameters answering queries.
+    pub fn hyperparameters(&self) -> &Hyperparameters {
+        match &self.estimator {
+            Estimator::Prior(h) => h,
+            Estimator::Fitted(gp) => gp.hyperparameters(),
+        }
+    }
+
+    /// Log marginal likelihood of the fitted model (`None` for the prior).
+    pub fn log_marginal_likelihood(&self) -> Option<f64> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Fitted(gp) => Some(gp.log_marginal_likelihood()),
+        }
+    }
+
+    /// Noise mode used (`None` for the prior).
+    pub fn noise_mode(&self) -> Option<NoiseMode> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Fitted(gp) => Some(gp.noise_mode()),
+        }
+    }
+
+    /// Heteroscedastic noise model summary, when there is one.
+    pub fn noise_summary(&self) -> Option<NoiseSummary> {
+        match &self.estimator {
+            Estimator::Prior(_) => None,
+            Estimator::Fitted(gp) => gp.noise_summary(),
+        }
+    }
+
+    /// μ and σ for `n = features.len() / dim` row-major feature vectors. A GP that cannot
+    /// answer (which the service's validation should make impossible) answers NaN, which
+    /// every caller checks before it leaves the process.
+    pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
+        if dim == 0 {
+            return Vec::new();
+        }
+        let n = features.len() / dim;
+        match &self.estimator {
+            Estimator::Prior(h) => vec![
+                Answer {
+                    mu: h.prior_mean,
+                    sigma: h.prior_std(),
+                };
+                n
+            ],
+            Estimator::Fitted(gp) => {
+                let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
+                let p = gp.predict(&x);
+                p.mean
+                    .iter()
+                    .zip(p.std())
+                    .map(|(mu, sigma)| Answer { mu: *mu, sigma })
+                    .collect()
+            }
+        }
+    }
+}
+
+impl DeviationModel for ServedModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.answer(features, dim)
+            .into_iter()
+            .map(|a| (a.mu, a.sigma))
+            .collect()
+    }
+}
+
+/// Row-major features and labels as the GP wants them.
+pub fn training_data(
+    features: Vec<f64>,
+    labels: Vec<f64>,
+    dim: usize,
+) -> (DMatrix<f64>, DVector<f64>) {
+    let n = labels.len();
+    (
+        DMatrix::from_row_slice(n, dim, &features),
+        DVector::from_vec(labels),
+    )
+}
+
+/// The GP parameters for an experiment's MDE settings and a fit's seed.
+pub fn gp_params(
+    noise: NoiseMode,
+    kernel: Kernel,
+    prior_mean: f64,
+    restarts: usize,
+    seed: u64,
+) -> GpParams {
+    GpParams {
+        noise,
+        kernel,
+        prior_mean,
+        restarts,
+        seed,
+        ..GpParams::default()
+    }
+}

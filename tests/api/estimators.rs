@@ -1,0 +1,212 @@
+//! The estimator seam as a client sees it: a fit that would not fit the memory budget is
+//! refused and recorded while the previous version keeps answering (also across a restart);
+//! `auto` hands such a fit to the sparse GP; the sparse GP takes each posted trajectory in at
+//! once and again after a restart.
+
+use super::helpers::{spawn_app_with_limits, temp_db};
+use precond::service::Limits;
+use serde_json::{Value, json};
+
+/// `n` kinematic transitions on a lattice of the unit square, moving by `(0.05, 0)`; the world
+/// pushes the robot up by 0.1 where `x > 0.5` (the model is wrong there).
+fn lattice_trajectory(n: usize, offset: usize) -> Value {
+    let transitions: Vec<Value> = (0..n)
+        .map(|k| {
+            let i = k + offset;
+            let (x, y) = ((i % 37) as f64 / 40.0, ((i / 37) % 37) as f64 / 40.0);
+            let push = if x > 0.5 { 0.1 } else { 0.0 };
+            json!({"s": [x, y], "a": [0.05, 0.0], "s_next": [x + 0.05, (y + push).min(1.0)]})
+        })
+        .collect();
+    json!({ "transitions": transitions })
+}
+
+fn small_budget() -> Limits {
+    Limits {
+        max_fit_memory: 64 << 20,
+        ..Limits::default()
+    }
+}
+
+/// Polls `GET …/model` (up to 60 s) until `done` holds.
+async fn model_until(
+    app: &super::helpers::TestApp,
+    id: i64,
+    done: impl Fn(&Value) -> bool,
+) -> Value {
+    for _ in 0..3000 {
+        let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        if done(&model) {
+            return model;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+    panic!("the model did not get there within 60 s");
+}
+
+#[tokio::test]
+async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(&db, small_budget()).await;
+    // The exact GP on 1600 transitions needs about 100 MB at its peak: beyond 64 MiB.
+    let exact = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic"},
+            "mde": {"estimator": "exact", "restarts": 0},
+            "learning": {"batch_size": 2}
+        }))
+        .await;
+    for k in 0..2 {
+        let (status, body) = app
+            .post(
+                &format!("/v1/experiments/{exact}/trajectories"),
+                &lattice_trajectory(800, 800 * k),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+    }
+    let model = model_until(&app, exact, |m| !m["last_fit_refusal"].is_null()).await;
+    assert_eq!(model["version"], 0, "the prior keeps answering: {model}");
+    let refusal = &model["last_fit_refusal"];
+    assert_eq!(refusal["n_train"], 1600);
+    assert_eq!(refusal["estimator"], "exact");
+    assert!(refusal["needed_bytes"].as_f64().unwrap() > refusal["budget_bytes"].as_f64().unwrap());
+    assert!(
+        refusal["reason"]
+            .as_str()
+            .unwrap()
+            .contains("--max-fit-memory")
+    );
+    let (status, forced) = app
+        .post(&format!("/v1/experiments/{exact}/model/refit"), &json!({}))
+        .await;
+    assert_eq!(status, 409, "{forced}");
+    assert_eq!(forced["error"]["code"], "limit_reached");
+    let (_, timeline) = app.get(&format!("/v1/experiments/{exact}/timeline")).await;
+    assert!(
+        timeline["fit_refusals"].as_array().unwrap().len() >= 2,
+        "{timeline}"
+    );
+    let metrics = app
+        .client
+        .get(app.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        metrics
+            .lines()
+            .any(|l| l.starts_with("precond_fits_total") && l.contains("result=\"refused\"")),
+        "{metrics}"
+    );
+    // The same data with `auto`: the sparse GP takes the fit over.
+    let auto = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic"},
+            "mde": {"restarts": 0},
+            "learning": {"batch_size": 2}
+        }))
+        .await;
+    for k in 0..2 {
+        let (status, _) = app
+            .post(
+                &format!("/v1/experiments/{auto}/trajectories"),
+                &lattice_trajectory(800, 800 * k),
+            )
+            .await;
+        assert_eq!(status, 201);
+    }
+    let model = model_until(&app, auto, |m| m["version"] == 1).await;
+    assert_eq!(model["estimator"], "sparse", "{model}");
+    assert!(model["last_fit_refusal"].is_null());
+    // A restart resumes the refused fit, refuses it again, and serves on.
+    let path = app.db_path.clone();
+    app.stop().await;
+    let app = spawn_app_with_limits(&path, small_budget()).await;
+    let (status, model) = app.get(&format!("/v1/experiments/{exact}/model")).await;
+    assert_eq!(status, 200, "{model}");
+    assert_eq!(model["version"], 0);
+    let (status, judged) = app
+        .post(
+            &format!("/v1/experiments/{exact}/precondition"),
+            &json!({"points": [{"s": [0.2, 0.2], "a": [0.05, 0.0]}]}),
+        )
+        .await;
+    assert_eq!(status, 200, "{judged}");
+    let (_, model) = app.get(&format!("/v1/experiments/{auto}/model")).await;
+    assert_eq!(
+        (model["version"].clone(), model["estimator"].clone()),
+        (json!(1), json!("sparse"))
+    );
+    app.stop().await;
+}
+
+#[tokio::test]
+async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restart() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(&db, Limits::default()).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic"},
+            "mde": {"estimator": "sparse", "restarts": 0, "inducing_points": 32,
+                    "noise": "homoscedastic"},
+            "learning": {"batch_size": 3}
+        }))
+        .await;
+    for k in 0..3 {
+        app.post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &lattice_trajectory(40, 40 * k),
+        )
+        .await;
+    }
+    let fitted = model_until(&app, id, |m| m["version"] == 1).await;
+    assert_eq!(fitted["estimator"], "sparse");
+    assert_eq!(fitted["online_trajectories"], 0);
+    let probe = json!({"points": [{"s": [0.7, 0.9], "a": [0.05, 0.0]}], "beta": 0});
+    let (_, before) = app
+        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
+        .await;
+    // One more trajectory, where the model is wrong, right at the probe: taken in at once.
+    let at_probe = json!({"transitions": [
+        {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
+        {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
+    ]});
+    let (status, _) = app
+        .post(&format!("/v1/experiments/{id}/trajectories"), &at_probe)
+        .await;
+    assert_eq!(status, 201);
+    let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    assert_eq!(updated["version"], 1, "no refit: {updated}");
+    assert_eq!(updated["online_trajectories"], 1);
+    assert_eq!(updated["n_train"], fitted["n_train"].as_i64().unwrap() + 2);
+    let (_, after) = app
+        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
+        .await;
+    let mu = |j: &Value| j["results"][0]["mu"].as_f64().unwrap();
+    let sigma = |j: &Value| j["results"][0]["sigma"].as_f64().unwrap();
+    // The label there is 0.1: μ moves towards it and σ shrinks.
+    assert!(mu(&after) > mu(&before), "{before} → {after}");
+    assert!(sigma(&after) < sigma(&before), "{before} → {after}");
+    // After a restart the same version takes the same trajectory in again.
+    let path = app.db_path.clone();
+    app.stop().await;
+    let app = spawn_app_with_limits(&path, Limits::default()).await;
+    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    assert_eq!(
+        (
+            restored["version"].clone(),
+            restored["online_trajectories"].clone()
+        ),
+        (json!(1), json!(1))
+    );
+    let (_, again) = app
+        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
+        .await;
+    assert!((mu(&again) - mu(&after)).abs() < 1e-9, "{after} vs {again}");
+    assert!((sigma(&again) - sigma(&after)).abs() < 1e-9);
+    app.stop().await;
+}
