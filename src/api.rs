@@ -8,7 +8,7 @@
 
 use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
-use crate::mde::{EstimatorKind, HeldOutTrust};
+use crate::mde::{EstimatorKind, HeldOutTrust, KernelTrial};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{ListOrder, ProposalStatus, RunStatus};
@@ -531,6 +531,9 @@ pub struct ModelResponse {
     /// The latest fit refused since this version because it would not fit the server's memory
     /// budget (`null` if none): this version kept answering.
     pub last_fit_refusal: Option<FitRefusalView>,
+    /// With `mde.kernel: "auto"`, every candidate kernel's fit on the first candidate cap's
+    /// labels; the one with the highest log marginal likelihood was kept (empty otherwise).
+    pub kernel_trials: Vec<KernelTrial>,
 }
 
 /// A fit the server did not attempt because its estimated peak memory exceeded the budget.

@@ -81,7 +81,7 @@ pub struct MdeArgs {
     /// Its first N transitions (default all).
     #[arg(long)]
     pub n: Option<i64>,
-    /// The world: `arm`, `base` or `pusher`.
+    /// The world: `arm`, `base`, `pusher` or `icy_gridworld` (the default map).
     #[arg(long)]
     pub world: String,
     /// Held-out state-actions.
@@ -429,10 +429,14 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(BenchCommand::Mde(args)) => {
             let world = match args.world.as_str() {
-                "arm" => crate::sim::ContinuousWorld::arm(),
-                "base" => crate::sim::ContinuousWorld::base(),
-                "pusher" => crate::sim::ContinuousWorld::pusher(),
-                other => anyhow::bail!("{other:?} is not a continuous world; use arm, base or pusher"),
+                "arm" => Some(crate::sim::ContinuousWorld::arm()),
+                "base" => Some(crate::sim::ContinuousWorld::base()),
+                "pusher" => Some(crate::sim::ContinuousWorld::pusher()),
+                "icy_gridworld" => None,
+                other => anyhow::bail!(
+                    "{other:?} is not a world of this benchmark; use arm, base, pusher or \
+                     icy_gridworld (default map)"
+                ),
             };
             crate::bench::mde::run(crate::bench::mde::MdeBenchOptions {
                 db: args.db,

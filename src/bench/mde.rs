@@ -5,11 +5,12 @@
 //! of truly safe ones trusted (TPR) and of unsafe ones refused (TNR) at β = 2, with σ as served
 //! (latent and noise) and with the latent part alone, and the median σ.
 
-use crate::domain::{Domain, LocalModel};
+use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES};
 use crate::gp::{Kernel, NoiseMode};
 use crate::mde::{EstimatorKind, EstimatorParams, fit_choosing_label_cap, gp_params};
 use crate::planning::Precondition;
 use crate::sim::ContinuousWorld;
+use crate::sim::Simulated;
 use crate::store::Store;
 use nalgebra::DMatrix;
 use rand::SeedableRng;
@@ -25,8 +26,9 @@ pub struct MdeBenchOptions {
     pub experiment: i64,
     /// Its first `n` transitions (all when `None`).
     pub n: Option<i64>,
-    /// The world that produced them.
-    pub world: ContinuousWorld,
+    /// The world that produced them: a continuous world, or `None` for the icy gridworld's
+    /// default map (held out: every cell's every move).
+    pub world: Option<ContinuousWorld>,
     /// Held-out state-actions.
     pub held_out: usize,
 }
@@ -35,11 +37,24 @@ pub struct MdeBenchOptions {
 pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
     let store = Store::open(&o.db).await?;
     let transitions = store.transitions(o.experiment, 0, o.n).await?;
-    anyhow::ensure!(!transitions.is_empty(), "experiment {} has no transitions", o.experiment);
-    let world = o.world;
-    let domain = world.domain();
+    anyhow::ensure!(
+        !transitions.is_empty(),
+        "experiment {} has no transitions",
+        o.experiment
+    );
+    let grid = IcyGridworld::default_layout();
+    let continuous = o.world.as_ref().map(|w| (w, w.domain()));
+    let domain: &dyn LocalModel = match &continuous {
+        Some((_, d)) => d,
+        None => &grid,
+    };
+    let name = continuous
+        .as_ref()
+        .map_or("icy_gridworld", |(w, _)| w.name());
     let dim = domain.feature_dim();
-    let d_max = world.d_max();
+    let d_max = continuous
+        .as_ref()
+        .map_or(grid.default_d_max(), |(w, _)| w.d_max());
     let mut features = Vec::with_capacity(transitions.len() * dim);
     let mut deviations = Vec::with_capacity(transitions.len());
     for t in &transitions {
@@ -49,26 +64,43 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
     let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let mut held = Vec::with_capacity(o.held_out);
-    while held.len() < o.held_out {
-        let s = domain.sample_state(&mut rng);
-        if !world.possible(&s) {
-            continue;
+    match &continuous {
+        Some((world, domain)) => {
+            while held.len() < o.held_out {
+                let s = domain.sample_state(&mut rng);
+                if !world.possible(&s) {
+                    continue;
+                }
+                let a = domain.sample_action(&s, &mut rng);
+                let d = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a));
+                held.push((domain.features(&s, &a), d));
+            }
         }
-        let a = domain.sample_action(&s, &mut rng);
-        let d = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a));
-        held.push((domain.features(&s, &a), d));
+        None => {
+            let mut sim = grid.world();
+            for cell in grid.open_cells() {
+                for m in MOVES {
+                    let s = cell.to_vec();
+                    let pred = grid.predict(&s, &m);
+                    if !grid.edge_allowed(&s, &m, &pred) {
+                        continue;
+                    }
+                    let next = sim.step(&s, &m);
+                    held.push((grid.features(&s, &m), grid.distance(&pred, &next)));
+                }
+            }
+        }
     }
     let q = DMatrix::from_row_slice(
         held.len(),
         dim,
         &held.iter().flat_map(|(f, _)| f.clone()).collect::<Vec<_>>(),
     );
-    let safe_share =
-        held.iter().filter(|(_, d)| *d < d_max).count() as f64 / held.len() as f64;
+    let safe_share = held.iter().filter(|(_, d)| *d < d_max).count() as f64 / held.len() as f64;
     println!(
         "{} experiment {}: {} training transitions ({:.2} within d_max = {d_max}), {} held-out \
          state-actions ({safe_share:.2} within)",
-        world.name(),
+        name,
         o.experiment,
         deviations.len(),
         deviations.iter().filter(|d| **d < d_max).count() as f64 / deviations.len() as f64,
@@ -104,6 +136,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                         &x,
                         &deviations,
                         precondition,
+                        &[kernel],
                         &caps,
                         EstimatorKind::Exact,
                         &params,
@@ -117,7 +150,11 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                     let mut sigmas: Vec<f64> = Vec::with_capacity(held.len());
                     for (k, (_, d)) in held.iter().enumerate() {
                         let var = p.latent_variance[k]
-                            + if latent_only { 0.0 } else { p.noise_variance[k] };
+                            + if latent_only {
+                                0.0
+                            } else {
+                                p.noise_variance[k]
+                            };
                         let sd = var.max(0.0).sqrt();
                         sigmas.push(sd);
                         let inside = precondition.inside(p.mean[k], sd);
@@ -139,7 +176,11 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 let (tpr, tnr, med) = judge(false);
                 let (tpr_l, tnr_l, med_l) = judge(true);
                 let h = choice.gp.hyperparameters();
-                let min_l = h.length_scales.iter().copied().fold(f64::INFINITY, f64::min);
+                let min_l = h
+                    .length_scales
+                    .iter()
+                    .copied()
+                    .fold(f64::INFINITY, f64::min);
                 let loo = choice
                     .trials
                     .iter()

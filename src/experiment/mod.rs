@@ -23,11 +23,11 @@ pub mod reference;
 pub mod report;
 
 use crate::domain::GridFeatures;
-use crate::gp::{Kernel, NoiseMode};
+use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::mde::EstimatorChoice;
 use crate::planning::{Aggregation, Strategy};
-use crate::settings::{LabelCap, Preset};
+use crate::settings::{KernelChoice, LabelCap, Preset};
 use crate::store::Store;
 use anyhow::Context;
 use clap::ValueEnum;
@@ -92,6 +92,10 @@ fn parse_named<T: serde::de::DeserializeOwned>(
 
 fn parse_noise(s: &str) -> Result<NoiseMode, String> {
     parse_named(s, "a noise model", "homoscedastic or heteroscedastic")
+}
+
+fn parse_kernel(s: &str) -> Result<KernelChoice, String> {
+    parse_named(s, "a kernel", "auto, matern12, matern32 or matern52")
 }
 
 fn parse_estimator(s: &str) -> Result<EstimatorChoice, String> {
@@ -184,9 +188,9 @@ pub struct ExperimentArgs {
     /// The MDE's noise model (`homoscedastic` or `heteroscedastic`). Default: the service's.
     #[arg(long, value_parser = parse_noise)]
     pub noise: Option<NoiseMode>,
-    /// The MDE's kernel (`matern12`, `matern32` or `matern52`). Default: the preset's.
-    #[arg(long)]
-    pub kernel: Option<Kernel>,
+    /// The MDE's kernel (`auto`, `matern12`, `matern32` or `matern52`). Default: the preset's.
+    #[arg(long, value_parser = parse_kernel)]
+    pub kernel: Option<KernelChoice>,
     /// The MDE's regressor (`auto`, `exact` or `sparse`). Default: the service's (`auto`).
     #[arg(long, value_parser = parse_estimator)]
     pub estimator: Option<EstimatorChoice>,
@@ -251,7 +255,7 @@ pub struct Config {
     /// The MDE's noise model (`None`: the service's default).
     pub noise: Option<NoiseMode>,
     /// The MDE's kernel (`None`: the preset's).
-    pub kernel: Option<Kernel>,
+    pub kernel: Option<KernelChoice>,
     /// The MDE's regressor (`None`: the service's).
     pub estimator: Option<EstimatorChoice>,
     /// The gridworld's MDE features.

@@ -210,6 +210,11 @@ pub fn model(v: ModelView) -> ModelResponse {
         estimator: m.kind(),
         online_trajectories: m.fit.as_ref().map_or(0, |f| f.online_trajectories),
         last_fit_refusal: v.last_refusal.map(fit_refusal),
+        kernel_trials: m
+            .fit
+            .as_ref()
+            .map(|f| f.kernel_trials.clone())
+            .unwrap_or_default(),
     }
 }
 

@@ -12,9 +12,9 @@
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.
 
 use crate::gp::{
-    FitCost, GpError, GpModel, GpParams, Hyperparameters, ModelState, NoiseMode, NoiseSummary,
-    Prediction, SparseGp, SparseParams, SparseState, ValidGpParams, ValidSparseParams,
-    exact_fit_cost, sparse_fit_cost,
+    FitCost, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
+    NoiseSummary, Prediction, SparseGp, SparseParams, SparseState, ValidGpParams,
+    ValidSparseParams, exact_fit_cost, sparse_fit_cost,
 };
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -201,6 +201,17 @@ impl EstimatorParams {
     /// The shared GP parameters.
     pub fn gp(&self) -> &GpParams {
         self.gp.params()
+    }
+
+    /// The same parameters with `kernel`.
+    pub fn with_kernel(&self, kernel: Kernel) -> Result<Self, GpError> {
+        Self::new(
+            GpParams {
+                kernel,
+                ..self.gp.params().clone()
+            },
+            self.sparse.params().inducing_points,
+        )
     }
 
     /// The estimated peak memory and work of a fit of `n` points of dimension `d`.

@@ -3,7 +3,7 @@
 //! training transitions held out ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
-use crate::gp::GpError;
+use crate::gp::{GpError, Kernel};
 use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -116,15 +116,27 @@ pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
     groups
 }
 
-/// A model fitted with the label cap chosen from the data, and how every candidate did.
+/// A model fitted with the kernel and the label cap chosen from the data, and how every
+/// candidate did.
 #[derive(Debug)]
 pub struct CapChoice {
-    /// The model fitted with the chosen cap.
+    /// The model fitted with the chosen kernel and cap.
     pub gp: Box<dyn Regressor>,
     /// The chosen cap (units of `d_max`; 0 = raw labels).
     pub label_cap: f64,
-    /// Every candidate's held-out judgement, in the order tried.
+    /// Every candidate cap's held-out judgement, in the order tried.
     pub trials: Vec<HeldOutTrust>,
+    /// Every candidate kernel's fit (empty when one kernel was given).
+    pub kernel_trials: Vec<KernelTrial>,
+}
+
+/// How one candidate kernel's fit did on the first candidate cap's labels.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct KernelTrial {
+    /// The kernel.
+    pub kernel: Kernel,
+    /// Its fit's log marginal likelihood (the largest is kept).
+    pub log_marginal_likelihood: f64,
 }
 
 /// Fits one model per candidate label cap (units of `d_max`; 0 = raw labels) and keeps the one
@@ -141,37 +153,58 @@ pub struct CapChoice {
 /// form, so a candidate costs one fit. With one candidate that one is kept. Errors when a fit
 /// fails.
 ///
-/// The regressor is `kind`. The sparse GP has no closed-form leave-out, so with it the cap is
-/// chosen the same way by exact GPs on an evenly spaced subset of at most
+/// Before the caps, with several candidate `kernels`, each is fitted on the first candidate
+/// cap's labels and the one whose fit has the highest log marginal likelihood is kept (the
+/// evidence of each kernel on the same labels; the caps then compete with that kernel).
+///
+/// The regressor is `kind`. The sparse GP has no closed-form leave-out, so with it the kernel
+/// and the cap are chosen the same way by exact GPs on an evenly spaced subset of at most
 /// [`CAP_CHOICE_SUBSET`] transitions, and the sparse GP is then fitted on all of them with
-/// that cap.
+/// them.
 pub fn fit_choosing_label_cap(
     x: &DMatrix<f64>,
     deviations: &[f64],
     precondition: Precondition,
+    kernels: &[Kernel],
     caps: &[f64],
     kind: EstimatorKind,
     params: &EstimatorParams,
 ) -> Result<CapChoice, GpError> {
     if kind == EstimatorKind::Sparse {
-        let (label_cap, trials) = if caps.len() > 1 {
+        let (kernel, label_cap, trials, kernel_trials) = if caps.len() > 1 || kernels.len() > 1 {
             let rows = evenly_spaced(x.nrows(), CAP_CHOICE_SUBSET);
             let xs = x.select_rows(&rows);
             let ds: Vec<f64> = rows.iter().map(|&i| deviations[i]).collect();
-            let c = choose_exact(&xs, &ds, precondition, caps, params)?;
-            (c.label_cap, c.trials)
+            let c = choose_exact(&xs, &ds, precondition, kernels, caps, params)?;
+            (
+                c.gp.hyperparameters().kernel,
+                c.label_cap,
+                c.trials,
+                c.kernel_trials,
+            )
         } else {
-            (caps.first().copied().unwrap_or(0.0), Vec::new())
+            (
+                kernels.first().copied().unwrap_or(params.gp().kernel),
+                caps.first().copied().unwrap_or(0.0),
+                Vec::new(),
+                Vec::new(),
+            )
         };
         let labels = capped_labels(deviations, label_cap, precondition.d_max());
-        let gp = fit(kind, x, &DVector::from_vec(labels), params)?;
+        let gp = fit(
+            kind,
+            x,
+            &DVector::from_vec(labels),
+            &params.with_kernel(kernel)?,
+        )?;
         return Ok(CapChoice {
             gp,
             label_cap,
             trials,
+            kernel_trials,
         });
     }
-    choose_exact(x, deviations, precondition, caps, params)
+    choose_exact(x, deviations, precondition, kernels, caps, params)
 }
 
 /// With the sparse GP, the label cap is chosen on at most this many transitions.
@@ -190,20 +223,54 @@ fn choose_exact(
     x: &DMatrix<f64>,
     deviations: &[f64],
     precondition: Precondition,
+    kernels: &[Kernel],
     caps: &[f64],
     params: &EstimatorParams,
 ) -> Result<CapChoice, GpError> {
     let d_max = precondition.d_max();
+    let first_cap = caps.first().copied().unwrap_or(0.0);
+    let mut kernel_trials = Vec::new();
+    let mut first_fit = None;
+    let params = if kernels.len() > 1 {
+        let labels = DVector::from_vec(capped_labels(deviations, first_cap, d_max));
+        let mut best: Option<(Box<dyn Regressor>, EstimatorParams)> = None;
+        for &kernel in kernels {
+            let p = params.with_kernel(kernel)?;
+            let gp = fit(EstimatorKind::Exact, x, &labels, &p)?;
+            let lml = gp.log_marginal_likelihood();
+            kernel_trials.push(KernelTrial {
+                kernel,
+                log_marginal_likelihood: lml,
+            });
+            if best
+                .as_ref()
+                .is_none_or(|(b, _)| lml > b.log_marginal_likelihood())
+            {
+                best = Some((gp, p));
+            }
+        }
+        let (gp, p) = best.ok_or_else(|| GpError::InvalidState("no kernel to fit".into()))?;
+        first_fit = Some(gp);
+        p
+    } else {
+        match kernels.first() {
+            Some(&k) => params.with_kernel(k)?,
+            None => params.clone(),
+        }
+    };
     let groups = identical_rows(x);
     let mut fitted = Vec::with_capacity(caps.len());
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
-        let gp = fit(
-            EstimatorKind::Exact,
-            x,
-            &DVector::from_column_slice(&labels),
-            params,
-        )?;
+        let gp = match first_fit.take().filter(|_| cap == first_cap) {
+            Some(gp) => gp,
+            None => fit(
+                EstimatorKind::Exact,
+                x,
+                &DVector::from_column_slice(&labels),
+                &params,
+            )?,
+        };
         let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
         fitted.push((cap, gp, judged));
     }
@@ -234,6 +301,7 @@ fn choose_exact(
         gp,
         label_cap,
         trials,
+        kernel_trials,
     })
 }
 
@@ -310,6 +378,7 @@ mod tests {
                 x,
                 deviations,
                 at_beta_2(),
+                &[Kernel::Matern52],
                 &caps,
                 EstimatorKind::Exact,
                 &params(),
@@ -411,6 +480,7 @@ mod tests {
             &x,
             &deviations,
             at_beta_2(),
+            &[Kernel::Matern52],
             &[0.0],
             EstimatorKind::Exact,
             &params(),
@@ -428,5 +498,48 @@ mod tests {
         assert_eq!(capped_labels(&d, 0.0, D_MAX), d.to_vec());
         assert!((normal_tail(2.0) - 0.02275).abs() < 1e-5);
         assert!((normal_tail(0.0) - 0.5).abs() < 1e-12);
+    }
+
+    #[test]
+    fn the_kernel_with_the_highest_evidence_is_kept_and_its_fit_returned() {
+        // A smooth ramp and a cliff: whichever kernel wins, it is the one whose fit on the
+        // first cap's labels has the largest log marginal likelihood, and the model returned is
+        // fitted with it.
+        let worlds = [
+            world(|a, b| 0.3 * (a + 0.5 * b)),
+            world(|a, _| if a < 0.5 { 0.0 } else { 2.0 }),
+        ];
+        for (x, deviations) in &worlds {
+            let c = fit_choosing_label_cap(
+                x,
+                deviations,
+                at_beta_2(),
+                &Kernel::ALL,
+                &[2.0, 0.0],
+                EstimatorKind::Exact,
+                &params(),
+            )
+            .expect("fits");
+            assert_eq!(c.kernel_trials.len(), 3);
+            let best = c
+                .kernel_trials
+                .iter()
+                .max_by(|a, b| a.log_marginal_likelihood.total_cmp(&b.log_marginal_likelihood))
+                .unwrap();
+            let kept = c.gp.hyperparameters().kernel;
+            assert_eq!(kept, best.kernel, "{:?}", c.kernel_trials);
+            // The caps were judged with the kept kernel.
+            let labels = capped_labels(deviations, c.label_cap, D_MAX);
+            let again = GpModel::fit(
+                x,
+                &DVector::from_vec(labels),
+                &gp_params(NoiseMode::Homoscedastic, kept, 0.0, 0, 7)
+                    .check()
+                    .unwrap(),
+            )
+            .unwrap();
+            let q = DMatrix::from_row_slice(1, 2, &[0.42, 0.5]);
+            assert_eq!(c.gp.predict(&q).mean, again.predict(&q).mean);
+        }
     }
 }

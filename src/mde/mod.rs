@@ -15,8 +15,8 @@ pub use estimator::{
     fit,
 };
 pub use labels::{
-    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, capped_labels,
-    fit_choosing_label_cap, identical_rows, normal_tail,
+    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial,
+    capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
@@ -48,6 +48,8 @@ pub struct FitRecord {
     pub label_cap_trials: Vec<HeldOutTrust>,
     /// Trajectories taken in by online updates since the fit (sparse GP; 0 otherwise).
     pub online_trajectories: usize,
+    /// Every candidate kernel's fit, when the kernel was chosen from the data.
+    pub kernel_trials: Vec<KernelTrial>,
 }
 
 /// One version of an experiment's MDE.

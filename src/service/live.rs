@@ -77,7 +77,7 @@ impl LiveExperiment {
         let prior = ServedModel::prior(
             domain.feature_dim(),
             settings.mde.prior_mean,
-            settings.mde.kernel,
+            settings.mde.kernel.candidates()[0],
         );
         Ok(Self {
             id,
@@ -112,7 +112,7 @@ impl LiveExperiment {
             let prior = ServedModel::prior(
                 self.domain.feature_dim(),
                 self.settings.mde.prior_mean,
-                self.settings.mde.kernel,
+                self.settings.mde.kernel.candidates()[0],
             );
             return Ok(Arc::new(prior));
         }
@@ -235,7 +235,7 @@ impl LiveExperiment {
         let params = EstimatorParams::new(
             gp_params(
                 mde.noise,
-                mde.kernel,
+                mde.kernel.candidates()[0],
                 mde.prior_mean,
                 mde.restarts,
                 seed::mix(self.settings.seed, version),
@@ -256,13 +256,22 @@ impl LiveExperiment {
             return Err(Error::LimitReached(refusal.reason));
         }
         let caps = self.settings.label_caps();
+        let kernels = mde.kernel.candidates();
         let precondition = self.precondition(self.settings.learning.test_beta)?;
         let slot = gate.fit_slot().await?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {
             let _slot = slot;
             let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
-            fit_choosing_label_cap(&x, &deviations, precondition, &caps, kind, &params)
+            fit_choosing_label_cap(
+                &x,
+                &deviations,
+                precondition,
+                &kernels,
+                &caps,
+                kind,
+                &params,
+            )
         })
         .await?;
         let result = if gp.is_ok() { "ok" } else { "failed" };
@@ -278,6 +287,7 @@ impl LiveExperiment {
             label_cap: choice.label_cap,
             label_cap_trials: choice.trials,
             online_trajectories: 0,
+            kernel_trials: choice.kernel_trials,
         };
         let stored = StoredModel {
             version,
@@ -289,6 +299,7 @@ impl LiveExperiment {
             fitted_at: fit.fitted_at.clone(),
             label_cap: fit.label_cap,
             label_cap_trials: fit.label_cap_trials.clone(),
+            kernel_trials: fit.kernel_trials.clone(),
         };
         store
             .insert_model(self.id, &stored, gp.hyperparameters())
@@ -399,6 +410,7 @@ impl LiveExperiment {
                 label_cap: stored.label_cap,
                 label_cap_trials: stored.label_cap_trials,
                 online_trajectories: 0,
+                kernel_trials: stored.kernel_trials,
             }),
         })
     }

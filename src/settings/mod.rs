@@ -199,10 +199,10 @@ pub struct MdeRequest {
     /// [`MdeSettings::label_cap`]. Absent: the preset's (`default`: auto, `paper`: 0).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub label_cap: Option<LabelCap>,
-    /// [`MdeSettings::kernel`]. Absent: the preset's (`default`: `matern12`, `paper`:
+    /// [`MdeSettings::kernel`]. Absent: the preset's (`default`: `auto`, `paper`:
     /// `matern52`).
     #[serde(skip_serializing_if = "Option::is_none")]
-    pub kernel: Option<Kernel>,
+    pub kernel: Option<KernelChoice>,
     /// [`MdeSettings::estimator`]. Default `auto`.
     pub estimator: EstimatorChoice,
     /// [`MdeSettings::inducing_points`]. Default 256.
@@ -244,12 +244,10 @@ pub struct MdeSettings {
     /// the MDE: fitted raw, a few large deviations set the signal variance, and with it the
     /// uncertainty at every unseen point. A number is 0 or in `[1, 1000]`.
     pub label_cap: LabelCap,
-    /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32` or
-    /// `matern52` (the paper's). Where the model is wrong, its deviation usually jumps (a
-    /// leaf, a patch of ice, a wall): a ν = 5/2 GP can only follow a jump with length scales as
-    /// short as the jump is sharp, so what it learns spreads no further than that; the rough
-    /// ν = 1/2 kernel follows the jump and keeps long length scales.
-    pub kernel: Kernel,
+    /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32`,
+    /// `matern52` (the paper's), or `auto`: at every fit, the one of the three whose fit has
+    /// the highest log marginal likelihood on the data (see [`KernelChoice`]).
+    pub kernel: KernelChoice,
     /// The regressor fits use: `auto` (the exact GP up to 3000 transitions while its fit fits
     /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
     /// [`EstimatorChoice`]).
@@ -281,10 +279,10 @@ impl Preset {
     }
 
     /// The kernel this preset uses when `mde.kernel` is absent.
-    pub fn kernel(self) -> Kernel {
+    pub fn kernel(self) -> KernelChoice {
         match self {
-            Self::Default => Kernel::Matern12,
-            Self::Paper => Kernel::Matern52,
+            Self::Default => KernelChoice::Auto,
+            Self::Paper => KernelChoice::Fixed(Kernel::Matern52),
         }
     }
 
@@ -292,6 +290,81 @@ impl Preset {
     /// [`LearningSettings::relax_beta`]).
     pub fn relax_beta(self) -> bool {
         self == Self::Default
+    }
+}
+
+/// Which Matérn kernel fits use (see [`MdeSettings::kernel`]). In JSON `"auto"` or a kernel's
+/// name.
+///
+/// Where the model is wrong its deviation may jump (a leaf, a patch of ice, a wall, a contact)
+/// or vary smoothly (an arm sagging under gravity, a puck sliding further on a wet floor). A
+/// ν = 5/2 GP follows a jump only with length scales as short as the jump is sharp, so what it
+/// learns spreads no further; the rough ν = 1/2 kernel follows a jump and keeps long length
+/// scales, but explains a smooth deviation as rough and stays uncertain between data. `auto`
+/// fits all three at the first candidate label cap and keeps the kernel whose fit has the
+/// highest log marginal likelihood — the data's own evidence for each, on the same labels.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum KernelChoice {
+    /// Chosen at every fit by the log marginal likelihood among ν = 1/2, 3/2, 5/2.
+    Auto,
+    /// Always this kernel.
+    Fixed(Kernel),
+}
+
+impl KernelChoice {
+    /// The kernels a fit tries (one when fixed).
+    pub fn candidates(self) -> Vec<Kernel> {
+        match self {
+            Self::Auto => Kernel::ALL.to_vec(),
+            Self::Fixed(k) => vec![k],
+        }
+    }
+
+    /// The setting's name: `auto` or the kernel's.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Auto => "auto",
+            Self::Fixed(k) => k.name(),
+        }
+    }
+}
+
+impl Serialize for KernelChoice {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+/// Written by hand like the serde impls: one of four names.
+impl JsonSchema for KernelChoice {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "KernelChoice".into()
+    }
+
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "type": "string",
+            "enum": ["auto", "matern12", "matern32", "matern52"]
+        })
+    }
+}
+
+impl<'de> Deserialize<'de> for KernelChoice {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        if name == "auto" {
+            return Ok(Self::Auto);
+        }
+        Kernel::ALL
+            .into_iter()
+            .find(|k| k.name() == name)
+            .map(Self::Fixed)
+            .ok_or_else(|| {
+                serde::de::Error::invalid_value(
+                    serde::de::Unexpected::Str(&name),
+                    &"\"auto\", \"matern12\", \"matern32\" or \"matern52\"",
+                )
+            })
     }
 }
 

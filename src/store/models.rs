@@ -2,7 +2,7 @@
 
 use super::{Store, now};
 use crate::gp::Hyperparameters;
-use crate::mde::{EstimatorKind, EstimatorState, HeldOutTrust};
+use crate::mde::{EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial};
 
 /// A stored model version.
 #[derive(Debug, Clone)]
@@ -25,6 +25,8 @@ pub struct StoredModel {
     pub label_cap: f64,
     /// Every candidate cap's held-out judgement of the training transitions.
     pub label_cap_trials: Vec<HeldOutTrust>,
+    /// Every candidate kernel's fit, when the kernel was chosen from the data.
+    pub kernel_trials: Vec<KernelTrial>,
 }
 
 fn json_err(e: serde_json::Error) -> sqlx::Error {
@@ -44,11 +46,12 @@ impl Store {
         let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
         let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
         let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
+        let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
         sqlx::query(
             "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
                                  hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
-                                 label_cap, label_cap_trials)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                                 label_cap, label_cap_trials, kernel_trials)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(experiment_id)
         .bind(model.version)
@@ -62,6 +65,7 @@ impl Store {
         .bind(&model.fitted_at)
         .bind(model.label_cap)
         .bind(trials)
+        .bind(kernel_trials)
         .execute(&self.write)
         .await?;
         Ok(())
@@ -96,10 +100,10 @@ impl Store {
     ) -> Result<Option<StoredModel>, sqlx::Error> {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
-                    label_cap_trials, log_marginal_likelihood
+                    label_cap_trials, log_marginal_likelihood, kernel_trials
              FROM models WHERE experiment_id = ? {clause}"
         );
-        type Row = (i64, i64, i64, String, f64, String, f64, String, f64);
+        type Row = (i64, i64, i64, String, f64, String, f64, String, f64, String);
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
             query = query.bind(v);
@@ -117,6 +121,7 @@ impl Store {
             label_cap,
             trials,
             lml,
+            kernel_trials,
         ) = row;
         Ok(Some(StoredModel {
             version,
@@ -128,6 +133,7 @@ impl Store {
             fitted_at,
             label_cap,
             label_cap_trials: serde_json::from_str(&trials).map_err(json_err)?,
+            kernel_trials: serde_json::from_str(&kernel_trials).map_err(json_err)?,
         }))
     }
 

@@ -24,7 +24,8 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["learning"]["k2"], 0.5);
     assert_eq!(e["learning"]["preset"], "default");
     assert_eq!(e["mde"]["label_cap"], "auto");
-    assert_eq!(e["mde"]["kernel"], "matern12");
+    assert_eq!(e["mde"]["kernel"], "auto");
+    assert_eq!(e["mde"]["estimator"], "auto");
     assert_eq!(e["learning"]["relax_beta"], true);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
@@ -64,7 +65,8 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
             "matern12",
         ),
         (json!({"mde": {"kernel": "matern32"}}), "matern32"),
-        (json!({"mde": {"kernel": null}}), "matern12"),
+        (json!({"mde": {"kernel": null}}), "auto"),
+        (json!({"mde": {"kernel": "auto"}}), "auto"),
     ] {
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");

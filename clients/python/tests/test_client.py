@@ -410,6 +410,7 @@ def model_json(version: int, n_trajectories: int) -> dict[str, Any]:
         "estimator": "exact",
         "online_trajectories": 0,
         "last_fit_refusal": None,
+        "kernel_trials": [],
     }
 
 

@@ -161,6 +161,7 @@ const ENTRIES: &[Entry] = &[
     entry::<api::ModelResponse>("Model", Response),
     entry::<HeldOutTrust>("HeldOutTrust", Response),
     entry::<api::FitRefusalView>("FitRefusal", Response),
+    entry::<precond::mde::KernelTrial>("KernelTrial", Response),
     // precondition
     entry::<api::Point>("PointRequest", Request),
     entry::<api::PreconditionRequest>("PreconditionRequest", Request),

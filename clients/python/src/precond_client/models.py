@@ -504,6 +504,23 @@ class HeldOutTrust:
 
 
 @dataclass(frozen=True)
+class KernelTrial:
+    """One candidate kernel's fit when the kernel is chosen from the data (schema
+    ``KernelTrial``)."""
+
+    SCHEMA: ClassVar[str] = "KernelTrial"
+
+    kernel: str
+    """``matern12``, ``matern32`` or ``matern52``."""
+    log_marginal_likelihood: float
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> KernelTrial:
+        """Reads the JSON form."""
+        return cls(kernel=str(d["kernel"]), log_marginal_likelihood=float(d["log_marginal_likelihood"]))
+
+
+@dataclass(frozen=True)
 class FitRefusal:
     """A fit the server did not attempt because its estimated peak memory exceeded the server's
     budget; the version before it kept answering (schema ``FitRefusal``)."""
@@ -565,6 +582,8 @@ class Model:
     """Trajectories taken in by online updates since the fit (sparse GP)."""
     last_fit_refusal: FitRefusal | None
     """The latest fit refused since this version for the memory budget."""
+    kernel_trials: list[KernelTrial]
+    """With ``mde.kernel`` ``auto``, each kernel's fit; the highest log marginal likelihood won."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
@@ -596,6 +615,7 @@ class Model:
                 if d.get("last_fit_refusal") is not None
                 else None
             ),
+            kernel_trials=[KernelTrial.from_json(t) for t in d["kernel_trials"]],
             raw=d,
         )
 
