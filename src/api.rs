@@ -787,6 +787,8 @@ pub struct PlanResponse {
     pub found: bool,
     /// Extensions spent.
     pub extensions: usize,
+    /// Why extensions added nothing to the search tree (0 for the client's candidates).
+    pub rejections: RejectionCounts,
     /// β used.
     pub beta: f64,
     /// The experiment's tolerance.
@@ -798,6 +800,16 @@ pub struct PlanResponse {
     /// The client's candidates with their verdicts, when it posted some.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<CandidateView>>,
+}
+
+/// Why a search's extensions added nothing to its tree.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct RejectionCounts {
+    /// No steered action was allowed by the domain's constraints (bounds, obstacles, the
+    /// action's form) and new: the search could not reach further there.
+    pub constraints: usize,
+    /// Some were, but none lay inside the precondition: the model is not trusted there.
+    pub precondition: usize,
 }
 
 /// Every error's body: `{"error": {"code", "message", "details"}}`.

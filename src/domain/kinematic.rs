@@ -82,6 +82,10 @@ pub struct Kinematic {
     rollout_length: usize,
 }
 
+/// The fractions of the full step towards a target that steering offers (see
+/// [`Kinematic`]'s `steer`).
+pub const STEER_SCALES: [f64; 3] = [1.0, 0.5, 0.25];
+
 /// Points checked along each edge by the approximate collision check.
 const COLLISION_SAMPLES: usize = 8;
 
@@ -334,8 +338,16 @@ impl Domain for Kinematic {
         euclidean(a, b)
     }
 
+    /// The step towards `target` as far as the action bounds allow, and the same direction at
+    /// half and a quarter of that length ([`STEER_SCALES`]): the planner keeps the longest
+    /// that is allowed and inside the precondition (where only short moves are trusted — a
+    /// slippery patch, a wet floor — a full step would be refused every time).
     fn steer(&self, s: &[f64], target: &[f64], rng: &mut dyn RngCore) -> Vec<Vec<f64>> {
-        vec![self.steer_toward(s, target, rng)]
+        let full = self.steer_toward(s, target, rng);
+        STEER_SCALES
+            .iter()
+            .map(|k| full.iter().map(|x| x * k).collect())
+            .collect()
     }
 
     fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {

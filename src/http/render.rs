@@ -4,8 +4,8 @@
 use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, FitRefusalView, LaterRates, MapAxis, MapPoint,
     ModelResponse, ModelSource, PlanResponse, PreconditionMap, PreconditionResponse,
-    ProposalResponse, RunPage, RunView, Timeline, TimelineIteration, TimelineModel,
-    TrajectoryCreated, TrajectoryResponse, TransitionView,
+    ProposalResponse, RejectionCounts, RunPage, RunView, Timeline, TimelineIteration,
+    TimelineModel, TrajectoryCreated, TrajectoryResponse, TransitionView,
 };
 use crate::mde::ServedModel;
 use crate::service::{
@@ -275,6 +275,10 @@ pub fn plan(p: Planned) -> PlanResponse {
     PlanResponse {
         found: p.outcome.trajectory.is_some(),
         extensions: p.outcome.extensions,
+        rejections: RejectionCounts {
+            constraints: p.outcome.rejections.constraints,
+            precondition: p.outcome.rejections.precondition,
+        },
         beta: p.beta,
         d_max: p.d_max,
         model_version: p.model_version,

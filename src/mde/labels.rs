@@ -524,7 +524,10 @@ mod tests {
             let best = c
                 .kernel_trials
                 .iter()
-                .max_by(|a, b| a.log_marginal_likelihood.total_cmp(&b.log_marginal_likelihood))
+                .max_by(|a, b| {
+                    a.log_marginal_likelihood
+                        .total_cmp(&b.log_marginal_likelihood)
+                })
                 .unwrap();
             let kept = c.gp.hyperparameters().kernel;
             assert_eq!(kept, best.kernel, "{:?}", c.kernel_trials);

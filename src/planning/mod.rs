@@ -45,7 +45,7 @@ pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose};
 pub use planner::{Planner, PlanningSettings};
 pub use precondition::Precondition;
-pub use rrt::{PlannerSettings, RrtOutcome, Trajectory};
+pub use rrt::{PlannerSettings, Rejections, RrtOutcome, Trajectory};
 pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};
 pub use strategy::{CandidateScore, Proposal, Strategy};
 

@@ -167,6 +167,18 @@ pub struct RrtOutcome {
     pub tree_size: usize,
     /// Calls made to the dynamics model (each with a batch of points).
     pub dynamics_calls: usize,
+    /// Why the extensions that added no node failed.
+    pub rejections: Rejections,
+}
+
+/// Why extensions added no node to a tree.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Rejections {
+    /// No steered action was allowed by the domain (bounds, collisions, action form, no
+    /// progress) and new to the tree: reachability.
+    pub constraints: usize,
+    /// Some were, but none lay inside the precondition.
+    pub precondition: usize,
 }
 
 /// One RRT run of `planner` for `problem` inside `precondition` (see the module docs).
@@ -276,13 +288,12 @@ pub(crate) fn check_predictions(
     Ok(())
 }
 
-/// An edge proposed in a round.
+/// An edge proposed in a round: the steered actions the domain allows from its node whose
+/// predictions are new to the tree, nearest the target first, with those predictions. The
+/// model is asked about each; the first inside the precondition becomes the edge.
 struct Proposed {
     parent: usize,
-    action: Vec<f64>,
-    next: Vec<f64>,
-    /// Whether it passed the domain's constraints and was new, so the model was asked.
-    asked: bool,
+    candidates: Vec<(Vec<f64>, Vec<f64>)>,
 }
 
 /// A node and the actions the domain steers with from it towards a target.
@@ -353,6 +364,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             extensions: 0,
             tree_size: 1,
             dynamics_calls: 0,
+            rejections: Rejections::default(),
         };
         Self {
             task,
@@ -424,7 +436,7 @@ impl<'a, R: RngCore> Search<'a, R> {
         self.features.clear();
         for edge in &self.steered {
             let s = &self.tree.states[edge.parent];
-            let mut best: Option<(f64, usize, Vec<f64>)> = None;
+            let mut allowed: Vec<(f64, usize, Vec<f64>)> = Vec::new();
             for (j, action) in edge.actions.iter().enumerate() {
                 let Some(p) = predicted.next() else { break };
                 if !(p.valid
@@ -438,40 +450,37 @@ impl<'a, R: RngCore> Search<'a, R> {
                 } else {
                     domain.state_metric(&p.next, &edge.target)
                 };
-                if best.as_ref().is_none_or(|(b, _, _)| d < *b) {
-                    best = Some((d, j, p.next));
+                allowed.push((d, j, p.next));
+            }
+            // Nearest the target first; the first steered on ties.
+            allowed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            if edge.actions.len() == 1
+                && let Some((_, j, _)) = allowed.first()
+            {
+                let action = &edge.actions[*j];
+                let phi = domain.features(s, action);
+                if let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi)) {
+                    // A miss in a discrete action space: ask about the node's other moves in
+                    // the same call, since the tree is likely to try them later.
+                    self.to_prefetch.extend(
+                        values
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, v)| *v != action)
+                            .map(|(k, _)| (edge.parent, k)),
+                    );
                 }
             }
-            let Some((_, j, next)) = best else {
-                self.round.push(Proposed {
-                    parent: edge.parent,
-                    action: Vec::new(),
-                    next: Vec::new(),
-                    asked: false,
-                });
-                continue;
-            };
-            let action = &edge.actions[j];
-            let phi = domain.features(s, action);
-            if edge.actions.len() == 1
-                && let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi))
-            {
-                // A miss in a discrete action space: ask about the node's other moves in the
-                // same call, since the tree is likely to try them later.
-                self.to_prefetch.extend(
-                    values
-                        .iter()
-                        .enumerate()
-                        .filter(|(_, v)| *v != action)
-                        .map(|(k, _)| (edge.parent, k)),
-                );
+            let candidates: Vec<(Vec<f64>, Vec<f64>)> = allowed
+                .into_iter()
+                .map(|(_, j, next)| (edge.actions[j].clone(), next))
+                .collect();
+            for (action, _) in &candidates {
+                self.features.extend(domain.features(s, action));
             }
-            self.features.extend(phi);
             self.round.push(Proposed {
                 parent: edge.parent,
-                action: action.clone(),
-                next,
-                asked: true,
+                candidates,
             });
         }
     }
@@ -514,18 +523,36 @@ impl<'a, R: RngCore> Search<'a, R> {
         let mut answers = answers.iter();
         for edge in self.round.drain(..) {
             self.outcome.extensions += 1;
-            if !edge.asked {
+            if edge.candidates.is_empty() {
+                self.outcome.rejections.constraints += 1;
                 continue;
             }
-            let Some(&(mu, sigma)) = answers.next() else {
-                break;
+            let judged: Vec<(f64, f64)> = answers
+                .by_ref()
+                .take(edge.candidates.len())
+                .copied()
+                .collect();
+            let any_inside = judged
+                .iter()
+                .any(|(mu, sigma)| precondition.inside(*mu, *sigma));
+            let chosen =
+                edge.candidates
+                    .into_iter()
+                    .zip(judged)
+                    .find(|((_, next), (mu, sigma))| {
+                        precondition.inside(*mu, *sigma) && !self.tree.contains(next)
+                    });
+            let Some(((action, next), (mu, sigma))) = chosen else {
+                if any_inside {
+                    // Inside, but an earlier edge of this round reached the same state.
+                    self.outcome.rejections.constraints += 1;
+                } else {
+                    self.outcome.rejections.precondition += 1;
+                }
+                continue;
             };
-            if !precondition.inside(mu, sigma) || self.tree.contains(&edge.next) {
-                continue;
-            }
-            let reached = domain.is_goal(&edge.next, goal);
-            self.tree
-                .add(edge.parent, edge.action, edge.next, mu, sigma);
+            let reached = domain.is_goal(&next, goal);
+            self.tree.add(edge.parent, action, next, mu, sigma);
             if reached {
                 let node = self.tree.states.len() - 1;
                 self.outcome.trajectory = Some(self.tree.path_to(node));

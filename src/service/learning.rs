@@ -329,6 +329,7 @@ impl Service {
                     extensions: 0,
                     tree_size: 0,
                     dynamics_calls: 0,
+                    rejections: Default::default(),
                 },
                 candidates: Some(verdicts),
                 beta,

@@ -162,6 +162,7 @@ const ENTRIES: &[Entry] = &[
     entry::<HeldOutTrust>("HeldOutTrust", Response),
     entry::<api::FitRefusalView>("FitRefusal", Response),
     entry::<precond::mde::KernelTrial>("KernelTrial", Response),
+    entry::<api::RejectionCounts>("RejectionCounts", Response),
     // precondition
     entry::<api::Point>("PointRequest", Request),
     entry::<api::PreconditionRequest>("PreconditionRequest", Request),

@@ -388,6 +388,23 @@ class Proposal:
 
 
 @dataclass(frozen=True)
+class RejectionCounts:
+    """Why a search's extensions added nothing to its tree (schema ``RejectionCounts``)."""
+
+    SCHEMA: ClassVar[str] = "RejectionCounts"
+
+    constraints: int
+    """No steered action was allowed by the domain and new: the search could not reach on."""
+    precondition: int
+    """Some were, but none was trusted."""
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> RejectionCounts:
+        """Reads the JSON form."""
+        return cls(constraints=int(d["constraints"]), precondition=int(d["precondition"]))
+
+
+@dataclass(frozen=True)
 class Plan:
     """A test-time plan (schema ``Plan``)."""
 
@@ -395,6 +412,9 @@ class Plan:
 
     found: bool
     extensions: int
+    rejections: RejectionCounts
+    """Why extensions added nothing: many ``precondition`` rejections and no plan means the model
+    is not trusted between the start and the goal yet."""
     beta: float
     d_max: float
     model_version: int
@@ -409,6 +429,7 @@ class Plan:
         return cls(
             found=bool(d["found"]),
             extensions=int(d["extensions"]),
+            rejections=RejectionCounts.from_json(d["rejections"]),
             beta=float(d["beta"]),
             d_max=float(d["d_max"]),
             model_version=int(d["model_version"]),
@@ -517,7 +538,9 @@ class KernelTrial:
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> KernelTrial:
         """Reads the JSON form."""
-        return cls(kernel=str(d["kernel"]), log_marginal_likelihood=float(d["log_marginal_likelihood"]))
+        return cls(
+            kernel=str(d["kernel"]), log_marginal_likelihood=float(d["log_marginal_likelihood"])
+        )
 
 
 @dataclass(frozen=True)
