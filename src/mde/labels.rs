@@ -116,6 +116,28 @@ pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
     groups
 }
 
+/// The rows of `x` grouped by the block of a regular grid of `bins` cells per feature (features
+/// in the unit box) they fall in, each group in row order, the groups in order of first
+/// appearance. Leaving a block out judges how a model carries what it learned into a region it
+/// has not seen, as planning asks of it.
+pub fn blocks(x: &DMatrix<f64>, bins: usize) -> Vec<Vec<usize>> {
+    let bins = bins.max(1);
+    let mut index = std::collections::HashMap::<Vec<usize>, usize>::new();
+    let mut groups: Vec<Vec<usize>> = Vec::new();
+    for (i, row) in x.row_iter().enumerate() {
+        let key = row
+            .iter()
+            .map(|v| ((v.clamp(0.0, 1.0) * bins as f64) as usize).min(bins - 1))
+            .collect();
+        let g = *index.entry(key).or_insert_with(|| {
+            groups.push(Vec::new());
+            groups.len() - 1
+        });
+        groups[g].push(i);
+    }
+    groups
+}
+
 /// A model fitted with the kernel and the label cap chosen from the data, and how every
 /// candidate did.
 #[derive(Debug)]

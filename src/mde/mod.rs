@@ -15,7 +15,7 @@ pub use estimator::{
     fit,
 };
 pub use labels::{
-    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial,
+    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial, blocks,
     capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
 };
 

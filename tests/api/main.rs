@@ -1,6 +1,7 @@
 //! Integration tests over a real socket and a real SQLite file.
 
 mod auth;
+mod continuous;
 mod contract;
 mod custom;
 mod dashboard;

@@ -1,0 +1,276 @@
+//! Learning on a continuous world, as a robot with a kinematic model would: what it learns
+//! spreads between what it executed, and executing closed loop (planning again from where the
+//! robot is) reaches goals that open-loop execution misses.
+
+use super::helpers::{spawn_app, temp_db};
+use precond::domain::{Kinematic, KinematicParams, Problem};
+use precond::experiment::reference::ClosedLoop;
+use precond::planning::Trajectory;
+use precond::sim::World;
+use serde_json::{Value, json};
+
+/// The kinematic unit square with moves of at most 0.1 per axis.
+fn square() -> Kinematic {
+    Kinematic::new(KinematicParams::default()).unwrap()
+}
+
+fn trajectory_of(plan: &Value) -> Trajectory {
+    let rows = |k: &str| -> Vec<Vec<f64>> {
+        plan[k]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| {
+                r.as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|x| x.as_f64().unwrap())
+                    .collect()
+            })
+            .collect()
+    };
+    let nums = |k: &str| -> Vec<f64> {
+        plan[k]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect()
+    };
+    Trajectory {
+        states: rows("states"),
+        actions: rows("actions"),
+        mu: nums("mu"),
+        sigma: nums("sigma"),
+    }
+}
+
+/// Learning on the pusher world (a puck that slides on after each push, far on a wet patch):
+/// the paper's loop for a few iterations, the robot's model kinematic.
+#[tokio::test]
+async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_plans_found() {
+    use precond::domain::{Domain, LocalModel};
+    use precond::sim::ContinuousWorld;
+    use rand::SeedableRng;
+    let world = ContinuousWorld::pusher();
+    let domain = world.domain();
+    let d_max = world.d_max();
+    let p = world.params();
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
+                       "action_low": p.action_low, "action_high": p.action_high,
+                       "goal_radius": p.goal_radius},
+            "d_max": d_max,
+            "seed": 1,
+            "mde": {"restarts": 1},
+            "learning": {"batch_size": 5, "iterations": 6, "n_candidates": 8,
+                         "max_extensions": 2000}
+        }))
+        .await;
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+    let mut executed: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
+    let mut posted = 0;
+    for _ in 0..6 {
+        for _ in 0..5 {
+            let problem = world.sample_problem(&domain, &mut rng);
+            let (status, proposal) = app
+                .post(
+                    &format!("/v1/experiments/{id}/proposals"),
+                    &json!({"start": problem.start(), "goal": problem.goal()}),
+                )
+                .await;
+            if status != 201 {
+                continue;
+            }
+            let plan = trajectory_of(&proposal["trajectory"]);
+            let mut s = plan.states[0].clone();
+            let mut transitions = Vec::new();
+            for a in &plan.actions {
+                let next = world.step(&s, a);
+                transitions.push(json!({"s": s, "a": a, "s_next": next}));
+                executed.push((s.clone(), a.clone()));
+                s = next;
+            }
+            let (status, body) = app
+                .post(
+                    &format!("/v1/experiments/{id}/trajectories"),
+                    &json!({"proposal_id": proposal["id"], "transitions": transitions}),
+                )
+                .await;
+            assert_eq!(status, 201, "{body}");
+            posted += 1;
+        }
+        app.wait_for_model(id, posted - posted % 5).await;
+    }
+    assert!(posted >= 25, "{posted} trajectories executed");
+    // Unseen moves between seen ones: midway between two executed state-actions 0.1 to 0.3
+    // apart, at least 0.03 from every executed state, and truly within d_max.
+    let mut probes = Vec::new();
+    let mut tries = 0;
+    while probes.len() < 40 && tries < 20_000 {
+        tries += 1;
+        let i = rand::Rng::random_range(&mut rng, 0..executed.len());
+        let j = rand::Rng::random_range(&mut rng, 0..executed.len());
+        let (si, ai) = &executed[i];
+        let (sj, aj) = &executed[j];
+        let gap = domain.distance(si, sj);
+        if !(0.1..=0.3).contains(&gap) {
+            continue;
+        }
+        let s: Vec<f64> = si.iter().zip(sj).map(|(x, y)| 0.5 * (x + y)).collect();
+        let a: Vec<f64> = ai.iter().zip(aj).map(|(x, y)| 0.5 * (x + y)).collect();
+        let unseen = executed.iter().all(|(e, _)| domain.distance(e, &s) > 0.03);
+        let safe = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a)) < d_max;
+        if unseen && safe && world.possible(&s) {
+            probes.push(json!({"s": s, "a": a}));
+        }
+    }
+    assert!(probes.len() >= 20, "{} probes", probes.len());
+    let (status, judged) = app
+        .post(
+            &format!("/v1/experiments/{id}/precondition"),
+            &json!({ "points": probes }),
+        )
+        .await;
+    assert_eq!(status, 200, "{judged}");
+    let trusted = judged["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["inside"] == true)
+        .count();
+    assert!(
+        2 * trusted >= probes.len(),
+        "{trusted} of {} safe unseen moves between executed ones trusted at β = 2",
+        probes.len()
+    );
+    // Test plans are found, and their steps are truly within d_max.
+    let mut found = 0;
+    for _ in 0..10 {
+        let problem = world.sample_problem(&domain, &mut rng);
+        let (status, plan) = app
+            .post(
+                &format!("/v1/experiments/{id}/plans"),
+                &json!({"start": problem.start(), "goal": problem.goal()}),
+            )
+            .await;
+        assert_eq!(status, 200, "{plan}");
+        if plan["found"] == true {
+            found += 1;
+            let t = trajectory_of(&plan["trajectory"]);
+            let wrong = t
+                .states
+                .iter()
+                .zip(&t.actions)
+                .filter(|(s, a)| domain.distance(&domain.predict(s, a), &world.step(s, a)) >= d_max)
+                .count();
+            assert!(
+                wrong * 10 <= t.actions.len(),
+                "{wrong} of {} planned steps beyond d_max",
+                t.actions.len()
+            );
+        }
+    }
+    assert!(found >= 5, "test plans found for {found} of 10 problems");
+    app.stop().await;
+}
+
+/// Every step drifts 0.012 towards +y: each within d_max = 0.02, but they add up.
+#[derive(Debug)]
+struct Drift;
+
+impl World for Drift {
+    fn reset(&mut self, _rng: &mut dyn rand::RngCore) {}
+    fn step(&mut self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        vec![
+            (s[0] + a[0]).clamp(0.0, 1.0),
+            (s[1] + a[1] + 0.012).clamp(0.0, 1.0),
+        ]
+    }
+}
+
+#[tokio::test]
+async fn closed_loop_execution_reaches_goals_open_loop_misses() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic", "goal_radius": 0.03},
+            "d_max": 0.02,
+            "mde": {"restarts": 0},
+            "learning": {"batch_size": 1}
+        }))
+        .await;
+    // Show the model that moves are right to within 0.012 everywhere.
+    let mut transitions = Vec::new();
+    for i in 0..8 {
+        for j in 0..8 {
+            let s = [0.05 + 0.12 * i as f64, 0.05 + 0.12 * j as f64];
+            for a in [
+                [0.1, 0.0],
+                [-0.1, 0.0],
+                [0.0, 0.1],
+                [0.0, -0.1],
+                [0.07, 0.07],
+            ] {
+                let n = Drift.step(&s, &a);
+                transitions.push(json!({"s": s, "a": a, "s_next": n}));
+            }
+        }
+    }
+    let (status, _) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &json!({ "transitions": transitions }),
+        )
+        .await;
+    assert_eq!(status, 201);
+    app.wait_for_model(id, 1).await;
+    let domain = square();
+    let (mut open_hits, mut closed_hits) = (0, 0);
+    let problems = [
+        ([0.1, 0.5], [0.9, 0.5]),
+        ([0.1, 0.2], [0.9, 0.3]),
+        ([0.9, 0.8], [0.1, 0.7]),
+    ];
+    for (start, goal) in problems {
+        let problem = Problem::new(&domain, start.to_vec(), goal.to_vec()).unwrap();
+        let (_, plan) = app
+            .post(
+                &format!("/v1/experiments/{id}/plans"),
+                &json!({"start": start, "goal": goal}),
+            )
+            .await;
+        assert_eq!(plan["found"], true, "{plan}");
+        let first = trajectory_of(&plan["trajectory"]);
+        // Open loop: the plan's actions, whatever happens.
+        let mut s = start.to_vec();
+        for a in &first.actions {
+            s = Drift.step(&s, a);
+        }
+        open_hits += usize::from(precond::domain::Domain::is_goal(&domain, &s, &goal));
+        // Closed loop: plan again from where the robot is when it strays beyond d_max.
+        let mut closed = ClosedLoop::new(&problem, first, 0.02);
+        while let Some(at) = closed.advance(&mut Drift, &domain, &problem) {
+            let (_, again) = app
+                .post(
+                    &format!("/v1/experiments/{id}/plans"),
+                    &json!({"start": at, "goal": goal}),
+                )
+                .await;
+            closed.replanned((again["found"] == true).then(|| trajectory_of(&again["trajectory"])));
+        }
+        closed_hits += usize::from(closed.executed().success);
+        assert!(closed.executed().replans > 0 || closed.executed().success);
+    }
+    assert_eq!(
+        (open_hits, closed_hits),
+        (0, problems.len()),
+        "open-loop {open_hits}, closed-loop {closed_hits} of {} goals",
+        problems.len()
+    );
+    app.stop().await;
+}
