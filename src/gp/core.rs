@@ -135,6 +135,10 @@ impl Core {
             if want_var {
                 if mc == 1 {
                     var.push((self.s2 - self.quad_single(&ks)).max(0.0));
+                } else if mc <= SMALL_BATCH {
+                    for q in self.quad_few(&ks, mc) {
+                        var.push((self.s2 - q).max(0.0));
+                    }
                 } else {
                     v.resize(n * mc, 0.0);
                     let par = if n * n * mc >= 50_000_000 {
@@ -154,6 +158,23 @@ impl Core {
             var = vec![f64::NAN; m];
         }
         (mean, var)
+    }
+
+    /// `‖L⁻¹ k_j‖²` for a few points `ks` (`mc` columns of `n`): the planner's rounds ask about
+    /// a handful of state-actions at a time, where packing `L⁻¹` for a GEMM costs more than the
+    /// products. Reads each row of the triangle once and takes its dot product with every
+    /// column, in the same order as [`quad_single`](Self::quad_single) per column.
+    fn quad_few(&self, ks: &[f64], mc: usize) -> Vec<f64> {
+        let n = self.n;
+        let mut out = vec![0.0; mc];
+        for i in 0..n {
+            let row = &self.linv[i * n..i * n + i + 1];
+            for (j, o) in out.iter_mut().enumerate() {
+                let t = dot(row, &ks[j * n..j * n + i + 1]);
+                *o += t * t;
+            }
+        }
+        out
     }
 
     /// `‖L⁻¹ k‖²` for one point: one dot product per row of `L⁻¹` (memory-bound: reads the
@@ -182,6 +203,10 @@ impl Core {
         })
     }
 }
+
+/// Batches of at most this many query points get their variances from [`Core::quad_few`]
+/// rather than a GEMM.
+const SMALL_BATCH: usize = 16;
 
 /// Dot product with eight independent accumulators (vectorises; fixed summation order).
 #[inline]
