@@ -32,6 +32,8 @@ pub enum Proposed {
     Trajectory(Box<ProposalResponse>),
     /// No candidate reached the goal inside the precondition (`422 no_plan`).
     NoPlan,
+    /// The search ran into the server's planning deadline (`503 deadline_exceeded`).
+    TimedOut,
 }
 
 impl ApiClient {
@@ -125,11 +127,11 @@ impl ApiClient {
                 what,
             )
             .await?;
-        if status == 422
-            && serde_json::from_value::<ErrorBody>(body.clone())
-                .is_ok_and(|e| e.error.code == "no_plan")
-        {
-            return Ok(Proposed::NoPlan);
+        let code = serde_json::from_value::<ErrorBody>(body.clone()).map(|e| e.error.code);
+        match (status, code.as_deref()) {
+            (422, Ok("no_plan")) => return Ok(Proposed::NoPlan),
+            (503, Ok("deadline_exceeded")) => return Ok(Proposed::TimedOut),
+            _ => {}
         }
         if !(200..300).contains(&status) {
             bail!("{what}: HTTP {status}: {body}");
@@ -216,7 +218,9 @@ impl ApiClient {
         }
     }
 
-    /// `POST /v1/experiments/{id}/plans` with the experiment's test β.
+    /// `POST /v1/experiments/{id}/plans` with the experiment's test β. A search that runs into
+    /// the server's planning deadline (`503 deadline_exceeded`) is answered as no plan found,
+    /// with the extensions it spent.
     pub async fn plan(&self, id: i64, start: &[f64], goal: &[f64]) -> anyhow::Result<PlanResponse> {
         let body = PlanRequest {
             start: start.to_vec(),
@@ -224,13 +228,37 @@ impl ApiClient {
             beta: None,
             candidates: None,
         };
-        self.expect(
-            self.http
-                .post(self.url(&format!("/v1/experiments/{id}/plans")))
-                .json(&body),
-            "POST /plans",
-        )
-        .await
+        let what = "POST /plans";
+        let (status, body) = self
+            .send(
+                self.http
+                    .post(self.url(&format!("/v1/experiments/{id}/plans")))
+                    .json(&body),
+                what,
+            )
+            .await?;
+        if status == 503
+            && let Ok(e) = serde_json::from_value::<ErrorBody>(body.clone())
+            && e.error.code == "deadline_exceeded"
+        {
+            return Ok(PlanResponse {
+                found: false,
+                extensions: e.error.details["extensions"].as_u64().unwrap_or(0) as usize,
+                rejections: crate::api::RejectionCounts {
+                    constraints: 0,
+                    precondition: 0,
+                },
+                beta: f64::NAN,
+                d_max: f64::NAN,
+                model_version: -1,
+                trajectory: None,
+                candidates: None,
+            });
+        }
+        if !(200..300).contains(&status) {
+            bail!("{what}: HTTP {status}: {body}");
+        }
+        serde_json::from_value(body).with_context(|| format!("{what}: unexpected body"))
     }
 
     /// `POST /v1/experiments/{id}/precondition` for any number of `(s, a)` points (split into

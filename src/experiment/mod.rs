@@ -490,8 +490,14 @@ impl InProcess {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
         let addr = listener.local_addr()?;
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let state = AppState::new(
-            store,
+        // The harness measures learning, not latency: searches may take up to
+        // two minutes (a search past them counts as no plan found).
+        let limits = crate::service::Limits {
+            plan_timeout: std::time::Duration::from_secs(120),
+            ..crate::service::Limits::default()
+        };
+        let state = AppState::with_service(
+            crate::service::Service::new(store).with_limits(limits),
             HttpConfig {
                 // Precondition maps and held-out sets are sent in one request each.
                 max_body_bytes: 64 * 1024 * 1024,

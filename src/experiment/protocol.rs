@@ -811,7 +811,8 @@ impl Run<'_> {
                 )
                 .await?;
             let p = match proposed {
-                Proposed::NoPlan => {
+                // Past the server's planning deadline: no plan within it.
+                Proposed::NoPlan | Proposed::TimedOut => {
                     train.no_plan += 1;
                     continue;
                 }
