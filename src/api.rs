@@ -629,6 +629,31 @@ pub struct ProposalRequest {
     pub candidates: Option<Vec<CandidateTrajectory>>,
 }
 
+/// `POST /v1/experiments/{id}/proposals/{pid}/continue` body: the part of an open proposal
+/// the robot executed before it re-plans from where it actually is.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ContinueRequest {
+    /// The executed transitions, from the proposal's start; the last `s_next` is where the
+    /// robot is now, the start of the proposal that continues it.
+    pub transitions: Vec<Transition>,
+    /// With a client-side model: the trajectories the client planned from where the robot is
+    /// (see [`ProposalRequest::candidates`]).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub candidates: Option<Vec<CandidateTrajectory>>,
+}
+
+/// `201` answer to a continued proposal: the executed prefix, stored (a partial trajectory of
+/// the proposal), and the new proposal from where the robot is to the same goal, leased to the
+/// same client.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ContinueResponse {
+    /// The stored prefix.
+    pub trajectory: TrajectoryCreated,
+    /// The proposal that continues it.
+    pub proposal: ProposalResponse,
+}
+
 /// A trajectory the client planned: its predicted states (starting with the start state) and
 /// the actions between them.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]

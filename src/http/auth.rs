@@ -395,6 +395,7 @@ cccccccccccccccccccc admin *
             "/v1/experiments/{id}/trajectories",
             "/v1/experiments/{id}/proposals",
             "/v1/experiments/{id}/proposals/{pid}/abandon",
+            "/v1/experiments/{id}/proposals/{pid}/continue",
         ] {
             assert_eq!(
                 need(Method::POST, t, "/v1/experiments/1/x").role,

@@ -221,6 +221,11 @@ pub fn routes() -> Vec<Route> {
         ),
         route(
             M::POST,
+            "/v1/experiments/{id}/proposals/{pid}/continue",
+            post(proposals::continue_proposal),
+        ),
+        route(
+            M::POST,
             "/v1/experiments/{id}/plans",
             post(proposals::create_plan),
         ),

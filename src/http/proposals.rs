@@ -5,10 +5,13 @@ use super::AppState;
 use super::error::ApiResult;
 use super::extract::{ApiJson, ApiPath};
 use super::render;
-use crate::api::{PlanRequest, PlanResponse, ProposalRequest, ProposalResponse};
+use crate::api::{
+    ContinueRequest, ContinueResponse, PlanRequest, PlanResponse, ProposalRequest, ProposalResponse,
+};
 use axum::Json;
 use axum::extract::State;
-use axum::http::StatusCode;
+use axum::http::{HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
 
 /// `POST /v1/experiments/{id}/proposals`: `201` with a new proposal leased to the client, or
 /// `200` with the client's open one for the same problem.
@@ -44,6 +47,36 @@ pub async fn abandon_proposal(
     Ok(Json(render::proposal(
         state.service.abandon(id, pid).await?,
     )))
+}
+
+/// `POST /v1/experiments/{id}/proposals/{pid}/continue`: store the executed prefix of an open
+/// proposal and propose again from where the robot is (closed loop). `201`; a retry with the
+/// same `Idempotency-Key` stores nothing twice and answers the same proposal.
+pub async fn continue_proposal(
+    State(state): State<AppState>,
+    ApiPath((id, pid)): ApiPath<(i64, i64)>,
+    headers: HeaderMap,
+    ApiJson(request): ApiJson<ContinueRequest>,
+) -> ApiResult<Response> {
+    let key = headers.get("idempotency-key").map(|v| v.as_bytes());
+    let (ingested, proposal) = state
+        .service
+        .continue_proposal(id, pid, request, key)
+        .await?;
+    let mut answer = (
+        StatusCode::CREATED,
+        Json(ContinueResponse {
+            trajectory: render::trajectory_created(&ingested),
+            proposal: render::proposal(proposal),
+        }),
+    )
+        .into_response();
+    if ingested.replayed {
+        answer
+            .headers_mut()
+            .insert("idempotent-replayed", HeaderValue::from_static("true"));
+    }
+    Ok(answer)
 }
 
 /// `POST /v1/experiments/{id}/plans`: a test-time plan with the conservative β. Nothing is

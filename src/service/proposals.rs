@@ -6,9 +6,13 @@
 //! trajectory, abandons it, or the lease expires; asking for another problem meanwhile is a
 //! conflict rather than a silent answer to a question it did not ask.
 
+use super::Ingested;
 use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
 use super::{Error, Result, Service};
-use crate::api::{CandidateView, PlannedTrajectory, ProposalContent, ProposalRequest};
+use crate::api::{
+    CandidateView, ContinueRequest, PlannedTrajectory, ProposalContent, ProposalRequest,
+    TrajectoryRequest,
+};
 use crate::limits::MAX_CLIENT_ID_LEN;
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
@@ -242,6 +246,86 @@ impl Service {
         } else {
             Ok((lease_answer(stored, &request)?, false))
         }
+    }
+
+    /// Continues open proposal `proposal_id` from where the robot is (closed loop): stores the
+    /// executed prefix `transitions` as a partial trajectory of it (idempotently with
+    /// `idempotency_key`, as any posted trajectory), then proposes again from the prefix's last
+    /// observed state to the same goal, for the same client (the lease carries over) and with
+    /// the same strategy. The prefix must start at the proposal's start. When no trajectory
+    /// reaches the goal from there the answer is `no_plan`; the prefix stays stored.
+    pub async fn continue_proposal(
+        &self,
+        id: i64,
+        proposal_id: i64,
+        request: ContinueRequest,
+        idempotency_key: Option<&[u8]>,
+    ) -> Result<(Ingested, ProposalRecord)> {
+        let ContinueRequest {
+            transitions,
+            candidates,
+        } = request;
+        let stored = self.store.proposal(id, proposal_id).await?;
+        let stored = stored.ok_or_else(|| no_proposal(id, proposal_id))?;
+        let terms = stored.terms.clone();
+        let Some(first) = transitions.first() else {
+            return Err(Error::validation(
+                "transitions",
+                "must hold the executed prefix: at least one transition",
+            ));
+        };
+        let close = first.s.len() == terms.start.len()
+            && first
+                .s
+                .iter()
+                .zip(&terms.start)
+                .all(|(a, b)| (a - b).abs() <= 1e-9 * (1.0 + b.abs()));
+        if !close {
+            return Err(Error::validation(
+                "transitions[0].s",
+                format!("must be the proposal's start {:?}", terms.start),
+            ));
+        }
+        let here = transitions
+            .last()
+            .map(|t| t.s_next.clone())
+            .unwrap_or_default();
+        let ingested = self
+            .ingest(
+                id,
+                TrajectoryRequest {
+                    proposal_id: Some(proposal_id),
+                    partial: true,
+                    transitions,
+                },
+                idempotency_key,
+            )
+            .await?;
+        let (next, _) = self
+            .propose(
+                id,
+                ProposalRequest {
+                    start: here,
+                    goal: terms.goal,
+                    client_id: terms.client_id,
+                    strategy: Some(terms.strategy),
+                    candidates,
+                },
+            )
+            .await
+            .map_err(|e| match e {
+                Error::Validation { field, reason } if field.starts_with("start") => {
+                    Error::validation(
+                        format!("transitions[-1].s_next{}", &field["start".len()..]),
+                        format!(
+                            "{reason} (the executed prefix is stored as trajectory {})",
+                            ingested.record.trajectory_id
+                        ),
+                    )
+                }
+                e => e,
+            })?;
+        Ok((ingested, next))
     }
 
     /// One proposal, its lease brought up to date.

@@ -418,6 +418,79 @@ async fn proposals_are_leases() {
 }
 
 #[tokio::test]
+async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robot_is() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    let path = format!("/v1/experiments/{id}/proposals");
+    let (status, first) = app
+        .post(
+            &path,
+            &json!({"start": [0, 0], "goal": [0, 4], "client_id": "robot-a"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{first}");
+    let pid = first["id"].as_i64().unwrap();
+    let states = first["trajectory"]["states"].as_array().unwrap().clone();
+    let actions = first["trajectory"]["actions"].as_array().unwrap().clone();
+    assert!(actions.len() >= 2, "{first}");
+    // The robot executes the first step only, in the true world, and asks to go on from there.
+    let mut world = IcyGridworld::default_layout().world();
+    let s0: Vec<f64> = serde_json::from_value(states[0].clone()).unwrap();
+    let a0: Vec<f64> = serde_json::from_value(actions[0].clone()).unwrap();
+    let s1 = world.step(&s0, &a0);
+    let prefix = json!({"transitions": [{"s": s0, "a": a0, "s_next": s1}]});
+    let url = app.url(&format!("{path}/{pid}/continue"));
+    let send = |key: &'static str, body: Value| {
+        app.client
+            .post(&url)
+            .header("Idempotency-Key", key)
+            .json(&body)
+            .send()
+    };
+    let response = send("step-1", prefix.clone()).await.unwrap();
+    assert_eq!(response.status().as_u16(), 201);
+    let next: Value = response.json().await.unwrap();
+    assert_eq!(next["trajectory"]["proposal_id"], pid, "{next}");
+    assert_eq!(next["trajectory"]["n_transitions"], 1, "{next}");
+    assert_eq!(next["trajectory"]["partial"], true, "{next}");
+    let new_id = next["proposal"]["id"].as_i64().unwrap();
+    assert_ne!(new_id, pid);
+    assert_eq!(next["proposal"]["client_id"], "robot-a");
+    assert_eq!(next["proposal"]["start"], json!(s1));
+    assert_eq!(next["proposal"]["goal"], json!([0.0, 4.0]));
+    assert_eq!(next["proposal"]["status"], "open");
+    let (_, old) = app.get(&format!("{path}/{pid}")).await;
+    assert_eq!(old["status"], "executed", "the prefix closes the old lease");
+    let stored = app.all_transitions(id).await;
+    assert_eq!(stored.len(), 1, "the prefix is stored once");
+
+    // A retry after a lost answer stores nothing twice and hands back the same lease.
+    let again = send("step-1", prefix.clone()).await.unwrap();
+    assert_eq!(again.headers()["idempotent-replayed"], "true");
+    let again: Value = again.json().await.unwrap();
+    assert_eq!(again["trajectory"], next["trajectory"]);
+    assert_eq!(again["proposal"]["id"], new_id);
+    assert_eq!(app.all_transitions(id).await.len(), 1);
+
+    // A prefix that does not start where the proposal did is refused, and nothing is stored.
+    let (status, err) = app
+        .post(
+            &format!("{path}/{new_id}/continue"),
+            &json!({"transitions": [{"s": [3, 3], "a": [1, 0], "s_next": [4, 3]}]}),
+        )
+        .await;
+    assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
+    assert_eq!(
+        err["error"]["details"]["field"], "transitions[0].s",
+        "{err}"
+    );
+    assert_eq!(app.all_transitions(id).await.len(), 1);
+    let (status, _) = app.post(&format!("{path}/9999/continue"), &prefix).await;
+    assert_eq!(status, 404);
+}
+
+#[tokio::test]
 async fn no_plan_is_422_with_the_extensions_used() {
     let (_dir, db) = temp_db();
     let app = spawn_app(&db).await;

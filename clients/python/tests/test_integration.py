@@ -203,6 +203,32 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         assert scored.candidates is not None and scored.candidates[0].reaches_goal
 
 
+def test_a_proposal_continues_from_where_the_robot_is(make_server: MakeServer) -> None:
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60, client_id="arm-1")
+        client.create_experiment(settings(served.url, "closed-loop"))
+        start, goal = np.array([0.1, 0.2]), np.array([0.5, 0.2])
+        first = client.propose(start, goal)
+        actions = first.trajectory.actions
+        assert len(actions) >= 2
+        states = execute(start, actions[:2])
+        prefix = transitions_from_states(states, actions[:2])
+
+        step = client.continue_proposal(first.id, prefix)
+        assert step.trajectory.partial and step.trajectory.proposal_id == first.id
+        assert step.trajectory.n_transitions == 2 and not step.trajectory.replayed
+        assert step.proposal.id != first.id and step.proposal.client_id == "arm-1"
+        np.testing.assert_allclose(step.proposal.start, states[-1])
+        np.testing.assert_allclose(step.proposal.goal, goal)
+        assert client.get_proposal(first.id).status == "executed"
+
+        again = client.continue_proposal(first.id, prefix)
+        assert again.trajectory.replayed and again.trajectory.id == step.trajectory.id
+        assert again.proposal.id == step.proposal.id
+        assert len(list(client.transitions())) == 2
+
+
 def test_a_training_problem_beyond_the_precondition_is_relaxed_unless_the_paper_preset(
     make_server: MakeServer,
 ) -> None:

@@ -181,6 +181,15 @@ const ENTRIES: &[Entry] = &[
     // planning
     entry::<api::ProposalRequest>("ProposalRequest", Request),
     entry::<api::CandidateTrajectory>("CandidateTrajectory", Request),
+    entry::<api::ContinueRequest>("ContinueRequest", Request),
+    adjusted::<api::ContinueResponse>(
+        "ContinueResponse",
+        Response,
+        &[Adjust::Require(
+            "proposal.trajectory",
+            &["alpha_step", "alpha"],
+        )],
+    ),
     // A plan's trajectory has no acquisition values; a proposal's always has them.
     adjusted::<api::PlannedTrajectory>(
         "PlannedTrajectory",

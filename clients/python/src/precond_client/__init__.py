@@ -36,6 +36,7 @@ from .model_server import ModelServer, serve_model
 from .models import (
     Candidate,
     CandidateScore,
+    Continued,
     Experiment,
     FitRefusal,
     HeldOutTrust,
@@ -64,6 +65,7 @@ __all__ = [
     "CandidateScore",
     "Client",
     "Conflict",
+    "Continued",
     "DeadlineExceeded",
     "Episode",
     "Experiment",

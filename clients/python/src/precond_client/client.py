@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike
 from . import errors
 from .models import (
     Candidate,
+    Continued,
     Experiment,
     Model,
     Plan,
@@ -346,6 +347,37 @@ class Client:
         """Gives a proposal up, releasing its lease (repeating it is harmless)."""
         r = self._request("POST", self._path(f"/proposals/{proposal_id}/abandon"))
         return Proposal.from_json(r.json())
+
+    def continue_proposal(
+        self,
+        proposal_id: int,
+        transitions: Iterable[Transition | Mapping[str, Any]],
+        candidates: Sequence[Candidate] | None = None,
+        idempotency_key: str | None = None,
+    ) -> Continued:
+        """Closed-loop execution: posts the prefix of proposal ``proposal_id`` the robot has
+        executed (stored as a partial trajectory, closing the lease) and returns it with a new
+        proposal from the last ``s_next`` to the same goal, leased to the same client.
+
+        The first transition must start at the proposal's start. The default
+        ``Idempotency-Key`` is ``continue-<id>``: a proposal is continued once, so a retry after
+        a lost answer stores nothing twice and returns the same new proposal. With
+        ``candidates`` (a client-side model) the server scores them instead of planning.
+        """
+        items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
+        if not items:
+            raise ValueError("continuing a proposal needs the executed prefix")
+        body: dict[str, Any] = {"transitions": items}
+        if candidates is not None:
+            body["candidates"] = [c.to_json() for c in candidates]
+        r = self._request(
+            "POST",
+            self._path(f"/proposals/{int(proposal_id)}/continue"),
+            json=body,
+            headers={"Idempotency-Key": idempotency_key or f"continue-{int(proposal_id)}"},
+        )
+        replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
+        return Continued.from_json(r.json(), replayed=replayed)
 
     def plan(
         self,

@@ -388,6 +388,25 @@ class Proposal:
 
 
 @dataclass(frozen=True)
+class Continued:
+    """The answer to continuing a proposal (schema ``ContinueResponse``): the executed prefix,
+    stored as a partial trajectory, and the proposal planned from where the robot now is."""
+
+    SCHEMA: ClassVar[str] = "ContinueResponse"
+
+    trajectory: TrajectoryCreated
+    proposal: Proposal
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any], replayed: bool = False) -> Continued:
+        """Reads the JSON form."""
+        return cls(
+            trajectory=TrajectoryCreated.from_json(d["trajectory"], replayed=replayed),
+            proposal=Proposal.from_json(dict(d["proposal"])),
+        )
+
+
+@dataclass(frozen=True)
 class RejectionCounts:
     """Why a search's extensions added nothing to its tree (schema ``RejectionCounts``)."""
 
