@@ -49,3 +49,16 @@ pub const MAX_TIMELINE_ROWS: i64 = 10_000;
 /// Transitions after a model version's training set that its diagnostics judge (the first
 /// `10 000`).
 pub const MAX_LATER_TRANSITIONS: i64 = 10_000;
+/// Largest magnitude of a number that fixes a domain's geometry: a state or action bound, a
+/// discrete action value, an obstacle corner, a goal radius, a distance weight, an entry of a
+/// linear model: `1e12`. Within it, the widths of the bounds, squared distances and the MDE's
+/// targets stay far from overflowing `f64` (a width of `2e308` is infinite and nothing can be
+/// sampled in it).
+pub const MAX_MAGNITUDE: f64 = 1e12;
+/// Largest magnitude of the MDE's prior mean `mde.prior_mean`: [`MAX_MAGNITUDE`], so that the
+/// centred targets' mean square stays finite.
+pub const MAX_PRIOR_MEAN: f64 = MAX_MAGNITUDE;
+/// Largest value of the β schedule's `k1` and `k2`, the exploration weight `c` and the magnitude
+/// of `test_beta`: `1e6`. A β of 8 already asks for a one-in-10¹⁵ error; beyond `1e6` only the
+/// arithmetic changes (`2 k1` overflows at `k1 ≈ 9e307`, `μ − c σ` becomes infinite).
+pub const MAX_LEARNING_SCALE: f64 = 1e6;
