@@ -9,7 +9,7 @@
 use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
 use super::{Error, Result, Service};
 use crate::api::{CandidateView, PlannedTrajectory, ProposalContent, ProposalRequest};
-use crate::limits::MAX_CLIENT_ID_LEN;
+use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
@@ -152,6 +152,9 @@ impl Service {
                     "client_id",
                     format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
                 ));
+            }
+            if let Some(why) = text_problem(client) {
+                return Err(Error::validation("client_id", why));
             }
             if let Some(open) = self.store.open_proposal(id, client).await? {
                 return Ok((lease_answer(open, &request)?, false));

@@ -230,6 +230,11 @@ impl SpaceSpec {
                 "must be 1 to 64 characters",
             ));
         }
+        for (k, name) in self.names.iter().enumerate() {
+            if let Some(why) = crate::limits::text_problem(name) {
+                return Err(bad(&format!("{what}.names[{k}]"), why));
+            }
+        }
         Ok(self)
     }
 

@@ -508,6 +508,9 @@ impl ExperimentRequest {
                 format!("at most {MAX_NAME_LEN} characters"),
             ));
         }
+        if let Some(why) = crate::limits::text_problem(&self.name) {
+            return Err(InvalidSetting::new("name", why));
+        }
         let d_max = self.d_max.unwrap_or_else(|| domain.default_d_max());
         positive("d_max", d_max)?;
         let cap = self

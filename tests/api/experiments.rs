@@ -253,6 +253,47 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
     );
 }
 
+/// Names and client ids end up in terminals, logs and CSV exports: control characters and
+/// bidirectional overrides in them are refused, the field named.
+#[tokio::test]
+async fn control_characters_in_names_and_client_ids_are_refused() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    for name in ["a\u{0}b", "\u{1b}[2J", "evil\u{202e}txt.exe", "two\nlines"] {
+        let (status, err) = app.post("/v1/experiments", &json!({ "name": name })).await;
+        assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
+        assert_eq!(err["error"]["details"]["field"], "name");
+    }
+    let custom = json!({"domain": {"kind": "custom",
+        "state": {"names": ["x", "y\u{1b}"], "low": [0, 0], "high": [1, 1]},
+        "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+        "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}}});
+    let (status, err) = app.post("/v1/experiments", &custom).await;
+    assert_eq!(status, 422, "{err}");
+    assert_eq!(err["error"]["details"]["field"], "domain.state.names[1]");
+    let (_, listed) = app.get("/v1/experiments").await;
+    assert_eq!(listed["total"], 0, "nothing stored: {listed}");
+
+    let id = app
+        .create_experiment(json!({"name": "Bench 2 — arm ü"}))
+        .await;
+    let (status, err) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "\u{0}\n\r\u{1b}"}),
+        )
+        .await;
+    assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
+    assert_eq!(err["error"]["details"]["field"], "client_id");
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+}
+
 #[tokio::test]
 async fn unknown_things_are_404_in_the_error_shape() {
     let (_dir, db) = temp_db();
