@@ -348,6 +348,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                     tokens,
                     shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
                     cors_allow_origins: args.cors_allow_origins,
+                    bound: None,
                 },
             );
             serve(listener, state, shutdown_signal()).await

@@ -19,6 +19,10 @@ pub enum ApiError {
     /// The body is not well-formed JSON (400 `bad_request`).
     #[error("{0}")]
     BadRequest(String),
+    /// The body is not declared as JSON (`Content-Type: application/json`) (415
+    /// `unsupported_media_type`).
+    #[error("{0}")]
+    UnsupportedMediaType(String),
     /// The body is larger than the configured limit (413 `payload_too_large`).
     #[error("request body larger than {limit} bytes")]
     PayloadTooLarge {
@@ -58,6 +62,7 @@ impl ApiError {
         match self {
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,
             Self::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             Self::Unauthorized => StatusCode::UNAUTHORIZED,
@@ -84,6 +89,7 @@ impl ApiError {
         match self {
             Self::BadRequest(_) => "bad_request",
             Self::PayloadTooLarge { .. } => "payload_too_large",
+            Self::UnsupportedMediaType(_) => "unsupported_media_type",
             Self::MethodNotAllowed => "method_not_allowed",
             Self::Unavailable(_) => "unavailable",
             Self::Unauthorized => "unauthorized",

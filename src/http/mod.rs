@@ -9,6 +9,7 @@ pub mod auth;
 pub mod error;
 mod experiments;
 pub mod extract;
+pub mod guard;
 mod health;
 mod inspection;
 pub mod metrics;
@@ -52,6 +53,10 @@ pub struct HttpConfig {
     /// Origins (`scheme://host[:port]`) whose pages may call the API from a browser (CORS), e.g.
     /// a dashboard served by another precond; none by default.
     pub cors_allow_origins: Vec<String>,
+    /// The address the server listens on, set by [`serve`] from its listener. With no tokens
+    /// and a loopback address, requests must name this machine in `Host` and writes from web
+    /// pages must come from its own origin (see [`guard`]).
+    pub bound: Option<std::net::SocketAddr>,
 }
 
 impl Default for HttpConfig {
@@ -61,6 +66,7 @@ impl Default for HttpConfig {
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
             cors_allow_origins: Vec::new(),
+            bound: None,
         }
     }
 }
@@ -242,6 +248,17 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
     let limit = state.config.max_body_bytes;
     let tokens = state.config.tokens.clone();
     let cors = cors(&state.config.cors_allow_origins)?;
+    let loopback_guard =
+        (tokens.is_none() && state.config.bound.is_some_and(|a| a.ip().is_loopback())).then(|| {
+            Arc::new(guard::LoopbackGuard {
+                allowed_origins: state
+                    .config
+                    .cors_allow_origins
+                    .iter()
+                    .map(|o| o.trim_end_matches('/').to_ascii_lowercase())
+                    .collect(),
+            })
+        });
     metrics::handle();
     let mut router = Router::new();
     for r in routes() {
@@ -265,6 +282,9 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
             },
         ))
         .layer(DefaultBodyLimit::max(limit))
+        .layer(option_layer(loopback_guard.map(|g| {
+            middleware::from_fn(move |req: Request, next: Next| guard::guard(g.clone(), req, next))
+        })))
         .layer(option_layer(cors))
         .layer(CatchPanicLayer::custom(panic_response))
         .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
@@ -308,6 +328,13 @@ pub async fn serve(
     let store = state.service.store().clone();
     let grace = state.config.shutdown_grace;
     let addr = listener.local_addr()?;
+    let state = AppState {
+        config: Arc::new(HttpConfig {
+            bound: Some(addr),
+            ..(*state.config).clone()
+        }),
+        ..state
+    };
     tracing::info!(%addr, "serving");
     let service = state.service.clone();
     tokio::spawn(async move {

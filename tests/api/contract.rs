@@ -65,6 +65,7 @@ fn one_of_every_error() -> Vec<ApiError> {
     let errors = vec![
         ApiError::BadRequest("malformed".into()),
         ApiError::PayloadTooLarge { limit: 1 },
+        ApiError::UnsupportedMediaType("form".into()),
         ApiError::MethodNotAllowed,
         ApiError::Unavailable("database".into()),
         ApiError::Unauthorized,
@@ -107,6 +108,7 @@ fn one_of_every_error() -> Vec<ApiError> {
         match e {
             ApiError::BadRequest(_)
             | ApiError::PayloadTooLarge { .. }
+            | ApiError::UnsupportedMediaType(_)
             | ApiError::MethodNotAllowed
             | ApiError::Unavailable(_)
             | ApiError::Unauthorized

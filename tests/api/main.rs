@@ -10,5 +10,6 @@ mod helpers;
 mod learning;
 mod limits;
 mod model_server;
+mod posture;
 mod trajectories;
 mod upgrade;
