@@ -37,10 +37,11 @@ pub enum Command {
 /// Options of `precond backup`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BackupArgs {
-    /// The database being served: a path or a `sqlite://` URL.
+    /// The database being served: a path or a `sqlite://` URL. It must exist; it is only read.
     #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
     pub database_url: String,
-    /// The new file to write (must not exist).
+    /// The new file to write (must not exist). The copy is written under a temporary name
+    /// beside it and takes this name only once complete and checked.
     #[arg(long, value_name = "FILE")]
     pub to: std::path::PathBuf,
 }
@@ -416,22 +417,14 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             .await
         }
         Command::Backup(args) => {
-            anyhow::ensure!(
-                !args.to.exists(),
-                "{} exists; a backup goes to a new file",
-                args.to.display()
-            );
-            let to = args.to.to_str().context("the backup path is not UTF-8")?;
-            let store = Store::open(&args.database_url).await?;
-            store
-                .backup_to(to)
-                .await
-                .with_context(|| format!("writing the backup {to}"))?;
-            let size = store.size().await?;
-            store.close().await;
+            let size = crate::store::backup(&args.database_url, &args.to).await?;
             println!(
-                "backed up {} experiments, {} trajectories, {} transitions to {to}",
-                size.experiments, size.trajectories, size.transitions
+                "backed up {} experiments, {} trajectories, {} transitions ({} bytes) to {}",
+                size.experiments,
+                size.trajectories,
+                size.transitions,
+                size.bytes,
+                args.to.display()
             );
             Ok(())
         }
