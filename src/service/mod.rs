@@ -45,6 +45,27 @@ use crate::store::Store;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// What a search is for, for the metrics it counts itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum SearchKind {
+    /// A training proposal (`precond_proposals_total`).
+    Proposal,
+    /// A test-time plan.
+    Plan,
+}
+
+impl SearchKind {
+    /// Counts a search its client abandoned (the request is gone, so the search counts it).
+    fn count_cancelled(self) {
+        match self {
+            Self::Proposal => {
+                metrics::counter!("precond_proposals_total", "outcome" => "cancelled").increment(1)
+            }
+            Self::Plan => {}
+        }
+    }
+}
+
 /// The service: the store, the operator's policies and the experiments this process has
 /// loaded. Cheap to clone.
 #[derive(Debug, Clone)]
@@ -103,11 +124,16 @@ impl Service {
     }
 
     /// Runs a planning search through the work gate (see [`work`](mod@work)): waits for a
-    /// slot until the deadline counted from `arrived`, then searches on the blocking pool with
-    /// that deadline and a flag raised if this future is dropped (the client went away).
+    /// slot until the deadline counted from `arrived`, then searches on a thread of its own
+    /// with that deadline and a flag raised if this future is dropped (the client went away).
+    ///
+    /// A search stopped by that flag is counted by the search itself
+    /// (`precond_proposals_total{outcome="cancelled"}` for a proposal): nobody is left to
+    /// count the answer.
     pub(crate) async fn search<T: Send + 'static>(
         &self,
         arrived: Instant,
+        kind: SearchKind,
         search: impl FnOnce(&Budget) -> Result<T, PlanningError> + Send + 'static,
     ) -> Result<T> {
         let (slot, deadline) = self.work.plan_slot(arrived).await?;
@@ -116,7 +142,15 @@ impl Service {
             // The slot is held by the running search, not by the request: a cancelled
             // request's slot frees when its search has actually stopped.
             let _slot = slot;
-            search(&budget)
+            let outcome = search(&budget);
+            if let Err(PlanningError::Stopped {
+                reason: Stop::Cancelled,
+                ..
+            }) = &outcome
+            {
+                kind.count_cancelled();
+            }
+            outcome
         })
         .await?;
         outcome.map_err(|e| match e {

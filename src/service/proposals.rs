@@ -116,7 +116,9 @@ impl Service {
     /// Proposes the trajectory to execute next for `request`'s problem (see the module docs).
     /// Returns the proposal and whether it is new (`false`: the client's open lease).
     ///
-    /// Counts each answer in `precond_proposals_total` by outcome.
+    /// Counts each answer in `precond_proposals_total` by outcome; a search whose client went
+    /// away is counted as `cancelled` by the search itself (see [`Service::search`]), since
+    /// this future is dropped with the request.
     pub async fn propose(
         &self,
         id: i64,
@@ -124,13 +126,14 @@ impl Service {
     ) -> Result<(ProposalRecord, bool)> {
         let answer = self.propose_unmetered(id, request).await;
         let outcome = match &answer {
+            // Counted where the search stopped.
+            Err(Error::Cancelled) => return answer,
             Ok((_, true)) => "created",
             Ok((_, false)) => "lease_returned",
             Err(Error::NoPlan { .. }) => "no_plan",
             Err(Error::LeaseHeld { .. }) => "lease_held",
             Err(Error::DeadlineExceeded { .. }) => "deadline_exceeded",
             Err(Error::Overloaded { .. }) => "overloaded",
-            Err(Error::Cancelled) => "cancelled",
             Err(Error::Validation { .. } | Error::NotFound(_)) => "invalid",
             Err(_) => "failed",
         };
@@ -211,7 +214,7 @@ impl Service {
                 needs_candidates(&live)?;
                 let live = live.clone();
                 let proposal = self
-                    .search(arrived, move |budget| {
+                    .search(arrived, super::SearchKind::Proposal, move |budget| {
                         live.planner(&model)
                             .within(budget.clone())
                             .propose_relaxing(strategy, &problem, &ladder, seed)

@@ -105,6 +105,7 @@ async fn a_client_that_goes_away_cancels_its_search() {
     // One slot and a long deadline: only cancellation can free the slot quickly.
     let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
+    let cancelled_before = cancelled_proposals(&app).await;
     let impatient = reqwest::Client::builder()
         .timeout(Duration::from_millis(300))
         .build()
@@ -129,6 +130,28 @@ async fn a_client_that_goes_away_cancels_its_search() {
         "{:?}",
         started.elapsed()
     );
+    // The abandoned search counted itself before it gave its slot up (its request was gone).
+    assert!(
+        cancelled_proposals(&app).await > cancelled_before,
+        "precond_proposals_total{{outcome=\"cancelled\"}} did not grow"
+    );
+}
+
+/// `precond_proposals_total{outcome="cancelled"}` now (0 before the first; the recorder is
+/// the process's, shared by the tests running beside this one, so only its growth counts).
+async fn cancelled_proposals(app: &TestApp) -> u64 {
+    let text = app
+        .client
+        .get(app.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix("precond_proposals_total{outcome=\"cancelled\"} "))
+        .map_or(0, |v| v.trim().parse().unwrap())
 }
 
 #[tokio::test]
