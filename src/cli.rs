@@ -196,6 +196,11 @@ pub struct ServeArgs {
     /// Planning searches and fits running at once (1 ..= 256; default: the number of cores).
     #[arg(long, env = "PRECOND_MAX_CONCURRENT_PLANS")]
     pub max_concurrent_plans: Option<usize>,
+    /// Planning searches (and model rebuilds) of one experiment running at once, so that one
+    /// client flooding one experiment cannot take every slot (1 ..= 256; default: half of
+    /// max-concurrent-plans, at least 1).
+    #[arg(long, env = "PRECOND_MAX_PLANS_PER_EXPERIMENT")]
+    pub max_plans_per_experiment: Option<usize>,
     /// Planning requests waiting for a slot before new ones get `429` (0 ..= 10 000; default:
     /// 8 × max-concurrent-plans).
     #[arg(long, env = "PRECOND_MAX_QUEUED_PLANS")]
@@ -234,6 +239,9 @@ impl ServeArgs {
             .unwrap_or(defaults.max_concurrent_plans);
         let limits = Limits {
             max_concurrent_plans: concurrent,
+            max_plans_per_experiment: self
+                .max_plans_per_experiment
+                .unwrap_or(Limits::default_per_experiment(concurrent)),
             max_queued_plans: self.max_queued_plans.unwrap_or(8 * concurrent),
             plan_timeout: std::time::Duration::from_millis(self.plan_timeout_ms),
             max_experiments: self.max_experiments,

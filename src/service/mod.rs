@@ -123,8 +123,8 @@ impl Service {
         self.live.get(&self.store, &self.work, id).await
     }
 
-    /// Runs a planning search through the work gate (see [`work`](mod@work)): waits for a
-    /// slot until the deadline counted from `arrived`, then searches on a thread of its own
+    /// Runs a planning search of `experiment` through the work gate (see [`work`](mod@work)):
+    /// waits for a slot (experiments take turns) until the deadline counted from `arrived`, then searches on a thread of its own
     /// with that deadline and a flag raised if this future is dropped (the client went away).
     ///
     /// A search stopped by that flag is counted by the search itself
@@ -132,11 +132,12 @@ impl Service {
     /// count the answer.
     pub(crate) async fn search<T: Send + 'static>(
         &self,
+        experiment: i64,
         arrived: Instant,
         kind: SearchKind,
         search: impl FnOnce(&Budget) -> Result<T, PlanningError> + Send + 'static,
     ) -> Result<T> {
-        let (slot, deadline) = self.work.plan_slot(arrived).await?;
+        let (slot, deadline) = self.work.plan_slot(experiment, arrived).await?;
         let (budget, _cancel_on_drop) = WorkGate::budget(deadline);
         let outcome = work::run_niced(move || {
             // The slot is held by the running search, not by the request: a cancelled

@@ -214,7 +214,7 @@ impl Service {
                 needs_candidates(&live)?;
                 let live = live.clone();
                 let proposal = self
-                    .search(arrived, super::SearchKind::Proposal, move |budget| {
+                    .search(id, arrived, super::SearchKind::Proposal, move |budget| {
                         live.planner(&model)
                             .within(budget.clone())
                             .propose_relaxing(strategy, &problem, &ladder, seed)
