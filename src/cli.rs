@@ -215,6 +215,13 @@ pub struct ServeArgs {
     /// Transitions in one posted trajectory (1 ..= 10 000).
     #[arg(long, env = "PRECOND_MAX_TRANSITIONS", default_value_t = crate::limits::MAX_TRANSITIONS)]
     pub max_transitions: usize,
+    /// Seconds a client has to send a request's headers; also how long a kept-alive connection
+    /// may stay idle (1 ..= 600).
+    #[arg(long, env = "PRECOND_HEADER_READ_TIMEOUT_SECS", default_value_t = 30)]
+    pub header_read_timeout_secs: u64,
+    /// Seconds a client has to send a request's whole body; past them `408` (1 ..= 3600).
+    #[arg(long, env = "PRECOND_BODY_READ_TIMEOUT_SECS", default_value_t = 60)]
+    pub body_read_timeout_secs: u64,
     /// Seconds in-flight requests may run on after SIGTERM before they are dropped.
     #[arg(long, env = "PRECOND_SHUTDOWN_GRACE_SECS", default_value_t = 20)]
     pub shutdown_grace_secs: u64,
@@ -249,6 +256,23 @@ impl ServeArgs {
         };
         limits.check().map_err(anyhow::Error::msg)?;
         Ok(limits)
+    }
+}
+
+impl ServeArgs {
+    /// Checks the connection timeouts' ranges; the error names the option.
+    pub fn check_timeouts(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            (1..=600).contains(&self.header_read_timeout_secs),
+            "--header-read-timeout-secs must lie in 1 ..= 600, got {}",
+            self.header_read_timeout_secs
+        );
+        anyhow::ensure!(
+            (1..=3600).contains(&self.body_read_timeout_secs),
+            "--body-read-timeout-secs must lie in 1 ..= 3600, got {}",
+            self.body_read_timeout_secs
+        );
+        Ok(())
     }
 }
 
@@ -335,6 +359,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 tracing::info!(prefixes = ?model_urls.prefixes(), "remote dynamics models allowed");
             }
             let limits = args.limits()?;
+            args.check_timeouts()?;
             let tokens = load_tokens(args.token_file.as_deref())?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
                 .await
@@ -356,6 +381,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                     max_body_bytes: args.max_body_bytes,
                     tokens,
                     shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
+                    header_read_timeout: std::time::Duration::from_secs(
+                        args.header_read_timeout_secs,
+                    ),
+                    body_read_timeout: std::time::Duration::from_secs(args.body_read_timeout_secs),
                     cors_allow_origins: args.cors_allow_origins,
                     bound: None,
                 },

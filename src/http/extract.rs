@@ -33,7 +33,19 @@ where
             .get::<BodyLimit>()
             .map(|l| l.0)
             .unwrap_or(0);
-        let bytes = Bytes::from_request(req, state).await.map_err(|r| {
+        let within = req
+            .extensions()
+            .get::<BodyReadTimeout>()
+            .map_or(DEFAULT_BODY_READ_TIMEOUT, |t| t.0);
+        let read = tokio::time::timeout(within, Bytes::from_request(req, state))
+            .await
+            .map_err(|_| {
+                ApiError::RequestTimeout(format!(
+                    "the request body did not arrive within {} s",
+                    within.as_secs_f64()
+                ))
+            })?;
+        let bytes = read.map_err(|r| {
             if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
                 ApiError::PayloadTooLarge { limit }
             } else {
@@ -73,6 +85,14 @@ pub fn check_json_content_type(headers: &HeaderMap) -> Result<(), ApiError> {
         ))),
     }
 }
+
+/// The longest time to receive a request body, put in the request extensions by the app
+/// ([`HttpConfig::body_read_timeout`](super::HttpConfig::body_read_timeout)).
+#[derive(Debug, Clone, Copy)]
+pub struct BodyReadTimeout(pub std::time::Duration);
+
+/// The body deadline when the app did not set one.
+const DEFAULT_BODY_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// The configured body limit, put in the request extensions so errors can state it.
 #[derive(Debug, Clone, Copy)]

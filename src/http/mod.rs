@@ -16,6 +16,7 @@ pub mod metrics;
 mod model;
 mod proposals;
 mod render;
+pub mod server;
 mod trajectories;
 mod ui;
 
@@ -50,6 +51,11 @@ pub struct HttpConfig {
     /// How long in-flight requests may run on after shutdown is requested before they are
     /// dropped (a dropped search stops at its next round).
     pub shutdown_grace: Duration,
+    /// Longest wait for a request's complete headers, and the idle time after which a
+    /// kept-alive connection is closed (see [`server`]).
+    pub header_read_timeout: Duration,
+    /// Longest time to receive a request's whole body; past it `408 request_timeout`.
+    pub body_read_timeout: Duration,
     /// Origins (`scheme://host[:port]`) whose pages may call the API from a browser (CORS), e.g.
     /// a dashboard served by another precond; none by default.
     pub cors_allow_origins: Vec<String>,
@@ -65,6 +71,8 @@ impl Default for HttpConfig {
             max_body_bytes: 4 * 1024 * 1024,
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
+            header_read_timeout: Duration::from_secs(30),
+            body_read_timeout: Duration::from_secs(60),
             cors_allow_origins: Vec::new(),
             bound: None,
         }
@@ -246,6 +254,7 @@ pub fn routes() -> Vec<Route> {
 /// invalid CORS origin.
 pub fn app(state: AppState) -> anyhow::Result<Router> {
     let limit = state.config.max_body_bytes;
+    let body_timeout = extract::BodyReadTimeout(state.config.body_read_timeout);
     let tokens = state.config.tokens.clone();
     let cors = cors(&state.config.cors_allow_origins)?;
     let loopback_guard =
@@ -278,6 +287,7 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
         .layer(middleware::from_fn(
             move |mut req: Request, next: Next| async move {
                 req.extensions_mut().insert(BodyLimit(limit));
+                req.extensions_mut().insert(body_timeout);
                 next.run(req).await
             },
         ))
@@ -349,7 +359,10 @@ pub async fn serve(
         shutdown.await;
         let _ = requested_tx.send(());
     };
-    let server = axum::serve(listener, app(state)?).with_graceful_shutdown(signal);
+    let limits = server::ConnLimits {
+        header_read: state.config.header_read_timeout,
+    };
+    let server = server::run(listener, app(state)?, limits, signal);
     let grace_over = async move {
         if requested_rx.await.is_ok() {
             tokio::time::sleep(grace).await;
@@ -358,7 +371,7 @@ pub async fn serve(
         }
     };
     tokio::select! {
-        served = server => served?,
+        () = server => {},
         () = grace_over => tracing::warn!(
             seconds = grace.as_secs_f64(),
             "grace period over: dropping the requests still in flight"

@@ -66,6 +66,7 @@ fn one_of_every_error() -> Vec<ApiError> {
         ApiError::BadRequest("malformed".into()),
         ApiError::PayloadTooLarge { limit: 1 },
         ApiError::UnsupportedMediaType("form".into()),
+        ApiError::RequestTimeout("slow".into()),
         ApiError::MethodNotAllowed,
         ApiError::Unavailable("database".into()),
         ApiError::Unauthorized,
@@ -109,6 +110,7 @@ fn one_of_every_error() -> Vec<ApiError> {
             ApiError::BadRequest(_)
             | ApiError::PayloadTooLarge { .. }
             | ApiError::UnsupportedMediaType(_)
+            | ApiError::RequestTimeout(_)
             | ApiError::MethodNotAllowed
             | ApiError::Unavailable(_)
             | ApiError::Unauthorized

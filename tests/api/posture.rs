@@ -223,3 +223,81 @@ async fn with_tokens_the_host_is_not_checked_but_bodies_must_be_json() {
     .await;
     assert_eq!(status, 201, "{body}");
 }
+
+/// Slowloris: a connection that sends its headers a byte at a time, says nothing, or trickles
+/// its body is closed (or answered `408`) once its time is up.
+#[tokio::test]
+async fn slow_headers_idle_connections_and_slow_bodies_are_timed_out() {
+    use std::time::{Duration, Instant};
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with(
+        &db,
+        HttpConfig {
+            header_read_timeout: Duration::from_millis(600),
+            body_read_timeout: Duration::from_millis(600),
+            ..HttpConfig::default()
+        },
+    )
+    .await;
+    // Reads until the server closes (or 5 s pass): what it answered, and when it closed.
+    async fn until_closed(s: &mut tokio::net::TcpStream, started: Instant) -> (String, Duration) {
+        let mut got = Vec::new();
+        let mut buf = [0u8; 4096];
+        loop {
+            match tokio::time::timeout(Duration::from_secs(5), s.read(&mut buf)).await {
+                Ok(Ok(0)) | Ok(Err(_)) => break,
+                Ok(Ok(n)) => got.extend_from_slice(&buf[..n]),
+                Err(_) => panic!("the server kept the connection open for 5 s"),
+            }
+        }
+        (
+            String::from_utf8_lossy(&got).into_owned(),
+            started.elapsed(),
+        )
+    }
+    // Headers never finished: closed without an answer.
+    let started = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(app.addr).await.unwrap();
+    s.write_all(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ")
+        .await
+        .unwrap();
+    for _ in 0..3 {
+        tokio::time::sleep(Duration::from_millis(150)).await;
+        let _ = s.write_all(b"a").await;
+    }
+    let (_, took) = until_closed(&mut s, started).await;
+    assert!(took < Duration::from_secs(3), "{took:?}");
+    // Connected and silent: closed too.
+    let started = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(app.addr).await.unwrap();
+    let (answer, took) = until_closed(&mut s, started).await;
+    assert!(
+        answer.is_empty() && took < Duration::from_secs(3),
+        "{took:?}"
+    );
+    // A kept-alive connection is served, then closed once idle.
+    let started = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(app.addr).await.unwrap();
+    s.write_all(b"GET /healthz HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+        .await
+        .unwrap();
+    let (answer, took) = until_closed(&mut s, started).await;
+    assert!(answer.starts_with("HTTP/1.1 200"), "{answer}");
+    assert!(took < Duration::from_secs(3), "{took:?}");
+    // A body that trickles: 408 in the error shape, then closed.
+    let started = Instant::now();
+    let mut s = tokio::net::TcpStream::connect(app.addr).await.unwrap();
+    s.write_all(
+        b"POST /v1/experiments HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/json\r\n\
+          Content-Length: 100\r\n\r\n{\"na",
+    )
+    .await
+    .unwrap();
+    let (answer, took) = until_closed(&mut s, started).await;
+    assert!(answer.starts_with("HTTP/1.1 408"), "{answer}");
+    assert!(answer.contains("\"request_timeout\""), "{answer}");
+    assert!(took < Duration::from_secs(3), "{took:?}");
+    // Prompt clients are unaffected.
+    assert_eq!(app.get("/healthz").await.0, 200);
+    assert_eq!(experiments(&app).await, 0);
+}
