@@ -2,7 +2,7 @@
 
 use crate::http::auth::TokenTable;
 use crate::http::{AppState, HttpConfig, serve};
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCallLimits, ModelUrlPolicy};
 use crate::service::{Limits, Service};
 use crate::store::Store;
 use anyhow::Context;
@@ -184,6 +184,17 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     pub allow_model_urls: Vec<String>,
+    /// Calls to remote models running at once, over all model URLs (1 ..= 1024). A call
+    /// beyond it waits, within its deadline, then gets `503 model_busy`.
+    #[arg(long, env = "PRECOND_MAX_MODEL_CALLS", default_value_t = 32)]
+    pub max_model_calls: usize,
+    /// Calls to one remote model URL running at once (1 ..= 1024).
+    #[arg(long, env = "PRECOND_MAX_MODEL_CALLS_PER_URL", default_value_t = 8)]
+    pub max_model_calls_per_url: usize,
+    /// The longest one remote model call may take, whatever `timeout_ms` its experiment
+    /// declares, waiting for a free call included, in milliseconds (1 ..= 600 000).
+    #[arg(long, env = "PRECOND_MAX_MODEL_TIMEOUT_MS", default_value_t = 30_000)]
+    pub max_model_timeout_ms: u64,
     /// Access tokens, one a line: `token role [experiment-ids|*]` with role `read`, `write` or
     /// `admin` (see the README's "Deploying for a lab"). Without it every request is let
     /// through, so the server then refuses a non-loopback address unless
@@ -260,6 +271,17 @@ impl ServeArgs {
 }
 
 impl ServeArgs {
+    /// The limits on remote model calls these options set, checked.
+    pub fn model_limits(&self) -> anyhow::Result<ModelCallLimits> {
+        let limits = ModelCallLimits {
+            max_calls: self.max_model_calls,
+            max_calls_per_url: self.max_model_calls_per_url,
+            max_timeout: std::time::Duration::from_millis(self.max_model_timeout_ms),
+        };
+        limits.check().map_err(anyhow::Error::msg)?;
+        Ok(limits)
+    }
+
     /// Checks the connection timeouts' ranges; the error names the option.
     pub fn check_timeouts(&self) -> anyhow::Result<()> {
         anyhow::ensure!(
@@ -359,6 +381,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 tracing::info!(prefixes = ?model_urls.prefixes(), "remote dynamics models allowed");
             }
             let limits = args.limits()?;
+            let model_limits = args.model_limits()?;
             args.check_timeouts()?;
             let tokens = load_tokens(args.token_file.as_deref())?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
@@ -374,9 +397,11 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 None => tracing::info!("no token file: every request is let through"),
             }
             let store = Store::open(&args.database_url).await?;
-            tracing::info!(?limits, "limits");
+            tracing::info!(?limits, ?model_limits, "limits");
             let state = AppState::with_service(
-                Service::with_model_urls(store, model_urls).with_limits(limits),
+                Service::with_model_urls(store, model_urls)
+                    .with_limits(limits)
+                    .with_model_limits(model_limits),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
                     tokens,

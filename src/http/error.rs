@@ -77,6 +77,8 @@ impl ApiError {
                 Error::Conflict(_) | Error::LeaseHeld { .. } => StatusCode::CONFLICT,
                 Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
+                Error::Dynamics(DynamicsError::Busy { .. }) => StatusCode::SERVICE_UNAVAILABLE,
+                Error::Dynamics(DynamicsError::NotAllowed { .. }) => StatusCode::CONFLICT,
                 Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
                 Error::Overloaded { .. } => StatusCode::TOO_MANY_REQUESTS,
                 Error::DeadlineExceeded { .. } | Error::Cancelled => {
@@ -108,6 +110,8 @@ impl ApiError {
                 Error::NoPlan { .. } => "no_plan",
                 Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
+                Error::Dynamics(DynamicsError::Busy { .. }) => "model_busy",
+                Error::Dynamics(DynamicsError::NotAllowed { .. }) => "model_not_allowed",
                 Error::Overloaded { .. } => "overloaded",
                 Error::DeadlineExceeded { .. } => "deadline_exceeded",
                 Error::Cancelled => "cancelled",
@@ -140,9 +144,11 @@ impl ApiError {
                 Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
                     json!({"model": model, "timeout_ms": timeout_ms})
                 }
-                Error::Dynamics(DynamicsError::Unavailable { model, reason }) => {
-                    json!({"model": model, "reason": reason})
-                }
+                Error::Dynamics(
+                    DynamicsError::Unavailable { model, reason }
+                    | DynamicsError::Busy { model, reason }
+                    | DynamicsError::NotAllowed { model, reason },
+                ) => json!({"model": model, "reason": reason}),
                 Error::Dynamics(DynamicsError::ClientSide) => {
                     json!({"field": "domain.model", "reason": e.to_string()})
                 }
@@ -168,6 +174,7 @@ impl ApiError {
             | Self::Service(Error::DeadlineExceeded {
                 retry_after_secs, ..
             }) => Some(*retry_after_secs),
+            Self::Service(Error::Dynamics(DynamicsError::Busy { .. })) => Some(1),
             _ => None,
         }
     }

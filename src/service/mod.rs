@@ -16,8 +16,9 @@
 //!   leave-one-out calibration.
 //! - [`error`](mod@error): the service's [`Error`].
 //!
-//! CPU-heavy work (fits, planning, large judgements, calls to the dynamics model) runs on the
-//! blocking pool, never on the async workers.
+//! CPU-heavy work (large judgements, in-process dynamics models) runs on the blocking pool,
+//! searches and fits on threads of their own under the work gate, calls to remote dynamics
+//! models on threads of their own under [`ModelCalls`]' limits — never on the async workers.
 
 pub mod activity;
 pub mod error;
@@ -40,7 +41,7 @@ pub use proposals::ProposalRecord;
 pub use work::{Limits, WorkGate};
 
 use crate::planning::{Budget, PlanningError, Stop};
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCallLimits, ModelCalls, ModelUrlPolicy};
 use crate::store::Store;
 use std::sync::Arc;
 use std::time::Instant;
@@ -72,7 +73,8 @@ impl SearchKind {
 pub struct Service {
     store: Store,
     live: Arc<Registry>,
-    model_urls: Arc<ModelUrlPolicy>,
+    /// Where remote models may live and how their calls are bounded.
+    model_calls: Arc<ModelCalls>,
     work: Arc<WorkGate>,
     /// Held while an experiment is counted and created, so the limit is exact.
     creating: Arc<tokio::sync::Mutex<()>>,
@@ -89,7 +91,7 @@ impl Service {
         Self {
             store,
             live: Arc::new(Registry::default()),
-            model_urls: Arc::new(model_urls),
+            model_calls: Arc::new(ModelCalls::new(model_urls, ModelCallLimits::default())),
             work: Arc::new(WorkGate::new(Limits::default())),
             creating: Arc::new(tokio::sync::Mutex::new(())),
         }
@@ -100,6 +102,18 @@ impl Service {
     pub fn with_limits(mut self, limits: Limits) -> Self {
         self.work = Arc::new(WorkGate::new(limits));
         self
+    }
+
+    /// The same service with the operator's limits on remote model calls (assumed checked, see
+    /// [`ModelCallLimits::check`]); the URL policy stays.
+    pub fn with_model_limits(mut self, limits: ModelCallLimits) -> Self {
+        self.model_calls = Arc::new(ModelCalls::new(self.model_calls.policy().clone(), limits));
+        self
+    }
+
+    /// Remote model calls: the URL policy, the limits, the calls running.
+    pub fn model_calls(&self) -> &Arc<ModelCalls> {
+        &self.model_calls
     }
 
     /// The gate searches and fits pass through, with the limits.
@@ -120,7 +134,9 @@ impl Service {
     /// The live experiment `id` (domain and current model), loading it if needed; `NotFound`
     /// if there is no such experiment.
     pub async fn live(&self, id: i64) -> Result<Arc<LiveExperiment>> {
-        self.live.get(&self.store, &self.work, id).await
+        self.live
+            .get(&self.store, &self.work, &self.model_calls, id)
+            .await
     }
 
     /// Runs a planning search of `experiment` through the work gate (see [`work`](mod@work)):

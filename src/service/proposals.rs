@@ -117,7 +117,7 @@ impl Service {
     /// Returns the proposal and whether it is new (`false`: the client's open lease).
     ///
     /// Counts each answer in `precond_proposals_total` by outcome; a search whose client went
-    /// away is counted as `cancelled` by the search itself (see [`Service::search`]), since
+    /// away is counted as `cancelled` by the search itself (in `Service::search`), since
     /// this future is dropped with the request.
     pub async fn propose(
         &self,

@@ -22,7 +22,7 @@ use crate::planning::{
     AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings, PlanningError,
     PlanningSettings, Strategy,
 };
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCalls, ModelUrlPolicy};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -136,8 +136,9 @@ impl Default for DomainSpec {
 }
 
 impl DomainSpec {
-    /// Builds the domain; a failure names the parameter under `domain`.
-    pub fn build(&self) -> Result<Arc<dyn Domain>, InvalidSetting> {
+    /// Builds the domain (a remote model called under `calls`' policy and limits); a failure
+    /// names the parameter under `domain`.
+    pub fn build(&self, calls: &Arc<ModelCalls>) -> Result<Arc<dyn Domain>, InvalidSetting> {
         let wrap = |e: DomainError| InvalidSetting::new(e.path_under("domain"), e.reason);
         Ok(match self {
             Self::IcyGridworld { map, features } => Arc::new(
@@ -170,7 +171,7 @@ impl DomainSpec {
                 .map_err(wrap)?,
             ),
             Self::WaterPlant {} => Arc::new(WaterPlant::default()),
-            Self::Custom(spec) => Arc::new(spec.build()?),
+            Self::Custom(spec) => Arc::new(spec.build(calls)?),
         })
     }
 
@@ -225,7 +226,7 @@ pub struct MdeSettings {
     pub noise: NoiseMode,
     /// Constant prior mean of the deviation (0 by default: unexplored regions look trustworthy
     /// but uncertain, which drives exploration); at most
-    /// [`MAX_PRIOR_MEAN`](crate::limits::MAX_PRIOR_MEAN) in magnitude.
+    /// [`MAX_PRIOR_MEAN`] in magnitude.
     pub prior_mean: f64,
     /// Extra seeded optimiser starts beyond the first when fitting hyperparameters; at most 20.
     pub restarts: usize,
@@ -428,19 +429,19 @@ pub struct LearningSettings {
     /// RRT extension budget per search.
     pub max_extensions: u32,
     /// Exploration weight `c` in `α_step = μ − c σ`; `0 ..=`
-    /// [`MAX_LEARNING_SCALE`](crate::limits::MAX_LEARNING_SCALE).
+    /// [`MAX_LEARNING_SCALE`].
     pub c: f64,
     /// Discount `γ` of the aggregation.
     pub gamma: f64,
     /// Aggregation `h`.
     pub aggregation: Aggregation,
-    /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`](crate::limits::MAX_LEARNING_SCALE).
+    /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`].
     pub k1: f64,
     /// β schedule steepness `k2`; positive, at most
-    /// [`MAX_LEARNING_SCALE`](crate::limits::MAX_LEARNING_SCALE).
+    /// [`MAX_LEARNING_SCALE`].
     pub k2: f64,
     /// β used by test-time plans (2: about 98 % confidence); at most
-    /// [`MAX_LEARNING_SCALE`](crate::limits::MAX_LEARNING_SCALE) in magnitude.
+    /// [`MAX_LEARNING_SCALE`] in magnitude.
     pub test_beta: f64,
     /// Seconds an open proposal stays leased to its client.
     pub proposal_ttl_seconds: u32,
@@ -495,13 +496,14 @@ pub struct ExperimentSettings {
 }
 
 impl ExperimentRequest {
-    /// Validates every field and resolves defaults. Returns the domain it built on the way.
+    /// Validates every field and resolves defaults (a remote model's URL against `calls`'
+    /// policy). Returns the domain it built on the way.
     pub fn resolve(
         mut self,
-        policy: &ModelUrlPolicy,
+        calls: &Arc<ModelCalls>,
     ) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
-        self.domain = self.domain.resolve(policy)?;
-        let domain = self.domain.build()?;
+        self.domain = self.domain.resolve(calls.policy())?;
+        let domain = self.domain.build(calls)?;
         if self.name.chars().count() > MAX_NAME_LEN {
             return Err(InvalidSetting::new(
                 "name",

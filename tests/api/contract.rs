@@ -102,6 +102,14 @@ fn one_of_every_error() -> Vec<ApiError> {
             model: "m".into(),
             reason: "down".into(),
         })),
+        ApiError::Service(Error::Dynamics(DynamicsError::Busy {
+            model: "m".into(),
+            reason: "full".into(),
+        })),
+        ApiError::Service(Error::Dynamics(DynamicsError::NotAllowed {
+            model: "m".into(),
+            reason: "revoked".into(),
+        })),
         ApiError::Service(Error::Dynamics(DynamicsError::ClientSide)),
         ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
     ];
@@ -129,6 +137,8 @@ fn one_of_every_error() -> Vec<ApiError> {
                 Error::Dynamics(d) => match d {
                     DynamicsError::Timeout { .. }
                     | DynamicsError::Unavailable { .. }
+                    | DynamicsError::Busy { .. }
+                    | DynamicsError::NotAllowed { .. }
                     | DynamicsError::ClientSide => {}
                 },
             },

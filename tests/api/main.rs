@@ -11,5 +11,6 @@ mod learning;
 mod limits;
 mod model_server;
 mod posture;
+mod remote;
 mod trajectories;
 mod upgrade;
