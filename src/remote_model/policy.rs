@@ -4,8 +4,9 @@
 //! A URL is checked and called in the same form: [`ModelUrlPolicy::normalise`] parses it as
 //! the WHATWG URL standard does (the `url` crate: `HTTP://Host:80/a/./b` becomes
 //! `http://host/a/b`), refuses what two parsers could read differently (whitespace and control
-//! characters, which one strips and another sends; percent-encoded `/`, `\` and `.` in the path,
-//! which model servers decode or not before routing; credentials; fragments; more than
+//! characters, which one strips and another sends; backslashes, a `/` to one and part of a name
+//! to another; percent-encoded `/`, `\` and `.` in the path, which model servers decode or not
+//! before routing; credentials; fragments; more than
 //! [`MAX_URL_LEN`] characters), checks that the HTTP client reads the normalised form to the
 //! same host, port and path, checks that against the allowed prefixes, and returns it. The
 //! experiment stores that normalised form, and every call re-checks it against the prefixes
@@ -65,6 +66,13 @@ impl ModelUrlPolicy {
                 "must not contain whitespace or control characters (found U+{:04X})",
                 c as u32
             ));
+        }
+        if url.contains('\\') {
+            return Err(
+                "must not contain a backslash: the URL standard reads it as `/`, other parsers \
+                 as part of a name"
+                    .into(),
+            );
         }
         let parsed = Url::parse(url).map_err(|e| format!("not a valid URL: {e}"))?;
         if parsed.scheme() != "http" {
@@ -211,13 +219,13 @@ mod tests {
             let e = p.normalise(url).unwrap_err();
             assert!(e.contains(why), "{url:?}: {e}");
         }
-        // A backslash is a slash to the URL standard: what follows is the path, on the allowed
-        // host and port, and that is what is called.
-        assert_eq!(
-            p.normalise("http://127.0.0.1:9000\\@127.0.0.1:1/ok/predict")
-                .as_deref(),
-            Ok("http://127.0.0.1:9000/@127.0.0.1:1/ok/predict")
-        );
+        // A backslash is a slash to the URL standard, part of the user name to others.
+        for url in [
+            "http://127.0.0.1:9000\\@127.0.0.1:1/ok/predict",
+            "http://127.0.0.1:9000/ok\\..\\admin",
+        ] {
+            assert!(p.normalise(url).unwrap_err().contains("backslash"), "{url}");
+        }
         // Dot segments are resolved before the prefix is compared.
         let ok = ModelUrlPolicy::new(&["http://127.0.0.1:9000/ok/"]).unwrap();
         for url in [
