@@ -2,7 +2,7 @@
 
 use crate::http::auth::TokenTable;
 use crate::http::{AppState, HttpConfig, serve};
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCallLimits, ModelUrlPolicy};
 use crate::service::{Limits, Service};
 use crate::store::Store;
 use anyhow::Context;
@@ -37,10 +37,11 @@ pub enum Command {
 /// Options of `precond backup`.
 #[derive(Debug, Clone, clap::Args)]
 pub struct BackupArgs {
-    /// The database being served: a path or a `sqlite://` URL.
+    /// The database being served: a path or a `sqlite://` URL. It must exist; it is only read.
     #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
     pub database_url: String,
-    /// The new file to write (must not exist).
+    /// The new file to write (must not exist). The copy is written under a temporary name
+    /// beside it and takes this name only once complete and checked.
     #[arg(long, value_name = "FILE")]
     pub to: std::path::PathBuf,
 }
@@ -207,6 +208,17 @@ pub struct ServeArgs {
         value_delimiter = ','
     )]
     pub allow_model_urls: Vec<String>,
+    /// Calls to remote models running at once, over all model URLs (1 ..= 1024). A call
+    /// beyond it waits, within its deadline, then gets `503 model_busy`.
+    #[arg(long, env = "PRECOND_MAX_MODEL_CALLS", default_value_t = 32)]
+    pub max_model_calls: usize,
+    /// Calls to one remote model URL running at once (1 ..= 1024).
+    #[arg(long, env = "PRECOND_MAX_MODEL_CALLS_PER_URL", default_value_t = 8)]
+    pub max_model_calls_per_url: usize,
+    /// The longest one remote model call may take, whatever `timeout_ms` its experiment
+    /// declares, waiting for a free call included, in milliseconds (1 ..= 600 000).
+    #[arg(long, env = "PRECOND_MAX_MODEL_TIMEOUT_MS", default_value_t = 30_000)]
+    pub max_model_timeout_ms: u64,
     /// Access tokens, one a line: `token role [experiment-ids|*]` with role `read`, `write` or
     /// `admin` (see the README's "Deploying for a lab"). Without it every request is let
     /// through, so the server then refuses a non-loopback address unless
@@ -219,6 +231,11 @@ pub struct ServeArgs {
     /// Planning searches and fits running at once (1 ..= 256; default: the number of cores).
     #[arg(long, env = "PRECOND_MAX_CONCURRENT_PLANS")]
     pub max_concurrent_plans: Option<usize>,
+    /// Planning searches (and model rebuilds) of one experiment running at once, so that one
+    /// client flooding one experiment cannot take every slot (1 ..= 256; default: half of
+    /// max-concurrent-plans, at least 1).
+    #[arg(long, env = "PRECOND_MAX_PLANS_PER_EXPERIMENT")]
+    pub max_plans_per_experiment: Option<usize>,
     /// Planning requests waiting for a slot before new ones get `429` (0 ..= 10 000; default:
     /// 8 × max-concurrent-plans).
     #[arg(long, env = "PRECOND_MAX_QUEUED_PLANS")]
@@ -238,6 +255,13 @@ pub struct ServeArgs {
     /// refused, and `mde.estimator: auto` switches to the sparse GP first.
     #[arg(long, env = "PRECOND_MAX_FIT_MEMORY_MIB")]
     pub max_fit_memory_mib: Option<u64>,
+    /// Seconds a client has to send a request's headers; also how long a kept-alive connection
+    /// may stay idle (1 ..= 600).
+    #[arg(long, env = "PRECOND_HEADER_READ_TIMEOUT_SECS", default_value_t = 30)]
+    pub header_read_timeout_secs: u64,
+    /// Seconds a client has to send a request's whole body; past them `408` (1 ..= 3600).
+    #[arg(long, env = "PRECOND_BODY_READ_TIMEOUT_SECS", default_value_t = 60)]
+    pub body_read_timeout_secs: u64,
     /// Seconds in-flight requests may run on after SIGTERM before they are dropped.
     #[arg(long, env = "PRECOND_SHUTDOWN_GRACE_SECS", default_value_t = 20)]
     pub shutdown_grace_secs: u64,
@@ -262,6 +286,9 @@ impl ServeArgs {
             .unwrap_or(defaults.max_concurrent_plans);
         let limits = Limits {
             max_concurrent_plans: concurrent,
+            max_plans_per_experiment: self
+                .max_plans_per_experiment
+                .unwrap_or(Limits::default_per_experiment(concurrent)),
             max_queued_plans: self.max_queued_plans.unwrap_or(8 * concurrent),
             plan_timeout: std::time::Duration::from_millis(self.plan_timeout_ms),
             max_experiments: self.max_experiments,
@@ -272,6 +299,34 @@ impl ServeArgs {
         };
         limits.check().map_err(anyhow::Error::msg)?;
         Ok(limits)
+    }
+}
+
+impl ServeArgs {
+    /// The limits on remote model calls these options set, checked.
+    pub fn model_limits(&self) -> anyhow::Result<ModelCallLimits> {
+        let limits = ModelCallLimits {
+            max_calls: self.max_model_calls,
+            max_calls_per_url: self.max_model_calls_per_url,
+            max_timeout: std::time::Duration::from_millis(self.max_model_timeout_ms),
+        };
+        limits.check().map_err(anyhow::Error::msg)?;
+        Ok(limits)
+    }
+
+    /// Checks the connection timeouts' ranges; the error names the option.
+    pub fn check_timeouts(&self) -> anyhow::Result<()> {
+        anyhow::ensure!(
+            (1..=600).contains(&self.header_read_timeout_secs),
+            "--header-read-timeout-secs must lie in 1 ..= 600, got {}",
+            self.header_read_timeout_secs
+        );
+        anyhow::ensure!(
+            (1..=3600).contains(&self.body_read_timeout_secs),
+            "--body-read-timeout-secs must lie in 1 ..= 3600, got {}",
+            self.body_read_timeout_secs
+        );
+        Ok(())
     }
 }
 
@@ -312,8 +367,12 @@ pub fn check_exposure(
 
 /// Installs the global tracing subscriber.
 pub fn init_tracing(format: LogFormat) {
+    use std::io::IsTerminal;
     let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter);
+    // Colours only on a terminal: escape sequences in a redirected log file are noise at best.
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_ansi(std::io::stdout().is_terminal());
     let _ = match format {
         LogFormat::Text => builder.try_init(),
         LogFormat::Json => builder.json().try_init(),
@@ -354,6 +413,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 tracing::info!(prefixes = ?model_urls.prefixes(), "remote dynamics models allowed");
             }
             let limits = args.limits()?;
+            let model_limits = args.model_limits()?;
+            args.check_timeouts()?;
             let tokens = load_tokens(args.token_file.as_deref())?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
                 .await
@@ -368,14 +429,21 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 None => tracing::info!("no token file: every request is let through"),
             }
             let store = Store::open(&args.database_url).await?;
-            tracing::info!(?limits, "limits");
+            tracing::info!(?limits, ?model_limits, "limits");
             let state = AppState::with_service(
-                Service::with_model_urls(store, model_urls).with_limits(limits),
+                Service::with_model_urls(store, model_urls)
+                    .with_limits(limits)
+                    .with_model_limits(model_limits),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
                     tokens,
                     shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
+                    header_read_timeout: std::time::Duration::from_secs(
+                        args.header_read_timeout_secs,
+                    ),
+                    body_read_timeout: std::time::Duration::from_secs(args.body_read_timeout_secs),
                     cors_allow_origins: args.cors_allow_origins,
+                    bound: None,
                 },
             );
             serve(listener, state, shutdown_signal()).await
@@ -463,22 +531,14 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             .await
         }
         Command::Backup(args) => {
-            anyhow::ensure!(
-                !args.to.exists(),
-                "{} exists; a backup goes to a new file",
-                args.to.display()
-            );
-            let to = args.to.to_str().context("the backup path is not UTF-8")?;
-            let store = Store::open(&args.database_url).await?;
-            store
-                .backup_to(to)
-                .await
-                .with_context(|| format!("writing the backup {to}"))?;
-            let size = store.size().await?;
-            store.close().await;
+            let size = crate::store::backup(&args.database_url, &args.to).await?;
             println!(
-                "backed up {} experiments, {} trajectories, {} transitions to {to}",
-                size.experiments, size.trajectories, size.transitions
+                "backed up {} experiments, {} trajectories, {} transitions ({} bytes) to {}",
+                size.experiments,
+                size.trajectories,
+                size.transitions,
+                size.bytes,
+                args.to.display()
             );
             Ok(())
         }

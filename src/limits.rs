@@ -55,3 +55,57 @@ pub const MAX_TIMELINE_ROWS: i64 = 10_000;
 /// Transitions after a model version's training set that its diagnostics judge (the first
 /// `10 000`).
 pub const MAX_LATER_TRANSITIONS: i64 = 10_000;
+/// Largest magnitude of a number that fixes a domain's geometry: a state or action bound, a
+/// discrete action value, an obstacle corner, a goal radius, a distance weight, an entry of a
+/// linear model: `1e12`. Within it, the widths of the bounds, squared distances and the MDE's
+/// targets stay far from overflowing `f64` (a width of `2e308` is infinite and nothing can be
+/// sampled in it).
+pub const MAX_MAGNITUDE: f64 = 1e12;
+/// Largest magnitude of the MDE's prior mean `mde.prior_mean`: [`MAX_MAGNITUDE`], so that the
+/// centred targets' mean square stays finite.
+pub const MAX_PRIOR_MEAN: f64 = MAX_MAGNITUDE;
+/// Largest value of the β schedule's `k1` and `k2`, the exploration weight `c` and the magnitude
+/// of `test_beta`: `1e6`. A β of 8 already asks for a one-in-10¹⁵ error; beyond `1e6` only the
+/// arithmetic changes (`2 k1` overflows at `k1 ≈ 9e307`, `μ − c σ` becomes infinite).
+pub const MAX_LEARNING_SCALE: f64 = 1e6;
+
+/// Why `text` (a name, a client id) may not be stored as it is: a control character (NUL,
+/// ESC, CR, LF, …, which end up in terminals, logs and CSV exports) or a bidirectional
+/// formatting character (U+202A–U+202E, U+2066–U+2069, U+200E, U+200F, which make a string
+/// display other than it reads); `None` when it is fine. The one rule for free-form labels.
+pub fn text_problem(text: &str) -> Option<String> {
+    let bidi = |c: char| matches!(c, '\u{200E}' | '\u{200F}' | '\u{202A}'..='\u{202E}' | '\u{2066}'..='\u{2069}');
+    text.chars()
+        .enumerate()
+        .find(|(_, c)| c.is_control() || bidi(*c))
+        .map(|(i, c)| {
+            format!(
+                "must not hold control or bidirectional formatting characters (U+{:04X} at \
+                 character {i})",
+                c as u32
+            )
+        })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_refuse_control_and_bidi_characters() {
+        for ok in ["", "arm 2 — bench ü", "x0", "名前"] {
+            assert_eq!(text_problem(ok), None, "{ok:?}");
+        }
+        for (bad, at) in [
+            ("a\u{0}b", "U+0000 at character 1"),
+            ("\u{1b}[2J", "U+001B at character 0"),
+            ("line\nbreak", "U+000A"),
+            ("x\u{7f}", "U+007F"),
+            ("abc\u{202e}gpj.exe", "U+202E at character 3"),
+            ("\u{2066}", "U+2066"),
+        ] {
+            let why = text_problem(bad).unwrap_or_default();
+            assert!(why.contains(at), "{bad:?}: {why}");
+        }
+    }
+}

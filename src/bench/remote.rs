@@ -107,7 +107,11 @@ pub async fn run(repeats: usize) -> anyhow::Result<()> {
 }
 
 fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
-    let model = Arc::new(RemoteModel::new(url, 10_000, 2));
+    let calls = crate::remote_model::ModelCalls::new(
+        crate::remote_model::ModelUrlPolicy::new(&[url]).map_err(anyhow::Error::msg)?,
+        crate::remote_model::ModelCallLimits::default(),
+    );
+    let model = Arc::new(RemoteModel::new(url, 10_000, 2, Arc::new(calls)));
     let domain = plane(model);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let data: Vec<LabelledTransition> = (0..1000)

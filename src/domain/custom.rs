@@ -9,9 +9,10 @@
 //! the unit box of the state bounds, so that components in different units compare).
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
-use super::{Space, euclidean};
+use super::{Space, check_magnitudes, euclidean, uniform_between};
+use crate::limits::MAX_MAGNITUDE;
+use rand::RngCore;
 use rand::seq::IndexedRandom;
-use rand::{Rng, RngCore};
 use std::sync::Arc;
 
 /// Largest accepted state or action dimension.
@@ -83,12 +84,7 @@ fn check_space(space: &Space, what: &str) -> Result<(), DomainError> {
                 format!("expected {n} components like names, got {}", v.len()),
             ));
         }
-        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
-            return Err(DomainError::at(
-                format!("{what}.{field}[{i}]"),
-                "must be a finite number",
-            ));
-        }
+        check_magnitudes(&format!("{what}.{field}"), v)?;
     }
     if let Some(i) = (0..n).find(|&i| space.low[i] > space.high[i]) {
         return Err(DomainError::at(
@@ -177,6 +173,7 @@ impl CustomDomain {
                 "must be a finite number ≥ 0",
             ));
         }
+        check_magnitudes("distance.weights", &params.weights)?;
         if params.weights.iter().all(|w| *w == 0.0) {
             return Err(DomainError::at(
                 "distance.weights",
@@ -192,6 +189,12 @@ impl CustomDomain {
         check_indices(&params.goal_components, n, "goal.components")?;
         if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
             return Err(DomainError::at("goal.radius", "must be a positive number"));
+        }
+        if params.goal_radius > MAX_MAGNITUDE {
+            return Err(DomainError::at(
+                "goal.radius",
+                format!("must be at most {MAX_MAGNITUDE:e}"),
+            ));
         }
         if params.obstacles.len() > MAX_OBSTACLES {
             return Err(DomainError::at(
@@ -363,7 +366,7 @@ impl Domain for CustomDomain {
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
         let st = &self.params.state;
         (0..st.dim())
-            .map(|i| rng.random_range(st.low[i]..=st.high[i]))
+            .map(|i| uniform_between(rng, st.low[i], st.high[i]))
             .collect()
     }
 
@@ -401,7 +404,7 @@ impl Domain for CustomDomain {
         match &act.values {
             Some(values) => values.choose(rng).cloned().unwrap_or_default(),
             None => (0..act.dim())
-                .map(|i| rng.random_range(act.low[i]..=act.high[i]))
+                .map(|i| uniform_between(rng, act.low[i], act.high[i]))
                 .collect(),
         }
     }
@@ -480,12 +483,7 @@ impl LinearModel {
                         format!("expected {cols} columns, got {}", row.len()),
                     ));
                 }
-                if row.iter().any(|x| !x.is_finite()) {
-                    return Err(DomainError::at(
-                        format!("{name}[{r}]"),
-                        "every entry must be a finite number",
-                    ));
-                }
+                check_magnitudes(&format!("{name}[{r}]"), row)?;
             }
         }
         if c.len() != n {
@@ -494,9 +492,7 @@ impl LinearModel {
                 format!("expected {n} components, got {}", c.len()),
             ));
         }
-        if c.iter().any(|x| !x.is_finite()) {
-            return Err(DomainError::at("c", "every entry must be a finite number"));
-        }
+        check_magnitudes("c", &c)?;
         Ok(Self {
             a,
             b,

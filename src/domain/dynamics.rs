@@ -49,6 +49,24 @@ pub enum DynamicsError {
         /// What went wrong.
         reason: String,
     },
+    /// No call could start before the deadline: the operator's limit of concurrent calls to
+    /// this model (or to all models) is reached. Nothing was sent.
+    #[error("the dynamics model {model} is busy: {reason}")]
+    Busy {
+        /// Which model (e.g. its URL).
+        model: String,
+        /// Which limit, in words.
+        reason: String,
+    },
+    /// The server no longer allows calling this model (its URL is not under a prefix the
+    /// operator allows now, e.g. after `--allow-model-url` changed). Nothing was sent.
+    #[error("the dynamics model {model} may not be called on this server: {reason}")]
+    NotAllowed {
+        /// Which model (its URL as stored).
+        model: String,
+        /// Why not.
+        reason: String,
+    },
     /// The model lives on the client, which posts its own predictions and plans itself; the
     /// service has nothing to call.
     #[error("the dynamics model is the client's own: the client posts its predictions")]
@@ -67,6 +85,25 @@ pub trait DynamicsModel: Send + Sync + fmt::Debug {
         states: &[&[f64]],
         actions: &[&[f64]],
     ) -> Result<Vec<Predicted>, DynamicsError>;
+
+    /// [`DynamicsModel::predict_batch`] during a search with `budget`: a model whose calls take
+    /// time (one behind the network) ends each call by the budget's deadline and stops waiting
+    /// for it once the budget says stop; in-process models answer at once and ignore it.
+    fn predict_batch_within(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+        budget: &crate::planning::Budget,
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        let _ = budget;
+        self.predict_batch(states, actions)
+    }
+
+    /// The model as a [`RemoteModel`](crate::remote_model::RemoteModel) when it is one, for
+    /// callers that can wait for it without holding a thread (an ingest).
+    fn remote(&self) -> Option<&crate::remote_model::RemoteModel> {
+        None
+    }
 
     /// Whether the model lives on the client, which posts its own predictions (`s_pred`) and
     /// plans itself: the service never calls it.

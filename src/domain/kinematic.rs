@@ -2,8 +2,12 @@
 //! that simple. `f̂(s, a) = clip(s + a)` to the state bounds; Euclidean distance; optional
 //! axis-aligned box obstacles for the approximate collision check; a goal is a state with a radius.
 
-use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, euclidean};
-use rand::{Rng, RngCore};
+use super::{
+    Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, check_magnitudes, euclidean,
+    uniform_between,
+};
+use crate::limits::MAX_MAGNITUDE;
+use rand::RngCore;
 
 /// An axis-aligned box that planned edges may not pass through.
 #[derive(Debug, Clone, PartialEq)]
@@ -23,6 +27,9 @@ impl BoxObstacle {
                 format!("obstacles[{k}]"),
                 format!("low and high need {n} components, one per state component"),
             ));
+        }
+        for (corner, v) in [("low", &self.low), ("high", &self.high)] {
+            check_magnitudes(&format!("obstacles[{k}].{corner}"), v)?;
         }
         if self.low.iter().chain(&self.high).any(|x| !x.is_finite())
             || self.low.iter().zip(&self.high).any(|(l, h)| l > h)
@@ -123,9 +130,7 @@ impl Kinematic {
             ("action_low", &params.action_low),
             ("action_high", &params.action_high),
         ] {
-            if v.iter().any(|x| !x.is_finite()) {
-                return Err(DomainError::at(name, "every bound must be finite"));
-            }
+            check_magnitudes(name, v)?;
         }
         for i in 0..n {
             if params.state_low[i] >= params.state_high[i] {
@@ -158,6 +163,12 @@ impl Kinematic {
         }
         if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
             return Err(DomainError::at("goal_radius", "must be a positive number"));
+        }
+        if params.goal_radius > MAX_MAGNITUDE {
+            return Err(DomainError::at(
+                "goal_radius",
+                format!("must be at most {MAX_MAGNITUDE:e}"),
+            ));
         }
         let names = |prefix: &str| (0..n).map(|i| format!("{prefix}{i}")).collect::<Vec<_>>();
         let state_space = Space {
@@ -326,7 +337,7 @@ impl Domain for Kinematic {
 
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
         (0..self.state_space.dim())
-            .map(|i| rng.random_range(self.state_space.low[i]..=self.state_space.high[i]))
+            .map(|i| uniform_between(rng, self.state_space.low[i], self.state_space.high[i]))
             .collect()
     }
 
@@ -352,7 +363,7 @@ impl Domain for Kinematic {
 
     fn sample_action(&self, _s: &[f64], rng: &mut dyn RngCore) -> Vec<f64> {
         (0..self.action_space.dim())
-            .map(|i| rng.random_range(self.action_space.low[i]..=self.action_space.high[i]))
+            .map(|i| uniform_between(rng, self.action_space.low[i], self.action_space.high[i]))
             .collect()
     }
 

@@ -336,6 +336,48 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem;
 }
 
+/// A uniform draw from `[low, high]` that cannot panic: `rand`'s own draw when the width is
+/// finite (the common case, so seeded streams stay as they were), else an overflow-free
+/// interpolation between the bounds (a width beyond `f64::MAX` would make `rand` panic). Bounds
+/// are checked where a domain is built ([`check_magnitudes`]); this keeps a sampler total even
+/// for bounds that somehow escaped the check.
+pub(crate) fn uniform_between(rng: &mut dyn RngCore, low: f64, high: f64) -> f64 {
+    use rand::Rng;
+    if low.is_finite() && high.is_finite() && low <= high && (high - low).is_finite() {
+        return rng.random_range(low..=high);
+    }
+    if !(low.is_finite() && high.is_finite() && low <= high) {
+        return if low.is_finite() { low } else { 0.0 };
+    }
+    let u: f64 = rng.random();
+    (low * (1.0 - u) + high * u).clamp(low, high)
+}
+
+/// Checks that every number of `values` is finite and at most
+/// [`MAX_MAGNITUDE`](crate::limits::MAX_MAGNITUDE) in magnitude; the error names
+/// `field[i]`.
+pub fn check_magnitudes(field: &str, values: &[f64]) -> Result<(), DomainError> {
+    use crate::limits::MAX_MAGNITUDE;
+    match values
+        .iter()
+        .position(|x| !(x.is_finite() && x.abs() <= MAX_MAGNITUDE))
+    {
+        None => Ok(()),
+        Some(i) if !values[i].is_finite() => Err(DomainError::at(
+            format!("{field}[{i}]"),
+            "must be a finite number",
+        )),
+        Some(i) => Err(DomainError::at(
+            format!("{field}[{i}]"),
+            format!(
+                "must be at most {MAX_MAGNITUDE:e} in magnitude (got {:e}): beyond that the \
+                 widths and distances the planner computes overflow",
+                values[i]
+            ),
+        )),
+    }
+}
+
 /// Euclidean distance between two equally long vectors.
 pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
     a.iter()
@@ -343,4 +385,54 @@ pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
         .map(|(p, q)| (p - q) * (p - q))
         .sum::<f64>()
         .sqrt()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn uniform_draws_never_panic_and_stay_in_their_bounds() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        for (low, high) in [
+            (0.0, 1.0),
+            (-1e308, 1e308),
+            (-f64::MAX, f64::MAX),
+            (2.0, 2.0),
+        ] {
+            for _ in 0..100 {
+                let x = uniform_between(&mut rng, low, high);
+                assert!(
+                    x.is_finite() && (low..=high).contains(&x),
+                    "{low} {high}: {x}"
+                );
+            }
+        }
+        // Bounds no domain accepts still give a finite number rather than a panic.
+        for (low, high) in [(2.0, 1.0), (f64::NAN, 1.0), (0.0, f64::INFINITY)] {
+            assert!(uniform_between(&mut rng, low, high).is_finite());
+        }
+        // A finite width draws as `rand` does, so seeded streams are unchanged.
+        let mut a = rand_chacha::ChaCha8Rng::seed_from_u64(2);
+        let mut b = a.clone();
+        use rand::Rng;
+        assert_eq!(
+            uniform_between(&mut a, -3.0, 5.0),
+            b.random_range(-3.0..=5.0)
+        );
+    }
+
+    #[test]
+    fn magnitudes_are_bounded_and_named() {
+        assert!(check_magnitudes("low", &[0.0, -1e12, 1e12]).is_ok());
+        let e = check_magnitudes("low", &[0.0, 1e13]).unwrap_err();
+        assert_eq!(e.field, "low[1]");
+        assert!(e.reason.contains("1e12"), "{e}");
+        let e = check_magnitudes("low", &[f64::NAN]).unwrap_err();
+        assert_eq!(
+            (e.field.as_str(), e.reason.as_str()),
+            ("low[0]", "must be a finite number")
+        );
+    }
 }

@@ -209,6 +209,15 @@ pub(crate) fn optimise_with(
     ftol_floor: f64,
     default_on_full_data: bool,
 ) -> Result<Optimum, GpError> {
+    // The starts are drawn around the targets' mean square: one that overflows (labels near
+    // ±1e154 from the prior mean) leaves no range to draw from.
+    let scale = target_scale(r);
+    if !(10.0 * scale).is_finite() {
+        return Err(GpError::OptimisationFailed(format!(
+            "the targets' mean square ({scale:e}) overflows: the labels lie too far from the \
+             prior mean"
+        )));
+    }
     let settings = settings(p, ftol_floor);
     let homo = matches!(noise, NoiseSpec::Homoscedastic);
     let (lo, hi) = log_bounds(x.d, bounds, homo);

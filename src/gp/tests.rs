@@ -766,3 +766,26 @@ fn leaving_a_group_out_matches_refitting_without_it() {
     assert!(lgo[3].1 > loo[3].1, "{:?} vs {:?}", lgo[3], loo[3]);
     assert!(model.leave_groups_out(&[vec![0, n]]).is_none());
 }
+
+#[test]
+fn targets_whose_mean_square_overflows_are_an_error_not_a_panic() {
+    // Labels 1e300 away from the prior mean: their mean square is infinite, so there is no
+    // range to draw random starts from (this panicked in `random_range`).
+    let (x, _) = data(20, 2, 3);
+    let y = DVector::from_element(20, 1e300);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let params = GpParams {
+            noise,
+            restarts: 2,
+            seed: 5,
+            ..GpParams::default()
+        }
+        .check()
+        .unwrap();
+        let e = GpModel::fit(&x, &y, &params).unwrap_err();
+        assert!(
+            matches!(e, GpError::OptimisationFailed(ref m) if m.contains("overflows")),
+            "{e}"
+        );
+    }
+}

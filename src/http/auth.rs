@@ -14,7 +14,8 @@
 //! Roles are cumulative: `read` calls the GET routes, precondition queries and test-time plans;
 //! `write` also everything else that changes an experiment (trajectories, proposals); `admin`
 //! also creates experiments and forces refits. The scope (default `*`) lists the experiments a
-//! token may reach; a scoped token cannot create experiments, and lists only its own.
+//! token may reach; a scoped token cannot create experiments or read `/metrics` (every
+//! experiment's totals), and lists only its own experiments.
 //!
 //! Requests carry `Authorization: Bearer <token>`: none or an unknown token is `401`, a known
 //! token without the role or the experiment is `403`. Tokens are compared in constant time
@@ -226,6 +227,10 @@ pub struct Requirement {
     /// The experiment named by the path, if any; `Some(None)` when the path names one that is
     /// not an integer (the route answers 404 to anyone who may reach it).
     pub experiment: Option<Option<i64>>,
+    /// Whether the route is the experiment listing, which its handler narrows to the caller's
+    /// scope: the one server-wide route a scoped token reaches. Every other server-wide route
+    /// (creating, `/metrics` with every experiment's totals) needs the scope `*`.
+    pub listing: bool,
 }
 
 /// Routes open to anyone, tokens or not.
@@ -251,7 +256,12 @@ pub fn requirement(method: &Method, template: &str, path: &str) -> Requirement {
     let experiment = template
         .starts_with("/v1/experiments/{id}")
         .then(|| path.split('/').nth(3).and_then(|id| id.parse().ok()));
-    Requirement { role, experiment }
+    let listing = role == Role::Read && template == "/v1/experiments";
+    Requirement {
+        role,
+        experiment,
+        listing,
+    }
 }
 
 /// Checks a caller against a requirement: `Ok` or the `403` to answer.
@@ -270,7 +280,7 @@ pub fn check(caller: &Caller, need: &Requirement) -> Result<(), ApiError> {
             "the token does not reach experiment {id}"
         ))),
         // Listing is narrowed by the handler; everything else server-wide needs `*`.
-        (None, _) if need.role == Role::Read => Ok(()),
+        (None, _) if need.listing => Ok(()),
         _ => Err(ApiError::Forbidden(
             "this route needs a token whose scope is `*`".into(),
         )),
@@ -371,7 +381,8 @@ cccccccccccccccccccc admin *
             ),
             Requirement {
                 role: Role::Read,
-                experiment: Some(Some(7))
+                experiment: Some(Some(7)),
+                listing: false,
             }
         );
         let r = need(Method::POST, "/v1/experiments", "/v1/experiments");
@@ -413,17 +424,31 @@ cccccccccccccccccccc admin *
         let on = |id| Requirement {
             role: Role::Write,
             experiment: Some(Some(id)),
+            listing: false,
         };
         assert!(check(&scoped, &on(3)).is_ok());
         assert!(check(&scoped, &on(4)).is_err());
-        let list = Requirement {
-            role: Role::Read,
-            experiment: None,
-        };
+        let list = requirement(&Method::GET, "/v1/experiments", "/v1/experiments");
+        assert!(list.listing);
         assert!(check(&scoped, &list).is_ok());
+        // Server-wide reads other than the listing (every experiment's totals) need `*`.
+        let metrics = requirement(&Method::GET, "/metrics", "/metrics");
+        assert!(!metrics.listing);
+        assert!(check(&scoped, &metrics).is_err());
+        let scoped_admin = Caller {
+            role: Role::Admin,
+            scope: Scope::Only([3].into()),
+        };
+        assert!(check(&scoped_admin, &metrics).is_err());
+        let everything = Caller {
+            role: Role::Read,
+            scope: Scope::All,
+        };
+        assert!(check(&everything, &metrics).is_ok());
         let create = Requirement {
             role: Role::Admin,
             experiment: None,
+            listing: false,
         };
         assert!(check(&scoped, &create).is_err());
         let admin = Caller {

@@ -19,6 +19,13 @@ pub enum ApiError {
     /// The body is not well-formed JSON (400 `bad_request`).
     #[error("{0}")]
     BadRequest(String),
+    /// The body is not declared as JSON (`Content-Type: application/json`) (415
+    /// `unsupported_media_type`).
+    #[error("{0}")]
+    UnsupportedMediaType(String),
+    /// The body did not arrive in time (408 `request_timeout`).
+    #[error("{0}")]
+    RequestTimeout(String),
     /// The body is larger than the configured limit (413 `payload_too_large`).
     #[error("request body larger than {limit} bytes")]
     PayloadTooLarge {
@@ -58,6 +65,8 @@ impl ApiError {
         match self {
             Self::BadRequest(_) => StatusCode::BAD_REQUEST,
             Self::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+            Self::UnsupportedMediaType(_) => StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            Self::RequestTimeout(_) => StatusCode::REQUEST_TIMEOUT,
             Self::MethodNotAllowed => StatusCode::METHOD_NOT_ALLOWED,
             Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             Self::Unauthorized => StatusCode::UNAUTHORIZED,
@@ -68,6 +77,8 @@ impl ApiError {
                 Error::Conflict(_) | Error::LeaseHeld { .. } => StatusCode::CONFLICT,
                 Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
+                Error::Dynamics(DynamicsError::Busy { .. }) => StatusCode::SERVICE_UNAVAILABLE,
+                Error::Dynamics(DynamicsError::NotAllowed { .. }) => StatusCode::CONFLICT,
                 Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
                 Error::Overloaded { .. } => StatusCode::TOO_MANY_REQUESTS,
                 Error::DeadlineExceeded { .. } | Error::Cancelled => {
@@ -84,6 +95,8 @@ impl ApiError {
         match self {
             Self::BadRequest(_) => "bad_request",
             Self::PayloadTooLarge { .. } => "payload_too_large",
+            Self::UnsupportedMediaType(_) => "unsupported_media_type",
+            Self::RequestTimeout(_) => "request_timeout",
             Self::MethodNotAllowed => "method_not_allowed",
             Self::Unavailable(_) => "unavailable",
             Self::Unauthorized => "unauthorized",
@@ -97,6 +110,8 @@ impl ApiError {
                 Error::NoPlan { .. } => "no_plan",
                 Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
                 Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
+                Error::Dynamics(DynamicsError::Busy { .. }) => "model_busy",
+                Error::Dynamics(DynamicsError::NotAllowed { .. }) => "model_not_allowed",
                 Error::Overloaded { .. } => "overloaded",
                 Error::DeadlineExceeded { .. } => "deadline_exceeded",
                 Error::Cancelled => "cancelled",
@@ -129,9 +144,11 @@ impl ApiError {
                 Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
                     json!({"model": model, "timeout_ms": timeout_ms})
                 }
-                Error::Dynamics(DynamicsError::Unavailable { model, reason }) => {
-                    json!({"model": model, "reason": reason})
-                }
+                Error::Dynamics(
+                    DynamicsError::Unavailable { model, reason }
+                    | DynamicsError::Busy { model, reason }
+                    | DynamicsError::NotAllowed { model, reason },
+                ) => json!({"model": model, "reason": reason}),
                 Error::Dynamics(DynamicsError::ClientSide) => {
                     json!({"field": "domain.model", "reason": e.to_string()})
                 }
@@ -157,6 +174,7 @@ impl ApiError {
             | Self::Service(Error::DeadlineExceeded {
                 retry_after_secs, ..
             }) => Some(*retry_after_secs),
+            Self::Service(Error::Dynamics(DynamicsError::Busy { .. })) => Some(1),
             _ => None,
         }
     }
@@ -194,6 +212,12 @@ impl IntoResponse for ApiError {
             response
                 .headers_mut()
                 .insert(header::RETRY_AFTER, HeaderValue::from(secs));
+        }
+        if matches!(self, Self::RequestTimeout(_)) {
+            // The rest of a late body is not worth waiting for.
+            response
+                .headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
         }
         if matches!(self, Self::Unauthorized) {
             response

@@ -2,13 +2,17 @@
 //!
 //! [`ApiJson`] reads the body itself so that it can tell apart an oversized body (413), malformed
 //! JSON (400) and well-formed JSON with a wrong field (422, naming the field's path, e.g.
-//! `transitions[3].s`). It accepts any `Content-Type` so that `curl -d` works as typed.
+//! `transitions[3].s`). A body must be declared as JSON (`Content-Type: application/json`,
+//! parameters such as `charset` allowed): anything else is `415 unsupported_media_type`, so a
+//! page on another site cannot make a browser post JSON disguised as a form or as text (a
+//! "simple" request needs no CORS preflight, and would otherwise be parsed as JSON whatever its
+//! type). With curl: `-H 'Content-Type: application/json'` (or `--json`).
 
 use super::error::ApiError;
 use axum::body::Bytes;
 use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{FromRequest, FromRequestParts, Request};
-use axum::http::StatusCode;
+use axum::http::{HeaderMap, StatusCode, header};
 use serde::de::DeserializeOwned;
 
 /// A JSON body deserialised with field paths in its errors.
@@ -23,12 +27,25 @@ where
     type Rejection = ApiError;
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
+        check_json_content_type(req.headers())?;
         let limit = req
             .extensions()
             .get::<BodyLimit>()
             .map(|l| l.0)
             .unwrap_or(0);
-        let bytes = Bytes::from_request(req, state).await.map_err(|r| {
+        let within = req
+            .extensions()
+            .get::<BodyReadTimeout>()
+            .map_or(DEFAULT_BODY_READ_TIMEOUT, |t| t.0);
+        let read = tokio::time::timeout(within, Bytes::from_request(req, state))
+            .await
+            .map_err(|_| {
+                ApiError::RequestTimeout(format!(
+                    "the request body did not arrive within {} s",
+                    within.as_secs_f64()
+                ))
+            })?;
+        let bytes = read.map_err(|r| {
             if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
                 ApiError::PayloadTooLarge { limit }
             } else {
@@ -38,6 +55,44 @@ where
         parse_json(&bytes).map(ApiJson)
     }
 }
+
+/// Whether the headers declare a JSON body: `Content-Type` `application/json` (any case, any
+/// parameters). A request without a body (no `Content-Type`, and `Content-Length: 0` or no
+/// length at all) passes: its empty body is then refused as malformed JSON. Otherwise `415`
+/// naming what was sent.
+pub fn check_json_content_type(headers: &HeaderMap) -> Result<(), ApiError> {
+    let declared = headers
+        .get(header::CONTENT_TYPE)
+        .map(|v| String::from_utf8_lossy(v.as_bytes()).into_owned());
+    let empty = !headers.contains_key(header::TRANSFER_ENCODING)
+        && headers
+            .get(header::CONTENT_LENGTH)
+            .is_none_or(|v| v.as_bytes() == b"0");
+    match declared {
+        None if empty => Ok(()),
+        Some(ct)
+            if ct
+                .split(';')
+                .next()
+                .is_some_and(|essence| essence.trim().eq_ignore_ascii_case("application/json")) =>
+        {
+            Ok(())
+        }
+        declared => Err(ApiError::UnsupportedMediaType(format!(
+            "the body must be JSON sent with `Content-Type: application/json` (got {}); with \
+             curl: -H 'Content-Type: application/json'",
+            declared.map_or("no Content-Type".to_string(), |ct| format!("{ct:?}"))
+        ))),
+    }
+}
+
+/// The longest time to receive a request body, put in the request extensions by the app
+/// ([`HttpConfig::body_read_timeout`](super::HttpConfig::body_read_timeout)).
+#[derive(Debug, Clone, Copy)]
+pub struct BodyReadTimeout(pub std::time::Duration);
+
+/// The body deadline when the app did not set one.
+const DEFAULT_BODY_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
 
 /// The configured body limit, put in the request extensions so errors can state it.
 #[derive(Debug, Clone, Copy)]

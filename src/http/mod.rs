@@ -9,12 +9,14 @@ pub mod auth;
 pub mod error;
 mod experiments;
 pub mod extract;
+pub mod guard;
 mod health;
 mod inspection;
 pub mod metrics;
 mod model;
 mod proposals;
 mod render;
+pub mod server;
 mod trajectories;
 mod ui;
 
@@ -49,9 +51,18 @@ pub struct HttpConfig {
     /// How long in-flight requests may run on after shutdown is requested before they are
     /// dropped (a dropped search stops at its next round).
     pub shutdown_grace: Duration,
+    /// Longest wait for a request's complete headers, and the idle time after which a
+    /// kept-alive connection is closed (see [`server`]).
+    pub header_read_timeout: Duration,
+    /// Longest time to receive a request's whole body; past it `408 request_timeout`.
+    pub body_read_timeout: Duration,
     /// Origins (`scheme://host[:port]`) whose pages may call the API from a browser (CORS), e.g.
     /// a dashboard served by another precond; none by default.
     pub cors_allow_origins: Vec<String>,
+    /// The address the server listens on, set by [`serve`] from its listener. With no tokens
+    /// and a loopback address, requests must name this machine in `Host` and writes from web
+    /// pages must come from its own origin (see [`guard`]).
+    pub bound: Option<std::net::SocketAddr>,
 }
 
 impl Default for HttpConfig {
@@ -60,7 +71,10 @@ impl Default for HttpConfig {
             max_body_bytes: 4 * 1024 * 1024,
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
+            header_read_timeout: Duration::from_secs(30),
+            body_read_timeout: Duration::from_secs(60),
             cors_allow_origins: Vec::new(),
+            bound: None,
         }
     }
 }
@@ -82,7 +96,15 @@ fn cors(origins: &[String]) -> anyhow::Result<Option<CorsLayer>> {
         CorsLayer::new()
             .allow_origin(AllowOrigin::list(origins))
             .allow_methods([Method::GET, Method::HEAD, Method::POST])
-            .allow_headers([header::CONTENT_TYPE]),
+            // The dashboard sends its token (`Authorization`) to a server with tokens; a robot
+            // in a browser may send its own request id and idempotency key.
+            .allow_headers([
+                header::CONTENT_TYPE,
+                header::AUTHORIZATION,
+                HeaderName::from_static("idempotency-key"),
+                REQUEST_ID,
+            ])
+            .expose_headers([REQUEST_ID, header::RETRY_AFTER]),
     ))
 }
 
@@ -237,8 +259,20 @@ pub fn routes() -> Vec<Route> {
 /// invalid CORS origin.
 pub fn app(state: AppState) -> anyhow::Result<Router> {
     let limit = state.config.max_body_bytes;
+    let body_timeout = extract::BodyReadTimeout(state.config.body_read_timeout);
     let tokens = state.config.tokens.clone();
     let cors = cors(&state.config.cors_allow_origins)?;
+    let loopback_guard =
+        (tokens.is_none() && state.config.bound.is_some_and(|a| a.ip().is_loopback())).then(|| {
+            Arc::new(guard::LoopbackGuard {
+                allowed_origins: state
+                    .config
+                    .cors_allow_origins
+                    .iter()
+                    .map(|o| o.trim_end_matches('/').to_ascii_lowercase())
+                    .collect(),
+            })
+        });
     metrics::handle();
     let mut router = Router::new();
     for r in routes() {
@@ -258,10 +292,14 @@ pub fn app(state: AppState) -> anyhow::Result<Router> {
         .layer(middleware::from_fn(
             move |mut req: Request, next: Next| async move {
                 req.extensions_mut().insert(BodyLimit(limit));
+                req.extensions_mut().insert(body_timeout);
                 next.run(req).await
             },
         ))
         .layer(DefaultBodyLimit::max(limit))
+        .layer(option_layer(loopback_guard.map(|g| {
+            middleware::from_fn(move |req: Request, next: Next| guard::guard(g.clone(), req, next))
+        })))
         .layer(option_layer(cors))
         .layer(CatchPanicLayer::custom(panic_response))
         .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
@@ -305,6 +343,13 @@ pub async fn serve(
     let store = state.service.store().clone();
     let grace = state.config.shutdown_grace;
     let addr = listener.local_addr()?;
+    let state = AppState {
+        config: Arc::new(HttpConfig {
+            bound: Some(addr),
+            ..(*state.config).clone()
+        }),
+        ..state
+    };
     tracing::info!(%addr, "serving");
     let service = state.service.clone();
     tokio::spawn(async move {
@@ -319,7 +364,10 @@ pub async fn serve(
         shutdown.await;
         let _ = requested_tx.send(());
     };
-    let server = axum::serve(listener, app(state)?).with_graceful_shutdown(signal);
+    let limits = server::ConnLimits {
+        header_read: state.config.header_read_timeout,
+    };
+    let server = server::run(listener, app(state)?, limits, signal);
     let grace_over = async move {
         if requested_rx.await.is_ok() {
             tokio::time::sleep(grace).await;
@@ -328,7 +376,7 @@ pub async fn serve(
         }
     };
     tokio::select! {
-        served = server => served?,
+        () = server => {},
         () = grace_over => tracing::warn!(
             seconds = grace.as_secs_f64(),
             "grace period over: dropping the requests still in flight"

@@ -45,6 +45,11 @@ impl Budget {
         self
     }
 
+    /// The deadline, if there is one (a model call made during the search ends by it too).
+    pub fn deadline(&self) -> Option<Instant> {
+        self.deadline
+    }
+
     /// Why the search must stop now, if it must.
     pub fn stop(&self) -> Option<Stop> {
         if self

@@ -603,6 +603,7 @@ pub(crate) fn grow_together<R: RngCore>(
         rngs.into_iter().map(|rng| Search::new(task, rng)).collect();
     let mut calls = 0;
     loop {
+        let spent: usize = searches.iter().map(|s| s.outcome.extensions).sum();
         let mut active: Vec<&mut Search<'_, R>> = searches.iter_mut().filter(|s| !s.done).collect();
         if active.is_empty() {
             break;
@@ -618,14 +619,14 @@ pub(crate) fn grow_together<R: RngCore>(
         }
         let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
             active.iter().flat_map(|s| s.pairs()).unzip();
-        let predicted = predict_pairs(domain, &states, &actions, &mut calls)?;
+        let predicted = predict_pairs(domain, &states, &actions, &mut calls, budget, spent)?;
         let counts: Vec<usize> = active.iter().map(|s| s.pair_count()).collect();
         for (s, p) in active.iter_mut().zip(split_by(predicted, &counts)) {
             s.choose(p, cache);
         }
         let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
             active.iter().flat_map(|s| s.prefetch_pairs()).unzip();
-        let prefetched = predict_pairs(domain, &states, &actions, &mut calls)?;
+        let prefetched = predict_pairs(domain, &states, &actions, &mut calls, budget, spent)?;
         let counts: Vec<usize> = active.iter().map(|s| s.to_prefetch.len()).collect();
         for (s, p) in active.iter_mut().zip(split_by(prefetched, &counts)) {
             s.prefetched(p);
@@ -662,19 +663,33 @@ fn split_by<T>(items: Vec<T>, counts: &[usize]) -> Vec<Vec<T>> {
         .collect()
 }
 
-/// Predicts `f̂(states[i], actions[i])` in one call, counting it and checking that the model
-/// answered one prediction per pair.
+/// Predicts `f̂(states[i], actions[i])` in one call within the search's `budget`, counting it
+/// and checking that the model answered one prediction per pair. A call that failed because
+/// the budget ran out (a remote model's call ends by the search's deadline and is abandoned
+/// when the search is cancelled) stops the search like a round would, after `spent`
+/// extensions.
 pub(crate) fn predict_pairs(
     domain: &dyn Domain,
     states: &[&[f64]],
     actions: &[&[f64]],
     calls: &mut usize,
+    budget: &Budget,
+    spent: usize,
 ) -> Result<Vec<Predicted>, PlanningError> {
     if states.is_empty() {
         return Ok(Vec::new());
     }
     *calls += 1;
-    let predicted = domain.dynamics().predict_batch(states, actions)?;
+    let predicted = domain
+        .dynamics()
+        .predict_batch_within(states, actions, budget)
+        .map_err(|e| match budget.stop() {
+            Some(reason) => PlanningError::Stopped {
+                reason,
+                extensions: spent,
+            },
+            None => e.into(),
+        })?;
     check_predictions(domain, predicted.len(), states.len())?;
     Ok(predicted)
 }

@@ -385,7 +385,14 @@ fn rollout(
             .collect();
         let states = vec![s.as_slice(); tries.len()];
         let actions: Vec<&[f64]> = tries.iter().map(Vec::as_slice).collect();
-        let predicted = predict_pairs(domain, &states, &actions, dynamics_calls)?;
+        let predicted = predict_pairs(
+            domain,
+            &states,
+            &actions,
+            dynamics_calls,
+            budget,
+            extensions,
+        )?;
         let allowed: Vec<(usize, Vec<f64>, Vec<f64>)> = tries
             .into_iter()
             .zip(predicted)

@@ -30,7 +30,7 @@ impl ExperimentState {
 impl Service {
     /// Validates the settings, stores a new experiment and loads it (answering from the prior).
     pub async fn create_experiment(&self, request: ExperimentRequest) -> Result<ExperimentState> {
-        let (settings, domain) = request.resolve(&self.model_urls)?;
+        let (settings, domain) = request.resolve(&self.model_calls)?;
         let _counted_and_created_together = self.creating.lock().await;
         let max = self.work.limits().max_experiments;
         if self.store.count_experiments().await? >= max as i64 {
@@ -87,7 +87,7 @@ impl Service {
     fn state_of(&self, experiment: Experiment) -> Result<ExperimentState> {
         let domain = match self.live.cached(experiment.id) {
             Some(live) => live.domain.clone(),
-            None => build_stored_domain(experiment.id, &experiment.settings)?,
+            None => build_stored_domain(experiment.id, &experiment.settings, &self.model_calls)?,
         };
         Ok(ExperimentState { experiment, domain })
     }

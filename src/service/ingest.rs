@@ -43,7 +43,9 @@ pub fn check_idempotency_key(key: &[u8]) -> Result<&str> {
 
 /// Validates every transition against the domain (the field named by its index) and labels it
 /// with the model's prediction. The model is called once for the whole trajectory, off the
-/// async workers; if it fails, nothing is labelled.
+/// async workers (an in-process model on the blocking pool, a remote one on its own call
+/// thread under [`ModelCalls`](crate::remote_model::ModelCalls)' limits); if it fails, nothing
+/// is labelled.
 pub async fn label(
     live: &Arc<LiveExperiment>,
     mut transitions: Vec<Transition>,
@@ -99,15 +101,24 @@ pub async fn label(
             .map(|t| t.s_pred.clone().unwrap_or_default())
             .collect()
     } else {
-        let domain = live.domain.clone();
-        let (moved, predicted) = Service::blocking(move || {
+        let predicted = if let Some(remote) = live.domain.dynamics().remote() {
+            // A remote model: waited for as a task, the call on a thread of its own, bounded
+            // by the operator's limits; no blocking-pool thread is held.
             let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
             let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
-            let predicted = domain.dynamics().predict_batch(&states, &actions);
-            (transitions, predicted)
-        })
-        .await?;
-        transitions = moved;
+            remote.predict_async(&states, &actions).await
+        } else {
+            let domain = live.domain.clone();
+            let (moved, predicted) = Service::blocking(move || {
+                let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
+                let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
+                let predicted = domain.dynamics().predict_batch(&states, &actions);
+                (transitions, predicted)
+            })
+            .await?;
+            transitions = moved;
+            predicted
+        };
         let predicted = predicted?;
         if predicted.len() != transitions.len() {
             return Err(Error::Dynamics(DynamicsError::Unavailable {

@@ -1,6 +1,7 @@
 //! Looking inside a model version: its `μ` and `σ` on a grid over two components of `(s, a)`
 //! (the precondition map) and its leave-one-out calibration (diagnostics).
 
+use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{Coverage, PreconditionRates};
 use crate::domain::Space;
@@ -11,6 +12,7 @@ use crate::mde::{Estimator, ServedModel};
 use crate::planning::Precondition;
 use crate::store::StoredTransition;
 use std::sync::Arc;
+use std::time::Instant;
 
 /// What a precondition map asks for, parsed.
 #[derive(Debug, Clone)]
@@ -222,9 +224,38 @@ fn thin<T>(items: Vec<T>, max: usize) -> Vec<T> {
 }
 
 impl Service {
+    /// Model version `version` of `live` (`None`: the one answering). An older fitted version
+    /// is rebuilt from its stored state (one factorisation, `O(n³)` time and `n²` memory), so
+    /// asking for one takes a slot of the work gate like a search, under the same deadline
+    /// counted from `arrived` (`503` when it passes while waiting, `429` when the queue is
+    /// full): concurrent rebuilds are bounded by `--max-concurrent-plans`. The rebuild runs in
+    /// a task of its own that holds the slot until it ends, so a client that goes away does not
+    /// free the slot of a rebuild still running. The current version and the prior need no
+    /// slot.
+    async fn model_version(
+        &self,
+        live: &Arc<LiveExperiment>,
+        version: Option<i64>,
+        arrived: Instant,
+    ) -> Result<Arc<ServedModel>> {
+        let current = live.model().version;
+        let Some(older) = version.filter(|v| *v != current && *v != 0) else {
+            return live.model_at(&self.store, version).await;
+        };
+        let (slot, _deadline) = self.work.plan_slot(live.id, arrived).await?;
+        let (live, store) = (live.clone(), self.store.clone());
+        tokio::spawn(async move {
+            let _slot = slot;
+            live.model_at(&store, Some(older)).await
+        })
+        .await
+        .map_err(|e| Error::Internal(anyhow::Error::new(e).context("rebuilding a model version")))?
+    }
+
     /// `μ` and `σ` of a model version on a grid over two components of `(s, a)`, the other
     /// components fixed; with the version's training transitions (thinned) to draw on it.
     pub async fn precondition_map(&self, id: i64, request: MapRequest) -> Result<PreconditionGrid> {
+        let arrived = Instant::now();
         let live = self.live(id).await?;
         let domain = live.domain.clone();
         let (state, action) = (domain.state_space(), domain.action_space());
@@ -241,7 +272,7 @@ impl Service {
             _ => centre(action),
         });
         check_vector("a", &a, action)?;
-        let model = live.model_at(&self.store, request.version).await?;
+        let model = self.model_version(&live, request.version, arrived).await?;
         let bounds = |(is_action, i): (bool, usize)| {
             let space = if is_action { action } else { state };
             (space.low[i], space.high[i])
@@ -307,9 +338,10 @@ impl Service {
         version: Option<i64>,
         beta: Option<f64>,
     ) -> Result<LooDiagnostics> {
+        let arrived = Instant::now();
         let live = self.live(id).await?;
         let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
-        let model = live.model_at(&self.store, version).await?;
+        let model = self.model_version(&live, version, arrived).await?;
         let Estimator::Fitted(gp) = &model.estimator else {
             return Err(Error::Conflict(format!(
                 "model version {} is the prior: there are no training labels to check",

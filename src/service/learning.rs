@@ -344,7 +344,7 @@ impl Service {
             problem.start().iter().chain(problem.goal()).copied(),
         );
         let outcome = self
-            .search(arrived, move |budget| {
+            .search(id, arrived, super::SearchKind::Plan, move |budget| {
                 live.planner(&model)
                     .within(budget.clone())
                     .plan(&problem, precondition, seed)

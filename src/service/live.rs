@@ -13,6 +13,7 @@ use crate::mde::{
     fit_choosing_label_cap, gp_params, training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
+use crate::remote_model::ModelCalls;
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
 use crate::store::{FitRefusal, Store, StoredModel, StoredTransition};
@@ -450,6 +451,7 @@ impl Registry {
         &self,
         store: &Store,
         gate: &Arc<WorkGate>,
+        model_calls: &Arc<ModelCalls>,
         id: i64,
     ) -> Result<Arc<LiveExperiment>, Error> {
         if let Some(live) = self.cached(id) {
@@ -463,7 +465,7 @@ impl Registry {
             .experiment(id)
             .await?
             .ok_or_else(|| Error::no_experiment(id))?;
-        let domain = build_stored_domain(id, &stored.settings)?;
+        let domain = build_stored_domain(id, &stored.settings, model_calls)?;
         let live = LiveExperiment::new(id, stored.settings, domain).map_err(|e| {
             Error::Internal(anyhow::anyhow!(
                 "stored experiment {id} no longer has valid settings: {e}"
@@ -506,13 +508,15 @@ impl Registry {
     }
 }
 
-/// Builds the domain of stored experiment `id`; a failure is a bug (or a stored row edited by
-/// hand): it was validated when the experiment was created.
+/// Builds the domain of stored experiment `id` (a remote model called under `model_calls`,
+/// whose policy refuses every call to a URL the operator no longer allows); a failure is a bug
+/// (or a stored row edited by hand): it was validated when the experiment was created.
 pub fn build_stored_domain(
     id: i64,
     settings: &ExperimentSettings,
+    model_calls: &Arc<ModelCalls>,
 ) -> Result<Arc<dyn Domain>, Error> {
-    settings.domain.build().map_err(|e| {
+    settings.domain.build(model_calls).map_err(|e| {
         Error::Internal(anyhow::anyhow!(
             "stored experiment {id} no longer builds: {e}"
         ))

@@ -16,8 +16,9 @@
 //!   leave-one-out calibration.
 //! - [`error`](mod@error): the service's [`Error`].
 //!
-//! CPU-heavy work (fits, planning, large judgements, calls to the dynamics model) runs on the
-//! blocking pool, never on the async workers.
+//! CPU-heavy work (large judgements, in-process dynamics models) runs on the blocking pool,
+//! searches and fits on threads of their own under the work gate, calls to remote dynamics
+//! models on threads of their own under [`ModelCalls`]' limits — never on the async workers.
 
 pub mod activity;
 pub mod error;
@@ -40,10 +41,31 @@ pub use proposals::ProposalRecord;
 pub use work::{Limits, WorkGate};
 
 use crate::planning::{Budget, PlanningError, Stop};
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCallLimits, ModelCalls, ModelUrlPolicy};
 use crate::store::Store;
 use std::sync::Arc;
 use std::time::Instant;
+
+/// What a search is for, for the metrics it counts itself.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum SearchKind {
+    /// A training proposal (`precond_proposals_total`).
+    Proposal,
+    /// A test-time plan.
+    Plan,
+}
+
+impl SearchKind {
+    /// Counts a search its client abandoned (the request is gone, so the search counts it).
+    fn count_cancelled(self) {
+        match self {
+            Self::Proposal => {
+                metrics::counter!("precond_proposals_total", "outcome" => "cancelled").increment(1)
+            }
+            Self::Plan => {}
+        }
+    }
+}
 
 /// The service: the store, the operator's policies and the experiments this process has
 /// loaded. Cheap to clone.
@@ -51,7 +73,8 @@ use std::time::Instant;
 pub struct Service {
     store: Store,
     live: Arc<Registry>,
-    model_urls: Arc<ModelUrlPolicy>,
+    /// Where remote models may live and how their calls are bounded.
+    model_calls: Arc<ModelCalls>,
     work: Arc<WorkGate>,
     /// Held while an experiment is counted and created, so the limit is exact.
     creating: Arc<tokio::sync::Mutex<()>>,
@@ -68,7 +91,7 @@ impl Service {
         Self {
             store,
             live: Arc::new(Registry::default()),
-            model_urls: Arc::new(model_urls),
+            model_calls: Arc::new(ModelCalls::new(model_urls, ModelCallLimits::default())),
             work: Arc::new(WorkGate::new(Limits::default())),
             creating: Arc::new(tokio::sync::Mutex::new(())),
         }
@@ -79,6 +102,18 @@ impl Service {
     pub fn with_limits(mut self, limits: Limits) -> Self {
         self.work = Arc::new(WorkGate::new(limits));
         self
+    }
+
+    /// The same service with the operator's limits on remote model calls (assumed checked, see
+    /// [`ModelCallLimits::check`]); the URL policy stays.
+    pub fn with_model_limits(mut self, limits: ModelCallLimits) -> Self {
+        self.model_calls = Arc::new(ModelCalls::new(self.model_calls.policy().clone(), limits));
+        self
+    }
+
+    /// Remote model calls: the URL policy, the limits, the calls running.
+    pub fn model_calls(&self) -> &Arc<ModelCalls> {
+        &self.model_calls
     }
 
     /// The gate searches and fits pass through, with the limits.
@@ -99,24 +134,40 @@ impl Service {
     /// The live experiment `id` (domain and current model), loading it if needed; `NotFound`
     /// if there is no such experiment.
     pub async fn live(&self, id: i64) -> Result<Arc<LiveExperiment>> {
-        self.live.get(&self.store, &self.work, id).await
+        self.live
+            .get(&self.store, &self.work, &self.model_calls, id)
+            .await
     }
 
-    /// Runs a planning search through the work gate (see [`work`](mod@work)): waits for a
-    /// slot until the deadline counted from `arrived`, then searches on the blocking pool with
-    /// that deadline and a flag raised if this future is dropped (the client went away).
+    /// Runs a planning search of `experiment` through the work gate (see [`work`](mod@work)):
+    /// waits for a slot (experiments take turns) until the deadline counted from `arrived`, then searches on a thread of its own
+    /// with that deadline and a flag raised if this future is dropped (the client went away).
+    ///
+    /// A search stopped by that flag is counted by the search itself
+    /// (`precond_proposals_total{outcome="cancelled"}` for a proposal): nobody is left to
+    /// count the answer.
     pub(crate) async fn search<T: Send + 'static>(
         &self,
+        experiment: i64,
         arrived: Instant,
+        kind: SearchKind,
         search: impl FnOnce(&Budget) -> Result<T, PlanningError> + Send + 'static,
     ) -> Result<T> {
-        let (slot, deadline) = self.work.plan_slot(arrived).await?;
+        let (slot, deadline) = self.work.plan_slot(experiment, arrived).await?;
         let (budget, _cancel_on_drop) = WorkGate::budget(deadline);
         let outcome = work::run_niced(move || {
             // The slot is held by the running search, not by the request: a cancelled
             // request's slot frees when its search has actually stopped.
             let _slot = slot;
-            search(&budget)
+            let outcome = search(&budget);
+            if let Err(PlanningError::Stopped {
+                reason: Stop::Cancelled,
+                ..
+            }) = &outcome
+            {
+                kind.count_cancelled();
+            }
+            outcome
         })
         .await?;
         outcome.map_err(|e| match e {

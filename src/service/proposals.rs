@@ -13,7 +13,7 @@ use crate::api::{
     CandidateView, ContinueRequest, PlannedTrajectory, ProposalContent, ProposalRequest,
     TrajectoryRequest,
 };
-use crate::limits::MAX_CLIENT_ID_LEN;
+use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
@@ -120,7 +120,9 @@ impl Service {
     /// Proposes the trajectory to execute next for `request`'s problem (see the module docs).
     /// Returns the proposal and whether it is new (`false`: the client's open lease).
     ///
-    /// Counts each answer in `precond_proposals_total` by outcome.
+    /// Counts each answer in `precond_proposals_total` by outcome; a search whose client went
+    /// away is counted as `cancelled` by the search itself (in `Service::search`), since
+    /// this future is dropped with the request.
     pub async fn propose(
         &self,
         id: i64,
@@ -128,13 +130,14 @@ impl Service {
     ) -> Result<(ProposalRecord, bool)> {
         let answer = self.propose_unmetered(id, request).await;
         let outcome = match &answer {
+            // Counted where the search stopped.
+            Err(Error::Cancelled) => return answer,
             Ok((_, true)) => "created",
             Ok((_, false)) => "lease_returned",
             Err(Error::NoPlan { .. }) => "no_plan",
             Err(Error::LeaseHeld { .. }) => "lease_held",
             Err(Error::DeadlineExceeded { .. }) => "deadline_exceeded",
             Err(Error::Overloaded { .. }) => "overloaded",
-            Err(Error::Cancelled) => "cancelled",
             Err(Error::Validation { .. } | Error::NotFound(_)) => "invalid",
             Err(_) => "failed",
         };
@@ -156,6 +159,9 @@ impl Service {
                     "client_id",
                     format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
                 ));
+            }
+            if let Some(why) = text_problem(client) {
+                return Err(Error::validation("client_id", why));
             }
             if let Some(open) = self.store.open_proposal(id, client).await? {
                 return Ok((lease_answer(open, &request)?, false));
@@ -212,7 +218,7 @@ impl Service {
                 needs_candidates(&live)?;
                 let live = live.clone();
                 let proposal = self
-                    .search(arrived, move |budget| {
+                    .search(id, arrived, super::SearchKind::Proposal, move |budget| {
                         live.planner(&model)
                             .within(budget.clone())
                             .propose_relaxing(strategy, &problem, &ladder, seed)

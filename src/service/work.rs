@@ -1,27 +1,34 @@
 //! Bounded work: the operator's limits and the gate every planning search and every fit
 //! passes through.
 //!
-//! - At most [`Limits::max_concurrent_plans`] searches and fits run at once (a semaphore sized
-//!   from the cores by default), so the async workers that answer health checks and cheap
-//!   reads always find a core.
+//! - At most [`Limits::max_concurrent_plans`] searches and fits run at once (one per core by
+//!   default), so the async workers that answer health checks and cheap reads always find a
+//!   core.
 //! - A request waits for a slot at most until its deadline ([`Limits::plan_timeout`], counted
 //!   from its arrival); the search itself stops at the same deadline. Either way the client
 //!   gets `503 deadline_exceeded` with `Retry-After` (or `no_plan` if the search concluded).
-//! - At most [`Limits::max_queued_plans`] requests wait at once; beyond that a request is
+//! - About [`Limits::max_queued_plans`] requests wait at once; beyond that a request is
 //!   refused at once with `429 overloaded` and `Retry-After`.
+//! - Experiments take turns: free slots go round robin to the experiments with requests
+//!   waiting, one experiment runs at most [`Limits::max_plans_per_experiment`] searches at once
+//!   (half the slots by default), and holds at most half the queue; an experiment with nothing
+//!   waiting always gets a place in line. So one client flooding one experiment cannot take
+//!   every slot, nor leave others only `429`s.
+//! - Rebuilding an older model version (maps, diagnostics) takes a slot like a search.
 //! - A search whose client went away stops at its next round: the request's future holds a
 //!   guard that raises the search's cancel flag when it is dropped.
-//! - Fits (background or forced) take a slot too but have no deadline: a fit is one
-//!   optimisation that cannot stop halfway, and its worst case is bounded by the training-set
-//!   size and `restarts`.
+//! - Fits (background or forced) take a slot too, taking turns with the experiments (all fits
+//!   as one, without the per-experiment cap), but have no deadline: a fit is one optimisation
+//!   that cannot stop halfway, and its worst case is bounded by the training-set size and
+//!   `restarts`.
 
 use super::{Error, Result};
 use crate::limits::MAX_TRANSITIONS;
 use crate::planning::Budget;
-use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::collections::{HashMap, VecDeque};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
-use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 /// Shortest planning deadline an operator may set.
 pub const MIN_PLAN_TIMEOUT: Duration = Duration::from_millis(100);
@@ -33,6 +40,9 @@ pub const MAX_PLAN_TIMEOUT: Duration = Duration::from_secs(600);
 pub struct Limits {
     /// Searches and fits running at once: `1 ..= 256`; default the number of cores.
     pub max_concurrent_plans: usize,
+    /// Searches (and model rebuilds) of one experiment running at once: `1 ..= 256` (at most
+    /// `max_concurrent_plans` take effect); default half the slots, at least 1.
+    pub max_plans_per_experiment: usize,
     /// Requests waiting for a slot at once before new ones are refused with `429`:
     /// `0 ..= 10 000`; default `8 × max_concurrent_plans`.
     pub max_queued_plans: usize,
@@ -66,6 +76,7 @@ impl Default for Limits {
         let cores = std::thread::available_parallelism().map_or(2, |n| n.get());
         Self {
             max_concurrent_plans: cores,
+            max_plans_per_experiment: Self::default_per_experiment(cores),
             max_queued_plans: 8 * cores,
             plan_timeout: Duration::from_secs(30),
             max_experiments: 1000,
@@ -76,6 +87,22 @@ impl Default for Limits {
 }
 
 impl Limits {
+    /// The default of [`Limits::max_plans_per_experiment`] for `slots` slots: half, at least 1.
+    pub fn default_per_experiment(slots: usize) -> usize {
+        (slots / 2).max(1)
+    }
+
+    /// Searches one experiment may run at once, in effect.
+    pub fn per_experiment(&self) -> usize {
+        self.max_plans_per_experiment
+            .clamp(1, self.max_concurrent_plans.max(1))
+    }
+
+    /// Places in the queue one experiment may hold: half the queue, at least 1.
+    pub fn queue_share(&self) -> usize {
+        (self.max_queued_plans / 2).max(1)
+    }
+
     /// Checks the ranges; the error names the option.
     pub fn check(&self) -> std::result::Result<(), String> {
         let range = |name: &str, v: usize, lo: usize, hi: usize| {
@@ -86,6 +113,12 @@ impl Limits {
             }
         };
         range("max-concurrent-plans", self.max_concurrent_plans, 1, 256)?;
+        range(
+            "max-plans-per-experiment",
+            self.max_plans_per_experiment,
+            1,
+            256,
+        )?;
         range("max-queued-plans", self.max_queued_plans, 0, 10_000)?;
         range("max-experiments", self.max_experiments, 1, 1_000_000)?;
         range("max-transitions", self.max_transitions, 1, MAX_TRANSITIONS)?;
@@ -113,26 +146,150 @@ impl Limits {
     }
 }
 
+/// Whose turn a slot is: an experiment's searches (and rebuilds), or the fits.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Key {
+    /// Searches and model rebuilds of one experiment: at most
+    /// [`Limits::max_plans_per_experiment`] at once.
+    Experiment(i64),
+    /// Fits (background or forced), of any experiment: no cap of their own.
+    Fits,
+}
+
+/// One request waiting for a slot.
+#[derive(Debug)]
+struct Waiter {
+    id: u64,
+    grant: tokio::sync::oneshot::Sender<Slot>,
+}
+
+/// What the gate knows, under one lock.
+#[derive(Debug, Default)]
+struct State {
+    running: usize,
+    running_by_key: HashMap<Key, usize>,
+    waiting: usize,
+    queues: HashMap<Key, VecDeque<Waiter>>,
+    /// Keys with waiters, in the order their turn comes (round robin).
+    turn: VecDeque<Key>,
+    next_id: u64,
+}
+
 /// The gate: the slots, the queue and the limits.
 #[derive(Debug)]
 pub struct WorkGate {
     limits: Limits,
-    slots: Arc<Semaphore>,
-    waiting: AtomicUsize,
-    running: Arc<AtomicUsize>,
+    state: Arc<Mutex<State>>,
 }
 
-/// A slot: held while a search or fit runs; releasing it updates the gauges.
+/// A slot: held while a search, rebuild or fit runs; releasing it hands it to the next in
+/// turn and updates the gauges.
 #[derive(Debug)]
 pub struct Slot {
-    _permit: OwnedSemaphorePermit,
-    running: Arc<AtomicUsize>,
+    key: Key,
+    state: Arc<Mutex<State>>,
+    limits: Arc<(usize, usize)>,
 }
 
 impl Drop for Slot {
     fn drop(&mut self) {
-        let now = self.running.fetch_sub(1, Ordering::Relaxed) - 1;
-        metrics::gauge!("precond_planning_running").set(now as f64);
+        let mut state = lock(&self.state);
+        state.running -= 1;
+        if let Some(n) = state.running_by_key.get_mut(&self.key) {
+            *n -= 1;
+            if *n == 0 {
+                state.running_by_key.remove(&self.key);
+            }
+        }
+        let refused = dispatch(&mut state, &self.state, &self.limits);
+        drop(state);
+        // Slots whose waiter had gone: dropping them dispatches again, outside the lock.
+        drop(refused);
+    }
+}
+
+fn lock(state: &Mutex<State>) -> std::sync::MutexGuard<'_, State> {
+    state.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+/// Whether `key` may start one more: fits always, an experiment below its cap.
+fn may_start(state: &State, key: Key, per_experiment: usize) -> bool {
+    match key {
+        Key::Fits => true,
+        Key::Experiment(_) => state.running_by_key.get(&key).copied().unwrap_or(0) < per_experiment,
+    }
+}
+
+/// Hands free slots to waiters, keys in round-robin turn, skipping keys at their cap. Returns
+/// the slots whose waiter had gone, to be dropped once the lock is released.
+fn dispatch(
+    state: &mut State,
+    shared: &Arc<Mutex<State>>,
+    limits: &Arc<(usize, usize)>,
+) -> Vec<Slot> {
+    let (slots, per_experiment) = **limits;
+    let mut refused = Vec::new();
+    let mut skipped = 0;
+    while state.running < slots && skipped < state.turn.len() {
+        let Some(key) = state.turn.pop_front() else {
+            break;
+        };
+        if !may_start(state, key, per_experiment) {
+            state.turn.push_back(key);
+            skipped += 1;
+            continue;
+        }
+        skipped = 0;
+        let waiter = state.queues.get_mut(&key).and_then(VecDeque::pop_front);
+        if state.queues.get(&key).is_some_and(|q| !q.is_empty()) {
+            state.turn.push_back(key);
+        } else {
+            state.queues.remove(&key);
+        }
+        let Some(waiter) = waiter else { continue };
+        state.waiting -= 1;
+        state.running += 1;
+        *state.running_by_key.entry(key).or_insert(0) += 1;
+        let slot = Slot {
+            key,
+            state: shared.clone(),
+            limits: limits.clone(),
+        };
+        if let Err(slot) = waiter.grant.send(slot) {
+            refused.push(slot);
+        }
+    }
+    gauges(state);
+    refused
+}
+
+fn gauges(state: &State) {
+    metrics::gauge!("precond_planning_running").set(state.running as f64);
+    metrics::gauge!("precond_planning_queue_depth").set(state.waiting as f64);
+}
+
+/// Takes a waiter out of the queue when its request stops waiting (deadline or dropped).
+struct LeaveQueue<'a> {
+    state: &'a Arc<Mutex<State>>,
+    key: Key,
+    id: u64,
+}
+
+impl Drop for LeaveQueue<'_> {
+    fn drop(&mut self) {
+        let mut state = lock(self.state);
+        let Some(queue) = state.queues.get_mut(&self.key) else {
+            return;
+        };
+        let before = queue.len();
+        queue.retain(|w| w.id != self.id);
+        let left = before - queue.len();
+        if queue.is_empty() {
+            state.queues.remove(&self.key);
+            state.turn.retain(|k| *k != self.key);
+        }
+        state.waiting -= left;
+        gauges(&state);
     }
 }
 
@@ -147,14 +304,18 @@ impl Drop for CancelOnDrop {
     }
 }
 
+/// How a request for a slot ended before it got one.
+enum Refusal {
+    /// The queue (or the key's share of it) is full.
+    Full,
+}
+
 impl WorkGate {
     /// A gate with these limits (assumed checked).
     pub fn new(limits: Limits) -> Self {
         Self {
-            slots: Arc::new(Semaphore::new(limits.max_concurrent_plans)),
             limits,
-            waiting: AtomicUsize::new(0),
-            running: Arc::new(AtomicUsize::new(0)),
+            state: Arc::new(Mutex::new(State::default())),
         }
     }
 
@@ -165,60 +326,113 @@ impl WorkGate {
 
     /// Requests waiting for a slot now.
     pub fn queue_depth(&self) -> usize {
-        self.waiting.load(Ordering::Relaxed)
+        lock(&self.state).waiting
     }
 
-    fn set_waiting(&self, delta: isize) {
-        let now = if delta > 0 {
-            self.waiting.fetch_add(1, Ordering::Relaxed) + 1
-        } else {
-            self.waiting.fetch_sub(1, Ordering::Relaxed) - 1
-        };
-        metrics::gauge!("precond_planning_queue_depth").set(now as f64);
+    /// Searches, rebuilds and fits running now.
+    pub fn running(&self) -> usize {
+        lock(&self.state).running
     }
 
-    fn granted(&self, permit: OwnedSemaphorePermit) -> Slot {
-        let now = self.running.fetch_add(1, Ordering::Relaxed) + 1;
-        metrics::gauge!("precond_planning_running").set(now as f64);
-        Slot {
-            _permit: permit,
-            running: self.running.clone(),
+    fn shared_limits(&self) -> Arc<(usize, usize)> {
+        Arc::new((
+            self.limits.max_concurrent_plans,
+            self.limits.per_experiment(),
+        ))
+    }
+
+    /// A slot at once, or a place in `key`'s queue (with the receiver of its slot and its
+    /// waiter id), or a refusal when `bounded` and the queue has no room for `key`.
+    #[allow(clippy::type_complexity)]
+    fn enter(
+        &self,
+        key: Key,
+        bounded: bool,
+    ) -> Result<Result<Slot, (tokio::sync::oneshot::Receiver<Slot>, u64)>, Refusal> {
+        let limits = self.shared_limits();
+        let mut state = lock(&self.state);
+        let queued_for_key = state.queues.get(&key).map_or(0, VecDeque::len);
+        if state.running < self.limits.max_concurrent_plans
+            && queued_for_key == 0
+            && may_start(&state, key, self.limits.per_experiment())
+        {
+            state.running += 1;
+            *state.running_by_key.entry(key).or_insert(0) += 1;
+            gauges(&state);
+            return Ok(Ok(Slot {
+                key,
+                state: self.state.clone(),
+                limits,
+            }));
         }
+        if bounded {
+            // Every experiment keeps a place in line: one with nobody waiting may queue even
+            // when the others filled the queue; none may hold more than its share of it.
+            let share = self.limits.queue_share();
+            let full = self.limits.max_queued_plans == 0
+                || queued_for_key >= share
+                || (state.waiting >= self.limits.max_queued_plans && queued_for_key > 0);
+            if full {
+                return Err(Refusal::Full);
+            }
+        }
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        state.next_id += 1;
+        let id = state.next_id;
+        state
+            .queues
+            .entry(key)
+            .or_default()
+            .push_back(Waiter { id, grant: tx });
+        if queued_for_key == 0 {
+            state.turn.push_back(key);
+        }
+        state.waiting += 1;
+        gauges(&state);
+        Ok(Err((rx, id)))
     }
 
-    /// A slot for a planning request that arrived at `arrived`: `429` at once when the queue
-    /// is full, `503` when the deadline passes while waiting.
-    pub async fn plan_slot(&self, arrived: Instant) -> Result<(Slot, Instant)> {
+    /// A slot for a planning request on experiment `experiment` that arrived at `arrived`:
+    /// `429` at once when the queue has no room for it, `503` when the deadline passes while
+    /// waiting. Experiments take turns for free slots, and each runs at most
+    /// [`Limits::max_plans_per_experiment`] at once.
+    pub async fn plan_slot(&self, experiment: i64, arrived: Instant) -> Result<(Slot, Instant)> {
         let deadline = arrived + self.limits.plan_timeout;
-        if let Ok(permit) = self.slots.clone().try_acquire_owned() {
-            return Ok((self.granted(permit), deadline));
-        }
-        if self.queue_depth() >= self.limits.max_queued_plans {
-            return Err(Error::Overloaded {
-                retry_after_secs: self.limits.retry_after_secs(),
-            });
-        }
-        self.set_waiting(1);
-        let waited = tokio::time::timeout_at(
-            tokio::time::Instant::from_std(deadline),
-            self.slots.clone().acquire_owned(),
-        )
-        .await;
-        self.set_waiting(-1);
-        match waited {
-            Ok(Ok(permit)) => Ok((self.granted(permit), deadline)),
+        let key = Key::Experiment(experiment);
+        let (rx, id) = match self.enter(key, true) {
+            Ok(Ok(slot)) => return Ok((slot, deadline)),
+            Ok(Err(waiting)) => waiting,
+            Err(Refusal::Full) => {
+                return Err(Error::Overloaded {
+                    retry_after_secs: self.limits.retry_after_secs(),
+                });
+            }
+        };
+        let _leave = LeaveQueue {
+            state: &self.state,
+            key,
+            id,
+        };
+        match tokio::time::timeout_at(tokio::time::Instant::from_std(deadline), rx).await {
+            Ok(Ok(slot)) => Ok((slot, deadline)),
             Ok(Err(_closed)) => Err(Error::Internal(anyhow::anyhow!("the work gate closed"))),
             Err(_elapsed) => Err(self.deadline_exceeded(0)),
         }
     }
 
-    /// A slot for a fit: waits as long as it takes.
+    /// A slot for a fit: waits as long as it takes, taking turns with the experiments' searches.
     pub async fn fit_slot(&self) -> Result<Slot> {
-        self.set_waiting(1);
-        let permit = self.slots.clone().acquire_owned().await;
-        self.set_waiting(-1);
-        permit
-            .map(|p| self.granted(p))
+        let (rx, id) = match self.enter(Key::Fits, false) {
+            Ok(Ok(slot)) => return Ok(slot),
+            Ok(Err(waiting)) => waiting,
+            Err(Refusal::Full) => unreachable!("an unbounded wait is never refused"),
+        };
+        let _leave = LeaveQueue {
+            state: &self.state,
+            key: Key::Fits,
+            id,
+        };
+        rx.await
             .map_err(|_| Error::Internal(anyhow::anyhow!("the work gate closed")))
     }
 
@@ -282,6 +496,7 @@ mod tests {
     fn limits(slots: usize, queue: usize, timeout_ms: u64) -> Limits {
         Limits {
             max_concurrent_plans: slots,
+            max_plans_per_experiment: slots,
             max_queued_plans: queue,
             plan_timeout: Duration::from_millis(timeout_ms),
             ..Limits::default()
@@ -302,17 +517,17 @@ mod tests {
     #[tokio::test]
     async fn a_full_gate_queues_then_refuses() {
         let gate = Arc::new(WorkGate::new(limits(1, 1, 200)));
-        let (held, _) = gate.plan_slot(Instant::now()).await.unwrap();
+        let (held, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
         // One waits (and times out at its deadline), the next is refused at once.
         let waiter = {
             let gate = gate.clone();
-            tokio::spawn(async move { gate.plan_slot(Instant::now()).await.map(|_| ()) })
+            tokio::spawn(async move { gate.plan_slot(1, Instant::now()).await.map(|_| ()) })
         };
         while gate.queue_depth() == 0 {
             tokio::task::yield_now().await;
         }
         assert!(matches!(
-            gate.plan_slot(Instant::now()).await,
+            gate.plan_slot(1, Instant::now()).await,
             Err(Error::Overloaded { .. })
         ));
         assert!(matches!(
@@ -320,7 +535,130 @@ mod tests {
             Err(Error::DeadlineExceeded { extensions: 0, .. })
         ));
         drop(held);
-        assert!(gate.plan_slot(Instant::now()).await.is_ok());
+        assert!(gate.plan_slot(1, Instant::now()).await.is_ok());
         assert_eq!(gate.queue_depth(), 0);
+    }
+
+    /// A request for experiment `e` as a task, answering whether it got a slot (held for
+    /// `hold_ms`).
+    fn ask(
+        gate: &Arc<WorkGate>,
+        e: i64,
+        hold_ms: u64,
+        order: &Arc<Mutex<Vec<i64>>>,
+    ) -> tokio::task::JoinHandle<bool> {
+        let (gate, order) = (gate.clone(), order.clone());
+        tokio::spawn(async move {
+            match gate.plan_slot(e, Instant::now()).await {
+                Ok((slot, _)) => {
+                    order.lock().unwrap().push(e);
+                    tokio::time::sleep(Duration::from_millis(hold_ms)).await;
+                    drop(slot);
+                    true
+                }
+                Err(_) => false,
+            }
+        })
+    }
+
+    async fn until_waiting(gate: &WorkGate, n: usize) {
+        while gate.queue_depth() < n {
+            tokio::task::yield_now().await;
+        }
+    }
+
+    #[tokio::test]
+    async fn one_experiment_cannot_take_every_slot() {
+        let gate = Arc::new(WorkGate::new(Limits {
+            max_plans_per_experiment: 1,
+            ..limits(2, 8, 5000)
+        }));
+        let (_held, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        // Experiment 1's next request waits although a slot is free ...
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let second = ask(&gate, 1, 0, &order);
+        until_waiting(&gate, 1).await;
+        assert_eq!(gate.running(), 1);
+        // ... which experiment 2 gets at once.
+        let (other, _) = gate.plan_slot(2, Instant::now()).await.unwrap();
+        assert_eq!((gate.running(), gate.queue_depth()), (2, 1));
+        drop(other);
+        drop(_held);
+        assert!(second.await.unwrap());
+        assert_eq!((gate.running(), gate.queue_depth()), (0, 0));
+    }
+
+    #[tokio::test]
+    async fn experiments_take_turns_for_free_slots() {
+        let gate = Arc::new(WorkGate::new(limits(1, 16, 5000)));
+        let (held, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let mut tasks = Vec::new();
+        for (k, e) in [1, 1, 1, 2, 3].into_iter().enumerate() {
+            tasks.push(ask(&gate, e, 5, &order));
+            until_waiting(&gate, k + 1).await;
+        }
+        drop(held);
+        for t in tasks {
+            assert!(t.await.unwrap());
+        }
+        // Round robin: 1, 2, 3, then experiment 1's remaining requests in their order.
+        assert_eq!(*order.lock().unwrap(), vec![1, 2, 3, 1, 1]);
+    }
+
+    #[tokio::test]
+    async fn one_experiment_holds_at_most_half_the_queue_and_others_always_get_a_place() {
+        let gate = Arc::new(WorkGate::new(limits(1, 4, 5000)));
+        let (held, _) = gate.plan_slot(9, Instant::now()).await.unwrap();
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let a = [ask(&gate, 1, 0, &order), ask(&gate, 1, 0, &order)];
+        until_waiting(&gate, 2).await;
+        assert!(
+            matches!(
+                gate.plan_slot(1, Instant::now()).await,
+                Err(Error::Overloaded { .. })
+            ),
+            "experiment 1 holds its share (2 of 4)"
+        );
+        let b = [ask(&gate, 2, 0, &order), ask(&gate, 3, 0, &order)];
+        until_waiting(&gate, 4).await;
+        // The queue is full, but experiment 4 has nobody waiting: it gets a place.
+        let c = ask(&gate, 4, 0, &order);
+        until_waiting(&gate, 5).await;
+        assert!(matches!(
+            gate.plan_slot(2, Instant::now()).await,
+            Err(Error::Overloaded { .. })
+        ));
+        drop(held);
+        for t in a.into_iter().chain(b).chain([c]) {
+            assert!(t.await.unwrap());
+        }
+        assert_eq!(*order.lock().unwrap(), vec![1, 2, 3, 4, 1]);
+    }
+
+    #[tokio::test]
+    async fn a_request_that_stops_waiting_leaves_the_queue() {
+        let gate = Arc::new(WorkGate::new(limits(1, 4, 5000)));
+        let (held, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let gone = ask(&gate, 2, 0, &order);
+        let stays = ask(&gate, 3, 0, &order);
+        until_waiting(&gate, 2).await;
+        gone.abort();
+        assert!(gone.await.is_err());
+        assert_eq!(gate.queue_depth(), 1);
+        drop(held);
+        assert!(stays.await.unwrap());
+        assert_eq!(*order.lock().unwrap(), vec![3]);
+        // Fits take turns too and are never refused.
+        let (held, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        let fit = {
+            let gate = gate.clone();
+            tokio::spawn(async move { gate.fit_slot().await.map(drop).is_ok() })
+        };
+        until_waiting(&gate, 1).await;
+        drop(held);
+        assert!(fit.await.unwrap());
+        assert_eq!((gate.running(), gate.queue_depth()), (0, 0));
     }
 }

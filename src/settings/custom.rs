@@ -21,7 +21,7 @@ use crate::domain::{
     BoxObstacle, ClientModel, CustomDomain, CustomParams, DomainError, DynamicsModel, LinearModel,
     Space,
 };
-use crate::remote_model::{MAX_TIMEOUT_MS, ModelUrlPolicy, RemoteModel};
+use crate::remote_model::{MAX_TIMEOUT_MS, ModelCalls, ModelUrlPolicy, RemoteModel};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -96,9 +96,10 @@ pub enum ModelSpec {
     /// Served by the robot's own process: `POST url {"states", "actions"} → {"next_states",
     /// "valid"?}` (only under URL prefixes the operator allows).
     Remote {
-        /// The model's URL (`http://…`).
+        /// The model's URL (`http://…`), stored as normalised when checked (what is called).
         url: String,
-        /// Time limit of one call, in milliseconds. Default 2000.
+        /// Time limit of one call, in milliseconds. Default 2000; the operator's
+        /// `--max-model-timeout-ms` caps it.
         #[serde(default = "default_timeout_ms")]
         timeout_ms: u64,
     },
@@ -230,6 +231,11 @@ impl SpaceSpec {
                 "must be 1 to 64 characters",
             ));
         }
+        for (k, name) in self.names.iter().enumerate() {
+            if let Some(why) = crate::limits::text_problem(name) {
+                return Err(bad(&format!("{what}.names[{k}]"), why));
+            }
+        }
         Ok(self)
     }
 
@@ -245,7 +251,8 @@ impl SpaceSpec {
 
 impl CustomSpec {
     /// Fills in every default so that the stored and shown settings say exactly what is used,
-    /// and checks that a remote model's URL is one the operator allows.
+    /// and checks that a remote model's URL is one the operator allows, storing it in the
+    /// normalised form that was checked and will be called.
     pub fn resolve(mut self, policy: &ModelUrlPolicy) -> Result<Self, InvalidSetting> {
         self.state = self.state.resolve("state", "s")?;
         self.action = self.action.resolve("action", "a")?;
@@ -266,8 +273,8 @@ impl CustomSpec {
                         format!("must be between 1 and {MAX_TIMEOUT_MS}"),
                     ));
                 }
-                policy
-                    .check(url)
+                *url = policy
+                    .normalise(url)
                     .map_err(|reason| bad("model.url", reason))?;
             }
             ModelSpec::Linear { c, .. } => {
@@ -279,13 +286,16 @@ impl CustomSpec {
     }
 
     /// Builds the domain with its model (no network: a remote model is first called when
-    /// used). Errors name the parameter under `domain`.
-    pub fn build(&self) -> Result<CustomDomain, InvalidSetting> {
+    /// used, under `calls`' policy and limits). Errors name the parameter under `domain`.
+    pub fn build(&self, calls: &Arc<ModelCalls>) -> Result<CustomDomain, InvalidSetting> {
         let (state, action) = (self.state.space(), self.action.space());
         let model: Arc<dyn DynamicsModel> = match &self.model {
-            ModelSpec::Remote { url, timeout_ms } => {
-                Arc::new(RemoteModel::new(url, *timeout_ms, state.dim()))
-            }
+            ModelSpec::Remote { url, timeout_ms } => Arc::new(RemoteModel::new(
+                url,
+                *timeout_ms,
+                state.dim(),
+                calls.clone(),
+            )),
             ModelSpec::Linear { a, b, c } => {
                 let c = c.clone().unwrap_or_else(|| vec![0.0; state.dim()]);
                 Arc::new(

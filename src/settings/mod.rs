@@ -16,14 +16,15 @@ use crate::domain::{
 use crate::gp::{DEFAULT_INDUCING_POINTS, Kernel, NoiseMode};
 use crate::limits::{
     MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_INDUCING_POINTS, MAX_ITERATIONS,
-    MAX_NAME_LEN, MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS, MIN_INDUCING_POINTS,
+    MAX_LEARNING_SCALE, MAX_NAME_LEN, MAX_PRIOR_MEAN, MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
+    MIN_INDUCING_POINTS,
 };
 use crate::mde::EstimatorChoice;
 use crate::planning::{
     AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings, PlanningError,
     PlanningSettings, Strategy,
 };
-use crate::remote_model::ModelUrlPolicy;
+use crate::remote_model::{ModelCalls, ModelUrlPolicy};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use std::sync::Arc;
@@ -137,8 +138,9 @@ impl Default for DomainSpec {
 }
 
 impl DomainSpec {
-    /// Builds the domain; a failure names the parameter under `domain`.
-    pub fn build(&self) -> Result<Arc<dyn Domain>, InvalidSetting> {
+    /// Builds the domain (a remote model called under `calls`' policy and limits); a failure
+    /// names the parameter under `domain`.
+    pub fn build(&self, calls: &Arc<ModelCalls>) -> Result<Arc<dyn Domain>, InvalidSetting> {
         let wrap = |e: DomainError| InvalidSetting::new(e.path_under("domain"), e.reason);
         Ok(match self {
             Self::IcyGridworld { map, features } => Arc::new(
@@ -171,7 +173,7 @@ impl DomainSpec {
                 .map_err(wrap)?,
             ),
             Self::WaterPlant {} => Arc::new(WaterPlant::default()),
-            Self::Custom(spec) => Arc::new(spec.build()?),
+            Self::Custom(spec) => Arc::new(spec.build(calls)?),
         })
     }
 
@@ -231,7 +233,8 @@ pub struct MdeSettings {
     /// Noise model: `heteroscedastic` or `homoscedastic`.
     pub noise: NoiseMode,
     /// Constant prior mean of the deviation (0 by default: unexplored regions look trustworthy
-    /// but uncertain, which drives exploration).
+    /// but uncertain, which drives exploration); at most
+    /// [`MAX_PRIOR_MEAN`] in magnitude.
     pub prior_mean: f64,
     /// Extra seeded optimiser starts beyond the first when fitting hyperparameters; at most 20.
     pub restarts: usize,
@@ -512,17 +515,20 @@ pub struct LearningSettings {
     pub n_candidates: u32,
     /// RRT extension budget per search.
     pub max_extensions: u32,
-    /// Exploration weight `c` in `α_step = μ − c σ`.
+    /// Exploration weight `c` in `α_step = μ − c σ`; `0 ..=`
+    /// [`MAX_LEARNING_SCALE`].
     pub c: f64,
     /// Discount `γ` of the aggregation.
     pub gamma: f64,
     /// Aggregation `h`.
     pub aggregation: Aggregation,
-    /// β schedule amplitude `k1`.
+    /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`].
     pub k1: f64,
-    /// β schedule steepness `k2`.
+    /// β schedule steepness `k2`; positive, at most
+    /// [`MAX_LEARNING_SCALE`].
     pub k2: f64,
-    /// β used by test-time plans (2: about 98 % confidence).
+    /// β used by test-time plans (2: about 98 % confidence); at most
+    /// [`MAX_LEARNING_SCALE`] in magnitude.
     pub test_beta: f64,
     /// Seconds an open proposal stays leased to its client.
     pub proposal_ttl_seconds: u32,
@@ -577,18 +583,22 @@ pub struct ExperimentSettings {
 }
 
 impl ExperimentRequest {
-    /// Validates every field and resolves defaults. Returns the domain it built on the way.
+    /// Validates every field and resolves defaults (a remote model's URL against `calls`'
+    /// policy). Returns the domain it built on the way.
     pub fn resolve(
         mut self,
-        policy: &ModelUrlPolicy,
+        calls: &Arc<ModelCalls>,
     ) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
-        self.domain = self.domain.resolve(policy)?;
-        let domain = self.domain.build()?;
+        self.domain = self.domain.resolve(calls.policy())?;
+        let domain = self.domain.build(calls)?;
         if self.name.chars().count() > MAX_NAME_LEN {
             return Err(InvalidSetting::new(
                 "name",
                 format!("at most {MAX_NAME_LEN} characters"),
             ));
+        }
+        if let Some(why) = crate::limits::text_problem(&self.name) {
+            return Err(InvalidSetting::new("name", why));
         }
         let d_max = self.d_max.unwrap_or_else(|| domain.default_d_max());
         positive("d_max", d_max)?;
@@ -607,7 +617,7 @@ impl ExperimentRequest {
             ));
         }
         let m = &self.mde;
-        finite("mde.prior_mean", m.prior_mean)?;
+        at_most("mde.prior_mean", m.prior_mean, MAX_PRIOR_MEAN)?;
         if m.restarts > MAX_RESTARTS {
             return Err(InvalidSetting::new(
                 "mde.restarts",
@@ -648,19 +658,20 @@ impl ExperimentRequest {
             1,
             MAX_PROPOSAL_TTL_SECONDS,
         )?;
-        finite("learning.c", l.c)?;
+        at_most("learning.c", l.c, MAX_LEARNING_SCALE)?;
         if l.c < 0.0 {
             return Err(InvalidSetting::new("learning.c", "must be ≥ 0"));
         }
         if !(l.gamma > 0.0 && l.gamma <= 1.0) {
             return Err(InvalidSetting::new("learning.gamma", "must be in (0, 1]"));
         }
-        finite("learning.k1", l.k1)?;
+        at_most("learning.k1", l.k1, MAX_LEARNING_SCALE)?;
         if l.k1 < 0.0 {
             return Err(InvalidSetting::new("learning.k1", "must be ≥ 0"));
         }
         positive("learning.k2", l.k2)?;
-        finite("learning.test_beta", l.test_beta)?;
+        at_most("learning.k2", l.k2, MAX_LEARNING_SCALE)?;
+        at_most("learning.test_beta", l.test_beta, MAX_LEARNING_SCALE)?;
         let learning = LearningSettings {
             preset: l.preset,
             strategy: l.strategy,
@@ -697,6 +708,22 @@ fn finite(field: &str, v: f64) -> Result<(), InvalidSetting> {
         Ok(())
     } else {
         Err(InvalidSetting::new(field, "must be a finite number"))
+    }
+}
+
+/// A finite number of magnitude at most `max`; the error says the bound and why.
+fn at_most(field: &str, v: f64, max: f64) -> Result<(), InvalidSetting> {
+    finite(field, v)?;
+    if v.abs() <= max {
+        Ok(())
+    } else {
+        Err(InvalidSetting::new(
+            field,
+            format!(
+                "must be at most {max:e} in magnitude, got {v:e} (larger values overflow the \
+                 arithmetic they enter)"
+            ),
+        ))
     }
 }
 

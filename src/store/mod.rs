@@ -114,6 +114,116 @@ impl Store {
     }
 }
 
+/// Copies the database at `source` (a path or `sqlite://` URL, which must exist: it is opened
+/// read-only, never created and never migrated) to the new file `to` while it may be served,
+/// and returns what the copy holds, counted in the copy itself.
+///
+/// The copy is a consistent snapshot (`VACUUM INTO` in one read transaction; in WAL mode
+/// writers are not blocked). It is written under a temporary name beside `to`, checked
+/// (`PRAGMA quick_check`), counted, flushed to disk and only then linked to `to`, which must not
+/// exist: a backup that is killed or fails leaves nothing under the final name (at most the
+/// temporary file, named `.<file>.backup-<pid>.tmp`, removed on failure when possible).
+pub async fn backup(source: &str, to: &std::path::Path) -> anyhow::Result<StoreSize> {
+    use sqlx::{ConnectOptions, Connection};
+    let url = if source.starts_with("sqlite:") {
+        source.to_string()
+    } else {
+        format!("sqlite://{source}")
+    };
+    let options = SqliteConnectOptions::from_str(&url)
+        .with_context(|| format!("invalid database URL {url:?}"))?
+        .create_if_missing(false)
+        .read_only(true)
+        .busy_timeout(Duration::from_secs(10));
+    let file = options.get_filename().to_path_buf();
+    anyhow::ensure!(
+        file.is_file(),
+        "the database {} does not exist (a backup never creates one: check --database-url)",
+        file.display()
+    );
+    anyhow::ensure!(
+        !to.exists(),
+        "{} exists; a backup goes to a new file",
+        to.display()
+    );
+    let name = to
+        .file_name()
+        .and_then(|n| n.to_str())
+        .context("the backup path names no file")?;
+    let dir = match to.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d.to_path_buf(),
+        _ => std::path::PathBuf::from("."),
+    };
+    anyhow::ensure!(
+        dir.is_dir(),
+        "the directory {} of the backup does not exist",
+        dir.display()
+    );
+    let tmp = dir.join(format!(".{name}.backup-{}.tmp", std::process::id()));
+    let tmp_str = tmp.to_str().context("the backup path is not UTF-8")?;
+    let remove_tmp = || {
+        let _ = std::fs::remove_file(&tmp);
+        let _ = std::fs::remove_file(format!("{tmp_str}-journal"));
+    };
+    let written = async {
+        let mut source = options
+            .connect()
+            .await
+            .with_context(|| format!("opening {} read-only", file.display()))?;
+        sqlx::query("VACUUM INTO ?")
+            .bind(tmp_str)
+            .execute(&mut source)
+            .await
+            .with_context(|| format!("writing the copy {tmp_str}"))?;
+        source.close().await?;
+        let mut copy = SqliteConnectOptions::new()
+            .filename(&tmp)
+            .read_only(true)
+            .connect()
+            .await
+            .context("opening the copy")?;
+        let check: String = sqlx::query_scalar("PRAGMA quick_check")
+            .fetch_one(&mut copy)
+            .await?;
+        anyhow::ensure!(check == "ok", "the copy fails its integrity check: {check}");
+        let (experiments, trajectories, transitions): (i64, i64, i64) = sqlx::query_as(
+            "SELECT (SELECT COUNT(*) FROM experiments), (SELECT COUNT(*) FROM trajectories),
+                    (SELECT COUNT(*) FROM transitions)",
+        )
+        .fetch_one(&mut copy)
+        .await
+        .context("counting the copy's rows")?;
+        copy.close().await?;
+        std::fs::File::open(&tmp)?.sync_all()?;
+        let bytes = std::fs::metadata(&tmp)?.len() as i64;
+        anyhow::Ok(StoreSize {
+            bytes,
+            experiments,
+            trajectories,
+            transitions,
+        })
+    }
+    .await;
+    let size = match written {
+        Ok(size) => size,
+        Err(e) => {
+            remove_tmp();
+            return Err(e);
+        }
+    };
+    // A hard link never replaces a file that appeared meanwhile; the directory entry is then
+    // flushed so the name survives a crash.
+    if let Err(e) = std::fs::hard_link(&tmp, to) {
+        remove_tmp();
+        return Err(anyhow::Error::new(e).context(format!("naming the copy {}", to.display())));
+    }
+    remove_tmp();
+    if let Ok(d) = std::fs::File::open(&dir) {
+        let _ = d.sync_all();
+    }
+    Ok(size)
+}
+
 /// How much a store holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct StoreSize {

@@ -193,4 +193,15 @@ async fn a_scoped_token_reaches_only_its_experiments() {
     }
     let (status, _) = call(&app, "GET", "/v1/experiments/3", Some(SCOPED), None).await;
     assert_eq!(status, 403);
+    // The metrics hold every experiment's totals: a scoped token does not read them.
+    let (status, body) = call(&app, "GET", "/metrics", Some(SCOPED), None).await;
+    assert_eq!((status, code(&body)), (403, "forbidden"), "{body}");
+    let r = app
+        .client
+        .get(app.url("/metrics"))
+        .bearer_auth(READER)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
 }

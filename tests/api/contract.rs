@@ -65,6 +65,8 @@ fn one_of_every_error() -> Vec<ApiError> {
     let errors = vec![
         ApiError::BadRequest("malformed".into()),
         ApiError::PayloadTooLarge { limit: 1 },
+        ApiError::UnsupportedMediaType("form".into()),
+        ApiError::RequestTimeout("slow".into()),
         ApiError::MethodNotAllowed,
         ApiError::Unavailable("database".into()),
         ApiError::Unauthorized,
@@ -100,6 +102,14 @@ fn one_of_every_error() -> Vec<ApiError> {
             model: "m".into(),
             reason: "down".into(),
         })),
+        ApiError::Service(Error::Dynamics(DynamicsError::Busy {
+            model: "m".into(),
+            reason: "full".into(),
+        })),
+        ApiError::Service(Error::Dynamics(DynamicsError::NotAllowed {
+            model: "m".into(),
+            reason: "revoked".into(),
+        })),
         ApiError::Service(Error::Dynamics(DynamicsError::ClientSide)),
         ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
     ];
@@ -107,6 +117,8 @@ fn one_of_every_error() -> Vec<ApiError> {
         match e {
             ApiError::BadRequest(_)
             | ApiError::PayloadTooLarge { .. }
+            | ApiError::UnsupportedMediaType(_)
+            | ApiError::RequestTimeout(_)
             | ApiError::MethodNotAllowed
             | ApiError::Unavailable(_)
             | ApiError::Unauthorized
@@ -125,6 +137,8 @@ fn one_of_every_error() -> Vec<ApiError> {
                 Error::Dynamics(d) => match d {
                     DynamicsError::Timeout { .. }
                     | DynamicsError::Unavailable { .. }
+                    | DynamicsError::Busy { .. }
+                    | DynamicsError::NotAllowed { .. }
                     | DynamicsError::ClientSide => {}
                 },
             },

@@ -492,4 +492,38 @@ async fn only_configured_origins_may_read_the_api_from_a_browser() {
     }
     let (status, _) = app.get("/v1/experiments").await;
     assert_eq!(status, 200, "same-origin requests need no CORS");
+    // The dashboard pointed at this server with `?api=` sends its token: the preflight from the
+    // allowed origin lets `Authorization` through; a foreign origin's gets no grant.
+    for (origin, allowed) in [("http://lab-pc:8080", true), ("http://evil.example", false)] {
+        let r = app
+            .client
+            .request(reqwest::Method::OPTIONS, app.url("/v1/experiments"))
+            .header("origin", origin)
+            .header("access-control-request-method", "POST")
+            .header(
+                "access-control-request-headers",
+                "authorization,content-type",
+            )
+            .send()
+            .await
+            .unwrap();
+        let header = |name: &str| {
+            r.headers()
+                .get(name)
+                .map(|v| v.to_str().unwrap().to_ascii_lowercase())
+        };
+        if allowed {
+            let headers = header("access-control-allow-headers").unwrap_or_default();
+            assert!(
+                headers.contains("authorization") && headers.contains("content-type"),
+                "{headers}"
+            );
+            assert_eq!(
+                header("access-control-allow-origin").as_deref(),
+                Some(origin)
+            );
+        } else {
+            assert_eq!(header("access-control-allow-origin"), None, "{origin}");
+        }
+    }
 }

@@ -148,6 +148,154 @@ async fn bad_settings_name_the_field() {
     );
 }
 
+/// Settings whose arithmetic overflows made an experiment panic (±1e308 bounds: a width of
+/// 2e308 to sample in; a prior mean of 1e308: an infinite target scale) or unusable (`k1`
+/// 1e308: every β infinite); they are refused at creation, naming the field and the bound.
+#[tokio::test]
+async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let huge = [-1e308, -1e308];
+    let plane = |extra: serde_json::Value| {
+        let mut d = json!({"kind": "custom", "state": {"low": [0, 0], "high": [1, 1]},
+            "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+            "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}});
+        for (k, v) in extra.as_object().unwrap() {
+            d[k] = v.clone();
+        }
+        json!({ "domain": d })
+    };
+    let cases = [
+        (
+            json!({"domain": {"kind": "kinematic", "state_low": huge, "state_high": [1e308, 1e308],
+                              "action_low": huge, "action_high": [1e308, 1e308]}}),
+            "domain.state_low[0]",
+        ),
+        (
+            json!({"domain": {"kind": "kinematic", "action_high": [1e13, 0.1]}}),
+            "domain.action_high[0]",
+        ),
+        (
+            json!({"domain": {"kind": "kinematic", "goal_radius": 1e300}}),
+            "domain.goal_radius",
+        ),
+        (
+            json!({"domain": {"kind": "kinematic",
+                              "obstacles": [{"low": [0.1, 0.1], "high": [0.2, 1e300]}]}}),
+            "domain.obstacles[0].high[1]",
+        ),
+        (json!({"mde": {"prior_mean": 1e308}}), "mde.prior_mean"),
+        (json!({"mde": {"prior_mean": -1e308}}), "mde.prior_mean"),
+        (json!({"learning": {"k1": 1e308}}), "learning.k1"),
+        (json!({"learning": {"k2": 1e308}}), "learning.k2"),
+        (json!({"learning": {"c": 1e308}}), "learning.c"),
+        (
+            json!({"learning": {"test_beta": -1e308}}),
+            "learning.test_beta",
+        ),
+        (
+            plane(json!({"state": {"low": [-1e308, 0], "high": [1e308, 1]}})),
+            "domain.state.low[0]",
+        ),
+        (
+            plane(json!({"distance": {"weights": [1e300, 1]}})),
+            "domain.distance.weights[0]",
+        ),
+        (
+            plane(
+                json!({"model": {"kind": "linear", "A": [[1e300, 0], [0, 1]],
+                                   "B": [[1, 0], [0, 1]]}}),
+            ),
+            "domain.model.A[0][0]",
+        ),
+    ];
+    for (body, field) in cases {
+        let (status, err) = app.post("/v1/experiments", &body).await;
+        assert_eq!(
+            (status, code(&err)),
+            (422, "validation_failed"),
+            "{body} -> {err}"
+        );
+        assert_eq!(err["error"]["details"]["field"], field, "{body}: {err}");
+        let reason = err["error"]["details"]["reason"].as_str().unwrap();
+        assert!(
+            reason.contains("at most 1e") || reason.contains("finite"),
+            "{body}: the reason says the bound: {reason}"
+        );
+    }
+    // At the bounds, everything works: creation, an ingest, a refit and a proposal.
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic", "state_low": [-1e12, -1e12], "state_high": [1e12, 1e12],
+                       "action_low": [-1e12, -1e12], "action_high": [1e12, 1e12]},
+            "mde": {"prior_mean": 1e12, "noise": "homoscedastic", "restarts": 1},
+            "learning": {"k1": 1e6, "batch_size": 100}}))
+        .await;
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &json!({"transitions": [{"s": [0, 0], "a": [1e11, 0], "s_next": [1e11, 5e10]},
+                                    {"s": [1e11, 5e10], "a": [-1e11, 1e11], "s_next": [0, 1e11]}]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    let (status, body) = app
+        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+        .await;
+    assert!(status == 200 || status == 202, "{status} {body}");
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0, 0], "goal": [9e11, 9e11]}),
+        )
+        .await;
+    assert!(
+        status == 201 || (status == 422 && code(&body) == "no_plan"),
+        "{status} {body}"
+    );
+}
+
+/// Names and client ids end up in terminals, logs and CSV exports: control characters and
+/// bidirectional overrides in them are refused, the field named.
+#[tokio::test]
+async fn control_characters_in_names_and_client_ids_are_refused() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    for name in ["a\u{0}b", "\u{1b}[2J", "evil\u{202e}txt.exe", "two\nlines"] {
+        let (status, err) = app.post("/v1/experiments", &json!({ "name": name })).await;
+        assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
+        assert_eq!(err["error"]["details"]["field"], "name");
+    }
+    let custom = json!({"domain": {"kind": "custom",
+        "state": {"names": ["x", "y\u{1b}"], "low": [0, 0], "high": [1, 1]},
+        "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+        "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}}});
+    let (status, err) = app.post("/v1/experiments", &custom).await;
+    assert_eq!(status, 422, "{err}");
+    assert_eq!(err["error"]["details"]["field"], "domain.state.names[1]");
+    let (_, listed) = app.get("/v1/experiments").await;
+    assert_eq!(listed["total"], 0, "nothing stored: {listed}");
+
+    let id = app
+        .create_experiment(json!({"name": "Bench 2 — arm ü"}))
+        .await;
+    let (status, err) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "\u{0}\n\r\u{1b}"}),
+        )
+        .await;
+    assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
+    assert_eq!(err["error"]["details"]["field"], "client_id");
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+}
+
 #[tokio::test]
 async fn unknown_things_are_404_in_the_error_shape() {
     let (_dir, db) = temp_db();

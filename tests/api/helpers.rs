@@ -1,7 +1,7 @@
 //! Test harness: a real server on a real socket over a real SQLite file in a temp dir.
 
 use precond::http::{AppState, HttpConfig, serve};
-use precond::remote_model::ModelUrlPolicy;
+use precond::remote_model::{ModelCallLimits, ModelUrlPolicy};
 use precond::service::{Limits, Service};
 use precond::store::Store;
 use serde_json::{Value, json};
@@ -45,6 +45,27 @@ pub async fn spawn_app_allowing_models(db_path: &Path, prefixes: &[String]) -> T
         .await
         .expect("open store");
     let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap());
+    spawn_state(
+        db_path,
+        AppState::with_service(service, HttpConfig::default()),
+    )
+    .await
+}
+
+/// Starts a server that allows remote models under `prefixes`, with the operator's `limits`
+/// and limits on model calls.
+pub async fn spawn_app_with_models(
+    db_path: &Path,
+    prefixes: &[String],
+    limits: Limits,
+    model_limits: ModelCallLimits,
+) -> TestApp {
+    let store = Store::open(db_path.to_str().unwrap())
+        .await
+        .expect("open store");
+    let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap())
+        .with_limits(limits)
+        .with_model_limits(model_limits);
     spawn_state(
         db_path,
         AppState::with_service(service, HttpConfig::default()),

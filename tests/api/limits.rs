@@ -99,12 +99,120 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
     assert!(r1.is_some());
 }
 
+/// One client flooding one experiment with searches that run to their deadline takes neither
+/// every slot nor the whole queue: another experiment's small proposal is answered at once.
+#[tokio::test]
+async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with_limits(
+        &db,
+        Limits {
+            max_plans_per_experiment: 1,
+            ..limits(2, 4, 3000)
+        },
+    )
+    .await;
+    let flooded = app.create_experiment(walled()).await;
+    let other = app.create_experiment(json!({})).await;
+    let url = app.url(&format!("/v1/experiments/{flooded}/proposals"));
+    let flood: Vec<_> = (0..8)
+        .map(|k| {
+            let (client, url) = (app.client.clone(), url.clone());
+            tokio::spawn(async move {
+                let r = client
+                    .post(url)
+                    .json(&blocked_ask(&format!("flood-{k}")))
+                    .send()
+                    .await
+                    .unwrap();
+                r.status().as_u16()
+            })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let started = Instant::now();
+    let (status, body) = app
+        .post(
+            &format!("/v1/experiments/{other}/proposals"),
+            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "victim"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    assert!(
+        started.elapsed() < Duration::from_millis(2000),
+        "{:?}",
+        started.elapsed()
+    );
+    let mut statuses: Vec<u16> = Vec::new();
+    for f in flood {
+        statuses.push(f.await.unwrap());
+    }
+    statuses.sort_unstable();
+    // The flooded experiment ran one search at a time, queued half the queue (2), and the
+    // other five were refused at once.
+    assert_eq!(statuses, vec![429, 429, 429, 429, 429, 503, 503, 503]);
+}
+
+/// Rebuilding an older model version (a map or the diagnostics of it) takes a slot of the work
+/// gate like a search; the current version and the prior need none.
+#[tokio::test]
+async fn older_model_versions_are_rebuilt_through_the_work_gate() {
+    let (_dir, db) = temp_db();
+    // One slot, no queue: while a search holds the slot, a rebuild is refused at once.
+    let app = spawn_app_with_limits(&db, limits(1, 0, 1500)).await;
+    let id = app
+        .create_experiment(json!({"mde": {"restarts": 0, "noise": "homoscedastic"},
+                                  "learning": {"batch_size": 1000}}))
+        .await;
+    for y in 0..2 {
+        let (status, _) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &free_row_trajectory(0, y, 4),
+            )
+            .await;
+        assert_eq!(status, 201);
+        let (status, body) = app
+            .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
+            .await;
+        assert_eq!(status, 200, "{body}");
+    }
+    let walled = app.create_experiment(walled()).await;
+    let search = {
+        let (client, url) = (
+            app.client.clone(),
+            app.url(&format!("/v1/experiments/{walled}/proposals")),
+        );
+        tokio::spawn(async move {
+            let r = client.post(url).json(&blocked_ask("s")).send().await;
+            r.unwrap().status().as_u16()
+        })
+    };
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let map = |v: &str| format!("/v1/experiments/{id}/precondition/map?x=s.x&y=s.y&nx=5&ny=5{v}");
+    let (status, body) = app.get(&map("&version=1")).await;
+    assert_eq!((status, code(&body)), (429, "overloaded"), "{body}");
+    let (status, body) = app
+        .get(&format!("/v1/experiments/{id}/model/diagnostics?version=1"))
+        .await;
+    assert_eq!((status, code(&body)), (429, "overloaded"), "{body}");
+    for current in ["", "&version=2", "&version=0"] {
+        let (status, body) = app.get(&map(current)).await;
+        assert_eq!(status, 200, "{current}: {body}");
+    }
+    assert_eq!(search.await.unwrap(), 503);
+    let (status, body) = app.get(&map("&version=1")).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["model_version"], 1);
+}
+
 #[tokio::test]
 async fn a_client_that_goes_away_cancels_its_search() {
     let (_dir, db) = temp_db();
     // One slot and a long deadline: only cancellation can free the slot quickly.
     let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
+    let cancelled_before = cancelled_proposals(&app).await;
     let impatient = reqwest::Client::builder()
         .timeout(Duration::from_millis(300))
         .build()
@@ -129,6 +237,28 @@ async fn a_client_that_goes_away_cancels_its_search() {
         "{:?}",
         started.elapsed()
     );
+    // The abandoned search counted itself before it gave its slot up (its request was gone).
+    assert!(
+        cancelled_proposals(&app).await > cancelled_before,
+        "precond_proposals_total{{outcome=\"cancelled\"}} did not grow"
+    );
+}
+
+/// `precond_proposals_total{outcome="cancelled"}` now (0 before the first; the recorder is
+/// the process's, shared by the tests running beside this one, so only its growth counts).
+async fn cancelled_proposals(app: &TestApp) -> u64 {
+    let text = app
+        .client
+        .get(app.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    text.lines()
+        .find_map(|l| l.strip_prefix("precond_proposals_total{outcome=\"cancelled\"} "))
+        .map_or(0, |v| v.trim().parse().unwrap())
 }
 
 #[tokio::test]

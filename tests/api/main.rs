@@ -12,5 +12,7 @@ mod helpers;
 mod learning;
 mod limits;
 mod model_server;
+mod posture;
+mod remote;
 mod trajectories;
 mod upgrade;

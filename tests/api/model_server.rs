@@ -35,6 +35,12 @@ pub struct Counts {
     pub calls: AtomicUsize,
     /// Points received by `/predict` and `/valid`.
     pub points: AtomicUsize,
+    /// Calls to `/hang` still waiting, and the most there ever were at once.
+    pub hanging: AtomicUsize,
+    /// The most calls to `/hang` there ever were at once.
+    pub most_hanging: AtomicUsize,
+    /// Calls to `/hang`.
+    pub hang_calls: AtomicUsize,
 }
 
 /// The running model server.
@@ -47,7 +53,7 @@ pub struct ModelServer {
 
 impl ModelServer {
     /// The URL of one of its endpoints (`predict`, `slow`, `error`, `short`, `nan`,
-    /// `valid`).
+    /// `valid`, `hang`, `amplify`, `wide`).
     pub fn url(&self, endpoint: &str) -> String {
         format!("http://{}/{endpoint}", self.addr)
     }
@@ -82,6 +88,38 @@ async fn slow(Json(b): Json<Batch>) -> Response {
     Json(json!({"next_states": step(&b)})).into_response()
 }
 
+/// Accepts the call and answers only after 30 s (longer than any test waits).
+async fn hang(State(counts): State<Arc<Counts>>) -> Response {
+    counts.hang_calls.fetch_add(1, Ordering::Relaxed);
+    let now = counts.hanging.fetch_add(1, Ordering::Relaxed) + 1;
+    counts.most_hanging.fetch_max(now, Ordering::Relaxed);
+    struct Leave(Arc<Counts>);
+    impl Drop for Leave {
+        fn drop(&mut self) {
+            self.0.hanging.fetch_sub(1, Ordering::Relaxed);
+        }
+    }
+    let _leave = Leave(counts);
+    tokio::time::sleep(std::time::Duration::from_secs(30)).await;
+    (StatusCode::INTERNAL_SERVER_ERROR, "too late").into_response()
+}
+
+/// A valid answer with 200 000 rows, whatever was asked.
+async fn amplify() -> Response {
+    let rows = vec!["[0.5, 0.5]"; 200_000].join(",");
+    (
+        [("content-type", "application/json")],
+        format!("{{\"next_states\": [{rows}]}}"),
+    )
+        .into_response()
+}
+
+/// One row per point, each a component too many.
+async fn wide(Json(b): Json<Batch>) -> Response {
+    let rows: Vec<Vec<f64>> = b.states.iter().map(|_| vec![0.5, 0.5, 0.5]).collect();
+    Json(json!({"next_states": rows})).into_response()
+}
+
 async fn error() -> Response {
     (StatusCode::INTERNAL_SERVER_ERROR, "model crashed").into_response()
 }
@@ -112,6 +150,9 @@ pub async fn start() -> ModelServer {
         .route("/error", post(error))
         .route("/short", post(short))
         .route("/nan", post(nan))
+        .route("/hang", post(hang))
+        .route("/amplify", post(amplify))
+        .route("/wide", post(wide))
         .with_state(counts.clone());
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();

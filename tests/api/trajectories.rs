@@ -338,3 +338,75 @@ async fn an_online_backup_is_a_consistent_copy() {
         (1, 3, 12)
     );
 }
+
+/// `precond backup`: the counts it reports are the copy's; the copy takes its name only once
+/// complete; a missing source is an error, never created; nothing is left behind on failure.
+#[tokio::test]
+async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    for y in 0..2 {
+        let (status, _) = app
+            .post(
+                &format!("/v1/experiments/{id}/trajectories"),
+                &free_row_trajectory(0, y, 4),
+            )
+            .await;
+        assert_eq!(status, 201);
+    }
+    let out = dir.path().join("out");
+    std::fs::create_dir(&out).unwrap();
+    let copy = out.join("copy.db");
+    let size = precond::store::backup(db.to_str().unwrap(), &copy)
+        .await
+        .unwrap();
+    assert_eq!(
+        (size.experiments, size.trajectories, size.transitions),
+        (1, 2, 8)
+    );
+    assert_eq!(size.bytes as u64, std::fs::metadata(&copy).unwrap().len());
+    let opened = precond::store::Store::open(copy.to_str().unwrap())
+        .await
+        .unwrap();
+    let inside = opened.size().await.unwrap();
+    assert_eq!(
+        (inside.experiments, inside.trajectories, inside.transitions),
+        (size.experiments, size.trajectories, size.transitions)
+    );
+    opened.close().await;
+    let listing = |d: &std::path::Path| -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| !n.ends_with("-wal") && !n.ends_with("-shm"))
+            .collect();
+        names.sort();
+        names
+    };
+    assert_eq!(listing(&out), vec!["copy.db"], "no temporary file is left");
+
+    // A second backup to the same name is refused and leaves the first alone.
+    let e = precond::store::backup(db.to_str().unwrap(), &copy)
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("exists"), "{e}");
+    // A mistyped source is an error and is not created.
+    let typo = dir.path().join("typo.db");
+    let e = precond::store::backup(typo.to_str().unwrap(), &out.join("x.db"))
+        .await
+        .unwrap_err();
+    assert!(e.to_string().contains("does not exist"), "{e}");
+    assert!(!typo.exists(), "the backup created its source");
+    // A source that is not a database fails, and leaves no file under the final name nor a
+    // temporary one.
+    let junk = dir.path().join("junk.db");
+    std::fs::write(&junk, b"not a database at all, just some bytes").unwrap();
+    assert!(
+        precond::store::backup(junk.to_str().unwrap(), &out.join("y.db"))
+            .await
+            .is_err()
+    );
+    assert_eq!(listing(&out), vec!["copy.db"]);
+    app.stop().await;
+}

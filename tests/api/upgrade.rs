@@ -8,7 +8,6 @@ use nalgebra::{DMatrix, DVector};
 use precond::api::TrajectoryRequest;
 use precond::domain::Transition;
 use precond::gp::{GpModel, GpParams, NoiseMode};
-use precond::remote_model::ModelUrlPolicy;
 use precond::settings::ExperimentRequest;
 use serde_json::{Value, json};
 use sqlx::sqlite::SqliteConnectOptions;
@@ -47,7 +46,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
 
     // An experiment of that time: no kernel, no label cap, no relax_beta in its settings.
     let (settings, _) = ExperimentRequest::default()
-        .resolve(&ModelUrlPolicy::default())
+        .resolve(&Default::default())
         .unwrap();
     let mut stored = serde_json::to_value(&settings).unwrap();
     for path in ["mde.kernel", "mde.label_cap", "learning.relax_beta"] {

@@ -1,0 +1,445 @@
+//! A dynamics model served by the robot's own process over HTTP, the operator's list of where
+//! such models may live, and the bounds on calling them.
+//!
+//! **Protocol.** The service sends `POST <url>` with `{"states": [[...]], "actions": [[...]]}`
+//! (many points per call) and expects `200` with `{"next_states": [[...]]}` and optionally
+//! `"valid": [true, ...]` (the robot's own constraint check: collisions, joint limits). A model
+//! that does not answer within its deadline, refuses the connection, answers another status,
+//! the wrong shape or non-finite numbers is a [`DynamicsError`] naming its URL; the caller
+//! stores nothing.
+//!
+//! - [`policy`]: which URLs may be called ([`ModelUrlPolicy`]), checked at creation and again
+//!   at every call, in the one normalised form that is also what the client requests.
+//! - [`calls`]: how many calls run at once, how long one may take, and the threads they run on
+//!   ([`ModelCalls`], [`ModelCallLimits`]).
+//! - [`answer`]: the answer parsed from the stream within what was asked (rows = points sent,
+//!   width = the state's dimension).
+//!
+//! Batches larger than [`MAX_POINTS_PER_CALL`] are split; one keep-alive connection pool per
+//! model.
+
+pub mod answer;
+pub mod calls;
+pub mod policy;
+
+pub use calls::{MAX_TIMEOUT_MS, ModelCallLimits, ModelCalls};
+pub use policy::ModelUrlPolicy;
+
+use crate::domain::{DynamicsError, DynamicsModel, Predicted};
+use crate::planning::Budget;
+use answer::AnswerSeed;
+use calls::{Permits, block_until, busy};
+use serde::Serialize;
+use std::io::Read;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+/// Most points sent in one call; larger batches are split.
+pub const MAX_POINTS_PER_CALL: usize = 4096;
+/// Largest accepted response body.
+const MAX_RESPONSE_BYTES: u64 = 64 * 1024 * 1024;
+/// Bytes of a refused answer's body read to show in the error.
+const ERROR_SNIPPET_BYTES: u64 = 4096;
+/// RRT edges proposed per round for a remote model: a round's predictions go in one call.
+const ROUND_SIZE: usize = 64;
+/// Stack of a call thread: the parse is iterative and its nesting bounded by serde_json.
+const CALL_THREAD_STACK: usize = 512 * 1024;
+
+/// The body the service sends.
+#[derive(Debug, Serialize)]
+struct PredictRequest<'a> {
+    states: &'a [&'a [f64]],
+    actions: &'a [&'a [f64]],
+}
+
+/// What a call thread needs of its model.
+#[derive(Debug)]
+struct Inner {
+    /// The URL as stored.
+    url: String,
+    /// Declared time limit of one call.
+    timeout_ms: u64,
+    state_dim: usize,
+    agent: ureq::Agent,
+    calls: AtomicU64,
+    gate: Arc<ModelCalls>,
+}
+
+/// A dynamics model behind `POST url` (see the module docs).
+#[derive(Debug)]
+pub struct RemoteModel {
+    inner: Arc<Inner>,
+}
+
+/// One call, ready to be made: its URL (normalised), body, points and deadline.
+struct Call {
+    url: String,
+    body: Vec<u8>,
+    n: usize,
+    deadline: Instant,
+    timeout_ms: u64,
+}
+
+impl RemoteModel {
+    /// A model at `url` answering next states of dimension `state_dim` within `timeout_ms`
+    /// (capped by the operator's limit), called under `gate`'s policy and limits. Nothing is
+    /// sent until the first prediction; a URL the policy does not allow (any more) is refused
+    /// at every call, with [`DynamicsError::NotAllowed`].
+    pub fn new(url: &str, timeout_ms: u64, state_dim: usize, gate: Arc<ModelCalls>) -> Self {
+        let agent = ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .max_redirects(0)
+            .max_idle_connections_per_host(16)
+            .user_agent(concat!("precond/", env!("CARGO_PKG_VERSION")))
+            .build()
+            .into();
+        Self {
+            inner: Arc::new(Inner {
+                url: url.to_string(),
+                timeout_ms,
+                state_dim,
+                agent,
+                calls: AtomicU64::new(0),
+                gate,
+            }),
+        }
+    }
+
+    /// The model's URL.
+    pub fn url(&self) -> &str {
+        &self.inner.url
+    }
+
+    /// Calls made so far.
+    pub fn calls(&self) -> u64 {
+        self.inner.calls.load(Ordering::Relaxed)
+    }
+
+    /// The time limit of one call: the declared one, capped by the operator's.
+    pub fn timeout(&self) -> Duration {
+        Duration::from_millis(self.inner.timeout_ms).min(self.inner.gate.limits().max_timeout)
+    }
+
+    /// The calls for `states` and `actions`, in chunks of [`MAX_POINTS_PER_CALL`] (their
+    /// deadlines set when each is about to start); `NotAllowed` when the policy refuses the URL
+    /// now.
+    fn prepare(&self, states: &[&[f64]], actions: &[&[f64]]) -> Result<Vec<Call>, DynamicsError> {
+        let inner = &self.inner;
+        let url = inner
+            .gate
+            .policy()
+            .normalise(&inner.url)
+            .map_err(|reason| DynamicsError::NotAllowed {
+                model: inner.url.clone(),
+                reason,
+            })?;
+        let timeout = self.timeout();
+        states
+            .chunks(MAX_POINTS_PER_CALL)
+            .zip(actions.chunks(MAX_POINTS_PER_CALL))
+            .map(|(s, a)| {
+                let body = serde_json::to_vec(&PredictRequest {
+                    states: s,
+                    actions: a,
+                })
+                .map_err(|e| inner.unavailable(format!("could not encode the request: {e}")))?;
+                Ok(Call {
+                    url: url.clone(),
+                    body,
+                    n: s.len(),
+                    deadline: Instant::now() + timeout,
+                    timeout_ms: timeout.as_millis() as u64,
+                })
+            })
+            .collect()
+    }
+
+    /// Predicts from an async task (an ingest): waits for permits and the answer without
+    /// holding any thread, then the call runs on its own thread.
+    pub async fn predict_async(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        let mut out = Vec::with_capacity(states.len());
+        for mut call in self.prepare(states, actions)? {
+            call.deadline = Instant::now() + self.timeout();
+            let until = tokio::time::Instant::from_std(call.deadline);
+            let permits =
+                match tokio::time::timeout_at(until, self.inner.gate.permits(&call.url)).await {
+                    Ok(Some(p)) => p,
+                    _ => return Err(busy(&self.inner.url, self.inner.gate.limits())),
+                };
+            let answer = self.start(call, permits)?;
+            // The thread ends by the deadline; a little slack for it to say so.
+            let grace = until + Duration::from_secs(1);
+            match tokio::time::timeout_at(grace, answer).await {
+                Ok(Ok(predicted)) => out.extend(predicted?),
+                _ => return Err(self.inner.timed_out()),
+            }
+        }
+        Ok(out)
+    }
+
+    /// Starts `call` on a thread of its own, which holds `permits` until it ends.
+    fn start(
+        &self,
+        call: Call,
+        permits: Permits,
+    ) -> Result<tokio::sync::oneshot::Receiver<Result<Vec<Predicted>, DynamicsError>>, DynamicsError>
+    {
+        let (tx, rx) = tokio::sync::oneshot::channel();
+        let inner = self.inner.clone();
+        std::thread::Builder::new()
+            .name("precond-model".into())
+            .stack_size(CALL_THREAD_STACK)
+            .spawn(move || {
+                let _permits = permits;
+                let _ = tx.send(inner.call(call));
+            })
+            .map_err(|e| {
+                self.inner
+                    .unavailable(format!("could not start a call: {e}"))
+            })?;
+        Ok(rx)
+    }
+}
+
+impl Inner {
+    fn unavailable(&self, reason: impl Into<String>) -> DynamicsError {
+        DynamicsError::Unavailable {
+            model: self.url.clone(),
+            reason: reason.into(),
+        }
+    }
+
+    fn timed_out(&self) -> DynamicsError {
+        DynamicsError::Timeout {
+            model: self.url.clone(),
+            timeout_ms: Duration::from_millis(self.timeout_ms)
+                .min(self.gate.limits().max_timeout)
+                .as_millis() as u64,
+        }
+    }
+
+    /// One HTTP exchange, on a call thread, ending by `call.deadline`.
+    fn call(&self, call: Call) -> Result<Vec<Predicted>, DynamicsError> {
+        self.calls.fetch_add(1, Ordering::Relaxed);
+        let left = call.deadline.saturating_duration_since(Instant::now());
+        if left.is_zero() {
+            return Err(self.timed_out());
+        }
+        let timeout = || DynamicsError::Timeout {
+            model: self.url.clone(),
+            timeout_ms: call.timeout_ms,
+        };
+        let sent = self
+            .agent
+            .post(&call.url)
+            .config()
+            .timeout_global(Some(left))
+            .build()
+            .header("content-type", "application/json")
+            .send(&call.body[..]);
+        let response = match sent {
+            Ok(r) => r,
+            Err(ureq::Error::Timeout(_)) => return Err(timeout()),
+            Err(e) => return Err(self.unavailable(format!("could not be called: {e}"))),
+        };
+        let status = response.status().as_u16();
+        let mut reader = response.into_body().into_reader();
+        if !(200..300).contains(&status) {
+            let mut body = Vec::new();
+            let _ = (&mut reader)
+                .take(ERROR_SNIPPET_BYTES)
+                .read_to_end(&mut body);
+            let text = String::from_utf8_lossy(&body);
+            let snippet: String = text.chars().take(300).collect();
+            return Err(self.unavailable(format!("answered HTTP {status}: {snippet}")));
+        }
+        let counted = Counted {
+            inner: reader,
+            left: MAX_RESPONSE_BYTES,
+        };
+        let seed = AnswerSeed {
+            n: call.n,
+            dim: self.state_dim,
+        };
+        let answer = answer::parse(std::io::BufReader::new(counted), seed).map_err(|e| match e
+            .io_error_kind()
+        {
+            Some(std::io::ErrorKind::TimedOut) => timeout(),
+            Some(std::io::ErrorKind::FileTooLarge) => {
+                self.unavailable(format!("answered more than {MAX_RESPONSE_BYTES} bytes"))
+            }
+            Some(_) => self.unavailable(format!("answer could not be read: {e}")),
+            None => self.unavailable(format!(
+                "answered something other than {{\"next_states\": [[...] × {}], \
+                     \"valid\"?: [...]}} with finite numbers: {e}",
+                call.n
+            )),
+        })?;
+        let valid = answer.valid.unwrap_or_else(|| vec![true; call.n]);
+        Ok(answer
+            .next_states
+            .into_iter()
+            .zip(valid)
+            .map(|(next, valid)| Predicted { next, valid })
+            .collect())
+    }
+}
+
+/// A reader that fails with `FileTooLarge` past `left` bytes.
+struct Counted<R> {
+    inner: R,
+    left: u64,
+}
+
+impl<R: Read> Read for Counted<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        if self.left == 0 {
+            // One more byte tells a body of exactly the limit from a longer one.
+            let mut probe = [0u8; 1];
+            return match self.inner.read(&mut probe)? {
+                0 => Ok(0),
+                _ => Err(std::io::ErrorKind::FileTooLarge.into()),
+            };
+        }
+        let max = buf
+            .len()
+            .min(usize::try_from(self.left).unwrap_or(usize::MAX));
+        let n = self.inner.read(&mut buf[..max])?;
+        self.left -= n as u64;
+        Ok(n)
+    }
+}
+
+impl DynamicsModel for RemoteModel {
+    fn predict_batch(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        self.predict_batch_within(states, actions, &Budget::unlimited())
+    }
+
+    /// Each call's deadline is the earlier of its own and the search's; the wait for it ends
+    /// as soon as the search is cancelled.
+    fn predict_batch_within(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+        budget: &Budget,
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        let mut out = Vec::with_capacity(states.len());
+        for mut call in self.prepare(states, actions)? {
+            let own = Instant::now() + self.timeout();
+            call.deadline = budget.deadline().map_or(own, |d| d.min(own));
+            let deadline = call.deadline;
+            let stopped = || budget.stop().is_some();
+            let permits = match block_until(self.inner.gate.permits(&call.url), deadline, stopped) {
+                Some(Some(p)) => p,
+                _ if budget.stop().is_some() => return Err(self.inner.timed_out()),
+                _ => return Err(busy(&self.inner.url, self.inner.gate.limits())),
+            };
+            let answer = self.start(call, permits)?;
+            let grace = deadline + Duration::from_secs(1);
+            match block_until(answer, grace, stopped) {
+                Some(Ok(predicted)) => out.extend(predicted?),
+                _ => return Err(self.inner.timed_out()),
+            }
+        }
+        Ok(out)
+    }
+
+    fn round_size(&self) -> usize {
+        ROUND_SIZE
+    }
+
+    fn remote(&self) -> Option<&RemoteModel> {
+        Some(self)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn allowing(url: &str) -> Arc<ModelCalls> {
+        Arc::new(ModelCalls::new(
+            ModelUrlPolicy::new(&[url]).unwrap(),
+            ModelCallLimits::default(),
+        ))
+    }
+
+    #[test]
+    fn a_refused_connection_is_a_clear_error_naming_the_model() {
+        // A port that was just free: any refusal will do.
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}/predict", listener.local_addr().unwrap());
+        drop(listener);
+        let m = RemoteModel::new(&url, 500, 2, allowing(&url));
+        let e = m.predict_batch(&[&[0.0, 0.0]], &[&[1.0]]).unwrap_err();
+        match e {
+            DynamicsError::Unavailable { model, .. } => assert_eq!(model, url),
+            other => panic!("unexpected {other:?}"),
+        }
+        assert_eq!(m.calls(), 1);
+    }
+
+    #[test]
+    fn a_url_the_policy_does_not_allow_is_never_called() {
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}/predict", listener.local_addr().unwrap());
+        let m = RemoteModel::new(&url, 500, 2, Arc::new(ModelCalls::default()));
+        let e = m.predict_batch(&[&[0.0, 0.0]], &[&[1.0]]).unwrap_err();
+        assert!(
+            matches!(&e, DynamicsError::NotAllowed { model, reason }
+                if *model == url && reason.contains("--allow-model-url")),
+            "{e:?}"
+        );
+        assert_eq!(m.calls(), 0);
+    }
+
+    #[test]
+    fn a_cancelled_search_stops_waiting_for_a_hung_model_at_once() {
+        // A model that accepts the connection and never answers.
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let url = format!("http://{}/predict", listener.local_addr().unwrap());
+        let m = RemoteModel::new(&url, 60_000, 2, allowing(&url));
+        let flag = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let budget = Budget::unlimited().cancelled_by(flag.clone());
+        let raise = {
+            let flag = flag.clone();
+            std::thread::spawn(move || {
+                std::thread::sleep(Duration::from_millis(200));
+                flag.store(true, Ordering::Relaxed);
+            })
+        };
+        let started = Instant::now();
+        let e = m
+            .predict_batch_within(&[&[0.0, 0.0]], &[&[1.0]], &budget)
+            .unwrap_err();
+        raise.join().unwrap();
+        assert!(matches!(e, DynamicsError::Timeout { .. }), "{e:?}");
+        assert!(
+            started.elapsed() < Duration::from_secs(2),
+            "{:?}",
+            started.elapsed()
+        );
+        // A search deadline shorter than the model's timeout bounds the call too.
+        let started = Instant::now();
+        let budget = Budget::until(Instant::now() + Duration::from_millis(300));
+        assert!(
+            m.predict_batch_within(&[&[0.0, 0.0]], &[&[1.0]], &budget)
+                .is_err()
+        );
+        let took = started.elapsed();
+        assert!(
+            took >= Duration::from_millis(250) && took < Duration::from_secs(2),
+            "{took:?}"
+        );
+        drop(listener);
+    }
+}
