@@ -181,6 +181,28 @@ class Cancelled(ApiError):
     away; a client only sees it when a proxy kept the connection open."""
 
 
+class ModelNotAllowed(ApiError):
+    """``409 model_not_allowed``: the experiment's remote model URL is no longer under a prefix
+    the operator allows (``--allow-model-url`` changed since the experiment was created);
+    nothing was sent or stored. ``details`` has ``model`` and ``reason``."""
+
+
+class ModelBusy(ApiError):
+    """``503 model_busy``: no call to the experiment's remote model could start before its
+    deadline (the server's per-URL limit of calls in flight was reached); nothing was sent or
+    stored. Retried by the client before it is raised."""
+
+
+class RequestTimeout(ApiError):
+    """``408 request_timeout``: the request's body did not arrive within the server's
+    ``--body-read-timeout-secs``; nothing was stored."""
+
+
+class UnsupportedMediaType(ApiError):
+    """``415 unsupported_media_type``: a body sent without ``Content-Type: application/json``
+    (the client always sends it)."""
+
+
 class InternalError(ApiError):
     """``500 internal``: a bug in the server (logged there)."""
 
@@ -203,6 +225,10 @@ _BY_CODE: dict[str, type[ApiError]] = {
     "deadline_exceeded": DeadlineExceeded,
     "cancelled": Cancelled,
     "model_timeout": ModelTimeout,
+    "model_not_allowed": ModelNotAllowed,
+    "model_busy": ModelBusy,
+    "request_timeout": RequestTimeout,
+    "unsupported_media_type": UnsupportedMediaType,
 }
 """The exception class of each error code the server answers (the spec's
 ``ErrorBody.code`` enum; ``tests/test_wire.py`` checks they are the same list)."""
