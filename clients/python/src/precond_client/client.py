@@ -108,8 +108,10 @@ class Client:
             and cannot create any (so :meth:`ensure_experiment` with a robot's ``write`` token
             finds an experiment but cannot create one). A server without a token file
             (loopback only, unless ``--insecure-no-auth``) ignores the header.
-        timeout: Seconds to wait for each answer (proposals plan on the server: allow a few
-            seconds).
+        timeout: Seconds to wait for each answer. The default, 60, outlasts the server's
+            default planning deadline (``--plan-timeout-ms``, 30 s), so a slow search comes
+            back as :class:`~precond_client.errors.DeadlineExceeded` (retried) rather than a
+            read timeout; raise it with the server's deadline.
         experiment_id: The current experiment for the experiment-scoped calls.
         client_id: The lease holder's name used by :meth:`propose` and :meth:`learn` when they
             are not given one; default the host name, so a restarted robot process finds the
@@ -125,7 +127,7 @@ class Client:
         self,
         base_url: str = "http://127.0.0.1:8080",
         token: str | None = None,
-        timeout: float = 30.0,
+        timeout: float = 60.0,
         *,
         experiment_id: int | None = None,
         client_id: str | None = None,
