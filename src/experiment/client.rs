@@ -149,6 +149,7 @@ impl ApiClient {
         let body = TrajectoryRequest {
             proposal_id,
             partial: false,
+            source: None,
             transitions,
         };
         self.expect(

@@ -4,6 +4,7 @@ mod auth;
 mod contract;
 mod custom;
 mod dashboard;
+mod executions;
 mod experiments;
 mod generalisation;
 mod helpers;

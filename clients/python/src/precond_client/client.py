@@ -35,7 +35,10 @@ from .models import (
     Plan,
     Precondition,
     Proposal,
+    Run,
+    Source,
     StoredTransition,
+    Trajectory,
     TrajectoryCreated,
     Transition,
     as_list,
@@ -371,12 +374,18 @@ class Client:
         proposal_id: int | None = None,
         partial: bool = False,
         idempotency_key: str | None = None,
+        source: Source | Mapping[str, Any] | None = None,
     ) -> TrajectoryCreated:
         """Posts an executed trajectory; the server labels and stores it atomically.
 
         Every post carries an ``Idempotency-Key``, so retries never store it twice. The default
         key is ``proposal-<id>`` for the execution of a proposal (a proposal is executed once,
         so even a restarted robot posting it again is recognised) and a random one otherwise.
+        ``source`` says where the trajectory comes from (a logged dataset and episode, a
+        simulated environment); the server stores it and shows it with the trajectory and in
+        the runs list. A trajectory posted for a proposal that is not the proposal's actions
+        from its start (or a prefix of them) is stored all the same and comes back
+        ``deviating``.
         """
         items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
         if not items:
@@ -384,6 +393,8 @@ class Client:
         body: dict[str, Any] = {"transitions": items, "partial": bool(partial)}
         if proposal_id is not None:
             body["proposal_id"] = int(proposal_id)
+        if source is not None:
+            body["source"] = source.to_json() if isinstance(source, Source) else dict(source)
         if idempotency_key is None:
             idempotency_key = (
                 f"proposal-{proposal_id}" if proposal_id is not None else f"py-{uuid.uuid4()}"
@@ -396,6 +407,25 @@ class Client:
         )
         replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
         return TrajectoryCreated.from_json(r.json(), replayed=replayed)
+
+    def get_trajectory(self, trajectory_id: int) -> Trajectory:
+        """A stored trajectory with its labelled transitions, whether it deviated from its
+        proposal and where it comes from."""
+        r = self._request("GET", self._path(f"/trajectories/{trajectory_id}"))
+        return Trajectory.from_json(r.json())
+
+    def runs(self, page_size: int = 100) -> Iterator[Run]:
+        """Every run of the experiment, newest first: proposals with the trajectories that
+        executed them, trajectories posted without a proposal, and refused proposal requests
+        (``status == "refused"``), fetched page by page as the iterator advances."""
+        offset: int | None = 0
+        while offset is not None:
+            page = self._request(
+                "GET", self._path("/runs"), params={"offset": offset, "limit": page_size}
+            ).json()
+            for item in page["items"]:
+                yield Run.from_json(item)
+            offset = page["next"]
 
     def transitions(self, after: int = 0, page_size: int = 1000) -> Iterator[StoredTransition]:
         """Every stored transition with an id greater than ``after``, in id order, fetched
