@@ -8,6 +8,7 @@ mod executions;
 mod experiments;
 mod generalisation;
 mod helpers;
+mod import;
 mod learning;
 mod limits;
 mod model_server;
