@@ -4,6 +4,9 @@
   precondition queries and plans, with numpy arrays in and out.
 - :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
+- :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
+  logged data (CSV, Parquet, LeRobot v3, Minari) into an experiment, idempotently
+  (:mod:`precond_client.imports`).
 - :mod:`precond_client.errors` — the server's errors as exceptions with ``code``, ``message``
   and ``details``.
 """
@@ -32,6 +35,7 @@ from .errors import (
     Unavailable,
     ValidationFailed,
 )
+from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
 from .models import (
     Candidate,
@@ -64,6 +68,7 @@ __all__ = [
     "CandidateScore",
     "Client",
     "Conflict",
+    "DatasetError",
     "DeadlineExceeded",
     "Episode",
     "Experiment",
@@ -71,9 +76,12 @@ __all__ = [
     "Forbidden",
     "HeldOutTrust",
     "Hyperparameters",
+    "ImportFailed",
+    "ImportReport",
     "InternalError",
     "Learner",
     "LimitReached",
+    "LoggedEpisode",
     "MethodNotAllowed",
     "Model",
     "ModelServer",
