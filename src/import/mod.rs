@@ -466,11 +466,14 @@ async fn import_file(
     };
     let total = n_rows.unwrap_or(lines.saturating_sub(1));
     progress.set_length(progress.length().unwrap_or(0) + total);
-    say(progress, format!(
-        "{}: {total} rows; {}; dataset id {dataset_id}",
-        path.display(),
-        mapping.describe(&columns)
-    ));
+    say(
+        progress,
+        format!(
+            "{}: {total} rows; {}; dataset id {dataset_id}",
+            path.display(),
+            mapping.describe(&columns)
+        ),
+    );
 
     let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
     let reader = {
@@ -556,13 +559,16 @@ async fn import_file(
             },
             Message::Split(episode, length, parts) => {
                 report.split_episodes += 1;
-                say(progress, format!(
-                    "{}: episode {episode} has {length} transitions, posted as {parts} \
+                say(
+                    progress,
+                    format!(
+                        "{}: episode {episode} has {length} transitions, posted as {parts} \
                      trajectories (at most {} transitions or {} bytes each)",
-                    path.display(),
-                    args.max_transitions,
-                    args.max_body_bytes
-                ));
+                        path.display(),
+                        args.max_transitions,
+                        args.max_body_bytes
+                    ),
+                );
             }
             Message::Skipped => report.skipped_episodes += 1,
         }
@@ -612,28 +618,31 @@ pub async fn run(args: ImportArgs) -> anyhow::Result<ImportReport> {
     let mut total = ImportReport::default();
     for path in &args.files {
         let report = import_file(&args, &poster, &spaces, path, &progress).await?;
-        say(&progress, format!(
-            "{}: {} episodes as {} trajectories ({} transitions): {} stored, {} already there{}{}",
-            path.display(),
-            report.episodes,
-            report.trajectories,
-            report.transitions,
-            report.created,
-            report.replayed,
-            if report.split_episodes > 0 {
-                format!("; {} episodes split", report.split_episodes)
-            } else {
-                String::new()
-            },
-            if report.skipped_episodes > 0 {
-                format!(
-                    "; {} single-frame episodes skipped",
-                    report.skipped_episodes
-                )
-            } else {
-                String::new()
-            },
-        ));
+        say(
+            &progress,
+            format!(
+                "{}: {} episodes as {} trajectories ({} transitions): {} stored, {} already there{}{}",
+                path.display(),
+                report.episodes,
+                report.trajectories,
+                report.transitions,
+                report.created,
+                report.replayed,
+                if report.split_episodes > 0 {
+                    format!("; {} episodes split", report.split_episodes)
+                } else {
+                    String::new()
+                },
+                if report.skipped_episodes > 0 {
+                    format!(
+                        "; {} single-frame episodes skipped",
+                        report.skipped_episodes
+                    )
+                } else {
+                    String::new()
+                },
+            ),
+        );
         total.add(&report);
     }
     progress.finish_and_clear();
