@@ -140,7 +140,7 @@ const ENTRIES: &[Entry] = &[
     entry::<Transition>("TransitionRequest", Request),
     entry::<api::TrajectoryRequest>("TrajectoryRequest", Request),
     entry::<api::TrajectorySource>("TrajectorySource", Request),
-    entry::<api::TrajectorySource>("TrajectorySource", Response),
+    entry::<api::TrajectorySource>("ResolvedTrajectorySource", Response),
     entry::<api::TrajectoryCreated>("TrajectoryCreated", Response),
     entry::<api::TransitionView>("Transition", Response),
     entry::<api::TrajectoryResponse>("Trajectory", Response),

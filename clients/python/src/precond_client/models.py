@@ -217,7 +217,7 @@ class Source:
     """Where a posted trajectory comes from (schema ``TrajectorySource``): a logged dataset or
     file, a simulated environment. Stored with the trajectory and shown with it."""
 
-    SCHEMA: ClassVar[str] = "TrajectorySource"
+    SCHEMA: ClassVar[tuple[str, ...]] = ("TrajectorySource", "ResolvedTrajectorySource")
 
     dataset: str
     """The dataset, file or environment (1 to 1000 characters)."""
