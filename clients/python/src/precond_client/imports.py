@@ -14,9 +14,10 @@ next state is the next row's state in the episode. Any of them can be named inst
 
 **Idempotent and resumable.** Each trajectory is posted under the ``Idempotency-Key``
 ``import-<dataset id>-<episode>-<part>``. The dataset id of a file is the first 16 hex digits
-of the SHA-256 of its bytes — the same key ``precond import`` uses for the same file — and of
-a LeRobot or Minari dataset the hash of its data files: importing again, after an interruption
-or twice, stores nothing twice.
+of the SHA-256 of its bytes — the same key ``precond import`` uses for the same file —, of a
+LeRobot dataset the hash of its data files, of a Minari dataset that of its HDF5 file (loaded by
+id with ``minari``: of its id and size): importing again, after an interruption or twice, stores
+nothing twice.
 
 **Limits.** An episode longer than ``max_transitions`` (the server's ``--max-transitions``,
 10 000 by default) or whose request would pass ``max_body_bytes`` is posted as several
