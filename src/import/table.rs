@@ -146,7 +146,12 @@ pub fn for_each_row(
                     let fields: Vec<&Field> = r.get_column_iter().map(|(_, f)| f).collect();
                     let cells = at
                         .iter()
-                        .map(|&k| parquet_cell(fields[k]))
+                        .map(|&k| {
+                            let field = fields.get(k).with_context(|| {
+                                format!("{} columns read, column {k} asked", fields.len())
+                            })?;
+                            parquet_cell(field)
+                        })
                         .collect::<anyhow::Result<Vec<_>>>()
                         .with_context(|| format!("row {n}"))?;
                     row(cells).with_context(|| format!("row {n}"))?;
