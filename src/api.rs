@@ -76,7 +76,11 @@ pub struct ExperimentResponse {
     pub iteration: i64,
     /// The latest MDE version (0: the prior).
     pub model_version: i64,
-    /// The latest of its creation, its last trajectory and its last proposal (RFC 3339).
+    /// Proposal requests refused with `no_plan` (each is a `refused` run).
+    #[serde(default)]
+    pub n_refused: i64,
+    /// The latest of its creation, its last trajectory, its last proposal and its last refused
+    /// proposal request (RFC 3339).
     #[serde(default)]
     pub last_activity: String,
 }
@@ -119,21 +123,33 @@ pub struct PageQuery {
     pub limit: Option<i64>,
 }
 
-/// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
+/// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
+/// refused proposal request.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunView {
     /// The proposal, if there was one.
     pub proposal_id: Option<i64>,
     /// The executed trajectory, if one was posted.
     pub trajectory_id: Option<i64>,
+    /// The refusal, for a refused proposal request (`status` `refused`).
+    #[serde(default)]
+    pub refusal_id: Option<i64>,
     /// Where it stands.
     pub status: RunStatus,
-    /// The client the proposal was leased to.
+    /// The client the proposal was leased to (or that was refused).
     pub client_id: Option<String>,
-    /// The learning iteration the proposal was made in (`null` without a proposal).
+    /// The learning iteration the proposal was made (or refused) in (`null` without a
+    /// proposal).
     pub iteration: Option<i64>,
-    /// β the proposal was planned with (`null` without a proposal).
+    /// β the proposal was planned with; for a refusal, the first β tried (the iteration's
+    /// `β_j`) (`null` without a proposal).
     pub beta: Option<f64>,
+    /// Every β a refused request tried, in order (`null` unless refused).
+    #[serde(default)]
+    pub betas_tried: Option<Vec<f64>>,
+    /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
+    #[serde(default)]
+    pub extensions: Option<i64>,
     /// The MDE version that scored the proposal (`null` without a proposal).
     pub model_version: Option<i64>,
     /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
@@ -143,12 +159,19 @@ pub struct RunView {
     pub length: i64,
     /// Whether the posted trajectory stopped early.
     pub partial: bool,
+    /// Whether the posted trajectory departs from its proposal (other actions, longer, or
+    /// another start; a prefix does not).
+    #[serde(default)]
+    pub deviating: bool,
+    /// Where the posted trajectory comes from, when its client said.
+    #[serde(default)]
+    pub source: Option<TrajectorySource>,
     /// The largest deviation label of the executed trajectory (`null` before one was posted).
     pub max_deviation: Option<f64>,
 }
 
-/// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them and
-/// trajectories posted without a proposal, newest first.
+/// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them,
+/// trajectories posted without a proposal and refused proposal requests, newest first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct RunPage {
     /// The page's runs.
@@ -159,7 +182,8 @@ pub struct RunPage {
     pub next: Option<i64>,
 }
 
-/// One learning iteration of `GET /v1/experiments/{id}/timeline`: what was executed in it.
+/// One learning iteration of `GET /v1/experiments/{id}/timeline`: what was executed in it and
+/// how many proposal requests it refused.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TimelineIteration {
     /// `β_j` of the learning schedule at this iteration.
@@ -167,16 +191,20 @@ pub struct TimelineIteration {
     /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
     /// next batch's first, in ingest order).
     pub iteration: i64,
-    /// Trajectories posted in it.
+    /// Trajectories posted in it (0 when it only refused proposal requests so far).
     pub n_trajectories: i64,
     /// Their transitions.
     pub n_transitions: i64,
-    /// Mean deviation label of those transitions.
-    pub mean_deviation: f64,
-    /// Largest deviation label.
-    pub max_deviation: f64,
-    /// Share of the transitions with a deviation below `d_max` (the model was right there).
-    pub share_within_d_max: f64,
+    /// Mean deviation label of those transitions (`null` without any).
+    pub mean_deviation: Option<f64>,
+    /// Largest deviation label (`null` without any).
+    pub max_deviation: Option<f64>,
+    /// Share of the transitions with a deviation below `d_max` (the model was right there;
+    /// `null` without any).
+    pub share_within_d_max: Option<f64>,
+    /// Proposal requests refused with `no_plan` in it.
+    #[serde(default)]
+    pub n_refused: i64,
 }
 
 /// One model version of `GET /v1/experiments/{id}/timeline` (no training data, no noise
@@ -375,6 +403,26 @@ pub struct LaterRates {
     pub rates: PreconditionRates,
 }
 
+/// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
+/// Stored with the trajectory and shown with it and in the runs list.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct TrajectorySource {
+    /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
+    /// (1 to 1000 characters).
+    pub dataset: String,
+    /// The episode of the dataset (≥ 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub episode: Option<i64>,
+    /// The step of the episode the trajectory's first transition was (≥ 0): an episode longer
+    /// than one post allows is posted as several trajectories.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_step: Option<i64>,
+    /// A free-form label (at most 1000 characters).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub label: Option<String>,
+}
+
 /// `POST /v1/experiments/{id}/trajectories` body.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -385,6 +433,9 @@ pub struct TrajectoryRequest {
     /// The robot stopped before the end of what it meant to execute.
     #[serde(default)]
     pub partial: bool,
+    /// Where it comes from (an imported log, a simulated environment).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source: Option<TrajectorySource>,
     /// The executed transitions, in order.
     pub transitions: Vec<Transition>,
 }
@@ -401,6 +452,13 @@ pub struct TrajectoryCreated {
     pub proposal_id: Option<i64>,
     /// Whether the robot stopped early.
     pub partial: bool,
+    /// Whether it departs from its proposal (other actions, longer, or another start; a
+    /// prefix does not).
+    #[serde(default)]
+    pub deviating: bool,
+    /// Where it comes from, when the client said.
+    #[serde(default)]
+    pub source: Option<TrajectorySource>,
     /// Transitions stored.
     pub n_transitions: usize,
     /// Each transition's deviation label `d(f̂(s, a), s_next)`, in order.
@@ -447,6 +505,13 @@ pub struct TrajectoryResponse {
     pub proposal_id: Option<i64>,
     /// Whether the robot stopped before the end.
     pub partial: bool,
+    /// Whether it departs from its proposal (other actions, longer, or another start; a
+    /// prefix does not).
+    #[serde(default)]
+    pub deviating: bool,
+    /// Where it comes from, when the client said.
+    #[serde(default)]
+    pub source: Option<TrajectorySource>,
     /// Ingest time (RFC 3339).
     pub created_at: String,
     /// Its transitions in order, with their predictions and labels.
@@ -764,6 +829,10 @@ pub struct ProposalResponse {
     pub id: i64,
     /// Where its lease stands: `open`, `executed`, `abandoned` or `expired`.
     pub status: ProposalStatus,
+    /// Whether the trajectory that executed it departs from it (other actions, longer, or
+    /// another start; a prefix does not); `false` until executed.
+    #[serde(default)]
+    pub deviating: bool,
     /// The client it is leased to.
     pub client_id: Option<String>,
     /// The learning iteration it was made in.

@@ -32,6 +32,10 @@ pub enum Command {
     /// Run the paper's evaluation (strategies × seeds × iterations) against the service and
     /// write results and plots.
     Experiment(crate::experiment::ExperimentArgs),
+    /// Import logged transitions (CSV or Parquet files) into an experiment of a running
+    /// server: one trajectory per episode, labelled by the experiment's model, with its source;
+    /// safe to run again (nothing is stored twice).
+    Import(crate::import::ImportArgs),
 }
 
 /// Options of `precond backup`.
@@ -545,6 +549,10 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Experiment(args) => {
             crate::experiment::init_tracing();
             crate::experiment::run(args).await.map(|_| ())
+        }
+        Command::Import(args) => {
+            crate::experiment::init_tracing();
+            crate::import::run(args).await.map(|_| ())
         }
     }
 }

@@ -37,10 +37,12 @@
 //!   type and its JSON shape; access tokens, `/metrics`, request ids; serving with graceful
 //!   shutdown; the web dashboard (`ui/`, embedded in the binary, reading only the JSON API).
 //! - [`cli`]: the command line (`precond serve`, `precond backup`, `precond bench`,
-//!   `precond experiment`).
+//!   `precond experiment`, `precond import`).
 //! - [`bench`](mod@bench): benchmarks that print figures (`precond bench ...`).
 //! - [`experiment`]: `precond experiment`, the paper's evaluation run end to end as an HTTP
 //!   client of the service (simulators, CSV/JSON results, SVG plots).
+//! - [`import`](mod@import): `precond import`, logged transitions (CSV, Parquet) into an
+//!   experiment as an HTTP client, one trajectory per episode, resumable and idempotent.
 //!
 //! ## Layers, and what plugs in
 //!
@@ -75,6 +77,7 @@ pub mod domain;
 pub mod experiment;
 pub mod gp;
 pub mod http;
+pub mod import;
 pub mod limits;
 pub mod mde;
 pub mod planning;

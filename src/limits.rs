@@ -29,6 +29,8 @@ pub const MAX_NAME_LEN: usize = 200;
 pub const MAX_CLIENT_ID_LEN: usize = 200;
 /// Characters of an `Idempotency-Key`: `1 ..= 200` visible ASCII.
 pub const MAX_IDEMPOTENCY_KEY_LEN: usize = 200;
+/// Characters of a trajectory's `source.dataset` (`1 ..=`) and `source.label` (`0 ..=`): `1000`.
+pub const MAX_SOURCE_TEXT_LEN: usize = 1000;
 /// Transitions in one posted trajectory: `1 ..= 10 000`.
 pub const MAX_TRANSITIONS: usize = 10_000;
 /// Points in one precondition query: `1 ..= 100 000`.

@@ -119,6 +119,17 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
         }
         assert_eq!(summary["strategies"][s]["plan_found_rate"][0]["n"], 2);
     }
+    // The closing table the command prints: one row per strategy with the final figures.
+    let table = precond::experiment::report::summary_table_of(&out).unwrap();
+    let table_rows: Vec<&str> = table.lines().skip(2).collect();
+    assert_eq!(table_rows.len(), STRATEGIES.len(), "{table}");
+    for (row, s) in table_rows.iter().zip(STRATEGIES) {
+        assert!(row.starts_with(s), "{table}");
+        let tpr = &summary["final"][s]["tpr"];
+        if let (Some(m), Some(se)) = (tpr["mean"].as_f64(), tpr["se"].as_f64()) {
+            assert!(row.contains(&format!("{m:.2} ± {se:.2}")), "{s}: {table}");
+        }
+    }
 
     // The plots.
     for name in ["metrics.svg", "training.svg"] {

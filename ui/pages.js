@@ -218,6 +218,7 @@ function progress(e) {
       kpi('trajectories', e.n_trajectories),
       kpi('transitions', e.n_transitions),
       kpi('model version', e.model_version),
+      kpi('refused requests', e.n_refused ?? 0),
       kpi('last activity', ago(e.last_activity)),
     ),
   );
@@ -260,6 +261,14 @@ function timelineCharts(e, t) {
         x: it,
         xlabel: 'iteration',
         series: [{ name: 'trajectories', values: t.iterations.map(r => r.n_trajectories), bars: true }],
+      }),
+    );
+    charts.push(
+      lineChart({
+        title: 'Refused proposal requests per iteration',
+        x: it,
+        xlabel: 'iteration',
+        series: [{ name: 'refused (no plan)', values: t.iterations.map(r => r.n_refused ?? 0), bars: true }],
       }),
     );
     charts.push(
@@ -323,11 +332,30 @@ function modelTable(t) {
   );
 }
 
+/** Where a trajectory comes from, in one line: `dataset · episode 3 from step 0 · label`. */
+export function sourceText(src) {
+  if (!src) return null;
+  const parts = [src.dataset];
+  if (src.episode != null) parts.push(`episode ${src.episode}${src.first_step ? ` from step ${src.first_step}` : ''}`);
+  if (src.label) parts.push(src.label);
+  return parts.join(' · ');
+}
+
+/** What else a run says: a refusal's βs and extensions, a trajectory's source. */
+function runDetails(r) {
+  if (r.status === 'refused') {
+    const betas = (r.betas_tried ?? []).map(b => fmt(b)).join(' → ');
+    return h('span', { class: 'muted' }, `no plan at β ${betas} (${fmt(r.extensions)} extensions)`);
+  }
+  const src = sourceText(r.source);
+  return src ? h('span', { class: 'source' }, src) : '';
+}
+
 function runsTable(e, page, offset) {
   const rows = page.items.map(r =>
     h(
       'tr',
-      {},
+      { class: r.deviating ? 'deviating' : null },
       td(ago(r.created_at)),
       td(r.proposal_id ?? '–', true),
       td(
@@ -335,7 +363,17 @@ function runsTable(e, page, offset) {
           ? h('a', { href: `${expUrl(e.id)}/trajectories/${r.trajectory_id}` }, `#${r.trajectory_id} steps`)
           : '–',
       ),
-      td(h('span', { class: `badge ${r.status}` }, r.status)),
+      td(
+        h(
+          'span',
+          {},
+          h('span', { class: `badge ${r.status}` }, r.status),
+          r.deviating ? ' ' : null,
+          r.deviating
+            ? h('span', { class: 'badge deviating', title: 'not the proposal as planned' }, 'deviating')
+            : null,
+        ),
+      ),
       td(r.client_id ?? '–'),
       td(r.iteration ?? '–', true),
       td(r.length, true),
@@ -345,6 +383,7 @@ function runsTable(e, page, offset) {
           : h('span', { class: r.max_deviation >= e.d_max ? 'bad' : 'ok' }, fmt(r.max_deviation)),
         true,
       ),
+      td(runDetails(r)),
     ),
   );
   return [
@@ -359,6 +398,7 @@ function runsTable(e, page, offset) {
         ['iteration', 1],
         ['length', 1],
         ['max deviation', 1],
+        ['details'],
       ],
       rows,
       { id: 'runs' },
@@ -390,7 +430,7 @@ export async function experimentPage(root, params, id) {
     h('h2', {}, 'Learning timeline'),
     timelineCharts(e, t),
     modelTable(t),
-    h('h2', { id: 'runs-title' }, 'Proposals and trajectories'),
+    h('h2', { id: 'runs-title' }, 'Proposals, trajectories and refusals'),
     ...runsTable(e, runs, offset),
   );
 }
@@ -406,13 +446,24 @@ export async function trajectoryPage(root, params, id, tid) {
   const planned = proposal?.trajectory;
   const steps = t.transitions;
   const pm = i => (planned && i < planned.mu.length ? `${fmt(planned.mu[i])} ± ${fmt(planned.sigma[i])}` : '–');
+  // The planned action at a step, when the executed one is not it (a deviating execution).
+  const close = (x, p) =>
+    x.length === p.length && x.every((v, k) => Math.abs(v - p[k]) <= 1e-6 * Math.max(1, Math.abs(p[k])));
+  const offPlan = i =>
+    planned && t.deviating && (i >= planned.actions.length || !close(steps[i].a, planned.actions[i]))
+      ? (planned.actions[i] ?? null)
+      : undefined;
   const rows = steps.map((x, i) =>
     h(
       'tr',
       {},
       td(x.step, true),
       td(vec(x.s)),
-      td(vec(x.a)),
+      td(
+        offPlan(i) === undefined
+          ? vec(x.a)
+          : h('span', { class: 'bad', title: offPlan(i) ? `planned ${vec(offPlan(i))}` : 'beyond the plan' }, vec(x.a)),
+      ),
       td(vec(x.s_pred)),
       td(vec(x.s_next)),
       td(h('span', { class: x.deviation >= e.d_max ? 'bad' : 'ok' }, fmt(x.deviation)), true),
@@ -446,7 +497,11 @@ export async function trajectoryPage(root, params, id, tid) {
       {},
       `Trajectory ${tid}`,
       ' ',
-      h('span', { class: 'muted' }, `${steps.length} steps${t.partial ? ' · partial' : ''}`),
+      h(
+        'span',
+        { class: 'muted' },
+        `${steps.length} steps${t.partial ? ' · partial' : ''}${t.deviating ? ' · deviating' : ''}`,
+      ),
     ),
     h(
       'p',
@@ -460,6 +515,16 @@ export async function trajectoryPage(root, params, id, tid) {
           ]
         : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`,
     ),
+    ...(t.deviating
+      ? [
+          h(
+            'p',
+            { id: 'deviating', class: 'bad' },
+            'Deviating: the robot did not execute the proposal as planned (other actions, more steps or another start; actions off the plan are marked). Its labels are real data all the same.',
+          ),
+        ]
+      : []),
+    ...(t.source ? [h('p', { id: 'source' }, 'Source: ', h('b', {}, sourceText(t.source)))] : []),
     h(
       'div',
       { class: 'charts' },

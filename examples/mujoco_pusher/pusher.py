@@ -10,9 +10,11 @@ problems) and saves the learning curve and a precondition map as PNG.
 
     pip install ./clients/python -r examples/mujoco_pusher/requirements.txt
     precond serve --allow-model-url http://127.0.0.1:9000/ &
-    python examples/mujoco_pusher/pusher.py --out docs/mujoco_pusher
+    python examples/mujoco_pusher/pusher.py
 
-or let the script start a server binary itself: ``--spawn-server target/release/precond``.
+or let the script start a server binary itself: ``--spawn-server target/release/precond``. The
+figures and the summary go to ``--out``, a new temporary directory by default (the committed
+ones in ``docs/mujoco_pusher`` are refreshed only by naming it).
 """
 
 from __future__ import annotations
@@ -117,6 +119,10 @@ class Evaluation:
     tnr: float
     plan_found: float
     success: float
+    model_version: int
+    label_cap: float | None
+    """The label cap the answering version was fitted with (``mde.label_cap`` "auto" chooses
+    it at every fit)."""
 
 
 def spawn_server(binary: str, model_prefix: str, db: Path) -> tuple[subprocess.Popen[str], str]:
@@ -157,8 +163,15 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=5, help="trajectories per iteration")
     ap.add_argument("--test-problems", type=int, default=10)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--out", type=Path, default=Path("mujoco_pusher_results"))
+    ap.add_argument(
+        "--preset", choices=["default", "paper"], default="default", help="learning.preset"
+    )
+    ap.add_argument(
+        "--out", type=Path, help="output directory (default: a new temporary directory)"
+    )
     args = ap.parse_args()
+    if args.out is None:
+        args.out = Path(tempfile.mkdtemp(prefix="precond-mujoco-pusher-"))
     args.out.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(args.seed)
     table = Table()
@@ -189,6 +202,7 @@ def main() -> None:
                     "iterations": args.iterations,
                     "n_candidates": 5,
                     "max_extensions": 1500,
+                    "preset": args.preset,
                 },
             )
             print(f"experiment {exp.id} on {url}; model served at {model.url}")
@@ -206,7 +220,7 @@ def main() -> None:
 
             def evaluate(iteration: int) -> Evaluation:
                 n = client.get_experiment().n_trajectories
-                client.wait_for_model(n, timeout=300)
+                m = client.wait_for_model(n, timeout=300)
                 pre = client.precondition((held_s, held_a), beta=2.0)
                 truth = held_dev < D_MAX
                 tpr = float(np.mean(pre.inside[truth])) if truth.any() else float("nan")
@@ -219,7 +233,9 @@ def main() -> None:
                         end = table.execute(s, plan.trajectory.actions)[-1]
                         success += int(np.linalg.norm(end - g) <= GOAL_RADIUS)
                 k = len(tests)
-                return Evaluation(iteration, n, tpr, tnr, found / k, success / k)
+                return Evaluation(
+                    iteration, n, tpr, tnr, found / k, success / k, m.version, m.label_cap
+                )
 
             curve = [evaluate(0)]
             total = args.iterations * args.batch
@@ -257,9 +273,18 @@ def main() -> None:
             summary = {
                 "mujoco": mujoco.__version__,
                 "seed": args.seed,
+                "preset": args.preset,
                 "iterations": args.iterations,
                 "batch": args.batch,
                 "no_plan_proposals": no_plan,
+                # The server's count of refused proposal requests (the same, seen from there).
+                "refused_on_server": client.get_experiment().n_refused,
+                "relaxed_proposals": sum(
+                    1
+                    for r in client.runs()
+                    if r.proposal_id is not None
+                    and client.get_proposal(r.proposal_id).relaxed_from_beta is not None
+                ),
                 "model_calls": model.calls,
                 "model_points": model.points,
                 "seconds": round(time.monotonic() - t0, 1),

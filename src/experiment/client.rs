@@ -151,6 +151,7 @@ impl ApiClient {
         let body = TrajectoryRequest {
             proposal_id,
             partial: false,
+            source: None,
             transitions,
         };
         self.expect(

@@ -453,6 +453,8 @@ async fn run_layout(args: &ExperimentArgs, cfg: Config, dir: &Path) -> anyhow::R
         results.seconds,
         dir.display()
     );
+    // The closing table, from the summary as written (what a reader of the files sees).
+    println!("\n{}", report::summary_table_of(dir)?);
     Ok(results)
 }
 

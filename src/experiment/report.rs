@@ -428,9 +428,101 @@ pub fn summary(results: &Results) -> Value {
     })
 }
 
+/// The columns of the closing table: `(metric of the summary, heading)`.
+pub const TABLE_COLUMNS: [(&str, &str); 6] = [
+    ("plan_found_rate", "plan found"),
+    ("success_rate", "success"),
+    ("closed_loop_rate", "closed loop"),
+    ("oracle_rate", "oracle"),
+    ("tpr", "TPR"),
+    ("tnr", "TNR"),
+];
+
+/// The closing table of a run, read from its `summary.json`: per strategy, the final
+/// iteration's plan-found, success, closed-loop success and oracle rates and the precondition's
+/// TPR and TNR, as mean ± standard error over seeds (`–` where no seed had a value, e.g. the
+/// oracle of a world without one).
+pub fn summary_table(summary: &Value) -> String {
+    let strategies: Vec<&str> = summary["config"]["strategies"]
+        .as_array()
+        .map(|s| s.iter().filter_map(Value::as_str).collect())
+        .unwrap_or_default();
+    let iterations = summary["config"]["iterations"].as_u64().unwrap_or(0);
+    let seeds = summary["config"]["seeds"].as_u64().unwrap_or(0);
+    let mut out = format!(
+        "{} ({}), iteration {} (the last), mean ± se over {seeds} seed{}:\n",
+        summary["domain"].as_str().unwrap_or("?"),
+        summary["layout"].as_str().unwrap_or("default"),
+        iterations.saturating_sub(1),
+        if seeds == 1 { "" } else { "s" },
+    );
+    let width = strategies.iter().map(|s| s.len()).max().unwrap_or(0).max(8);
+    let _ = write!(out, "{:<width$}", "strategy");
+    for (_, heading) in TABLE_COLUMNS {
+        let _ = write!(out, "  {heading:>13}");
+    }
+    out.push('\n');
+    for s in strategies {
+        let _ = write!(out, "{s:<width$}");
+        for (metric, _) in TABLE_COLUMNS {
+            let m = &summary["final"][s][metric];
+            let cell = match (m["mean"].as_f64(), m["se"].as_f64()) {
+                (Some(mean), Some(se)) => format!("{mean:.2} ± {se:.2}"),
+                (Some(mean), None) => format!("{mean:.2}"),
+                _ => "–".to_string(),
+            };
+            let _ = write!(out, "  {cell:>13}");
+        }
+        out.push('\n');
+    }
+    out
+}
+
+/// Reads `dir/summary.json` back and returns its closing table ([`summary_table`]).
+pub fn summary_table_of(dir: &Path) -> anyhow::Result<String> {
+    let path = dir.join("summary.json");
+    let text =
+        std::fs::read_to_string(&path).with_context(|| format!("reading {}", path.display()))?;
+    let summary: Value =
+        serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
+    Ok(summary_table(&summary))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_closing_table_shows_each_strategys_final_figures() {
+        let stat = |mean: Option<f64>| json!({"iteration": 2, "mean": mean, "se": mean.map(|_| 0.05), "n": 2});
+        let mut fin = Map::new();
+        for (metric, _) in TABLE_COLUMNS {
+            fin.insert(
+                metric.into(),
+                stat((metric != "oracle_rate").then_some(0.5)),
+            );
+        }
+        let summary = json!({
+            "domain": "icy_gridworld", "layout": "default",
+            "config": {"strategies": ["active", "random"], "iterations": 3, "seeds": 2},
+            "final": {"active": fin, "random": {"tpr": stat(Some(0.25))}},
+        });
+        let table = summary_table(&summary);
+        let lines: Vec<&str> = table.lines().collect();
+        assert_eq!(lines.len(), 4, "{table}");
+        assert!(
+            lines[0].contains("iteration 2") && lines[0].contains("2 seeds"),
+            "{table}"
+        );
+        for (_, heading) in TABLE_COLUMNS {
+            assert!(lines[1].contains(heading), "{table}");
+        }
+        assert!(lines[2].starts_with("active"));
+        assert_eq!(lines[2].matches("0.50 ± 0.05").count(), 5, "{table}");
+        assert_eq!(lines[2].matches('–').count(), 1, "no oracle: {table}");
+        assert!(lines[3].starts_with("random") && lines[3].contains("0.25 ± 0.05"));
+        assert_eq!(lines[3].matches('–').count(), 5, "{table}");
+    }
 
     #[test]
     fn mean_and_standard_error() {

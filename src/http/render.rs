@@ -5,14 +5,14 @@ use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, FitRefusalView, LaterRates, MapAxis, MapPoint,
     ModelResponse, ModelSource, PlanResponse, PreconditionMap, PreconditionResponse,
     ProposalResponse, RejectionCounts, RunPage, RunView, Timeline, TimelineIteration,
-    TimelineModel, TrajectoryCreated, TrajectoryResponse, TransitionView,
+    TimelineModel, TrajectoryCreated, TrajectoryResponse, TrajectorySource, TransitionView,
 };
 use crate::mde::ServedModel;
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{FitRefusal, Run, StoredProposal, StoredTrajectory, StoredTransition};
+use crate::store::{FitRefusal, Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -20,6 +20,16 @@ pub fn source(m: &ServedModel) -> ModelSource {
         ModelSource::Fit
     } else {
         ModelSource::Prior
+    }
+}
+
+/// Where a trajectory comes from.
+pub fn provenance(p: Provenance) -> TrajectorySource {
+    TrajectorySource {
+        dataset: p.dataset,
+        episode: p.episode,
+        first_step: p.first_step,
+        label: p.label,
     }
 }
 
@@ -38,6 +48,7 @@ pub fn experiment(s: ExperimentState) -> ExperimentResponse {
         n_trajectories: e.n_trajectories,
         n_transitions: e.n_transitions,
         model_version: e.model_version,
+        n_refused: e.n_refused,
         last_activity: e.last_activity,
     }
 }
@@ -56,14 +67,19 @@ fn run(r: Run) -> RunView {
     RunView {
         proposal_id: r.proposal_id,
         trajectory_id: r.trajectory_id,
+        refusal_id: r.refusal_id,
         status: r.status,
         client_id: r.client_id,
         iteration: r.iteration,
         beta: r.beta,
+        betas_tried: r.betas_tried,
+        extensions: r.extensions,
         model_version: r.model_version,
         created_at: r.created_at,
         length: r.length,
         partial: r.partial,
+        deviating: r.deviating,
+        source: r.source.map(provenance),
         max_deviation: r.max_deviation,
     }
 }
@@ -85,6 +101,7 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
                 mean_deviation: s.mean_deviation,
                 max_deviation: s.max_deviation,
                 share_within_d_max: s.share_within_d_max,
+                n_refused: s.n_refused,
             })
             .collect(),
         models: t
@@ -165,6 +182,8 @@ pub fn trajectory(t: StoredTrajectory) -> TrajectoryResponse {
         experiment_id: t.experiment_id,
         proposal_id: t.proposal_id,
         partial: t.partial,
+        deviating: t.deviating,
+        source: t.source.map(provenance),
         created_at: t.created_at,
         n_transitions: t.transitions.len(),
         transitions: t.transitions.into_iter().map(transition).collect(),
@@ -252,11 +271,13 @@ pub fn proposal(p: ProposalRecord) -> ProposalResponse {
         terms,
         created_at,
         expires_at,
+        deviating,
         ..
     } = p.stored;
     ProposalResponse {
         id,
         status,
+        deviating,
         client_id: terms.client_id,
         iteration: terms.iteration,
         beta: terms.beta,
@@ -298,6 +319,8 @@ pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
         experiment_id: i.experiment_id,
         proposal_id: r.proposal_id,
         partial: r.partial,
+        deviating: r.deviating,
+        source: r.source.clone().map(provenance),
         n_transitions: r.deviations.len(),
         deviations: r.deviations.clone(),
         iteration: i.iteration,

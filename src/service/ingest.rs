@@ -1,14 +1,20 @@
 //! Ingest: validate executed transitions against the domain, label each with the experiment's
 //! own model (`d(f̂(s, a), s_next)`, one batched model call per trajectory), and store the
 //! trajectory in one transaction, idempotently. A batch that completes schedules a refit.
+//!
+//! A trajectory posted for a proposal is compared with it ([`deviates`]): one that is not the
+//! proposal's actions from the proposal's start (or a prefix of them) is stored all the same
+//! (the data is real) and flagged `deviating`. A trajectory may carry its provenance (a logged
+//! dataset, a simulated environment), stored and shown with it.
 
 use super::live::LiveExperiment;
 use super::{Error, Result, Service};
-use crate::api::TrajectoryRequest;
+use crate::api::{TrajectoryRequest, TrajectorySource};
 use crate::domain::{DynamicsError, LabelledTransition, Transition};
-use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_TRANSITIONS};
+use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_SOURCE_TEXT_LEN, MAX_TRANSITIONS};
 use crate::store::{
-    IdempotencyKey, IngestOutcome, IngestRecord, StoredTrajectory, StoredTransition,
+    IdempotencyKey, IngestOutcome, IngestRecord, ProposalPlan, Provenance, StoredTrajectory,
+    StoredTransition, TrajectoryMeta,
 };
 use std::sync::Arc;
 
@@ -24,6 +30,72 @@ pub struct Ingested {
     pub iteration: i64,
     /// Whether this answers a retry: nothing was stored this time.
     pub replayed: bool,
+}
+
+/// Relative tolerance under which an executed action, or the executed start, is the proposal's:
+/// `|x − p| ≤ 1e-6 · max(1, |p|)` per component. A robot that sends the proposal's numbers back
+/// (through `float32` or not) stays well inside it; one that measurably did something else does
+/// not. Migration 0009 applies the same rule to trajectories stored before it.
+pub const EXECUTION_TOLERANCE: f64 = 1e-6;
+
+fn same(x: &[f64], planned: &[f64]) -> bool {
+    x.len() == planned.len()
+        && x.iter()
+            .zip(planned)
+            .all(|(x, p)| (x - p).abs() <= EXECUTION_TOLERANCE * p.abs().max(1.0))
+}
+
+/// Whether an execution departs from the proposal it names: it is longer than the proposal,
+/// starts elsewhere than the proposal's start, or some action is not the proposal's action at
+/// its step (within [`EXECUTION_TOLERANCE`]). A prefix of the proposal — a robot that stopped
+/// early — does not deviate.
+pub fn deviates<'a>(
+    plan: &ProposalPlan,
+    executed: impl ExactSizeIterator<Item = (&'a [f64], &'a [f64])>,
+) -> bool {
+    if executed.len() > plan.actions.len() {
+        return true;
+    }
+    executed
+        .enumerate()
+        .any(|(step, (s, a))| (step == 0 && !same(s, &plan.start)) || !same(a, &plan.actions[step]))
+}
+
+/// A trajectory's provenance as sent, checked; the error names the field.
+pub fn check_source(source: TrajectorySource) -> Result<Provenance> {
+    let text = |field: &str, value: &str, min: usize| {
+        let n = value.chars().count();
+        if n < min || n > MAX_SOURCE_TEXT_LEN {
+            return Err(Error::validation(
+                format!("source.{field}"),
+                format!("must be {min} to {MAX_SOURCE_TEXT_LEN} characters, got {n}"),
+            ));
+        }
+        Ok(())
+    };
+    text("dataset", &source.dataset, 1)?;
+    if let Some(label) = &source.label {
+        text("label", label, 0)?;
+    }
+    for (field, value) in [
+        ("episode", source.episode),
+        ("first_step", source.first_step),
+    ] {
+        if let Some(v) = value
+            && v < 0
+        {
+            return Err(Error::validation(
+                format!("source.{field}"),
+                format!("must be at least 0, got {v}"),
+            ));
+        }
+    }
+    Ok(Provenance {
+        dataset: source.dataset,
+        episode: source.episode,
+        first_step: source.first_step,
+        label: source.label,
+    })
 }
 
 /// An `Idempotency-Key` as sent (the header's bytes), checked: 1 to
@@ -169,15 +241,36 @@ impl Service {
         let TrajectoryRequest {
             proposal_id,
             partial,
+            source,
             transitions,
         } = request;
+        let source = source.map(check_source).transpose()?;
         let labelled = label(&live, transitions, self.work.limits().max_transitions).await?;
+        // A proposal's content never changes once made: compared outside the ingest
+        // transaction, which checks again that the proposal exists.
+        let deviating = match proposal_id {
+            Some(pid) => self
+                .store
+                .proposal_plan(id, pid)
+                .await?
+                .is_some_and(|plan| {
+                    let executed = labelled
+                        .iter()
+                        .map(|t| (t.observed.s.as_slice(), t.observed.a.as_slice()));
+                    deviates(&plan, executed)
+                }),
+            None => false,
+        };
         let outcome = self
             .store
             .ingest_trajectory(
                 id,
-                proposal_id,
-                partial,
+                TrajectoryMeta {
+                    proposal_id,
+                    partial,
+                    deviating,
+                    source: source.as_ref(),
+                },
                 &labelled,
                 idempotency_key.map(|key| IdempotencyKey {
                     key,
@@ -195,7 +288,12 @@ impl Service {
         };
         match outcome {
             IngestOutcome::Created(record) => {
-                tracing::info!(experiment = id, n = labelled.len(), "trajectory stored");
+                tracing::info!(
+                    experiment = id,
+                    n = labelled.len(),
+                    deviating,
+                    "trajectory stored"
+                );
                 if live.model().kind() == Some(crate::mde::EstimatorKind::Sparse) {
                     let absorbing = live.clone();
                     Service::blocking(move || absorbing.absorb(&labelled, 1)).await?;

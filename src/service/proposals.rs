@@ -5,6 +5,10 @@
 //! asking again for the same problem gets the same proposal back until it posts the executed
 //! trajectory, abandons it, or the lease expires; asking for another problem meanwhile is a
 //! conflict rather than a silent answer to a question it did not ask.
+//!
+//! A request no trajectory answers (`no_plan`, at every β tried) is recorded as a refusal: the
+//! problem, the client, the iteration, every β tried and the extensions spent. Refusals are
+//! runs (`refused`) and are counted per iteration in the timeline.
 
 use super::Ingested;
 use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
@@ -16,7 +20,7 @@ use crate::api::{
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
-use crate::store::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
+use crate::store::{NewProposal, NewRefusal, ProposalStatus, ProposalTerms, StoredProposal};
 use std::time::Instant;
 
 /// A stored proposal with what it chose.
@@ -189,7 +193,9 @@ impl Service {
             n_trajectories,
             request.start.iter().chain(&request.goal).copied(),
         );
-        let (content, beta) = match request.candidates.clone() {
+        let betas: Vec<f64> = ladder.iter().map(|p| p.beta()).collect();
+        let n_candidates = request.candidates.as_ref().map(|c| c.len() as i64);
+        let answer = match request.candidates.clone() {
             Some(candidates) => {
                 let checked = check_candidates(&live, problem.start(), candidates)?;
                 let mut answer = Err(Error::NoPlan {
@@ -212,20 +218,57 @@ impl Service {
                         break;
                     }
                 }
-                answer?
+                answer
             }
             None => {
                 needs_candidates(&live)?;
                 let live = live.clone();
-                let proposal = self
-                    .search(id, arrived, super::SearchKind::Proposal, move |budget| {
-                        live.planner(&model)
-                            .within(budget.clone())
-                            .propose_relaxing(strategy, &problem, &ladder, seed)
-                    })
-                    .await?;
-                (content(&proposal, schedule_beta)?, proposal.beta)
+                self.search(id, arrived, super::SearchKind::Proposal, move |budget| {
+                    live.planner(&model)
+                        .within(budget.clone())
+                        .propose_relaxing(strategy, &problem, &ladder, seed)
+                })
+                .await
+                .and_then(|proposal| Ok((content(&proposal, schedule_beta)?, proposal.beta)))
             }
+        };
+        let (content, beta) = match answer {
+            Err(Error::NoPlan {
+                extensions,
+                candidates,
+            }) => {
+                let refusal = NewRefusal {
+                    client_id: request.client_id.clone(),
+                    iteration,
+                    strategy,
+                    model_version,
+                    start: request.start.clone(),
+                    goal: request.goal.clone(),
+                    betas,
+                    extensions: extensions as i64,
+                    candidates: n_candidates,
+                };
+                // The answer is the refusal either way; a store that cannot record it is
+                // logged, not turned into another answer.
+                match self.store.insert_refusal(id, &refusal).await {
+                    Ok(refusal_id) => tracing::info!(
+                        experiment = id,
+                        refusal = refusal_id,
+                        extensions,
+                        "proposal refused: no plan"
+                    ),
+                    Err(e) => tracing::error!(
+                        experiment = id,
+                        error = %e,
+                        "could not record a refused proposal"
+                    ),
+                }
+                return Err(Error::NoPlan {
+                    extensions,
+                    candidates,
+                });
+            }
+            answer => answer?,
         };
         let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;
         let (stored, created) = self
@@ -303,6 +346,7 @@ impl Service {
                     proposal_id: Some(proposal_id),
                     partial: true,
                     transitions,
+                    source: None,
                 },
                 idempotency_key,
             )

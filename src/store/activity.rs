@@ -1,7 +1,8 @@
 //! Read-only views of an experiment's history for the dashboard: proposals and trajectories as
 //! one list of runs, per-iteration statistics and the list of model versions.
 
-use super::Store;
+use super::trajectories::provenance_from_row;
+use super::{Provenance, Store, decode_vec};
 use sqlx::Row;
 use sqlx::sqlite::SqliteRow;
 
@@ -23,6 +24,9 @@ pub enum RunStatus {
     Partial,
     /// A trajectory posted without a proposal (teleoperation, logs, another planner).
     Unsolicited,
+    /// A proposal request answered `no_plan`: no trajectory reached the goal inside the
+    /// precondition at any β tried.
+    Refused,
 }
 
 /// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
@@ -32,14 +36,23 @@ pub struct Run {
     pub proposal_id: Option<i64>,
     /// The executed trajectory, if one was posted.
     pub trajectory_id: Option<i64>,
+    /// The refusal, for a refused proposal request.
+    pub refusal_id: Option<i64>,
     /// Where it stands.
     pub status: RunStatus,
     /// The client the proposal was leased to.
     pub client_id: Option<String>,
-    /// The learning iteration the proposal was made in (`null` without a proposal).
+    /// The learning iteration the proposal was made (or refused) in (`None` without a
+    /// proposal).
     pub iteration: Option<i64>,
-    /// β the proposal was planned with (`null` without a proposal).
+    /// β the proposal was planned with; for a refusal the first β tried (`None` without a
+    /// proposal).
     pub beta: Option<f64>,
+    /// Every β a refused request tried, in order (`None` unless refused).
+    pub betas_tried: Option<Vec<f64>>,
+    /// RRT extensions the proposal's (or the refusal's) search spent (`None` without a
+    /// proposal).
+    pub extensions: Option<i64>,
     /// The MDE version that scored the proposal (`null` without a proposal).
     pub model_version: Option<i64>,
     /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
@@ -49,7 +62,11 @@ pub struct Run {
     pub length: i64,
     /// Whether the posted trajectory stopped early.
     pub partial: bool,
-    /// The largest deviation label of the executed trajectory (`null` before one was posted).
+    /// Whether the posted trajectory departs from its proposal.
+    pub deviating: bool,
+    /// Where the posted trajectory comes from, when its client said.
+    pub source: Option<Provenance>,
+    /// The largest deviation label of the executed trajectory (`None` before one was posted).
     pub max_deviation: Option<f64>,
 }
 
@@ -63,12 +80,15 @@ pub struct IterationStats {
     pub n_trajectories: i64,
     /// Their transitions.
     pub n_transitions: i64,
-    /// Mean deviation label of those transitions.
-    pub mean_deviation: f64,
-    /// Largest deviation label.
-    pub max_deviation: f64,
-    /// Share of the transitions with a deviation below `d_max` (the model was right there).
-    pub share_within_d_max: f64,
+    /// Mean deviation label of those transitions (`None` without any).
+    pub mean_deviation: Option<f64>,
+    /// Largest deviation label (`None` without any).
+    pub max_deviation: Option<f64>,
+    /// Share of the transitions with a deviation below `d_max` (the model was right there;
+    /// `None` without any).
+    pub share_within_d_max: Option<f64>,
+    /// Proposal requests refused (`no_plan`) in it.
+    pub n_refused: i64,
 }
 
 /// A stored model version's summary (no training data, no noise model).
@@ -92,23 +112,33 @@ pub struct ModelSummary {
     pub label_cap: f64,
 }
 
-/// Proposals (with the trajectory that executed each) and trajectories without a proposal, as
-/// one relation; `?1` is the experiment, `?2` the current Unix time (an open proposal whose
-/// lease has passed shows as expired without being written).
+/// Proposals (with the trajectory that executed each), trajectories without a proposal and
+/// refused proposal requests, as one relation; `?1` is the experiment, `?2` the current Unix
+/// time (an open proposal whose lease has passed shows as expired without being written).
 const RUNS: &str = "
-    SELECT p.id AS proposal_id, t.id AS trajectory_id,
+    SELECT p.id AS proposal_id, t.id AS trajectory_id, NULL AS refusal_id,
            CASE WHEN p.status = 'open' AND p.expires_unix <= ?2 THEN 'expired'
                 ELSE p.status END AS proposal_status,
            p.client_id, p.iteration, p.beta, p.model_version, p.created_at,
            COALESCE(t.n_transitions, json_array_length(p.body, '$.trajectory.actions'), 0)
                AS length,
-           COALESCE(t.partial, 0) AS partial
+           COALESCE(t.partial, 0) AS partial, COALESCE(t.deviating, 0) AS deviating,
+           t.source_dataset, t.source_episode, t.source_first_step, t.source_label,
+           json_extract(p.body, '$.extensions') AS extensions, NULL AS betas
     FROM proposals p LEFT JOIN trajectories t ON t.proposal_id = p.id
     WHERE p.experiment_id = ?1
     UNION ALL
-    SELECT NULL, t.id, NULL, NULL, NULL, NULL, NULL, t.created_at, t.n_transitions, t.partial
+    SELECT NULL, t.id, NULL, NULL, NULL, NULL, NULL, NULL, t.created_at, t.n_transitions,
+           t.partial, t.deviating, t.source_dataset, t.source_episode, t.source_first_step,
+           t.source_label, NULL, NULL
     FROM trajectories t
-    WHERE t.experiment_id = ?1 AND t.proposal_id IS NULL";
+    WHERE t.experiment_id = ?1 AND t.proposal_id IS NULL
+    UNION ALL
+    SELECT NULL, NULL, r.id, 'refused', r.client_id, r.iteration,
+           json_extract(r.betas, '$[0]'), r.model_version, r.created_at, 0, 0, 0,
+           NULL, NULL, NULL, NULL, r.extensions, r.betas
+    FROM refusals r
+    WHERE r.experiment_id = ?1";
 
 fn unix_now() -> f64 {
     time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
@@ -125,23 +155,30 @@ fn run_from_row(row: &SqliteRow) -> Result<Run, sqlx::Error> {
         (Some("open"), _) => RunStatus::Open,
         (Some("abandoned"), _) => RunStatus::Abandoned,
         (Some("expired"), _) => RunStatus::Expired,
+        (Some("refused"), _) => RunStatus::Refused,
         (Some(other), _) => {
             return Err(sqlx::Error::Decode(
                 format!("unknown proposal status {other:?}").into(),
             ));
         }
     };
+    let betas: Option<String> = row.try_get("betas")?;
     Ok(Run {
         proposal_id,
         trajectory_id: row.try_get("trajectory_id")?,
+        refusal_id: row.try_get("refusal_id")?,
         status,
         client_id: row.try_get("client_id")?,
         iteration: row.try_get("iteration")?,
         beta: row.try_get("beta")?,
+        betas_tried: betas.as_deref().map(decode_vec).transpose()?,
+        extensions: row.try_get("extensions")?,
         model_version: row.try_get("model_version")?,
         created_at: row.try_get("created_at")?,
         length: row.try_get("length")?,
         partial,
+        deviating: row.try_get("deviating")?,
+        source: provenance_from_row(row)?,
         max_deviation: row.try_get("max_deviation")?,
     })
 }
@@ -161,7 +198,7 @@ impl Store {
                           WHERE x.trajectory_id = r.trajectory_id) AS max_deviation
              FROM ({RUNS}) r
              ORDER BY julianday(r.created_at) DESC, r.created_at DESC, r.proposal_id DESC,
-                      r.trajectory_id DESC
+                      r.trajectory_id DESC, r.refusal_id DESC
              LIMIT ?3 OFFSET ?4"
         ))
         .bind(experiment_id)
@@ -181,15 +218,17 @@ impl Store {
         sqlx::query_scalar(
             "SELECT (SELECT COUNT(*) FROM proposals WHERE experiment_id = ?1)
                   + (SELECT COUNT(*) FROM trajectories
-                     WHERE experiment_id = ?1 AND proposal_id IS NULL)",
+                     WHERE experiment_id = ?1 AND proposal_id IS NULL)
+                  + (SELECT COUNT(*) FROM refusals WHERE experiment_id = ?1)",
         )
         .bind(experiment_id)
         .fetch_one(&self.read)
         .await
     }
 
-    /// Per-iteration statistics of the first `limit` iterations: trajectory `k` (0-based, in
-    /// ingest order) belongs to iteration `k / batch_size`.
+    /// Per-iteration statistics of the first `limit` iterations with executed trajectories or
+    /// refused proposal requests: trajectory `k` (0-based, in ingest order) belongs to
+    /// iteration `k / batch_size`, a refusal to the iteration it was asked in.
     #[tracing::instrument(skip(self))]
     pub async fn iteration_stats(
         &self,
@@ -202,13 +241,29 @@ impl Store {
             "WITH t AS (
                  SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / ?2 AS iteration
                  FROM trajectories WHERE experiment_id = ?1
+             ),
+             executed AS (
+                 SELECT t.iteration, COUNT(DISTINCT t.id) AS n_trajectories,
+                        COUNT(*) AS n_transitions, AVG(x.deviation) AS mean_deviation,
+                        MAX(x.deviation) AS max_deviation,
+                        AVG(CASE WHEN x.deviation < ?3 THEN 1.0 ELSE 0.0 END) AS share_within
+                 FROM t JOIN transitions x ON x.trajectory_id = t.id
+                 GROUP BY t.iteration
+             ),
+             refused AS (
+                 SELECT iteration, COUNT(*) AS n_refused FROM refusals
+                 WHERE experiment_id = ?1 GROUP BY iteration
+             ),
+             iterations AS (
+                 SELECT iteration FROM executed UNION SELECT iteration FROM refused
              )
-             SELECT t.iteration, COUNT(DISTINCT t.id) AS n_trajectories,
-                    COUNT(*) AS n_transitions, AVG(x.deviation) AS mean_deviation,
-                    MAX(x.deviation) AS max_deviation,
-                    AVG(CASE WHEN x.deviation < ?3 THEN 1.0 ELSE 0.0 END) AS share_within
-             FROM t JOIN transitions x ON x.trajectory_id = t.id
-             GROUP BY t.iteration ORDER BY t.iteration LIMIT ?4",
+             SELECT i.iteration, COALESCE(e.n_trajectories, 0) AS n_trajectories,
+                    COALESCE(e.n_transitions, 0) AS n_transitions, e.mean_deviation,
+                    e.max_deviation, e.share_within, COALESCE(r.n_refused, 0) AS n_refused
+             FROM iterations i
+             LEFT JOIN executed e ON e.iteration = i.iteration
+             LEFT JOIN refused r ON r.iteration = i.iteration
+             ORDER BY i.iteration LIMIT ?4",
         )
         .bind(experiment_id)
         .bind(batch_size.max(1))
@@ -225,6 +280,7 @@ impl Store {
                 mean_deviation: row.try_get("mean_deviation")?,
                 max_deviation: row.try_get("max_deviation")?,
                 share_within_d_max: row.try_get("share_within")?,
+                n_refused: row.try_get("n_refused")?,
             })
         })
         .collect()

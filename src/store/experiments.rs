@@ -20,7 +20,10 @@ pub struct Experiment {
     pub n_transitions: i64,
     /// The latest fitted model version (0: none, the prior answers).
     pub model_version: i64,
-    /// The latest of its creation, its last trajectory and its last proposal (RFC 3339).
+    /// Proposal requests refused (`no_plan`).
+    pub n_refused: i64,
+    /// The latest of its creation, its last trajectory, its last proposal and its last refused
+    /// proposal request (RFC 3339).
     pub last_activity: String,
 }
 
@@ -53,7 +56,10 @@ const SELECT: &str = "SELECT e.id, e.settings, e.created_at,
         (SELECT created_at FROM trajectories t WHERE t.experiment_id = e.id
             ORDER BY t.id DESC LIMIT 1) AS last_trajectory_at,
         (SELECT created_at FROM proposals p WHERE p.experiment_id = e.id
-            ORDER BY p.id DESC LIMIT 1) AS last_proposal_at
+            ORDER BY p.id DESC LIMIT 1) AS last_proposal_at,
+        (SELECT COUNT(*) FROM refusals r WHERE r.experiment_id = e.id) AS n_refused,
+        (SELECT created_at FROM refusals r WHERE r.experiment_id = e.id
+            ORDER BY r.id DESC LIMIT 1) AS last_refusal_at
      FROM experiments e";
 
 /// The latest of RFC 3339 times (compared as instants, not as strings: fractional seconds may
@@ -76,8 +82,10 @@ fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
     let mut times = vec![created_at.as_str()];
     let trajectory: Option<String> = row.try_get("last_trajectory_at")?;
     let proposal: Option<String> = row.try_get("last_proposal_at")?;
+    let refusal: Option<String> = row.try_get("last_refusal_at")?;
     times.extend(trajectory.as_deref());
     times.extend(proposal.as_deref());
+    times.extend(refusal.as_deref());
     let last_activity = latest(&times);
     Ok(Experiment {
         id: row.try_get("id")?,
@@ -87,6 +95,7 @@ fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
         n_trajectories: row.try_get("n_trajectories")?,
         n_transitions: row.try_get("n_transitions")?,
         model_version: row.try_get("model_version")?,
+        n_refused: row.try_get("n_refused")?,
     })
 }
 
@@ -113,6 +122,7 @@ impl Store {
             n_trajectories: 0,
             n_transitions: 0,
             model_version: 0,
+            n_refused: 0,
             last_activity: created_at.clone(),
             created_at,
         })

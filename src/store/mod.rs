@@ -10,14 +10,17 @@ mod activity;
 mod experiments;
 mod models;
 mod proposals;
+mod refusals;
 mod trajectories;
 
 pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use experiments::{Experiment, ListOrder};
 pub use models::{FitRefusal, StoredModel};
-pub use proposals::{NewProposal, ProposalStatus, ProposalTerms, StoredProposal};
+pub use proposals::{NewProposal, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal};
+pub use refusals::NewRefusal;
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, IngestRecord, StoredTrajectory, StoredTransition,
+    IdempotencyKey, IngestOutcome, IngestRecord, Provenance, StoredTrajectory, StoredTransition,
+    TrajectoryMeta,
 };
 
 use anyhow::Context;

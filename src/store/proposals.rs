@@ -98,6 +98,18 @@ pub struct StoredProposal {
     pub expires_at: String,
     /// Trajectory and candidates (JSON, as stored).
     pub body: String,
+    /// Whether the trajectory that executed it departs from it (false until executed).
+    pub deviating: bool,
+}
+
+/// What a proposal asked the robot to do: the start and the actions, to compare an execution
+/// with.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProposalPlan {
+    /// Start state.
+    pub start: Vec<f64>,
+    /// The planned actions, in order.
+    pub actions: Vec<Vec<f64>>,
 }
 
 /// What linking a trajectory to a proposal found.
@@ -113,7 +125,9 @@ pub enum LinkOutcome {
 
 const COLUMNS: &str =
     "id, client_id, status, iteration, beta, strategy, model_version, start, goal,
-                       body, created_at, expires_at";
+                       body, created_at, expires_at,
+                       COALESCE((SELECT t.deviating FROM trajectories t
+                                 WHERE t.proposal_id = proposals.id), 0) AS deviating";
 
 fn unix_now() -> f64 {
     time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
@@ -135,6 +149,7 @@ fn from_row(row: &SqliteRow) -> Result<StoredProposal, sqlx::Error> {
         body: row.try_get("body")?,
         created_at: row.try_get("created_at")?,
         expires_at: row.try_get("expires_at")?,
+        deviating: row.try_get("deviating")?,
     })
 }
 
@@ -189,6 +204,32 @@ async fn open_for_client(
 }
 
 impl Store {
+    /// The start and planned actions of a proposal of this experiment, or `None`.
+    #[tracing::instrument(skip(self))]
+    pub async fn proposal_plan(
+        &self,
+        experiment_id: i64,
+        proposal_id: i64,
+    ) -> Result<Option<ProposalPlan>, sqlx::Error> {
+        let Some(row) = sqlx::query(
+            "SELECT start, json_extract(body, '$.trajectory.actions') AS actions FROM proposals
+             WHERE experiment_id = ? AND id = ?",
+        )
+        .bind(experiment_id)
+        .bind(proposal_id)
+        .fetch_optional(&self.read)
+        .await?
+        else {
+            return Ok(None);
+        };
+        let actions: String = row.try_get("actions")?;
+        Ok(Some(ProposalPlan {
+            start: decode_vec(row.try_get("start")?)?,
+            actions: serde_json::from_str(&actions)
+                .map_err(|e| sqlx::Error::Decode(Box::new(e)))?,
+        }))
+    }
+
     /// The open, unexpired proposal leased to `client_id`, if any.
     #[tracing::instrument(skip(self))]
     pub async fn open_proposal(

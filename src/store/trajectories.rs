@@ -27,6 +27,34 @@ pub struct StoredTransition {
     pub deviation: f64,
 }
 
+/// Where a trajectory comes from, when its client said: a logged dataset, a file, a simulated
+/// environment.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Provenance {
+    /// The dataset, file or environment.
+    pub dataset: String,
+    /// The episode of the dataset.
+    pub episode: Option<i64>,
+    /// The step of the episode its first transition was (an episode split into several
+    /// trajectories).
+    pub first_step: Option<i64>,
+    /// A free-form label.
+    pub label: Option<String>,
+}
+
+/// What a trajectory is besides its transitions, as stored with them.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrajectoryMeta<'a> {
+    /// The proposal it executed, if any.
+    pub proposal_id: Option<i64>,
+    /// Whether the robot stopped before the end.
+    pub partial: bool,
+    /// Whether it departs from its proposal (see `service::ingest::deviates`).
+    pub deviating: bool,
+    /// Where it comes from.
+    pub source: Option<&'a Provenance>,
+}
+
 /// A stored trajectory with its transitions.
 #[derive(Debug, Clone, PartialEq)]
 pub struct StoredTrajectory {
@@ -38,6 +66,10 @@ pub struct StoredTrajectory {
     pub proposal_id: Option<i64>,
     /// Whether the robot stopped before the end.
     pub partial: bool,
+    /// Whether it departs from its proposal.
+    pub deviating: bool,
+    /// Where it comes from, when its client said.
+    pub source: Option<Provenance>,
     /// Ingest time (RFC 3339).
     pub created_at: String,
     /// Its transitions in order.
@@ -54,6 +86,10 @@ pub struct IngestRecord {
     pub proposal_id: Option<i64>,
     /// Whether the robot stopped before the end.
     pub partial: bool,
+    /// Whether it departs from its proposal.
+    pub deviating: bool,
+    /// Where it comes from, when its client said.
+    pub source: Option<Provenance>,
     /// Each transition's deviation label, in order.
     pub deviations: Vec<f64>,
     /// The model version answering when it was stored.
@@ -102,6 +138,21 @@ fn transition_from_row(row: &SqliteRow) -> Result<StoredTransition, sqlx::Error>
     })
 }
 
+/// The provenance of a row with the `source_*` columns (`None` without a dataset).
+pub(super) fn provenance_from_row(row: &SqliteRow) -> Result<Option<Provenance>, sqlx::Error> {
+    let dataset: Option<String> = row.try_get("source_dataset")?;
+    dataset
+        .map(|dataset| {
+            Ok(Provenance {
+                dataset,
+                episode: row.try_get("source_episode")?,
+                first_step: row.try_get("source_first_step")?,
+                label: row.try_get("source_label")?,
+            })
+        })
+        .transpose()
+}
+
 const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
 
 impl Store {
@@ -111,12 +162,11 @@ impl Store {
     /// With an idempotency key, a retry of the same request learns what the first one did and
     /// stores nothing, and a different request under the same key is refused; the record is
     /// written in the same transaction as the trajectory.
-    #[tracing::instrument(skip(self, transitions, idempotency), fields(n = transitions.len()))]
+    #[tracing::instrument(skip(self, meta, transitions, idempotency), fields(n = transitions.len()))]
     pub async fn ingest_trajectory(
         &self,
         experiment_id: i64,
-        proposal_id: Option<i64>,
-        partial: bool,
+        meta: TrajectoryMeta<'_>,
         transitions: &[LabelledTransition],
         idempotency: Option<IdempotencyKey<'_>>,
         model_version: i64,
@@ -125,7 +175,8 @@ impl Store {
         if let Some(k) = idempotency {
             let seen = sqlx::query(
                 "SELECT k.request, k.trajectory_id, k.model_version, k.n_trajectories,
-                        k.created_at, t.proposal_id, t.partial
+                        k.created_at, t.proposal_id, t.partial, t.deviating, t.source_dataset,
+                        t.source_episode, t.source_first_step, t.source_label
                  FROM idempotency_keys k JOIN trajectories t ON t.id = k.trajectory_id
                  WHERE k.experiment_id = ? AND k.key = ?",
             )
@@ -149,6 +200,8 @@ impl Store {
                     trajectory_id,
                     proposal_id: row.try_get("proposal_id")?,
                     partial: row.try_get("partial")?,
+                    deviating: row.try_get("deviating")?,
+                    source: provenance_from_row(&row)?,
                     deviations,
                     model_version: row.try_get("model_version")?,
                     n_trajectories: row.try_get("n_trajectories")?,
@@ -156,7 +209,7 @@ impl Store {
                 }));
             }
         }
-        if let Some(pid) = proposal_id {
+        if let Some(pid) = meta.proposal_id {
             match link_trajectory(&mut tx, experiment_id, pid).await? {
                 LinkOutcome::Linked => {}
                 LinkOutcome::NotFound => return Ok(IngestOutcome::ProposalNotFound),
@@ -165,14 +218,21 @@ impl Store {
         }
         let created_at = now();
         let trajectory_id: i64 = sqlx::query_scalar(
-            "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at)
-             VALUES (?, ?, ?, ?, ?) RETURNING id",
+            "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at,
+                                       deviating, source_dataset, source_episode,
+                                       source_first_step, source_label)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
         )
         .bind(experiment_id)
-        .bind(proposal_id)
-        .bind(partial)
+        .bind(meta.proposal_id)
+        .bind(meta.partial)
         .bind(transitions.len() as i64)
         .bind(&created_at)
+        .bind(meta.deviating)
+        .bind(meta.source.map(|p| p.dataset.as_str()))
+        .bind(meta.source.and_then(|p| p.episode))
+        .bind(meta.source.and_then(|p| p.first_step))
+        .bind(meta.source.and_then(|p| p.label.as_deref()))
         .fetch_one(&mut *tx)
         .await?;
         for (step, t) in transitions.iter().enumerate() {
@@ -218,8 +278,10 @@ impl Store {
         tx.commit().await?;
         Ok(IngestOutcome::Created(IngestRecord {
             trajectory_id,
-            proposal_id,
-            partial,
+            proposal_id: meta.proposal_id,
+            partial: meta.partial,
+            deviating: meta.deviating,
+            source: meta.source.cloned(),
             deviations: transitions.iter().map(|t| t.deviation).collect(),
             model_version,
             n_trajectories,
@@ -235,8 +297,9 @@ impl Store {
         trajectory_id: i64,
     ) -> Result<Option<StoredTrajectory>, sqlx::Error> {
         let Some(row) = sqlx::query(
-            "SELECT id, experiment_id, proposal_id, partial, created_at FROM trajectories
-             WHERE experiment_id = ? AND id = ?",
+            "SELECT id, experiment_id, proposal_id, partial, deviating, source_dataset,
+                    source_episode, source_first_step, source_label, created_at
+             FROM trajectories WHERE experiment_id = ? AND id = ?",
         )
         .bind(experiment_id)
         .bind(trajectory_id)
@@ -259,6 +322,8 @@ impl Store {
             experiment_id: row.try_get("experiment_id")?,
             proposal_id: row.try_get("proposal_id")?,
             partial: row.try_get("partial")?,
+            deviating: row.try_get("deviating")?,
+            source: provenance_from_row(&row)?,
             created_at: row.try_get("created_at")?,
             transitions,
         }))

@@ -121,6 +121,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     let request = TrajectoryRequest {
         proposal_id: None,
         partial: false,
+        source: None,
         transitions: transitions
             .iter()
             .map(|(s, a, s_next, _, _)| Transition::new(s.to_vec(), a.to_vec(), s_next.to_vec()))
@@ -185,8 +186,138 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(replay.status(), 201);
     assert_eq!(replay.headers()["idempotent-replayed"], "true");
     let body: Value = replay.json().await.unwrap();
-    assert_eq!(body, first_answer);
+    // The first answer, with what answers say since migration 0009: an unsolicited
+    // trajectory never deviates, and this one said nothing of its source.
+    let mut expected = first_answer.clone();
+    expected["deviating"] = json!(false);
+    expected["source"] = Value::Null;
+    assert_eq!(body, expected);
     let (_, experiment) = app.get("/v1/experiments/1").await;
     assert_eq!(experiment["n_trajectories"], 1);
+    app.stop().await;
+}
+
+/// Trajectories stored before migration 0009 are checked once against their proposals by the
+/// rule ingest applies since: other actions, a longer execution or another start deviate; a
+/// prefix and a trajectory without a proposal do not.
+#[tokio::test]
+async fn migration_0009_flags_the_stored_executions_that_departed_from_their_proposals() {
+    let (_dir, db) = temp_db();
+    let mut conn = SqliteConnection::connect_with(
+        &SqliteConnectOptions::from_str(db.to_str().unwrap())
+            .unwrap()
+            .create_if_missing(true),
+    )
+    .await
+    .unwrap();
+    let mut old = sqlx::migrate!("./migrations");
+    old.migrations = Cow::Owned(
+        old.migrations
+            .iter()
+            .filter(|m| m.version <= 7)
+            .cloned()
+            .collect(),
+    );
+    old.run(&mut conn).await.unwrap();
+    let (settings, _) = ExperimentRequest::default()
+        .resolve(&ModelUrlPolicy::default())
+        .unwrap();
+    let created = "2026-01-01T00:00:00Z";
+    sqlx::query("INSERT INTO experiments (id, name, settings, created_at) VALUES (1, '', ?, ?)")
+        .bind(serde_json::to_string(&settings).unwrap())
+        .bind(created)
+        .execute(&mut conn)
+        .await
+        .unwrap();
+    let planned = [[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]];
+    let body = json!({
+        "trajectory": {"states": [[0, 0], [1, 0], [2, 0], [3, 0]], "actions": planned,
+                       "mu": [0, 0, 0], "sigma": [1, 1, 1], "alpha_step": [-1, -1, -1],
+                       "alpha": -1.0},
+        "candidates": [{"alpha": -1.0, "length": 3}], "chosen_index": 0, "extensions": 12
+    });
+    // (start, actions) executed for proposals 1–4, then one trajectory without a proposal.
+    let executions: [([f64; 2], Vec<[f64; 2]>, bool); 5] = [
+        ([0.0, 0.0], planned[..2].to_vec(), false),
+        ([0.0, 0.0], vec![[1.0, 0.0], [0.0, 1.0]], true),
+        ([0.0, 1.0], planned.to_vec(), true),
+        ([0.0, 0.0], [&planned[..], &[[0.0, 1.0]]].concat(), true),
+        ([0.0, 0.0], vec![[0.0, 1.0]], false),
+    ];
+    for (k, (start, actions, _)) in executions.iter().enumerate() {
+        let id = k as i64 + 1;
+        let proposal = (k < 4).then_some(id);
+        if proposal.is_some() {
+            sqlx::query(
+                "INSERT INTO proposals (id, experiment_id, client_id, status, iteration, beta,
+                                        strategy, model_version, start, goal, body, created_at,
+                                        expires_at, expires_unix)
+                 VALUES (?, 1, NULL, 'executed', 0, -1.97, 'active', 0, '[0.0,0.0]', '[3.0,0.0]',
+                         ?, ?, ?, 0)",
+            )
+            .bind(id)
+            .bind(body.to_string())
+            .bind(created)
+            .bind(created)
+            .execute(&mut conn)
+            .await
+            .unwrap();
+        }
+        sqlx::query(
+            "INSERT INTO trajectories (id, experiment_id, proposal_id, partial, n_transitions,
+                                       created_at)
+             VALUES (?, 1, ?, 0, ?, ?)",
+        )
+        .bind(id)
+        .bind(proposal)
+        .bind(actions.len() as i64)
+        .bind(created)
+        .execute(&mut conn)
+        .await
+        .unwrap();
+        let mut s = *start;
+        for (step, a) in actions.iter().enumerate() {
+            let next = [s[0] + a[0], s[1] + a[1]];
+            sqlx::query(
+                "INSERT INTO transitions
+                   (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
+                 VALUES (1, ?, ?, ?, ?, ?, ?, 0.0)",
+            )
+            .bind(id)
+            .bind(step as i64)
+            .bind(json!(s).to_string())
+            .bind(json!(a).to_string())
+            .bind(json!(next).to_string())
+            .bind(json!(next).to_string())
+            .execute(&mut conn)
+            .await
+            .unwrap();
+            s = next;
+        }
+    }
+    conn.close().await.unwrap();
+
+    let app = spawn_app(&db).await;
+    for (k, (_, _, deviating)) in executions.iter().enumerate() {
+        let id = k + 1;
+        let (status, t) = app
+            .get(&format!("/v1/experiments/1/trajectories/{id}"))
+            .await;
+        assert_eq!(status, 200, "{t}");
+        assert_eq!(t["deviating"], *deviating, "trajectory {id}");
+        assert!(t["source"].is_null());
+        if k < 4 {
+            let (_, p) = app.get(&format!("/v1/experiments/1/proposals/{id}")).await;
+            assert_eq!(p["deviating"], *deviating, "proposal {id}: {p}");
+        }
+    }
+    let (_, page) = app.get("/v1/experiments/1/runs").await;
+    let flagged = page["items"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["deviating"] == true)
+        .count();
+    assert_eq!(flagged, 3, "{page}");
     app.stop().await;
 }

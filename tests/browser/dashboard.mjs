@@ -112,9 +112,48 @@ test('an experiment shows its settings, timeline and runs', async () => {
   assert.ok((await page.locator('#timeline figure').count()) >= 6, 'model and iteration charts');
   await assertChartLines('the learning timeline');
   const statuses = await page.locator('#runs .badge').allInnerTexts();
-  for (const s of ['open', 'abandoned', 'executed', 'unsolicited'])
+  for (const s of ['open', 'abandoned', 'executed', 'unsolicited', 'refused', 'deviating'])
     assert.ok(statuses.includes(s), `${s} in ${statuses}`);
   await page.screenshot({ path: `${out}/experiment.png`, fullPage: true });
+});
+
+test('the runs table shows refused and deviating runs, and a logged run its source', async () => {
+  const runs = await call(base, 'GET', `/v1/experiments/${grid}/runs?limit=100`);
+  const refused = runs.items.filter(r => r.status === 'refused');
+  assert.ok(refused.length >= 1, 'the seed was refused at least once');
+  const rows = page.locator('#runs tbody tr');
+  const refusedRow = rows.filter({ has: page.locator('.badge.refused') }).first();
+  const text = await refusedRow.innerText();
+  assert.match(text, /own-planner/, 'the newest refusal is the client whose candidate fell short');
+  assert.match(text, /no plan at β -?\d[\d.]*( → -?\d[\d.]*)* \(0 extensions\)/, text);
+  const kpis = await page.locator('.kpi').innerText();
+  const e2 = await call(base, 'GET', `/v1/experiments/${grid}`);
+  assert.equal(e2.n_refused, refused.length);
+  assert.match(kpis, new RegExp(`${e2.n_refused}\\s+refused requests`));
+  assert.ok((await page.locator('#timeline figure h3', { hasText: 'Refused proposal requests' }).count()) === 1);
+
+  const deviating = runs.items.filter(r => r.deviating);
+  assert.equal(deviating.length, 1, 'one deviating run: the drifter');
+  const devRow = rows.filter({ has: page.locator('.badge.deviating') });
+  assert.equal(await devRow.count(), 1);
+  assert.match(await devRow.innerText(), /executed\s+deviating[\s\S]*drifter/);
+  assert.match(
+    await rows.filter({ hasText: 'logs/icy-rows.csv' }).innerText(),
+    /unsolicited[\s\S]*logs\/icy-rows\.csv · episode 2 · teleop/,
+  );
+
+  await devRow.locator(`a[href$="/trajectories/${deviating[0].trajectory_id}"]`).click();
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.match(await page.locator('h1').innerText(), /deviating/);
+  assert.match(await page.locator('#deviating').innerText(), /did not execute the proposal as planned/);
+  assert.equal(await page.locator('#steps tbody tr').first().locator('td .bad[title^="planned"]').count(), 1);
+  await page.screenshot({ path: `${out}/deviating.png`, fullPage: true });
+
+  const logged = runs.items.find(r => r.source);
+  await open(`/ui/experiments/${grid}/trajectories/${logged.trajectory_id}`);
+  assert.equal(await page.locator('#source').innerText(), 'Source: logs/icy-rows.csv · episode 2 · teleop');
+  assert.equal(await page.locator('#deviating').count(), 0);
+  await open(`/ui/experiments/${grid}`);
 });
 
 test('a trajectory shows its steps with μ ± σ at the time and now', async () => {

@@ -1,6 +1,7 @@
 // Fills a precond server with a small, seeded data set through its public API: the learning
 // loop run for real on the icy gridworld (proposals executed in the true world), plus an
-// abandoned, an open and an unsolicited partial run, and a kinematic experiment.
+// abandoned, an open, an unsolicited partial, a deviating and a refused run and a logged
+// trajectory with its source, and a kinematic experiment.
 
 /** A seeded PRNG (mulberry32). */
 export function rng(seed) {
@@ -84,7 +85,47 @@ export async function seedGridworld(base, { name = 'icy gridworld', n = 12, seed
       ]) {
         logged.push({ s: [x, y], a, s_next: trueStep(map, [x, y], a) });
       }
-  await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, { transitions: logged });
+  await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, {
+    transitions: logged,
+    source: { dataset: 'logs/icy-rows.csv', episode: 2, label: 'teleop' },
+  });
+  // A robot that slipped: its first move is not the one proposed (a deviating execution).
+  const drift = await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, {
+    start: [0, 0],
+    goal: [3, 0],
+    client_id: 'drifter',
+  });
+  let at = [0, 0];
+  const slipped = drift.trajectory.actions.map((a, i) => {
+    const act = i === 0 ? (a[1] === 1 ? [1, 0] : [0, 1]) : a;
+    const next = trueStep(map, at, act);
+    const t = { s: at, a: act, s_next: next };
+    at = next;
+    return t;
+  });
+  await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, { proposal_id: drift.id, transitions: slipped });
+  // A request refused: the client's only candidate stops short of its goal.
+  await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, {
+    start: [0, 0],
+    goal: [5, 5],
+    client_id: 'own-planner',
+    candidates: [
+      {
+        states: [
+          [0, 0],
+          [1, 0],
+        ],
+        actions: [[1, 0]],
+      },
+    ],
+  }).then(
+    () => {
+      throw new Error('the short candidate was not refused');
+    },
+    err => {
+      if (!String(err).includes('no_plan')) throw err;
+    },
+  );
   await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, {
     partial: true,
     transitions: [{ s: [0, 0], a: [1, 0], s_next: [1, 0] }],

@@ -55,6 +55,7 @@ def experiment_json(eid: int = 1, name: str = "e", n: int = 2, m: int = 2) -> di
         "n_transitions": 0,
         "iteration": 0,
         "model_version": 0,
+        "n_refused": 0,
         "last_activity": "t",
     }
 
@@ -65,6 +66,8 @@ def created_json(tid: int = 1, pid: int | None = None) -> dict[str, Any]:
         "experiment_id": 1,
         "proposal_id": pid,
         "partial": False,
+        "deviating": False,
+        "source": None,
         "n_transitions": 1,
         "deviations": [0.5],
         "iteration": 0,
@@ -78,6 +81,7 @@ def proposal_json(pid: int, start: list[float], goal: list[float]) -> dict[str, 
     return {
         "id": pid,
         "status": "open",
+        "deviating": False,
         "client_id": "r1",
         "iteration": 0,
         "beta": -1.97,

@@ -139,6 +139,8 @@ const ENTRIES: &[Entry] = &[
     // trajectories
     entry::<Transition>("TransitionRequest", Request),
     entry::<api::TrajectoryRequest>("TrajectoryRequest", Request),
+    entry::<api::TrajectorySource>("TrajectorySource", Request),
+    entry::<api::TrajectorySource>("ResolvedTrajectorySource", Response),
     entry::<api::TrajectoryCreated>("TrajectoryCreated", Response),
     entry::<api::TransitionView>("Transition", Response),
     entry::<api::TrajectoryResponse>("Trajectory", Response),

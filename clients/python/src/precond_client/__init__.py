@@ -4,6 +4,9 @@
   precondition queries and plans, with numpy arrays in and out.
 - :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
+- :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
+  logged data (CSV, Parquet, LeRobot v3, Minari) into an experiment, idempotently
+  (:mod:`precond_client.imports`).
 - :mod:`precond_client.errors` — the server's errors as exceptions with ``code``, ``message``
   and ``details``.
 """
@@ -36,6 +39,7 @@ from .errors import (
     UnsupportedMediaType,
     ValidationFailed,
 )
+from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
 from .models import (
     Candidate,
@@ -53,8 +57,11 @@ from .models import (
     Precondition,
     Proposal,
     RejectionCounts,
+    Run,
+    Source,
     Space,
     StoredTransition,
+    Trajectory,
     TrajectoryCreated,
     Transition,
     transitions_from_states,
@@ -70,6 +77,7 @@ __all__ = [
     "Client",
     "Conflict",
     "Continued",
+    "DatasetError",
     "DeadlineExceeded",
     "Episode",
     "Experiment",
@@ -78,10 +86,13 @@ __all__ = [
     "Forbidden",
     "HeldOutTrust",
     "Hyperparameters",
+    "ImportFailed",
+    "ImportReport",
     "InternalError",
     "KernelTrial",
     "Learner",
     "LimitReached",
+    "LoggedEpisode",
     "MethodNotAllowed",
     "Model",
     "ModelServer",
@@ -102,8 +113,11 @@ __all__ = [
     "Progress",
     "Proposal",
     "RejectionCounts",
+    "Run",
+    "Source",
     "Space",
     "StoredTransition",
+    "Trajectory",
     "TrajectoryCreated",
     "Transition",
     "TransportError",

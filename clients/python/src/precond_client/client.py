@@ -15,12 +15,15 @@ surely did not arrive; :meth:`Client.ensure_experiment` makes creation safe to r
 
 from __future__ import annotations
 
+import json
+import logging
 import math
 import random
 import socket
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import httpx
@@ -36,7 +39,10 @@ from .models import (
     Plan,
     Precondition,
     Proposal,
+    Run,
+    Source,
     StoredTransition,
+    Trajectory,
     TrajectoryCreated,
     Transition,
     as_list,
@@ -44,7 +50,10 @@ from .models import (
 )
 
 if TYPE_CHECKING:
+    from .imports import ImportReport
     from .robot import CandidateFn, Learner, Problem, ProgressFn
+
+log = logging.getLogger("precond_client")
 
 PRECONDITION_CHUNK = 10_000
 """Points per precondition request (the server accepts up to 100 000, but the request body
@@ -405,12 +414,18 @@ class Client:
         proposal_id: int | None = None,
         partial: bool = False,
         idempotency_key: str | None = None,
+        source: Source | Mapping[str, Any] | None = None,
     ) -> TrajectoryCreated:
         """Posts an executed trajectory; the server labels and stores it atomically.
 
         Every post carries an ``Idempotency-Key``, so retries never store it twice. The default
         key is ``proposal-<id>`` for the execution of a proposal (a proposal is executed once,
         so even a restarted robot posting it again is recognised) and a random one otherwise.
+        ``source`` says where the trajectory comes from (a logged dataset and episode, a
+        simulated environment); the server stores it and shows it with the trajectory and in
+        the runs list. A trajectory posted for a proposal that is not the proposal's actions
+        from its start (or a prefix of them) is stored all the same and comes back
+        ``deviating``.
         """
         items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
         if not items:
@@ -418,6 +433,8 @@ class Client:
         body: dict[str, Any] = {"transitions": items, "partial": bool(partial)}
         if proposal_id is not None:
             body["proposal_id"] = int(proposal_id)
+        if source is not None:
+            body["source"] = source.to_json() if isinstance(source, Source) else dict(source)
         if idempotency_key is None:
             idempotency_key = (
                 f"proposal-{proposal_id}" if proposal_id is not None else f"py-{uuid.uuid4()}"
@@ -431,6 +448,25 @@ class Client:
         replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
         return TrajectoryCreated.from_json(r.json(), replayed=replayed)
 
+    def get_trajectory(self, trajectory_id: int) -> Trajectory:
+        """A stored trajectory with its labelled transitions, whether it deviated from its
+        proposal and where it comes from."""
+        r = self._request("GET", self._path(f"/trajectories/{trajectory_id}"))
+        return Trajectory.from_json(r.json())
+
+    def runs(self, page_size: int = 100) -> Iterator[Run]:
+        """Every run of the experiment, newest first: proposals with the trajectories that
+        executed them, trajectories posted without a proposal, and refused proposal requests
+        (``status == "refused"``), fetched page by page as the iterator advances."""
+        offset: int | None = 0
+        while offset is not None:
+            page = self._request(
+                "GET", self._path("/runs"), params={"offset": offset, "limit": page_size}
+            ).json()
+            for item in page["items"]:
+                yield Run.from_json(item)
+            offset = page["next"]
+
     def transitions(self, after: int = 0, page_size: int = 1000) -> Iterator[StoredTransition]:
         """Every stored transition with an id greater than ``after``, in id order, fetched
         page by page as the iterator advances."""
@@ -442,6 +478,143 @@ class Client:
             for item in page["items"]:
                 yield StoredTransition.from_json(item)
             cursor = page["next"]
+
+    # ------------------------------------------------------------------ logged data
+
+    def _import_context(self) -> tuple[Experiment, bool]:
+        exp = self.get_experiment()
+        model = exp.domain.get("model") or {}
+        return exp, exp.domain.get("kind") == "custom" and model.get("kind") == "client"
+
+    def import_file(
+        self,
+        path: str | Path,
+        *,
+        format: str | None = None,
+        state: Sequence[str] | None = None,
+        action: Sequence[str] | None = None,
+        next_state: Sequence[str] | None = None,
+        predicted: Sequence[str] | None = None,
+        episode: str | None = None,
+        label: str | None = None,
+        dataset_name: str | None = None,
+        dataset_id: str | None = None,
+        max_transitions: int = 10_000,
+        max_body_bytes: int = 4 * 1024 * 1024,
+        progress: bool | None = None,
+    ) -> ImportReport:
+        """Imports a CSV or Parquet file of logged transitions into the current experiment,
+        one trajectory per episode, as ``precond import`` does (same columns by convention,
+        same idempotency keys: importing again stores nothing twice).
+
+        ``state``, ``action``, ``next_state`` (and ``predicted`` for a client-side model)
+        name the columns — several scalar columns in order, or one list column — when the
+        conventions (``s_*``/``a_*``/``s_next_*``, ``observation.state``/``action``) do not
+        find them; without a next state a transition ends at the next row's state.
+        ``episode`` names the episode column (``"none"``: the file is one episode).
+        Parquet needs ``pyarrow``. Returns an
+        :class:`~precond_client.imports.ImportReport`; bad data raises
+        :class:`~precond_client.imports.DatasetError` naming the row and column, a refused
+        trajectory :class:`~precond_client.imports.ImportFailed`."""
+        from .imports import file_identity, import_episodes, read_table
+
+        exp, client_side = self._import_context()
+        mapping, episodes = read_table(
+            path,
+            exp.state_space.names,
+            exp.action_space.names,
+            format=format,
+            client_side=client_side,
+            state=state,
+            action=action,
+            next_state=next_state,
+            predicted=predicted,
+            episode=episode,
+        )
+        p = Path(path)
+        log.info("%s: %s", p, mapping.describe())
+        return import_episodes(
+            self,
+            episodes,
+            dataset=dataset_name or str(path),
+            dataset_id=dataset_id or file_identity(p),
+            label=label,
+            max_transitions=max_transitions,
+            max_body_bytes=max_body_bytes,
+            progress=progress,
+        )
+
+    def import_lerobot(
+        self,
+        root: str | Path,
+        *,
+        state: str = "observation.state",
+        action: str = "action",
+        label: str | None = None,
+        dataset_name: str | None = None,
+        dataset_id: str | None = None,
+        max_transitions: int = 10_000,
+        max_body_bytes: int = 4 * 1024 * 1024,
+        progress: bool | None = None,
+    ) -> ImportReport:
+        """Imports a LeRobot v3 dataset (a local directory with ``meta/info.json`` and
+        ``data/**/*.parquet``) into the current experiment: one trajectory per
+        ``episode_index``, each transition from a frame's ``observation.state`` with its
+        ``action`` to the next frame's state. Source ``lerobot:<directory name>`` (or
+        ``dataset_name``); the dataset id hashes the data files. Needs ``pyarrow``. The
+        experiment's state and action must be the dataset's (their dimensions are checked)."""
+        from .imports import file_identity, import_episodes, lerobot_files, read_lerobot
+
+        exp, _ = self._import_context()
+        files = lerobot_files(root)
+        info = json.loads((Path(root) / "meta" / "info.json").read_text(encoding="utf-8"))
+        return import_episodes(
+            self,
+            read_lerobot(
+                root,
+                exp.state_space.dim,
+                exp.action_space.dim,
+                state=state,
+                action=action,
+            ),
+            dataset=dataset_name or f"lerobot:{Path(root).resolve().name}",
+            dataset_id=dataset_id or file_identity(*files),
+            label=label,
+            max_transitions=max_transitions,
+            max_body_bytes=max_body_bytes,
+            progress=progress,
+            total=info.get("total_episodes"),
+        )
+
+    def import_minari(
+        self,
+        dataset: str | Path,
+        *,
+        observation_key: str | None = None,
+        label: str | None = None,
+        dataset_id: str | None = None,
+        max_transitions: int = 10_000,
+        max_body_bytes: int = 4 * 1024 * 1024,
+        progress: bool | None = None,
+    ) -> ImportReport:
+        """Imports a Minari dataset into the current experiment: by id with ``minari``
+        installed, or from its HDF5 file with ``h5py``; one trajectory per episode, ``s``
+        each observation but the last, ``s_next`` the one after it (a dict observation is read
+        at ``observation_key``). Source ``minari:<dataset>``."""
+        from .imports import import_episodes, read_minari
+
+        self._import_context()
+        name, ident, episodes = read_minari(dataset, observation_key=observation_key)
+        return import_episodes(
+            self,
+            episodes,
+            dataset=name,
+            dataset_id=dataset_id or ident,
+            label=label,
+            max_transitions=max_transitions,
+            max_body_bytes=max_body_bytes,
+            progress=progress,
+        )
 
     # ------------------------------------------------------------------ the model
 

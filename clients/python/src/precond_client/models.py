@@ -106,8 +106,11 @@ class Experiment:
     n_transitions: int
     iteration: int
     model_version: int
+    n_refused: int
+    """Proposal requests answered ``no_plan`` (each a ``refused`` run)."""
     last_activity: str
-    """The latest of its creation, its last posted trajectory and its last proposal."""
+    """The latest of its creation, its last posted trajectory, its last proposal and its last
+    refused proposal request."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
@@ -129,6 +132,7 @@ class Experiment:
             n_transitions=int(d["n_transitions"]),
             iteration=int(d["iteration"]),
             model_version=int(d["model_version"]),
+            n_refused=int(d["n_refused"]),
             last_activity=str(d["last_activity"]),
             raw=d,
         )
@@ -209,6 +213,51 @@ class StoredTransition:
 
 
 @dataclass(frozen=True)
+class Source:
+    """Where a posted trajectory comes from (schema ``TrajectorySource``): a logged dataset or
+    file, a simulated environment. Stored with the trajectory and shown with it."""
+
+    SCHEMA: ClassVar[tuple[str, ...]] = ("TrajectorySource", "ResolvedTrajectorySource")
+
+    dataset: str
+    """The dataset, file or environment (1 to 1000 characters)."""
+    episode: int | None = None
+    """The episode of the dataset."""
+    first_step: int | None = None
+    """The step of the episode that was the trajectory's first transition (an episode longer
+    than one post allows is posted as several trajectories)."""
+    label: str | None = None
+    """A free-form label (at most 1000 characters)."""
+
+    def to_json(self) -> dict[str, Any]:
+        """The JSON form (absent fields left out)."""
+        d: dict[str, Any] = {"dataset": self.dataset}
+        if self.episode is not None:
+            d["episode"] = int(self.episode)
+        if self.first_step is not None:
+            d["first_step"] = int(self.first_step)
+        if self.label is not None:
+            d["label"] = self.label
+        return d
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Source:
+        """Reads the JSON form."""
+        ep, fs, label = d.get("episode"), d.get("first_step"), d.get("label")
+        return cls(
+            dataset=str(d["dataset"]),
+            episode=int(ep) if ep is not None else None,
+            first_step=int(fs) if fs is not None else None,
+            label=str(label) if label is not None else None,
+        )
+
+
+def _source(d: Mapping[str, Any]) -> Source | None:
+    s = d.get("source")
+    return Source.from_json(s) if s is not None else None
+
+
+@dataclass(frozen=True)
 class TrajectoryCreated:
     """The answer to a posted trajectory (schema ``TrajectoryCreated``)."""
 
@@ -218,6 +267,11 @@ class TrajectoryCreated:
     experiment_id: int
     proposal_id: int | None
     partial: bool
+    deviating: bool
+    """Whether it departs from its proposal: other actions, longer, or another start (a prefix
+    does not); ``False`` without a proposal."""
+    source: Source | None
+    """Where it comes from, as posted."""
     n_transitions: int
     deviations: Array
     iteration: int
@@ -237,6 +291,8 @@ class TrajectoryCreated:
             experiment_id=int(d["experiment_id"]),
             proposal_id=int(pid) if pid is not None else None,
             partial=bool(d["partial"]),
+            deviating=bool(d["deviating"]),
+            source=_source(d),
             n_transitions=int(d["n_transitions"]),
             deviations=vec(d["deviations"]),
             iteration=int(d["iteration"]),
@@ -244,6 +300,117 @@ class TrajectoryCreated:
             n_trajectories=int(d["n_trajectories"]),
             created_at=str(d["created_at"]),
             replayed=replayed,
+        )
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A stored trajectory with its labelled transitions in step order (schema
+    ``Trajectory``)."""
+
+    SCHEMA: ClassVar[str] = "Trajectory"
+
+    id: int
+    experiment_id: int
+    proposal_id: int | None
+    partial: bool
+    deviating: bool
+    """Whether it departs from its proposal (other actions, longer, or another start)."""
+    source: Source | None
+    """Where it comes from, as posted."""
+    created_at: str
+    n_transitions: int
+    transitions: list[StoredTransition]
+
+    @property
+    def states(self) -> Array:
+        """The states ``(T + 1, n)``: each transition's ``s``, then the last ``s_next``."""
+        return np.vstack([[t.s for t in self.transitions], self.transitions[-1].s_next])
+
+    @property
+    def actions(self) -> Array:
+        """The actions ``(T, m)``."""
+        return np.vstack([t.a for t in self.transitions])
+
+    @property
+    def deviations(self) -> Array:
+        """The deviation labels ``(T,)``."""
+        return np.array([t.deviation for t in self.transitions], dtype=np.float64)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Trajectory:
+        """Reads the JSON form."""
+        pid = d.get("proposal_id")
+        return cls(
+            id=int(d["id"]),
+            experiment_id=int(d["experiment_id"]),
+            proposal_id=int(pid) if pid is not None else None,
+            partial=bool(d["partial"]),
+            deviating=bool(d["deviating"]),
+            source=_source(d),
+            created_at=str(d["created_at"]),
+            n_transitions=int(d["n_transitions"]),
+            transitions=[StoredTransition.from_json(t) for t in d["transitions"]],
+        )
+
+
+@dataclass(frozen=True)
+class Run:
+    """A proposal with the trajectory that executed it, a trajectory posted without a
+    proposal, or a refused proposal request (schema ``Run``)."""
+
+    SCHEMA: ClassVar[str] = "Run"
+
+    proposal_id: int | None
+    trajectory_id: int | None
+    refusal_id: int | None
+    status: str
+    """``open``, ``executed``, ``abandoned``, ``expired``, ``partial``, ``unsolicited`` or
+    ``refused``."""
+    client_id: str | None
+    iteration: int | None
+    beta: float | None
+    betas_tried: Array | None
+    """Every β a refused request tried, in order."""
+    extensions: int | None
+    model_version: int | None
+    created_at: str
+    length: int
+    partial: bool
+    deviating: bool
+    source: Source | None
+    max_deviation: float | None
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> Run:
+        """Reads the JSON form."""
+
+        def opt_int(key: str) -> int | None:
+            v = d.get(key)
+            return int(v) if v is not None else None
+
+        def opt_float(key: str) -> float | None:
+            v = d.get(key)
+            return float(v) if v is not None else None
+
+        betas = d.get("betas_tried")
+        return cls(
+            proposal_id=opt_int("proposal_id"),
+            trajectory_id=opt_int("trajectory_id"),
+            refusal_id=opt_int("refusal_id"),
+            status=str(d["status"]),
+            client_id=d.get("client_id"),
+            iteration=opt_int("iteration"),
+            beta=opt_float("beta"),
+            betas_tried=vec(betas) if betas is not None else None,
+            extensions=opt_int("extensions"),
+            model_version=opt_int("model_version"),
+            created_at=str(d["created_at"]),
+            length=int(d["length"]),
+            partial=bool(d["partial"]),
+            deviating=bool(d["deviating"]),
+            source=_source(d),
+            max_deviation=opt_float("max_deviation"),
         )
 
 
@@ -333,6 +500,9 @@ class Proposal:
     id: int
     status: str
     """``open``, ``executed``, ``abandoned`` or ``expired``."""
+    deviating: bool
+    """Whether the trajectory posted for it departs from it (other actions, longer, or another
+    start; a prefix does not); ``False`` until executed."""
     client_id: str | None
     iteration: int
     beta: float
@@ -367,6 +537,7 @@ class Proposal:
         return cls(
             id=int(d["id"]),
             status=str(d["status"]),
+            deviating=bool(d["deviating"]),
             client_id=d.get("client_id"),
             iteration=int(d["iteration"]),
             beta=float(d["beta"]),

@@ -1,0 +1,398 @@
+"""Gymnasium: the precondition's verdict on every step an agent takes, and its episodes posted
+as trajectories. Needs ``gymnasium`` (``pip install 'precond-client[gymnasium]'``).
+
+- :class:`PreconditionWrapper` adds ``info["precondition"]`` to each step: ``mu``, ``sigma``,
+  ``upper = μ + βσ`` and ``inside = upper < d_max`` for the (observation, action) just taken,
+  and optionally Safety-Gymnasium's ``info["cost"]`` (1 outside the precondition, else 0).
+  One precondition query per step (one point, on a kept-alive connection);
+  :class:`PreconditionVectorWrapper` asks once per step for every sub-environment of a vector
+  environment, and :func:`judge` judges whole recorded episodes in one query.
+- :class:`CollectEpisodes` records each episode's ``(observation, action, next observation)``
+  and posts it when it ends as one trajectory, labelled by the experiment's model, with
+  ``source = {"dataset": "gymnasium:<env id>", "episode": k, "label": ...}`` and the
+  ``Idempotency-Key`` ``gym-<run>-<episode>-<part>`` (give ``run`` to make a re-run after a
+  crash post nothing twice).
+
+The experiment's state is the environment's observation and its action the environment's
+action, flattened, unless ``state_fn``/``action_fn`` map them (e.g. to a subset of the
+observation). A state-action outside the experiment's spaces (the observation left the box
+the experiment declares) is never trusted: the wrapper answers ``inside=False`` with ``mu`` and
+``sigma`` NaN and ``in_domain=False`` without asking the server, and the collector splits the
+episode there (posting the parts inside, each with its ``first_step``) since the server would
+refuse such a transition.
+"""
+
+from __future__ import annotations
+
+import logging
+import uuid
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, SupportsFloat, cast
+
+import gymnasium
+import numpy as np
+from numpy.typing import NDArray
+
+from .models import Array, Experiment, Source
+
+if TYPE_CHECKING:
+    from .client import Client
+
+log = logging.getLogger("precond_client")
+
+StateFn = Callable[[Any], Any]
+"""Maps an observation (or action) to the experiment's state (or action) vector."""
+
+
+def _flat(x: Any) -> Array:
+    return np.asarray(x, dtype=np.float64).reshape(-1)
+
+
+@dataclass(frozen=True)
+class Box:
+    """The experiment's state and action boxes, to tell which points it can judge."""
+
+    state_low: Array
+    state_high: Array
+    action_low: Array
+    action_high: Array
+    discrete_actions: Array | None
+
+    @classmethod
+    def of(cls, exp: Experiment) -> Box:
+        return cls(
+            exp.state_space.low,
+            exp.state_space.high,
+            exp.action_space.low,
+            exp.action_space.high,
+            exp.action_space.values,
+        )
+
+    def contains(self, s: Array, a: Array) -> bool:
+        """Whether ``(s, a)`` lies in the experiment's spaces (finite, right sizes, in the
+        bounds; a discrete action one of its values)."""
+        if s.shape != self.state_low.shape or a.shape != self.action_low.shape:
+            return False
+        if not (np.all(np.isfinite(s)) and np.all(np.isfinite(a))):
+            return False
+        if np.any(s < self.state_low) or np.any(s > self.state_high):
+            return False
+        if self.discrete_actions is not None:
+            return bool(np.any(np.all(np.isclose(self.discrete_actions, a), axis=1)))
+        return not (np.any(a < self.action_low) or np.any(a > self.action_high))
+
+
+@dataclass(frozen=True)
+class Verdicts:
+    """Precondition verdicts for several state-actions, one entry per point."""
+
+    mu: Array
+    sigma: Array
+    upper: Array
+    inside: NDArray[np.bool_]
+    in_domain: NDArray[np.bool_]
+    """Whether the point lies in the experiment's spaces (the others are never inside)."""
+    model_version: int | None
+    """The MDE version that answered (``None`` when no point was asked)."""
+
+    def info(self, k: int, with_cost: bool) -> dict[str, Any]:
+        """Point ``k``'s entry of ``info``: ``{"precondition": {...}}`` and, with
+        ``with_cost``, ``"cost"``."""
+        out: dict[str, Any] = {
+            "precondition": {
+                "mu": float(self.mu[k]),
+                "sigma": float(self.sigma[k]),
+                "upper": float(self.upper[k]),
+                "inside": bool(self.inside[k]),
+                "in_domain": bool(self.in_domain[k]),
+                "model_version": self.model_version,
+            }
+        }
+        if with_cost:
+            out["cost"] = 0.0 if self.inside[k] else 1.0
+        return out
+
+
+def judge(
+    client: Client,
+    states: Any,
+    actions: Any,
+    *,
+    beta: float | None = None,
+    box: Box | None = None,
+) -> Verdicts:
+    """Judges state-actions ``(N, n)``, ``(N, m)`` in one query (points outside the
+    experiment's spaces are not asked: ``inside=False``, ``mu``/``sigma`` NaN)."""
+    s = np.asarray(states, dtype=np.float64)
+    a = np.asarray(actions, dtype=np.float64)
+    s = s.reshape(len(s), -1)
+    a = a.reshape(len(a), -1)
+    box = box or Box.of(client.get_experiment())
+    ok = np.array([box.contains(si, ai) for si, ai in zip(s, a, strict=True)], dtype=np.bool_)
+    n = len(s)
+    mu = np.full(n, np.nan)
+    sigma = np.full(n, np.nan)
+    upper = np.full(n, np.nan)
+    inside = np.zeros(n, dtype=np.bool_)
+    version = None
+    if ok.any():
+        p = client.precondition((s[ok], a[ok]), beta=beta)
+        mu[ok], sigma[ok], upper[ok], inside[ok] = p.mu, p.sigma, p.upper, p.inside
+        version = p.model_version
+    return Verdicts(mu, sigma, upper, inside, ok, version)
+
+
+class PreconditionWrapper(gymnasium.Wrapper[Any, Any, Any, Any]):
+    """Adds the precondition's verdict on each step's (observation, action) to ``info``.
+
+    Args:
+        env: The environment.
+        client: A client whose current experiment models this environment.
+        beta: β of the verdicts (default the experiment's test β).
+        cost: Also set ``info["cost"]`` = 1.0 when the step was outside the precondition,
+            else 0.0 (Safety-Gymnasium's convention; a constrained-RL algorithm then treats
+            leaving what is trusted as a cost).
+        state_fn: Observation → the experiment's state (default: flattened).
+        action_fn: Action → the experiment's action (default: flattened).
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env[Any, Any],
+        client: Client,
+        *,
+        beta: float | None = None,
+        cost: bool = False,
+        state_fn: StateFn = _flat,
+        action_fn: StateFn = _flat,
+    ) -> None:
+        super().__init__(env)
+        self.client = client
+        self.beta = beta
+        self.cost = cost
+        self.state_fn = state_fn
+        self.action_fn = action_fn
+        self.box = Box.of(client.get_experiment())
+        self._obs: Any = None
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._obs = obs
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        verdict = judge(
+            self.client,
+            [_flat(self.state_fn(self._obs))],
+            [_flat(self.action_fn(action))],
+            beta=self.beta,
+            box=self.box,
+        )
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._obs = obs
+        return obs, reward, terminated, truncated, {**info, **verdict.info(0, self.cost)}
+
+
+class PreconditionVectorWrapper(gymnasium.vector.VectorWrapper):
+    """:class:`PreconditionWrapper` for a vector environment: one query per step for every
+    sub-environment. ``info["precondition"]`` holds arrays (one entry per sub-environment:
+    ``mu``, ``sigma``, ``upper``, ``inside``, ``in_domain``) and ``info["cost"]`` an array.
+
+    With the default next-step autoreset, the step after an episode ended only resets its
+    sub-environment (its action is not taken): that entry is judged all the same and should
+    be ignored, as the environment's reward for it is.
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.vector.VectorEnv[Any, Any, Any],
+        client: Client,
+        *,
+        beta: float | None = None,
+        cost: bool = False,
+        state_fn: StateFn = _flat,
+        action_fn: StateFn = _flat,
+    ) -> None:
+        super().__init__(env)
+        self.client = client
+        self.beta = beta
+        self.cost = cost
+        self.state_fn = state_fn
+        self.action_fn = action_fn
+        self.box = Box.of(client.get_experiment())
+        self._obs: Any = None
+
+    def reset(
+        self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        # Vector environments take a seed per sub-environment too.
+        obs, info = self.env.reset(seed=cast(Any, seed), options=options)
+        self._obs = obs
+        return obs, info
+
+    def step(self, actions: Any) -> tuple[Any, Any, Any, Any, dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        n = self.num_envs
+        states = [_flat(self.state_fn(self._obs[k])) for k in range(n)]
+        acts = [_flat(self.action_fn(actions[k])) for k in range(n)]
+        v = judge(self.client, states, acts, beta=self.beta, box=self.box)
+        obs, reward, terminated, truncated, info = self.env.step(actions)
+        self._obs = obs
+        info = dict(info)
+        info["precondition"] = {
+            "mu": v.mu,
+            "sigma": v.sigma,
+            "upper": v.upper,
+            "inside": v.inside,
+            "in_domain": v.in_domain,
+            "model_version": v.model_version,
+        }
+        if self.cost:
+            info["cost"] = np.where(v.inside, 0.0, 1.0)
+        return obs, reward, terminated, truncated, info
+
+
+@dataclass
+class Collected:
+    """What :class:`CollectEpisodes` posted."""
+
+    episodes: int = 0
+    """Episodes that ended."""
+    trajectories: int = 0
+    """Trajectories posted (an episode leaving the experiment's spaces, or longer than
+    ``max_transitions``, is posted in parts)."""
+    transitions: int = 0
+    """Transitions posted."""
+    dropped: int = 0
+    """Steps not posted: outside the experiment's spaces."""
+    trajectory_ids: list[int] = field(default_factory=list)
+
+
+class CollectEpisodes(gymnasium.Wrapper[Any, Any, Any, Any]):
+    """Posts each episode the environment runs as one trajectory when it ends (terminated or
+    truncated), labelled on ingest by the experiment's model, with its source; see the module
+    docs.
+
+    Args:
+        env: The environment.
+        client: A client whose current experiment models this environment.
+        label: ``source.label`` of every trajectory.
+        run: This collection's name in the idempotency keys; default a random one. Give the
+            same ``run`` (and the same episodes, e.g. by seeding ``reset``) to make a
+            repeated collection post nothing twice.
+        dataset: ``source.dataset``; default ``gymnasium:<env id>``.
+        state_fn: Observation → the experiment's state (default: flattened).
+        action_fn: Action → the experiment's action (default: flattened).
+        max_transitions: Transitions per posted trajectory (the server's
+            ``--max-transitions``).
+        min_transitions: Parts shorter than this are not posted (counted as dropped).
+    """
+
+    def __init__(
+        self,
+        env: gymnasium.Env[Any, Any],
+        client: Client,
+        *,
+        label: str | None = None,
+        run: str | None = None,
+        dataset: str | None = None,
+        state_fn: StateFn = _flat,
+        action_fn: StateFn = _flat,
+        max_transitions: int = 10_000,
+        min_transitions: int = 1,
+    ) -> None:
+        super().__init__(env)
+        self.client = client
+        self.label = label
+        self.run = run or uuid.uuid4().hex[:12]
+        spec = env.spec
+        self.dataset = dataset or f"gymnasium:{spec.id if spec is not None else type(env).__name__}"
+        self.state_fn = state_fn
+        self.action_fn = action_fn
+        self.max_transitions = max(1, max_transitions)
+        self.min_transitions = max(1, min_transitions)
+        self.box = Box.of(client.get_experiment())
+        self.collected = Collected()
+        self._episode = 0
+        """The index of the episode being recorded (episodes posted so far)."""
+        self._obs: Any = None
+        self._steps: list[tuple[Array, Array, Array]] = []
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[Any, dict[str, Any]]:
+        if self._steps:
+            # An episode reset before it ended: posted as it is.
+            self._post()
+        obs, info = self.env.reset(seed=seed, options=options)
+        self._obs = obs
+        return obs, info
+
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
+        if self._obs is None:
+            raise RuntimeError("call reset() before step()")
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        self._steps.append(
+            (
+                _flat(self.state_fn(self._obs)),
+                _flat(self.action_fn(action)),
+                _flat(self.state_fn(obs)),
+            )
+        )
+        self._obs = obs
+        if terminated or truncated:
+            info = {**info, "precond_trajectories": self._post()}
+        return obs, reward, terminated, truncated, info
+
+    def close(self) -> None:
+        if self._steps:
+            self._post()
+        super().close()
+
+    def _post(self) -> list[int]:
+        """Posts the recorded episode (in parts inside the experiment's spaces); returns the
+        trajectory ids."""
+        steps, self._steps = self._steps, []
+        self.collected.episodes += 1
+        ids: list[int] = []
+        part: list[dict[str, Any]] = []
+        first = 0
+
+        def flush() -> None:
+            nonlocal part
+            if len(part) >= self.min_transitions:
+                key = f"gym-{self.run}-{self._episode}-{first}"
+                created = self.client.post_trajectory(
+                    part,
+                    idempotency_key=key,
+                    source=Source(self.dataset, self._episode, first, self.label),
+                )
+                ids.append(created.id)
+                self.collected.trajectories += 1
+                self.collected.transitions += len(part)
+            else:
+                self.collected.dropped += len(part)
+            part = []
+
+        for k, (s, a, s_next) in enumerate(steps):
+            usable = self.box.contains(s, a) and bool(np.all(np.isfinite(s_next)))
+            usable = usable and s_next.shape == s.shape
+            if not usable or len(part) >= self.max_transitions:
+                flush()
+            if not usable:
+                self.collected.dropped += 1
+                first = k + 1
+                continue
+            if not part:
+                first = k
+            part.append({"s": s.tolist(), "a": a.tolist(), "s_next": s_next.tolist()})
+        flush()
+        self.collected.trajectory_ids += ids
+        self._episode += 1
+        return ids

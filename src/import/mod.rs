@@ -1,0 +1,681 @@
+//! `precond import`: logged transitions (CSV or Parquet files) into an existing experiment.
+//!
+//! Each episode of a file becomes one posted trajectory, labelled by the experiment's own model
+//! on ingest like any other, with its provenance (`source`: the file, the episode, the step of
+//! the episode it starts at, a label). Columns are found by convention or named by the user
+//! ([`mapping`]); without a next-state column, a transition's next state is the next row's
+//! state within the episode (LeRobot's frames).
+//!
+//! **Resumable and idempotent.** Each trajectory is posted under the `Idempotency-Key`
+//! `import-<dataset>-<episode>-<part>`, where `<dataset>` is the first 16 hex digits of the
+//! SHA-256 of the file's bytes (or `--dataset-id`): running the same import again — after an
+//! interruption, or twice — stores nothing twice (the service replays what it stored), and the
+//! same episode imported with another mapping or label is refused (`409`) rather than stored a
+//! second time.
+//!
+//! **Streaming.** Files are read row by row (CSV) or row group by row group (Parquet, only the
+//! columns the mapping reads) on a blocking thread that hands finished trajectories to the
+//! poster through a bounded channel; memory holds about two trajectories. An episode longer
+//! than `--max-transitions` (the server's limit, 10 000 by default), or whose body would pass
+//! `--max-body-bytes`, is split into consecutive trajectories, each saying its first step, and
+//! the import says so.
+
+pub mod mapping;
+pub mod table;
+
+use crate::api::{
+    ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest, TrajectorySource,
+};
+use crate::domain::Transition;
+use anyhow::{Context, bail};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use mapping::{Given, RowValues, Spaces};
+use sha2::{Digest, Sha256};
+use std::collections::HashSet;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+use table::{Cell, Format};
+
+/// Options of `precond import`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ImportArgs {
+    /// The files to import (CSV or Parquet), each one dataset.
+    #[arg(required = true, value_name = "FILE")]
+    pub files: Vec<PathBuf>,
+    /// The experiment to import into (it must exist; its model labels every transition).
+    #[arg(long)]
+    pub experiment: i64,
+    /// The server.
+    #[arg(long, env = "PRECOND_URL", default_value = "http://127.0.0.1:8080")]
+    pub server: String,
+    /// An access token with the `write` role (sent as `Authorization: Bearer`).
+    #[arg(long, env = "PRECOND_TOKEN", hide_env_values = true)]
+    pub token: Option<String>,
+    /// The files' format; `auto` decides by extension (`.parquet`, `.pq`: Parquet).
+    #[arg(long, value_enum, default_value_t = Format::Auto)]
+    pub format: Format,
+    /// The state's columns, comma-separated in the state's order, or one list column.
+    /// Default: found by convention (`s.<name>`, `s_<name>`, `observation.state`).
+    #[arg(long, value_delimiter = ',')]
+    pub state: Option<Vec<String>>,
+    /// The action's columns, likewise (`a.<name>`, `a_<name>`, `action`).
+    #[arg(long, value_delimiter = ',')]
+    pub action: Option<Vec<String>>,
+    /// The next state's columns (`s_next.<name>`, `s_next_<name>`). Without them a
+    /// transition's next state is the next row's state within the episode.
+    #[arg(long, value_delimiter = ',')]
+    pub next_state: Option<Vec<String>>,
+    /// The client's predicted next state (`s_pred.<name>`), for an experiment whose model is
+    /// the client's.
+    #[arg(long, value_delimiter = ',')]
+    pub predicted_state: Option<Vec<String>>,
+    /// The episode column (`none`: one episode per file). Default: the first of
+    /// `episode_index`, `episode`, `episode_id`, `trajectory_id`. Rows of an episode must be
+    /// consecutive and in time order.
+    #[arg(long)]
+    pub episode: Option<String>,
+    /// A free-form label stored with every trajectory's source.
+    #[arg(long)]
+    pub label: Option<String>,
+    /// The source's dataset name. Default: the file's path as given.
+    #[arg(long)]
+    pub dataset_name: Option<String>,
+    /// The dataset's identity in the idempotency keys (letters, digits, `.`, `_`, `-`; at
+    /// most 64). Default: the first 16 hex digits of the SHA-256 of the file's bytes.
+    #[arg(long)]
+    pub dataset_id: Option<String>,
+    /// Transitions per posted trajectory: longer episodes are split. Set it to the server's
+    /// `--max-transitions` when that is lower than the default.
+    #[arg(long, default_value_t = crate::limits::MAX_TRANSITIONS)]
+    pub max_transitions: usize,
+    /// Largest request body: an episode whose JSON would be larger is split. Set it to the
+    /// server's `--max-body-bytes` when that is lower than the default.
+    #[arg(long, default_value_t = 4 * 1024 * 1024)]
+    pub max_body_bytes: usize,
+    /// No progress bar.
+    #[arg(long)]
+    pub no_progress: bool,
+}
+
+/// What an import did, per file and in all.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct ImportReport {
+    /// Episodes read (with at least one transition).
+    pub episodes: usize,
+    /// Trajectories posted (an episode split in parts posts several).
+    pub trajectories: usize,
+    /// Of those, stored by this run.
+    pub created: usize,
+    /// Of those, already stored by an earlier run (replayed; nothing stored).
+    pub replayed: usize,
+    /// Transitions in the posted trajectories.
+    pub transitions: usize,
+    /// Episodes split into several trajectories.
+    pub split_episodes: usize,
+    /// Episodes skipped: a single frame, no transition (frames without a next-state column).
+    pub skipped_episodes: usize,
+}
+
+impl ImportReport {
+    fn add(&mut self, o: &Self) {
+        self.episodes += o.episodes;
+        self.trajectories += o.trajectories;
+        self.created += o.created;
+        self.replayed += o.replayed;
+        self.transitions += o.transitions;
+        self.split_episodes += o.split_episodes;
+        self.skipped_episodes += o.skipped_episodes;
+    }
+}
+
+/// One trajectory to post: a whole episode or a part of it.
+#[derive(Debug)]
+struct Part {
+    key: String,
+    source: TrajectorySource,
+    transitions: Vec<Transition>,
+    /// Rows of the file this part consumed (for the progress bar).
+    rows: u64,
+}
+
+/// What the reader thread sends the poster.
+#[derive(Debug)]
+enum Message {
+    Part(Part),
+    /// An episode was split (its value, its transitions, its parts).
+    Split(String, usize, usize),
+    /// An episode had no transition.
+    Skipped,
+}
+
+/// The identity of a file for the idempotency keys: the first 16 hex digits of the SHA-256 of
+/// its bytes, and the number of lines (for the progress of a CSV file).
+pub fn file_identity(path: &Path) -> anyhow::Result<(String, u64)> {
+    let mut file =
+        std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let mut hash = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut lines = 0u64;
+    loop {
+        let n = file
+            .read(&mut buf)
+            .with_context(|| format!("reading {}", path.display()))?;
+        if n == 0 {
+            break;
+        }
+        hash.update(&buf[..n]);
+        lines += buf[..n].iter().filter(|&&b| b == b'\n').count() as u64;
+    }
+    let digest = hash.finalize();
+    let hex: String = digest[..8].iter().map(|b| format!("{b:02x}")).collect();
+    Ok((hex, lines))
+}
+
+/// The episode's part of an idempotency key: its value when short and plain, else a hash.
+fn key_part(value: &str) -> String {
+    let plain = !value.is_empty()
+        && value.len() <= 64
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    if plain {
+        value.to_string()
+    } else {
+        let d = Sha256::digest(value.as_bytes());
+        format!(
+            "h{}",
+            d[..8]
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect::<String>()
+        )
+    }
+}
+
+/// An episode's value as text (integral numbers without a fraction) and as `source.episode`:
+/// the value when it is a whole number ≥ 0, else the episode's position in the file.
+fn episode_of(cell: Option<&Cell>, ordinal: usize) -> (String, i64) {
+    match cell {
+        Some(Cell::Number(x)) if x.fract() == 0.0 && *x >= 0.0 && *x < 9.0e15 => {
+            (format!("{}", *x as i64), *x as i64)
+        }
+        Some(Cell::Number(x)) => (x.to_string(), ordinal as i64),
+        Some(Cell::Text(t)) => (t.clone(), ordinal as i64),
+        _ => ("0".into(), ordinal as i64),
+    }
+}
+
+/// Builds an episode's trajectories from its rows, splitting at the limits.
+struct Assembler<'a> {
+    dataset: &'a str,
+    dataset_id: &'a str,
+    label: Option<&'a str>,
+    max_transitions: usize,
+    max_body: usize,
+    send: &'a mut dyn FnMut(Message) -> anyhow::Result<()>,
+    seen: HashSet<String>,
+    /// The current episode: its text, `source.episode`.
+    episode: Option<(String, i64)>,
+    ordinal: usize,
+    previous: Option<RowValues>,
+    buffer: Vec<Transition>,
+    bytes: usize,
+    rows: u64,
+    first_step: usize,
+    parts: usize,
+    length: usize,
+}
+
+impl Assembler<'_> {
+    fn row(&mut self, row: RowValues) -> anyhow::Result<()> {
+        let value = episode_of(row.episode.as_ref(), self.ordinal);
+        if self.episode.as_ref().map(|e| &e.0) != Some(&value.0) {
+            self.end_episode()?;
+            if !self.seen.insert(value.0.clone()) {
+                bail!(
+                    "episode {} appears again after another episode: sort the file by episode \
+                     (an episode's rows must be consecutive)",
+                    value.0
+                );
+            }
+            self.ordinal += 1;
+            self.episode = Some(value);
+        }
+        self.rows += 1;
+        let transition = match (&row.s_next, self.previous.take()) {
+            (Some(next), _) => Some(Transition {
+                s: row.s.clone(),
+                a: row.a.clone(),
+                s_next: next.clone(),
+                s_pred: row.s_pred.clone(),
+            }),
+            (None, Some(prev)) => Some(Transition {
+                s: prev.s,
+                a: prev.a,
+                s_next: row.s.clone(),
+                s_pred: prev.s_pred,
+            }),
+            (None, None) => None,
+        };
+        if row.s_next.is_none() {
+            self.previous = Some(row);
+        }
+        if let Some(t) = transition {
+            let size = serde_json::to_string(&t).map_or(0, |j| j.len() + 1);
+            if !self.buffer.is_empty()
+                && (self.buffer.len() >= self.max_transitions || self.bytes + size > self.max_body)
+            {
+                self.flush()?;
+            }
+            self.bytes += size;
+            self.buffer.push(t);
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> anyhow::Result<()> {
+        let Some((text, episode)) = self.episode.clone() else {
+            return Ok(());
+        };
+        let transitions = std::mem::take(&mut self.buffer);
+        let n = transitions.len();
+        let part = Part {
+            key: format!(
+                "import-{}-{}-{}",
+                self.dataset_id,
+                key_part(&text),
+                self.parts
+            ),
+            source: TrajectorySource {
+                dataset: self.dataset.to_string(),
+                episode: Some(episode),
+                first_step: Some(self.first_step as i64),
+                label: self.label.map(str::to_string),
+            },
+            transitions,
+            rows: std::mem::take(&mut self.rows),
+        };
+        (self.send)(Message::Part(part))?;
+        self.first_step += n;
+        self.length += n;
+        self.parts += 1;
+        self.bytes = 0;
+        Ok(())
+    }
+
+    fn end_episode(&mut self) -> anyhow::Result<()> {
+        if self.episode.is_none() {
+            return Ok(());
+        }
+        if !self.buffer.is_empty() {
+            self.flush()?;
+        }
+        let text = self.episode.take().map(|e| e.0).unwrap_or_default();
+        if self.parts == 0 {
+            (self.send)(Message::Skipped)?;
+        } else if self.parts > 1 {
+            (self.send)(Message::Split(text, self.length, self.parts))?;
+        }
+        self.previous = None;
+        self.first_step = 0;
+        self.parts = 0;
+        self.length = 0;
+        self.bytes = 0;
+        self.rows = 0;
+        Ok(())
+    }
+}
+
+/// The HTTP side: posts with retries (transport errors, `429` and `5xx`, with back-off; the
+/// idempotency key makes a repeat harmless).
+struct Poster {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+}
+
+impl Poster {
+    fn request(&self, method: reqwest::Method, path: &str) -> reqwest::RequestBuilder {
+        let r = self.http.request(method, format!("{}{path}", self.base));
+        match &self.token {
+            Some(t) => r.bearer_auth(t),
+            None => r,
+        }
+    }
+
+    /// The error of an answer, as the service said it.
+    async fn error(what: &str, r: reqwest::Response) -> anyhow::Error {
+        let status = r.status().as_u16();
+        let text = r.text().await.unwrap_or_default();
+        match serde_json::from_str::<ErrorBody>(&text) {
+            Ok(e) => anyhow::anyhow!(
+                "{what}: HTTP {status} {}: {}",
+                e.error.code,
+                e.error.message
+            ),
+            Err(_) => anyhow::anyhow!("{what}: HTTP {status}: {text}"),
+        }
+    }
+
+    async fn experiment(&self, id: i64) -> anyhow::Result<ExperimentResponse> {
+        let what = format!("GET /v1/experiments/{id}");
+        let r = self
+            .request(reqwest::Method::GET, &format!("/v1/experiments/{id}"))
+            .send()
+            .await
+            .with_context(|| format!("{what}: is the server at {} running?", self.base))?;
+        if !r.status().is_success() {
+            return Err(Self::error(&what, r).await);
+        }
+        r.json()
+            .await
+            .with_context(|| format!("{what}: unexpected body"))
+    }
+
+    /// Posts one part; `Ok((answer, replayed))`.
+    async fn post(&self, id: i64, part: &Part) -> anyhow::Result<(TrajectoryCreated, bool)> {
+        let body = TrajectoryRequest {
+            proposal_id: None,
+            partial: false,
+            source: Some(part.source.clone()),
+            transitions: part.transitions.clone(),
+        };
+        let path = format!("/v1/experiments/{id}/trajectories");
+        let mut delay = Duration::from_millis(200);
+        for attempt in 0.. {
+            let sent = self
+                .request(reqwest::Method::POST, &path)
+                .header("idempotency-key", &part.key)
+                .json(&body)
+                .send()
+                .await;
+            let retry = match &sent {
+                Err(e) => Some(e.to_string()),
+                Ok(r) if r.status().as_u16() == 429 || r.status().is_server_error() => {
+                    Some(format!("HTTP {}", r.status()))
+                }
+                Ok(_) => None,
+            };
+            match (retry, sent) {
+                (Some(why), _) if attempt < 8 => {
+                    tracing::warn!(key = %part.key, %why, "retrying in {delay:?}");
+                    tokio::time::sleep(delay).await;
+                    delay = (delay * 2).min(Duration::from_secs(10));
+                }
+                (_, Err(e)) => return Err(anyhow::Error::new(e).context(format!("POST {path}"))),
+                (_, Ok(r)) => {
+                    let status = r.status().as_u16();
+                    if status == 201 {
+                        let replayed = r.headers().contains_key("idempotent-replayed");
+                        let created = r.json().await.context("the 201 answer")?;
+                        return Ok((created, replayed));
+                    }
+                    let err = Self::error(&format!("POST {path}"), r).await;
+                    return Err(match status {
+                        409 => err.context(format!(
+                            "{} was imported before with another request (another column \
+                             mapping or label?); nothing was stored for it",
+                            part.key
+                        )),
+                        413 => err.context(
+                            "lower --max-body-bytes (or --max-transitions) to the server's limit",
+                        ),
+                        _ => err,
+                    });
+                }
+            }
+        }
+        unreachable!("the loop returns")
+    }
+}
+
+/// Prints a line above the progress bar (also when stderr is no terminal and the bar is hidden).
+fn say(progress: &ProgressBar, line: String) {
+    progress.suspend(|| eprintln!("{line}"));
+}
+
+/// Imports one file into the experiment.
+async fn import_file(
+    args: &ImportArgs,
+    poster: &Poster,
+    spaces: &Spaces,
+    path: &Path,
+    progress: &ProgressBar,
+) -> anyhow::Result<ImportReport> {
+    let (columns, n_rows) = table::columns(path, args.format)?;
+    let given = Given {
+        state: args.state.clone(),
+        action: args.action.clone(),
+        next_state: args.next_state.clone(),
+        predicted: args.predicted_state.clone(),
+        episode: args.episode.clone(),
+    };
+    let mapping =
+        mapping::resolve(&columns, spaces, &given).with_context(|| path.display().to_string())?;
+    let file = path.to_path_buf();
+    let (identity, lines) = tokio::task::spawn_blocking(move || file_identity(&file))
+        .await
+        .context("hashing the file")??;
+    let dataset_id = match &args.dataset_id {
+        Some(id) if key_part(id) == *id => id.clone(),
+        Some(id) => bail!(
+            "--dataset-id {id:?}: letters, digits, '.', '_' and '-' only, at most 64 characters"
+        ),
+        None => identity,
+    };
+    let total = n_rows.unwrap_or(lines.saturating_sub(1));
+    progress.set_length(progress.length().unwrap_or(0) + total);
+    say(
+        progress,
+        format!(
+            "{}: {total} rows; {}; dataset id {dataset_id}",
+            path.display(),
+            mapping.describe(&columns)
+        ),
+    );
+
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
+    let reader = {
+        let (path, format, mapping, columns) = (
+            path.to_path_buf(),
+            args.format,
+            mapping.clone(),
+            columns.clone(),
+        );
+        let dataset = args
+            .dataset_name
+            .clone()
+            .unwrap_or_else(|| path.display().to_string());
+        let label = args.label.clone();
+        let dims = (spaces.state.len(), spaces.action.len());
+        let (max_transitions, max_body) = (
+            args.max_transitions.max(1),
+            args.max_body_bytes.saturating_sub(16 * 1024).max(1024),
+        );
+        tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+            let mut send = |m: Message| {
+                tx.blocking_send(m)
+                    .map_err(|_| anyhow::anyhow!("the poster stopped"))
+            };
+            let mut assembler = Assembler {
+                dataset: &dataset,
+                dataset_id: &dataset_id,
+                label: label.as_deref(),
+                max_transitions,
+                max_body,
+                send: &mut send,
+                seen: HashSet::new(),
+                episode: None,
+                ordinal: 0,
+                previous: None,
+                buffer: Vec::new(),
+                bytes: 0,
+                rows: 0,
+                first_step: 0,
+                parts: 0,
+                length: 0,
+            };
+            table::for_each_row(&path, format, &mapping.wanted(), |cells| {
+                let row = mapping.read(&columns, cells, dims)?;
+                assembler.row(row)
+            })
+            .with_context(|| path.display().to_string())?;
+            assembler.end_episode()
+        })
+    };
+
+    let mut report = ImportReport::default();
+    let mut failure = None;
+    while let Some(message) = rx.recv().await {
+        match message {
+            Message::Part(part) => match poster.post(args.experiment, &part).await {
+                Ok((created, replayed)) => {
+                    report.trajectories += 1;
+                    report.transitions += created.n_transitions;
+                    if part.source.first_step == Some(0) {
+                        report.episodes += 1;
+                    }
+                    if replayed {
+                        report.replayed += 1;
+                    } else {
+                        report.created += 1;
+                    }
+                    progress.inc(part.rows);
+                    progress.set_message(format!(
+                        "{} trajectories stored, {} already there",
+                        report.created, report.replayed
+                    ));
+                }
+                Err(e) => {
+                    failure = Some(e.context(format!(
+                        "{} episode {} (from step {})",
+                        path.display(),
+                        part.source.episode.unwrap_or_default(),
+                        part.source.first_step.unwrap_or_default()
+                    )));
+                    break;
+                }
+            },
+            Message::Split(episode, length, parts) => {
+                report.split_episodes += 1;
+                say(
+                    progress,
+                    format!(
+                        "{}: episode {episode} has {length} transitions, posted as {parts} \
+                     trajectories (at most {} transitions or {} bytes each)",
+                        path.display(),
+                        args.max_transitions,
+                        args.max_body_bytes
+                    ),
+                );
+            }
+            Message::Skipped => report.skipped_episodes += 1,
+        }
+    }
+    drop(rx);
+    let read = reader.await;
+    if let Some(e) = failure {
+        return Err(e);
+    }
+    match read {
+        Ok(r) => r?,
+        Err(e) => bail!(
+            "reading {}: the reader failed ({e}); the file may be damaged",
+            path.display()
+        ),
+    }
+    Ok(report)
+}
+
+/// Runs `precond import`: every file in turn into the experiment; returns what was done in
+/// all (also printed).
+pub async fn run(args: ImportArgs) -> anyhow::Result<ImportReport> {
+    let poster = Poster {
+        http: reqwest::Client::builder()
+            .timeout(Duration::from_secs(300))
+            .build()?,
+        base: args.server.trim_end_matches('/').to_string(),
+        token: args.token.clone(),
+    };
+    let experiment = poster.experiment(args.experiment).await?;
+    let domain = serde_json::to_value(&experiment.settings.domain)?;
+    let spaces = Spaces {
+        state: experiment.state_space.names.clone(),
+        action: experiment.action_space.names.clone(),
+        client_side: domain["kind"] == "custom" && domain["model"]["kind"] == "client",
+    };
+    let progress = if args.no_progress {
+        ProgressBar::hidden()
+    } else {
+        ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr())
+    };
+    progress.set_style(
+        ProgressStyle::with_template("{elapsed_precise} [{bar:30}] {pos}/{len} rows {wide_msg}")
+            .map(|s| s.progress_chars("=> "))
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    let mut total = ImportReport::default();
+    for path in &args.files {
+        let report = import_file(&args, &poster, &spaces, path, &progress).await?;
+        say(
+            &progress,
+            format!(
+                "{}: {} episodes as {} trajectories ({} transitions): {} stored, {} already there{}{}",
+                path.display(),
+                report.episodes,
+                report.trajectories,
+                report.transitions,
+                report.created,
+                report.replayed,
+                if report.split_episodes > 0 {
+                    format!("; {} episodes split", report.split_episodes)
+                } else {
+                    String::new()
+                },
+                if report.skipped_episodes > 0 {
+                    format!(
+                        "; {} single-frame episodes skipped",
+                        report.skipped_episodes
+                    )
+                } else {
+                    String::new()
+                },
+            ),
+        );
+        total.add(&report);
+    }
+    progress.finish_and_clear();
+    println!(
+        "imported into experiment {}: {} episodes, {} trajectories, {} transitions ({} stored now, \
+         {} already stored)",
+        args.experiment,
+        total.episodes,
+        total.trajectories,
+        total.transitions,
+        total.created,
+        total.replayed
+    );
+    Ok(total)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_keep_plain_episode_values_and_hash_the_others() {
+        assert_eq!(key_part("12"), "12");
+        assert_eq!(key_part("run_3.b-x"), "run_3.b-x");
+        let hashed = key_part("episode 3/with spaces");
+        assert!(hashed.starts_with('h') && hashed.len() == 17, "{hashed}");
+        assert_ne!(hashed, key_part("episode 3/with spaces "));
+        assert_eq!(episode_of(Some(&Cell::Number(7.0)), 2), ("7".into(), 7));
+        assert_eq!(episode_of(Some(&Cell::Number(-1.0)), 2), ("-1".into(), 2));
+        assert_eq!(
+            episode_of(Some(&Cell::Text("a".into())), 4),
+            ("a".into(), 4)
+        );
+        assert_eq!(episode_of(None, 0), ("0".into(), 0));
+    }
+}
