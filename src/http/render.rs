@@ -12,7 +12,9 @@ use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{FitRefusal, Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition};
+use crate::store::{
+    FitRefusal, Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition,
+};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {

@@ -220,7 +220,9 @@ async fn migration_0009_flags_the_stored_executions_that_departed_from_their_pro
     );
     old.run(&mut conn).await.unwrap();
     let (settings, _) = ExperimentRequest::default()
-        .resolve(&std::sync::Arc::new(precond::remote_model::ModelCalls::default()))
+        .resolve(&std::sync::Arc::new(
+            precond::remote_model::ModelCalls::default(),
+        ))
         .unwrap();
     let created = "2026-01-01T00:00:00Z";
     sqlx::query("INSERT INTO experiments (id, name, settings, created_at) VALUES (1, '', ?, ?)")
