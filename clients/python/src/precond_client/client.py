@@ -458,25 +458,26 @@ class Client:
         """Every run of the experiment, newest first: proposals with the trajectories that
         executed them, trajectories posted without a proposal, and refused proposal requests
         (``status == "refused"``), fetched page by page as the iterator advances."""
-        offset: int | None = 0
-        while offset is not None:
-            page = self._request(
-                "GET", self._path("/runs"), params={"offset": offset, "limit": page_size}
-            ).json()
-            for item in page["items"]:
-                yield Run.from_json(item)
-            offset = page["next"]
+        for item in self._pages("/runs", "offset", 0, page_size):
+            yield Run.from_json(item)
 
     def transitions(self, after: int = 0, page_size: int = 1000) -> Iterator[StoredTransition]:
         """Every stored transition with an id greater than ``after``, in id order, fetched
         page by page as the iterator advances."""
-        cursor: int | None = after
+        for item in self._pages("/transitions", "after", after, page_size):
+            yield StoredTransition.from_json(item)
+
+    def _pages(
+        self, suffix: str, cursor_name: str, start: int, page_size: int
+    ) -> Iterator[dict[str, Any]]:
+        """The items of a paged list, page by page: each page is asked for with
+        ``cursor_name`` set to the previous page's ``next`` (``start`` first) until it is null."""
+        cursor: int | None = start
         while cursor is not None:
             page = self._request(
-                "GET", self._path("/transitions"), params={"after": cursor, "limit": page_size}
+                "GET", self._path(suffix), params={cursor_name: cursor, "limit": page_size}
             ).json()
-            for item in page["items"]:
-                yield StoredTransition.from_json(item)
+            yield from page["items"]
             cursor = page["next"]
 
     # ------------------------------------------------------------------ logged data
