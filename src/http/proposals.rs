@@ -10,8 +10,8 @@ use crate::api::{
 };
 use axum::Json;
 use axum::extract::State;
-use axum::http::{HeaderMap, HeaderValue, StatusCode};
-use axum::response::{IntoResponse, Response};
+use axum::http::{HeaderMap, StatusCode};
+use axum::response::Response;
 
 /// `POST /v1/experiments/{id}/proposals`: `201` with a new proposal leased to the client, or
 /// `200` with the client's open one for the same problem.
@@ -63,20 +63,13 @@ pub async fn continue_proposal(
         .service
         .continue_proposal(id, pid, request, key)
         .await?;
-    let mut answer = (
-        StatusCode::CREATED,
-        Json(ContinueResponse {
+    Ok(render::created(
+        ContinueResponse {
             trajectory: render::trajectory_created(&ingested),
             proposal: render::proposal(proposal),
-        }),
-    )
-        .into_response();
-    if ingested.replayed {
-        answer
-            .headers_mut()
-            .insert("idempotent-replayed", HeaderValue::from_static("true"));
-    }
-    Ok(answer)
+        },
+        ingested.replayed,
+    ))
 }
 
 /// `POST /v1/experiments/{id}/plans`: a test-time plan with the conservative β. Nothing is

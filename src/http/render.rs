@@ -331,3 +331,17 @@ pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
         created_at: r.created_at.clone(),
     }
 }
+
+/// `201 Created` with `body`, and the header `idempotent-replayed: true` when the answer replays
+/// an earlier request's under the same `Idempotency-Key` (nothing new was stored).
+pub fn created<T: serde::Serialize>(body: T, replayed: bool) -> axum::response::Response {
+    use axum::response::IntoResponse;
+    let mut answer = (axum::http::StatusCode::CREATED, axum::Json(body)).into_response();
+    if replayed {
+        answer.headers_mut().insert(
+            "idempotent-replayed",
+            axum::http::HeaderValue::from_static("true"),
+        );
+    }
+    answer
+}

@@ -11,7 +11,7 @@ use crate::limits::{DEFAULT_PAGE, MAX_CSV_ROWS, MAX_PAGE};
 use crate::store::StoredTransition;
 use axum::Json;
 use axum::extract::State;
-use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::http::{HeaderMap, HeaderValue, header};
 use axum::response::{IntoResponse, Response};
 
 /// `POST /v1/experiments/{id}/trajectories`: validate, label and store one trajectory
@@ -24,17 +24,10 @@ pub async fn create_trajectory(
 ) -> ApiResult<Response> {
     let key = headers.get("idempotency-key").map(|v| v.as_bytes());
     let ingested = state.service.ingest(id, request, key).await?;
-    let mut answer = (
-        StatusCode::CREATED,
-        Json(render::trajectory_created(&ingested)),
-    )
-        .into_response();
-    if ingested.replayed {
-        answer
-            .headers_mut()
-            .insert("idempotent-replayed", HeaderValue::from_static("true"));
-    }
-    Ok(answer)
+    Ok(render::created(
+        render::trajectory_created(&ingested),
+        ingested.replayed,
+    ))
 }
 
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
