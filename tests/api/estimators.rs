@@ -28,20 +28,21 @@ fn small_budget() -> Limits {
     }
 }
 
-/// Polls `GET …/model` (up to 60 s) until `done` holds.
+/// Polls `GET …/model` (up to 180 s: fits run at a lower priority, and CI machines are shared)
+/// until `done` holds.
 async fn model_until(
     app: &super::helpers::TestApp,
     id: i64,
     done: impl Fn(&Value) -> bool,
 ) -> Value {
-    for _ in 0..3000 {
+    for _ in 0..9000 {
         let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
         if done(&model) {
             return model;
         }
         tokio::time::sleep(std::time::Duration::from_millis(20)).await;
     }
-    panic!("the model did not get there within 60 s");
+    panic!("the model did not get there within 180 s");
 }
 
 #[tokio::test]
@@ -102,11 +103,13 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
             .any(|l| l.starts_with("precond_fits_total") && l.contains("result=\"refused\"")),
         "{metrics}"
     );
-    // The same data with `auto`: the sparse GP takes the fit over.
+    // The same data with `auto`: the sparse GP takes the fit over. One kernel and one label
+    // cap, so the fit is the sparse GP's alone (choosing them would add five exact fits on the
+    // same 1600 points, a minute on a loaded debug build).
     let auto = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},
-            "mde": {"restarts": 0},
+            "mde": {"restarts": 0, "kernel": "matern52", "label_cap": 0},
             "learning": {"batch_size": 2}
         }))
         .await;
@@ -189,7 +192,10 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
     let mu = |j: &Value| j["results"][0]["mu"].as_f64().unwrap();
     let sigma = |j: &Value| j["results"][0]["sigma"].as_f64().unwrap();
     // The label there is 0.1: μ moves towards it and σ shrinks.
-    assert!(mu(&after) > mu(&before), "{before} → {after}");
+    assert!(
+        (mu(&after) - 0.1).abs() < (mu(&before) - 0.1).abs(),
+        "{before} → {after}"
+    );
     assert!(sigma(&after) < sigma(&before), "{before} → {after}");
     // After a restart the same version takes the same trajectory in again.
     let path = app.db_path.clone();
