@@ -183,6 +183,9 @@ class ExportedModel:
 
     def __init__(self, document: Mapping[str, Any]) -> None:
         d = document
+        if "error" in d and d.get("format") is None:
+            error = d["error"]
+            raise ValueError(f"not a model but the server's error: {error}")
         if d.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} document (format {d.get('format')!r})")
         if d.get("format_version") != FORMAT_VERSION:
