@@ -332,6 +332,20 @@ pub struct DiagnosticsQuery {
     pub beta: Option<f64>,
 }
 
+/// Query of `GET /v1/experiments/{id}/model/export`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ExportQuery {
+    /// The model version to export (1 or more); default the one answering now.
+    pub version: Option<i64>,
+}
+
+/// `GET /v1/experiments/{id}/model/export`: a fitted version as a self-contained, versioned
+/// document (`format: precond-model`, `format_version: 1`) — the same document a controller
+/// saves and evaluates (`precond::mde::ExportedModel::evaluate`, the Python client's
+/// `ExportedModel.evaluate`).
+pub type ModelExport = crate::mde::ExportedModel;
+
 /// The share of labels inside `μ ± zσ` against the nominal Gaussian share.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Coverage {

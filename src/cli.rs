@@ -72,6 +72,23 @@ pub enum BenchCommand {
     /// setting — kernel, noise model, label cap — and judges uniform held-out state-actions
     /// against their true deviations.
     Mde(MdeArgs),
+    /// The exported model's evaluator (`GET …/model/export`) against the server's own
+    /// prediction: time per point, largest differences of `μ` and `σ`, document size.
+    Export(ExportBenchArgs),
+}
+
+/// Options of `precond bench export`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ExportBenchArgs {
+    /// Training-set sizes of the exact GPs, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "100,500,2000")]
+    pub exact_sizes: Vec<usize>,
+    /// Training-set sizes of the sparse GPs.
+    #[arg(long, value_delimiter = ',', default_value = "5000")]
+    pub sparse_sizes: Vec<usize>,
+    /// Inducing points of the sparse GPs.
+    #[arg(long, default_value_t = 256)]
+    pub inducing: usize,
 }
 
 /// Options of `precond bench mde`.
@@ -518,6 +535,12 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 held_out: args.held_out,
             })
             .await
+        }
+        Command::Bench(BenchCommand::Export(args)) => {
+            tokio::task::spawn_blocking(move || {
+                crate::bench::export::run(&args.exact_sizes, &args.sparse_sizes, args.inducing)
+            })
+            .await?
         }
         Command::Bench(BenchCommand::Worlds(args)) => {
             tokio::task::spawn_blocking(move || {

@@ -3,8 +3,10 @@
 //! model served over HTTP ([`remote`]); `saturation` measures health checks and cheap reads
 //! while the planner is saturated; `worlds` characterises the continuous worlds (share of safe
 //! state-actions, the oracle and the baseline on random problems); `mde` refits a run's
-//! training data under each MDE setting and judges a continuous world's true deviations.
+//! training data under each MDE setting and judges a continuous world's true deviations;
+//! `export` times the exported model's evaluator against the server's prediction path.
 
+pub mod export;
 pub mod gp;
 pub mod mde;
 pub mod planning;

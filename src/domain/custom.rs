@@ -9,7 +9,7 @@
 //! the unit box of the state bounds, so that components in different units compare).
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
-use super::{Space, check_magnitudes, euclidean, uniform_between};
+use super::{FeatureMap, Space, check_magnitudes, euclidean, uniform_between};
 use crate::limits::MAX_MAGNITUDE;
 use rand::RngCore;
 use rand::seq::IndexedRandom;
@@ -298,6 +298,18 @@ impl Domain for CustomDomain {
             .map(|&i| unit(&p.state, s, i))
             .chain(p.feature_action.iter().map(|&i| unit(&p.action, a, i)))
             .collect()
+    }
+
+    fn feature_map(&self) -> FeatureMap {
+        let p = &self.params;
+        FeatureMap::UnitBox {
+            state_low: p.state.low.clone(),
+            state_high: p.state.high.clone(),
+            action_low: p.action.low.clone(),
+            action_high: p.action.high.clone(),
+            state_components: p.feature_state.clone(),
+            action_components: p.feature_action.clone(),
+        }
     }
 
     fn feature_names(&self) -> Vec<String> {

@@ -2,7 +2,10 @@
 //! planning helpers. The true dynamics (ice reverses x-moves, obstacles block) live in
 //! `crate::sim::gridworld`.
 
-use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, euclidean};
+use super::{
+    BOUND_TOLERANCE, Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space,
+    euclidean,
+};
 use rand::{Rng, RngCore};
 
 /// The default layout: 12×12, an obstacle wall across row 6 with a two-cell gap at x = 5..6,
@@ -281,7 +284,15 @@ impl Domain for IcyGridworld {
                 .chain(self.action_space.to_unit(a))
                 .collect(),
             GridFeatures::PerMove => {
-                let k = MOVES.iter().position(|m| m[..] == a[..]).unwrap_or(0);
+                // The move the action is, within the slack the action space allows it.
+                let k = MOVES
+                    .iter()
+                    .position(|m| {
+                        m.iter()
+                            .zip(a)
+                            .all(|(p, q)| (p - q).abs() <= BOUND_TOLERANCE)
+                    })
+                    .unwrap_or(0);
                 let mut f = vec![0.0; 3 * MOVES.len()];
                 for (i, u) in self.state_space.to_unit(s).enumerate() {
                     f[2 * k + i] = u;
@@ -289,6 +300,26 @@ impl Domain for IcyGridworld {
                 f[2 * MOVES.len() + k] = 1.0;
                 f
             }
+        }
+    }
+
+    fn feature_map(&self) -> FeatureMap {
+        let state = &self.state_space;
+        match self.feature_map {
+            GridFeatures::Scaled => FeatureMap::UnitBox {
+                state_low: state.low.clone(),
+                state_high: state.high.clone(),
+                action_low: self.action_space.low.clone(),
+                action_high: self.action_space.high.clone(),
+                state_components: vec![0, 1],
+                action_components: vec![0, 1],
+            },
+            GridFeatures::PerMove => FeatureMap::PerMove {
+                state_low: state.low.clone(),
+                state_high: state.high.clone(),
+                moves: MOVES.iter().map(|m| m.to_vec()).collect(),
+                tolerance: BOUND_TOLERANCE,
+            },
         }
     }
 

@@ -3,8 +3,8 @@
 //! axis-aligned box obstacles for the approximate collision check; a goal is a state with a radius.
 
 use super::{
-    Domain, DomainError, DynamicsModel, LocalModel, Problem, Space, check_magnitudes, euclidean,
-    uniform_between,
+    Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space, check_magnitudes,
+    euclidean, uniform_between,
 };
 use crate::limits::MAX_MAGNITUDE;
 use rand::RngCore;
@@ -302,6 +302,17 @@ impl Domain for Kinematic {
             .to_unit(s)
             .chain(self.action_space.to_unit(a))
             .collect()
+    }
+
+    fn feature_map(&self) -> FeatureMap {
+        FeatureMap::UnitBox {
+            state_low: self.state_space.low.clone(),
+            state_high: self.state_space.high.clone(),
+            action_low: self.action_space.low.clone(),
+            action_high: self.action_space.high.clone(),
+            state_components: (0..self.state_space.dim()).collect(),
+            action_components: (0..self.action_space.dim()).collect(),
+        }
     }
 
     fn feature_names(&self) -> Vec<String> {

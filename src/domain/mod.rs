@@ -10,12 +10,14 @@
 
 pub mod custom;
 pub mod dynamics;
+pub mod features;
 mod gridworld;
 mod kinematic;
 pub mod water_plant;
 
 pub use custom::{ClientModel, CustomDomain, CustomParams, LinearModel};
 pub use dynamics::{DynamicsError, DynamicsModel, LocalModel, Predicted};
+pub use features::FeatureMap;
 pub use gridworld::{Cell, DEFAULT_MAP, GridFeatures, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
 pub use water_plant::WaterPlant;
@@ -252,6 +254,10 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
 
     /// Names of the feature components (for reports and plots).
     fn feature_names(&self) -> Vec<String>;
+
+    /// The feature map as data, for programs that compute `φ(s, a)` themselves (the exported
+    /// model): its [`FeatureMap::features`] must equal [`features`](Self::features).
+    fn feature_map(&self) -> FeatureMap;
 
     /// Checks that `s` is a state of this domain.
     fn validate_state(&self, s: &[f64]) -> Result<(), DomainError> {

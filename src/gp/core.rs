@@ -4,6 +4,7 @@
 use faer::Par;
 
 use super::GpError;
+use super::export::{self, GpPredictor};
 use super::kernel::{self, Inputs, Kernel};
 use super::linalg;
 use super::lml::{self, Jitter};
@@ -79,6 +80,23 @@ impl Core {
             alpha: fac.alpha,
             lml,
         })
+    }
+
+    /// This GP as plain numbers, with `x` its training inputs (unscaled): `α` as the weights
+    /// and, `with_variance`, `L⁻¹` as the factor.
+    pub fn predictor(&self, x: &Inputs, with_variance: bool) -> GpPredictor {
+        let n = self.n;
+        GpPredictor {
+            kernel: self.kernel,
+            length_scales: self.length_scales.clone(),
+            signal_variance: self.s2,
+            prior_mean: self.mean,
+            points: export::rows(x),
+            weights: self.alpha.clone(),
+            factor: (with_variance && self.linv.len() == n * n)
+                .then(|| export::pack_lower_row_major(&self.linv, n)),
+            correction: None,
+        }
     }
 
     /// Frees `L⁻¹` (n² floats) when only means will be asked for (the noise GP); variances

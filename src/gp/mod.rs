@@ -9,6 +9,8 @@
 //!   its maximisation over log-parameters by projected L-BFGS under box bounds, from seeded starts.
 //! - [`hetero`]: the heteroscedastic noise procedure.
 //! - [`model`]: [`GpModel`] — fit, rebuild from a [`ModelState`], batched prediction.
+//! - [`export`]: a fitted GP as plain numbers ([`Predictor`]) that a program outside this
+//!   crate evaluates itself.
 //! - [`cost`]: a fit's peak memory and work, estimated before it allocates ([`exact_fit_cost`],
 //!   [`sparse_fit_cost`]), so a server can refuse an exact fit over its budget.
 //! - [`sparse`]: [`SparseGp`] — the sparse variational GP (SGPR/VFE, `m` inducing points) for
@@ -33,6 +35,7 @@
 mod core;
 pub mod cost;
 mod error;
+pub mod export;
 mod fit;
 pub mod hetero;
 mod kernel;
@@ -49,6 +52,7 @@ use serde::{Deserialize, Serialize};
 
 pub use cost::{FitCost, exact_fit_cost, sparse_fit_cost};
 pub use error::GpError;
+pub use export::{GpPredictor, NoisePredictor, PointPrediction, Predictor};
 pub use kernel::Kernel;
 pub use model::GpModel;
 pub use params::{Bounds, GpParams, NoiseMode, ValidGpParams};

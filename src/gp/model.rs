@@ -3,6 +3,7 @@
 use nalgebra::{DMatrix, DVector};
 
 use super::core::{Core, mean};
+use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
 use super::kernel::Inputs;
@@ -399,6 +400,26 @@ impl GpModel {
             }
         }
         Some(out)
+    }
+
+    /// The fitted GP as plain numbers ([`Predictor`]): the training inputs, `α`, the cached
+    /// `L⁻¹` and the noise (the noise GP's inputs and `α` in heteroscedastic mode). `O(n²)`
+    /// numbers.
+    pub fn predictor(&self) -> Predictor {
+        let noise = match &self.noise_model {
+            None => NoisePredictor::Homoscedastic {
+                noise_variance: self.hyper.noise_variance,
+            },
+            Some(nm) => NoisePredictor::Heteroscedastic {
+                log_noise: nm.core.predictor(&self.x, false),
+                noise_variance_min: nm.clip.0,
+                noise_variance_max: nm.clip.1,
+            },
+        };
+        Predictor {
+            main: self.main.predictor(&self.x, true),
+            noise,
+        }
     }
 
     /// Number of training points.

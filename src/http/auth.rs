@@ -385,6 +385,12 @@ cccccccccccccccccccc admin *
                 listing: false,
             }
         );
+        let r = need(
+            Method::GET,
+            "/v1/experiments/{id}/model/export",
+            "/v1/experiments/7/model/export",
+        );
+        assert_eq!((r.role, r.experiment), (Role::Read, Some(Some(7))));
         let r = need(Method::POST, "/v1/experiments", "/v1/experiments");
         assert_eq!((r.role, r.experiment), (Role::Admin, None));
         let r = need(

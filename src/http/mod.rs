@@ -203,6 +203,11 @@ pub fn routes() -> Vec<Route> {
         route(M::GET, "/v1/experiments/{id}/model", get(model::get_model)),
         route(
             M::GET,
+            "/v1/experiments/{id}/model/export",
+            get(model::export_model),
+        ),
+        route(
+            M::GET,
             "/v1/experiments/{id}/model/diagnostics",
             get(inspection::get_model_diagnostics),
         ),

@@ -1,11 +1,14 @@
-//! `/v1/experiments/{id}/model` and `/precondition`: the MDE version answering, a forced refit,
-//! and "is this state-action trusted?".
+//! `/v1/experiments/{id}/model` and `/precondition`: the MDE version answering, its export, a
+//! forced refit, and "is this state-action trusted?".
 
 use super::AppState;
 use super::error::{ApiError, ApiResult};
 use super::extract::{ApiJson, ApiPath, ApiQuery};
 use super::render;
-use crate::api::{ModelResponse, Point, PointQuery, PreconditionRequest, PreconditionResponse};
+use crate::api::{
+    ExportQuery, ModelExport, ModelResponse, Point, PointQuery, PreconditionRequest,
+    PreconditionResponse,
+};
 use crate::service::Error;
 use axum::Json;
 use axum::extract::State;
@@ -17,6 +20,16 @@ pub async fn get_model(
     ApiPath(id): ApiPath<i64>,
 ) -> ApiResult<Json<ModelResponse>> {
     Ok(Json(render::model(state.service.model(id).await?)))
+}
+
+/// `GET /v1/experiments/{id}/model/export?version=`: a fitted version as a document a
+/// controller evaluates itself; `409` for the prior.
+pub async fn export_model(
+    State(state): State<AppState>,
+    ApiPath(id): ApiPath<i64>,
+    ApiQuery(query): ApiQuery<ExportQuery>,
+) -> ApiResult<Json<ModelExport>> {
+    Ok(Json(state.service.export_model(id, query.version).await?))
 }
 
 /// `POST /v1/experiments/{id}/model/refit`: fit now on every stored transition and answer with

@@ -13,7 +13,7 @@
 
 use crate::gp::{
     FitCost, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
-    NoiseSummary, Prediction, SparseGp, SparseParams, SparseState, ValidGpParams,
+    NoiseSummary, Prediction, Predictor, SparseGp, SparseParams, SparseState, ValidGpParams,
     ValidSparseParams, exact_fit_cost, sparse_fit_cost,
 };
 use nalgebra::{DMatrix, DVector};
@@ -107,6 +107,9 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     fn noise_summary(&self) -> Option<NoiseSummary>;
     /// Batched predictions.
     fn predict(&self, x: &DMatrix<f64>) -> Prediction;
+    /// The fitted regressor as plain numbers, for evaluation outside the server
+    /// ([`ExportedModel`](super::ExportedModel)).
+    fn predictor(&self) -> Predictor;
     /// `(y_i − μ₋ᵢ, σ₋ᵢ)` of each training point predicted from the others, where the
     /// regressor has it in closed form (`None` otherwise).
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>>;
@@ -259,6 +262,9 @@ impl Regressor for GpModel {
     fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         GpModel::predict(self, x)
     }
+    fn predictor(&self) -> Predictor {
+        GpModel::predictor(self)
+    }
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         GpModel::leave_one_out(self)
     }
@@ -301,6 +307,9 @@ impl Regressor for SparseGp {
     }
     fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         SparseGp::predict(self, x)
+    }
+    fn predictor(&self) -> Predictor {
+        SparseGp::predictor(self)
     }
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         None

@@ -4,16 +4,20 @@
 //! - [`estimator`]: the seam — the [`Regressor`] trait every fitted estimator answers through
 //!   (the exact GP, the sparse GP), [`fit`], the stored [`EstimatorState`], and the
 //!   `mde.estimator` choice ([`EstimatorChoice`]).
+//! - [`export`]: a fitted version as a self-contained document a controller evaluates itself
+//!   ([`ExportedModel`]).
 //! - [`labels`]: how deviations become training labels ([`capped_labels`]), with the cap chosen
 //!   per fit from held-out judgements ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
 
 pub mod estimator;
+pub mod export;
 pub mod labels;
 
 pub use estimator::{
     AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorState, Regressor,
     fit,
 };
+pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use labels::{
     CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial, best_kernel,
     blocks, capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,

@@ -8,6 +8,7 @@ mod dashboard;
 mod estimators;
 mod executions;
 mod experiments;
+mod export;
 mod generalisation;
 mod helpers;
 mod import;

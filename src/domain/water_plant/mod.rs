@@ -59,7 +59,7 @@
 //! Goal: `[v]`, the volume wanted in the target (`0 < v ≤ 1`; problems use `[1.0]`). A state is a
 //! goal when the target holds at least `0.98 v` and at most `0.02 v` has been spilled.
 
-use super::{Domain, DomainError, DynamicsModel, LocalModel, Problem, Space};
+use super::{Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space};
 use rand::{Rng, RngCore};
 use std::f64::consts::PI;
 
@@ -375,6 +375,16 @@ impl Domain for WaterPlant {
             .map(|v| v.clamp(0.0, 1.0))
             .chain(std::iter::once(if rotates { 1.0 } else { 0.0 }))
             .collect()
+    }
+
+    fn feature_map(&self) -> FeatureMap {
+        FeatureMap::ActionAndRotation {
+            action_low: self.action_space.low.clone(),
+            action_high: self.action_space.high.clone(),
+            state_angle: SRC_THETA,
+            action_angle: 2,
+            tolerance: MOTION_TOLERANCE,
+        }
     }
 
     fn feature_names(&self) -> Vec<String> {

@@ -4,6 +4,7 @@
 
 use faer::Par;
 
+use super::super::export::{self, GpPredictor};
 use super::super::kernel::{self, Inputs, Kernel, build_train, cross_seq};
 use super::super::linalg;
 use super::super::{GpError, Hyperparameters};
@@ -520,6 +521,35 @@ impl SparseCore {
             .map(|(a, b)| (self.s2 - a + b).clamp(0.0, self.s2))
             .collect();
         (mean, var)
+    }
+
+    /// This GP as plain numbers: the inducing inputs, `w` as the weights and, `with_variance`,
+    /// `F = L⁻¹` and `C = L_B⁻¹ L⁻¹` (explicit inverses of the triangles [`predict`](Self::predict)
+    /// solves with), so that the latent variance is `s² − ‖F k‖² + ‖C k‖²`.
+    pub fn predictor(&self, with_variance: bool) -> GpPredictor {
+        let m = self.m;
+        let (factor, correction) = if with_variance {
+            let mut f = vec![0.0; m * m];
+            linalg::invert_lower(&self.l, m, &mut f);
+            let mut c = f.clone();
+            linalg::solve_lower_in_place(&self.lb, m, &mut c, m, Par::Seq);
+            (
+                Some(export::pack_lower_col_major(&f, m)),
+                Some(export::pack_lower_col_major(&c, m)),
+            )
+        } else {
+            (None, None)
+        };
+        GpPredictor {
+            kernel: self.kernel,
+            length_scales: self.length_scales.clone(),
+            signal_variance: self.s2,
+            prior_mean: self.mean,
+            points: export::rows(&self.z),
+            weights: self.w.clone(),
+            factor,
+            correction,
+        }
     }
 
     /// The hyperparameters with the given noise figure.

@@ -6,6 +6,7 @@ use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
 use super::super::core::mean;
+use super::super::export::{NoisePredictor, Predictor};
 use super::super::fit::{self, Optimum, Warm, default_start, optimise_with};
 use super::super::hetero::log_residual_bias;
 use super::super::kernel::{Inputs, Kernel};
@@ -806,6 +807,25 @@ impl SparseGp {
         }
         check_finite_matrix(x, "query x")?;
         Ok(self.predict(x))
+    }
+
+    /// The fitted GP as plain numbers ([`Predictor`]): inducing inputs, `w`, the inverses of
+    /// the two triangles its variance solves with, and the noise. `O(m²)` numbers.
+    pub fn predictor(&self) -> Predictor {
+        let noise = match &self.noise_model {
+            None => NoisePredictor::Homoscedastic {
+                noise_variance: self.hyper.noise_variance,
+            },
+            Some(nm) => NoisePredictor::Heteroscedastic {
+                log_noise: nm.core.predictor(false),
+                noise_variance_min: nm.clip.0,
+                noise_variance_max: nm.clip.1,
+            },
+        };
+        Predictor {
+            main: self.main.predictor(true),
+            noise,
+        }
     }
 
     /// The state to store; [`from_state`](Self::from_state) rebuilds this model from it alone

@@ -164,6 +164,11 @@ const ENTRIES: &[Entry] = &[
     entry::<HeldOutTrust>("HeldOutTrust", Response),
     entry::<api::FitRefusalView>("FitRefusal", Response),
     entry::<precond::mde::KernelTrial>("KernelTrial", Response),
+    entry::<api::ModelExport>("ModelExport", Response),
+    entry::<precond::domain::FeatureMap>("FeatureMap", Response),
+    entry::<precond::gp::Predictor>("Predictor", Response),
+    entry::<precond::gp::GpPredictor>("GpPredictor", Response),
+    entry::<precond::gp::NoisePredictor>("NoisePredictor", Response),
     entry::<api::RejectionCounts>("RejectionCounts", Response),
     // precondition
     entry::<api::Point>("PointRequest", Request),
@@ -237,6 +242,12 @@ const REACHED: &[&str] = &[
     "ClientModelSpec",
     "ResolvedRemoteModelSpec",
     "ResolvedLinearModelSpec",
+    // the variants of FeatureMap and NoisePredictor (a model export's)
+    "UnitBoxFeatureMap",
+    "PerMoveFeatureMap",
+    "ActionAndRotationFeatureMap",
+    "HomoscedasticNoise",
+    "HeteroscedasticNoise",
 ];
 
 /// Spec schemas no Rust type describes, each with the reason.
@@ -280,6 +291,7 @@ const QUERIES: &[Query] = &[
     query::<api::TransitionsQuery>("get", "/v1/experiments/{id}/transitions"),
     query::<api::PageQuery>("get", "/v1/experiments/{id}/runs"),
     query::<api::DiagnosticsQuery>("get", "/v1/experiments/{id}/model/diagnostics"),
+    query::<api::ExportQuery>("get", "/v1/experiments/{id}/model/export"),
     query::<api::PointQuery>("get", "/v1/experiments/{id}/precondition"),
     query::<api::MapQuery>("get", "/v1/experiments/{id}/precondition/map"),
 ];

@@ -7,6 +7,8 @@
 - :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
   logged data (CSV, Parquet, LeRobot v3, Minari) into an experiment, idempotently
   (:mod:`precond_client.imports`).
+- :meth:`Client.export_model` — a fitted model as an :class:`ExportedModel` that evaluates the
+  precondition with numpy alone, inside a control loop (:mod:`precond_client.export`).
 - :mod:`precond_client.errors` — the server's errors as exceptions with ``code``, ``message``
   and ``details``.
 """
@@ -39,6 +41,7 @@ from .errors import (
     UnsupportedMediaType,
     ValidationFailed,
 )
+from .export import ExportedModel
 from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
 from .models import (
@@ -82,6 +85,7 @@ __all__ = [
     "Episode",
     "Experiment",
     "ExperimentMismatch",
+    "ExportedModel",
     "FitRefusal",
     "Forbidden",
     "HeldOutTrust",

@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import errors
+from .export import ExportedModel
 from .models import (
     Candidate,
     Continued,
@@ -622,6 +623,15 @@ class Client:
     def model(self) -> Model:
         """The MDE version answering queries."""
         return Model.from_json(self._request("GET", self._path("/model")).json())
+
+    def export_model(self, version: int | None = None) -> ExportedModel:
+        """The answering model version (or ``version``) exported as a self-contained document,
+        read into an :class:`~precond_client.export.ExportedModel` that evaluates ``μ``, ``σ``
+        and the precondition with numpy alone (and saves to a JSON file for the robot).
+        Raises :class:`~precond_client.errors.Conflict` while the prior answers."""
+        params = None if version is None else {"version": int(version)}
+        r = self._request("GET", self._path("/model/export"), params=params)
+        return ExportedModel.from_json(r.json())
 
     def refit(self) -> Model:
         """Fits the MDE now on everything stored and returns the new version. A fit that

@@ -1,0 +1,292 @@
+"""An exported model (``GET /v1/experiments/{id}/model/export``), evaluated with numpy alone:
+the precondition inside a robot's control loop, without a round trip to the server.
+
+:class:`ExportedModel` reads the ``precond-model`` document (format version 1) — the domain's
+feature map ``φ(s, a)``, the fitted GP as plain numbers and ``d_max`` — and answers ``μ`` and
+``σ`` as ``POST /precondition`` does (to about 1e-12 relative; see the server's
+``GpPredictor`` schema for the formulas), batched::
+
+    model = client.export_model()
+    model.save("mde.json")                     # later, on the robot: ExportedModel.load(...)
+    mu, sigma = model.evaluate(states, actions)
+    ok = model.inside(states, actions, beta=2.0)
+
+It is not a dataclass of :mod:`precond_client.models`, whose wire rules
+(``tests/test_wire.py``) bind a class's fields to a schema's properties one to one: this class
+holds numpy arrays derived from the document (the scaled points, the unpacked triangular
+factors) rather than its properties, and the document is also a file format it writes back
+unchanged (``raw``). ``tests/test_export.py`` checks instead that the keys it reads are exactly
+the properties of the spec's ``ModelExport`` schemas.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+Array = NDArray[np.float64]
+
+FORMAT = "precond-model"
+"""The document's ``format``."""
+FORMAT_VERSION = 1
+"""The ``format_version`` this reader knows."""
+
+_FAR_R2 = 9.0e4
+"""Squared scaled distance beyond which the server's kernels are exactly 0 (``r = 300``)."""
+
+_CHUNK = 2048
+"""Query points per block (bounds the ``chunk × n × d`` distance array)."""
+
+
+def _vec(v: Any) -> Array:
+    return np.asarray(v, dtype=np.float64).reshape(-1)
+
+
+def _rows(v: ArrayLike, dim: int, what: str) -> Array:
+    a = np.asarray(v, dtype=np.float64)
+    if a.ndim == 1:
+        a = a.reshape(1, -1)
+    if a.ndim != 2 or a.shape[1] != dim:
+        raise ValueError(f"{what}: expected rows of {dim} components, got shape {a.shape}")
+    return a
+
+
+def _unit(v: Array, low: Array, high: Array) -> Array:
+    """``(v − low) / (high − low)``, 0 where the bounds coincide (as the server's ``to_unit``)."""
+    width = high - low
+    ok = width > 0
+    return np.where(ok, (v - low) / np.where(ok, width, 1.0), 0.0)
+
+
+class _Gp:
+    """One GP of the document (``GpPredictor``): mean and latent variance at feature rows."""
+
+    def __init__(self, d: Mapping[str, Any]) -> None:
+        self.kernel = str(d["kernel"])
+        if self.kernel not in ("matern12", "matern32", "matern52"):
+            raise ValueError(f"unknown kernel {self.kernel!r}")
+        self.inv_length = 1.0 / _vec(d["length_scales"])
+        self.s2 = float(d["signal_variance"])
+        self.prior_mean = float(d["prior_mean"])
+        points = np.asarray(d["points"], dtype=np.float64)
+        n = len(points)
+        if points.ndim != 2 or points.shape[1] != len(self.inv_length):
+            raise ValueError(f"points: expected rows of {len(self.inv_length)} features")
+        self.points = points * self.inv_length
+        self.weights = _vec(d["weights"])
+        if self.weights.shape != (n,):
+            raise ValueError(f"weights: expected {n} numbers")
+        self.factor = self._triangle(d["factor"], n, "factor")
+        self.correction = self._triangle(d["correction"], n, "correction")
+
+    @staticmethod
+    def _triangle(packed: Any, n: int, what: str) -> Array | None:
+        if packed is None:
+            return None
+        p = _vec(packed)
+        if len(p) != n * (n + 1) // 2:
+            raise ValueError(f"{what}: expected {n * (n + 1) // 2} numbers, got {len(p)}")
+        m = np.zeros((n, n))
+        m[np.tril_indices(n)] = p  # packed by rows: (0,0), (1,0), (1,1), (2,0), …
+        return m
+
+    @property
+    def dim(self) -> int:
+        return len(self.inv_length)
+
+    def kernel_matrix(self, x: Array) -> Array:
+        """``k(x_j, p_i)`` for feature rows ``x`` (``N × n``)."""
+        diff = self.points[None, :, :] - (x * self.inv_length)[:, None, :]
+        r2 = np.einsum("jik,jik->ji", diff, diff)
+        if self.kernel == "matern12":
+            t = np.sqrt(r2)
+            k = self.s2 * np.exp(-t)
+        elif self.kernel == "matern32":
+            t = math.sqrt(3.0) * np.sqrt(r2)
+            k = self.s2 * (1.0 + t) * np.exp(-t)
+        else:
+            t = math.sqrt(5.0) * np.sqrt(r2)
+            k = self.s2 * (1.0 + t + (5.0 / 3.0) * r2) * np.exp(-t)
+        return np.where(r2 > _FAR_R2, 0.0, k)
+
+    def mean_and_variance(self, x: Array, want_var: bool = True) -> tuple[Array, Array | None]:
+        k = self.kernel_matrix(x)
+        mean = self.prior_mean + k @ self.weights
+        if not want_var or self.factor is None:
+            return mean, None
+        t = k @ self.factor.T
+        var = self.s2 - np.einsum("ji,ji->j", t, t)
+        if self.correction is not None:
+            c = k @ self.correction.T
+            var = var + np.einsum("ji,ji->j", c, c)
+        return mean, np.clip(var, 0.0, self.s2)
+
+
+class _FeatureMap:
+    """The document's ``feature_map``, parsed once: ``φ(s, a)`` for rows of states and actions."""
+
+    def __init__(self, m: Mapping[str, Any], state_dim: int, action_dim: int) -> None:
+        self.kind = str(m["kind"])
+        if self.kind == "unit_box":
+            self.low = _vec(m["state_low"]), _vec(m["action_low"])
+            self.high = _vec(m["state_high"]), _vec(m["action_high"])
+            self.components = (
+                [int(i) for i in m["state_components"]],
+                [int(i) for i in m["action_components"]],
+            )
+            if len(self.low[0]) != state_dim or len(self.low[1]) != action_dim:
+                raise ValueError("feature_map: bounds do not match state_dim and action_dim")
+        elif self.kind == "per_move":
+            self.low = _vec(m["state_low"]), np.zeros(0)
+            self.high = _vec(m["state_high"]), np.zeros(0)
+            self.moves = np.asarray(m["moves"], dtype=np.float64)
+            self.tolerance = float(m["tolerance"])
+            if self.moves.ndim != 2 or self.moves.shape[1] != action_dim:
+                raise ValueError(f"feature_map.moves: rows of {action_dim} numbers")
+        elif self.kind == "action_and_rotation":
+            self.low = np.zeros(0), _vec(m["action_low"])
+            self.high = np.zeros(0), _vec(m["action_high"])
+            self.angles = int(m["state_angle"]), int(m["action_angle"])
+            self.tolerance = float(m["tolerance"])
+        else:
+            raise ValueError(f"unknown feature map {self.kind!r}")
+
+    def __call__(self, s: Array, a: Array) -> Array:
+        if self.kind == "unit_box":
+            fs = _unit(s, self.low[0], self.high[0])[:, self.components[0]]
+            fa = _unit(a, self.low[1], self.high[1])[:, self.components[1]]
+            return np.hstack([fs, fa])
+        if self.kind == "per_move":
+            k_moves = len(self.moves)
+            near = np.all(np.abs(self.moves[None, :, :] - a[:, None, :]) <= self.tolerance, axis=2)
+            k = np.where(near.any(axis=1), near.argmax(axis=1), 0)
+            out = np.zeros((len(s), 3 * k_moves))
+            rows = np.arange(len(s))
+            unit = _unit(s, self.low[0], self.high[0])
+            for i in range(min(2, unit.shape[1])):
+                out[rows, 2 * k + i] = unit[:, i]
+            out[rows, 2 * k_moves + k] = 1.0
+            return out
+        fa = np.clip(_unit(a, self.low[1], self.high[1]), 0.0, 1.0)
+        rotates = np.abs(a[:, self.angles[1]] - s[:, self.angles[0]]) > self.tolerance
+        return np.hstack([fa, rotates.astype(np.float64)[:, None]])
+
+
+class ExportedModel:
+    """A fitted MDE version read from its exported document; see the module documentation."""
+
+    def __init__(self, document: Mapping[str, Any]) -> None:
+        d = document
+        if "error" in d and d.get("format") is None:
+            error = d["error"]
+            raise ValueError(f"not a model but the server's error: {error}")
+        if d.get("format") != FORMAT:
+            raise ValueError(f"not a {FORMAT} document (format {d.get('format')!r})")
+        if d.get("format_version") != FORMAT_VERSION:
+            raise ValueError(
+                f"format_version {d.get('format_version')!r} is not supported "
+                f"(this client reads {FORMAT_VERSION}); upgrade precond-client"
+            )
+        self.raw: dict[str, Any] = dict(d)
+        """The document as read (what :meth:`save` writes)."""
+        self.experiment_id = int(d["experiment_id"])
+        self.model_version = int(d["model_version"])
+        self.estimator = str(d["estimator"])
+        """``exact`` or ``sparse``."""
+        self.n_train = int(d["n_train"])
+        self.d_max = float(d["d_max"])
+        self.test_beta = float(d["test_beta"])
+        """The experiment's test β, the default of :meth:`inside`."""
+        self.state_dim = int(d["state_dim"])
+        self.action_dim = int(d["action_dim"])
+        self.feature_names = [str(n) for n in d["feature_names"]]
+        self._map = _FeatureMap(d["feature_map"], self.state_dim, self.action_dim)
+        predictor = d["predictor"]
+        self._main = _Gp(predictor["main"])
+        noise = predictor["noise"]
+        self._noise_kind = str(noise["kind"])
+        if self._noise_kind == "homoscedastic":
+            self._noise_variance = float(noise["noise_variance"])
+            self._log_noise: _Gp | None = None
+        elif self._noise_kind == "heteroscedastic":
+            self._log_noise = _Gp(noise["log_noise"])
+            self._noise_clip = (
+                float(noise["noise_variance_min"]),
+                float(noise["noise_variance_max"]),
+            )
+        else:
+            raise ValueError(f"unknown noise kind {self._noise_kind!r}")
+        if self._main.factor is None:
+            raise ValueError("predictor.main.factor: the main GP needs its variance factor")
+        if len(self.feature_names) != self._main.dim:
+            raise ValueError(
+                f"{len(self.feature_names)} feature names for {self._main.dim} features"
+            )
+
+    @classmethod
+    def from_json(cls, document: Mapping[str, Any]) -> ExportedModel:
+        """Reads the parsed JSON document."""
+        return cls(document)
+
+    def save(self, path: str | Path) -> None:
+        """Writes the document as JSON (floats round-trip exactly)."""
+        Path(path).write_text(json.dumps(self.raw), encoding="utf-8")
+
+    @classmethod
+    def load(cls, path: str | Path) -> ExportedModel:
+        """Reads a document written by :meth:`save` (or saved from the endpoint)."""
+        return cls(json.loads(Path(path).read_text(encoding="utf-8")))
+
+    def features(self, states: ArrayLike, actions: ArrayLike) -> Array:
+        """``φ(s, a)`` per row, ``(N, D)``, exactly as the server computes it."""
+        s = _rows(states, self.state_dim, "states")
+        a = _rows(actions, self.action_dim, "actions")
+        if len(s) != len(a):
+            raise ValueError(f"{len(s)} states for {len(a)} actions")
+        return self._map(s, a)
+
+    def evaluate(self, states: ArrayLike, actions: ArrayLike) -> tuple[Array, Array]:
+        """``(μ, σ)`` per row of ``states`` ``(N, n)`` and ``actions`` ``(N, m)`` (one row
+        each may be a plain vector); ``σ`` includes the noise, as the server's."""
+        x = self.features(states, actions)
+        mu = np.empty(len(x))
+        sigma = np.empty(len(x))
+        for lo in range(0, len(x), _CHUNK):
+            xc = x[lo : lo + _CHUNK]
+            mean, var = self._main.mean_and_variance(xc)
+            assert var is not None
+            if self._log_noise is None:
+                noise = np.full(len(xc), self._noise_variance)
+            else:
+                z, _ = self._log_noise.mean_and_variance(xc, want_var=False)
+                noise = np.clip(np.exp(z), *self._noise_clip)
+            mu[lo : lo + len(xc)] = mean
+            sigma[lo : lo + len(xc)] = np.sqrt(var + noise)
+        return mu, sigma
+
+    def upper(self, states: ArrayLike, actions: ArrayLike, beta: float | None = None) -> Array:
+        """``μ + βσ`` per row (``beta`` default :attr:`test_beta`)."""
+        mu, sigma = self.evaluate(states, actions)
+        b = self.test_beta if beta is None else float(beta)
+        upper: Array = mu + b * sigma
+        return upper
+
+    def inside(
+        self, states: ArrayLike, actions: ArrayLike, beta: float | None = None
+    ) -> NDArray[np.bool_]:
+        """Whether each row lies in the precondition ``μ + βσ < d_max`` (NaN: outside)."""
+        inside: NDArray[np.bool_] = self.upper(states, actions, beta) < self.d_max
+        return inside
+
+    def __repr__(self) -> str:
+        return (
+            f"ExportedModel(experiment {self.experiment_id}, version {self.model_version}, "
+            f"{self.estimator}, {self._main.points.shape[0]} points, "
+            f"{self._noise_kind} noise, d_max={self.d_max})"
+        )

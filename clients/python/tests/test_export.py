@@ -1,0 +1,225 @@
+"""The exported model: the document :class:`ExportedModel` reads is the spec's ``ModelExport``
+(every key it reads is a property, every required property is read), and — against the real
+server — its numpy evaluation answers what ``POST /precondition`` answers, to 1e-9."""
+
+from __future__ import annotations
+
+import copy
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from conftest import PrecondServer
+from test_wire import spec
+
+from precond_client import Client, Conflict, ExportedModel
+
+MakeServer = Callable[..., PrecondServer]
+
+
+def gp(n: int, d: int, *, variance: bool, correction: bool = False) -> dict[str, Any]:
+    rng = np.random.default_rng(n)
+    tri = [float(v) for v in rng.uniform(0.1, 0.5, n * (n + 1) // 2)]
+    return {
+        "kernel": "matern52",
+        "length_scales": [0.5] * d,
+        "signal_variance": 0.3,
+        "prior_mean": 0.01,
+        "points": rng.uniform(0, 1, (n, d)).tolist(),
+        "weights": rng.normal(size=n).tolist(),
+        "factor": tri if variance else None,
+        "correction": tri if correction else None,
+    }
+
+
+def documents() -> Iterator[dict[str, Any]]:
+    """Small valid documents, one per feature map and noise kind."""
+    base: dict[str, Any] = {
+        "format": "precond-model",
+        "format_version": 1,
+        "experiment_id": 1,
+        "model_version": 2,
+        "estimator": "exact",
+        "n_train": 3,
+        "d_max": 0.1,
+        "test_beta": 2.0,
+        "state_dim": 2,
+        "action_dim": 2,
+        "feature_names": ["x", "y", "dx", "dy"],
+        "feature_map": {
+            "kind": "unit_box",
+            "state_low": [0, 0],
+            "state_high": [1, 1],
+            "action_low": [-0.1, -0.1],
+            "action_high": [0.1, 0.1],
+            "state_components": [0, 1],
+            "action_components": [0, 1],
+        },
+        "predictor": {
+            "main": gp(3, 4, variance=True),
+            "noise": {"kind": "homoscedastic", "noise_variance": 1e-4},
+        },
+    }
+    yield base
+    hetero = copy.deepcopy(base)
+    hetero["estimator"] = "sparse"
+    hetero["predictor"] = {
+        "main": gp(3, 4, variance=True, correction=True),
+        "noise": {
+            "kind": "heteroscedastic",
+            "log_noise": gp(2, 4, variance=False),
+            "noise_variance_min": 1e-6,
+            "noise_variance_max": 1.0,
+        },
+    }
+    yield hetero
+    grid = copy.deepcopy(base)
+    grid["feature_names"] = [f"f{i}" for i in range(12)]
+    grid["feature_map"] = {
+        "kind": "per_move",
+        "state_low": [0, 0],
+        "state_high": [11, 11],
+        "moves": [[1, 0], [-1, 0], [0, 1], [0, -1]],
+        "tolerance": 1e-9,
+    }
+    grid["predictor"]["main"] = gp(3, 12, variance=True)
+    yield grid
+    water = copy.deepcopy(base)
+    water["state_dim"], water["action_dim"] = 7, 3
+    water["feature_map"] = {
+        "kind": "action_and_rotation",
+        "action_low": [0, 0, 0],
+        "action_high": [1, 1, 3.14],
+        "state_angle": 2,
+        "action_angle": 2,
+        "tolerance": 1e-6,
+    }
+    yield water
+
+
+def schema_properties(name: str) -> dict[str, set[str]]:
+    """A schema's properties (object) or those of each ``oneOf`` variant, by ``kind``."""
+    schemas = spec()["components"]["schemas"]
+    s = schemas[name]
+    if "oneOf" in s:
+        out = {}
+        for variant in s["oneOf"]:
+            v = schemas[variant["$ref"].rsplit("/", 1)[1]]
+            out[v["properties"]["kind"]["const"]] = set(v["properties"])
+        return out
+    return {"": set(s["properties"])}
+
+
+def keyed_parts(doc: dict[str, Any]) -> Iterator[tuple[str, dict[str, Any]]]:
+    """Every object of a document with the schema it is an instance of."""
+    yield "ModelExport", doc
+    yield "FeatureMap", doc["feature_map"]
+    yield "Predictor", doc["predictor"]
+    yield "GpPredictor", doc["predictor"]["main"]
+    noise = doc["predictor"]["noise"]
+    yield "NoisePredictor", noise
+    if "log_noise" in noise:
+        yield "GpPredictor", noise["log_noise"]
+
+
+def test_the_documents_read_are_the_specs_model_export() -> None:
+    for doc in documents():
+        for schema, part in keyed_parts(doc):
+            props = schema_properties(schema)
+            assert set(part) == props[part.get("kind", "") if len(props) > 1 else ""], schema
+        model = ExportedModel.from_json(doc)
+        mu, sigma = model.evaluate(
+            np.full((5, doc["state_dim"]), 0.5), np.zeros((5, 3))[:, : doc["action_dim"]]
+        )
+        assert mu.shape == sigma.shape == (5,) and np.all(np.isfinite(sigma))
+        # Every property is read: without it the document is refused.
+        for _schema, part in keyed_parts(doc):
+            for key in list(part):
+                if key == "kind" or part[key] is None:
+                    continue
+                saved = part.pop(key)
+                with pytest.raises((KeyError, ValueError)):
+                    ExportedModel.from_json(doc)
+                part[key] = saved
+
+
+def test_an_unknown_format_or_version_is_refused() -> None:
+    doc = next(documents())
+    with pytest.raises(ValueError, match="format_version"):
+        ExportedModel.from_json({**doc, "format_version": 2})
+    with pytest.raises(ValueError, match="precond-model"):
+        ExportedModel.from_json({**doc, "format": "other"})
+
+
+def kinematic_trajectory(rng: np.random.Generator, n: int) -> list[dict[str, Any]]:
+    """A random walk on the unit square; the world pushes up by 0.08 where ``x > 0.5``."""
+    transitions = []
+    s = rng.uniform(0.05, 0.95, size=2)
+    for _ in range(n):
+        a = rng.uniform(-0.1, 0.1, size=2)
+        push = np.array([0.0, 0.08 if s[0] > 0.5 else 0.0]) + rng.normal(0, 0.005, size=2)
+        nxt = np.clip(s + a + push, 0.0, 1.0)
+        transitions.append({"s": s.tolist(), "a": a.tolist(), "s_next": nxt.tolist()})
+        s = nxt
+    return transitions
+
+
+@pytest.mark.integration
+@pytest.mark.parametrize("estimator", ["exact", "sparse"])
+def test_an_exported_model_answers_as_the_server(
+    make_server: MakeServer, tmp_path: Path, estimator: str
+) -> None:
+    server = make_server()
+    client = Client(server.url, timeout=60)
+    mde: dict[str, Any] = {"restarts": 0, "estimator": estimator}
+    if estimator == "sparse":
+        mde["inducing_points"] = 24
+    client.create_experiment(
+        domain={"kind": "kinematic"}, mde=mde, learning={"batch_size": 2}, d_max=0.05
+    )
+    with pytest.raises(Conflict):
+        client.export_model()
+    rng = np.random.default_rng(5)
+    for _ in range(2):
+        client.post_trajectory(kinematic_trajectory(rng, 40))
+    fitted = client.wait_for_model(2)
+    assert fitted.estimator == estimator
+
+    model = client.export_model()
+    assert model.model_version == fitted.version and model.n_train == 80
+    path = tmp_path / "mde.json"
+    model.save(path)
+    loaded = ExportedModel.load(path)
+
+    states = rng.uniform(0, 1, size=(200, 2))
+    actions = rng.uniform(-0.1, 0.1, size=(200, 2))
+    server_answer = client.precondition((states, actions), beta=1.5)
+    for m in (model, loaded):
+        mu, sigma = m.evaluate(states, actions)
+        np.testing.assert_allclose(mu, server_answer.mu, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(sigma, server_answer.sigma, rtol=1e-9, atol=1e-9)
+        np.testing.assert_array_equal(m.inside(states, actions, beta=1.5), server_answer.inside)
+    worst = max(
+        float(np.max(np.abs(mu - server_answer.mu) / (1 + np.abs(server_answer.mu)))),
+        float(np.max(np.abs(sigma - server_answer.sigma) / (1 + server_answer.sigma))),
+    )
+
+    # Time per point (best of 5, the machine may be busy): a batch, and one point at a time
+    # as in a control loop.
+    def best(f: Callable[[], object]) -> float:
+        times = []
+        for _ in range(5):
+            started = time.perf_counter()
+            f()
+            times.append(time.perf_counter() - started)
+        return min(times)
+
+    batch = best(lambda: model.evaluate(states, actions)) / len(states)
+    single = best(lambda: model.evaluate(states[0], actions[0]))
+    print(
+        f"{estimator}: worst relative difference {worst:.1e}; "
+        f"{batch * 1e6:.1f} µs a point in a batch, {single * 1e6:.0f} µs for one point"
+    )

@@ -1,0 +1,382 @@
+//! The MDE feature map `φ(s, a)` as data ([`FeatureMap`]): what a program outside this server
+//! needs to compute a domain's features itself — the exported model (`mde::export`) carries it
+//! so that a robot's controller can judge its own state-actions.
+//!
+//! Every built-in domain's [`Domain::features`](super::Domain::features) equals its
+//! [`Domain::feature_map`](super::Domain::feature_map)'s [`FeatureMap::features`] to the bit
+//! (tested per domain below), so the data describes exactly what the server computes.
+
+use serde::{Deserialize, Serialize};
+
+/// A domain's feature map, tagged `kind`.
+///
+/// "Scaled to the unit box" means `(v − low) / (high − low)`, or `0` for a component whose
+/// bounds coincide (`high = low`); it is not clamped unless said.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum FeatureMap {
+    /// The listed state components, then the listed action components, each scaled to the unit
+    /// box by its own bounds: the kinematic domain (every component), the icy gridworld's
+    /// `scaled` features (every component: `(x, y, dx, dy)`) and a custom domain
+    /// (`features.state`, `features.action`).
+    UnitBox {
+        /// Lower bounds of every state component.
+        state_low: Vec<f64>,
+        /// Upper bounds of every state component.
+        state_high: Vec<f64>,
+        /// Lower bounds of every action component.
+        action_low: Vec<f64>,
+        /// Upper bounds of every action component.
+        action_high: Vec<f64>,
+        /// The state components that feed the features, in order (0-based indices).
+        state_components: Vec<usize>,
+        /// The action components that feed the features after them, in order.
+        action_components: Vec<usize>,
+    },
+    /// The icy gridworld's `per_move` features: with `K` moves and `k` the index of the move
+    /// equal to `a` (every component within `tolerance`), `3K` features, zero but for the
+    /// state scaled to the unit box at positions `2k, 2k + 1` and a one at position `2K + k`.
+    PerMove {
+        /// Lower bounds of the state components.
+        state_low: Vec<f64>,
+        /// Upper bounds of the state components.
+        state_high: Vec<f64>,
+        /// The moves, in order.
+        moves: Vec<Vec<f64>>,
+        /// How far an action may lie from its move in each component.
+        tolerance: f64,
+    },
+    /// The water plant's features: every action component scaled to the unit box and clamped
+    /// to `[0, 1]`, then `1` if the action rotates (`|a[action_angle] − s[state_angle]| >
+    /// tolerance`), else `0`.
+    ActionAndRotation {
+        /// Lower bounds of the action components.
+        action_low: Vec<f64>,
+        /// Upper bounds of the action components.
+        action_high: Vec<f64>,
+        /// The state component holding the current angle.
+        state_angle: usize,
+        /// The action component holding the commanded angle.
+        action_angle: usize,
+        /// The change of angle beyond which the action rotates.
+        tolerance: f64,
+    },
+}
+
+/// `v` scaled to the unit box by `[low, high]` (0 where the bounds coincide), as
+/// [`Space::to_unit`](super::Space::to_unit) computes it.
+#[inline]
+fn unit(v: f64, low: f64, high: f64) -> f64 {
+    let w = high - low;
+    if w > 0.0 { (v - low) / w } else { 0.0 }
+}
+
+impl FeatureMap {
+    /// Number of features.
+    pub fn dim(&self) -> usize {
+        match self {
+            Self::UnitBox {
+                state_components,
+                action_components,
+                ..
+            } => state_components.len() + action_components.len(),
+            Self::PerMove { moves, .. } => 3 * moves.len(),
+            Self::ActionAndRotation { action_low, .. } => action_low.len() + 1,
+        }
+    }
+
+    /// The state dimension the map reads (`None`: it does not fix it).
+    pub fn state_dim(&self) -> Option<usize> {
+        match self {
+            Self::UnitBox { state_low, .. } | Self::PerMove { state_low, .. } => {
+                Some(state_low.len())
+            }
+            Self::ActionAndRotation { .. } => None,
+        }
+    }
+
+    /// The action dimension the map reads (`None`: it does not fix it).
+    pub fn action_dim(&self) -> Option<usize> {
+        match self {
+            Self::UnitBox { action_low, .. } | Self::ActionAndRotation { action_low, .. } => {
+                Some(action_low.len())
+            }
+            Self::PerMove { moves, .. } => moves.first().map(Vec::len),
+        }
+    }
+
+    /// Checks that the map can be evaluated on states of `state_dim` and actions of
+    /// `action_dim` components: bounds as long as the spaces, finite and ordered, indices in
+    /// range, moves of the action's length. The error is `(field, reason)`, the field relative
+    /// to the map (`state_components[2]`).
+    pub fn check(&self, state_dim: usize, action_dim: usize) -> Result<(), (String, String)> {
+        let err = |f: &str, r: String| Err((f.to_string(), r));
+        let bounds = |lo_name: &str, lo: &[f64], hi: &[f64], n: usize| {
+            if lo.len() != n || hi.len() != n {
+                return Err((
+                    lo_name.to_string(),
+                    format!(
+                        "expected {n} lower and upper bounds, got {} and {}",
+                        lo.len(),
+                        hi.len()
+                    ),
+                ));
+            }
+            match lo
+                .iter()
+                .zip(hi)
+                .position(|(l, h)| !(l.is_finite() && h.is_finite() && l <= h))
+            {
+                Some(i) => Err((
+                    format!("{lo_name}[{i}]"),
+                    "bounds must be finite with low <= high".to_string(),
+                )),
+                None => Ok(()),
+            }
+        };
+        let indices = |name: &str, idx: &[usize], n: usize| match idx.iter().position(|&i| i >= n) {
+            Some(k) => Err((
+                format!("{name}[{k}]"),
+                format!("index {} is not a component (there are {n})", idx[k]),
+            )),
+            None => Ok(()),
+        };
+        match self {
+            Self::UnitBox {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+                state_components,
+                action_components,
+            } => {
+                bounds("state_low", state_low, state_high, state_dim)?;
+                bounds("action_low", action_low, action_high, action_dim)?;
+                indices("state_components", state_components, state_dim)?;
+                indices("action_components", action_components, action_dim)?;
+                if self.dim() == 0 {
+                    return err("state_components", "no component feeds the features".into());
+                }
+            }
+            Self::PerMove {
+                state_low,
+                state_high,
+                moves,
+                tolerance,
+            } => {
+                bounds("state_low", state_low, state_high, state_dim)?;
+                if moves.is_empty() {
+                    return err("moves", "at least one move".into());
+                }
+                if let Some(k) = moves
+                    .iter()
+                    .position(|m| m.len() != action_dim || m.iter().any(|v| !v.is_finite()))
+                {
+                    return err(
+                        &format!("moves[{k}]"),
+                        format!("a move is {action_dim} finite numbers"),
+                    );
+                }
+                if !(tolerance.is_finite() && *tolerance >= 0.0) {
+                    return err("tolerance", "must be a finite number >= 0".into());
+                }
+            }
+            Self::ActionAndRotation {
+                action_low,
+                action_high,
+                state_angle,
+                action_angle,
+                tolerance,
+            } => {
+                bounds("action_low", action_low, action_high, action_dim)?;
+                indices("state_angle", &[*state_angle], state_dim)?;
+                indices("action_angle", &[*action_angle], action_dim)?;
+                if !(tolerance.is_finite() && *tolerance >= 0.0) {
+                    return err("tolerance", "must be a finite number >= 0".into());
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// `φ(s, a)` into `out` (cleared first). `s` and `a` must have the dimensions the map was
+    /// checked for ([`check`](Self::check)); shorter vectors panic on indexing.
+    pub fn features_into(&self, s: &[f64], a: &[f64], out: &mut Vec<f64>) {
+        out.clear();
+        match self {
+            Self::UnitBox {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+                state_components,
+                action_components,
+            } => {
+                out.extend(
+                    state_components
+                        .iter()
+                        .map(|&i| unit(s[i], state_low[i], state_high[i])),
+                );
+                out.extend(
+                    action_components
+                        .iter()
+                        .map(|&i| unit(a[i], action_low[i], action_high[i])),
+                );
+            }
+            Self::PerMove {
+                state_low,
+                state_high,
+                moves,
+                tolerance,
+            } => {
+                let k = move_index(moves, a, *tolerance).unwrap_or(0);
+                out.resize(3 * moves.len(), 0.0);
+                for (i, (lo, hi)) in state_low.iter().zip(state_high).enumerate().take(2) {
+                    out[2 * k + i] = unit(s[i], *lo, *hi);
+                }
+                out[2 * moves.len() + k] = 1.0;
+            }
+            Self::ActionAndRotation {
+                action_low,
+                action_high,
+                state_angle,
+                action_angle,
+                tolerance,
+            } => {
+                out.extend(
+                    a.iter()
+                        .zip(action_low.iter().zip(action_high))
+                        .map(|(v, (lo, hi))| unit(*v, *lo, *hi).clamp(0.0, 1.0)),
+                );
+                let rotates = (a[*action_angle] - s[*state_angle]).abs() > *tolerance;
+                out.push(if rotates { 1.0 } else { 0.0 });
+            }
+        }
+    }
+
+    /// `φ(s, a)` (see [`features_into`](Self::features_into)).
+    pub fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+        let mut out = Vec::with_capacity(self.dim());
+        self.features_into(s, a, &mut out);
+        out
+    }
+}
+
+/// The index of the move within `tolerance` of `a` in every component, if any.
+pub fn move_index(moves: &[Vec<f64>], a: &[f64], tolerance: f64) -> Option<usize> {
+    moves.iter().position(|m| {
+        m.len() == a.len() && m.iter().zip(a).all(|(p, q)| (p - q).abs() <= tolerance)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::{
+        CustomDomain, CustomParams, Domain, GridFeatures, IcyGridworld, Kinematic, KinematicParams,
+        LinearModel, Space, WaterPlant,
+    };
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+    use std::sync::Arc;
+
+    /// A domain's features and its map's agree to the bit on its own random state-actions
+    /// (and on points a little outside the bounds, which the map does not clamp either).
+    fn agree(d: &dyn Domain) {
+        let map = d.feature_map();
+        let (n, m) = (d.state_space().dim(), d.action_space().dim());
+        map.check(n, m).expect("the map checks");
+        assert_eq!(map.dim(), d.feature_dim());
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        for _ in 0..500 {
+            let s = d.sample_state(&mut rng);
+            let a = d.sample_action(&s, &mut rng);
+            let (want, got) = (d.features(&s, &a), map.features(&s, &a));
+            assert_eq!(
+                want.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+                "{} at s = {s:?}, a = {a:?}",
+                d.kind()
+            );
+        }
+    }
+
+    #[test]
+    fn every_built_in_domain_computes_its_maps_features() {
+        agree(&IcyGridworld::default_layout());
+        agree(&IcyGridworld::default_layout().with_features(GridFeatures::PerMove));
+        agree(&Kinematic::new(KinematicParams::default()).unwrap());
+        agree(
+            &Kinematic::new(KinematicParams {
+                state_low: vec![-2.0, 0.0, 1.0],
+                state_high: vec![2.0, 0.5, 1.25],
+                action_low: vec![-0.3, -0.1, 0.0],
+                action_high: vec![0.3, 0.1, 0.05],
+                ..KinematicParams::default()
+            })
+            .unwrap(),
+        );
+        agree(&WaterPlant::default());
+        let space = |n: usize, lo: f64, hi: f64| Space {
+            names: (0..n).map(|i| format!("c{i}")).collect(),
+            low: vec![lo; n],
+            high: vec![hi; n],
+            values: None,
+        };
+        let params = CustomParams {
+            state: space(4, -1.0, 3.0),
+            action: space(2, -0.5, 0.5),
+            feature_state: vec![2, 0],
+            feature_action: vec![1],
+            weights: vec![1.0; 4],
+            goal_components: vec![0],
+            goal_radius: 0.1,
+            obstacles: Vec::new(),
+            steer_samples: 4,
+            rollout_length: Some(10),
+        };
+        let model = LinearModel::new(
+            vec![vec![0.0; 4]; 4],
+            vec![vec![0.0; 2]; 4],
+            vec![0.0; 4],
+            &params.state,
+            &params.action,
+        )
+        .unwrap();
+        agree(&CustomDomain::new(params, Arc::new(model)).unwrap());
+    }
+
+    #[test]
+    fn per_move_features_find_a_move_within_the_tolerance() {
+        let g = IcyGridworld::default_layout().with_features(GridFeatures::PerMove);
+        let exact = g.features(&[3.0, 4.0], &[-1.0, 0.0]);
+        let near = g.features(&[3.0, 4.0], &[-1.0 + 1e-12, 0.0]);
+        assert_eq!(
+            exact, near,
+            "a validated action one rounding away is the same move"
+        );
+        assert_eq!(exact[4 * 2 + 1], 1.0, "left is move 1");
+    }
+
+    #[test]
+    fn a_map_that_does_not_fit_the_spaces_is_refused_by_field() {
+        let map = FeatureMap::UnitBox {
+            state_low: vec![0.0, 0.0],
+            state_high: vec![1.0, 1.0],
+            action_low: vec![-1.0],
+            action_high: vec![1.0],
+            state_components: vec![0, 2],
+            action_components: vec![0],
+        };
+        assert_eq!(map.check(2, 1).unwrap_err().0, "state_components[1]");
+        assert_eq!(map.check(3, 1).unwrap_err().0, "state_low");
+        let map = FeatureMap::ActionAndRotation {
+            action_low: vec![0.0, 0.0],
+            action_high: vec![1.0, f64::NAN],
+            state_angle: 0,
+            action_angle: 1,
+            tolerance: 1e-6,
+        };
+        assert_eq!(map.check(1, 2).unwrap_err().0, "action_low[1]");
+    }
+}
