@@ -167,7 +167,7 @@ function settingsCard(e) {
     ['preset', l.preset ?? 'paper (before presets)'],
     [
       'MDE',
-      `${m.noise}, ${m.kernel === 'auto' ? 'kernel chosen at each fit, judged held out (auto)' : `${m.kernel ?? 'matern52'} kernel`}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, ` +
+      `${m.noise}, ${m.kernel === 'auto' ? 'kernel chosen at each fit by marginal likelihood (auto)' : `${m.kernel ?? 'matern52'} kernel`}, prior mean ${fmt(m.prior_mean)}, ${m.restarts} restarts, ` +
         (m.label_cap === 'auto'
           ? 'label cap chosen at each fit (auto)'
           : m.label_cap

@@ -157,14 +157,8 @@ pub struct CapChoice {
 pub struct KernelTrial {
     /// The kernel.
     pub kernel: Kernel,
-    /// Its fit's log marginal likelihood.
+    /// Its fit's log marginal likelihood (the largest is kept).
     pub log_marginal_likelihood: f64,
-    /// Its held-out judgement of the training state-actions ([`HeldOutTrust::log_score`]: each
-    /// left out with its copies, the mean log probability of the side of `d_max` it fell on);
-    /// the kernel with the highest is kept. `None` when it could not be computed (the kernel
-    /// is then judged by its log marginal likelihood), and for trials stored before it existed.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub held_out_log_score: Option<f64>,
 }
 
 /// Fits one model per candidate label cap (units of `d_max`; 0 = raw labels) and keeps the one
@@ -182,8 +176,8 @@ pub struct KernelTrial {
 /// fails.
 ///
 /// Before the caps, with several candidate `kernels`, each is fitted on the first candidate
-/// cap's labels and the one that judges the training state-actions best when each is left out
-/// is kept ([`best_kernel`]; the caps then compete with that kernel).
+/// cap's labels and the one whose fit has the highest log marginal likelihood is kept (the
+/// evidence of each kernel on the same labels; the caps then compete with that kernel).
 ///
 /// The regressor is `kind`. The sparse GP has no closed-form leave-out, so with it the kernel
 /// and the cap are chosen the same way by exact GPs on an evenly spaced subset of at most
@@ -235,36 +229,6 @@ pub fn fit_choosing_label_cap(
     choose_exact(x, deviations, precondition, kernels, caps, params)
 }
 
-/// The trial to keep: the highest held-out log score when every trial has one (what decides the
-/// precondition is which side of `d_max` a state-action falls on, and an unseen one at that),
-/// equal scores (e.g. every state-action judged right with certainty) decided by the log
-/// marginal likelihood; without scores the highest log marginal likelihood. Full ties go to the
-/// earlier trial.
-///
-/// The held-out score rather than the likelihood: refitting five runs' training sets
-/// (`precond bench mde`), the likelihood kept the kernel with the best held-out TPR on the arm,
-/// the base and the pusher but Matérn 5/2 over 1/2 on a gridworld (TPR 0.86 against 0.94); the
-/// held-out score kept the best (or level) kernel on all five.
-pub fn best_kernel(trials: &[KernelTrial]) -> Option<usize> {
-    let all_scored = trials.iter().all(|t| t.held_out_log_score.is_some());
-    let key = |t: &KernelTrial| {
-        let score = if all_scored {
-            t.held_out_log_score.unwrap_or(f64::NEG_INFINITY)
-        } else {
-            0.0
-        };
-        (score, t.log_marginal_likelihood)
-    };
-    (0..trials.len()).reduce(|best, i| {
-        let (a, b) = (key(&trials[i]), key(&trials[best]));
-        if a.0 > b.0 || (a.0 == b.0 && a.1 > b.1) {
-            i
-        } else {
-            best
-        }
-    })
-}
-
 /// With the sparse GP, the label cap is chosen on at most this many transitions.
 pub const CAP_CHOICE_SUBSET: usize = 2000;
 
@@ -289,34 +253,25 @@ fn choose_exact(
     let first_cap = caps.first().copied().unwrap_or(0.0);
     let mut kernel_trials = Vec::new();
     let mut first_fit = None;
-    let groups = identical_rows(x);
     let params = if kernels.len() > 1 {
-        let capped = capped_labels(deviations, first_cap, d_max);
-        let labels = DVector::from_column_slice(&capped);
-        let mut fits: Vec<(Box<dyn Regressor>, EstimatorParams)> = Vec::new();
+        let labels = DVector::from_vec(capped_labels(deviations, first_cap, d_max));
+        let mut best: Option<(Box<dyn Regressor>, EstimatorParams)> = None;
         for &kernel in kernels {
             let p = params.with_kernel(kernel)?;
             let gp = fit(EstimatorKind::Exact, x, &labels, &p)?;
-            let held_out = HeldOutTrust::of(
-                gp.as_ref(),
-                first_cap,
-                &capped,
-                deviations,
-                &groups,
-                precondition,
-            )
-            .map(|(t, _)| t.log_score)
-            .filter(|v| v.is_finite());
+            let lml = gp.log_marginal_likelihood();
             kernel_trials.push(KernelTrial {
                 kernel,
-                log_marginal_likelihood: gp.log_marginal_likelihood(),
-                held_out_log_score: held_out,
+                log_marginal_likelihood: lml,
             });
-            fits.push((gp, p));
+            if best
+                .as_ref()
+                .is_none_or(|(b, _)| lml > b.log_marginal_likelihood())
+            {
+                best = Some((gp, p));
+            }
         }
-        let best = best_kernel(&kernel_trials)
-            .ok_or_else(|| GpError::InvalidState("no kernel to fit".into()))?;
-        let (gp, p) = fits.swap_remove(best);
+        let (gp, p) = best.ok_or_else(|| GpError::InvalidState("no kernel to fit".into()))?;
         first_fit = Some(gp);
         p
     } else {
@@ -325,6 +280,7 @@ fn choose_exact(
             None => params.clone(),
         }
     };
+    let groups = identical_rows(x);
     let mut fitted = Vec::with_capacity(caps.len());
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
@@ -567,38 +523,9 @@ mod tests {
     }
 
     #[test]
-    fn a_kernel_is_chosen_by_its_held_out_score_and_by_evidence_only_without_one() {
-        let trial = |kernel, lml, score| KernelTrial {
-            kernel,
-            log_marginal_likelihood: lml,
-            held_out_log_score: score,
-        };
-        let scored = [
-            trial(Kernel::Matern12, 10.0, Some(-0.30)),
-            trial(Kernel::Matern32, 30.0, Some(-0.20)),
-            trial(Kernel::Matern52, 50.0, Some(-0.25)),
-        ];
-        assert_eq!(best_kernel(&scored), Some(1), "the held-out score decides");
-        let mut one_missing = scored;
-        one_missing[1].held_out_log_score = None;
-        assert_eq!(best_kernel(&one_missing), Some(2), "else the evidence");
-        let tied = [
-            trial(Kernel::Matern12, 1.0, Some(-0.2)),
-            trial(Kernel::Matern52, 2.0, Some(-0.2)),
-            trial(Kernel::Matern32, 2.0, Some(-0.2)),
-        ];
-        assert_eq!(
-            best_kernel(&tied),
-            Some(1),
-            "equal scores: the evidence, then the earlier"
-        );
-        assert_eq!(best_kernel(&[]), None);
-    }
-
-    #[test]
-    fn the_kernel_judged_best_held_out_is_kept_and_its_fit_returned() {
+    fn the_kernel_with_the_highest_evidence_is_kept_and_its_fit_returned() {
         // A smooth ramp and a cliff: whichever kernel wins, it is the one whose fit on the
-        // first cap's labels judges the held-out state-actions best, and the model returned is
+        // first cap's labels has the largest log marginal likelihood, and the model returned is
         // fitted with it.
         let worlds = [
             world(|a, b| 0.3 * (a + 0.5 * b)),
@@ -616,24 +543,12 @@ mod tests {
             )
             .expect("fits");
             assert_eq!(c.kernel_trials.len(), 3);
-            assert!(
-                c.kernel_trials
-                    .iter()
-                    .all(|t| t.held_out_log_score.is_some_and(f64::is_finite)),
-                "{:?}",
-                c.kernel_trials
-            );
             let best = c
                 .kernel_trials
                 .iter()
                 .max_by(|a, b| {
-                    a.held_out_log_score
-                        .unwrap()
-                        .total_cmp(&b.held_out_log_score.unwrap())
-                        .then(
-                            a.log_marginal_likelihood
-                                .total_cmp(&b.log_marginal_likelihood),
-                        )
+                    a.log_marginal_likelihood
+                        .total_cmp(&b.log_marginal_likelihood)
                 })
                 .unwrap();
             let kept = c.gp.hyperparameters().kernel;

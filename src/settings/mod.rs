@@ -248,8 +248,8 @@ pub struct MdeSettings {
     /// uncertainty at every unseen point. A number is 0 or in `[1, 1000]`.
     pub label_cap: LabelCap,
     /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32`,
-    /// `matern52` (the paper's), or `auto`: at every fit, the one of the three whose fit best
-    /// judges the training state-actions held out (see [`KernelChoice`]).
+    /// `matern52` (the paper's), or `auto`: at every fit, the one of the three whose fit has
+    /// the highest log marginal likelihood on the data (see [`KernelChoice`]).
     pub kernel: KernelChoice,
     /// The regressor fits use: `auto` (the exact GP up to 3000 transitions while its fit fits
     /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
@@ -304,13 +304,11 @@ impl Preset {
 /// ν = 5/2 GP follows a jump only with length scales as short as the jump is sharp, so what it
 /// learns spreads no further; the rough ν = 1/2 kernel follows a jump and keeps long length
 /// scales, but explains a smooth deviation as rough and stays uncertain between data. `auto`
-/// fits all three at the first candidate label cap and keeps the kernel whose fit best says on
-/// which side of `d_max` each training state-action fell when it is left out with its copies
-/// ([`crate::mde::best_kernel`]); equal judgements go to the highest log marginal likelihood.
+/// fits all three at the first candidate label cap and keeps the kernel whose fit has the
+/// highest log marginal likelihood — the data's own evidence for each, on the same labels.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum KernelChoice {
-    /// Chosen at every fit among ν = 1/2, 3/2, 5/2 by the held-out judgement of the training
-    /// state-actions.
+    /// Chosen at every fit by the log marginal likelihood among ν = 1/2, 3/2, 5/2.
     Auto,
     /// Always this kernel.
     Fixed(Kernel),

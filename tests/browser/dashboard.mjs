@@ -107,7 +107,7 @@ test('an experiment shows its settings, timeline and runs', async () => {
   assert.match(await page.locator('#settings').innerText(), /icy_gridworld[\s\S]*batch size\s+4/);
   assert.match(
     await page.locator('#settings').innerText(),
-    /heteroscedastic, (matern(12|32|52) kernel|kernel chosen at each fit, judged held out \(auto\))/,
+    /heteroscedastic, (matern(12|32|52) kernel|kernel chosen at each fit by marginal likelihood \(auto\))/,
   );
   assert.ok((await page.locator('#timeline figure').count()) >= 6, 'model and iteration charts');
   await assertChartLines('the learning timeline');

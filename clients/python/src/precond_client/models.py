@@ -724,18 +724,12 @@ class KernelTrial:
     kernel: str
     """``matern12``, ``matern32`` or ``matern52``."""
     log_marginal_likelihood: float
-    held_out_log_score: float | None = None
-    """The mean held-out log probability of the training state-actions' side of ``d_max``;
-    the kernel with the highest is kept (``None`` when not computed: then the likelihood)."""
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> KernelTrial:
         """Reads the JSON form."""
-        score = d.get("held_out_log_score")
         return cls(
-            kernel=str(d["kernel"]),
-            log_marginal_likelihood=float(d["log_marginal_likelihood"]),
-            held_out_log_score=float(score) if score is not None else None,
+            kernel=str(d["kernel"]), log_marginal_likelihood=float(d["log_marginal_likelihood"])
         )
 
 
