@@ -18,9 +18,9 @@
 //! - A search whose client went away stops at its next round: the request's future holds a
 //!   guard that raises the search's cancel flag when it is dropped.
 //! - Fits (background or forced) take a slot too, taking turns with the experiments (all fits
-//!   as one, without the per-experiment cap), but have no deadline: a fit is one optimisation
-//!   that cannot stop halfway, and its worst case is bounded by the training-set size and
-//!   `restarts`.
+//!   as one), but have no deadline: a fit is one optimisation that cannot stop halfway, and its
+//!   worst case is bounded by the training-set size and `restarts`. So that long fits cannot
+//!   starve searches, fits hold at most all slots but one ([`fit_cap`]).
 
 use super::{Error, Result};
 use crate::limits::MAX_TRANSITIONS;
@@ -212,12 +212,21 @@ fn lock(state: &Mutex<State>) -> std::sync::MutexGuard<'_, State> {
     state.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-/// Whether `key` may start one more: fits always, an experiment below its cap.
-fn may_start(state: &State, key: Key, per_experiment: usize) -> bool {
+/// Whether `key` may start one more: an experiment below its cap; fits while they hold fewer
+/// than [`fit_cap`] slots.
+fn may_start(state: &State, key: Key, slots: usize, per_experiment: usize) -> bool {
+    let running = state.running_by_key.get(&key).copied().unwrap_or(0);
     match key {
-        Key::Fits => true,
-        Key::Experiment(_) => state.running_by_key.get(&key).copied().unwrap_or(0) < per_experiment,
+        Key::Fits => running < fit_cap(slots),
+        Key::Experiment(_) => running < per_experiment,
     }
+}
+
+/// Fits running at once: all slots but one (at least one), so that however many large fits
+/// queue — they have no deadline — a search always finds a slot within its own. With the
+/// default two slots on two cores, fits run one at a time.
+pub fn fit_cap(slots: usize) -> usize {
+    slots.saturating_sub(1).max(1)
 }
 
 /// Hands free slots to waiters, keys in round-robin turn, skipping keys at their cap. Returns
@@ -234,7 +243,7 @@ fn dispatch(
         let Some(key) = state.turn.pop_front() else {
             break;
         };
-        if !may_start(state, key, per_experiment) {
+        if !may_start(state, key, slots, per_experiment) {
             state.turn.push_back(key);
             skipped += 1;
             continue;
@@ -354,7 +363,12 @@ impl WorkGate {
         let queued_for_key = state.queues.get(&key).map_or(0, VecDeque::len);
         if state.running < self.limits.max_concurrent_plans
             && queued_for_key == 0
-            && may_start(&state, key, self.limits.per_experiment())
+            && may_start(
+                &state,
+                key,
+                self.limits.max_concurrent_plans,
+                self.limits.per_experiment(),
+            )
         {
             state.running += 1;
             *state.running_by_key.entry(key).or_insert(0) += 1;
@@ -634,6 +648,32 @@ mod tests {
             assert!(t.await.unwrap());
         }
         assert_eq!(*order.lock().unwrap(), vec![1, 2, 3, 4, 1]);
+    }
+
+    #[tokio::test]
+    async fn fits_leave_a_slot_to_the_searches() {
+        assert_eq!((fit_cap(1), fit_cap(2), fit_cap(8)), (1, 1, 7));
+        let gate = Arc::new(WorkGate::new(limits(2, 8, 5000)));
+        let fit = gate.fit_slot().await.unwrap();
+        // A second fit waits although a slot is free ...
+        let second_fit = {
+            let gate = gate.clone();
+            tokio::spawn(async move { gate.fit_slot().await.map(drop).is_ok() })
+        };
+        until_waiting(&gate, 1).await;
+        assert_eq!(gate.running(), 1);
+        // ... which a search gets at once.
+        let (search, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        assert_eq!((gate.running(), gate.queue_depth()), (2, 1));
+        drop(search);
+        assert_eq!(
+            gate.running(),
+            1,
+            "the waiting fit does not take the searches' slot"
+        );
+        drop(fit);
+        assert!(second_fit.await.unwrap());
+        assert_eq!((gate.running(), gate.queue_depth()), (0, 0));
     }
 
     #[tokio::test]
