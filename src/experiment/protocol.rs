@@ -172,6 +172,57 @@ impl Bench {
         Some(false)
     }
 
+    /// Whether `problem` can be solved inside a *learned* precondition: a breadth-first search
+    /// over the gridworld's model `f̂`, taking only the moves that `trusted` answers true for
+    /// (the service's judgement at test β). The planner plans over exactly these edges, so a
+    /// problem solvable here but not planned is the planner's loss, and one the oracle solves
+    /// but this does not is the learner's. `None` outside the gridworld.
+    pub fn learned_solvable(
+        &self,
+        problem: &Problem,
+        trusted: impl Fn(&[f64], &[f64]) -> bool,
+    ) -> Option<bool> {
+        let Self::Grid(g) = self else {
+            return None;
+        };
+        let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
+        let mut seen = std::collections::HashSet::from([key(problem.start())]);
+        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
+        while let Some(s) = queue.pop_front() {
+            if g.is_goal(&s, problem.goal()) {
+                return Some(true);
+            }
+            for m in MOVES {
+                let next = g.predict(&s, &m);
+                if g.edge_allowed(&s, &m, &next) && trusted(&s, &m) && seen.insert(key(&next)) {
+                    queue.push_back(next);
+                }
+            }
+        }
+        Some(false)
+    }
+
+    /// Every state-action of the gridworld the planner may consider (each cell × each move the
+    /// model allows; obstacles included, since the model does not know them), for judging a
+    /// learned precondition in full. Empty elsewhere.
+    pub fn all_state_actions(&self) -> Vec<(Vec<f64>, Vec<f64>)> {
+        let Self::Grid(g) = self else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        for y in 0..g.height() {
+            for x in 0..g.width() {
+                let c = [x as f64, y as f64];
+                for m in MOVES {
+                    if g.edge_allowed(&c, &m, &g.predict(&c, &m)) {
+                        out.push((c.to_vec(), m.to_vec()));
+                    }
+                }
+            }
+        }
+        out
+    }
+
     /// The domain, with its model run in-process.
     pub fn domain(&self) -> &dyn LocalModel {
         match self {
@@ -483,6 +534,11 @@ pub struct IterationRecord {
     pub oracle_solvable: usize,
     /// `oracle_solvable / test_problems`, where the oracle is known.
     pub oracle_rate: Option<f64>,
+    /// Test problems solvable inside the *learned* precondition at test β (an exhaustive
+    /// search over the model's moves the service trusts; gridworld, 0 elsewhere).
+    pub learned_solvable: usize,
+    /// `learned_solvable / test_problems`, where it is known.
+    pub learned_rate: Option<f64>,
     /// `plans_found / test_problems`.
     pub plan_found_rate: f64,
     /// `successes / test_problems`.
@@ -578,6 +634,9 @@ pub struct TestRecord {
     pub success: bool,
     /// The problem is solvable inside the true precondition (`None` where that is unknown).
     pub oracle: Option<bool>,
+    /// The problem is solvable inside the learned precondition at test β (`None` where that
+    /// is not searched exhaustively: outside the gridworld).
+    pub learned: Option<bool>,
     /// The learned plan executed closed loop reached the goal (`None`: not measured).
     pub closed_loop_success: Option<bool>,
     /// Plans asked for after the first in the closed-loop execution.
@@ -882,7 +941,10 @@ impl Run<'_> {
         let (seed, j) = (self.spec.seed, rec.iteration as u64);
         let domain = self.bench.domain();
         let mut known_oracle = false;
+        let mut known_learned = false;
         let mut known_baseline = false;
+        let trusted = Self::trusted_moves(self.client, self.bench, self.id).await?;
+        let trusted = |s: &[f64], a: &[f64]| trusted.contains(&move_key(s, a));
         for k in 0..self.cfg.test_problems {
             let problem =
                 self.bench
@@ -905,6 +967,7 @@ impl Run<'_> {
                 plan_length: 0,
                 success: false,
                 oracle: references.map(|r| r.oracle_solvable),
+                learned: self.bench.learned_solvable(&problem, trusted),
                 closed_loop_success: self.bench.closed_loop().then_some(false),
                 replans: 0,
                 oracle_open_loop: references.map(|r| r.oracle_open_loop),
@@ -935,6 +998,8 @@ impl Run<'_> {
             rec.closed_loop_successes += usize::from(test.closed_loop_success == Some(true));
             rec.replans += test.replans;
             rec.oracle_solvable += usize::from(test.oracle == Some(true));
+            rec.learned_solvable += usize::from(test.learned == Some(true));
+            known_learned |= test.learned.is_some();
             rec.oracle_open_successes += usize::from(test.oracle_open_loop == Some(true));
             rec.oracle_closed_successes += usize::from(test.oracle_closed_loop == Some(true));
             rec.baseline_successes += usize::from(test.baseline == Some(true));
@@ -952,9 +1017,34 @@ impl Run<'_> {
                 .closed_loop()
                 .then(|| rate(rec.closed_loop_successes));
             rec.oracle_rate = known_oracle.then(|| rate(rec.oracle_solvable));
+            rec.learned_rate = known_learned.then(|| rate(rec.learned_solvable));
             rec.baseline_rate = known_baseline.then(|| rate(rec.baseline_successes));
         }
         Ok(())
+    }
+
+    /// The state-actions of the gridworld the service trusts at test β (see
+    /// [`Bench::all_state_actions`]); empty elsewhere.
+    async fn trusted_moves(
+        client: &ApiClient,
+        bench: &Bench,
+        id: i64,
+    ) -> anyhow::Result<std::collections::HashSet<[i64; 4]>> {
+        let all = bench.all_state_actions();
+        if all.is_empty() {
+            return Ok(Default::default());
+        }
+        let points: Vec<(&[f64], &[f64])> = all
+            .iter()
+            .map(|(s, a)| (s.as_slice(), a.as_slice()))
+            .collect();
+        let judged = client.precondition(id, &points).await?;
+        Ok(all
+            .iter()
+            .zip(&judged)
+            .filter(|(_, j)| j.inside)
+            .map(|((s, a), _)| move_key(s, a))
+            .collect())
     }
 
     /// TPR and TNR of the precondition on the held-out transitions.
@@ -1033,6 +1123,8 @@ impl IterationRecord {
             successes: 0,
             oracle_solvable: 0,
             oracle_rate: None,
+            learned_solvable: 0,
+            learned_rate: None,
             plan_found_rate: 0.0,
             success_rate: 0.0,
             closed_loop_successes: 0,
@@ -1054,6 +1146,11 @@ impl IterationRecord {
             seconds: 0.0,
         }
     }
+}
+
+/// A gridworld state-action as integers (cells and unit moves are whole numbers).
+fn move_key(s: &[f64], a: &[f64]) -> [i64; 4] {
+    [s[0] as i64, s[1] as i64, a[0] as i64, a[1] as i64]
 }
 
 /// Whether two states agree within rounding.
@@ -1170,4 +1267,49 @@ async fn precondition_map(
         upper,
         points,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 5 × 3 map whose wall has a single gap at (2, 1).
+    fn gap_bench() -> (Bench, IcyGridworld) {
+        let g = IcyGridworld::new(&["..#..", ".....", "..#.."]).expect("a valid map");
+        (Bench::Grid(g.clone()), g)
+    }
+
+    #[test]
+    fn the_learned_search_goes_exactly_where_trust_allows() {
+        let (bench, g) = gap_bench();
+        let problem = Problem::new(&g, vec![0.0, 0.0], vec![4.0, 0.0]).expect("a problem");
+        assert_eq!(bench.learned_solvable(&problem, |_, _| true), Some(true));
+        assert_eq!(bench.learned_solvable(&problem, |_, _| false), Some(false));
+        // Every move trusted but those into or out of the wall's column except through the
+        // gap: still solvable; distrust the gap's moves and it is not.
+        let not_wall = |s: &[f64], a: &[f64]| {
+            let to = [s[0] + a[0], s[1] + a[1]];
+            s[0] != 2.0 && to[0] != 2.0 || s[1] == 1.0 && to[1] == 1.0
+        };
+        assert_eq!(bench.learned_solvable(&problem, not_wall), Some(true));
+        let no_gap = |s: &[f64], a: &[f64]| not_wall(s, a) && !(s[0] == 1.0 && s[1] == 1.0);
+        assert_eq!(bench.learned_solvable(&problem, no_gap), Some(false));
+    }
+
+    #[test]
+    fn every_cell_is_judged_with_every_move_the_model_allows() {
+        let (bench, _) = gap_bench();
+        let all = bench.all_state_actions();
+        // 15 cells × 4 moves, less the moves off the edge: 5 + 5 along x, 3 + 3 along y.
+        assert_eq!(all.len(), 15 * 4 - 16);
+        assert!(
+            all.iter().any(|(s, _)| s == &vec![2.0, 0.0]),
+            "walls included"
+        );
+        assert!(
+            Bench::Plant(WaterPlant::default())
+                .all_state_actions()
+                .is_empty()
+        );
+    }
 }

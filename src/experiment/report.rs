@@ -13,11 +13,14 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 26] = [
+pub const METRICS: [&str; 29] = [
     "plan_found_rate",
     "success_rate",
     "oracle_rate",
     "success_of_oracle",
+    "learned_rate",
+    "learned_of_oracle",
+    "plans_of_learned",
     "closed_loop_rate",
     "oracle_open_loop_rate",
     "oracle_closed_loop_rate",
@@ -43,7 +46,7 @@ pub const METRICS: [&str; 26] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 44] = [
+pub const ITERATION_COLUMNS: [&str; 46] = [
     "domain",
     "layout",
     "strategy",
@@ -67,6 +70,8 @@ pub const ITERATION_COLUMNS: [&str; 44] = [
     "success_rate",
     "oracle_solvable",
     "oracle_rate",
+    "learned_solvable",
+    "learned_rate",
     "closed_loop_successes",
     "closed_loop_rate",
     "replans",
@@ -104,6 +109,15 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
         "success_of_oracle" => {
             (r.oracle_solvable > 0).then(|| r.successes as f64 / r.oracle_solvable as f64)
         }
+        "learned_rate" => r.learned_rate,
+        "learned_of_oracle" => r
+            .learned_rate
+            .filter(|_| r.oracle_solvable > 0)
+            .map(|_| r.learned_solvable as f64 / r.oracle_solvable as f64),
+        "plans_of_learned" => r
+            .learned_rate
+            .filter(|_| r.learned_solvable > 0)
+            .map(|_| r.plans_found as f64 / r.learned_solvable as f64),
         "closed_loop_rate" => r.closed_loop_rate,
         "oracle_open_loop_rate" => r
             .oracle_rate
@@ -218,6 +232,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.success_rate.to_string(),
             r.oracle_solvable.to_string(),
             opt(r.oracle_rate),
+            r.learned_solvable.to_string(),
+            opt(r.learned_rate),
             r.closed_loop_successes.to_string(),
             opt(r.closed_loop_rate),
             r.replans.to_string(),
@@ -267,7 +283,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
 
     let mut csv = String::from(
         "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle,\
-         closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
+         learned,closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
     );
     let vector = |v: &[f64]| {
         v.iter()
@@ -278,7 +294,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
@@ -290,6 +306,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             t.plan_length,
             t.success,
             flag(t.oracle),
+            flag(t.learned),
             flag(t.closed_loop_success),
             t.replans,
             flag(t.oracle_open_loop),
@@ -313,11 +330,12 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
 }
 
 /// The metrics `layouts.csv` compares.
-pub const LAYOUT_METRICS: [&str; 7] = [
+pub const LAYOUT_METRICS: [&str; 8] = [
     "success_rate",
     "plan_found_rate",
     "oracle_rate",
     "success_of_oracle",
+    "learned_of_oracle",
     "tpr",
     "tnr",
     "n_train",
