@@ -158,7 +158,12 @@ function settingsCard(e) {
     ['batch size', l.batch_size],
     ['iterations J', l.iterations],
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],
-    ['acquisition', `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`],
+    [
+      'acquisition',
+      l.acquisition === 'level_set'
+        ? `level set, γ = ${fmt(l.gamma)}`
+        : `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`,
+    ],
     [
       'β schedule',
       `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}` +

@@ -26,7 +26,7 @@ use crate::domain::GridFeatures;
 use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::mde::EstimatorChoice;
-use crate::planning::{Aggregation, Strategy};
+use crate::planning::{AcquisitionKind, Aggregation, Strategy};
 use crate::settings::{KernelChoice, LabelCap, Preset};
 use crate::store::Store;
 use anyhow::Context;
@@ -104,6 +104,10 @@ fn parse_estimator(s: &str) -> Result<EstimatorChoice, String> {
 
 fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
     parse_named(s, "an aggregation", "max or sum")
+}
+
+fn parse_acquisition(s: &str) -> Result<AcquisitionKind, String> {
+    parse_named(s, "an acquisition", "lcb or level_set")
 }
 
 fn parse_preset(s: &str) -> Result<Preset, String> {
@@ -216,6 +220,10 @@ pub struct ExperimentArgs {
     /// (`max`).
     #[arg(long, value_parser = parse_aggregation)]
     pub aggregation: Option<Aggregation>,
+    /// The acquisition `active` minimises: `lcb` (the paper's `h(μ − cσ)`) or `level_set`.
+    /// Default: the preset's.
+    #[arg(long, value_parser = parse_acquisition)]
+    pub acquisition: Option<AcquisitionKind>,
 }
 
 impl ExperimentArgs {
@@ -270,6 +278,8 @@ pub struct Config {
     pub c: Option<f64>,
     /// The acquisition's aggregation (`None`: the service's).
     pub aggregation: Option<Aggregation>,
+    /// The acquisition function (`None`: the preset's).
+    pub acquisition: Option<AcquisitionKind>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -336,6 +346,7 @@ impl Config {
             relax_beta: args.relax_beta,
             c: args.c,
             aggregation: args.aggregation,
+            acquisition: args.acquisition,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -449,6 +449,7 @@ fn experiment_body(
             aggregation: cfg
                 .aggregation
                 .unwrap_or(LearningRequest::default().aggregation),
+            acquisition: cfg.acquisition,
             ..LearningRequest::default()
         },
     }

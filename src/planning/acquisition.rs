@@ -1,5 +1,18 @@
-//! The trajectory-level acquisition function: a lower confidence bound per step, aggregated
-//! with a discount. The `active` strategy executes the candidate with the smallest value.
+//! The trajectory-level acquisition function. The `active` strategy executes the candidate
+//! with the smallest value `α`. Two kinds ([`AcquisitionKind`]):
+//!
+//! - `lcb` (the paper's): a lower confidence bound per step, `α_step = μ − c σ`, aggregated
+//!   with a discount (`max` or `sum`, see [`Aggregation`]): the trajectory whose steps are most
+//!   plausibly within tolerance, uncertainty counting in their favour.
+//! - `level_set`: the precondition is a level set (`deviation < d_max`), so what an execution
+//!   teaches is how ambiguous each step's side of `d_max` is. With `p_t = Φ((d_max − μ_t)/σ_t)`
+//!   the probability that step `t` is within tolerance, a step's ambiguity is
+//!   `4 p_t (1 − p_t)` (1 on the level set, 0 far from it, as in the straddle/LSE family of
+//!   level-set acquisitions), and it counts only as much as the robot is likely to reach that
+//!   step where it was planned, `r_t = Π_{k<t} p_k` (steps after a likely failure are executed
+//!   from elsewhere and teach little about the plan). `α_step = −r_t · 4 p_t (1 − p_t)` and
+//!   `α = Σ_t γ^t α_step(t)`: the smallest `α` is the trajectory expected to settle the most
+//!   doubtful steps. `aggregation` and `c` do not apply.
 
 use super::PlanningError;
 use super::rrt::Trajectory;
@@ -60,9 +73,63 @@ impl FromStr for Aggregation {
     }
 }
 
+/// Which acquisition function scores a trajectory (see the [module docs](self)).
+#[derive(
+    Debug,
+    Clone,
+    Copy,
+    PartialEq,
+    Eq,
+    Default,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum AcquisitionKind {
+    /// The paper's: `α = h(μ − c σ)`, discounted over the steps.
+    #[default]
+    Lcb,
+    /// Reach-weighted ambiguity of each step's side of `d_max`, negated and summed.
+    LevelSet,
+}
+
+impl AcquisitionKind {
+    /// The setting's name: `"lcb"` or `"level_set"`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Lcb => "lcb",
+            Self::LevelSet => "level_set",
+        }
+    }
+}
+
+impl fmt::Display for AcquisitionKind {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for AcquisitionKind {
+    type Err = PlanningError;
+
+    fn from_str(s: &str) -> Result<Self, Self::Err> {
+        match s {
+            "lcb" => Ok(Self::Lcb),
+            "level_set" => Ok(Self::LevelSet),
+            other => Err(PlanningError::settings(
+                "acquisition",
+                format!("{other:?} is not one of \"lcb\", \"level_set\""),
+            )),
+        }
+    }
+}
+
 /// The acquisition's parameters (experiment settings).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct AcquisitionSettings {
+    /// Which function: `lcb` (the paper's, the default) or `level_set`.
+    pub kind: AcquisitionKind,
     /// Exploration weight `c` in `α_step = μ − c σ`. Default 1; finite, ≥ 0 (larger favours
     /// uncertain steps).
     pub c: f64,
@@ -76,6 +143,7 @@ pub struct AcquisitionSettings {
 impl Default for AcquisitionSettings {
     fn default() -> Self {
         Self {
+            kind: AcquisitionKind::Lcb,
             c: 1.0,
             gamma: 0.9,
             aggregation: Aggregation::Max,
@@ -95,16 +163,42 @@ impl AcquisitionSettings {
         Ok(())
     }
 
-    /// The per-step utilities of a trajectory and their aggregate `α`.
-    pub fn score(&self, trajectory: &Trajectory) -> (Vec<f64>, f64) {
-        let steps: Vec<f64> = trajectory
-            .mu
-            .iter()
-            .zip(&trajectory.sigma)
-            .map(|(m, s)| alpha_step(*m, *s, self.c))
-            .collect();
-        let alpha = aggregate(&steps, self.gamma, self.aggregation);
-        (steps, alpha)
+    /// The per-step utilities of a trajectory and their aggregate `α`, for the tolerance
+    /// `d_max` (which only `level_set` uses).
+    pub fn score(&self, trajectory: &Trajectory, d_max: f64) -> (Vec<f64>, f64) {
+        let pairs = trajectory.mu.iter().zip(&trajectory.sigma);
+        match self.kind {
+            AcquisitionKind::Lcb => {
+                let steps: Vec<f64> = pairs.map(|(m, s)| alpha_step(*m, *s, self.c)).collect();
+                let alpha = aggregate(&steps, self.gamma, self.aggregation);
+                (steps, alpha)
+            }
+            AcquisitionKind::LevelSet => {
+                let mut reach = 1.0;
+                let steps: Vec<f64> = pairs
+                    .map(|(m, s)| {
+                        let p = within_probability(*m, *s, d_max);
+                        let u = -reach * 4.0 * p * (1.0 - p);
+                        reach *= p;
+                        u
+                    })
+                    .collect();
+                let alpha = aggregate(&steps, self.gamma, Aggregation::Sum);
+                (steps, alpha)
+            }
+        }
+    }
+}
+
+/// `P(deviation < d_max) = Φ((d_max − μ)/σ)` under the model's Gaussian; for `σ = 0`, 1 or 0
+/// by the side of `μ`.
+pub fn within_probability(mu: f64, sigma: f64, d_max: f64) -> f64 {
+    if sigma > 0.0 {
+        0.5 * libm::erfc(-(d_max - mu) / (sigma * std::f64::consts::SQRT_2))
+    } else if mu < d_max {
+        1.0
+    } else {
+        0.0
     }
 }
 
@@ -182,14 +276,63 @@ mod tests {
             sigma: vec![0.1, 0.5],
         };
         let settings = AcquisitionSettings {
+            kind: AcquisitionKind::Lcb,
             c: 2.0,
             gamma: 0.5,
             aggregation: Aggregation::Sum,
         };
-        let (steps, alpha) = settings.score(&t);
+        let (steps, alpha) = settings.score(&t, 0.1);
         assert_abs_diff_eq!(steps[0], 0.2, epsilon = 1e-12);
         assert_abs_diff_eq!(steps[1], 0.0, epsilon = 1e-12);
         assert_abs_diff_eq!(alpha, 0.2, epsilon = 1e-12);
+    }
+
+    #[test]
+    fn level_set_prefers_reachable_doubt() {
+        let traj = |mu: Vec<f64>, sigma: Vec<f64>| Trajectory {
+            states: vec![vec![0.0]; mu.len() + 1],
+            actions: vec![vec![1.0]; mu.len()],
+            mu,
+            sigma,
+        };
+        let acq = AcquisitionSettings {
+            kind: AcquisitionKind::LevelSet,
+            gamma: 1.0,
+            ..Default::default()
+        };
+        let d = 0.1;
+        // A step on the level set (μ = d_max) is fully ambiguous: p = 1/2, utility −1.
+        let (steps, alpha) = acq.score(&traj(vec![0.1], vec![0.05]), d);
+        assert_abs_diff_eq!(steps[0], -1.0, epsilon = 1e-12);
+        assert_abs_diff_eq!(alpha, -1.0, epsilon = 1e-12);
+        // A step surely inside teaches nothing, and lets the next step count fully.
+        let (steps, _) = acq.score(&traj(vec![0.0, 0.1], vec![1e-3, 0.05]), d);
+        assert!(steps[0].abs() < 1e-12);
+        assert_abs_diff_eq!(steps[1], -1.0, epsilon = 1e-9);
+        // After a step that surely fails, doubt counts for nothing: the robot is elsewhere.
+        let (steps, _) = acq.score(&traj(vec![1.0, 0.1], vec![1e-3, 0.05]), d);
+        assert!(steps[1].abs() < 1e-12);
+        // So a trajectory with its doubtful step after a likely failure loses to one with it first.
+        let late = acq.score(&traj(vec![0.2, 0.1], vec![0.05, 0.05]), d).1;
+        let early = acq.score(&traj(vec![0.1, 0.2], vec![0.05, 0.05]), d).1;
+        assert!(early < late, "{early} < {late}");
+        // The paper's kind ignores d_max.
+        let lcb = AcquisitionSettings::default();
+        let t = traj(vec![0.3], vec![0.1]);
+        assert_eq!(lcb.score(&t, 0.1), lcb.score(&t, 5.0));
+    }
+
+    #[test]
+    fn within_probability_is_the_gaussian_cdf() {
+        assert_abs_diff_eq!(within_probability(0.1, 0.05, 0.1), 0.5, epsilon = 1e-15);
+        // Φ(1) ≈ 0.841345.
+        assert_abs_diff_eq!(
+            within_probability(0.05, 0.05, 0.1),
+            0.841_344_746,
+            epsilon = 1e-8
+        );
+        assert_eq!(within_probability(0.05, 0.0, 0.1), 1.0);
+        assert_eq!(within_probability(0.15, 0.0, 0.1), 0.0);
     }
 
     #[test]
@@ -213,5 +356,10 @@ mod tests {
         ));
         assert_eq!("sum".parse::<Aggregation>(), Ok(Aggregation::Sum));
         assert!("mean".parse::<Aggregation>().is_err());
+        assert_eq!(
+            "level_set".parse::<AcquisitionKind>(),
+            Ok(AcquisitionKind::LevelSet)
+        );
+        assert!("ucb".parse::<AcquisitionKind>().is_err());
     }
 }

@@ -77,7 +77,7 @@ pub(crate) fn judge(
                 mu,
                 sigma,
             };
-            let (alpha_step, alpha) = acquisition.score(&trajectory);
+            let (alpha_step, alpha) = acquisition.score(&trajectory, precondition.d_max());
             Verdict {
                 trajectory,
                 alpha_step,
@@ -110,7 +110,8 @@ mod tests {
     use super::*;
     use crate::domain::IcyGridworld;
     use crate::planning::{
-        AcquisitionSettings, Aggregation, DeviationModel, PlannerSettings, PlanningSettings,
+        AcquisitionKind, AcquisitionSettings, Aggregation, DeviationModel, PlannerSettings,
+        PlanningSettings,
     };
 
     /// The verdicts of `candidates` for the goal `goal` on the default map under [`Wall`], at
@@ -160,6 +161,7 @@ mod tests {
     #[test]
     fn candidates_are_judged_step_by_step_and_the_strategies_choose_among_the_eligible() {
         let acq = AcquisitionSettings {
+            kind: AcquisitionKind::Lcb,
             c: 1.0,
             gamma: 0.9,
             aggregation: Aggregation::Max,
@@ -178,7 +180,7 @@ mod tests {
         assert!(v[2].inside && !v[2].reaches_goal);
         assert!(v[0].reaches_goal && v[1].reaches_goal);
         for x in &v {
-            let (steps, alpha) = acq.score(&x.trajectory);
+            let (steps, alpha) = acq.score(&x.trajectory, 0.1);
             assert_eq!((steps, alpha), (x.alpha_step.clone(), x.alpha));
         }
         assert_eq!(choose(Strategy::Active, &v, 1), None);

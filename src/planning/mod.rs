@@ -39,7 +39,9 @@ pub mod synthetic;
 #[cfg(test)]
 mod tests;
 
-pub use acquisition::{AcquisitionSettings, Aggregation, aggregate, alpha_step};
+pub use acquisition::{
+    AcquisitionKind, AcquisitionSettings, Aggregation, aggregate, alpha_step, within_probability,
+};
 pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose};

@@ -180,7 +180,7 @@ pub(crate) fn propose(
             ),
             None => (1, extensions, dynamics_calls),
         };
-        let (alpha_step, alpha) = acquisition.score(&trajectory);
+        let (alpha_step, alpha) = acquisition.score(&trajectory, precondition.d_max());
         return Ok(Proposal {
             strategy,
             beta: precondition.beta(),
@@ -209,7 +209,7 @@ pub(crate) fn propose(
     let scored: Vec<(Vec<f64>, f64)> = found
         .trajectories
         .iter()
-        .map(|t| acquisition.score(t))
+        .map(|t| acquisition.score(t, precondition.d_max()))
         .collect();
     let alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.

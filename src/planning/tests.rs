@@ -360,7 +360,7 @@ fn active_picks_the_argmin_of_the_candidates() {
         assert_eq!(p.alpha, min);
         assert_eq!(p.candidates[p.chosen_index].alpha, p.alpha);
         assert_eq!(p.candidates[p.chosen_index].length, p.trajectory.len());
-        let (steps, alpha) = acq.score(&p.trajectory);
+        let (steps, alpha) = acq.score(&p.trajectory, 0.1);
         assert_eq!((steps, alpha), (p.alpha_step.clone(), p.alpha));
         assert!(grid.is_goal(p.trajectory.states.last().unwrap(), &[11.0, 11.0]));
     }
@@ -380,7 +380,7 @@ fn goal_conditioned_picks_some_goal_reaching_candidate() {
             .unwrap();
         assert!(grid.is_goal(p.trajectory.states.last().unwrap(), &[11.0, 11.0]));
         assert_eq!(p.candidates[p.chosen_index].alpha, p.alpha);
-        assert_eq!(acq.score(&p.trajectory).1, p.alpha);
+        assert_eq!(acq.score(&p.trajectory, 0.1).1, p.alpha);
         let min = p
             .candidates
             .iter()

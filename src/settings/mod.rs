@@ -21,8 +21,8 @@ use crate::limits::{
 };
 use crate::mde::EstimatorChoice;
 use crate::planning::{
-    AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings, PlanningError,
-    PlanningSettings, Strategy,
+    AcquisitionKind, AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings,
+    PlanningError, PlanningSettings, Strategy,
 };
 use crate::remote_model::{ModelCalls, ModelUrlPolicy};
 use schemars::JsonSchema;
@@ -289,6 +289,15 @@ impl Preset {
         }
     }
 
+    /// The acquisition function this preset uses when `learning.acquisition` is absent (see
+    /// [`LearningSettings::acquisition`]).
+    pub fn acquisition(self) -> AcquisitionKind {
+        match self {
+            Self::Default => AcquisitionKind::Lcb,
+            Self::Paper => AcquisitionKind::Lcb,
+        }
+    }
+
     /// Whether this preset relaxes β when a training problem has no plan (see
     /// [`LearningSettings::relax_beta`]).
     pub fn relax_beta(self) -> bool {
@@ -463,6 +472,9 @@ pub struct LearningRequest {
     pub gamma: f64,
     /// [`LearningSettings::aggregation`]. Default `max`.
     pub aggregation: Aggregation,
+    /// [`LearningSettings::acquisition`]. Absent: the preset's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub acquisition: Option<AcquisitionKind>,
     /// [`LearningSettings::k1`]. Default 2.
     pub k1: f64,
     /// [`LearningSettings::k2`]. Default 0.5.
@@ -489,6 +501,7 @@ impl Default for LearningRequest {
             c: 1.0,
             gamma: 0.9,
             aggregation: Aggregation::Max,
+            acquisition: None,
             k1: 2.0,
             k2: 0.5,
             test_beta: 2.0,
@@ -520,8 +533,12 @@ pub struct LearningSettings {
     pub c: f64,
     /// Discount `γ` of the aggregation.
     pub gamma: f64,
-    /// Aggregation `h`.
+    /// Aggregation `h` (of the `lcb` acquisition).
     pub aggregation: Aggregation,
+    /// The acquisition function `active` minimises: `lcb` (the paper's `h(μ − c σ)`) or
+    /// `level_set` (the reach-weighted ambiguity of each step's side of `d_max`; see
+    /// [`AcquisitionKind`]).
+    pub acquisition: AcquisitionKind,
     /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`].
     pub k1: f64,
     /// β schedule steepness `k2`; positive, at most
@@ -682,6 +699,7 @@ impl ExperimentRequest {
             c: l.c,
             gamma: l.gamma,
             aggregation: l.aggregation,
+            acquisition: l.acquisition.unwrap_or_else(|| l.preset.acquisition()),
             k1: l.k1,
             k2: l.k2,
             test_beta: l.test_beta,
@@ -785,6 +803,7 @@ impl LearningSettings {
                 ..Default::default()
             },
             AcquisitionSettings {
+                kind: self.acquisition,
                 c: self.c,
                 gamma: self.gamma,
                 aggregation: self.aggregation,

@@ -49,7 +49,12 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
         .resolve(&Default::default())
         .unwrap();
     let mut stored = serde_json::to_value(&settings).unwrap();
-    for path in ["mde.kernel", "mde.label_cap", "learning.relax_beta"] {
+    for path in [
+        "mde.kernel",
+        "mde.label_cap",
+        "learning.relax_beta",
+        "learning.acquisition",
+    ] {
         strip(&mut stored, path);
     }
     let created = "2026-01-01T00:00:00Z";
@@ -150,6 +155,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(experiment["mde"]["kernel"], "matern52");
     assert_eq!(experiment["mde"]["label_cap"], 0.0);
     assert_eq!(experiment["learning"]["relax_beta"], false);
+    assert_eq!(experiment["learning"]["acquisition"], "lcb");
     assert_eq!(experiment["model_version"], 1);
 
     let (status, model) = app.get("/v1/experiments/1/model").await;
