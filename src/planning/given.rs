@@ -128,6 +128,69 @@ mod tests {
             .unwrap()
     }
 
+    /// A passage whose one move, right from (4, 1), lies on the level set (μ = d_max = 0.1, σ =
+    /// 0.05: nobody knows which side); every other move is surely safe (μ = 0, σ = 0.001).
+    struct Gap;
+    impl DeviationModel for Gap {
+        fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+            features
+                .chunks(dim)
+                .map(|r| {
+                    let at = (r[0] * 11.0).round() == 4.0 && (r[1] * 11.0).round() == 1.0;
+                    let right = r[2] == 1.0 && r[3] == 0.5;
+                    if at && right {
+                        (0.1, 0.05)
+                    } else {
+                        (0.0, 0.001)
+                    }
+                })
+                .collect()
+        }
+    }
+
+    #[test]
+    fn the_level_set_acquisition_executes_the_doubtful_passage_and_the_paper_s_does_not() {
+        // Two ways from (3, 1) to (6, 1): straight through the doubtful move, or around it.
+        let candidates = || {
+            vec![
+                walk(
+                    [3.0, 1.0],
+                    &[[0.0, 1.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0], [0.0, -1.0]],
+                ),
+                walk([3.0, 1.0], &[[1.0, 0.0], [1.0, 0.0], [1.0, 0.0]]),
+            ]
+        };
+        let judge = |kind| {
+            let acq = AcquisitionSettings {
+                kind,
+                ..AcquisitionSettings::default()
+            };
+            let grid = IcyGridworld::default_layout();
+            let settings = PlanningSettings::new(PlannerSettings::default(), acq).unwrap();
+            // The optimistic β of early training, at which the doubtful move may be planned.
+            Planner::new(&grid, &Gap, &settings)
+                .judge(
+                    &[6.0, 1.0],
+                    candidates(),
+                    Precondition::new(-2.0, 0.1).unwrap(),
+                )
+                .unwrap()
+        };
+        let lcb = judge(AcquisitionKind::Lcb);
+        assert!(lcb.iter().all(Verdict::eligible));
+        // The paper's lower confidence bound prefers the way it is surest of: around.
+        assert_eq!(choose(Strategy::Active, &lcb, 0), Some(0));
+        // The level set's: the move whose side of d_max is in doubt.
+        let level_set = judge(AcquisitionKind::LevelSet);
+        assert_eq!(choose(Strategy::Active, &level_set, 0), Some(1));
+        // Its α: the doubtful step (t = 1, p = 1/2, reached surely) weighs γ = 0.9.
+        assert!(
+            (level_set[1].alpha + 0.9).abs() < 1e-6,
+            "{}",
+            level_set[1].alpha
+        );
+    }
+
     /// μ = 0.3 on x-moves from x ≥ 5 (in grid units), else 0; σ = 0.01.
     struct Wall;
     impl DeviationModel for Wall {
