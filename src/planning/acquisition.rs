@@ -2,7 +2,7 @@
 //! with a discount. The `active` strategy executes the candidate with the smallest value.
 
 use super::PlanningError;
-use super::rrt::Trajectory;
+use super::trajectory::Trajectory;
 use std::fmt;
 use std::str::FromStr;
 

@@ -770,7 +770,7 @@ fn a_cancelled_search_stops_before_its_next_round() {
 /// its own random stream and the models' answers), with fewer calls to the deviation model.
 #[test]
 fn runs_grown_together_grow_the_trees_they_grow_alone() {
-    use super::rrt::{Task, grow, grow_together, seeded_rng};
+    use super::rrt::{grow, grow_together, seeded_rng};
     let grid = IcyGridworld::default_layout();
     let kin = walled_kinematic();
     let ice = IceModel::new(&grid, 0.02);
@@ -789,7 +789,7 @@ fn runs_grown_together_grow_the_trees_they_grow_alone() {
             PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
         let checked = Problem::new(domain, start.to_vec(), goal.to_vec()).unwrap();
         let planner = Planner::new(domain, model, &settings);
-        let problem = Task::new(&planner, &checked, Precondition::new(1.0, 0.1).unwrap());
+        let problem = planner.task(&checked, Precondition::new(1.0, 0.1).unwrap());
         let alone_model = Counting {
             inner: model,
             calls: AtomicUsize::new(0),
