@@ -213,14 +213,11 @@ async fn a_client_that_goes_away_cancels_its_search() {
     let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
     let cancelled_before = cancelled_proposals(&app).await;
-    let impatient = reqwest::Client::builder()
-        .timeout(Duration::from_millis(300))
-        .build()
-        .unwrap();
-    let gone = impatient
-        .post(app.url(&format!("/v1/experiments/{id}/proposals")))
-        .json(&blocked_ask("impatient"))
-        .send()
+    let gone = app
+        .post_and_go_away(
+            &format!("/v1/experiments/{id}/proposals"),
+            &blocked_ask("impatient"),
+        )
         .await;
     assert!(gone.unwrap_err().is_timeout());
     // A feasible problem now gets the slot at once.
