@@ -9,7 +9,7 @@
 //! the unit box of the state bounds, so that components in different units compare).
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
-use super::{FeatureMap, Space, check_magnitudes, euclidean, uniform_between};
+use super::{FeatureMap, Space, check_magnitudes, euclidean, segment_clear, uniform_between};
 use crate::limits::MAX_MAGNITUDE;
 use rand::RngCore;
 use rand::seq::IndexedRandom;
@@ -28,9 +28,6 @@ pub const MAX_ROLLOUT_LENGTH: usize = 10_000;
 
 /// Steps of a `random`-strategy rollout when none is declared and no plan was found to measure.
 pub const FALLBACK_ROLLOUT_LENGTH: usize = 20;
-
-/// Points checked along each edge by the approximate collision check.
-const COLLISION_SAMPLES: usize = 8;
 
 /// A client-declared domain's parameters.
 #[derive(Debug, Clone, PartialEq)]
@@ -365,14 +362,7 @@ impl Domain for CustomDomain {
         if self.params.obstacles.is_empty() {
             return true;
         }
-        let mut p = vec![0.0; s.len()];
-        (1..=COLLISION_SAMPLES).all(|k| {
-            let t = k as f64 / COLLISION_SAMPLES as f64;
-            for (i, pi) in p.iter_mut().enumerate() {
-                *pi = s[i] + t * (s_pred[i] - s[i]);
-            }
-            !self.in_collision(&p)
-        })
+        segment_clear(s, s_pred, |p| self.in_collision(p))
     }
 
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {

@@ -4,7 +4,7 @@
 
 use super::{
     Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space, check_magnitudes,
-    euclidean, uniform_between,
+    euclidean, segment_clear, uniform_between,
 };
 use crate::limits::MAX_MAGNITUDE;
 use rand::RngCore;
@@ -92,9 +92,6 @@ pub struct Kinematic {
 /// The fractions of the full step towards a target that steering offers (see
 /// [`Kinematic`]'s `steer`).
 pub const STEER_SCALES: [f64; 3] = [1.0, 0.5, 0.25];
-
-/// Points checked along each edge by the approximate collision check.
-const COLLISION_SAMPLES: usize = 8;
 
 impl Kinematic {
     /// Largest accepted state dimension.
@@ -336,14 +333,7 @@ impl Domain for Kinematic {
         if euclidean(s, s_pred) < 1e-12 {
             return false;
         }
-        let mut p = vec![0.0; s.len()];
-        (1..=COLLISION_SAMPLES).all(|k| {
-            let t = k as f64 / COLLISION_SAMPLES as f64;
-            for (i, pi) in p.iter_mut().enumerate() {
-                *pi = s[i] + t * (s_pred[i] - s[i]);
-            }
-            !self.in_collision(&p)
-        })
+        segment_clear(s, s_pred, |p| self.in_collision(p))
     }
 
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {

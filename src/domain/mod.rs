@@ -393,6 +393,27 @@ pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
         .sqrt()
 }
 
+/// Points checked along each edge by the approximate collision check.
+const COLLISION_SAMPLES: usize = 8;
+
+/// Whether the segment from `s` to `s_next` stays clear of what `in_collision` reports, checked
+/// at [`COLLISION_SAMPLES`] evenly spaced points after `s`, `s_next` included (an approximate
+/// check, for the domains with box obstacles).
+pub(crate) fn segment_clear(
+    s: &[f64],
+    s_next: &[f64],
+    in_collision: impl Fn(&[f64]) -> bool,
+) -> bool {
+    let mut p = vec![0.0; s.len()];
+    (1..=COLLISION_SAMPLES).all(|k| {
+        let t = k as f64 / COLLISION_SAMPLES as f64;
+        for (i, pi) in p.iter_mut().enumerate() {
+            *pi = s[i] + t * (s_next[i] - s[i]);
+        }
+        !in_collision(&p)
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -188,7 +188,7 @@ impl Core {
         for i in 0..n {
             let row = &self.linv[i * n..i * n + i + 1];
             for (j, o) in out.iter_mut().enumerate() {
-                let t = dot(row, &ks[j * n..j * n + i + 1]);
+                let t = linalg::dot(row, &ks[j * n..j * n + i + 1]);
                 *o += t * t;
             }
         }
@@ -202,7 +202,7 @@ impl Core {
         let rows = |r0: usize, r1: usize| -> f64 {
             (r0..r1)
                 .map(|i| {
-                    let t = dot(&self.linv[i * n..i * n + i + 1], &k[..i + 1]);
+                    let t = linalg::dot(&self.linv[i * n..i * n + i + 1], &k[..i + 1]);
                     t * t
                 })
                 .sum()
@@ -225,25 +225,6 @@ impl Core {
 /// Batches of at most this many query points get their variances from [`Core::quad_few`]
 /// rather than a GEMM.
 const SMALL_BATCH: usize = 16;
-
-/// Dot product with eight independent accumulators (vectorises; fixed summation order).
-#[inline]
-fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for t in 0..8 {
-            acc[t] += x[t] * y[t];
-        }
-    }
-    acc.iter().sum::<f64>() + tail
-}
 
 /// The arithmetic mean (0 for an empty slice).
 pub(crate) fn mean(v: &[f64]) -> f64 {

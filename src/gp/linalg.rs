@@ -192,3 +192,22 @@ pub(crate) fn cholesky_rank_update(l: &mut [f64], n: usize, w: &mut [f64], k: us
     .is_ok()
         && (0..n).all(|i| l[i * n + i].is_finite() && l[i * n + i] > 0.0)
 }
+
+/// Dot product with eight independent accumulators (vectorises; fixed summation order).
+#[inline]
+pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
+    let mut acc = [0.0f64; 8];
+    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
+    let tail: f64 = ca
+        .remainder()
+        .iter()
+        .zip(cb.remainder())
+        .map(|(x, y)| x * y)
+        .sum();
+    for (x, y) in ca.zip(cb) {
+        for t in 0..8 {
+            acc[t] += x[t] * y[t];
+        }
+    }
+    acc.iter().sum::<f64>() + tail
+}

@@ -69,6 +69,46 @@ pub(crate) fn check_finite_matrix(x: &DMatrix<f64>, what: &'static str) -> Resul
     Ok(())
 }
 
+/// The prediction at the rows of `x` for a model of input dimension `d`, `at` predicting at
+/// converted inputs. Never panics: a wrong column count gives NaN everywhere, a row with a
+/// non-finite coordinate NaN for that row (the exact and the sparse GP's `predict`).
+pub(crate) fn predict_rows(
+    x: &DMatrix<f64>,
+    d: usize,
+    at: impl FnOnce(&Inputs) -> Prediction,
+) -> Prediction {
+    if x.ncols() != d {
+        let m = x.nrows();
+        return Prediction {
+            mean: vec![f64::NAN; m],
+            latent_variance: vec![f64::NAN; m],
+            noise_variance: vec![f64::NAN; m],
+        };
+    }
+    let q = Inputs::from_matrix(x);
+    let mut p = at(&q);
+    for i in 0..q.n {
+        if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
+            p.mean[i] = f64::NAN;
+            p.latent_variance[i] = f64::NAN;
+            p.noise_variance[i] = f64::NAN;
+        }
+    }
+    p
+}
+
+/// A query `try_predict` accepts: `d` columns, every coordinate finite.
+pub(crate) fn check_query(x: &DMatrix<f64>, d: usize) -> Result<(), GpError> {
+    if x.ncols() != d {
+        return Err(GpError::DimensionMismatch {
+            what: "columns of query x vs input dimension",
+            expected: d,
+            found: x.ncols(),
+        });
+    }
+    check_finite_matrix(x, "query x")
+}
+
 impl GpModel {
     /// Fits a GP to training inputs `x` (rows are points, already scaled to the unit box) and
     /// targets `y`, maximising the LML over the hyperparameters (see [`GpParams`](super::GpParams)).
@@ -438,45 +478,23 @@ impl GpModel {
     /// a non-finite coordinate gives NaN for that row. Use [`try_predict`](Self::try_predict) to
     /// get an error instead.
     pub fn predict(&self, x: &DMatrix<f64>) -> Prediction {
-        if x.ncols() != self.x.d {
-            let m = x.nrows();
-            return Prediction {
-                mean: vec![f64::NAN; m],
-                latent_variance: vec![f64::NAN; m],
-                noise_variance: vec![f64::NAN; m],
+        predict_rows(x, self.x.d, |q| {
+            let (mean, latent_variance) = self.main.predict(q, true);
+            let noise_variance = match &self.noise_model {
+                Some(nm) => nm.predict_noise(q),
+                None => vec![self.hyper.noise_variance; q.n],
             };
-        }
-        let q = Inputs::from_matrix(x);
-        let (mean, latent_variance) = self.main.predict(&q, true);
-        let noise_variance = match &self.noise_model {
-            Some(nm) => nm.predict_noise(&q),
-            None => vec![self.hyper.noise_variance; q.n],
-        };
-        let mut p = Prediction {
-            mean,
-            latent_variance,
-            noise_variance,
-        };
-        for i in 0..q.n {
-            if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
-                p.mean[i] = f64::NAN;
-                p.latent_variance[i] = f64::NAN;
-                p.noise_variance[i] = f64::NAN;
+            Prediction {
+                mean,
+                latent_variance,
+                noise_variance,
             }
-        }
-        p
+        })
     }
 
     /// Like [`predict`](Self::predict) but rejects a wrong column count or non-finite inputs.
     pub fn try_predict(&self, x: &DMatrix<f64>) -> Result<Prediction, GpError> {
-        if x.ncols() != self.x.d {
-            return Err(GpError::DimensionMismatch {
-                what: "columns of query x vs input dimension",
-                expected: self.x.d,
-                found: x.ncols(),
-            });
-        }
-        check_finite_matrix(x, "query x")?;
+        check_query(x, self.x.d)?;
         Ok(self.predict(x))
     }
 }

@@ -15,7 +15,7 @@
 //!   doubtful steps. `aggregation` and `c` do not apply.
 
 use super::PlanningError;
-use super::rrt::Trajectory;
+use super::trajectory::Trajectory;
 use std::fmt;
 use std::str::FromStr;
 

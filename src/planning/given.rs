@@ -5,12 +5,13 @@
 //!
 //! Every step of every candidate goes to the deviation model in one batch.
 
-use super::PlanningError;
+use super::acquisition::AcquisitionSettings;
 use super::cache::ModelCache;
-use super::planner::Planner;
 use super::precondition::Precondition;
-use super::rrt::Trajectory;
 use super::strategy::Strategy;
+use super::trajectory::Trajectory;
+use super::{DeviationModel, PlanningError};
+use crate::domain::Domain;
 
 /// A candidate as posted: its states (starting with the start state) and the actions between
 /// them.
@@ -41,17 +42,17 @@ impl Verdict {
 }
 
 /// Scores every step of every candidate `(states, actions)` (states start with the start
-/// state; one more state than actions) inside `precondition`, and judges each against it and
-/// the goal. Inputs are assumed validated against the domain.
+/// state; one more state than actions) with `model` and `acquisition` inside `precondition`,
+/// and judges each against it and the goal. Inputs are assumed validated against the domain.
 pub(crate) fn judge(
-    planner: &Planner<'_>,
+    domain: &dyn Domain,
+    model: &dyn DeviationModel,
+    acquisition: &AcquisitionSettings,
     goal: &[f64],
     candidates: Vec<Path>,
     precondition: Precondition,
 ) -> Result<Vec<Verdict>, PlanningError> {
-    let domain = planner.domain;
-    let acquisition = planner.settings.acquisition();
-    let mut cache = ModelCache::new(planner.model, domain.feature_dim());
+    let mut cache = ModelCache::new(model, domain.feature_dim());
     let features: Vec<f64> = candidates
         .iter()
         .flat_map(|(states, actions)| {
@@ -110,8 +111,7 @@ mod tests {
     use super::*;
     use crate::domain::IcyGridworld;
     use crate::planning::{
-        AcquisitionKind, AcquisitionSettings, Aggregation, DeviationModel, PlannerSettings,
-        PlanningSettings,
+        AcquisitionKind, Aggregation, Planner, PlannerSettings, PlanningSettings,
     };
 
     /// The verdicts of `candidates` for the goal `goal` on the default map under [`Wall`], at

@@ -12,14 +12,21 @@
 //! - [`budget`]: the deadline and cancel flag a search checks between rounds (a planner's
 //!   [`Planner::within`]).
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
+//! - [`settings`]: the [`PlannerSettings`] and, checked once with the acquisition's, the
+//!   [`PlanningSettings`].
+//! - [`trajectory`]: the [`Trajectory`] every part passes on.
 //! - [`rrt`](mod@rrt): one RRT run (behind [`Planner::rrt`] and the test-time
-//!   [`Planner::plan`]), the planner settings, trajectories.
+//!   [`Planner::plan`]).
 //! - [`strategy`]: candidate generation and the `active` / `goal_conditioned` / `random`
 //!   strategies behind [`Planner::propose`]; [`Strategy::choose`], the one choice among
 //!   candidates.
 //! - [`given`]: candidates posted by the client, judged step by step and chosen by the same
 //!   strategies.
 //! - [`synthetic`]: cheap deviation models with known answers, for tests, benchmarks and demos.
+//!
+//! The imports run one way: [`planner`] uses [`given`], [`strategy`] and [`rrt`](mod@rrt),
+//! which are handed values (the settings, the problem, the model, the budget) and never the
+//! [`Planner`].
 //!
 //! The module knows nothing of HTTP, SQL or JSON. The deviation model is reached only through
 //! [`DeviationModel`], so the GP (or any stand-in) plugs in from outside. Every random choice
@@ -33,8 +40,10 @@ pub mod planner;
 pub mod precondition;
 pub mod rrt;
 pub mod schedule;
+pub mod settings;
 pub mod strategy;
 pub mod synthetic;
+pub mod trajectory;
 
 #[cfg(test)]
 mod tests;
@@ -45,11 +54,13 @@ pub use acquisition::{
 pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose};
-pub use planner::{Planner, PlanningSettings};
+pub use planner::Planner;
 pub use precondition::Precondition;
-pub use rrt::{PlannerSettings, Rejections, RrtOutcome, Trajectory};
+pub use rrt::{Rejections, RrtOutcome};
 pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};
+pub use settings::{PlannerSettings, PlanningSettings};
 pub use strategy::{CandidateScore, Proposal, Strategy};
+pub use trajectory::Trajectory;
 
 /// A model deviation estimator as the planner sees it: μ and σ (σ includes noise) of the
 /// deviation for feature vectors φ(s,a).

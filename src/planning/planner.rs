@@ -18,68 +18,31 @@
 //! assert!(grid.is_goal(proposal.trajectory.states.last().unwrap(), problem.goal()));
 //! ```
 
-use super::acquisition::AcquisitionSettings;
 use super::budget::Budget;
+use super::cache::ModelCache;
 use super::given::{self, Path, Verdict};
 use super::precondition::Precondition;
-use super::rrt::{self, PlannerSettings, RrtOutcome};
+use super::rrt::{self, RrtOutcome, Task};
+pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
 use super::{DeviationModel, PlanningError};
 use crate::domain::{Domain, Problem};
 use rand::RngCore;
 
-/// The planner's and the acquisition's settings, checked together once: only valid settings
-/// can plan ([`PlanningSettings::new`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct PlanningSettings {
-    planner: PlannerSettings,
-    acquisition: AcquisitionSettings,
-}
-
-impl Default for PlanningSettings {
-    /// The defaults of both (valid by construction).
-    fn default() -> Self {
-        Self {
-            planner: PlannerSettings::default(),
-            acquisition: AcquisitionSettings::default(),
-        }
-    }
-}
-
-impl PlanningSettings {
-    /// Checks both; the error names the field.
-    pub fn new(
-        planner: PlannerSettings,
-        acquisition: AcquisitionSettings,
-    ) -> Result<Self, PlanningError> {
-        planner.check()?;
-        acquisition.check()?;
-        Ok(Self {
-            planner,
-            acquisition,
-        })
-    }
-
-    /// The planner's settings.
-    pub fn planner(&self) -> &PlannerSettings {
-        &self.planner
-    }
-
-    /// The acquisition's settings.
-    pub fn acquisition(&self) -> &AcquisitionSettings {
-        &self.acquisition
-    }
-}
-
 /// Plans in one domain with one deviation model under checked settings, within a budget
 /// (unlimited unless [`within`](Self::within) says otherwise). Cheap to build: it only borrows.
 /// Every answer is determined by its inputs and `seed`.
+///
+/// It is the top of the module: the searches ([`rrt`](mod@super::rrt)), the strategies
+/// ([`strategy`](mod@super::strategy)) and the judging of given candidates
+/// ([`given`](mod@super::given)) are handed the values they need (a task of the problem, the
+/// precondition and the settings; the deviation model; the budget), never the planner.
 #[derive(Clone)]
 pub struct Planner<'a> {
-    pub(crate) domain: &'a dyn Domain,
-    pub(crate) model: &'a dyn DeviationModel,
-    pub(crate) settings: &'a PlanningSettings,
-    pub(crate) budget: Budget,
+    domain: &'a dyn Domain,
+    model: &'a dyn DeviationModel,
+    settings: &'a PlanningSettings,
+    budget: Budget,
 }
 
 impl<'a> Planner<'a> {
@@ -103,6 +66,19 @@ impl<'a> Planner<'a> {
         self
     }
 
+    /// What the searches of one answer for `problem` inside `precondition` share.
+    pub(crate) fn task<'p>(&self, problem: &'p Problem, precondition: Precondition) -> Task<'p>
+    where
+        'a: 'p,
+    {
+        Task {
+            domain: self.domain,
+            problem,
+            precondition,
+            settings: self.settings,
+        }
+    }
+
     /// One RRT run inside `precondition`, `rng` driving every random choice (see
     /// [`rrt`](mod@super::rrt)).
     pub fn rrt(
@@ -111,7 +87,13 @@ impl<'a> Planner<'a> {
         precondition: Precondition,
         rng: &mut dyn RngCore,
     ) -> Result<RrtOutcome, PlanningError> {
-        rrt::run(self, problem, precondition, rng)
+        let mut cache = ModelCache::new(self.model, self.domain.feature_dim());
+        rrt::grow(
+            self.task(problem, precondition),
+            &mut cache,
+            rng,
+            &self.budget,
+        )
     }
 
     /// The test-time plan: one RRT run inside `precondition` (the conservative test β),
@@ -135,7 +117,13 @@ impl<'a> Planner<'a> {
         precondition: Precondition,
         seed: u64,
     ) -> Result<Proposal, PlanningError> {
-        strategy::propose(self, strategy, problem, precondition, seed)
+        strategy::propose(
+            self.task(problem, precondition),
+            self.model,
+            &self.budget,
+            strategy,
+            seed,
+        )
     }
 
     /// [`propose`](Self::propose) inside each precondition of `ladder` in turn (a
@@ -180,6 +168,13 @@ impl<'a> Planner<'a> {
         candidates: Vec<Path>,
         precondition: Precondition,
     ) -> Result<Vec<Verdict>, PlanningError> {
-        given::judge(self, goal, candidates, precondition)
+        given::judge(
+            self.domain,
+            self.model,
+            self.settings.acquisition(),
+            goal,
+            candidates,
+            precondition,
+        )
     }
 }

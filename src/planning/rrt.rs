@@ -39,122 +39,14 @@
 use super::PlanningError;
 use super::budget::Budget;
 use super::cache::ModelCache;
-use super::planner::Planner;
 use super::precondition::Precondition;
+pub use super::settings::PlannerSettings;
+use super::settings::PlanningSettings;
+pub use super::trajectory::Trajectory;
 use crate::domain::{Domain, DynamicsError, Predicted, Problem};
-use crate::limits::{MAX_CANDIDATES, MAX_EXTENSIONS};
 use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashSet;
-
-/// The planner's parameters (experiment settings).
-#[derive(Debug, Clone, PartialEq)]
-pub struct PlannerSettings {
-    /// Budget of one RRT run, in extensions (attempted edges). Default 5000 (paper);
-    /// 1 ..= [`MAX_EXTENSIONS`].
-    pub max_extensions: usize,
-    /// Number of seeded RRT runs per proposal, hence the largest number of candidates.
-    /// Default 20; 1 ..= [`MAX_CANDIDATES`].
-    pub n_candidates: usize,
-    /// Probability that an extension grows towards the goal rather than a uniform state.
-    /// Default 0.2 (a common choice: enough pull to reach the goal quickly in open space,
-    /// enough spread to get around regions outside the precondition); in `[0, 1]`.
-    pub goal_bias: f64,
-    /// Largest number of edges proposed per round and sent to the deviation model together
-    /// (see the module docs). Default 1, the classic one-edge-at-a-time RRT; 1 ..= 4096.
-    pub extension_batch: usize,
-    /// Candidate generation gives up (no plan) after this many runs have failed before any run
-    /// reached the goal. Default 1: a run that spends its whole budget without reaching the
-    /// goal is strong evidence that the goal is not reachable inside the precondition, and the
-    /// answer "no plan within `max_extensions`" then costs one run, not `n_candidates`. Runs
-    /// that fail after a success only contribute no candidate. 1 ..= `n_candidates`.
-    pub max_failed_runs: usize,
-    /// `random` strategy: actions sampled per step before the rollout stops early because none
-    /// satisfies the constraints and the precondition. Default 20; 1 ..= 10 000.
-    pub random_action_tries: usize,
-}
-
-impl Default for PlannerSettings {
-    fn default() -> Self {
-        Self {
-            max_extensions: 5000,
-            n_candidates: 20,
-            goal_bias: 0.2,
-            extension_batch: 1,
-            max_failed_runs: 1,
-            random_action_tries: 20,
-        }
-    }
-}
-
-impl PlannerSettings {
-    /// Checks the ranges; the error names the field.
-    pub fn check(&self) -> Result<(), PlanningError> {
-        let in_range = |field, v: usize, lo: usize, hi: usize| {
-            if v < lo || v > hi {
-                Err(PlanningError::settings(
-                    field,
-                    format!("must lie in {lo} ..= {hi}, got {v}"),
-                ))
-            } else {
-                Ok(())
-            }
-        };
-        in_range(
-            "max_extensions",
-            self.max_extensions,
-            1,
-            MAX_EXTENSIONS as usize,
-        )?;
-        in_range(
-            "n_candidates",
-            self.n_candidates,
-            1,
-            MAX_CANDIDATES as usize,
-        )?;
-        in_range("extension_batch", self.extension_batch, 1, 4096)?;
-        in_range(
-            "max_failed_runs",
-            self.max_failed_runs,
-            1,
-            self.n_candidates.max(1),
-        )?;
-        in_range("random_action_tries", self.random_action_tries, 1, 10_000)?;
-        if !(0.0..=1.0).contains(&self.goal_bias) {
-            return Err(PlanningError::settings(
-                "goal_bias",
-                format!("must lie in [0, 1], got {}", self.goal_bias),
-            ));
-        }
-        Ok(())
-    }
-}
-
-/// A planned trajectory: predicted states and the actions between them, with the deviation
-/// model's answer at each step.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Trajectory {
-    /// Predicted states `s_0 = start, s_{t+1} = f̂(s_t, a_t)`; one more than `actions`.
-    pub states: Vec<Vec<f64>>,
-    /// Actions `a_t`.
-    pub actions: Vec<Vec<f64>>,
-    /// `μ(φ(s_t, a_t))`, per action.
-    pub mu: Vec<f64>,
-    /// `σ(φ(s_t, a_t))` (noise included), per action.
-    pub sigma: Vec<f64>,
-}
-
-impl Trajectory {
-    /// Number of actions.
-    pub fn len(&self) -> usize {
-        self.actions.len()
-    }
-
-    /// Whether it has no action (the start already satisfies the goal).
-    pub fn is_empty(&self) -> bool {
-        self.actions.is_empty()
-    }
-}
 
 /// What one RRT run produced.
 #[derive(Debug, Clone, PartialEq)]
@@ -179,22 +71,6 @@ pub struct Rejections {
     pub constraints: usize,
     /// Some were, but none lay inside the precondition.
     pub precondition: usize,
-}
-
-/// One RRT run of `planner` for `problem` inside `precondition` (see the module docs).
-pub(crate) fn run(
-    planner: &Planner<'_>,
-    problem: &Problem,
-    precondition: Precondition,
-    rng: &mut dyn RngCore,
-) -> Result<RrtOutcome, PlanningError> {
-    let mut cache = ModelCache::new(planner.model, planner.domain.feature_dim());
-    grow(
-        Task::new(planner, problem, precondition),
-        &mut cache,
-        rng,
-        &planner.budget,
-    )
 }
 
 /// The random stream `stream` of `seed`: independent streams for the runs of one proposal.
@@ -307,24 +183,14 @@ struct Steered {
 const MAX_ROUND: usize = 4096;
 
 /// What every search of one proposal shares: the domain, the checked problem, the
-/// precondition and the planner's settings.
+/// precondition and the checked settings. A [`Planner`](super::Planner) hands it to the
+/// searches and the strategies (`Planner::task`); they never see the planner itself.
 #[derive(Clone, Copy)]
 pub(crate) struct Task<'a> {
     pub domain: &'a dyn Domain,
     pub problem: &'a Problem,
     pub precondition: Precondition,
-    pub settings: &'a PlannerSettings,
-}
-
-impl<'a> Task<'a> {
-    pub fn new(planner: &Planner<'a>, problem: &'a Problem, precondition: Precondition) -> Self {
-        Self {
-            domain: planner.domain,
-            problem,
-            precondition,
-            settings: planner.settings.planner(),
-        }
-    }
+    pub settings: &'a PlanningSettings,
 }
 
 /// One RRT search in progress: its tree, its own random stream, what it has spent, and the
@@ -388,6 +254,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             settings,
             ..
         } = self.task;
+        let settings = settings.planner();
         let goal = problem.goal();
         let round_size = settings
             .extension_batch
@@ -518,6 +385,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             precondition,
             settings,
         } = self.task;
+        let max_extensions = settings.planner().max_extensions;
         let goal = problem.goal();
         let before = self.tree.states.len();
         let mut answers = answers.iter();
@@ -566,7 +434,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             self.allowance.saturating_mul(2)
         };
         self.outcome.tree_size = self.tree.states.len();
-        if self.outcome.extensions >= settings.max_extensions {
+        if self.outcome.extensions >= max_extensions {
             self.done = true;
         }
     }

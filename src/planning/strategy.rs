@@ -23,13 +23,11 @@
 //!   (each counts as an extension); when none fits the rollout stops there. It fails with
 //!   `NoPlan` only when not even the first step is possible.
 
-use super::PlanningError;
 use super::budget::Budget;
 use super::cache::ModelCache;
-use super::planner::Planner;
-use super::precondition::Precondition;
-use super::rrt::{RrtOutcome, Task, Trajectory, grow, grow_together, predict_pairs, seeded_rng};
-use crate::domain::Problem;
+use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
+use super::trajectory::Trajectory;
+use super::{DeviationModel, PlanningError};
 use rand::Rng;
 use std::collections::HashSet;
 use std::fmt;
@@ -146,20 +144,23 @@ pub struct Proposal {
     pub dynamics_calls: usize,
 }
 
-/// The proposal of `strategy` for `problem` inside `precondition` (see the module docs). The
-/// same inputs and `seed` give the same proposal.
+/// The proposal of `strategy` for the task's problem inside its precondition, asking `model`
+/// within `budget` (see the module docs). The same inputs and `seed` give the same proposal.
 pub(crate) fn propose(
-    planner: &Planner<'_>,
+    task: Task<'_>,
+    model: &dyn DeviationModel,
+    budget: &Budget,
     strategy: Strategy,
-    problem: &Problem,
-    precondition: Precondition,
     seed: u64,
 ) -> Result<Proposal, PlanningError> {
-    let domain = planner.domain;
-    let acquisition = planner.settings.acquisition();
-    let budget = &planner.budget;
-    let mut cache = ModelCache::new(planner.model, domain.feature_dim());
-    let task = Task::new(planner, problem, precondition);
+    let Task {
+        domain,
+        problem,
+        precondition,
+        settings,
+    } = task;
+    let acquisition = settings.acquisition();
+    let mut cache = ModelCache::new(model, domain.feature_dim());
     if strategy == Strategy::Random {
         let mut own_rng = seeded_rng(seed, 0);
         let mut dynamics_calls = 0;
@@ -267,7 +268,7 @@ fn candidates(
     seed: u64,
     budget: &Budget,
 ) -> Result<Candidates, PlanningError> {
-    let planner = task.settings;
+    let planner = task.settings.planner();
     let mut found = Candidates {
         trajectories: Vec::new(),
         extensions: 0,
@@ -343,7 +344,7 @@ fn rollout_length(
     if !domain.rollout_like_plans() {
         return Ok((domain.rollout_length(), None));
     }
-    let mut rng = seeded_rng(seed, task.settings.n_candidates as u64 + 1);
+    let mut rng = seeded_rng(seed, task.settings.planner().n_candidates as u64 + 1);
     let run = grow(task, cache, &mut rng, budget)?;
     let length = run
         .trajectory
@@ -361,7 +362,7 @@ fn rollout(
     budget: &Budget,
 ) -> Result<(Trajectory, usize), PlanningError> {
     let domain = task.domain;
-    let planner = task.settings;
+    let planner = task.settings.planner();
     let mut t = Trajectory {
         states: vec![task.problem.start().to_vec()],
         actions: Vec::new(),

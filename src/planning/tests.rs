@@ -298,8 +298,6 @@ fn a_test_beta_plan_never_takes_an_x_move_from_ice() {
     for seed in 0..40 {
         let p = grid.sample_problem(&mut rng);
         let out = Ask::new(&grid, &mde, p.start(), p.goal())
-            .at(2.0, 0.1)
-            .planner(&PlannerSettings::default())
             .plan(seed)
             .unwrap();
         let Some(t) = out.trajectory else { continue };
@@ -322,8 +320,6 @@ fn without_the_ice_knowledge_the_plan_crosses_the_ice() {
         sigma: 0.01,
     };
     let t = Ask::new(&grid, &trusting, &start, &goal)
-        .at(2.0, 0.1)
-        .planner(&PlannerSettings::default())
         .plan(3)
         .unwrap()
         .trajectory
@@ -331,8 +327,6 @@ fn without_the_ice_knowledge_the_plan_crosses_the_ice() {
     assert!(t.actions.iter().any(|a| a[0] != 0.0));
     let knowing = IceModel::new(&grid, 0.01);
     let t = Ask::new(&grid, &knowing, &start, &goal)
-        .at(2.0, 0.1)
-        .planner(&PlannerSettings::default())
         .plan(3)
         .unwrap()
         .trajectory
@@ -347,7 +341,6 @@ fn active_picks_the_argmin_of_the_candidates() {
     for seed in 0..5 {
         let p = Ask::new(&grid, &SlopeModel, &[0.0, 0.0], &[11.0, 11.0])
             .at(0.0, 0.1)
-            .planner(&PlannerSettings::default())
             .acquisition(&acq)
             .propose(Strategy::Active, seed)
             .unwrap();
@@ -374,7 +367,6 @@ fn goal_conditioned_picks_some_goal_reaching_candidate() {
     for seed in 0..10 {
         let p = Ask::new(&grid, &SlopeModel, &[0.0, 0.0], &[11.0, 11.0])
             .at(0.0, 0.1)
-            .planner(&PlannerSettings::default())
             .acquisition(&acq)
             .propose(Strategy::GoalConditioned, seed)
             .unwrap();
@@ -400,19 +392,11 @@ fn random_ignores_the_goal() {
         mu: 0.0,
         sigma: 0.01,
     };
-    let settings = PlannerSettings::default();
-    let acq = AcquisitionSettings::default();
     let start = [5.0, 5.0];
     let a = Ask::new(&grid, &mde, &start, &[5.0, 4.0])
-        .at(2.0, 0.1)
-        .planner(&settings)
-        .acquisition(&acq)
         .propose(Strategy::Random, 11)
         .unwrap();
     let b = Ask::new(&grid, &mde, &start, &[0.0, 11.0])
-        .at(2.0, 0.1)
-        .planner(&settings)
-        .acquisition(&acq)
         .propose(Strategy::Random, 11)
         .unwrap();
     assert_eq!(
@@ -434,16 +418,13 @@ fn random_stops_early_where_no_move_is_trusted() {
     // but it never takes an x-move on ice and fails only if the first step is impossible.
     let grid = IcyGridworld::default_layout();
     let mde = IceModel::new(&grid, 0.01);
-    let acq = AcquisitionSettings::default();
     for seed in 0..20 {
         let settings = PlannerSettings {
             random_action_tries: 2,
             ..Default::default()
         };
         match Ask::new(&grid, &mde, &[2.0, 2.0], &[0.0, 0.0])
-            .at(2.0, 0.1)
             .planner(&settings)
-            .acquisition(&acq)
             .propose(Strategy::Random, seed)
         {
             Ok(p) => {
@@ -467,12 +448,10 @@ fn no_plan_when_nothing_is_trusted() {
         max_extensions: 300,
         ..Default::default()
     };
-    let acq = AcquisitionSettings::default();
     for strategy in [Strategy::Active, Strategy::GoalConditioned] {
         let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
             .at(0.0, 0.1)
             .planner(&settings)
-            .acquisition(&acq)
             .propose(strategy, 1)
             .unwrap_err();
         assert_eq!(
@@ -484,7 +463,6 @@ fn no_plan_when_nothing_is_trusted() {
     let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
         .at(0.0, 0.1)
         .planner(&settings)
-        .acquisition(&acq)
         .propose(Strategy::Random, 1)
         .unwrap_err();
     assert_eq!(
@@ -500,7 +478,6 @@ fn no_plan_when_nothing_is_trusted() {
     let err = Ask::new(&grid, &distrust, &[0.0, 0.0], &[3.0, 0.0])
         .at(0.0, 0.1)
         .planner(&patient)
-        .acquisition(&acq)
         .propose(Strategy::Active, 1)
         .unwrap_err();
     assert_eq!(err, PlanningError::NoPlan { extensions: 900 });
@@ -522,13 +499,9 @@ fn kinematic_edges_never_cross_the_wall() {
         mu: 0.0,
         sigma: 0.01,
     };
-    let acq = AcquisitionSettings::default();
     let (start, goal) = ([0.1, 0.1], [0.9, 0.9]);
     for seed in 0..4 {
         let p = Ask::new(&domain, &mde, &start, &goal)
-            .at(2.0, 0.1)
-            .planner(&PlannerSettings::default())
-            .acquisition(&acq)
             .propose(Strategy::Active, seed)
             .unwrap();
         let t = &p.trajectory;
@@ -567,8 +540,6 @@ fn kinematic_edges_never_cross_the_wall() {
 fn same_seed_same_proposal() {
     let grid = IcyGridworld::default_layout();
     let mde = IceModel::new(&grid, 0.05);
-    let acq = AcquisitionSettings::default();
-    let settings = PlannerSettings::default();
     for strategy in [
         Strategy::Active,
         Strategy::GoalConditioned,
@@ -577,8 +548,6 @@ fn same_seed_same_proposal() {
         let run = |seed| {
             Ask::new(&grid, &mde, &[0.0, 0.0], &[11.0, 11.0])
                 .at(0.5, 0.2)
-                .planner(&settings)
-                .acquisition(&acq)
                 .propose(strategy, seed)
                 .unwrap()
         };
@@ -594,7 +563,6 @@ fn same_seed_same_proposal() {
     let run = |seed| {
         Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
             .at(1.0, 0.1)
-            .planner(&settings)
             .plan(seed)
             .unwrap()
     };
@@ -611,8 +579,6 @@ fn the_model_sees_each_gridworld_pair_once_per_proposal_in_batches() {
         points: AtomicUsize::new(0),
     };
     let p = Ask::new(&grid, &mde, &[0.0, 0.0], &[11.0, 11.0])
-        .at(2.0, 0.1)
-        .planner(&PlannerSettings::default())
         .acquisition(&AcquisitionSettings::default())
         .propose(Strategy::Active, 9)
         .unwrap();
@@ -636,7 +602,6 @@ fn inputs_and_settings_are_checked_by_name() {
         mu: 0.0,
         sigma: 0.01,
     };
-    let acq = AcquisitionSettings::default();
     let s = PlannerSettings::default();
     let field = |r: Result<Proposal, PlanningError>| match r {
         Err(
@@ -649,7 +614,6 @@ fn inputs_and_settings_are_checked_by_name() {
         Ask::new(&grid, &mde, start, goal)
             .at(beta, d_max)
             .planner(s)
-            .acquisition(&acq)
             .propose(Strategy::Active, 0)
     };
     assert_eq!(field(go(&[0.5, 0.0], &[3.0, 3.0], 0.0, 0.1, &s)), "start");
@@ -678,7 +642,6 @@ fn inputs_and_settings_are_checked_by_name() {
     );
     // A test-time plan from the goal itself is found, and empty.
     let out = Ask::new(&grid, &mde, &[3.0, 3.0], &[3.0, 3.0])
-        .at(2.0, 0.1)
         .planner(&s)
         .plan(0)
         .unwrap();
@@ -750,7 +713,6 @@ fn a_cancelled_search_stops_before_its_next_round() {
     for strategy in [Strategy::Active, Strategy::Random] {
         let err = Ask::new(&domain, &mde, &[0.1, 0.5], &[0.9, 0.5])
             .at(0.0, 0.1)
-            .planner(&PlannerSettings::default())
             .acquisition(&AcquisitionSettings::default())
             .within(&budget)
             .propose(strategy, 3)
@@ -770,7 +732,7 @@ fn a_cancelled_search_stops_before_its_next_round() {
 /// its own random stream and the models' answers), with fewer calls to the deviation model.
 #[test]
 fn runs_grown_together_grow_the_trees_they_grow_alone() {
-    use super::rrt::{Task, grow, grow_together, seeded_rng};
+    use super::rrt::{grow, grow_together, seeded_rng};
     let grid = IcyGridworld::default_layout();
     let kin = walled_kinematic();
     let ice = IceModel::new(&grid, 0.02);
@@ -789,7 +751,7 @@ fn runs_grown_together_grow_the_trees_they_grow_alone() {
             PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
         let checked = Problem::new(domain, start.to_vec(), goal.to_vec()).unwrap();
         let planner = Planner::new(domain, model, &settings);
-        let problem = Task::new(&planner, &checked, Precondition::new(1.0, 0.1).unwrap());
+        let problem = planner.task(&checked, Precondition::new(1.0, 0.1).unwrap());
         let alone_model = Counting {
             inner: model,
             calls: AtomicUsize::new(0),
@@ -905,13 +867,11 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
         max_extensions: 300,
         ..Default::default()
     };
-    let acq = AcquisitionSettings::default();
     let betas = relaxation_ladder(1.5, -2.0);
     let relaxed = |mde: &dyn DeviationModel, betas: &[f64]| {
         Ask::new(&grid, mde, &[0.0, 0.0], &[3.0, 0.0])
             .at(0.0, 0.1)
             .planner(&settings)
-            .acquisition(&acq)
             .within(&Budget::unlimited())
             .propose_relaxing(Strategy::Active, betas, 1)
     };
@@ -927,7 +887,6 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
     let direct = Ask::new(&grid, &doubtful, &[0.0, 0.0], &[3.0, 0.0])
         .at(betas[3], 0.1)
         .planner(&settings)
-        .acquisition(&acq)
         .propose(Strategy::Active, 1)
         .unwrap();
     assert_eq!(p.trajectory, direct.trajectory, "the same search at that β");

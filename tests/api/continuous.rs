@@ -2,7 +2,7 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::{spawn_app, temp_db};
+use super::helpers::fresh_app;
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
@@ -56,8 +56,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     let domain = world.domain();
     let d_max = world.d_max();
     let p = world.params();
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
@@ -194,8 +193,7 @@ impl World for Drift {
 
 #[tokio::test]
 async fn closed_loop_execution_reaches_goals_open_loop_misses() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic", "goal_radius": 0.03},

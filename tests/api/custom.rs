@@ -162,8 +162,7 @@ async fn model_urls_are_allowed_only_under_the_operators_prefixes() {
 
 #[tokio::test]
 async fn a_bad_custom_domain_is_refused_with_the_field_named() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let linear = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
     let cases: Vec<(Value, &str)> = vec![
         (
@@ -235,8 +234,7 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
 
 #[tokio::test]
 async fn a_linear_model_with_identities_labels_like_the_kinematic_shorthand() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let linear = app
         .create_experiment(json!({"domain": plane(json!({
             "kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}))}))
@@ -295,8 +293,7 @@ async fn plans_respect_the_robots_own_validity_check() {
 
 #[tokio::test]
 async fn a_client_model_posts_its_predictions_and_its_candidates() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": plane(json!({"kind": "client"})),

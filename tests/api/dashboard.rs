@@ -50,8 +50,7 @@ fn ids(page: &Value) -> Vec<i64> {
 
 #[tokio::test]
 async fn experiments_come_in_pages_newest_first_with_their_last_activity() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for name in ["a", "b", "c"] {
         app.create_experiment(json!({"name": name})).await;
     }
@@ -93,8 +92,7 @@ async fn experiments_come_in_pages_newest_first_with_their_last_activity() {
 
 #[tokio::test]
 async fn runs_list_proposals_and_trajectories_with_their_status() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1, "batch_size": 100}}))
         .await;
@@ -172,8 +170,7 @@ async fn runs_list_proposals_and_trajectories_with_their_status() {
 
 #[tokio::test]
 async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "mde": {"restarts": 0},
@@ -225,8 +222,7 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
 
 #[tokio::test]
 async fn the_precondition_map_evaluates_any_version_on_a_grid() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
         .await;
@@ -312,8 +308,7 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
 
 #[tokio::test]
 async fn diagnostics_check_a_fit_by_leave_one_out() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
         .await;
@@ -402,8 +397,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
 
 #[tokio::test]
 async fn the_dashboard_is_served_from_the_binary() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for path in ["/", "/ui", "/ui/experiments/3", "/ui/experiments/3/map"] {
         let r = app.client.get(app.url(path)).send().await.unwrap();
         assert_eq!(r.status(), 200, "{path}");

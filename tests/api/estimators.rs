@@ -88,15 +88,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         timeline["fit_refusals"].as_array().unwrap().len() >= 2,
         "{timeline}"
     );
-    let metrics = app
-        .client
-        .get(app.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let metrics = app.metrics().await;
     assert!(
         metrics
             .lines()

@@ -23,8 +23,7 @@ async fn runs(app: &TestApp, id: i64) -> Vec<Value> {
 
 #[tokio::test]
 async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(walled(json!({"max_extensions": 300, "batch_size": 5})))
         .await;
@@ -156,8 +155,7 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
 
 #[tokio::test]
 async fn the_papers_preset_tries_one_beta_and_a_clients_candidates_are_refused_too() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(walled(json!({"max_extensions": 200, "preset": "paper"})))
         .await;
@@ -211,8 +209,7 @@ fn walk(start: [f64; 2], actions: &[[f64; 2]]) -> Vec<Value> {
 
 #[tokio::test]
 async fn an_execution_that_departs_from_its_proposal_is_flagged_and_a_prefix_is_not() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"learning": {"batch_size": 100}}))
         .await;
@@ -303,8 +300,7 @@ async fn an_execution_that_departs_from_its_proposal_is_flagged_and_a_prefix_is_
 
 #[tokio::test]
 async fn continuous_actions_equal_within_the_tolerance_do_not_deviate() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(
             json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 100}}),
@@ -347,8 +343,7 @@ async fn continuous_actions_equal_within_the_tolerance_do_not_deviate() {
 
 #[tokio::test]
 async fn a_trajectorys_source_is_stored_shown_and_checked() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let source =

@@ -3,16 +3,14 @@ use serde_json::json;
 
 #[tokio::test]
 async fn health_and_readiness_answer() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     assert_eq!(app.get("/healthz").await, (200, json!({"status": "ok"})));
     assert_eq!(app.get("/readyz").await, (200, json!({"status": "ready"})));
 }
 
 #[tokio::test]
 async fn an_empty_request_resolves_every_default() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let (status, e) = app.post("/v1/experiments", &json!({})).await;
     assert_eq!(status, 201, "{e}");
     assert_eq!(e["domain"]["kind"], "icy_gridworld");
@@ -40,8 +38,7 @@ async fn an_empty_request_resolves_every_default() {
 #[tokio::test]
 async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relaxes_unless_told_otherwise()
  {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for (body, cap) in [
         (json!({"learning": {"preset": "paper"}}), json!(0.0)),
         (
@@ -88,8 +85,7 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
 
 #[tokio::test]
 async fn a_kinematic_experiment_shows_its_spaces() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let (status, e) = app
         .post(
             "/v1/experiments",
@@ -105,8 +101,7 @@ async fn a_kinematic_experiment_shows_its_spaces() {
 
 #[tokio::test]
 async fn bad_settings_name_the_field() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let cases = [
         (json!({"learning": {"gamma": 2.0}}), "learning.gamma"),
         (
@@ -153,8 +148,7 @@ async fn bad_settings_name_the_field() {
 /// 1e308: every β infinite); they are refused at creation, naming the field and the bound.
 #[tokio::test]
 async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let huge = [-1e308, -1e308];
     let plane = |extra: serde_json::Value| {
         let mut d = json!({"kind": "custom", "state": {"low": [0, 0], "high": [1, 1]},
@@ -259,8 +253,7 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
 /// bidirectional overrides in them are refused, the field named.
 #[tokio::test]
 async fn control_characters_in_names_and_client_ids_are_refused() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for name in ["a\u{0}b", "\u{1b}[2J", "evil\u{202e}txt.exe", "two\nlines"] {
         let (status, err) = app.post("/v1/experiments", &json!({ "name": name })).await;
         assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
@@ -298,8 +291,7 @@ async fn control_characters_in_names_and_client_ids_are_refused() {
 
 #[tokio::test]
 async fn unknown_things_are_404_in_the_error_shape() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for path in [
         "/v1/experiments/42",
         "/v1/experiments/abc",

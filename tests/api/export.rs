@@ -5,7 +5,7 @@
 //! (after online updates too); the prior is refused with `409`, a bad `version` with `422`, a
 //! missing one with `404`.
 
-use super::helpers::{TestApp, code, spawn_app, temp_db};
+use super::helpers::{TestApp, code, fresh_app};
 use precond::gp::GpPredictor;
 use precond::mde::ExportedModel;
 use rand::{Rng, SeedableRng};
@@ -209,8 +209,7 @@ fn variance_rounding(p: &GpPredictor, x: &[f64]) -> f64 {
 
 #[tokio::test]
 async fn an_exported_exact_gp_answers_as_the_server() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     // The default settings: kernel `auto`, heteroscedastic noise, the exact GP.
     let kinematic = app
         .create_experiment(json!({
@@ -261,8 +260,7 @@ async fn an_exported_exact_gp_answers_as_the_server() {
 
 #[tokio::test]
 async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     for noise in ["homoscedastic", "heteroscedastic"] {
         let id = app
             .create_experiment(json!({
@@ -304,8 +302,7 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
 
 #[tokio::test]
 async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},

@@ -178,8 +178,7 @@ fn inside_set(judged: &[(Pair, bool)]) -> HashSet<Pair> {
 
 #[tokio::test]
 async fn learning_generalises_beyond_what_was_executed_and_keeps_exploring_once_beta_is_positive() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "icy_gridworld", "map": MAP},

@@ -26,6 +26,12 @@ pub fn temp_db() -> (tempfile::TempDir, PathBuf) {
     (dir, path)
 }
 
+/// A server on a new database in a temp dir; the dir lives as long as the returned guard.
+pub async fn fresh_app() -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    (dir, spawn_app(&db).await)
+}
+
 /// Starts a server on the database file at `db_path` (bind first, then spawn: no sleeps).
 pub async fn spawn_app(db_path: &Path) -> TestApp {
     spawn_app_with(db_path, HttpConfig::default()).await
@@ -33,17 +39,13 @@ pub async fn spawn_app(db_path: &Path) -> TestApp {
 
 /// Same, with HTTP settings.
 pub async fn spawn_app_with(db_path: &Path, config: HttpConfig) -> TestApp {
-    let store = Store::open(db_path.to_str().unwrap())
-        .await
-        .expect("open store");
+    let store = open_store(db_path).await;
     spawn_state(db_path, AppState::new(store, config)).await
 }
 
 /// Starts a server that allows remote dynamics models under `prefixes`.
 pub async fn spawn_app_allowing_models(db_path: &Path, prefixes: &[String]) -> TestApp {
-    let store = Store::open(db_path.to_str().unwrap())
-        .await
-        .expect("open store");
+    let store = open_store(db_path).await;
     let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap());
     spawn_state(
         db_path,
@@ -60,9 +62,7 @@ pub async fn spawn_app_with_models(
     limits: Limits,
     model_limits: ModelCallLimits,
 ) -> TestApp {
-    let store = Store::open(db_path.to_str().unwrap())
-        .await
-        .expect("open store");
+    let store = open_store(db_path).await;
     let service = Service::with_model_urls(store, ModelUrlPolicy::new(prefixes).unwrap())
         .with_limits(limits)
         .with_model_limits(model_limits);
@@ -75,15 +75,19 @@ pub async fn spawn_app_with_models(
 
 /// Starts a server under the operator's `limits`.
 pub async fn spawn_app_with_limits(db_path: &Path, limits: Limits) -> TestApp {
-    let store = Store::open(db_path.to_str().unwrap())
-        .await
-        .expect("open store");
+    let store = open_store(db_path).await;
     let service = Service::new(store).with_limits(limits);
     spawn_state(
         db_path,
         AppState::with_service(service, HttpConfig::default()),
     )
     .await
+}
+
+async fn open_store(db_path: &Path) -> Store {
+    Store::open(db_path.to_str().unwrap())
+        .await
+        .expect("open store")
 }
 
 async fn spawn_state(db_path: &Path, state: AppState) -> TestApp {
@@ -166,6 +170,26 @@ impl TestApp {
             .unwrap();
         let status = r.status().as_u16();
         (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    /// Posts `body` to `path` from a client that gives up 300 ms in, as a robot that went
+    /// away: the answer is its timeout error unless the server was quicker.
+    pub async fn post_and_go_away(
+        &self,
+        path: &str,
+        body: &Value,
+    ) -> reqwest::Result<reqwest::Response> {
+        let impatient = reqwest::Client::builder()
+            .timeout(std::time::Duration::from_millis(300))
+            .build()
+            .unwrap();
+        impatient.post(self.url(path)).json(body).send().await
+    }
+
+    /// The Prometheus text of `GET /metrics`.
+    pub async fn metrics(&self) -> String {
+        let r = self.client.get(self.url("/metrics")).send().await.unwrap();
+        r.text().await.unwrap()
     }
 
     /// Creates an experiment and returns its id.

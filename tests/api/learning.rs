@@ -32,8 +32,7 @@ fn every_transition() -> Vec<Value> {
 
 #[tokio::test]
 async fn before_any_data_the_prior_answers_and_says_so() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let (status, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
     assert_eq!(status, 200);
@@ -72,8 +71,7 @@ async fn before_any_data_the_prior_answers_and_says_so() {
 
 #[tokio::test]
 async fn precondition_queries_validate_their_points() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/precondition");
     for (body, field) in [
@@ -106,8 +104,7 @@ async fn precondition_queries_validate_their_points() {
 
 #[tokio::test]
 async fn the_model_advances_after_each_batch_and_survives_a_restart() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}}))
         .await;
@@ -197,8 +194,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
 
 #[tokio::test]
 async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         // Heteroscedastic noise (the default) is what made this work with raw labels: a
         // homoscedastic fit of 0-or-2 labels puts σ_noise ≈ 0.08 everywhere, so μ + 2σ > d_max
@@ -267,8 +263,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
 
 #[tokio::test]
 async fn strategies_produce_what_they_promise() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({"seed": 3})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let goal = json!([9, 10]);
@@ -334,8 +329,7 @@ async fn strategies_produce_what_they_promise() {
 
 #[tokio::test]
 async fn proposals_are_leases() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1}}))
         .await;
@@ -419,8 +413,7 @@ async fn proposals_are_leases() {
 
 #[tokio::test]
 async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robot_is() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let (status, first) = app
@@ -492,8 +485,7 @@ async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robo
 
 #[tokio::test]
 async fn no_plan_is_422_with_the_extensions_used() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
@@ -525,8 +517,7 @@ async fn no_plan_is_422_with_the_extensions_used() {
 /// planned at a lower β (the default preset) rather than answered `no_plan` (the paper's).
 #[tokio::test]
 async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_not_by_the_paper() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let map = ["..#...", "......", "......", "......", "......", "......"];
     // One iteration of one trajectory with a steep schedule: from the second trajectory on,
     // β_j ≈ k1 = 2.

@@ -213,14 +213,11 @@ async fn a_client_that_goes_away_cancels_its_search() {
     let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
     let cancelled_before = cancelled_proposals(&app).await;
-    let impatient = reqwest::Client::builder()
-        .timeout(Duration::from_millis(300))
-        .build()
-        .unwrap();
-    let gone = impatient
-        .post(app.url(&format!("/v1/experiments/{id}/proposals")))
-        .json(&blocked_ask("impatient"))
-        .send()
+    let gone = app
+        .post_and_go_away(
+            &format!("/v1/experiments/{id}/proposals"),
+            &blocked_ask("impatient"),
+        )
         .await;
     assert!(gone.unwrap_err().is_timeout());
     // A feasible problem now gets the slot at once.
@@ -247,15 +244,7 @@ async fn a_client_that_goes_away_cancels_its_search() {
 /// `precond_proposals_total{outcome="cancelled"}` now (0 before the first; the recorder is
 /// the process's, shared by the tests running beside this one, so only its growth counts).
 async fn cancelled_proposals(app: &TestApp) -> u64 {
-    let text = app
-        .client
-        .get(app.url("/metrics"))
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let text = app.metrics().await;
     text.lines()
         .find_map(|l| l.strip_prefix("precond_proposals_total{outcome=\"cancelled\"} "))
         .map_or(0, |v| v.trim().parse().unwrap())
@@ -296,8 +285,7 @@ async fn the_operator_limits_experiments_and_transitions() {
 
 #[tokio::test]
 async fn metrics_and_request_ids_are_exposed() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     app.post(
         &format!("/v1/experiments/{id}/trajectories"),

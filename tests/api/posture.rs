@@ -37,8 +37,7 @@ async fn experiments(app: &TestApp) -> i64 {
 
 #[tokio::test]
 async fn bodies_not_declared_as_json_are_415_in_the_error_shape() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let host = app.addr.to_string();
     for content_type in [
         Some("text/plain"),
@@ -103,8 +102,7 @@ async fn bodies_not_declared_as_json_are_415_in_the_error_shape() {
 
 #[tokio::test]
 async fn a_tokenless_loopback_server_answers_only_its_own_names_and_pages() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let port = app.addr.port();
     let json_ct = "Content-Type: application/json\r\n";
     // DNS rebinding: a name that is not this machine's gets nothing, not even a read.

@@ -161,14 +161,8 @@ async fn a_search_waits_for_a_hung_model_no_longer_than_its_budget() {
     let local = app
         .create_experiment(json!({"domain": {"kind": "kinematic"}}))
         .await;
-    let impatient = reqwest::Client::builder()
-        .timeout(Duration::from_millis(300))
-        .build()
-        .unwrap();
-    let gone = impatient
-        .post(app.url(&format!("/v1/experiments/{hung}/proposals")))
-        .json(&ask)
-        .send()
+    let gone = app
+        .post_and_go_away(&format!("/v1/experiments/{hung}/proposals"), &ask)
         .await;
     assert!(gone.unwrap_err().is_timeout());
     let started = Instant::now();

@@ -5,8 +5,7 @@ use std::collections::HashSet;
 
 #[tokio::test]
 async fn ingest_labels_transitions_and_survives_a_restart() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({"name": "restart"})).await;
     // On ice at (3, 2) the x-move [1, 0] ends at (2, 2): the model said (4, 2), deviation 2.
     let body = json!({"transitions": [
@@ -55,8 +54,7 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
 
 #[tokio::test]
 async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let r = app
         .client
@@ -78,8 +76,7 @@ async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
 
 #[tokio::test]
 async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let body = free_row_trajectory(0, 0, 3);
@@ -106,8 +103,7 @@ async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
 
 #[tokio::test]
 async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let good = json!({"s": [0, 0], "a": [1, 0], "s_next": [1, 0]});
@@ -206,8 +202,7 @@ async fn an_oversized_body_is_413() {
 
 #[tokio::test]
 async fn transitions_come_as_csv_when_asked() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     app.post(
         &format!("/v1/experiments/{id}/trajectories"),
@@ -239,8 +234,7 @@ async fn transitions_come_as_csv_when_asked() {
 
 #[tokio::test]
 async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app(&db).await;
+    let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let mut tasks = Vec::new();

@@ -13,7 +13,29 @@ use serde_json::{Value, json};
 use sqlx::sqlite::SqliteConnectOptions;
 use sqlx::{Connection, SqliteConnection};
 use std::borrow::Cow;
+use std::path::Path;
 use std::str::FromStr;
+
+/// A new database at `db` with the migrations up to `version` only, as an older server left it.
+async fn migrated_up_to(db: &Path, version: i64) -> SqliteConnection {
+    let mut conn = SqliteConnection::connect_with(
+        &SqliteConnectOptions::from_str(db.to_str().unwrap())
+            .unwrap()
+            .create_if_missing(true),
+    )
+    .await
+    .unwrap();
+    let mut old = sqlx::migrate!("./migrations");
+    old.migrations = Cow::Owned(
+        old.migrations
+            .iter()
+            .filter(|m| m.version <= version)
+            .cloned()
+            .collect(),
+    );
+    old.run(&mut conn).await.unwrap();
+    conn
+}
 
 /// Removes `path` (`a.b`) from a JSON object.
 fn strip(v: &mut Value, path: &str) {
@@ -27,22 +49,7 @@ fn strip(v: &mut Value, path: &str) {
 #[tokio::test]
 async fn a_database_from_before_the_records_were_complete_serves_what_it_served() {
     let (_dir, db) = temp_db();
-    let mut conn = SqliteConnection::connect_with(
-        &SqliteConnectOptions::from_str(db.to_str().unwrap())
-            .unwrap()
-            .create_if_missing(true),
-    )
-    .await
-    .unwrap();
-    let mut old = sqlx::migrate!("./migrations");
-    old.migrations = Cow::Owned(
-        old.migrations
-            .iter()
-            .filter(|m| m.version <= 5)
-            .cloned()
-            .collect(),
-    );
-    old.run(&mut conn).await.unwrap();
+    let mut conn = migrated_up_to(&db, 5).await;
 
     // An experiment of that time: no kernel, no label cap, no relax_beta in its settings.
     let (settings, _) = ExperimentRequest::default()
@@ -209,22 +216,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
 #[tokio::test]
 async fn migration_0009_flags_the_stored_executions_that_departed_from_their_proposals() {
     let (_dir, db) = temp_db();
-    let mut conn = SqliteConnection::connect_with(
-        &SqliteConnectOptions::from_str(db.to_str().unwrap())
-            .unwrap()
-            .create_if_missing(true),
-    )
-    .await
-    .unwrap();
-    let mut old = sqlx::migrate!("./migrations");
-    old.migrations = Cow::Owned(
-        old.migrations
-            .iter()
-            .filter(|m| m.version <= 7)
-            .cloned()
-            .collect(),
-    );
-    old.run(&mut conn).await.unwrap();
+    let mut conn = migrated_up_to(&db, 7).await;
     let (settings, _) = ExperimentRequest::default()
         .resolve(&std::sync::Arc::new(
             precond::remote_model::ModelCalls::default(),

@@ -218,8 +218,8 @@ impl<'a> Bound<'a> {
                     let kcol = &kc[j * m..(j + 1) * m];
                     let vcol = &mut v[j * m..(j + 1) * m];
                     if homo {
-                        let q: f64 = super::core::dot(kcol, vcol);
-                        let tb: f64 = super::core::dot(kcol, &beta);
+                        let q: f64 = linalg::dot(kcol, vcol);
+                        let tb: f64 = linalg::dot(kcol, &beta);
                         out.noise +=
                             (-q - tb * rj + 0.5 * rj * rj + 0.5 * s2) / (lj * lj) - 0.5 / lj;
                     }

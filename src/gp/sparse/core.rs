@@ -489,13 +489,13 @@ impl SparseCore {
                 let kc = &mut kbuf[..m * c];
                 cross_seq(self.kernel, &self.zs, m, &qc, c, c, d, self.s2, kc, None);
                 for col in kc.chunks_exact(m) {
-                    mean.push(self.mean + dot(col, &self.w));
+                    mean.push(self.mean + linalg::dot(col, &self.w));
                 }
                 if want_var {
                     linalg::solve_lower_in_place(&self.l, m, kc, c, Par::Seq);
-                    v1.extend(kc.chunks_exact(m).map(|col| dot(col, col)));
+                    v1.extend(kc.chunks_exact(m).map(|col| linalg::dot(col, col)));
                     linalg::solve_lower_in_place(&self.lb, m, kc, c, Par::Seq);
-                    v2.extend(kc.chunks_exact(m).map(|col| dot(col, col)));
+                    v2.extend(kc.chunks_exact(m).map(|col| linalg::dot(col, col)));
                 }
                 c0 += c;
             }
@@ -692,23 +692,4 @@ impl SparseCore {
         core.finish()?;
         Ok(core)
     }
-}
-
-/// Dot product with eight independent accumulators (vectorises; fixed summation order).
-#[inline]
-pub(crate) fn dot(a: &[f64], b: &[f64]) -> f64 {
-    let mut acc = [0.0f64; 8];
-    let (ca, cb) = (a.chunks_exact(8), b.chunks_exact(8));
-    let tail: f64 = ca
-        .remainder()
-        .iter()
-        .zip(cb.remainder())
-        .map(|(x, y)| x * y)
-        .sum();
-    for (x, y) in ca.zip(cb) {
-        for t in 0..8 {
-            acc[t] += x[t] * y[t];
-        }
-    }
-    acc.iter().sum::<f64>() + tail
 }

@@ -12,7 +12,7 @@ use super::super::hetero::log_residual_bias;
 use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
-use super::super::model::{check_data, check_finite_matrix};
+use super::super::model::{check_data, check_finite_matrix, check_query, predict_rows};
 use super::super::{
     Bounds, FitStats, GpError, GpParams, Hyperparameters, NoiseMode, NoiseSummary, Prediction,
 };
@@ -770,42 +770,19 @@ impl SparseGp {
     /// Never panics: a wrong column count gives NaN everywhere, a row with a non-finite
     /// coordinate NaN for that row ([`try_predict`](Self::try_predict) returns errors instead).
     pub fn predict(&self, x: &DMatrix<f64>) -> Prediction {
-        let nq = x.nrows();
-        if x.ncols() != self.main.d {
-            return Prediction {
-                mean: vec![f64::NAN; nq],
-                latent_variance: vec![f64::NAN; nq],
-                noise_variance: vec![f64::NAN; nq],
-            };
-        }
-        let q = Inputs::from_matrix(x);
-        let (mean, latent_variance) = self.main.predict(&q);
-        let noise_variance = self.noise_at(&q);
-        let mut p = Prediction {
-            mean,
-            latent_variance,
-            noise_variance,
-        };
-        for i in 0..q.n {
-            if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
-                p.mean[i] = f64::NAN;
-                p.latent_variance[i] = f64::NAN;
-                p.noise_variance[i] = f64::NAN;
+        predict_rows(x, self.main.d, |q| {
+            let (mean, latent_variance) = self.main.predict(q);
+            Prediction {
+                mean,
+                latent_variance,
+                noise_variance: self.noise_at(q),
             }
-        }
-        p
+        })
     }
 
     /// Like [`predict`](Self::predict) but rejects a wrong column count or non-finite inputs.
     pub fn try_predict(&self, x: &DMatrix<f64>) -> Result<Prediction, GpError> {
-        if x.ncols() != self.main.d {
-            return Err(GpError::DimensionMismatch {
-                what: "columns of query x vs input dimension",
-                expected: self.main.d,
-                found: x.ncols(),
-            });
-        }
-        check_finite_matrix(x, "query x")?;
+        check_query(x, self.main.d)?;
         Ok(self.predict(x))
     }
 

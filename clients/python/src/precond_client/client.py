@@ -24,7 +24,7 @@ import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import httpx
 import numpy as np
@@ -32,6 +32,15 @@ from numpy.typing import ArrayLike
 
 from . import errors
 from .export import ExportedModel
+from .imports import (
+    ImportReport,
+    file_identity,
+    import_episodes,
+    lerobot_files,
+    read_lerobot,
+    read_minari,
+    read_table,
+)
 from .models import (
     Candidate,
     Continued,
@@ -49,10 +58,7 @@ from .models import (
     as_list,
     mat,
 )
-
-if TYPE_CHECKING:
-    from .imports import ImportReport
-    from .robot import CandidateFn, Learner, Problem, ProgressFn
+from .robot import CandidateFn, Learner, Problem, ProgressFn
 
 log = logging.getLogger("precond_client")
 
@@ -518,8 +524,6 @@ class Client:
         :class:`~precond_client.imports.ImportReport`; bad data raises
         :class:`~precond_client.imports.DatasetError` naming the row and column, a refused
         trajectory :class:`~precond_client.imports.ImportFailed`."""
-        from .imports import file_identity, import_episodes, read_table
-
         exp, client_side = self._import_context()
         mapping, episodes = read_table(
             path,
@@ -565,8 +569,6 @@ class Client:
         ``action`` to the next frame's state. Source ``lerobot:<directory name>`` (or
         ``dataset_name``); the dataset id hashes the data files. Needs ``pyarrow``. The
         experiment's state and action must be the dataset's (their dimensions are checked)."""
-        from .imports import file_identity, import_episodes, lerobot_files, read_lerobot
-
         exp, _ = self._import_context()
         files = lerobot_files(root)
         info = json.loads((Path(root) / "meta" / "info.json").read_text(encoding="utf-8"))
@@ -603,8 +605,6 @@ class Client:
         installed, or from its HDF5 file with ``h5py``; one trajectory per episode, ``s``
         each observation but the last, ``s_next`` the one after it (a dict observation is read
         at ``observation_key``). Source ``minari:<dataset>``."""
-        from .imports import import_episodes, read_minari
-
         self._import_context()
         name, ident, episodes = read_minari(dataset, observation_key=observation_key)
         return import_episodes(
@@ -720,8 +720,6 @@ class Client:
         before the next proposal. ``progress`` receives a
         :class:`~precond_client.robot.Progress` after each event. See
         :class:`~precond_client.robot.Learner`."""
-        from .robot import Learner
-
         return Learner(
             self,
             problems,

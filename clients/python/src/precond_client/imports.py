@@ -38,15 +38,13 @@ import re
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from . import errors
 from .models import Array, Source, mat
-
-if TYPE_CHECKING:
-    from .client import Client
+from .protocols import TrajectoryPoster
 
 log = logging.getLogger("precond_client")
 
@@ -721,7 +719,7 @@ def _progress(total: int | None, desc: str, show: bool | None) -> Any:
 
 
 def import_episodes(
-    client: Client,
+    client: TrajectoryPoster,
     episodes: Iterable[LoggedEpisode],
     *,
     dataset: str,

@@ -24,16 +24,13 @@ import logging
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 from numpy.typing import ArrayLike
 
 from . import errors
 from .models import Array, Candidate, Proposal, TrajectoryCreated, Transition, mat, vec
 from .models import transitions_from_states as _from_states
-
-if TYPE_CHECKING:
-    from .client import Client
+from .protocols import LearningClient
 
 log = logging.getLogger("precond_client")
 
@@ -52,7 +49,7 @@ class Episode:
     """The proposal, with the trajectory to execute and the MDE's view of it."""
     resumed: bool
     """The lease was held from before (an earlier process of this client asked for it)."""
-    _client: Client = field(repr=False)
+    _client: LearningClient = field(repr=False)
     result: TrajectoryCreated | None = None
     """The server's answer once posted."""
     abandoned: bool = False
@@ -180,7 +177,7 @@ class Learner:
 
     def __init__(
         self,
-        client: Client,
+        client: LearningClient,
         problems: Iterable[Problem],
         *,
         client_id: str,
