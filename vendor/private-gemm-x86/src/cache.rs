@@ -345,6 +345,16 @@ static CACHE_INFO_DEFAULT: [CacheInfo; 3] = [
 	},
 ];
 
+/// precond patch: the largest L1, L2 and L3 sizes the blocking assumes, whatever the system
+/// reports. The packing workspace a thread reserves on its first product is twice the L3 figure
+/// (`gemm` in lib.rs), and that figure is the L3 share of a core times the physical cores, i.e.
+/// the whole machine's L3 as sysfs reports it: 480 MiB on a 2-vCPU VM (a 960 MiB workspace per
+/// thread, touched only in part, which exhausts an address-space limit with a few threads), and
+/// hundreds of MiB on large servers. A 32 MiB L3 bounds the workspace to 64 MiB per thread; the
+/// blocks it implies (8192 rows of a 512-deep panel of f64) are about as large as precond's GP
+/// products, and its fits took the same CPU time with the cap as without (`precond bench gp`).
+pub const MAX_CACHE_BYTES: [usize; 3] = [256 * 1024, 8 * 1024 * 1024, 32 * 1024 * 1024];
+
 pub struct CacheInfoDeref;
 
 impl core::ops::Deref for CacheInfoDeref {
@@ -357,6 +367,11 @@ impl core::ops::Deref for CacheInfoDeref {
 
 		CACHE_INFO.get_or_init(|| {
 			let mut val = cache_info().unwrap_or(CACHE_INFO_DEFAULT);
+			// precond patch: what the system reports is capped (see MAX_CACHE_BYTES), before the
+			// lower bounds below, which keep L2 ≥ 4 L1 and L3 ≥ 4 L2 within the caps.
+			for (info, max) in val.iter_mut().zip(MAX_CACHE_BYTES) {
+				info.cache_bytes = Ord::min(info.cache_bytes, max);
+			}
 			val[0].cache_bytes = Ord::max(val[0].cache_bytes, CACHE_INFO_DEFAULT[0].cache_bytes);
 
 			val[1].cache_bytes = Ord::max(val[1].cache_bytes, CACHE_INFO_DEFAULT[1].cache_bytes);
