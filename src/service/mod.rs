@@ -9,8 +9,9 @@
 //!   store a trajectory atomically and idempotently.
 //! - [`learning`](mod@learning): the model, refits, precondition judgements and test-time plans.
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
-//! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search
-//!   and fit passes through (concurrency, queue, deadlines, cancellation).
+//! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search,
+//!   fit and large evaluation (maps, diagnostics, large precondition queries) passes through
+//!   (concurrency, queue, deadlines, cancellation).
 //! - [`activity`](mod@activity): an experiment's runs and learning timeline, for the dashboard.
 //! - [`inspection`](mod@inspection): a model version on a grid (the precondition map) and its
 //!   leave-one-out calibration.
