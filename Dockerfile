@@ -6,6 +6,7 @@ COPY src src
 COPY migrations migrations
 COPY api api
 COPY ui ui
+COPY vendor vendor
 RUN cargo build --release --locked --bin precond
 
 # Runtime stage: a small image, a non-root user, the database on a volume.

@@ -249,7 +249,9 @@ pub struct ServeArgs {
     /// Serve without tokens on a non-loopback address (a trusted network only).
     #[arg(long, env = "PRECOND_INSECURE_NO_AUTH")]
     pub insecure_no_auth: bool,
-    /// Planning searches and fits running at once (1 ..= 256; default: the number of cores).
+    /// Planning searches and fits running at once (1 ..= 256; default: the number of cores);
+    /// as many evaluations of maps, diagnostics and large precondition queries, in slots of
+    /// their own.
     #[arg(long, env = "PRECOND_MAX_CONCURRENT_PLANS")]
     pub max_concurrent_plans: Option<usize>,
     /// Planning searches (and model rebuilds) of one experiment running at once, so that one
@@ -258,7 +260,7 @@ pub struct ServeArgs {
     #[arg(long, env = "PRECOND_MAX_PLANS_PER_EXPERIMENT")]
     pub max_plans_per_experiment: Option<usize>,
     /// Planning requests waiting for a slot before new ones get `429` (0 ..= 10 000; default:
-    /// 8 × max-concurrent-plans).
+    /// 8 × max-concurrent-plans); as many evaluations may wait for theirs.
     #[arg(long, env = "PRECOND_MAX_QUEUED_PLANS")]
     pub max_queued_plans: Option<usize>,
     /// Wall-clock budget of one proposal or plan, queueing included, in milliseconds

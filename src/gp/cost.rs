@@ -34,6 +34,16 @@ use super::sparse::SparseParams;
 /// n = 100 000, m = 256 both run at 60–90 GFLOP/s).
 pub const ASSUMED_FLOPS: f64 = 60e9;
 
+/// Most bytes faer's matrix product reserves on a thread, once, the first time the thread runs
+/// a product: its packing workspace, twice the L3 cache size it blocks for, which the vendored
+/// private-gemm-x86 caps at 32 MiB whatever the system reports (`MAX_CACHE_BYTES` in
+/// `vendor/private-gemm-x86/src/cache.rs`; unpatched, it reserved twice the whole machine's L3:
+/// 960 MiB on a VM reporting 480 MiB). Only the part a product packs becomes resident, so it is
+/// mostly address space and is not part of [`FitCost::peak_bytes`]; its total is bounded by the
+/// threads that run products: the work gate's searches, fits and evaluations, rayon's one
+/// thread per core.
+pub const PRODUCT_WORKSPACE_BYTES: usize = 64 << 20;
+
 /// Bytes of one matrix entry.
 const F64: f64 = 8.0;
 

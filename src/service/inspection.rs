@@ -253,7 +253,10 @@ impl Service {
     }
 
     /// `μ` and `σ` of a model version on a grid over two components of `(s, a)`, the other
-    /// components fixed; with the version's training transitions (thinned) to draw on it.
+    /// components fixed; with the version's training transitions (thinned) to draw on it. The
+    /// grid is evaluated in an evaluation slot of the work gate
+    /// ([`WorkGate::evaluation_slot`](super::WorkGate::evaluation_slot)), under the same
+    /// deadline as a rebuild.
     pub async fn precondition_map(&self, id: i64, request: MapRequest) -> Result<PreconditionGrid> {
         let arrived = Instant::now();
         let live = self.live(id).await?;
@@ -283,7 +286,10 @@ impl Service {
         let dim = domain.feature_dim();
         let (grid_s, grid_a, grid_xs, grid_ys) = (s.clone(), a.clone(), xs.clone(), ys.clone());
         let evaluated = model.clone();
+        let slot = self.work.evaluation_slot(arrived).await?;
         let answers = Self::blocking(move || {
+            // Held by the evaluation, not the request: freed when the evaluation ends.
+            let _slot = slot;
             let mut features = Vec::with_capacity(nx * ny * dim);
             let (mut ps, mut pa) = (grid_s, grid_a);
             let set = |(is_action, i): (bool, usize), v: f64, ps: &mut [f64], pa: &mut [f64]| {
@@ -359,7 +365,9 @@ impl Service {
     }
 
     /// Leave-one-out predictions of every training label of a fitted version (default: the
-    /// current one) from the others; `Conflict` for the prior, which has no labels.
+    /// current one) from the others, and its answers on the transitions posted after its
+    /// training set, evaluated in an evaluation slot of the work gate as a map is; `Conflict`
+    /// for the prior, which has no labels.
     pub async fn diagnostics(
         &self,
         id: i64,
@@ -377,13 +385,34 @@ impl Service {
             )));
         };
         let labels = self.store.first_deviations(id, gp.n_train() as i64).await?;
+        let later = self
+            .store
+            .transitions_after_first(id, labels.len() as i64, MAX_LATER_TRANSITIONS)
+            .await?;
+        let dim = live.domain.feature_dim();
+        let mut features = Vec::with_capacity(later.len() * dim);
+        for t in &later {
+            features.extend(live.domain.features(&t.s, &t.a));
+        }
         let evaluated = model.clone();
-        let loo = Self::blocking(move || match &evaluated.estimator {
-            Estimator::Fitted(gp) => gp.leave_one_out(),
-            Estimator::Prior(_) => None,
+        let slot = self.work.evaluation_slot(arrived).await?;
+        // One evaluation: leave-one-out on the version's factor, and its answers on the later
+        // transitions (none: no answers).
+        let (loo, answers) = Self::blocking(move || {
+            let _slot = slot;
+            let loo = match &evaluated.estimator {
+                Estimator::Fitted(gp) => gp.leave_one_out(),
+                Estimator::Prior(_) => None,
+            };
+            let answers = if features.is_empty() || loo.is_none() {
+                Vec::new()
+            } else {
+                evaluated.answer(&features, dim)
+            };
+            (loo, answers)
         })
-        .await?
-        .ok_or_else(|| {
+        .await?;
+        let loo = loo.ok_or_else(|| {
             Error::Conflict(format!(
                 "model version {} is a sparse GP, which has no closed-form leave-one-out: \
                  diagnostics need an exact GP version",
@@ -398,20 +427,9 @@ impl Service {
                 labels.len()
             )));
         }
-        let later = self
-            .store
-            .transitions_after_first(id, labels.len() as i64, MAX_LATER_TRANSITIONS)
-            .await?;
         let later = if later.is_empty() {
             None
         } else {
-            let dim = live.domain.feature_dim();
-            let mut features = Vec::with_capacity(later.len() * dim);
-            for t in &later {
-                features.extend(live.domain.features(&t.s, &t.a));
-            }
-            let judged = model.clone();
-            let answers = Self::blocking(move || judged.answer(&features, dim)).await?;
             let labels: Vec<f64> = later.iter().map(|t| t.deviation).collect();
             // As residuals `(y − μ, σ)`, the form `loo_summary` reads.
             let residuals: Vec<(f64, f64)> = labels

@@ -10,6 +10,7 @@ use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory
 use crate::seed;
 use crate::store::{FitRefusal, ListOrder};
 use std::sync::Arc;
+use std::time::Instant;
 
 /// Judgements of more points than this are computed on the blocking pool.
 const INLINE_POINTS: usize = 256;
@@ -253,8 +254,11 @@ impl Service {
 
     /// Judges state-actions against the current model: `upper = μ + βσ`, `inside = upper <
     /// d_max`, with β the request's or the experiment's test β. Errors name the point
-    /// (`points[i].s`).
+    /// (`points[i].s`). More than a few hundred points are evaluated off the async workers, in
+    /// an evaluation slot of the work gate
+    /// ([`WorkGate::evaluation_slot`](super::WorkGate::evaluation_slot)).
     pub async fn judge(&self, id: i64, points: &[Point], beta: Option<f64>) -> Result<Judged> {
+        let arrived = Instant::now();
         let live = self.live(id).await?;
         if points.is_empty() {
             return Err(Error::validation("points", "must hold at least one point"));
@@ -276,7 +280,12 @@ impl Service {
         let model = live.model();
         let answers = if points.len() > INLINE_POINTS {
             let model = model.clone();
-            Self::blocking(move || model.answer(&features, dim)).await?
+            let slot = self.work.evaluation_slot(arrived).await?;
+            Self::blocking(move || {
+                let _slot = slot;
+                model.answer(&features, dim)
+            })
+            .await?
         } else {
             model.answer(&features, dim)
         };

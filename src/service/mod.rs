@@ -9,8 +9,9 @@
 //!   store a trajectory atomically and idempotently.
 //! - [`learning`](mod@learning): the model, refits, precondition judgements and test-time plans.
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
-//! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search
-//!   and fit passes through (concurrency, queue, deadlines, cancellation).
+//! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search,
+//!   fit and large evaluation (maps, diagnostics, large precondition queries) passes through
+//!   (concurrency, queue, deadlines, cancellation).
 //! - [`activity`](mod@activity): an experiment's runs and learning timeline, for the dashboard.
 //! - [`inspection`](mod@inspection): a model version on a grid (the precondition map) and its
 //!   leave-one-out calibration.
@@ -63,6 +64,18 @@ impl SearchKind {
                 metrics::counter!("precond_proposals_total", "outcome" => "cancelled").increment(1)
             }
             Self::Plan => {}
+        }
+    }
+}
+
+/// Counts its search as cancelled when dropped while it still holds the kind (the request went
+/// away while its search waited for a slot).
+struct CountIfDropped(Option<SearchKind>);
+
+impl Drop for CountIfDropped {
+    fn drop(&mut self) {
+        if let Some(kind) = self.0 {
+            kind.count_cancelled();
         }
     }
 }
@@ -144,8 +157,9 @@ impl Service {
     /// with that deadline and a flag raised if this future is dropped (the client went away).
     ///
     /// A search stopped by that flag is counted by the search itself
-    /// (`precond_proposals_total{outcome="cancelled"}` for a proposal): nobody is left to
-    /// count the answer.
+    /// (`precond_proposals_total{outcome="cancelled"}` for a proposal), and one whose request
+    /// went away while it waited for a slot when it leaves the queue: nobody is left to count
+    /// the answer.
     pub(crate) async fn search<T: Send + 'static>(
         &self,
         experiment: i64,
@@ -153,7 +167,12 @@ impl Service {
         kind: SearchKind,
         search: impl FnOnce(&Budget) -> Result<T, PlanningError> + Send + 'static,
     ) -> Result<T> {
-        let (slot, deadline) = self.work.plan_slot(experiment, arrived).await?;
+        // A request dropped while it waits for a slot is cancelled too, with no search to count
+        // it: the guard counts it unless the wait ends.
+        let mut waiting = CountIfDropped(Some(kind));
+        let slot = self.work.plan_slot(experiment, arrived).await;
+        waiting.0 = None;
+        let (slot, deadline) = slot?;
         let (budget, _cancel_on_drop) = WorkGate::budget(deadline);
         let outcome = work::run_niced(move || {
             // The slot is held by the running search, not by the request: a cancelled

@@ -21,12 +21,21 @@
 //!   as one), but have no deadline: a fit is one optimisation that cannot stop halfway, and its
 //!   worst case is bounded by the training-set size and `restarts`. So that long fits cannot
 //!   starve searches, fits hold at most all slots but one ([`fit_cap`]).
+//! - Evaluations of a model on many points — a precondition map, diagnostics, a precondition
+//!   query of more than a few hundred points — take an evaluation slot
+//!   ([`WorkGate::evaluation_slot`]): as many as planning slots, but slots of their own, so
+//!   that a map on the dashboard does not wait for the searches. Each evaluation's memory is
+//!   bounded by its points and its model (predictions go in chunks), plus the matrix product's
+//!   workspace of the thread it runs on
+//!   ([`PRODUCT_WORKSPACE_BYTES`](crate::gp::cost::PRODUCT_WORKSPACE_BYTES)); the slots bound
+//!   how many run at once, however many clients ask. Waiting is bounded as for searches (the
+//!   same deadline, `503`; the same queue length, `429`).
 
 use super::{Error, Result};
 use crate::limits::MAX_TRANSITIONS;
 use crate::planning::Budget;
 use std::collections::{HashMap, VecDeque};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -180,6 +189,26 @@ struct State {
 pub struct WorkGate {
     limits: Limits,
     state: Arc<Mutex<State>>,
+    /// The evaluation slots ([`WorkGate::evaluation_slot`]): `max_concurrent_plans` permits.
+    evaluations: Arc<tokio::sync::Semaphore>,
+    /// Evaluations waiting for a slot now.
+    evaluations_waiting: AtomicUsize,
+}
+
+/// An evaluation slot: held while a map, diagnostics or a large precondition query is
+/// evaluated; dropping it lets the next evaluation in.
+#[derive(Debug)]
+pub struct EvaluationSlot {
+    _permit: tokio::sync::OwnedSemaphorePermit,
+}
+
+/// Counts a waiting evaluation out when it stops waiting (slot, deadline or dropped request).
+struct StopWaiting<'a>(&'a AtomicUsize);
+
+impl Drop for StopWaiting<'_> {
+    fn drop(&mut self) {
+        self.0.fetch_sub(1, Ordering::Relaxed);
+    }
 }
 
 /// A slot: held while a search, rebuild or fit runs; releasing it hands it to the next in
@@ -323,6 +352,8 @@ impl WorkGate {
     /// A gate with these limits (assumed checked).
     pub fn new(limits: Limits) -> Self {
         Self {
+            evaluations: Arc::new(tokio::sync::Semaphore::new(limits.max_concurrent_plans)),
+            evaluations_waiting: AtomicUsize::new(0),
             limits,
             state: Arc::new(Mutex::new(State::default())),
         }
@@ -450,6 +481,45 @@ impl WorkGate {
             .map_err(|_| Error::Internal(anyhow::anyhow!("the work gate closed")))
     }
 
+    /// A slot to evaluate a model on many points (a precondition map, diagnostics, a large
+    /// precondition query) for a request that arrived at `arrived`: at once when one of the
+    /// `max_concurrent_plans` evaluation slots is free; else it waits in line (first come, first
+    /// served) until the deadline `plan_timeout` after `arrived` (`503 deadline_exceeded`), or
+    /// is refused at once with `429 overloaded` when `max_queued_plans` evaluations already
+    /// wait. Move the slot into the task that evaluates, so that it is held until the
+    /// evaluation ends even when the client goes away.
+    pub async fn evaluation_slot(&self, arrived: Instant) -> Result<EvaluationSlot> {
+        if let Ok(permit) = self.evaluations.clone().try_acquire_owned() {
+            return Ok(EvaluationSlot { _permit: permit });
+        }
+        if self.evaluations_waiting.fetch_add(1, Ordering::Relaxed) >= self.limits.max_queued_plans
+        {
+            self.evaluations_waiting.fetch_sub(1, Ordering::Relaxed);
+            return Err(Error::Overloaded {
+                retry_after_secs: self.limits.retry_after_secs(),
+            });
+        }
+        let _stop_waiting = StopWaiting(&self.evaluations_waiting);
+        let deadline = tokio::time::Instant::from_std(arrived + self.limits.plan_timeout);
+        match tokio::time::timeout_at(deadline, self.evaluations.clone().acquire_owned()).await {
+            Ok(Ok(permit)) => Ok(EvaluationSlot { _permit: permit }),
+            Ok(Err(_closed)) => Err(Error::Internal(anyhow::anyhow!(
+                "the evaluation slots closed"
+            ))),
+            Err(_elapsed) => Err(self.deadline_exceeded(0)),
+        }
+    }
+
+    /// Evaluations running now.
+    pub fn evaluations_running(&self) -> usize {
+        self.limits.max_concurrent_plans - self.evaluations.available_permits()
+    }
+
+    /// Evaluations waiting for a slot now.
+    pub fn evaluations_waiting(&self) -> usize {
+        self.evaluations_waiting.load(Ordering::Relaxed)
+    }
+
     /// The answer for a search stopped by its deadline after `extensions` extensions.
     pub fn deadline_exceeded(&self, extensions: usize) -> Error {
         Error::DeadlineExceeded {
@@ -551,6 +621,53 @@ mod tests {
         drop(held);
         assert!(gate.plan_slot(1, Instant::now()).await.is_ok());
         assert_eq!(gate.queue_depth(), 0);
+    }
+
+    #[tokio::test]
+    async fn evaluations_have_slots_of_their_own_a_queue_and_a_deadline() {
+        let gate = Arc::new(WorkGate::new(limits(2, 1, 200)));
+        // Searches holding every planning slot do not hold up evaluations ...
+        let searches = [
+            gate.plan_slot(1, Instant::now()).await.unwrap(),
+            gate.plan_slot(2, Instant::now()).await.unwrap(),
+        ];
+        let a = gate.evaluation_slot(Instant::now()).await.unwrap();
+        let b = gate.evaluation_slot(Instant::now()).await.unwrap();
+        assert_eq!(gate.evaluations_running(), 2);
+        // ... but evaluations are bounded by their own slots: the next waits, the one after is
+        // refused at once, and the waiting one gets `503` at its deadline.
+        let waiter = {
+            let gate = gate.clone();
+            tokio::spawn(async move { gate.evaluation_slot(Instant::now()).await.map(drop) })
+        };
+        while gate.evaluations_waiting() == 0 {
+            tokio::task::yield_now().await;
+        }
+        assert!(matches!(
+            gate.evaluation_slot(Instant::now()).await,
+            Err(Error::Overloaded { .. })
+        ));
+        assert!(matches!(
+            waiter.await.unwrap(),
+            Err(Error::DeadlineExceeded { extensions: 0, .. })
+        ));
+        assert_eq!(gate.evaluations_waiting(), 0);
+        // A freed slot goes to the next in line.
+        let waiter = {
+            let gate = gate.clone();
+            tokio::spawn(async move { gate.evaluation_slot(Instant::now()).await.is_ok() })
+        };
+        while gate.evaluations_waiting() == 0 {
+            tokio::task::yield_now().await;
+        }
+        drop(a);
+        assert!(waiter.await.unwrap());
+        drop((b, searches));
+        assert_eq!(
+            (gate.evaluations_running(), gate.evaluations_waiting()),
+            (0, 0)
+        );
+        assert_eq!(gate.running(), 0);
     }
 
     /// A request for experiment `e` as a task, answering whether it got a slot (held for

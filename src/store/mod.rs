@@ -117,6 +117,55 @@ impl Store {
     }
 }
 
+/// Removes the temporary files that backups to `name` in `dir` left when they were killed
+/// (`.<name>.backup-<pid>.tmp` and its `-journal`, hidden and never named): those whose process
+/// no longer runs, or that carry this process's id (this backup has not written its own yet).
+/// A backup that still runs keeps its file. Returns how many were removed.
+fn remove_stale_temporaries(dir: &std::path::Path, name: &str) -> usize {
+    let prefix = format!(".{name}.backup-");
+    let Ok(entries) = std::fs::read_dir(dir) else {
+        return 0;
+    };
+    let mut removed = 0;
+    for entry in entries.flatten() {
+        let file = entry.file_name();
+        let Some(pid) = file.to_str().and_then(|f| {
+            let rest = f.strip_prefix(&prefix)?;
+            let pid = rest
+                .strip_suffix(".tmp")
+                .or_else(|| rest.strip_suffix(".tmp-journal"))?;
+            pid.parse::<u32>().ok()
+        }) else {
+            continue;
+        };
+        if (pid == std::process::id() || !process_runs(pid))
+            && std::fs::remove_file(entry.path()).is_ok()
+        {
+            removed += 1;
+        }
+    }
+    removed
+}
+
+/// Whether a process with id `pid` runs (on platforms where that cannot be asked: yes).
+fn process_runs(pid: u32) -> bool {
+    #[cfg(unix)]
+    {
+        let Ok(pid) = libc::pid_t::try_from(pid) else {
+            return false;
+        };
+        // SAFETY: signal 0 sends nothing; `kill` only checks that the process exists and may
+        // be signalled (EPERM: it exists, owned by someone else).
+        let rc = unsafe { libc::kill(pid, 0) };
+        rc == 0 || std::io::Error::last_os_error().raw_os_error() == Some(libc::EPERM)
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = pid;
+        true
+    }
+}
+
 /// Copies the database at `source` (a path or `sqlite://` URL, which must exist: it is opened
 /// read-only, never created and never migrated) to the new file `to` while it may be served,
 /// and returns what the copy holds, counted in the copy itself.
@@ -125,7 +174,8 @@ impl Store {
 /// writers are not blocked). It is written under a temporary name beside `to`, checked
 /// (`PRAGMA quick_check`), counted, flushed to disk and only then linked to `to`, which must not
 /// exist: a backup that is killed or fails leaves nothing under the final name (at most the
-/// temporary file, named `.<file>.backup-<pid>.tmp`, removed on failure when possible).
+/// temporary file, named `.<file>.backup-<pid>.tmp`, removed on failure when possible, and by
+/// the next backup to the same name when its process was killed).
 pub async fn backup(source: &str, to: &std::path::Path) -> anyhow::Result<StoreSize> {
     use sqlx::{ConnectOptions, Connection};
     let url = if source.starts_with("sqlite:") {
@@ -162,6 +212,14 @@ pub async fn backup(source: &str, to: &std::path::Path) -> anyhow::Result<StoreS
         "the directory {} of the backup does not exist",
         dir.display()
     );
+    let stale = remove_stale_temporaries(&dir, name);
+    if stale > 0 {
+        tracing::warn!(
+            removed = stale,
+            "removed the temporary files of earlier backups to {} that did not finish",
+            to.display()
+        );
+    }
     let tmp = dir.join(format!(".{name}.backup-{}.tmp", std::process::id()));
     let tmp_str = tmp.to_str().context("the backup path is not UTF-8")?;
     let remove_tmp = || {

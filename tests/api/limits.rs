@@ -213,13 +213,30 @@ async fn a_client_that_goes_away_cancels_its_search() {
     let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
     let cancelled_before = cancelled_proposals(&app).await;
-    let gone = app
-        .post_and_go_away(
-            &format!("/v1/experiments/{id}/proposals"),
-            &blocked_ask("impatient"),
-        )
-        .await;
-    assert!(gone.unwrap_err().is_timeout());
+    let impatient = reqwest::Client::builder()
+        .timeout(Duration::from_millis(300))
+        .build()
+        .unwrap();
+    // Two impatient clients: one searches, the other waits for the slot and goes away first
+    // (while the slot is still held), then the searching one goes away.
+    let url = app.url(&format!("/v1/experiments/{id}/proposals"));
+    let (searching, queued) = tokio::join!(
+        impatient
+            .post(&url)
+            .timeout(Duration::from_millis(700))
+            .json(&blocked_ask("impatient"))
+            .send(),
+        async {
+            tokio::time::sleep(Duration::from_millis(50)).await;
+            impatient
+                .post(&url)
+                .json(&blocked_ask("queued"))
+                .send()
+                .await
+        }
+    );
+    assert!(searching.unwrap_err().is_timeout());
+    assert!(queued.unwrap_err().is_timeout());
     // A feasible problem now gets the slot at once.
     let started = Instant::now();
     let (status, body) = app
@@ -234,10 +251,12 @@ async fn a_client_that_goes_away_cancels_its_search() {
         "{:?}",
         started.elapsed()
     );
-    // The abandoned search counted itself before it gave its slot up (its request was gone).
+    // The abandoned search counted itself before it gave its slot up (its request was gone),
+    // and the abandoned wait for a slot was counted when it left the queue.
+    let cancelled = cancelled_proposals(&app).await - cancelled_before;
     assert!(
-        cancelled_proposals(&app).await > cancelled_before,
-        "precond_proposals_total{{outcome=\"cancelled\"}} did not grow"
+        cancelled >= 2,
+        "precond_proposals_total{{outcome=\"cancelled\"}} grew by {cancelled}, not 2"
     );
 }
 

@@ -402,5 +402,27 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
             .is_err()
     );
     assert_eq!(listing(&out), vec!["copy.db"]);
+    // A killed backup's hidden temporary (its process gone) is removed by the next backup to
+    // the same name; one of a backup that still runs (here: this test's parent) is left alone.
+    let gone = std::process::Command::new("true").spawn().unwrap();
+    let dead = gone.id();
+    let mut gone = gone;
+    gone.wait().unwrap();
+    let running = std::os::unix::process::parent_id();
+    for pid in [dead, running] {
+        std::fs::write(out.join(format!(".z.db.backup-{pid}.tmp")), b"half").unwrap();
+    }
+    std::fs::write(out.join(format!(".z.db.backup-{dead}.tmp-journal")), b"j").unwrap();
+    precond::store::backup(db.to_str().unwrap(), &out.join("z.db"))
+        .await
+        .unwrap();
+    assert_eq!(
+        listing(&out),
+        vec![
+            format!(".z.db.backup-{running}.tmp"),
+            "copy.db".to_string(),
+            "z.db".to_string()
+        ]
+    );
     app.stop().await;
 }
