@@ -3,7 +3,8 @@
 
 Reads every `iterations.csv` under each directory given (a world's directory, or a gridworld
 run's with one subdirectory per layout). An *arm* is a strategy of a directory, named
-`LABEL/strategy` (the label defaults to the directory's name). For each arm it prints the mean
+`LABEL/strategy` (the label defaults to the directory's name; directories with the same label
+pool their runs). For each arm it prints the mean
 ± standard error over runs (layout × seed) of a metric at the chosen iterations and at the
 chosen numbers of executed transitions (a run's value at `T` transitions is the one of its last
 iteration with `n_train ≤ T`; runs that never reached `T` are left out, and the count says
@@ -87,7 +88,8 @@ def main() -> None:
     arms: dict[str, dict[Run, list[dict[str, str]]]] = {}
     for d in a.dirs:
         path, _, label = d.partition(":")
-        arms.update(load(Path(path), label or Path(path).name))
+        for arm, runs in load(Path(path), label or Path(path).name).items():
+            arms.setdefault(arm, {}).update(runs)
     points = [("it", int(j)) for j in a.iterations.split(",") if j] + [
         ("T", int(t)) for t in a.transitions.split(",") if t
     ]
