@@ -23,6 +23,8 @@
 //!   judgements of the training transitions.
 //! - [`seed`]: seeds derived from seeds (one hashing helper for every seeded choice).
 //! - [`limits`]: the range of everything a client can set, in one place.
+//! - [`budget`]: how long a search or a remote model call may run (a deadline and a cancel
+//!   flag), below the planner and the domains that both honour it.
 //!
 //! The service around it:
 //! - [`settings`]: an experiment's settings, their defaults and their validation.
@@ -72,6 +74,7 @@
 
 pub mod api;
 pub mod bench;
+pub mod budget;
 pub mod cli;
 pub mod domain;
 pub mod experiment;

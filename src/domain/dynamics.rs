@@ -93,7 +93,7 @@ pub trait DynamicsModel: Send + Sync + fmt::Debug {
         &self,
         states: &[&[f64]],
         actions: &[&[f64]],
-        budget: &crate::planning::Budget,
+        budget: &crate::budget::Budget,
     ) -> Result<Vec<Predicted>, DynamicsError> {
         let _ = budget;
         self.predict_batch(states, actions)

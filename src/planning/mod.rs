@@ -9,8 +9,8 @@
 //! - [`schedule`]: `β_j` over the learning iterations, and the ladder of lower βs a training
 //!   problem with no plan at `β_j` tries ([`Planner::propose_relaxing`]).
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
-//! - [`budget`]: the deadline and cancel flag a search checks between rounds (a planner's
-//!   [`Planner::within`]).
+//! - [`Budget`] (from [`crate::budget`]): the deadline and cancel flag a search checks between
+//!   rounds (a planner's [`Planner::within`]).
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
 //! - [`settings`]: the [`PlannerSettings`] and, checked once with the acquisition's, the
 //!   [`PlanningSettings`].
@@ -33,7 +33,6 @@
 //! derives from a `u64` seed: the same inputs and seed give the same result.
 
 pub mod acquisition;
-pub mod budget;
 pub mod cache;
 pub mod given;
 pub mod planner;
@@ -48,10 +47,10 @@ pub mod trajectory;
 #[cfg(test)]
 mod tests;
 
+pub use crate::budget::{Budget, Stop};
 pub use acquisition::{
     AcquisitionKind, AcquisitionSettings, Aggregation, aggregate, alpha_step, within_probability,
 };
-pub use budget::{Budget, Stop};
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose};
 pub use planner::Planner;
@@ -103,7 +102,7 @@ pub enum PlanningError {
     #[error("the search stopped ({reason:?}) after {extensions} extensions")]
     Stopped {
         /// Why.
-        reason: budget::Stop,
+        reason: Stop,
         /// Extensions spent until then.
         extensions: usize,
     },

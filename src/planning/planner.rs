@@ -18,7 +18,6 @@
 //! assert!(grid.is_goal(proposal.trajectory.states.last().unwrap(), problem.goal()));
 //! ```
 
-use super::budget::Budget;
 use super::cache::ModelCache;
 use super::given::{self, Path, Verdict};
 use super::precondition::Precondition;
@@ -26,6 +25,7 @@ use super::rrt::{self, RrtOutcome, Task};
 pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
 use super::{DeviationModel, PlanningError};
+use crate::budget::Budget;
 use crate::domain::{Domain, Problem};
 use rand::RngCore;
 

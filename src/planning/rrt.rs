@@ -37,12 +37,12 @@
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
 
 use super::PlanningError;
-use super::budget::Budget;
 use super::cache::ModelCache;
 use super::precondition::Precondition;
 pub use super::settings::PlannerSettings;
 use super::settings::PlanningSettings;
 pub use super::trajectory::Trajectory;
+use crate::budget::Budget;
 use crate::domain::{Domain, DynamicsError, Predicted, Problem};
 use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;

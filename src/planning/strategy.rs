@@ -23,11 +23,11 @@
 //!   (each counts as an extension); when none fits the rollout stops there. It fails with
 //!   `NoPlan` only when not even the first step is possible.
 
-use super::budget::Budget;
 use super::cache::ModelCache;
 use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
 use super::trajectory::Trajectory;
 use super::{DeviationModel, PlanningError};
+use crate::budget::Budget;
 use rand::Rng;
 use std::collections::HashSet;
 use std::fmt;

@@ -25,8 +25,8 @@ pub mod policy;
 pub use calls::{MAX_TIMEOUT_MS, ModelCallLimits, ModelCalls};
 pub use policy::ModelUrlPolicy;
 
+use crate::budget::Budget;
 use crate::domain::{DynamicsError, DynamicsModel, Predicted};
-use crate::planning::Budget;
 use answer::AnswerSeed;
 use calls::{Permits, block_until, busy};
 use serde::Serialize;

@@ -32,8 +32,8 @@
 //!   same deadline, `503`; the same queue length, `429`).
 
 use super::{Error, Result};
+use crate::budget::Budget;
 use crate::limits::MAX_TRANSITIONS;
-use crate::planning::Budget;
 use std::collections::{HashMap, VecDeque};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex};
