@@ -239,7 +239,7 @@ pub struct FitRefusal {
     pub estimator: EstimatorKind,
     /// Its estimated peak memory (bytes).
     pub needed_bytes: f64,
-    /// The server's budget (bytes, `--max-fit-memory`).
+    /// The server's budget (bytes, `--max-fit-memory-mib`).
     pub budget_bytes: f64,
     /// Why, in words.
     pub reason: String,
@@ -264,9 +264,9 @@ impl FitRefusal {
             needed_bytes,
             budget_bytes,
             reason: format!(
-                "a {} fit on {n_train} transitions needs about {:.2} GiB, beyond the server's \
-                 fit memory budget of {:.2} GiB (--max-fit-memory); the previous version keeps \
-                 answering",
+                "the {} GP's fit on {n_train} transitions needs about {:.2} GiB, beyond the \
+                 server's fit memory budget of {:.2} GiB (--max-fit-memory-mib); the previous \
+                 version keeps answering",
                 estimator.as_str(),
                 gib(needed_bytes),
                 gib(budget_bytes)

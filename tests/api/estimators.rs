@@ -76,7 +76,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         refusal["reason"]
             .as_str()
             .unwrap()
-            .contains("--max-fit-memory")
+            .contains("--max-fit-memory-mib")
     );
     let (status, forced) = app
         .post(&format!("/v1/experiments/{exact}/model/refit"), &json!({}))
