@@ -151,25 +151,10 @@ impl Bench {
             return None;
         };
         let mut world = g.world();
-        let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
-        let mut seen = std::collections::HashSet::from([key(problem.start())]);
-        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
-        while let Some(s) = queue.pop_front() {
-            if g.is_goal(&s, problem.goal()) {
-                return Some(true);
-            }
-            for m in MOVES {
-                let pred = g.predict(&s, &m);
-                if !g.edge_allowed(&s, &m, &pred) {
-                    continue;
-                }
-                let next = world.step(&s, &m);
-                if g.deviation(&s, &m, &next) < d_max && seen.insert(key(&next)) {
-                    queue.push_back(next);
-                }
-            }
-        }
-        Some(false)
+        Some(grid_search(g, problem, |s, m| {
+            let next = world.step(s, m);
+            (g.deviation(s, m, &next) < d_max).then_some(next)
+        }))
     }
 
     /// Whether `problem` can be solved inside a *learned* precondition: a breadth-first search
@@ -185,21 +170,9 @@ impl Bench {
         let Self::Grid(g) = self else {
             return None;
         };
-        let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
-        let mut seen = std::collections::HashSet::from([key(problem.start())]);
-        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
-        while let Some(s) = queue.pop_front() {
-            if g.is_goal(&s, problem.goal()) {
-                return Some(true);
-            }
-            for m in MOVES {
-                let next = g.predict(&s, &m);
-                if g.edge_allowed(&s, &m, &next) && trusted(&s, &m) && seen.insert(key(&next)) {
-                    queue.push_back(next);
-                }
-            }
-        }
-        Some(false)
+        Some(grid_search(g, problem, |s, m| {
+            trusted(s, m).then(|| g.predict(s, m))
+        }))
     }
 
     /// Every state-action of the gridworld the planner may consider (each cell × each move the
@@ -1147,6 +1120,33 @@ impl IterationRecord {
             seconds: 0.0,
         }
     }
+}
+
+/// Breadth-first search from `problem`'s start over the moves the model allows (a move off
+/// the grid predicts no progress), `step` answering where a move leads or `None` where it may
+/// not be taken: whether a goal state is reached.
+fn grid_search(
+    g: &IcyGridworld,
+    problem: &Problem,
+    mut step: impl FnMut(&[f64], &[f64]) -> Option<Vec<f64>>,
+) -> bool {
+    let key = |s: &[f64]| (s[0] as i64, s[1] as i64);
+    let mut seen = std::collections::HashSet::from([key(problem.start())]);
+    let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
+    while let Some(s) = queue.pop_front() {
+        if g.is_goal(&s, problem.goal()) {
+            return true;
+        }
+        for m in MOVES {
+            if !g.edge_allowed(&s, &m, &g.predict(&s, &m)) {
+                continue;
+            }
+            if let Some(next) = step(&s, &m).filter(|next| seen.insert(key(next))) {
+                queue.push_back(next);
+            }
+        }
+    }
+    false
 }
 
 /// A gridworld state-action as integers (cells and unit moves are whole numbers).
