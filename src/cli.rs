@@ -123,6 +123,23 @@ pub struct WorldsArgs {
     /// Extension budget of the baseline's plans (the oracle's is twice this).
     #[arg(long, default_value_t = 5000)]
     pub max_extensions: u32,
+    /// Cautious oracles to measure beside the oracle, as fractions `m` of `d_max`
+    /// (comma-separated, each in (0, 1]): each trusts only moves whose true deviation is
+    /// below `m · d_max`.
+    #[arg(long, value_delimiter = ',', value_parser = margin)]
+    pub margins: Vec<f64>,
+}
+
+/// A fraction of `d_max` in (0, 1].
+fn margin(s: &str) -> Result<f64, String> {
+    let m: f64 = s
+        .parse()
+        .map_err(|e| format!("{s:?} is not a number: {e}"))?;
+    if m > 0.0 && m <= 1.0 {
+        Ok(m)
+    } else {
+        Err(format!("{m} is not in (0, 1]"))
+    }
 }
 
 /// Options of `precond bench saturation`.
@@ -546,7 +563,12 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(BenchCommand::Worlds(args)) => {
             tokio::task::spawn_blocking(move || {
-                crate::bench::worlds::run(args.samples, args.problems, args.max_extensions)
+                crate::bench::worlds::run(
+                    args.samples,
+                    args.problems,
+                    args.max_extensions,
+                    &args.margins,
+                )
             })
             .await?;
             Ok(())

@@ -254,6 +254,56 @@ pub fn baseline(
     .is_some_and(|p| open_loop(world, domain, problem, &p).success)
 }
 
+/// What an oracle planning over `threshold` achieved on one problem.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct OracleRun {
+    /// It found a plan whose every step's true deviation is below the threshold.
+    pub solvable: bool,
+    /// That plan executed open loop reached the goal.
+    pub open_loop: bool,
+    /// Executed closed loop (replanning over the same threshold) it reached the goal.
+    pub closed_loop: bool,
+}
+
+/// The oracle of a continuous world with a stricter threshold: a planner that trusts exactly
+/// the state-actions whose *true* deviation is below `threshold` (`d_max` for the oracle of the
+/// harness; `m · d_max` for a cautious one, which measures how many of a world's problems need
+/// steps close to `d_max` — those a learner that must be confident cannot trust). Closed-loop
+/// execution replans when the robot strays more than the world's `d_max` from the plan, as for
+/// every reference.
+pub fn oracle(
+    world: &ContinuousWorld,
+    domain: &Kinematic,
+    problem: &Problem,
+    threshold: f64,
+    max_extensions: u32,
+    seed: u64,
+) -> OracleRun {
+    let truth = TrueDeviation::new(world, domain);
+    let oracle_settings = settings(max_extensions.saturating_mul(2));
+    let mut sim = world.world();
+    let Some(first) = plan(domain, &truth, &oracle_settings, problem, threshold, seed) else {
+        return OracleRun {
+            solvable: false,
+            open_loop: false,
+            closed_loop: false,
+        };
+    };
+    let open = open_loop(sim.as_mut(), domain, problem, &first);
+    let mut closed = ClosedLoop::new(problem, first, world.d_max());
+    while let Some(s) = closed.advance(sim.as_mut(), domain, problem) {
+        closed.replanned(
+            from_here(domain, &s, problem)
+                .and_then(|p| plan(domain, &truth, &oracle_settings, &p, threshold, seed)),
+        );
+    }
+    OracleRun {
+        solvable: true,
+        open_loop: open.success,
+        closed_loop: closed.executed().success,
+    }
+}
+
 /// The oracle's and the baseline's answers to `problem` in a continuous world (see the module
 /// docs).
 pub fn continuous(
@@ -264,30 +314,13 @@ pub fn continuous(
     seed: u64,
 ) -> References {
     let d_max = world.d_max();
-    let truth = TrueDeviation::new(world, domain);
-    let oracle_settings = settings(max_extensions.saturating_mul(2));
     let mut sim = world.world();
     let baseline = baseline(sim.as_mut(), domain, problem, d_max, max_extensions, seed);
-    let Some(first) = plan(domain, &truth, &oracle_settings, problem, d_max, seed) else {
-        return References {
-            oracle_solvable: false,
-            oracle_open_loop: false,
-            oracle_closed_loop: false,
-            baseline,
-        };
-    };
-    let open = open_loop(sim.as_mut(), domain, problem, &first);
-    let mut closed = ClosedLoop::new(problem, first, d_max);
-    while let Some(s) = closed.advance(sim.as_mut(), domain, problem) {
-        closed.replanned(
-            from_here(domain, &s, problem)
-                .and_then(|p| plan(domain, &truth, &oracle_settings, &p, d_max, seed)),
-        );
-    }
+    let o = oracle(world, domain, problem, d_max, max_extensions, seed);
     References {
-        oracle_solvable: true,
-        oracle_open_loop: open.success,
-        oracle_closed_loop: closed.executed().success,
+        oracle_solvable: o.solvable,
+        oracle_open_loop: o.open_loop,
+        oracle_closed_loop: o.closed_loop,
         baseline,
     }
 }
