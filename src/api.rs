@@ -611,7 +611,8 @@ pub struct ModelResponse {
     /// budget (`null` if none): this version kept answering.
     pub last_fit_refusal: Option<FitRefusalView>,
     /// With `mde.kernel: "auto"`, every candidate kernel's fit on the first candidate cap's
-    /// labels; the one with the highest log marginal likelihood was kept (empty otherwise).
+    /// labels; the one with the highest log marginal likelihood was kept unless another was
+    /// clearly better held out (empty otherwise).
     pub kernel_trials: Vec<KernelTrial>,
 }
 

@@ -19,8 +19,8 @@ pub use estimator::{
 };
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use labels::{
-    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial, blocks,
-    capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
+    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial, best_kernel,
+    blocks, capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};

@@ -249,7 +249,8 @@ pub struct MdeSettings {
     pub label_cap: LabelCap,
     /// The GP's Matérn kernel: `matern12` (ν = 1/2, the exponential kernel), `matern32`,
     /// `matern52` (the paper's), or `auto`: at every fit, the one of the three whose fit has
-    /// the highest log marginal likelihood on the data (see [`KernelChoice`]).
+    /// the highest log marginal likelihood on the data, unless another is clearly better held
+    /// out (see [`KernelChoice`]).
     pub kernel: KernelChoice,
     /// The regressor fits use: `auto` (the exact GP up to 3000 transitions while its fit fits
     /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
@@ -314,10 +315,13 @@ impl Preset {
 /// learns spreads no further; the rough ν = 1/2 kernel follows a jump and keeps long length
 /// scales, but explains a smooth deviation as rough and stays uncertain between data. `auto`
 /// fits all three at the first candidate label cap and keeps the kernel whose fit has the
-/// highest log marginal likelihood — the data's own evidence for each, on the same labels.
+/// highest log marginal likelihood — the data's own evidence for each, on the same labels —
+/// unless another judges the training state-actions clearly better held out
+/// ([`best_kernel`](crate::mde::best_kernel)).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum KernelChoice {
-    /// Chosen at every fit by the log marginal likelihood among ν = 1/2, 3/2, 5/2.
+    /// Chosen at every fit among ν = 1/2, 3/2, 5/2 by the log marginal likelihood, or a
+    /// clearly better held-out judgement.
     Auto,
     /// Always this kernel.
     Fixed(Kernel),

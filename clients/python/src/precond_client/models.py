@@ -724,12 +724,18 @@ class KernelTrial:
     kernel: str
     """``matern12``, ``matern32`` or ``matern52``."""
     log_marginal_likelihood: float
+    held_out_log_score: float | None = None
+    """The mean held-out log probability of the training state-actions' side of ``d_max``
+    (``None`` when not computed and for fits made before it existed)."""
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> KernelTrial:
         """Reads the JSON form."""
+        score = d.get("held_out_log_score")
         return cls(
-            kernel=str(d["kernel"]), log_marginal_likelihood=float(d["log_marginal_likelihood"])
+            kernel=str(d["kernel"]),
+            log_marginal_likelihood=float(d["log_marginal_likelihood"]),
+            held_out_log_score=float(score) if score is not None else None,
         )
 
 
@@ -796,7 +802,8 @@ class Model:
     last_fit_refusal: FitRefusal | None
     """The latest fit refused since this version for the memory budget."""
     kernel_trials: list[KernelTrial]
-    """With ``mde.kernel`` ``auto``, each kernel's fit; the highest log marginal likelihood won."""
+    """With ``mde.kernel`` ``auto``, each kernel's fit; the highest log marginal likelihood won
+    unless another's held-out score was clearly better."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
     @classmethod
