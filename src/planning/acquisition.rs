@@ -16,8 +16,6 @@
 
 use super::PlanningError;
 use super::trajectory::Trajectory;
-use std::fmt;
-use std::str::FromStr;
 
 /// How per-step utilities combine into a trajectory utility.
 #[derive(
@@ -42,36 +40,7 @@ pub enum Aggregation {
     Sum,
 }
 
-impl Aggregation {
-    /// The setting's name: `"max"` or `"sum"`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Max => "max",
-            Self::Sum => "sum",
-        }
-    }
-}
-
-impl fmt::Display for Aggregation {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl FromStr for Aggregation {
-    type Err = PlanningError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "max" => Ok(Self::Max),
-            "sum" => Ok(Self::Sum),
-            other => Err(PlanningError::settings(
-                "aggregation",
-                format!("{other:?} is not one of \"max\", \"sum\""),
-            )),
-        }
-    }
-}
+setting_names!(Aggregation, "aggregation", { Max => "max", Sum => "sum" });
 
 /// Which acquisition function scores a trajectory (see the [module docs](self)).
 #[derive(
@@ -94,36 +63,7 @@ pub enum AcquisitionKind {
     LevelSet,
 }
 
-impl AcquisitionKind {
-    /// The setting's name: `"lcb"` or `"level_set"`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Lcb => "lcb",
-            Self::LevelSet => "level_set",
-        }
-    }
-}
-
-impl fmt::Display for AcquisitionKind {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl FromStr for AcquisitionKind {
-    type Err = PlanningError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "lcb" => Ok(Self::Lcb),
-            "level_set" => Ok(Self::LevelSet),
-            other => Err(PlanningError::settings(
-                "acquisition",
-                format!("{other:?} is not one of \"lcb\", \"level_set\""),
-            )),
-        }
-    }
-}
+setting_names!(AcquisitionKind, "acquisition", { Lcb => "lcb", LevelSet => "level_set" });
 
 /// The acquisition's parameters (experiment settings).
 #[derive(Debug, Clone, Copy, PartialEq)]

@@ -32,6 +32,50 @@
 //! [`DeviationModel`], so the GP (or any stand-in) plugs in from outside. Every random choice
 //! derives from a `u64` seed: the same inputs and seed give the same result.
 
+/// Names a plain settings enum's variants as the settings spell them: an `ALL` list, `as_str`,
+/// `Display`, and a `FromStr` whose error names the setting `field` and lists every accepted
+/// name. One definition for every such enum, so that a name is written once.
+macro_rules! setting_names {
+    ($ty:ident, $field:literal, { $($variant:ident => $name:literal),+ $(,)? }) => {
+        impl $ty {
+            /// Every value, in the order the setting lists them.
+            pub const ALL: &'static [$ty] = &[$($ty::$variant),+];
+
+            /// The setting's name of this value.
+            pub fn as_str(self) -> &'static str {
+                match self {
+                    $(Self::$variant => $name),+
+                }
+            }
+        }
+
+        impl std::fmt::Display for $ty {
+            fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+                f.write_str(self.as_str())
+            }
+        }
+
+        impl std::str::FromStr for $ty {
+            type Err = $crate::planning::PlanningError;
+
+            fn from_str(s: &str) -> Result<Self, Self::Err> {
+                Self::ALL
+                    .iter()
+                    .copied()
+                    .find(|v| v.as_str() == s)
+                    .ok_or_else(|| {
+                        let names: Vec<String> =
+                            Self::ALL.iter().map(|v| format!("{:?}", v.as_str())).collect();
+                        $crate::planning::PlanningError::settings(
+                            $field,
+                            format!("{s:?} is not one of {}", names.join(", ")),
+                        )
+                    })
+            }
+        }
+    };
+}
+
 pub mod acquisition;
 pub mod cache;
 pub mod given;

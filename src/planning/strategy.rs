@@ -30,8 +30,6 @@ use super::{DeviationModel, PlanningError};
 use crate::budget::Budget;
 use rand::Rng;
 use std::collections::HashSet;
-use std::fmt;
-use std::str::FromStr;
 
 /// How a proposal chooses the trajectory to execute.
 #[derive(
@@ -56,16 +54,13 @@ pub enum Strategy {
     Random,
 }
 
-impl Strategy {
-    /// The setting's name: `"active"`, `"goal_conditioned"` or `"random"`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Active => "active",
-            Self::GoalConditioned => "goal_conditioned",
-            Self::Random => "random",
-        }
-    }
+setting_names!(Strategy, "strategy", {
+    Active => "active",
+    GoalConditioned => "goal_conditioned",
+    Random => "random",
+});
 
+impl Strategy {
     /// The index of the candidate this strategy executes among candidates with acquisition
     /// values `alphas`, all eligible: `active` the smallest `α` (the first on ties), the others
     /// a uniformly random one (the first draw of stream 0 of `seed`). `None` when there is no
@@ -81,28 +76,6 @@ impl Strategy {
                 seeded_rng(seed, 0).random_range(..alphas.len())
             }
         })
-    }
-}
-
-impl fmt::Display for Strategy {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(self.as_str())
-    }
-}
-
-impl FromStr for Strategy {
-    type Err = PlanningError;
-
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "active" => Ok(Self::Active),
-            "goal_conditioned" => Ok(Self::GoalConditioned),
-            "random" => Ok(Self::Random),
-            other => Err(PlanningError::settings(
-                "strategy",
-                format!("{other:?} is not one of \"active\", \"goal_conditioned\", \"random\""),
-            )),
-        }
     }
 }
 
