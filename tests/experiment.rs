@@ -73,7 +73,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
     for r in &rows {
         assert_eq!(r[col("domain")], "icy_gridworld");
         assert!(STRATEGIES.contains(&r[col("strategy")].as_str()));
-        for rate in ["plan_found_rate", "success_rate", "tpr", "tnr"] {
+        for rate in ["plan_found_rate", "success_rate", "unsafe_step_rate", "tpr", "tnr"] {
             let v = &r[col(rate)];
             if !v.is_empty() {
                 assert!(is_rate(v.parse().unwrap()), "{rate} = {v}");
@@ -82,6 +82,9 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
         let found: usize = r[col("plans_found")].parse().unwrap();
         let ok: usize = r[col("successes")].parse().unwrap();
         assert!(ok <= found && found <= 3, "{r:?}");
+        let planned: usize = r[col("planned_steps")].parse().unwrap();
+        let wrong: usize = r[col("unsafe_planned_steps")].parse().unwrap();
+        assert!(wrong <= planned && (found > 0) == (planned > 0), "{r:?}");
         let n_train: usize = r[col("n_train")].parse().unwrap();
         assert!(n_train > 0, "the model was refit: {r:?}");
         let covered: usize = r[col("model_trajectories")].parse().unwrap();
@@ -96,8 +99,27 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
     // The per-slot and per-problem files.
     let (_, training) = parse_csv(&out.join("training.csv"));
     assert_eq!(training.len(), 3 * 2 * 3 * 5);
-    let (_, tests) = parse_csv(&out.join("tests.csv"));
+    let (test_header, tests) = parse_csv(&out.join("tests.csv"));
     assert_eq!(tests.len(), 3 * 2 * 3 * 3);
+    // Each iteration's planned and unsafe steps are its test plans' own.
+    let tcol = |name: &str| test_header.iter().position(|h| h == name).unwrap();
+    for r in &rows {
+        let of_iteration = tests.iter().filter(|t| {
+            t[tcol("strategy")] == r[col("strategy")]
+                && t[tcol("seed")] == r[col("seed")]
+                && t[tcol("iteration")] == r[col("iteration")]
+        });
+        let (mut planned, mut wrong) = (0usize, 0usize);
+        for t in of_iteration {
+            let length: usize = t[tcol("plan_length")].parse().unwrap();
+            let unsafe_steps: usize = t[tcol("unsafe_steps")].parse().unwrap();
+            assert!(unsafe_steps <= length, "{t:?}");
+            planned += length;
+            wrong += unsafe_steps;
+        }
+        assert_eq!(r[col("planned_steps")], planned.to_string());
+        assert_eq!(r[col("unsafe_planned_steps")], wrong.to_string());
+    }
 
     // summary.json: every strategy, every iteration, every metric; rates in [0, 1].
     let summary: Value =

@@ -515,6 +515,15 @@ pub struct IterationRecord {
     pub learned_rate: Option<f64>,
     /// `plans_found / test_problems`.
     pub plan_found_rate: f64,
+    /// Steps of the test plans found.
+    pub planned_steps: usize,
+    /// Of those, steps whose *true* deviation from the plan's own state is at least `d_max`:
+    /// the moves the learned precondition trusted wrongly and the planner used. Held-out TNR
+    /// judges uniform state-actions; this judges the ones a planner picks, where a search over
+    /// many candidates finds a model's false trust.
+    pub unsafe_planned_steps: usize,
+    /// `unsafe_planned_steps / planned_steps` (`None` without a plan).
+    pub unsafe_step_rate: Option<f64>,
     /// `successes / test_problems`.
     pub success_rate: f64,
     /// Test problems reached executing the learned plan closed loop (re-planning at test β
@@ -611,6 +620,8 @@ pub struct TestRecord {
     /// The problem is solvable inside the learned precondition at test β (`None` where that
     /// is not searched exhaustively: outside the gridworld).
     pub learned: Option<bool>,
+    /// Steps of the plan whose true deviation from the plan's own state is at least `d_max`.
+    pub unsafe_steps: usize,
     /// The learned plan executed closed loop reached the goal (`None`: not measured).
     pub closed_loop_success: Option<bool>,
     /// Plans asked for after the first in the closed-loop execution.
@@ -942,6 +953,7 @@ impl Run<'_> {
                 success: false,
                 oracle: references.map(|r| r.oracle_solvable),
                 learned: self.bench.learned_solvable(&problem, trusted),
+                unsafe_steps: 0,
                 closed_loop_success: self.bench.closed_loop().then_some(false),
                 replans: 0,
                 oracle_open_loop: references.map(|r| r.oracle_open_loop),
@@ -951,6 +963,17 @@ impl Run<'_> {
             if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
                 test.found = true;
                 test.plan_length = traj.actions.len();
+                self.world
+                    .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
+                test.unsafe_steps = traj
+                    .states
+                    .iter()
+                    .zip(&traj.actions)
+                    .filter(|(s, a)| {
+                        let next = self.world.step(s, a);
+                        domain.deviation(s, a, &next) >= self.d_max
+                    })
+                    .count();
                 self.world
                     .reset(&mut stream(seed, purpose::TEST_EPISODE, j, k as u64));
                 let exec = execute(self.bench, self.world.as_mut(), traj);
@@ -968,6 +991,8 @@ impl Run<'_> {
                 }
             }
             rec.plans_found += usize::from(test.found);
+            rec.planned_steps += test.plan_length;
+            rec.unsafe_planned_steps += test.unsafe_steps;
             rec.successes += usize::from(test.success);
             rec.closed_loop_successes += usize::from(test.closed_loop_success == Some(true));
             rec.replans += test.replans;
@@ -985,6 +1010,8 @@ impl Run<'_> {
         if n > 0 {
             let rate = |k: usize| k as f64 / n as f64;
             rec.plan_found_rate = rate(rec.plans_found);
+            rec.unsafe_step_rate = (rec.planned_steps > 0)
+                .then(|| rec.unsafe_planned_steps as f64 / rec.planned_steps as f64);
             rec.success_rate = rate(rec.successes);
             rec.closed_loop_rate = self
                 .bench
@@ -1099,6 +1126,9 @@ impl IterationRecord {
             oracle_rate: None,
             learned_solvable: 0,
             learned_rate: None,
+            planned_steps: 0,
+            unsafe_planned_steps: 0,
+            unsafe_step_rate: None,
             plan_found_rate: 0.0,
             success_rate: 0.0,
             closed_loop_successes: 0,

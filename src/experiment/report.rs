@@ -13,8 +13,9 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 29] = [
+pub const METRICS: [&str; 30] = [
     "plan_found_rate",
+    "unsafe_step_rate",
     "success_rate",
     "oracle_rate",
     "success_of_oracle",
@@ -46,7 +47,7 @@ pub const METRICS: [&str; 29] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 46] = [
+pub const ITERATION_COLUMNS: [&str; 49] = [
     "domain",
     "layout",
     "strategy",
@@ -68,6 +69,9 @@ pub const ITERATION_COLUMNS: [&str; 46] = [
     "successes",
     "plan_found_rate",
     "success_rate",
+    "planned_steps",
+    "unsafe_planned_steps",
+    "unsafe_step_rate",
     "oracle_solvable",
     "oracle_rate",
     "learned_solvable",
@@ -104,6 +108,7 @@ fn pour_ratio(r: &IterationRecord, kind: PourType) -> Option<f64> {
 pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
     match metric {
         "plan_found_rate" => Some(r.plan_found_rate),
+        "unsafe_step_rate" => r.unsafe_step_rate,
         "success_rate" => Some(r.success_rate),
         "oracle_rate" => r.oracle_rate,
         "success_of_oracle" => {
@@ -230,6 +235,9 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.successes.to_string(),
             r.plan_found_rate.to_string(),
             r.success_rate.to_string(),
+            r.planned_steps.to_string(),
+            r.unsafe_planned_steps.to_string(),
+            opt(r.unsafe_step_rate),
             r.oracle_solvable.to_string(),
             opt(r.oracle_rate),
             r.learned_solvable.to_string(),
@@ -283,7 +291,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
 
     let mut csv = String::from(
         "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle,\
-         learned,closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
+         learned,unsafe_steps,closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
     );
     let vector = |v: &[f64]| {
         v.iter()
@@ -294,7 +302,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
@@ -307,6 +315,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             t.success,
             flag(t.oracle),
             flag(t.learned),
+            t.unsafe_steps,
             flag(t.closed_loop_success),
             t.replans,
             flag(t.oracle_open_loop),
