@@ -346,6 +346,7 @@ pub async fn serve(
     shutdown: impl Future<Output = ()> + Send + 'static,
 ) -> anyhow::Result<()> {
     let store = state.service.store().clone();
+    let stopping = state.service.clone();
     let grace = state.config.shutdown_grace;
     let addr = listener.local_addr()?;
     let state = AppState {
@@ -355,7 +356,8 @@ pub async fn serve(
         }),
         ..state
     };
-    tracing::info!(%addr, "serving");
+    tracing::info!(%addr, backend = store.backend().as_str(), "serving");
+    let background = state.service.start_background().await;
     let service = state.service.clone();
     tokio::spawn(async move {
         match service.resume_refits().await {
@@ -387,6 +389,8 @@ pub async fn serve(
             "grace period over: dropping the requests still in flight"
         ),
     }
+    drop(background);
+    stopping.release_fits().await;
     if tokio::time::timeout(Duration::from_secs(5), store.close())
         .await
         .is_err()

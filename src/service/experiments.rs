@@ -31,14 +31,12 @@ impl Service {
     /// Validates the settings, stores a new experiment and loads it (answering from the prior).
     pub async fn create_experiment(&self, request: ExperimentRequest) -> Result<ExperimentState> {
         let (settings, domain) = request.resolve(&self.model_calls)?;
-        let _counted_and_created_together = self.creating.lock().await;
         let max = self.work.limits().max_experiments;
-        if self.store.count_experiments().await? >= max as i64 {
+        let Some(experiment) = self.store.insert_experiment(&settings, max as i64).await? else {
             return Err(Error::LimitReached(format!(
                 "this server holds its limit of {max} experiments (--max-experiments)"
             )));
-        }
-        let experiment = self.store.insert_experiment(&settings).await?;
+        };
         // Resolved settings make valid planning settings (`resolve` checked them).
         self.live.insert(LiveExperiment::new(
             experiment.id,

@@ -301,7 +301,8 @@ impl Service {
                 // A batch just completed: the iteration moved on.
                 if live.iteration(record.n_trajectories) > live.iteration(record.n_trajectories - 1)
                 {
-                    live.schedule_refit(&self.store, &self.work);
+                    self.store.request_fit(id, false).await?;
+                    self.fits.wake();
                 }
                 Ok(answer(record, false))
             }

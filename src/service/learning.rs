@@ -1,7 +1,7 @@
 //! The model deviation estimator as a service: the version answering, refits, precondition
 //! judgements ("is this state-action trusted?") and test-time plans.
 
-use super::live::{FitTrigger, LiveExperiment};
+use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{CandidateTrajectory, Point};
 use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
@@ -200,25 +200,63 @@ impl Service {
     }
 
     /// Fits a new version on every stored transition now (off the async workers) and answers
-    /// with it. The fit runs in its own task: if it does not finish within the planning
-    /// deadline the answer is the version answering now, marked unfinished, and the fit goes
-    /// on, is stored and swapped in when done (a client that goes away does not lose it either).
+    /// with it. The fit is requested in the store and claimed by this replica in a task of its
+    /// own; when another fit of the experiment runs (here or on another replica), the answer
+    /// is the version that fit stores. If no version covering what is stored now answers within
+    /// the planning deadline, the answer is the version answering now, marked unfinished, and
+    /// the fit goes on, is stored and swapped in when done (a client that goes away does not
+    /// lose it either).
     pub async fn refit(&self, id: i64) -> Result<Refit> {
         let live = self.live(id).await?;
+        let stored_now = self
+            .store
+            .experiment(id)
+            .await?
+            .map_or(0, |e| e.n_trajectories);
+        self.store.request_fit(id, true).await?;
         let fit = {
-            let (live, store, work) = (live.clone(), self.store.clone(), self.work.clone());
-            tokio::spawn(async move { live.refit(&store, &work, FitTrigger::Forced).await })
+            let (live, store, work, fits) = (
+                live.clone(),
+                self.store.clone(),
+                self.work.clone(),
+                self.fits.clone(),
+            );
+            tokio::spawn(async move {
+                let slot = work.fit_slot().await?;
+                match fits.claim(&store, id).await? {
+                    Some(claim) => live
+                        .fit_under(&store, &work, &fits, claim, slot)
+                        .await
+                        .map(Some),
+                    None => Ok(None),
+                }
+            })
         };
-        let (model, finished) = match tokio::time::timeout(self.work.limits().plan_timeout, fit)
-            .await
-        {
-            Ok(joined) => (
-                joined
-                    .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??,
-                true,
-            ),
-            Err(_elapsed) => (live.model(), false),
+        let covering = async {
+            let fitted = fit
+                .await
+                .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??;
+            if let Some(model) = fitted {
+                return Ok::<_, Error>(model);
+            }
+            // Another fit holds the claim: wait for the version it stores to answer here.
+            loop {
+                let model = live.model();
+                if model
+                    .fit
+                    .as_ref()
+                    .is_some_and(|f| f.n_trajectories >= stored_now)
+                {
+                    return Ok(model);
+                }
+                tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+            }
         };
+        let (model, finished) =
+            match tokio::time::timeout(self.work.limits().plan_timeout, covering).await {
+                Ok(model) => (model?, true),
+                Err(_elapsed) => (live.model(), false),
+            };
         Ok(Refit {
             view: ModelView {
                 experiment_id: id,
@@ -231,8 +269,8 @@ impl Service {
     }
 
     /// Loads every experiment whose latest complete batch has no fitted model (the server
-    /// stopped before or during its fit), which schedules that fit in the background. Returns
-    /// how many were scheduled.
+    /// stopped before or during its fit), which requests that fit. Returns how many were
+    /// requested.
     pub async fn resume_refits(&self) -> Result<usize> {
         let mut scheduled = 0;
         for e in self.store.experiments(ListOrder::Oldest, 0, None).await? {

@@ -1,12 +1,14 @@
 //! Live experiments: the in-memory side of stored experiments — the built domain and the MDE
 //! version that answers queries — loaded from the store on first use, kept for the process's life.
 //!
-//! Fits run on the blocking pool, never on the async workers, one at a time per experiment; the
-//! new version is stored, then swapped in atomically. Queries keep using the previous version
-//! until then, so no request ever waits on a fit.
+//! Fits run on threads of their own, never on the async workers, one at a time per experiment
+//! (by the store's fit claim across replicas, see [`fitting`](super::fitting)); the new version
+//! is stored, then swapped in atomically. Queries keep using the previous version until then,
+//! so no request ever waits on a fit.
 
 use super::Error;
-use super::work::WorkGate;
+use super::fitting::FitQueue;
+use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
     Estimator, EstimatorKind, EstimatorParams, FitRecord, ServedModel, capped_labels,
@@ -16,7 +18,8 @@ use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::remote_model::ModelCalls;
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
-use crate::store::{FitRefusal, Store, StoredModel, StoredTransition};
+use crate::store::fits::FitFinish;
+use crate::store::{FitClaim, FitRefusal, Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
@@ -47,25 +50,6 @@ pub const KEPT_VERSIONS: usize = 4;
 /// Each kept version holds its `L⁻¹` (`n_train²` floats): beyond this many floats in all
 /// (256 MiB) the least recently used are dropped, down to the one just rebuilt.
 pub const KEPT_VERSIONS_FLOATS: usize = 1 << 25;
-
-/// Why a fit is made.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FitTrigger {
-    /// A batch of trajectories completed: fit unless a model already covers that batch.
-    Batch,
-    /// A client asked: fit now on everything stored.
-    Forced,
-}
-
-impl FitTrigger {
-    /// The metric label: `batch` or `forced`.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Batch => "batch",
-            Self::Forced => "forced",
-        }
-    }
-}
 
 impl LiveExperiment {
     /// A live experiment answering from the prior; an error when its learning settings do
@@ -154,6 +138,15 @@ impl LiveExperiment {
         *self.model.write().unwrap_or_else(|p| p.into_inner()) = model;
     }
 
+    /// Swaps `model` in unless the version answering is newer (a replica's watcher and its own
+    /// fit may race).
+    fn swap_if_newer(&self, model: Arc<ServedModel>) {
+        let mut current = self.model.write().unwrap_or_else(|p| p.into_inner());
+        if model.version >= current.version {
+            *current = model;
+        }
+    }
+
     /// The planning problem `start → goal`, checked against the domain; errors name `start`
     /// or `goal` (and the component, where the domain says which).
     pub fn problem(&self, start: Vec<f64>, goal: Vec<f64>) -> Result<Problem, Error> {
@@ -198,30 +191,85 @@ impl LiveExperiment {
         (features, deviations)
     }
 
-    /// Fits a new version on every stored transition, stores it and swaps it in. With
-    /// [`FitTrigger::Batch`], does nothing when the current version already covers the latest
-    /// complete batch. Returns the version answering afterwards.
+    /// Fits version `claim.version` on every stored transition under `claim` (this replica's
+    /// right to fit the experiment, heartbeated meanwhile), on the fit slot `slot`; stores it
+    /// and ends the claim in one transaction, then swaps it in. Without
+    /// [`FitClaim::forced`], does nothing (but end the claim) when the latest stored version
+    /// already covers the latest complete batch. Returns the version answering afterwards.
     ///
-    /// The fit takes a slot of `gate` (waiting as long as it takes) and is counted in
-    /// `precond_fits_total` and `precond_fit_seconds`.
-    pub async fn refit(
+    /// Counted in `precond_fits_total` and `precond_fit_seconds`.
+    pub async fn fit_under(
         self: &Arc<Self>,
         store: &Store,
         gate: &WorkGate,
-        trigger: FitTrigger,
+        queue: &FitQueue,
+        claim: FitClaim,
+        slot: Slot,
     ) -> Result<Arc<ServedModel>, Error> {
         let _one_fit_at_a_time = self.fit_lock.lock().await;
-        let current = self.model();
+        let heartbeat = queue.keep_alive(store, &claim);
+        let fitted = self.fit_claimed(store, gate, &claim, slot).await;
+        heartbeat.abort();
+        let (stored, served) = match fitted {
+            Ok(Some(fitted)) => fitted,
+            Ok(None) => {
+                store.finish_fit(&claim, None).await?;
+                return Ok(self.model());
+            }
+            Err(e) => {
+                store.finish_fit(&claim, None).await?;
+                return Err(e);
+            }
+        };
+        let trigger = if claim.forced { "forced" } else { "batch" };
+        match store
+            .finish_fit(&claim, Some((&stored, served.hyperparameters())))
+            .await?
+        {
+            FitFinish::Done => {}
+            FitFinish::Lost => {
+                metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => "lost")
+                    .increment(1);
+                return Err(Error::Conflict(format!(
+                    "the fit of experiment {} was taken over by another replica (this one \
+                     stalled past its {} s lease); its result was dropped",
+                    self.id,
+                    queue.lease().as_secs()
+                )));
+            }
+        }
+        let served = Arc::new(served);
+        self.swap_if_newer(served.clone());
+        tracing::info!(
+            experiment = self.id,
+            version = stored.version,
+            estimator = served.kind().map_or("prior", |k| k.as_str()),
+            n_train = stored.n_train,
+            seconds = stored.fit_seconds,
+            label_cap = stored.label_cap,
+            "model fitted"
+        );
+        Ok(served)
+    }
+
+    /// The fit itself (see [`LiveExperiment::fit_under`]): `None` when nothing needs fitting.
+    async fn fit_claimed(
+        self: &Arc<Self>,
+        store: &Store,
+        gate: &WorkGate,
+        claim: &FitClaim,
+        slot: Slot,
+    ) -> Result<Option<(StoredModel, ServedModel)>, Error> {
+        let trigger = if claim.forced { "forced" } else { "batch" };
         let n_trajectories = store
             .experiment(self.id)
             .await?
             .map(|e| e.n_trajectories)
             .unwrap_or(0);
-        if trigger == FitTrigger::Batch {
-            let covered = current.fit.as_ref().map_or(0, |f| f.n_trajectories);
-            if self.iteration(n_trajectories) <= self.iteration(covered) {
-                return Ok(current);
-            }
+        if !claim.forced
+            && self.iteration(n_trajectories) <= self.iteration(claim.covered_trajectories)
+        {
+            return Ok(None);
         }
         let transitions = store.transitions(self.id, 0, None).await?;
         if transitions.is_empty() {
@@ -229,7 +277,7 @@ impl LiveExperiment {
                 "nothing to fit: the experiment has no transitions yet".into(),
             ));
         }
-        let version = current.version + 1;
+        let version = claim.version;
         let (features, deviations) = self.training_set(&transitions);
         let dim = self.domain.feature_dim();
         let mde = &self.settings.mde;
@@ -251,7 +299,7 @@ impl LiveExperiment {
         if needed > budget as f64 {
             let refusal = FitRefusal::now(n as i64, n_trajectories, kind, needed, budget as f64);
             store.insert_fit_refusal(self.id, &refusal).await?;
-            metrics::counter!("precond_fits_total", "trigger" => trigger.as_str(), "result" => "refused")
+            metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => "refused")
                 .increment(1);
             tracing::warn!(experiment = self.id, n_train = n, reason = %refusal.reason, "fit refused");
             return Err(Error::LimitReached(refusal.reason));
@@ -259,7 +307,6 @@ impl LiveExperiment {
         let caps = self.settings.label_caps();
         let kernels = mde.kernel.candidates();
         let precondition = self.precondition(self.settings.learning.test_beta)?;
-        let slot = gate.fit_slot().await?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {
             let _slot = slot;
@@ -276,7 +323,7 @@ impl LiveExperiment {
         })
         .await?;
         let result = if gp.is_ok() { "ok" } else { "failed" };
-        metrics::counter!("precond_fits_total", "trigger" => trigger.as_str(), "result" => result)
+        metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => result)
             .increment(1);
         metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
         let choice = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
@@ -302,26 +349,28 @@ impl LiveExperiment {
             label_cap_trials: fit.label_cap_trials.clone(),
             kernel_trials: fit.kernel_trials.clone(),
         };
-        store
-            .insert_model(self.id, &stored, gp.hyperparameters())
-            .await?;
-        let label_cap = fit.label_cap;
-        let served = Arc::new(ServedModel {
-            version,
-            estimator: Estimator::Fitted(gp),
-            fit: Some(fit),
-        });
-        self.swap_model(served.clone());
-        tracing::info!(
-            experiment = self.id,
-            version,
-            estimator = kind.as_str(),
-            n_train = stored.n_train,
-            seconds = stored.fit_seconds,
-            label_cap,
-            "model fitted"
-        );
-        Ok(served)
+        Ok(Some((
+            stored,
+            ServedModel {
+                version,
+                estimator: Estimator::Fitted(gp),
+                fit: Some(fit),
+            },
+        )))
+    }
+
+    /// Loads the newest stored version (fitted by another replica) and swaps it in unless a
+    /// newer one answers already; returns the version answering afterwards.
+    pub async fn load_latest(&self, store: &Store) -> Result<i64, Error> {
+        let Some(stored) = store.latest_model(self.id).await? else {
+            return Ok(self.model().version);
+        };
+        if stored.version <= self.model().version {
+            return Ok(self.model().version);
+        }
+        let served = self.restore(store, stored).await?;
+        self.swap_if_newer(Arc::new(served));
+        Ok(self.model().version)
     }
 
     /// Takes a posted trajectory into the answering version at its hyperparameters, when that
@@ -358,18 +407,6 @@ impl LiveExperiment {
             }
             Err(e) => tracing::warn!(experiment = self.id, error = %e, "online update failed"),
         }
-    }
-
-    /// Starts a [`FitTrigger::Batch`] refit in the background; failures are logged.
-    pub fn schedule_refit(self: &Arc<Self>, store: &Store, gate: &Arc<WorkGate>) {
-        let live = self.clone();
-        let store = store.clone();
-        let gate = gate.clone();
-        tokio::spawn(async move {
-            if let Err(e) = live.refit(&store, &gate, FitTrigger::Batch).await {
-                tracing::error!(experiment = live.id, error = %e, "background refit failed");
-            }
-        });
     }
 
     /// Rebuilds a stored version without re-optimising: the exact GP from its hyperparameters
@@ -446,11 +483,11 @@ impl Registry {
 
     /// The live experiment `id`, loading it (and its latest model) from the store if needed;
     /// 404 if it does not exist. A batch that completed but was never fitted (the server stopped
-    /// first) is fitted in the background.
+    /// first) is requested a fit, and `fits`' worker woken.
     pub async fn get(
         &self,
         store: &Store,
-        gate: &Arc<WorkGate>,
+        fits: &FitQueue,
         model_calls: &Arc<ModelCalls>,
         id: i64,
     ) -> Result<Arc<LiveExperiment>, Error> {
@@ -502,7 +539,8 @@ impl Registry {
                 .context("online update task")?;
         }
         if live.iteration(stored.n_trajectories) > live.iteration(covered) {
-            live.schedule_refit(store, gate);
+            store.request_fit(id, false).await?;
+            fits.wake();
         }
         Ok(live)
     }

@@ -3,7 +3,9 @@
 //! (labelling, storing, fitting, planning, judging) and returns domain values; the HTTP layer
 //! only parses requests and renders these values.
 //!
-//! - [`live`](mod@live): experiments in memory (built domain, current model), background refits.
+//! - [`live`](mod@live): experiments in memory (built domain, current model), their fits.
+//! - [`fitting`](mod@fitting): fits as jobs claimed through the store, so that replicas over
+//!   one database take turns and share the work; the watcher that loads others' versions.
 //! - [`experiments`](mod@experiments): create, list and show experiments.
 //! - [`ingest`](mod@ingest): label executed transitions with the experiment's own model and
 //!   store a trajectory atomically and idempotently.
@@ -24,6 +26,7 @@
 pub mod activity;
 pub mod error;
 pub mod experiments;
+pub mod fitting;
 pub mod ingest;
 pub mod inspection;
 pub mod learning;
@@ -34,10 +37,11 @@ pub mod work;
 pub use activity::{LearningTimeline, Runs};
 pub use error::{Error, Result};
 pub use experiments::ExperimentState;
+pub use fitting::FitQueue;
 pub use ingest::Ingested;
 pub use inspection::{LooDiagnostics, MapRequest, PreconditionGrid};
 pub use learning::{Judged, ModelView, Planned};
-pub use live::{FitTrigger, LiveExperiment, Registry};
+pub use live::{LiveExperiment, Registry};
 pub use proposals::ProposalRecord;
 pub use work::{Limits, WorkGate};
 
@@ -89,8 +93,23 @@ pub struct Service {
     /// Where remote models may live and how their calls are bounded.
     model_calls: Arc<ModelCalls>,
     work: Arc<WorkGate>,
-    /// Held while an experiment is counted and created, so the limit is exact.
-    creating: Arc<tokio::sync::Mutex<()>>,
+    /// This replica's side of the fit jobs.
+    fits: Arc<FitQueue>,
+}
+
+/// The background tasks of a serving [`Service`] (the fit worker and the version watcher):
+/// stopped when dropped.
+#[derive(Debug)]
+pub struct Background {
+    tasks: Vec<tokio::task::JoinHandle<()>>,
+}
+
+impl Drop for Background {
+    fn drop(&mut self) {
+        for task in &self.tasks {
+            task.abort();
+        }
+    }
 }
 
 impl Service {
@@ -106,8 +125,55 @@ impl Service {
             live: Arc::new(Registry::default()),
             model_calls: Arc::new(ModelCalls::new(model_urls, ModelCallLimits::default())),
             work: Arc::new(WorkGate::new(Limits::default())),
-            creating: Arc::new(tokio::sync::Mutex::new(())),
+            fits: Arc::new(FitQueue::default()),
         }
+    }
+
+    /// The same service with fit claims leased for `lease` and the store polled every `poll`
+    /// for other replicas' fit requests and versions (see [`fitting`](mod@fitting)).
+    pub fn with_fit_lease(mut self, lease: std::time::Duration, poll: std::time::Duration) -> Self {
+        self.fits = Arc::new(FitQueue::new(lease, poll));
+        self
+    }
+
+    /// Starts the fit worker and (on PostgreSQL) the version watcher; they run until the
+    /// returned value is dropped. On SQLite, claims a previous process left are handed back
+    /// first: one process owns the file, so nobody else is fitting.
+    pub async fn start_background(&self) -> Background {
+        if self.store.backend() == crate::store::Backend::Sqlite {
+            match self.store.release_fit_claims(None).await {
+                Ok(0) => {}
+                Ok(n) => tracing::info!(fits = n, "fits a stopped server left are requested again"),
+                Err(e) => tracing::error!(error = %e, "could not hand back old fit claims"),
+            }
+        }
+        Background {
+            tasks: vec![
+                tokio::spawn(self.fits.clone().run_worker(self.clone())),
+                tokio::spawn(
+                    self.fits
+                        .clone()
+                        .run_watcher(self.store.clone(), self.live.clone()),
+                ),
+            ],
+        }
+    }
+
+    /// Hands back the fit claims this replica holds (it is stopping): another replica takes
+    /// them over at once instead of after the lease.
+    pub async fn release_fits(&self) {
+        if let Err(e) = self
+            .store
+            .release_fit_claims(Some(self.fits.replica()))
+            .await
+        {
+            tracing::warn!(error = %e, "could not hand back this replica's fit claims");
+        }
+    }
+
+    /// This replica's side of the fit jobs.
+    pub fn fits(&self) -> &Arc<FitQueue> {
+        &self.fits
     }
 
     /// The same service under the operator's `limits` (assumed checked, see
@@ -148,7 +214,7 @@ impl Service {
     /// if there is no such experiment.
     pub async fn live(&self, id: i64) -> Result<Arc<LiveExperiment>> {
         self.live
-            .get(&self.store, &self.work, &self.model_calls, id)
+            .get(&self.store, &self.fits, &self.model_calls, id)
             .await
     }
 

@@ -271,6 +271,10 @@ impl Service {
             answer => answer?,
         };
         let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;
+        let (n_actions, extensions) = (
+            content.trajectory.actions.len() as i64,
+            content.extensions as i64,
+        );
         let (stored, created) = self
             .store
             .insert_proposal(
@@ -286,6 +290,8 @@ impl Service {
                         goal: request.goal.clone(),
                     },
                     body,
+                    n_actions,
+                    extensions,
                     ttl_seconds: live.settings.learning.proposal_ttl_seconds,
                 },
             )

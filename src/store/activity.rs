@@ -2,9 +2,9 @@
 //! one list of runs, per-iteration statistics and the list of model versions.
 
 use super::trajectories::provenance_from_row;
-use super::{Provenance, Store, decode_vec};
+use super::{Backend, Provenance, Store, decode_vec, flag};
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
+use sqlx::any::AnyRow;
 
 /// Where a run stands: a proposal's lease status, or what its trajectory was.
 #[derive(
@@ -113,40 +113,40 @@ pub struct ModelSummary {
 }
 
 /// Proposals (with the trajectory that executed each), trajectories without a proposal and
-/// refused proposal requests, as one relation; `?1` is the experiment, `?2` the current Unix
-/// time (an open proposal whose lease has passed shows as expired without being written).
+/// refused proposal requests, as one relation (the first branch's NULLs typed: PostgreSQL
+/// resolves a UNION's column types branch by branch); `$1` is the experiment, `$2` the current
+/// Unix time (an open proposal whose lease has passed shows as expired without being written).
 const RUNS: &str = "
-    SELECT p.id AS proposal_id, t.id AS trajectory_id, NULL AS refusal_id,
-           CASE WHEN p.status = 'open' AND p.expires_unix <= ?2 THEN 'expired'
+    SELECT p.id AS proposal_id, t.id AS trajectory_id, CAST(NULL AS BIGINT) AS refusal_id,
+           CASE WHEN p.status = 'open' AND p.expires_unix <= $2 THEN 'expired'
                 ELSE p.status END AS proposal_status,
            p.client_id, p.iteration, p.beta, p.model_version, p.created_at,
-           COALESCE(t.n_transitions, json_array_length(p.body, '$.trajectory.actions'), 0)
-               AS length,
-           COALESCE(t.partial, 0) AS partial, COALESCE(t.deviating, 0) AS deviating,
+           COALESCE(t.n_transitions, p.n_actions, 0) AS length,
+           COALESCE(t.partial, FALSE) AS partial, COALESCE(t.deviating, FALSE) AS deviating,
            t.source_dataset, t.source_episode, t.source_first_step, t.source_label,
-           json_extract(p.body, '$.extensions') AS extensions, NULL AS betas
+           p.extensions AS extensions, CAST(NULL AS TEXT) AS betas
     FROM proposals p LEFT JOIN trajectories t ON t.proposal_id = p.id
-    WHERE p.experiment_id = ?1
+    WHERE p.experiment_id = $1
     UNION ALL
     SELECT NULL, t.id, NULL, NULL, NULL, NULL, NULL, NULL, t.created_at, t.n_transitions,
            t.partial, t.deviating, t.source_dataset, t.source_episode, t.source_first_step,
            t.source_label, NULL, NULL
     FROM trajectories t
-    WHERE t.experiment_id = ?1 AND t.proposal_id IS NULL
+    WHERE t.experiment_id = $1 AND t.proposal_id IS NULL
     UNION ALL
     SELECT NULL, NULL, r.id, 'refused', r.client_id, r.iteration,
-           json_extract(r.betas, '$[0]'), r.model_version, r.created_at, 0, 0, 0,
+           r.first_beta, r.model_version, r.created_at, 0, FALSE, FALSE,
            NULL, NULL, NULL, NULL, r.extensions, r.betas
     FROM refusals r
-    WHERE r.experiment_id = ?1";
+    WHERE r.experiment_id = $1";
 
 fn unix_now() -> f64 {
     time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
 }
 
-fn run_from_row(row: &SqliteRow) -> Result<Run, sqlx::Error> {
+fn run_from_row(row: &AnyRow) -> Result<Run, sqlx::Error> {
     let proposal_id: Option<i64> = row.try_get("proposal_id")?;
-    let partial: bool = row.try_get("partial")?;
+    let partial = flag(row, "partial")?;
     let proposal_status: Option<String> = row.try_get("proposal_status")?;
     let status = match (proposal_status.as_deref(), partial) {
         (None, _) => RunStatus::Unsolicited,
@@ -177,7 +177,7 @@ fn run_from_row(row: &SqliteRow) -> Result<Run, sqlx::Error> {
         created_at: row.try_get("created_at")?,
         length: row.try_get("length")?,
         partial,
-        deviating: row.try_get("deviating")?,
+        deviating: flag(row, "deviating")?,
         source: provenance_from_row(row)?,
         max_deviation: row.try_get("max_deviation")?,
     })
@@ -193,13 +193,20 @@ impl Store {
         offset: i64,
         limit: i64,
     ) -> Result<Vec<Run>, sqlx::Error> {
+        // Times written by older SQLite versions of precond may have fewer fractional digits:
+        // SQLite orders by the instant first. PostgreSQL databases only hold today's format,
+        // which sorts as text.
+        let instant = match self.backend {
+            Backend::Sqlite => "julianday(r.created_at) DESC,",
+            Backend::Postgres => "",
+        };
         sqlx::query(&format!(
             "SELECT r.*, (SELECT MAX(x.deviation) FROM transitions x
                           WHERE x.trajectory_id = r.trajectory_id) AS max_deviation
              FROM ({RUNS}) r
-             ORDER BY julianday(r.created_at) DESC, r.created_at DESC, r.proposal_id DESC,
+             ORDER BY {instant} r.created_at DESC, r.proposal_id DESC,
                       r.trajectory_id DESC, r.refusal_id DESC
-             LIMIT ?3 OFFSET ?4"
+             LIMIT $3 OFFSET $4"
         ))
         .bind(experiment_id)
         .bind(unix_now())
@@ -216,10 +223,10 @@ impl Store {
     #[tracing::instrument(skip(self))]
     pub async fn count_runs(&self, experiment_id: i64) -> Result<i64, sqlx::Error> {
         sqlx::query_scalar(
-            "SELECT (SELECT COUNT(*) FROM proposals WHERE experiment_id = ?1)
+            "SELECT (SELECT COUNT(*) FROM proposals WHERE experiment_id = $1)
                   + (SELECT COUNT(*) FROM trajectories
-                     WHERE experiment_id = ?1 AND proposal_id IS NULL)
-                  + (SELECT COUNT(*) FROM refusals WHERE experiment_id = ?1)",
+                     WHERE experiment_id = $1 AND proposal_id IS NULL)
+                  + (SELECT COUNT(*) FROM refusals WHERE experiment_id = $1)",
         )
         .bind(experiment_id)
         .fetch_one(&self.read)
@@ -239,20 +246,21 @@ impl Store {
     ) -> Result<Vec<IterationStats>, sqlx::Error> {
         sqlx::query(
             "WITH t AS (
-                 SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / ?2 AS iteration
-                 FROM trajectories WHERE experiment_id = ?1
+                 SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / $2 AS iteration
+                 FROM trajectories WHERE experiment_id = $1
              ),
              executed AS (
                  SELECT t.iteration, COUNT(DISTINCT t.id) AS n_trajectories,
                         COUNT(*) AS n_transitions, AVG(x.deviation) AS mean_deviation,
                         MAX(x.deviation) AS max_deviation,
-                        AVG(CASE WHEN x.deviation < ?3 THEN 1.0 ELSE 0.0 END) AS share_within
+                        CAST(AVG(CASE WHEN x.deviation < $3 THEN 1.0 ELSE 0.0 END)
+                             AS DOUBLE PRECISION) AS share_within
                  FROM t JOIN transitions x ON x.trajectory_id = t.id
                  GROUP BY t.iteration
              ),
              refused AS (
                  SELECT iteration, COUNT(*) AS n_refused FROM refusals
-                 WHERE experiment_id = ?1 GROUP BY iteration
+                 WHERE experiment_id = $1 GROUP BY iteration
              ),
              iterations AS (
                  SELECT iteration FROM executed UNION SELECT iteration FROM refused
@@ -263,7 +271,7 @@ impl Store {
              FROM iterations i
              LEFT JOIN executed e ON e.iteration = i.iteration
              LEFT JOIN refused r ON r.iteration = i.iteration
-             ORDER BY i.iteration LIMIT ?4",
+             ORDER BY i.iteration LIMIT $4",
         )
         .bind(experiment_id)
         .bind(batch_size.max(1))
@@ -296,7 +304,7 @@ impl Store {
         sqlx::query(
             "SELECT version, n_train, n_trajectories, noise, log_marginal_likelihood,
                     fit_seconds, fitted_at, label_cap
-             FROM models WHERE experiment_id = ? ORDER BY version LIMIT ?",
+             FROM models WHERE experiment_id = $1 ORDER BY version LIMIT $2",
         )
         .bind(experiment_id)
         .bind(limit)
@@ -327,7 +335,7 @@ impl Store {
         n: i64,
     ) -> Result<Vec<f64>, sqlx::Error> {
         sqlx::query_scalar(
-            "SELECT deviation FROM transitions WHERE experiment_id = ? ORDER BY id LIMIT ?",
+            "SELECT deviation FROM transitions WHERE experiment_id = $1 ORDER BY id LIMIT $2",
         )
         .bind(experiment_id)
         .bind(n)
@@ -345,7 +353,7 @@ impl Store {
         limit: i64,
     ) -> Result<Vec<super::StoredTransition>, sqlx::Error> {
         let first_unseen: Option<i64> = sqlx::query_scalar(
-            "SELECT id FROM transitions WHERE experiment_id = ? ORDER BY id LIMIT 1 OFFSET ?",
+            "SELECT id FROM transitions WHERE experiment_id = $1 ORDER BY id LIMIT 1 OFFSET $2",
         )
         .bind(experiment_id)
         .bind(skip)

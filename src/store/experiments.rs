@@ -1,9 +1,9 @@
 //! Experiment rows.
 
-use super::{Store, now};
+use super::{Store, lock_experiment_list, now};
 use crate::settings::ExperimentSettings;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
+use sqlx::any::AnyRow;
 
 /// A stored experiment with its counters.
 #[derive(Debug, Clone)]
@@ -76,7 +76,7 @@ fn latest(times: &[&str]) -> String {
         .unwrap_or_else(|| times.first().copied().unwrap_or_default().to_string())
 }
 
-fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
+fn from_row(row: &AnyRow) -> Result<Experiment, sqlx::Error> {
     let settings: String = row.try_get("settings")?;
     let created_at: String = row.try_get("created_at")?;
     let mut times = vec![created_at.as_str()];
@@ -100,23 +100,35 @@ fn from_row(row: &SqliteRow) -> Result<Experiment, sqlx::Error> {
 }
 
 impl Store {
-    /// Stores a new experiment and returns it.
+    /// Stores a new experiment and returns it, unless `limit` experiments are stored already
+    /// (`None`). Counting and storing are one transaction under the experiment list's lock, so
+    /// the limit holds across replicas.
     #[tracing::instrument(skip_all)]
     pub async fn insert_experiment(
         &self,
         settings: &ExperimentSettings,
-    ) -> Result<Experiment, sqlx::Error> {
+        limit: i64,
+    ) -> Result<Option<Experiment>, sqlx::Error> {
         let json = serde_json::to_string(settings).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
         let created_at = now();
+        let mut tx = self.write.begin().await?;
+        lock_experiment_list(&mut tx, self.backend).await?;
+        let count: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM experiments")
+            .fetch_one(&mut *tx)
+            .await?;
+        if count >= limit {
+            return Ok(None);
+        }
         let id: i64 = sqlx::query_scalar(
-            "INSERT INTO experiments (name, settings, created_at) VALUES (?, ?, ?) RETURNING id",
+            "INSERT INTO experiments (name, settings, created_at) VALUES ($1, $2, $3) RETURNING id",
         )
         .bind(&settings.name)
         .bind(json)
         .bind(&created_at)
-        .fetch_one(&self.write)
+        .fetch_one(&mut *tx)
         .await?;
-        Ok(Experiment {
+        tx.commit().await?;
+        Ok(Some(Experiment {
             id,
             settings: settings.clone(),
             n_trajectories: 0,
@@ -125,13 +137,13 @@ impl Store {
             n_refused: 0,
             last_activity: created_at.clone(),
             created_at,
-        })
+        }))
     }
 
     /// One experiment, or `None`.
     #[tracing::instrument(skip(self))]
     pub async fn experiment(&self, id: i64) -> Result<Option<Experiment>, sqlx::Error> {
-        sqlx::query(&format!("{SELECT} WHERE e.id = ?"))
+        sqlx::query(&format!("{SELECT} WHERE e.id = $1"))
             .bind(id)
             .fetch_optional(&self.read)
             .await?
@@ -153,9 +165,9 @@ impl Store {
             ListOrder::Newest => "DESC",
         };
         sqlx::query(&format!(
-            "{SELECT} ORDER BY e.id {direction} LIMIT ? OFFSET ?"
+            "{SELECT} ORDER BY e.id {direction} LIMIT $1 OFFSET $2"
         ))
-        .bind(limit.unwrap_or(-1))
+        .bind(limit.unwrap_or(i64::MAX))
         .bind(offset)
         .fetch_all(&self.read)
         .await?

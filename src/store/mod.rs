@@ -1,13 +1,30 @@
-//! The SQLite store: every sqlx query and the mapping between rows and the service's values, in
-//! one place.
+//! The store: every SQL query and the mapping between rows and the service's values, in one
+//! place, over SQLite (the embedded default, one process) or PostgreSQL (several replicas over
+//! one database).
+//!
+//! Queries go through sqlx's `Any` driver and are written once, in SQL both engines accept:
+//! `$1` parameters, `CAST(… AS DOUBLE PRECISION)` where PostgreSQL would answer `NUMERIC`,
+//! `FALSE`/`TRUE` for flags (SQLite stores them as 0/1, read back by [`flag`]). Where the
+//! engines differ (the file's size, ordering old timestamps, claiming a fit), [`Backend`] says
+//! which text runs. Each engine has its own migrations (`migrations/sqlite`,
+//! `migrations/postgres`), both applied at start-up.
+//!
+//! **What replicas agree on lives here.** A write transaction that reads before it writes
+//! (an idempotency key, an open lease, the next model version, the experiment count) first
+//! takes the experiment's lock ([`lock_experiment`]): on PostgreSQL a transaction-scoped
+//! advisory lock, so such transactions of one experiment run one at a time across every
+//! replica; on SQLite a no-op, because every write already goes through the one writer
+//! connection. The right to fit is a row ([`fits`](mod@fits)).
 //!
 //! SQLite serialises writers, so the store keeps two pools over the same file: a pool of readers
 //! and a single-connection writer. Every write transaction goes through the writer, which makes
 //! read-then-write transactions (idempotency checks, counters) free of `SQLITE_BUSY` upgrades.
-//! The file is in WAL mode, so readers never wait for the writer.
+//! The file is in WAL mode, so readers never wait for the writer. A SQLite file is served by
+//! one process; several replicas need PostgreSQL.
 
 mod activity;
 mod experiments;
+pub mod fits;
 mod models;
 mod proposals;
 mod refusals;
@@ -15,6 +32,7 @@ mod trajectories;
 
 pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use experiments::{Experiment, ListOrder};
+pub use fits::{FitClaim, FitJob};
 pub use models::{FitRefusal, StoredModel};
 pub use proposals::{NewProposal, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal};
 pub use refusals::NewRefusal;
@@ -24,49 +42,145 @@ pub use trajectories::{
 };
 
 use anyhow::Context;
-use sqlx::SqlitePool;
-use sqlx::sqlite::{SqliteConnectOptions, SqliteJournalMode, SqlitePoolOptions, SqliteSynchronous};
+use sqlx::any::{AnyConnectOptions, AnyPoolOptions, AnyRow};
+use sqlx::sqlite::SqliteConnectOptions;
+use sqlx::{AnyConnection, AnyPool, ConnectOptions, Row};
 use std::str::FromStr;
 use std::time::Duration;
+
+/// The database engine behind a [`Store`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Backend {
+    /// An embedded SQLite file, served by one process.
+    Sqlite,
+    /// A PostgreSQL database, shared by any number of replicas.
+    Postgres,
+}
+
+impl Backend {
+    /// The engine a `--database-url` names: `postgres://` or `postgresql://` is PostgreSQL,
+    /// anything else a SQLite file (a path or a `sqlite:` URL).
+    pub fn of_url(url: &str) -> Self {
+        if url.starts_with("postgres://") || url.starts_with("postgresql://") {
+            Self::Postgres
+        } else {
+            Self::Sqlite
+        }
+    }
+
+    /// `sqlite` or `postgres`.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::Sqlite => "sqlite",
+            Self::Postgres => "postgres",
+        }
+    }
+}
+
+/// Connections a PostgreSQL replica keeps open at most.
+const POSTGRES_CONNECTIONS: u32 = 16;
 
 /// Handle to the database; cheap to clone.
 #[derive(Debug, Clone)]
 pub struct Store {
-    read: SqlitePool,
-    write: SqlitePool,
+    read: AnyPool,
+    write: AnyPool,
+    backend: Backend,
+}
+
+/// `url` as a SQLite URL with an absolute path (a relative `sqlite://Name.db` would otherwise
+/// be read as a host name, lower-cased).
+fn sqlite_options(url: &str) -> anyhow::Result<SqliteConnectOptions> {
+    let options = if url.starts_with("sqlite:") {
+        SqliteConnectOptions::from_str(url)
+    } else {
+        Ok(SqliteConnectOptions::new().filename(url))
+    }
+    .with_context(|| format!("invalid database URL {url:?}"))?;
+    let file = options.get_filename();
+    let absolute = std::path::absolute(file)
+        .with_context(|| format!("the database path {}", file.display()))?;
+    Ok(options.filename(absolute))
+}
+
+/// A pool of `max` connections to the SQLite file of `options`, each set up as the store
+/// needs (WAL, foreign keys, a busy timeout).
+async fn sqlite_pool(options: &SqliteConnectOptions, max: u32) -> Result<AnyPool, sqlx::Error> {
+    let url = options.to_url_lossy();
+    AnyPoolOptions::new()
+        .max_connections(max)
+        .after_connect(|conn, _| {
+            Box::pin(async move {
+                for pragma in [
+                    "PRAGMA journal_mode = WAL",
+                    "PRAGMA synchronous = NORMAL",
+                    "PRAGMA foreign_keys = ON",
+                    "PRAGMA busy_timeout = 10000",
+                ] {
+                    sqlx::query(pragma).execute(&mut *conn).await?;
+                }
+                Ok(())
+            })
+        })
+        .connect_with(AnyConnectOptions::from_url(&url)?)
+        .await
 }
 
 impl Store {
-    /// Opens (creating if missing) the database at `url` (`sqlite://path` or a plain path), in WAL
-    /// mode, and applies the embedded migrations.
+    /// Opens the database at `url` and applies the embedded migrations: a PostgreSQL
+    /// database for `postgres://…` (it must exist; replicas may open it at the same time), else
+    /// a SQLite file (`sqlite://path` or a plain path; created if missing, WAL mode).
     pub async fn open(url: &str) -> anyhow::Result<Self> {
-        let url = if url.starts_with("sqlite:") {
-            url.to_string()
-        } else {
-            format!("sqlite://{url}")
-        };
-        let options = SqliteConnectOptions::from_str(&url)
-            .with_context(|| format!("invalid database URL {url:?}"))?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Normal)
-            .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(10));
-        let write = SqlitePoolOptions::new()
-            .max_connections(1)
-            .connect_with(options.clone())
+        sqlx::any::install_default_drivers();
+        match Backend::of_url(url) {
+            Backend::Sqlite => Self::open_sqlite(url).await,
+            Backend::Postgres => Self::open_postgres(url).await,
+        }
+    }
+
+    async fn open_sqlite(url: &str) -> anyhow::Result<Self> {
+        let options = sqlite_options(url)?.create_if_missing(true);
+        let shown = options.get_filename().display().to_string();
+        let write = sqlite_pool(&options, 1)
             .await
-            .with_context(|| format!("opening {url}"))?;
-        sqlx::migrate!("./migrations")
+            .with_context(|| format!("opening {shown}"))?;
+        sqlx::migrate!("./migrations/sqlite")
             .run(&write)
             .await
             .context("applying migrations")?;
-        let read = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(options.read_only(true))
+        let read = sqlite_pool(&options.read_only(true), 8)
             .await
-            .with_context(|| format!("opening {url} for reading"))?;
-        Ok(Self { read, write })
+            .with_context(|| format!("opening {shown} for reading"))?;
+        Ok(Self {
+            read,
+            write,
+            backend: Backend::Sqlite,
+        })
+    }
+
+    async fn open_postgres(url: &str) -> anyhow::Result<Self> {
+        let shown = redact(url);
+        let pool = AnyPoolOptions::new()
+            .max_connections(POSTGRES_CONNECTIONS)
+            .acquire_timeout(Duration::from_secs(10))
+            .connect(url)
+            .await
+            .with_context(|| format!("connecting to {shown}"))?;
+        // sqlx holds an advisory lock while it migrates: replicas starting together take turns.
+        sqlx::migrate!("./migrations/postgres")
+            .run(&pool)
+            .await
+            .context("applying migrations")?;
+        Ok(Self {
+            read: pool.clone(),
+            write: pool,
+            backend: Backend::Postgres,
+        })
+    }
+
+    /// The engine.
+    pub fn backend(&self) -> Backend {
+        self.backend
     }
 
     /// Whether the database answers a trivial query.
@@ -77,19 +191,27 @@ impl Store {
             .map(|_| ())
     }
 
-    /// Size of the database file in bytes (pages × page size; the WAL not included) and the
-    /// numbers of experiments, trajectories and transitions stored.
+    /// Size of the database in bytes (SQLite: the file's pages, the WAL not included;
+    /// PostgreSQL: the whole database) and the numbers of experiments, trajectories and
+    /// transitions stored.
     #[tracing::instrument(skip(self))]
     pub async fn size(&self) -> Result<StoreSize, sqlx::Error> {
-        let (bytes, experiments, trajectories, transitions): (i64, i64, i64, i64) = sqlx::query_as(
-            "SELECT (SELECT page_count FROM pragma_page_count())
-                          * (SELECT page_size FROM pragma_page_size()),
+        let bytes = match self.backend {
+            Backend::Sqlite => {
+                "(SELECT page_count FROM pragma_page_count())
+                 * (SELECT page_size FROM pragma_page_size())"
+            }
+            Backend::Postgres => "pg_database_size(current_database())",
+        };
+        let (bytes, experiments, trajectories, transitions): (i64, i64, i64, i64) =
+            sqlx::query_as(&format!(
+                "SELECT CAST({bytes} AS BIGINT),
                         (SELECT COUNT(*) FROM experiments),
                         (SELECT COUNT(*) FROM trajectories),
-                        (SELECT COUNT(*) FROM transitions)",
-        )
-        .fetch_one(&self.read)
-        .await?;
+                        (SELECT COUNT(*) FROM transitions)"
+            ))
+            .fetch_one(&self.read)
+            .await?;
         Ok(StoreSize {
             bytes,
             experiments,
@@ -98,22 +220,92 @@ impl Store {
         })
     }
 
-    /// Writes a consistent copy of the database to the new file `path` while it is being
+    /// Writes a consistent copy of a SQLite database to the new file `path` while it is being
     /// served (`VACUUM INTO` on a reader: one read transaction, so writers are not blocked in WAL
-    /// mode).
+    /// mode). A PostgreSQL database is copied with its own tools (`pg_dump`).
     #[tracing::instrument(skip(self))]
     pub async fn backup_to(&self, path: &str) -> Result<(), sqlx::Error> {
-        sqlx::query("VACUUM INTO ?")
+        if self.backend != Backend::Sqlite {
+            return Err(sqlx::Error::Configuration(
+                "a PostgreSQL database is copied with pg_dump, not by precond".into(),
+            ));
+        }
+        sqlx::query("VACUUM INTO $1")
             .bind(path)
             .execute(&self.read)
             .await
             .map(|_| ())
     }
 
-    /// Closes both pools, waiting for in-flight queries; the WAL is checkpointed on close.
+    /// Closes both pools, waiting for in-flight queries; SQLite's WAL is checkpointed on close.
     pub async fn close(&self) {
         self.read.close().await;
         self.write.close().await;
+    }
+}
+
+/// Inside a write transaction that reads before it writes: waits until no other such
+/// transaction of `experiment_id` runs, on any replica, and holds that until this one ends.
+/// PostgreSQL: a transaction-scoped advisory lock; SQLite: nothing to do (one writer).
+pub(crate) async fn lock_experiment(
+    conn: &mut AnyConnection,
+    backend: Backend,
+    experiment_id: i64,
+) -> Result<(), sqlx::Error> {
+    lock(conn, backend, EXPERIMENT_LOCKS, experiment_id).await
+}
+
+/// The same for the experiment list: creating an experiment under the server's limit.
+pub(crate) async fn lock_experiment_list(
+    conn: &mut AnyConnection,
+    backend: Backend,
+) -> Result<(), sqlx::Error> {
+    lock(conn, backend, LIST_LOCK, 0).await
+}
+
+/// The advisory locks' first keys ("prec" and "prel" in ASCII): keep precond's locks apart
+/// from other users of the database.
+const EXPERIMENT_LOCKS: i32 = 0x7072_6563;
+const LIST_LOCK: i32 = 0x7072_656c;
+
+/// A transaction-scoped advisory lock on `(space, key)` (PostgreSQL), nothing on SQLite.
+async fn lock(
+    conn: &mut AnyConnection,
+    backend: Backend,
+    space: i32,
+    key: i64,
+) -> Result<(), sqlx::Error> {
+    if backend == Backend::Postgres {
+        // Cast to text: the lock function returns `void`, which `Any` cannot decode.
+        sqlx::query("SELECT CAST(pg_advisory_xact_lock($1, CAST($2 AS INTEGER)) AS TEXT)")
+            .bind(space)
+            .bind(key.rem_euclid(i64::from(i32::MAX)))
+            .execute(conn)
+            .await?;
+    }
+    Ok(())
+}
+
+/// A boolean column: PostgreSQL's `BOOLEAN` or SQLite's 0/1 integer.
+pub(crate) fn flag(row: &AnyRow, column: &str) -> Result<bool, sqlx::Error> {
+    match row.try_get::<bool, _>(column) {
+        Ok(b) => Ok(b),
+        Err(_) => Ok(row.try_get::<i64, _>(column)? != 0),
+    }
+}
+
+/// `url` with its password replaced by `***`, for messages and logs.
+pub fn redact(url: &str) -> String {
+    let Some((scheme, rest)) = url.split_once("://") else {
+        return url.to_string();
+    };
+    let authority_end = rest.find('/').unwrap_or(rest.len());
+    let Some(at) = rest[..authority_end].rfind('@') else {
+        return url.to_string();
+    };
+    match rest[..at].split_once(':') {
+        Some((user, _password)) => format!("{scheme}://{user}:***{}", &rest[at..]),
+        None => url.to_string(),
     }
 }
 
@@ -177,7 +369,11 @@ fn process_runs(pid: u32) -> bool {
 /// temporary file, named `.<file>.backup-<pid>.tmp`, removed on failure when possible, and by
 /// the next backup to the same name when its process was killed).
 pub async fn backup(source: &str, to: &std::path::Path) -> anyhow::Result<StoreSize> {
-    use sqlx::{ConnectOptions, Connection};
+    use sqlx::Connection;
+    anyhow::ensure!(
+        Backend::of_url(source) == Backend::Sqlite,
+        "precond backup copies a SQLite file; copy a PostgreSQL database with pg_dump"
+    );
     let url = if source.starts_with("sqlite:") {
         source.to_string()
     } else {

@@ -3,6 +3,7 @@
 use super::{Store, now};
 use crate::gp::Hyperparameters;
 use crate::mde::{EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial};
+use sqlx::AnyConnection;
 
 /// A stored model version.
 #[derive(Debug, Clone)]
@@ -33,44 +34,44 @@ fn json_err(e: serde_json::Error) -> sqlx::Error {
     sqlx::Error::Decode(Box::new(e))
 }
 
-impl Store {
-    /// Records a fitted version.
-    #[tracing::instrument(skip(self, model), fields(version = model.version))]
-    pub async fn insert_model(
-        &self,
-        experiment_id: i64,
-        model: &StoredModel,
-        hyperparameters: &Hyperparameters,
-    ) -> Result<(), sqlx::Error> {
-        let state = serde_json::to_string(&model.state).map_err(json_err)?;
-        let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
-        let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
-        let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
-        let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
-        sqlx::query(
-            "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
-                                 hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
-                                 label_cap, label_cap_trials, kernel_trials)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
-        )
-        .bind(experiment_id)
-        .bind(model.version)
-        .bind(model.n_train)
-        .bind(model.n_trajectories)
-        .bind(noise.as_str().unwrap_or_default())
-        .bind(state)
-        .bind(hyper)
-        .bind(model.log_marginal_likelihood)
-        .bind(model.fit_seconds)
-        .bind(&model.fitted_at)
-        .bind(model.label_cap)
-        .bind(trials)
-        .bind(kernel_trials)
-        .execute(&self.write)
-        .await?;
-        Ok(())
-    }
+/// Records a fitted version, inside the transaction that ends its fit
+/// ([`Store::finish_fit`]).
+pub(super) async fn insert_model_on(
+    conn: &mut AnyConnection,
+    experiment_id: i64,
+    model: &StoredModel,
+    hyperparameters: &Hyperparameters,
+) -> Result<(), sqlx::Error> {
+    let state = serde_json::to_string(&model.state).map_err(json_err)?;
+    let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
+    let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
+    let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
+    let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
+    sqlx::query(
+        "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
+                             hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
+                             label_cap, label_cap_trials, kernel_trials)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)",
+    )
+    .bind(experiment_id)
+    .bind(model.version)
+    .bind(model.n_train)
+    .bind(model.n_trajectories)
+    .bind(noise.as_str().unwrap_or_default().to_string())
+    .bind(state)
+    .bind(hyper)
+    .bind(model.log_marginal_likelihood)
+    .bind(model.fit_seconds)
+    .bind(&model.fitted_at)
+    .bind(model.label_cap)
+    .bind(trials)
+    .bind(kernel_trials)
+    .execute(conn)
+    .await?;
+    Ok(())
+}
 
+impl Store {
     /// The latest version of an experiment's model, if any was fitted.
     #[tracing::instrument(skip(self))]
     pub async fn latest_model(
@@ -88,7 +89,7 @@ impl Store {
         experiment_id: i64,
         version: i64,
     ) -> Result<Option<StoredModel>, sqlx::Error> {
-        self.model_where(experiment_id, "AND version = ?", Some(version))
+        self.model_where(experiment_id, "AND version = $2", Some(version))
             .await
     }
 
@@ -101,7 +102,7 @@ impl Store {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
                     label_cap_trials, log_marginal_likelihood, kernel_trials
-             FROM models WHERE experiment_id = ? {clause}"
+             FROM models WHERE experiment_id = $1 {clause}"
         );
         type Row = (i64, i64, i64, String, f64, String, f64, String, f64, String);
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
@@ -147,7 +148,7 @@ impl Store {
         sqlx::query(
             "INSERT INTO fit_refusals (experiment_id, n_train, n_trajectories, estimator,
                                        needed_bytes, budget_bytes, reason, refused_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
         )
         .bind(experiment_id)
         .bind(r.n_train)
@@ -169,7 +170,7 @@ impl Store {
         experiment_id: i64,
     ) -> Result<Option<FitRefusal>, sqlx::Error> {
         let count: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM fit_refusals WHERE experiment_id = ?")
+            sqlx::query_scalar("SELECT COUNT(*) FROM fit_refusals WHERE experiment_id = $1")
                 .bind(experiment_id)
                 .fetch_one(&self.read)
                 .await?;
@@ -199,7 +200,7 @@ impl Store {
         let rows = sqlx::query_as::<_, Row>(
             "SELECT n_train, n_trajectories, estimator, needed_bytes, budget_bytes, reason,
                     refused_at
-             FROM fit_refusals WHERE experiment_id = ? ORDER BY id LIMIT ? OFFSET ?",
+             FROM fit_refusals WHERE experiment_id = $1 ORDER BY id LIMIT $2 OFFSET $3",
         )
         .bind(experiment_id)
         .bind(limit)

@@ -1,9 +1,9 @@
 //! Proposals and their leases.
 
-use super::{Store, decode_vec, encode_vec};
+use super::{Store, decode_vec, encode_vec, flag, lock_experiment};
 use crate::planning::Strategy;
-use sqlx::sqlite::SqliteRow;
-use sqlx::{Row, SqliteConnection};
+use sqlx::any::AnyRow;
+use sqlx::{AnyConnection, Row};
 
 /// Where a proposal's lease stands.
 #[derive(
@@ -79,6 +79,10 @@ pub struct NewProposal {
     pub terms: ProposalTerms,
     /// The chosen trajectory and the candidates, as JSON exactly as the API shows them.
     pub body: String,
+    /// Actions of the chosen trajectory.
+    pub n_actions: i64,
+    /// RRT extensions its search spent.
+    pub extensions: i64,
     /// Lease length in seconds.
     pub ttl_seconds: u32,
 }
@@ -127,13 +131,13 @@ const COLUMNS: &str =
     "id, client_id, status, iteration, beta, strategy, model_version, start, goal,
                        body, created_at, expires_at,
                        COALESCE((SELECT t.deviating FROM trajectories t
-                                 WHERE t.proposal_id = proposals.id), 0) AS deviating";
+                                 WHERE t.proposal_id = proposals.id), FALSE) AS deviating";
 
 fn unix_now() -> f64 {
     time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
 }
 
-fn from_row(row: &SqliteRow) -> Result<StoredProposal, sqlx::Error> {
+fn from_row(row: &AnyRow) -> Result<StoredProposal, sqlx::Error> {
     Ok(StoredProposal {
         id: row.try_get("id")?,
         status: ProposalStatus::parse(row.try_get("status")?)?,
@@ -149,15 +153,15 @@ fn from_row(row: &SqliteRow) -> Result<StoredProposal, sqlx::Error> {
         body: row.try_get("body")?,
         created_at: row.try_get("created_at")?,
         expires_at: row.try_get("expires_at")?,
-        deviating: row.try_get("deviating")?,
+        deviating: flag(row, "deviating")?,
     })
 }
 
 /// Marks the experiment's open proposals whose lease has passed as `expired`.
-async fn expire_leases(conn: &mut SqliteConnection, experiment_id: i64) -> Result<(), sqlx::Error> {
+async fn expire_leases(conn: &mut AnyConnection, experiment_id: i64) -> Result<(), sqlx::Error> {
     sqlx::query(
         "UPDATE proposals SET status = 'expired'
-         WHERE experiment_id = ? AND status = 'open' AND expires_unix <= ?",
+         WHERE experiment_id = $1 AND status = 'open' AND expires_unix <= $2",
     )
     .bind(experiment_id)
     .bind(unix_now())
@@ -167,12 +171,12 @@ async fn expire_leases(conn: &mut SqliteConnection, experiment_id: i64) -> Resul
 }
 
 async fn select_by_id(
-    conn: &mut SqliteConnection,
+    conn: &mut AnyConnection,
     experiment_id: i64,
     proposal_id: i64,
 ) -> Result<Option<StoredProposal>, sqlx::Error> {
     sqlx::query(&format!(
-        "SELECT {COLUMNS} FROM proposals WHERE experiment_id = ? AND id = ?"
+        "SELECT {COLUMNS} FROM proposals WHERE experiment_id = $1 AND id = $2"
     ))
     .bind(experiment_id)
     .bind(proposal_id)
@@ -184,13 +188,13 @@ async fn select_by_id(
 }
 
 async fn open_for_client(
-    conn: &mut SqliteConnection,
+    conn: &mut AnyConnection,
     experiment_id: i64,
     client_id: &str,
 ) -> Result<Option<StoredProposal>, sqlx::Error> {
     sqlx::query(&format!(
         "SELECT {COLUMNS} FROM proposals
-         WHERE experiment_id = ? AND client_id = ? AND status = 'open' AND expires_unix > ?
+         WHERE experiment_id = $1 AND client_id = $2 AND status = 'open' AND expires_unix > $3
          ORDER BY id DESC LIMIT 1"
     ))
     .bind(experiment_id)
@@ -211,22 +215,30 @@ impl Store {
         experiment_id: i64,
         proposal_id: i64,
     ) -> Result<Option<ProposalPlan>, sqlx::Error> {
-        let Some(row) = sqlx::query(
-            "SELECT start, json_extract(body, '$.trajectory.actions') AS actions FROM proposals
-             WHERE experiment_id = ? AND id = ?",
-        )
-        .bind(experiment_id)
-        .bind(proposal_id)
-        .fetch_optional(&self.read)
-        .await?
+        let Some(row) =
+            sqlx::query("SELECT start, body FROM proposals WHERE experiment_id = $1 AND id = $2")
+                .bind(experiment_id)
+                .bind(proposal_id)
+                .fetch_optional(&self.read)
+                .await?
         else {
             return Ok(None);
         };
-        let actions: String = row.try_get("actions")?;
+        /// The part of a stored body that holds the planned actions.
+        #[derive(serde::Deserialize)]
+        struct Body {
+            trajectory: Planned,
+        }
+        #[derive(serde::Deserialize)]
+        struct Planned {
+            actions: Vec<Vec<f64>>,
+        }
+        let body: String = row.try_get("body")?;
+        let body: Body =
+            serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
         Ok(Some(ProposalPlan {
             start: decode_vec(row.try_get("start")?)?,
-            actions: serde_json::from_str(&actions)
-                .map_err(|e| sqlx::Error::Decode(Box::new(e)))?,
+            actions: body.trajectory.actions,
         }))
     }
 
@@ -250,6 +262,7 @@ impl Store {
         p: &NewProposal,
     ) -> Result<(StoredProposal, bool), sqlx::Error> {
         let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
         expire_leases(&mut tx, experiment_id).await?;
         if let Some(client) = &p.terms.client_id
             && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
@@ -263,8 +276,9 @@ impl Store {
         let id: i64 = sqlx::query_scalar(
             "INSERT INTO proposals (experiment_id, client_id, status, iteration, beta, strategy,
                                     model_version, start, goal, body, created_at, expires_at,
-                                    expires_unix)
-             VALUES (?, ?, 'open', ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+                                    expires_unix, n_actions, extensions)
+             VALUES ($1, $2, 'open', $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)
+             RETURNING id",
         )
         .bind(experiment_id)
         .bind(&p.terms.client_id)
@@ -278,9 +292,11 @@ impl Store {
         .bind(fmt(created))
         .bind(fmt(expires))
         .bind(expires.unix_timestamp_nanos() as f64 / 1e9)
+        .bind(p.n_actions)
+        .bind(p.extensions)
         .fetch_one(&mut *tx)
         .await?;
-        let stored = sqlx::query(&format!("SELECT {COLUMNS} FROM proposals WHERE id = ?"))
+        let stored = sqlx::query(&format!("SELECT {COLUMNS} FROM proposals WHERE id = $1"))
             .bind(id)
             .fetch_one(&mut *tx)
             .await?;
@@ -297,6 +313,7 @@ impl Store {
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
         let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
         expire_leases(&mut tx, experiment_id).await?;
         let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
         tx.commit().await?;
@@ -312,10 +329,11 @@ impl Store {
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
         let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
         expire_leases(&mut tx, experiment_id).await?;
         sqlx::query(
             "UPDATE proposals SET status = 'abandoned'
-             WHERE experiment_id = ? AND id = ? AND status = 'open'",
+             WHERE experiment_id = $1 AND id = $2 AND status = 'open'",
         )
         .bind(experiment_id)
         .bind(proposal_id)
@@ -331,12 +349,12 @@ impl Store {
 /// expired or abandoned proposal still accepts its trajectory (the robot did execute it; the
 /// data is real); one already executed does not.
 pub(super) async fn link_trajectory(
-    conn: &mut SqliteConnection,
+    conn: &mut AnyConnection,
     experiment_id: i64,
     proposal_id: i64,
 ) -> Result<LinkOutcome, sqlx::Error> {
     let status: Option<String> =
-        sqlx::query_scalar("SELECT status FROM proposals WHERE experiment_id = ? AND id = ?")
+        sqlx::query_scalar("SELECT status FROM proposals WHERE experiment_id = $1 AND id = $2")
             .bind(experiment_id)
             .bind(proposal_id)
             .fetch_optional(&mut *conn)
@@ -345,7 +363,7 @@ pub(super) async fn link_trajectory(
         None => Ok(LinkOutcome::NotFound),
         Some("executed") => Ok(LinkOutcome::AlreadyExecuted),
         Some(_) => {
-            sqlx::query("UPDATE proposals SET status = 'executed' WHERE id = ?")
+            sqlx::query("UPDATE proposals SET status = 'executed' WHERE id = $1")
                 .bind(proposal_id)
                 .execute(conn)
                 .await?;

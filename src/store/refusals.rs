@@ -38,8 +38,9 @@ impl Store {
     ) -> Result<i64, sqlx::Error> {
         sqlx::query_scalar(
             "INSERT INTO refusals (experiment_id, client_id, iteration, strategy, model_version,
-                                   start, goal, betas, extensions, candidates, created_at)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+                                   start, goal, betas, extensions, candidates, created_at,
+                                   first_beta)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12) RETURNING id",
         )
         .bind(experiment_id)
         .bind(&r.client_id)
@@ -52,6 +53,7 @@ impl Store {
         .bind(r.extensions)
         .bind(r.candidates)
         .bind(now())
+        .bind(r.betas.first().copied())
         .fetch_one(&self.write)
         .await
     }

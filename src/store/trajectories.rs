@@ -1,10 +1,10 @@
 //! Trajectories and their transitions; atomic, idempotent ingest.
 
 use super::proposals::{LinkOutcome, link_trajectory};
-use super::{Store, decode_vec, encode_vec, now};
+use super::{Store, decode_vec, encode_vec, flag, lock_experiment, now};
 use crate::domain::LabelledTransition;
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
+use sqlx::any::AnyRow;
 
 /// A stored transition.
 #[derive(Debug, Clone, PartialEq)]
@@ -125,7 +125,7 @@ pub struct IdempotencyKey<'a> {
     pub request: &'a str,
 }
 
-fn transition_from_row(row: &SqliteRow) -> Result<StoredTransition, sqlx::Error> {
+fn transition_from_row(row: &AnyRow) -> Result<StoredTransition, sqlx::Error> {
     Ok(StoredTransition {
         id: row.try_get("id")?,
         trajectory_id: row.try_get("trajectory_id")?,
@@ -139,7 +139,7 @@ fn transition_from_row(row: &SqliteRow) -> Result<StoredTransition, sqlx::Error>
 }
 
 /// The provenance of a row with the `source_*` columns (`None` without a dataset).
-pub(super) fn provenance_from_row(row: &SqliteRow) -> Result<Option<Provenance>, sqlx::Error> {
+pub(super) fn provenance_from_row(row: &AnyRow) -> Result<Option<Provenance>, sqlx::Error> {
     let dataset: Option<String> = row.try_get("source_dataset")?;
     dataset
         .map(|dataset| {
@@ -172,13 +172,14 @@ impl Store {
         model_version: i64,
     ) -> Result<IngestOutcome, sqlx::Error> {
         let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
         if let Some(k) = idempotency {
             let seen = sqlx::query(
                 "SELECT k.request, k.trajectory_id, k.model_version, k.n_trajectories,
                         k.created_at, t.proposal_id, t.partial, t.deviating, t.source_dataset,
                         t.source_episode, t.source_first_step, t.source_label
                  FROM idempotency_keys k JOIN trajectories t ON t.id = k.trajectory_id
-                 WHERE k.experiment_id = ? AND k.key = ?",
+                 WHERE k.experiment_id = $1 AND k.key = $2",
             )
             .bind(experiment_id)
             .bind(k.key)
@@ -191,7 +192,7 @@ impl Store {
                 }
                 let trajectory_id: i64 = row.try_get("trajectory_id")?;
                 let deviations: Vec<f64> = sqlx::query_scalar(
-                    "SELECT deviation FROM transitions WHERE trajectory_id = ? ORDER BY step",
+                    "SELECT deviation FROM transitions WHERE trajectory_id = $1 ORDER BY step",
                 )
                 .bind(trajectory_id)
                 .fetch_all(&mut *tx)
@@ -199,8 +200,8 @@ impl Store {
                 return Ok(IngestOutcome::Replayed(IngestRecord {
                     trajectory_id,
                     proposal_id: row.try_get("proposal_id")?,
-                    partial: row.try_get("partial")?,
-                    deviating: row.try_get("deviating")?,
+                    partial: flag(&row, "partial")?,
+                    deviating: flag(&row, "deviating")?,
                     source: provenance_from_row(&row)?,
                     deviations,
                     model_version: row.try_get("model_version")?,
@@ -221,7 +222,7 @@ impl Store {
             "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at,
                                        deviating, source_dataset, source_episode,
                                        source_first_step, source_label)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?) RETURNING id",
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) RETURNING id",
         )
         .bind(experiment_id)
         .bind(meta.proposal_id)
@@ -240,7 +241,7 @@ impl Store {
             sqlx::query(
                 "INSERT INTO transitions
                    (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
-                 VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
             )
             .bind(experiment_id)
             .bind(trajectory_id)
@@ -254,7 +255,7 @@ impl Store {
             .await?;
         }
         let n_trajectories: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = ?")
+            sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = $1")
                 .bind(experiment_id)
                 .fetch_one(&mut *tx)
                 .await?;
@@ -263,7 +264,7 @@ impl Store {
                 "INSERT INTO idempotency_keys
                    (experiment_id, key, request, trajectory_id, model_version, n_trajectories,
                     created_at)
-                 VALUES (?, ?, ?, ?, ?, ?, ?)",
+                 VALUES ($1, $2, $3, $4, $5, $6, $7)",
             )
             .bind(experiment_id)
             .bind(k.key)
@@ -299,7 +300,7 @@ impl Store {
         let Some(row) = sqlx::query(
             "SELECT id, experiment_id, proposal_id, partial, deviating, source_dataset,
                     source_episode, source_first_step, source_label, created_at
-             FROM trajectories WHERE experiment_id = ? AND id = ?",
+             FROM trajectories WHERE experiment_id = $1 AND id = $2",
         )
         .bind(experiment_id)
         .bind(trajectory_id)
@@ -309,7 +310,7 @@ impl Store {
             return Ok(None);
         };
         let transitions = sqlx::query(&format!(
-            "SELECT {TRANSITION_COLUMNS} FROM transitions WHERE trajectory_id = ? ORDER BY step"
+            "SELECT {TRANSITION_COLUMNS} FROM transitions WHERE trajectory_id = $1 ORDER BY step"
         ))
         .bind(trajectory_id)
         .fetch_all(&self.read)
@@ -321,8 +322,8 @@ impl Store {
             id: row.try_get("id")?,
             experiment_id: row.try_get("experiment_id")?,
             proposal_id: row.try_get("proposal_id")?,
-            partial: row.try_get("partial")?,
-            deviating: row.try_get("deviating")?,
+            partial: flag(&row, "partial")?,
+            deviating: flag(&row, "deviating")?,
             source: provenance_from_row(&row)?,
             created_at: row.try_get("created_at")?,
             transitions,
@@ -340,11 +341,11 @@ impl Store {
     ) -> Result<Vec<StoredTransition>, sqlx::Error> {
         sqlx::query(&format!(
             "SELECT {TRANSITION_COLUMNS} FROM transitions
-             WHERE experiment_id = ? AND id > ? ORDER BY id LIMIT ?"
+             WHERE experiment_id = $1 AND id > $2 ORDER BY id LIMIT $3"
         ))
         .bind(experiment_id)
         .bind(after)
-        .bind(limit.unwrap_or(-1))
+        .bind(limit.unwrap_or(i64::MAX))
         .fetch_all(&self.read)
         .await?
         .iter()

@@ -1,0 +1,269 @@
+//! The right to fit: one row per experiment whose model needs a fit (`fit_jobs`), held by one
+//! replica at a time.
+//!
+//! - A batch that completes, or a client asking for a refit, **requests** a fit
+//!   ([`Store::request_fit`]): the row is created, or its generation raised.
+//! - A replica's fit worker **claims** a row nobody holds, or one whose holder stopped
+//!   heartbeating (it died) ([`Store::claim_fit`]; PostgreSQL: `FOR UPDATE SKIP LOCKED`, so
+//!   replicas claiming at once take different rows), and heartbeats while it fits
+//!   ([`Store::heartbeat_fit`]).
+//! - It **finishes** ([`Store::finish_fit`]) in one transaction: stores the new model version
+//!   (if it fitted one) and deletes the row — or, when another request came in during the fit
+//!   (the generation moved on), hands the row back for another fit. A replica that lost its
+//!   claim while fitting (it stalled past its lease and another took over) stores nothing.
+
+use super::models::insert_model_on;
+use super::{Backend, Store, StoredModel, flag, lock_experiment, now};
+use crate::gp::Hyperparameters;
+use sqlx::Row;
+
+/// A requested fit, as claimed.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitClaim {
+    /// The experiment to fit.
+    pub experiment_id: i64,
+    /// The request generation this claim answers.
+    pub generation: i64,
+    /// Whether a client asked for the fit (fit even when a model covers the latest batch).
+    pub forced: bool,
+    /// The replica holding the claim.
+    pub replica: String,
+    /// The version the fit will store: the experiment's latest plus one.
+    pub version: i64,
+    /// Trajectories the latest stored version was fitted with (0 without one).
+    pub covered_trajectories: i64,
+}
+
+/// A fit waiting or running, as listed for operators and tests.
+#[derive(Debug, Clone, PartialEq)]
+pub struct FitJob {
+    /// The experiment.
+    pub experiment_id: i64,
+    /// Requests so far.
+    pub generation: i64,
+    /// The replica fitting it, if one holds it.
+    pub claimed_by: Option<String>,
+}
+
+/// How a finished fit ended for its row.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FitFinish {
+    /// Done: the row is gone (or handed back, when a request came in meanwhile).
+    Done,
+    /// The claim was no longer this replica's: nothing was stored.
+    Lost,
+}
+
+fn unix_now() -> f64 {
+    time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
+}
+
+impl Store {
+    /// Requests a fit of `experiment_id` (`forced`: even if a model covers its latest batch).
+    #[tracing::instrument(skip(self))]
+    pub async fn request_fit(&self, experiment_id: i64, forced: bool) -> Result<(), sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
+        let raised = sqlx::query(
+            "UPDATE fit_jobs SET generation = generation + 1, forced = (forced OR $2)
+             WHERE experiment_id = $1",
+        )
+        .bind(experiment_id)
+        .bind(forced)
+        .execute(&mut *tx)
+        .await?
+        .rows_affected();
+        if raised == 0 {
+            sqlx::query(
+                "INSERT INTO fit_jobs (experiment_id, generation, forced, requested_at)
+                 VALUES ($1, 1, $2, $3)",
+            )
+            .bind(experiment_id)
+            .bind(forced)
+            .bind(now())
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await
+    }
+
+    /// Claims a requested fit for `replica`: one nobody holds, or whose holder's last
+    /// heartbeat is older than `lease_seconds`; the oldest request first; only
+    /// `experiment_id`'s when given. `None` when there is none to claim.
+    #[tracing::instrument(skip(self))]
+    pub async fn claim_fit(
+        &self,
+        replica: &str,
+        lease_seconds: f64,
+        experiment_id: Option<i64>,
+    ) -> Result<Option<FitClaim>, sqlx::Error> {
+        let now = unix_now();
+        // SQLite's one writer makes the claim atomic; PostgreSQL's claimers skip each other's
+        // locked rows.
+        let skip_locked = match self.backend {
+            Backend::Sqlite => "",
+            Backend::Postgres => "FOR UPDATE SKIP LOCKED",
+        };
+        let mut tx = self.write.begin().await?;
+        let row = sqlx::query(&format!(
+            "UPDATE fit_jobs
+             SET claimed_by = $1, claimed_generation = generation, heartbeat_unix = $2
+             WHERE experiment_id = (
+                 SELECT experiment_id FROM fit_jobs
+                 WHERE (claimed_by IS NULL OR heartbeat_unix < $3)
+                   AND ($4 IS NULL OR experiment_id = $4)
+                 ORDER BY requested_at, experiment_id LIMIT 1 {skip_locked})
+             RETURNING experiment_id, generation, forced"
+        ))
+        .bind(replica)
+        .bind(now)
+        .bind(now - lease_seconds)
+        .bind(experiment_id)
+        .fetch_optional(&mut *tx)
+        .await?;
+        let Some(row) = row else {
+            tx.commit().await?;
+            return Ok(None);
+        };
+        let experiment_id: i64 = row.try_get("experiment_id")?;
+        let generation: i64 = row.try_get("generation")?;
+        let forced = flag(&row, "forced")?;
+        if forced {
+            // Taken: a client asking again during the fit raises it anew.
+            sqlx::query("UPDATE fit_jobs SET forced = FALSE WHERE experiment_id = $1")
+                .bind(experiment_id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        let (version, covered): (i64, i64) = sqlx::query_as(
+            "SELECT CAST(COALESCE(MAX(version), 0) + 1 AS BIGINT),
+                    CAST(COALESCE(MAX(n_trajectories), 0) AS BIGINT)
+             FROM models WHERE experiment_id = $1",
+        )
+        .bind(experiment_id)
+        .fetch_one(&self.write)
+        .await?;
+        Ok(Some(FitClaim {
+            experiment_id,
+            generation,
+            forced,
+            replica: replica.to_string(),
+            version,
+            covered_trajectories: covered,
+        }))
+    }
+
+    /// How many requested fits a replica may claim now (nobody holds them, or their holder's
+    /// last heartbeat is older than `lease_seconds`).
+    pub async fn claimable_fits(&self, lease_seconds: f64) -> Result<i64, sqlx::Error> {
+        sqlx::query_scalar(
+            "SELECT COUNT(*) FROM fit_jobs WHERE claimed_by IS NULL OR heartbeat_unix < $1",
+        )
+        .bind(unix_now() - lease_seconds)
+        .fetch_one(&self.read)
+        .await
+    }
+
+    /// Renews `claim`'s lease; `false` when it is no longer this replica's.
+    pub async fn heartbeat_fit(&self, claim: &FitClaim) -> Result<bool, sqlx::Error> {
+        let renewed = sqlx::query(
+            "UPDATE fit_jobs SET heartbeat_unix = $3 WHERE experiment_id = $1 AND claimed_by = $2",
+        )
+        .bind(claim.experiment_id)
+        .bind(&claim.replica)
+        .bind(unix_now())
+        .execute(&self.write)
+        .await?
+        .rows_affected();
+        Ok(renewed == 1)
+    }
+
+    /// Ends `claim`: stores `model` (when the fit made one) and deletes the request, or hands
+    /// it back when another request came in during the fit — all in one transaction, and only
+    /// while the claim is still this replica's ([`FitFinish::Lost`] otherwise: nothing
+    /// stored).
+    #[tracing::instrument(skip(self, model))]
+    pub async fn finish_fit(
+        &self,
+        claim: &FitClaim,
+        model: Option<(&StoredModel, &Hyperparameters)>,
+    ) -> Result<FitFinish, sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, claim.experiment_id).await?;
+        let held: Option<(i64, Option<String>)> =
+            sqlx::query_as("SELECT generation, claimed_by FROM fit_jobs WHERE experiment_id = $1")
+                .bind(claim.experiment_id)
+                .fetch_optional(&mut *tx)
+                .await?;
+        let Some((generation, Some(holder))) = held else {
+            return Ok(FitFinish::Lost);
+        };
+        if holder != claim.replica {
+            return Ok(FitFinish::Lost);
+        }
+        if let Some((model, hyperparameters)) = model {
+            insert_model_on(&mut tx, claim.experiment_id, model, hyperparameters).await?;
+        }
+        if generation == claim.generation {
+            sqlx::query("DELETE FROM fit_jobs WHERE experiment_id = $1")
+                .bind(claim.experiment_id)
+                .execute(&mut *tx)
+                .await?;
+        } else {
+            sqlx::query(
+                "UPDATE fit_jobs
+                 SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
+                 WHERE experiment_id = $1",
+            )
+            .bind(claim.experiment_id)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(FitFinish::Done)
+    }
+
+    /// Hands back every claim `replica` holds (it is shutting down), or every claim at all
+    /// (`None`: a SQLite file opened by a new process, where no other process can be
+    /// fitting). Returns how many.
+    pub async fn release_fit_claims(&self, replica: Option<&str>) -> Result<u64, sqlx::Error> {
+        Ok(sqlx::query(
+            "UPDATE fit_jobs
+             SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
+             WHERE claimed_by IS NOT NULL AND ($1 IS NULL OR claimed_by = $1)",
+        )
+        .bind(replica)
+        .execute(&self.write)
+        .await?
+        .rows_affected())
+    }
+
+    /// The requested fits, oldest request first.
+    pub async fn fit_jobs(&self) -> Result<Vec<FitJob>, sqlx::Error> {
+        let rows: Vec<(i64, i64, Option<String>)> = sqlx::query_as(
+            "SELECT experiment_id, generation, claimed_by FROM fit_jobs
+             ORDER BY requested_at, experiment_id",
+        )
+        .fetch_all(&self.read)
+        .await?;
+        Ok(rows
+            .into_iter()
+            .map(|(experiment_id, generation, claimed_by)| FitJob {
+                experiment_id,
+                generation,
+                claimed_by,
+            })
+            .collect())
+    }
+
+    /// Every experiment's latest model version (experiments with one).
+    pub async fn latest_versions(&self) -> Result<Vec<(i64, i64)>, sqlx::Error> {
+        sqlx::query_as(
+            "SELECT experiment_id, CAST(MAX(version) AS BIGINT) FROM models
+             GROUP BY experiment_id",
+        )
+        .fetch_all(&self.read)
+        .await
+    }
+}
