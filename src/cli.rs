@@ -228,9 +228,19 @@ pub struct ServeArgs {
     /// Address to listen on.
     #[arg(long, env = "PRECOND_ADDR", default_value = "127.0.0.1:8080")]
     pub addr: String,
-    /// SQLite database: a path or a `sqlite://` URL; created if missing.
+    /// The database: a SQLite file (a path or a `sqlite://` URL; created if missing; one
+    /// server per file), or a PostgreSQL database (`postgres://user:password@host:port/db`;
+    /// it must exist) that several replicas may serve together.
     #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
     pub database_url: String,
+    /// Seconds a replica's claim on a fit lasts without a heartbeat: a replica that died
+    /// mid-fit has its fit taken over by another after this long (2 ..= 3600).
+    #[arg(long, env = "PRECOND_FIT_LEASE_SECS", default_value_t = 15)]
+    pub fit_lease_secs: u64,
+    /// Milliseconds between a replica's looks at the database for fits other replicas
+    /// requested and (PostgreSQL) model versions they fitted (10 ..= 60 000).
+    #[arg(long, env = "PRECOND_REPLICA_POLL_MS", default_value_t = 500)]
+    pub replica_poll_ms: u64,
     /// Log format (the level comes from `RUST_LOG`, default `info`).
     #[arg(long, env = "PRECOND_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
@@ -455,6 +465,16 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             let limits = args.limits()?;
             let model_limits = args.model_limits()?;
             args.check_timeouts()?;
+            anyhow::ensure!(
+                (2..=3600).contains(&args.fit_lease_secs),
+                "--fit-lease-secs {}: use 2 ..= 3600",
+                args.fit_lease_secs
+            );
+            anyhow::ensure!(
+                (10..=60_000).contains(&args.replica_poll_ms),
+                "--replica-poll-ms {}: use 10 ..= 60000",
+                args.replica_poll_ms
+            );
             let tokens = load_tokens(args.token_file.as_deref())?;
             let listener = tokio::net::TcpListener::bind(&args.addr)
                 .await
@@ -469,11 +489,20 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 None => tracing::info!("no token file: every request is let through"),
             }
             let store = Store::open(&args.database_url).await?;
+            tracing::info!(
+                database = %crate::store::redact(&args.database_url),
+                backend = store.backend().as_str(),
+                "database opened"
+            );
             tracing::info!(?limits, ?model_limits, "limits");
             let state = AppState::with_service(
                 Service::with_model_urls(store, model_urls)
                     .with_limits(limits)
-                    .with_model_limits(model_limits),
+                    .with_model_limits(model_limits)
+                    .with_fit_lease(
+                        std::time::Duration::from_secs(args.fit_lease_secs),
+                        std::time::Duration::from_millis(args.replica_poll_ms),
+                    ),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
                     tokens,

@@ -2,153 +2,17 @@
 //! clients ingest with `Idempotency-Key` and retry across restarts; SIGTERM during ingest and
 //! during a refit; an open proposal across a crash. Each test is bounded in time.
 
+mod common;
+
+use common::{Server, all_transitions, get, post, trajectory};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 use sqlx::Connection;
 use std::collections::HashMap;
-use std::io::{BufRead, BufReader};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex, RwLock};
+use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
-
-/// A `precond serve` subprocess on a loopback port, its log collected.
-struct Server {
-    child: Child,
-    base: String,
-    log: Arc<Mutex<Vec<String>>>,
-}
-
-impl Server {
-    /// Starts the binary on `db` and returns once it listens (it logs its address once bound).
-    fn start(db: &Path, extra: &[&str]) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_precond"))
-            .args(["serve", "--addr", "127.0.0.1:0", "--log-format", "json"])
-            .arg("--database-url")
-            .arg(db)
-            .args(extra)
-            .env("RUST_LOG", "info")
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .expect("the precond binary starts");
-        let mut lines = BufReader::new(child.stdout.take().unwrap()).lines();
-        let mut log = Vec::new();
-        let addr = loop {
-            let line = lines
-                .next()
-                .expect("the server logs its address before exiting")
-                .unwrap();
-            log.push(line.clone());
-            let v: Value = serde_json::from_str(&line).unwrap_or_default();
-            if v["fields"]["message"] == "serving" {
-                break v["fields"]["addr"].as_str().unwrap().to_string();
-            }
-        };
-        let log = Arc::new(Mutex::new(log));
-        let sink = log.clone();
-        // Keep draining stdout so the server never blocks on a full pipe.
-        std::thread::spawn(move || {
-            for line in lines.map_while(Result::ok) {
-                sink.lock().unwrap().push(line);
-            }
-        });
-        Server {
-            child,
-            base: format!("http://{addr}"),
-            log,
-        }
-    }
-
-    fn kill9(mut self) {
-        self.child.kill().unwrap();
-        self.child.wait().unwrap();
-    }
-
-    fn sigterm(&self) {
-        let status = Command::new("kill")
-            .args(["-TERM", &self.child.id().to_string()])
-            .status()
-            .unwrap();
-        assert!(status.success());
-    }
-
-    /// Waits for the process to exit, at most `limit`; its exit status and the time it took.
-    fn wait_exit(&mut self, limit: Duration) -> (std::process::ExitStatus, Duration) {
-        let started = Instant::now();
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                return (status, started.elapsed());
-            }
-            assert!(
-                started.elapsed() < limit,
-                "the server did not exit within {limit:?}"
-            );
-            std::thread::sleep(Duration::from_millis(20));
-        }
-    }
-
-    fn logged(&self, needle: &str) -> bool {
-        self.log.lock().unwrap().iter().any(|l| l.contains(needle))
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
-    let r = client.post(url).json(body).send().await.unwrap();
-    let status = r.status().as_u16();
-    (status, r.json().await.unwrap_or(Value::Null))
-}
-
-async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
-    let r = client.get(url).send().await.unwrap();
-    let status = r.status().as_u16();
-    (status, r.json().await.unwrap_or(Value::Null))
-}
-
-/// Every transition of experiment `id`, following the cursor.
-async fn all_transitions(client: &reqwest::Client, base: &str, id: i64) -> Vec<Value> {
-    let mut out = Vec::new();
-    let mut after = 0;
-    loop {
-        let (status, page) = get(
-            client,
-            &format!("{base}/v1/experiments/{id}/transitions?after={after}&limit=1000"),
-        )
-        .await;
-        assert_eq!(status, 200, "{page}");
-        out.extend(page["items"].as_array().unwrap().iter().cloned());
-        match page["next"].as_i64() {
-            Some(next) => after = next,
-            None => return out,
-        }
-    }
-}
-
-/// One client's trajectory `k`: seeded, in the kinematic unit square, with the deviations the
-/// service must compute (`s_next = s + f·a`, so the label is `(1 − f)|a|`).
-fn trajectory(client: usize, k: usize) -> (Value, Vec<f64>) {
-    let mut rng = ChaCha8Rng::seed_from_u64((client * 1000 + k) as u64);
-    let n = rng.random_range(1..=6);
-    let mut transitions = Vec::new();
-    let mut labels = Vec::new();
-    for _ in 0..n {
-        let s = [rng.random_range(0.2..0.8), rng.random_range(0.2..0.8)];
-        let a: [f64; 2] = [rng.random_range(-0.1..0.1), rng.random_range(-0.1..0.1)];
-        let f = [1.0, 0.5, 0.0][rng.random_range(0..3)];
-        let s_next = [s[0] + f * a[0], s[1] + f * a[1]];
-        labels.push((1.0 - f) * (a[0] * a[0] + a[1] * a[1]).sqrt());
-        transitions.push(json!({"s": s, "a": a, "s_next": s_next}));
-    }
-    (json!({ "transitions": transitions }), labels)
-}
 
 async fn integrity_check(db: &Path) {
     let mut conn = sqlx::SqliteConnection::connect(&format!("sqlite://{}", db.display()))

@@ -1,4 +1,6 @@
-//! Test harness: a real server on a real socket over a real SQLite file in a temp dir.
+//! Test harness: a real server on a real socket over a real SQLite file in a temp dir — or,
+//! when `PRECOND_TEST_POSTGRES` names a PostgreSQL server (`scripts/ci-postgres.sh` starts one),
+//! over a new PostgreSQL database of that server per test.
 
 use precond::http::{AppState, HttpConfig, serve};
 use precond::remote_model::{ModelCallLimits, ModelUrlPolicy};
@@ -19,11 +21,62 @@ pub struct TestApp {
     handle: Option<JoinHandle<anyhow::Result<()>>>,
 }
 
-/// A temp dir that lives as long as the test.
+/// The admin URL of the PostgreSQL server the tests run against instead of SQLite files, if
+/// one is set.
+pub fn postgres_admin() -> Option<String> {
+    std::env::var("PRECOND_TEST_POSTGRES")
+        .ok()
+        .filter(|url| !url.is_empty())
+}
+
+/// Whether a test of SQLite's own file (migrations of old files, backups) should stand aside:
+/// the tests run against PostgreSQL. Says so on stderr.
+pub fn sqlite_only(test: &str) -> bool {
+    let postgres = postgres_admin().is_some();
+    if postgres {
+        eprintln!("{test}: tests the SQLite file; the SQLite run covers it");
+    }
+    postgres
+}
+
+/// A database for one test and a temp dir that lives as long as the test: a SQLite file in
+/// the dir, or (see [`postgres_admin`]) a new PostgreSQL database, whose URL stands in the
+/// returned path.
 pub fn temp_db() -> (tempfile::TempDir, PathBuf) {
     let dir = tempfile::tempdir().expect("temp dir");
-    let path = dir.path().join("precond.db");
+    let path = match postgres_admin() {
+        Some(admin) => PathBuf::from(new_postgres_database(&admin)),
+        None => dir.path().join("precond.db"),
+    };
     (dir, path)
+}
+
+/// Creates a new, empty database on the server of `admin` and returns its URL.
+pub fn new_postgres_database(admin: &str) -> String {
+    let name = format!("precond_test_{}", uuid::Uuid::new_v4().simple());
+    let (server, _) = admin.rsplit_once('/').expect("a postgres:// URL");
+    let url = format!("{server}/{name}");
+    let admin = admin.to_string();
+    // On a thread of its own: the tests' runtimes are single-threaded and cannot block.
+    std::thread::spawn(move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        rt.block_on(async {
+            use sqlx::Connection;
+            let mut admin = sqlx::PgConnection::connect(&admin)
+                .await
+                .expect("connecting to the test PostgreSQL server");
+            sqlx::query(&format!("CREATE DATABASE {name}"))
+                .execute(&mut admin)
+                .await
+                .expect("creating a test database");
+        });
+    })
+    .join()
+    .unwrap();
+    url
 }
 
 /// A server on a new database in a temp dir; the dir lives as long as the returned guard.

@@ -297,6 +297,9 @@ async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
 
 #[tokio::test]
 async fn an_online_backup_is_a_consistent_copy() {
+    if super::helpers::sqlite_only("an_online_backup_is_a_consistent_copy") {
+        return;
+    }
     let (dir, db) = temp_db();
     let app = spawn_app(&db).await;
     let id = app.create_experiment(json!({})).await;
@@ -337,6 +340,11 @@ async fn an_online_backup_is_a_consistent_copy() {
 /// complete; a missing source is an error, never created; nothing is left behind on failure.
 #[tokio::test]
 async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
+    if super::helpers::sqlite_only(
+        "a_backup_reports_its_own_counts_and_leaves_nothing_half_written",
+    ) {
+        return;
+    }
     let (dir, db) = temp_db();
     let app = spawn_app(&db).await;
     let id = app.create_experiment(json!({})).await;

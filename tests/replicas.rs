@@ -1,0 +1,358 @@
+//! Several replicas of the real binary over one PostgreSQL database: what one replica is told,
+//! the other knows; a lease taken on one holds on the other; kill -9 of either replica loses
+//! and duplicates nothing; a fit claimed by a killed replica is finished by another.
+//!
+//! They need a PostgreSQL server: `PRECOND_TEST_POSTGRES` (an admin URL; each test creates a
+//! database of its own), which `scripts/ci-postgres.sh` starts and sets. Without it each test
+//! says so and passes (the SQLite run cannot have replicas).
+
+mod common;
+
+use common::{Server, all_transitions, get, post, trajectory};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde_json::{Value, json};
+use sqlx::Connection;
+use std::collections::HashMap;
+use std::sync::{Arc, RwLock};
+use std::time::{Duration, Instant};
+
+/// A new database on the test server, or `None` (said on stderr) without one.
+async fn database(test: &str) -> Option<String> {
+    let Some(admin) = std::env::var("PRECOND_TEST_POSTGRES")
+        .ok()
+        .filter(|u| !u.is_empty())
+    else {
+        eprintln!("{test}: no PRECOND_TEST_POSTGRES; run scripts/ci-postgres.sh");
+        return None;
+    };
+    let name = format!("precond_replicas_{}", uuid::Uuid::new_v4().simple());
+    let mut conn = sqlx::PgConnection::connect(&admin).await.unwrap();
+    sqlx::query(&format!("CREATE DATABASE {name}"))
+        .execute(&mut conn)
+        .await
+        .unwrap();
+    let (server, _) = admin.rsplit_once('/').unwrap();
+    Some(format!("{server}/{name}"))
+}
+
+/// Replica options for tests: short leases and polls, so a takeover fits in a test.
+const FAST: &[&str] = &["--fit-lease-secs", "2", "--replica-poll-ms", "100"];
+
+async fn experiment(http: &reqwest::Client, base: &str, body: Value) -> i64 {
+    let (status, e) = post(http, &format!("{base}/v1/experiments"), &body).await;
+    assert_eq!(status, 201, "{e}");
+    e["id"].as_i64().unwrap()
+}
+
+/// Waits (at most `limit`) until `base` answers experiment `id` with a model of `version` or
+/// later, and returns it.
+async fn model_at_least(
+    http: &reqwest::Client,
+    base: &str,
+    id: i64,
+    version: i64,
+    limit: Duration,
+) -> Value {
+    let started = Instant::now();
+    loop {
+        let (status, model) = get(http, &format!("{base}/v1/experiments/{id}/model")).await;
+        assert_eq!(status, 200, "{model}");
+        if model["version"].as_i64() >= Some(version) {
+            return model;
+        }
+        assert!(
+            started.elapsed() < limit,
+            "{base} answers version {} after {limit:?}, not {version}",
+            model["version"]
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_trajectory_posted_to_one_replica_is_labelled_once_and_seen_by_the_other() {
+    let Some(db) = database("labelled_once").await else {
+        return;
+    };
+    let (a, b) = (Server::start(&db, FAST), Server::start(&db, FAST));
+    let http = reqwest::Client::new();
+    let id = experiment(
+        &http,
+        &a.base,
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 2},
+               "mde": {"restarts": 1}}),
+    )
+    .await;
+    let (body, labels) = trajectory(1, 1);
+    let send = |base: &str| {
+        http.post(format!("{base}/v1/experiments/{id}/trajectories"))
+            .header("idempotency-key", "robot-1-run-1")
+            .json(&body)
+            .send()
+    };
+    let first = send(&a.base).await.unwrap();
+    assert_eq!(first.status(), 201);
+    let first: Value = first.json().await.unwrap();
+    // The robot did not hear the answer and retries on the other replica: the same answer,
+    // nothing stored twice.
+    let retry = send(&b.base).await.unwrap();
+    assert_eq!(retry.status(), 201);
+    assert_eq!(retry.headers()["idempotent-replayed"], "true");
+    let retry: Value = retry.json().await.unwrap();
+    assert_eq!(retry["id"], first["id"]);
+    let seen = all_transitions(&http, &b.base, id).await;
+    assert_eq!(seen.len(), labels.len(), "stored once: {seen:?}");
+    for (t, label) in seen.iter().zip(&labels) {
+        assert!((t["deviation"].as_f64().unwrap() - label).abs() < 1e-9);
+    }
+    // The batch completes on B; whichever replica fits, both answer the new version.
+    let (status, _) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/trajectories", b.base),
+        &trajectory(1, 2).0,
+    )
+    .await;
+    assert_eq!(status, 201);
+    let on_a = model_at_least(&http, &a.base, id, 1, Duration::from_secs(60)).await;
+    let on_b = model_at_least(&http, &b.base, id, 1, Duration::from_secs(60)).await;
+    assert_eq!(on_a["version"], 1);
+    assert_eq!(on_a["n_trajectories"], 2);
+    assert_eq!(on_a["hyperparameters"], on_b["hyperparameters"]);
+    // One fit for one batch: no second version appears.
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let (_, e) = get(&http, &format!("{}/v1/experiments/{id}", a.base)).await;
+    assert_eq!(e["model_version"], 1, "{e}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_proposal_leased_on_one_replica_is_the_same_on_the_other() {
+    let Some(db) = database("lease").await else {
+        return;
+    };
+    let (a, b) = (Server::start(&db, FAST), Server::start(&db, FAST));
+    let http = reqwest::Client::new();
+    let id = experiment(&http, &a.base, json!({"domain": {"kind": "kinematic"}})).await;
+    let ask = json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"});
+    let (status, first) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", a.base),
+        &ask,
+    )
+    .await;
+    assert_eq!(status, 201, "{first}");
+    let (status, again) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", b.base),
+        &ask,
+    )
+    .await;
+    assert_eq!(status, 200, "the open lease is answered: {again}");
+    assert_eq!(again["id"], first["id"]);
+    assert_eq!(again["trajectory"], first["trajectory"]);
+    let other = json!({"start": [0.1, 0.1], "goal": [0.9, 0.2], "client_id": "arm-1"});
+    let (status, refused) = post(
+        &http,
+        &format!("{}/v1/experiments/{id}/proposals", b.base),
+        &other,
+    )
+    .await;
+    assert_eq!(status, 409, "{refused}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
+    const CLIENTS: usize = 16;
+    const PER_CLIENT: usize = 15;
+    const KILLS: usize = 4;
+    let Some(db) = database("kill_9").await else {
+        return;
+    };
+    let mut replicas = [Server::start(&db, FAST), Server::start(&db, FAST)];
+    let http = reqwest::Client::builder()
+        .timeout(Duration::from_secs(5))
+        .build()
+        .unwrap();
+    let id = experiment(
+        &http,
+        &replicas[0].base,
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
+    )
+    .await;
+    let bases = Arc::new(RwLock::new([
+        replicas[0].base.clone(),
+        replicas[1].base.clone(),
+    ]));
+    let started = Instant::now();
+
+    // Clients: half talk to each replica; on a failure they retry with the same key on the
+    // other one, as a load balancer would send them.
+    let mut clients = Vec::new();
+    for c in 0..CLIENTS {
+        let (http, bases) = (http.clone(), bases.clone());
+        clients.push(tokio::spawn(async move {
+            let mut acked = Vec::new();
+            let mut retries = 0;
+            let mut pace = ChaCha8Rng::seed_from_u64(c as u64);
+            let mut replica = c % 2;
+            for k in 0..PER_CLIENT {
+                let (body, labels) = trajectory(c, k);
+                tokio::time::sleep(Duration::from_millis(pace.random_range(10..60))).await;
+                loop {
+                    let url = format!(
+                        "{}/v1/experiments/{id}/trajectories",
+                        bases.read().unwrap()[replica]
+                    );
+                    let sent = http
+                        .post(&url)
+                        .header("idempotency-key", format!("client-{c}-trajectory-{k}"))
+                        .json(&body)
+                        .send()
+                        .await;
+                    if let Ok(r) = sent {
+                        let status = r.status().as_u16();
+                        if let Ok(v) = r.json::<Value>().await {
+                            assert!(
+                                status == 201 || status >= 500,
+                                "client {c} trajectory {k}: {status} {v}"
+                            );
+                            if status == 201 {
+                                acked.push((v["id"].as_i64().unwrap(), body.clone(), labels));
+                                break;
+                            }
+                        }
+                    }
+                    retries += 1;
+                    replica = 1 - replica;
+                    tokio::time::sleep(Duration::from_millis(15)).await;
+                }
+            }
+            (acked, retries)
+        }));
+    }
+
+    // The killer: kill -9 one replica or the other at seeded moments, and restart it.
+    let mut rng = ChaCha8Rng::seed_from_u64(27);
+    for kill in 0..KILLS {
+        tokio::time::sleep(Duration::from_millis(rng.random_range(60..250))).await;
+        assert!(
+            clients.iter().any(|c| !c.is_finished()),
+            "kill {kill} comes while clients are ingesting"
+        );
+        let victim = rng.random_range(0..2);
+        let restarted = Server::start(&db, FAST);
+        bases.write().unwrap()[victim] = restarted.base.clone();
+        std::mem::replace(&mut replicas[victim], restarted).kill9();
+    }
+    let mut acked = Vec::new();
+    let mut retries = 0;
+    for c in clients {
+        let (a, r) = c.await.unwrap();
+        acked.extend(a);
+        retries += r;
+    }
+    assert!(started.elapsed() < Duration::from_secs(60));
+    assert!(retries > 0, "the kills interrupted ingest");
+    assert_eq!(acked.len(), CLIENTS * PER_CLIENT);
+
+    // Every acknowledged trajectory stored exactly once, whole, with its labels — as either
+    // replica sees it.
+    for replica in &replicas {
+        let stored = all_transitions(&http, &replica.base, id).await;
+        let mut by_trajectory: HashMap<i64, Vec<&Value>> = HashMap::new();
+        for t in &stored {
+            by_trajectory
+                .entry(t["trajectory_id"].as_i64().unwrap())
+                .or_default()
+                .push(t);
+        }
+        assert_eq!(
+            by_trajectory.len(),
+            CLIENTS * PER_CLIENT,
+            "one stored trajectory per acknowledged one, no more"
+        );
+        for (tid, body, labels) in &acked {
+            let got = &by_trajectory[tid];
+            let sent = body["transitions"].as_array().unwrap();
+            assert_eq!(got.len(), sent.len(), "trajectory {tid} is whole");
+            for ((g, s), label) in got.iter().zip(sent).zip(labels) {
+                assert_eq!(g["s"], s["s"]);
+                let d = g["deviation"].as_f64().unwrap();
+                assert!((d - label).abs() < 1e-9, "trajectory {tid}: {d} vs {label}");
+            }
+        }
+        let (_, e) = get(&http, &format!("{}/v1/experiments/{id}", replica.base)).await;
+        assert_eq!(e["n_trajectories"], (CLIENTS * PER_CLIENT) as i64);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
+    let Some(db) = database("takeover").await else {
+        return;
+    };
+    let mut replicas = vec![Server::start(&db, FAST), Server::start(&db, FAST)];
+    let http = reqwest::Client::new();
+    // One batch of 60 trajectories (about 420 transitions) fitted with several restarts:
+    // seconds in a test build, long enough to be caught running.
+    let id = experiment(
+        &http,
+        &replicas[0].base,
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 60},
+               "mde": {"restarts": 4}}),
+    )
+    .await;
+    for k in 0..60 {
+        let mut body = json!({"transitions": []});
+        for j in 0..2 {
+            let (t, _) = trajectory(300 + j, k);
+            body["transitions"]
+                .as_array_mut()
+                .unwrap()
+                .extend(t["transitions"].as_array().unwrap().iter().cloned());
+        }
+        let (status, v) = post(
+            &http,
+            &format!("{}/v1/experiments/{id}/trajectories", replicas[k % 2].base),
+            &body,
+        )
+        .await;
+        assert_eq!(status, 201, "{v}");
+    }
+    // Which replica claimed the fit? Its name carries its process id.
+    let mut conn = sqlx::PgConnection::connect(&db).await.unwrap();
+    let started = Instant::now();
+    let holder = loop {
+        let claimed: Option<Option<String>> =
+            sqlx::query_scalar("SELECT claimed_by FROM fit_jobs WHERE experiment_id = $1")
+                .bind(id)
+                .fetch_optional(&mut conn)
+                .await
+                .unwrap();
+        if let Some(Some(name)) = claimed {
+            break name;
+        }
+        assert!(
+            started.elapsed() < Duration::from_secs(10),
+            "no replica claimed the fit"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    };
+    let victim = replicas
+        .iter()
+        .position(|r| holder.contains(&format!("-{}-", r.pid())))
+        .expect("the claim names one of the replicas");
+    let survivor = replicas.remove(1 - victim);
+    replicas.remove(0).kill9();
+    // Nothing was stored by the dead replica; the survivor takes the fit over after the
+    // lease and stores version 1.
+    let model = model_at_least(&http, &survivor.base, id, 1, Duration::from_secs(120)).await;
+    assert_eq!(model["version"], 1);
+    assert_eq!(model["n_trajectories"], 60);
+    let left: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM fit_jobs")
+        .fetch_one(&mut conn)
+        .await
+        .unwrap();
+    assert_eq!(left, 0, "the request is done");
+    assert!(survivor.logged("model fitted"));
+}
