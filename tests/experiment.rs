@@ -73,7 +73,13 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
     for r in &rows {
         assert_eq!(r[col("domain")], "icy_gridworld");
         assert!(STRATEGIES.contains(&r[col("strategy")].as_str()));
-        for rate in ["plan_found_rate", "success_rate", "unsafe_step_rate", "tpr", "tnr"] {
+        for rate in [
+            "plan_found_rate",
+            "success_rate",
+            "unsafe_step_rate",
+            "tpr",
+            "tnr",
+        ] {
             let v = &r[col(rate)];
             if !v.is_empty() {
                 assert!(is_rate(v.parse().unwrap()), "{rate} = {v}");
