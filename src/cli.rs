@@ -64,6 +64,9 @@ pub enum BenchCommand {
     /// Latency of `/healthz` and a cheap read, idle and while concurrent clients saturate the
     /// planner with proposals that run into their deadline.
     Saturation(SaturationArgs),
+    /// Proposals per second and their latency with 1, 2, 4 … replicas of this binary over one
+    /// PostgreSQL database (a new database per count on the given server).
+    Replicas(ReplicasArgs),
     /// The continuous worlds before any learning: the share of state-actions truly within
     /// `d_max`, the simulator's cost, and the oracle and the no-precondition baseline on random
     /// problems.
@@ -154,6 +157,31 @@ pub struct SaturationArgs {
     /// Planning deadline in milliseconds.
     #[arg(long, default_value_t = 2000)]
     pub plan_timeout_ms: u64,
+}
+
+/// Options of `precond bench replicas`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReplicasArgs {
+    /// A PostgreSQL URL whose user may create databases (`scripts/postgres.sh start DIR`
+    /// prints one for a throwaway server).
+    #[arg(long, env = "PRECOND_BENCH_POSTGRES")]
+    pub database_url: String,
+    /// Replica counts, comma-separated.
+    #[arg(long, value_delimiter = ',', default_value = "1,2,4")]
+    pub replicas: Vec<usize>,
+    /// Concurrent clients (robots asking, executing and posting).
+    #[arg(long, default_value_t = 16)]
+    pub clients: usize,
+    /// Seconds of measurement per replica count.
+    #[arg(long, default_value_t = 20.0)]
+    pub seconds: f64,
+    /// Experiments the clients share.
+    #[arg(long, default_value_t = 8)]
+    pub experiments: usize,
+    /// Each replica's `--max-concurrent-plans` (default: one per core), e.g. 1 to see
+    /// replicas add cores on a small machine.
+    #[arg(long)]
+    pub plans_per_replica: Option<usize>,
 }
 
 /// Options of `precond bench gp`.
@@ -607,6 +635,17 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 clients: args.clients,
                 seconds: args.seconds,
                 plan_timeout_ms: args.plan_timeout_ms,
+            })
+            .await
+        }
+        Command::Bench(BenchCommand::Replicas(args)) => {
+            crate::bench::replicas::run(&crate::bench::replicas::ReplicasOptions {
+                database_url: args.database_url,
+                replicas: args.replicas,
+                clients: args.clients,
+                seconds: args.seconds,
+                experiments: args.experiments,
+                plans_per_replica: args.plans_per_replica,
             })
             .await
         }
