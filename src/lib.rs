@@ -30,7 +30,8 @@
 //! - [`settings`]: an experiment's settings, their defaults and their validation.
 //! - [`remote_model`]: a dynamics model served by a robot over HTTP, and the operator's list of
 //!   allowed model URLs.
-//! - [`store`]: SQLite (sqlx): every query, rows ↔ values, atomic idempotent ingest.
+//! - [`store`]: SQLite or PostgreSQL (sqlx): every query, rows ↔ values, atomic idempotent
+//!   ingest, and what replicas over one database agree on (locks, fit claims, versions).
 //! - [`service`]: what precond does, whoever asks: experiments in memory, labelling and ingest,
 //!   refits, judgements, proposals with leases, plans. Returns domain values and its own error.
 //! - [`api`]: the typed request and response bodies of the HTTP API, shared by the server and
@@ -49,7 +50,7 @@
 //! ## Layers, and what plugs in
 //!
 //! ```text
-//! cli ─▶ http ─▶ service ─▶ store (SQLite)
+//! cli ─▶ http ─▶ service ─▶ store (SQLite or PostgreSQL)
 //!          │        │
 //!          ▼        ▼
 //!         api    settings ─▶ domain, planning, gp, mde (the numeric core)
@@ -62,15 +63,12 @@
 //!   [`domain::DynamicsModel`] and return it from [`domain::Domain::dynamics`]; the planner and
 //!   the labeller call it in batches and turn its [`domain::DynamicsError`] into `502`/`504`.
 //!
-//! Two things are fixed today rather than pluggable:
-//! - **The MDE is a Gaussian process.** The planner sees it only through the
-//!   [`planning::DeviationModel`] trait (μ and σ for feature rows), and the planner's tests plug
-//!   stand-ins in there; but the served model, [`mde::Estimator`], is the prior or a fitted
-//!   [`gp::GpModel`], and fitting, the label cap, the stored hyperparameters, rebuilding older
-//!   versions and the diagnostics are all written for the GP.
-//! - **The store is SQLite.** [`store::Store`] is one concrete type over sqlx SQLite pools,
-//!   held by the service directly; every query lives in [`store`], and its methods take and
-//!   return plain values.
+//! - **A new regressor for the MDE**: implement [`mde::Regressor`] and add an
+//!   [`mde::EstimatorKind`]; the exact GP ([`gp::GpModel`]) and the sparse GP ([`gp::sparse`])
+//!   are the two there. The planner sees the MDE only through [`planning::DeviationModel`].
+//! - **Another database engine**: [`store::Store`] runs its queries through sqlx's `Any`
+//!   driver; an engine needs its migrations, a [`store::Backend`] variant and its own text
+//!   where the SQL differs. SQLite (one process) and PostgreSQL (replicas) are there.
 
 pub mod api;
 pub mod bench;

@@ -4,14 +4,14 @@
 //!
 //! Queries go through sqlx's `Any` driver and are written once, in SQL both engines accept:
 //! `$1` parameters, `CAST(… AS DOUBLE PRECISION)` where PostgreSQL would answer `NUMERIC`,
-//! `FALSE`/`TRUE` for flags (SQLite stores them as 0/1, read back by [`flag`]). Where the
+//! `FALSE`/`TRUE` for flags (SQLite stores them as 0/1, read back by `flag`). Where the
 //! engines differ (the file's size, ordering old timestamps, claiming a fit), [`Backend`] says
 //! which text runs. Each engine has its own migrations (`migrations/sqlite`,
 //! `migrations/postgres`), both applied at start-up.
 //!
 //! **What replicas agree on lives here.** A write transaction that reads before it writes
 //! (an idempotency key, an open lease, the next model version, the experiment count) first
-//! takes the experiment's lock ([`lock_experiment`]): on PostgreSQL a transaction-scoped
+//! takes the experiment's lock (`lock_experiment`): on PostgreSQL a transaction-scoped
 //! advisory lock, so such transactions of one experiment run one at a time across every
 //! replica; on SQLite a no-op, because every write already goes through the one writer
 //! connection. The right to fit is a row ([`fits`](mod@fits)).
