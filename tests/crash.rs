@@ -4,12 +4,14 @@
 
 mod common;
 
-use common::{Server, all_transitions, get, post, trajectory};
+use common::{
+    Server, all_transitions, assert_stored_exactly_once, get, post, post_until_acknowledged,
+    trajectory,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 use sqlx::Connection;
-use std::collections::HashMap;
 use std::path::Path;
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
@@ -45,49 +47,21 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
     .await;
     assert_eq!(status, 201, "{e}");
     let id = e["id"].as_i64().unwrap();
-    let base = Arc::new(RwLock::new(server.base.clone()));
+    let base = Arc::new(RwLock::new(vec![server.base.clone()]));
     let started = Instant::now();
 
     // Clients: post each trajectory with its key until acknowledged, whatever happens.
-    let mut clients = Vec::new();
-    for c in 0..CLIENTS {
-        let (http, base) = (http.clone(), base.clone());
-        clients.push(tokio::spawn(async move {
-            let mut acked = Vec::new();
-            let mut retries = 0;
-            let mut pace = ChaCha8Rng::seed_from_u64(c as u64);
-            for k in 0..PER_CLIENT {
-                let (body, labels) = trajectory(c, k);
-                // A robot takes a while to execute a trajectory.
-                tokio::time::sleep(Duration::from_millis(pace.random_range(10..60))).await;
-                loop {
-                    let url = format!("{}/v1/experiments/{id}/trajectories", base.read().unwrap());
-                    let sent = http
-                        .post(&url)
-                        .header("idempotency-key", format!("client-{c}-trajectory-{k}"))
-                        .json(&body)
-                        .send()
-                        .await;
-                    if let Ok(r) = sent {
-                        let status = r.status().as_u16();
-                        if let Ok(v) = r.json::<Value>().await {
-                            assert!(
-                                status == 201 || status >= 500,
-                                "client {c} trajectory {k}: {status} {v}"
-                            );
-                            if status == 201 {
-                                acked.push((v["id"].as_i64().unwrap(), body.clone(), labels));
-                                break;
-                            }
-                        }
-                    }
-                    retries += 1;
-                    tokio::time::sleep(Duration::from_millis(15)).await;
-                }
-            }
-            (acked, retries)
-        }));
-    }
+    let clients: Vec<_> = (0..CLIENTS)
+        .map(|c| {
+            tokio::spawn(post_until_acknowledged(
+                http.clone(),
+                base.clone(),
+                id,
+                c,
+                PER_CLIENT,
+            ))
+        })
+        .collect();
 
     // The killer: kill -9 at seeded random moments, restart on the same file.
     let mut rng = ChaCha8Rng::seed_from_u64(12);
@@ -100,7 +74,7 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
         );
         server.kill9();
         server = Server::start(&db, &[]);
-        *base.write().unwrap() = server.base.clone();
+        base.write().unwrap()[0] = server.base.clone();
     }
     let mut acked = Vec::new();
     let mut retries = 0;
@@ -117,32 +91,7 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
     assert_eq!(acked.len(), CLIENTS * PER_CLIENT);
 
     // Every acknowledged trajectory stored exactly once, whole, with its labels.
-    let stored = all_transitions(&http, &server.base, id).await;
-    let mut by_trajectory: HashMap<i64, Vec<&Value>> = HashMap::new();
-    for t in &stored {
-        by_trajectory
-            .entry(t["trajectory_id"].as_i64().unwrap())
-            .or_default()
-            .push(t);
-    }
-    assert_eq!(
-        by_trajectory.len(),
-        CLIENTS * PER_CLIENT,
-        "one stored trajectory per acknowledged one, no more"
-    );
-    for (tid, body, labels) in &acked {
-        let got = &by_trajectory[tid];
-        let sent = body["transitions"].as_array().unwrap();
-        assert_eq!(got.len(), sent.len(), "trajectory {tid} is whole");
-        for ((g, s), label) in got.iter().zip(sent).zip(labels) {
-            assert_eq!(g["s"], s["s"]);
-            assert_eq!(g["a"], s["a"]);
-            let d = g["deviation"].as_f64().unwrap();
-            assert!((d - label).abs() < 1e-9, "trajectory {tid}: {d} vs {label}");
-        }
-    }
-    let (_, e) = get(&http, &format!("{}/v1/experiments/{id}", server.base)).await;
-    assert_eq!(e["n_trajectories"], (CLIENTS * PER_CLIENT) as i64);
+    assert_stored_exactly_once(&http, &server.base, id, &acked).await;
     server.kill9();
     integrity_check(&db).await;
 }

@@ -8,12 +8,14 @@
 
 mod common;
 
-use common::{Server, all_transitions, get, post, trajectory};
+use common::{
+    Server, all_transitions, assert_stored_exactly_once, get, post, post_until_acknowledged,
+    trajectory,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 use sqlx::Connection;
-use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
@@ -179,57 +181,25 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
         json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
     )
     .await;
-    let bases = Arc::new(RwLock::new([
+    let bases = Arc::new(RwLock::new(vec![
         replicas[0].base.clone(),
         replicas[1].base.clone(),
     ]));
     let started = Instant::now();
 
-    // Clients: half talk to each replica; on a failure they retry with the same key on the
+    // Clients: half start on each replica; after a failure they retry with the same key on the
     // other one, as a load balancer would send them.
-    let mut clients = Vec::new();
-    for c in 0..CLIENTS {
-        let (http, bases) = (http.clone(), bases.clone());
-        clients.push(tokio::spawn(async move {
-            let mut acked = Vec::new();
-            let mut retries = 0;
-            let mut pace = ChaCha8Rng::seed_from_u64(c as u64);
-            let mut replica = c % 2;
-            for k in 0..PER_CLIENT {
-                let (body, labels) = trajectory(c, k);
-                tokio::time::sleep(Duration::from_millis(pace.random_range(10..60))).await;
-                loop {
-                    let url = format!(
-                        "{}/v1/experiments/{id}/trajectories",
-                        bases.read().unwrap()[replica]
-                    );
-                    let sent = http
-                        .post(&url)
-                        .header("idempotency-key", format!("client-{c}-trajectory-{k}"))
-                        .json(&body)
-                        .send()
-                        .await;
-                    if let Ok(r) = sent {
-                        let status = r.status().as_u16();
-                        if let Ok(v) = r.json::<Value>().await {
-                            assert!(
-                                status == 201 || status >= 500,
-                                "client {c} trajectory {k}: {status} {v}"
-                            );
-                            if status == 201 {
-                                acked.push((v["id"].as_i64().unwrap(), body.clone(), labels));
-                                break;
-                            }
-                        }
-                    }
-                    retries += 1;
-                    replica = 1 - replica;
-                    tokio::time::sleep(Duration::from_millis(15)).await;
-                }
-            }
-            (acked, retries)
-        }));
-    }
+    let clients: Vec<_> = (0..CLIENTS)
+        .map(|c| {
+            tokio::spawn(post_until_acknowledged(
+                http.clone(),
+                bases.clone(),
+                id,
+                c,
+                PER_CLIENT,
+            ))
+        })
+        .collect();
 
     // The killer: kill -9 one replica or the other at seeded moments, and restart it.
     let mut rng = ChaCha8Rng::seed_from_u64(27);
@@ -258,31 +228,7 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
     // Every acknowledged trajectory stored exactly once, whole, with its labels — as either
     // replica sees it.
     for replica in &replicas {
-        let stored = all_transitions(&http, &replica.base, id).await;
-        let mut by_trajectory: HashMap<i64, Vec<&Value>> = HashMap::new();
-        for t in &stored {
-            by_trajectory
-                .entry(t["trajectory_id"].as_i64().unwrap())
-                .or_default()
-                .push(t);
-        }
-        assert_eq!(
-            by_trajectory.len(),
-            CLIENTS * PER_CLIENT,
-            "one stored trajectory per acknowledged one, no more"
-        );
-        for (tid, body, labels) in &acked {
-            let got = &by_trajectory[tid];
-            let sent = body["transitions"].as_array().unwrap();
-            assert_eq!(got.len(), sent.len(), "trajectory {tid} is whole");
-            for ((g, s), label) in got.iter().zip(sent).zip(labels) {
-                assert_eq!(g["s"], s["s"]);
-                let d = g["deviation"].as_f64().unwrap();
-                assert!((d - label).abs() < 1e-9, "trajectory {tid}: {d} vs {label}");
-            }
-        }
-        let (_, e) = get(&http, &format!("{}/v1/experiments/{id}", replica.base)).await;
-        assert_eq!(e["n_trajectories"], (CLIENTS * PER_CLIENT) as i64);
+        assert_stored_exactly_once(&http, &replica.base, id, &acked).await;
     }
 }
 

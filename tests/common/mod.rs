@@ -5,9 +5,10 @@
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
+use std::collections::HashMap;
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, RwLock};
 use std::time::{Duration, Instant};
 
 /// A `precond serve` subprocess on a loopback port, its log collected.
@@ -152,4 +153,97 @@ pub fn trajectory(client: usize, k: usize) -> (Value, Vec<f64>) {
         transitions.push(json!({"s": s, "a": a, "s_next": s_next}));
     }
     (json!({ "transitions": transitions }), labels)
+}
+
+/// A trajectory the server acknowledged: its id, the body posted and the labels it must carry.
+pub type Acked = (i64, Value, Vec<f64>);
+
+/// Robot `c` posts its `n` seeded trajectories to experiment `id`, paced 10–60 ms apart (a robot
+/// takes a while to execute one), each under its own `Idempotency-Key` until acknowledged with
+/// `201` — any other answer but a 5xx fails the test. It starts on server `c mod servers`
+/// and, after a failure, retries on the next one (`servers` may change meanwhile: restarts).
+/// Returns what was acknowledged and how many retries it took.
+pub async fn post_until_acknowledged(
+    http: reqwest::Client,
+    servers: Arc<RwLock<Vec<String>>>,
+    id: i64,
+    c: usize,
+    n: usize,
+) -> (Vec<Acked>, usize) {
+    let mut acked = Vec::new();
+    let mut retries = 0;
+    let mut pace = ChaCha8Rng::seed_from_u64(c as u64);
+    let mut server = c;
+    for k in 0..n {
+        let (body, labels) = trajectory(c, k);
+        tokio::time::sleep(Duration::from_millis(pace.random_range(10..60))).await;
+        loop {
+            let url = {
+                let servers = servers.read().unwrap();
+                format!(
+                    "{}/v1/experiments/{id}/trajectories",
+                    servers[server % servers.len()]
+                )
+            };
+            let sent = http
+                .post(&url)
+                .header("idempotency-key", format!("client-{c}-trajectory-{k}"))
+                .json(&body)
+                .send()
+                .await;
+            if let Ok(r) = sent {
+                let status = r.status().as_u16();
+                if let Ok(v) = r.json::<Value>().await {
+                    assert!(
+                        status == 201 || status >= 500,
+                        "client {c} trajectory {k}: {status} {v}"
+                    );
+                    if status == 201 {
+                        acked.push((v["id"].as_i64().unwrap(), body.clone(), labels));
+                        break;
+                    }
+                }
+            }
+            retries += 1;
+            server += 1;
+            tokio::time::sleep(Duration::from_millis(15)).await;
+        }
+    }
+    (acked, retries)
+}
+
+/// Every acknowledged trajectory is stored at `base` exactly once, whole, with its labels, and
+/// nothing else is.
+pub async fn assert_stored_exactly_once(
+    http: &reqwest::Client,
+    base: &str,
+    id: i64,
+    acked: &[Acked],
+) {
+    let stored = all_transitions(http, base, id).await;
+    let mut by_trajectory: HashMap<i64, Vec<&Value>> = HashMap::new();
+    for t in &stored {
+        by_trajectory
+            .entry(t["trajectory_id"].as_i64().unwrap())
+            .or_default()
+            .push(t);
+    }
+    assert_eq!(
+        by_trajectory.len(),
+        acked.len(),
+        "one stored trajectory per acknowledged one, no more"
+    );
+    for (tid, body, labels) in acked {
+        let got = &by_trajectory[tid];
+        let sent = body["transitions"].as_array().unwrap();
+        assert_eq!(got.len(), sent.len(), "trajectory {tid} is whole");
+        for ((g, s), label) in got.iter().zip(sent).zip(labels) {
+            assert_eq!(g["s"], s["s"]);
+            assert_eq!(g["a"], s["a"]);
+            let d = g["deviation"].as_f64().unwrap();
+            assert!((d - label).abs() < 1e-9, "trajectory {tid}: {d} vs {label}");
+        }
+    }
+    let (_, e) = get(http, &format!("{base}/v1/experiments/{id}")).await;
+    assert_eq!(e["n_trajectories"], acked.len() as i64);
 }
