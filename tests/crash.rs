@@ -5,8 +5,8 @@
 mod common;
 
 use common::{
-    Server, all_transitions, assert_stored_exactly_once, get, post, post_until_acknowledged,
-    trajectory,
+    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, get,
+    leased_problem, post, post_until_acknowledged, trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -109,33 +109,16 @@ async fn an_open_proposal_survives_a_crash_and_is_returned_to_its_client() {
     )
     .await;
     let id = e["id"].as_i64().unwrap();
-    let ask = json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"});
     let (status, first) = post(
         &http,
         &format!("{}/v1/experiments/{id}/proposals", server.base),
-        &ask,
+        &leased_problem(),
     )
     .await;
     assert_eq!(status, 201, "{first}");
     server.kill9();
     let server = Server::start(&db, &[]);
-    let (status, again) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", server.base),
-        &ask,
-    )
-    .await;
-    assert_eq!(status, 200, "the open lease is answered: {again}");
-    assert_eq!(again["id"], first["id"]);
-    assert_eq!(again["trajectory"], first["trajectory"]);
-    let other = json!({"start": [0.1, 0.1], "goal": [0.9, 0.2], "client_id": "arm-1"});
-    let (status, _) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", server.base),
-        &other,
-    )
-    .await;
-    assert_eq!(status, 409);
+    assert_lease_answered(&http, &server.base, id, &first).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]

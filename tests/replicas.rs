@@ -9,8 +9,8 @@
 mod common;
 
 use common::{
-    Server, all_transitions, assert_stored_exactly_once, get, post, post_until_acknowledged,
-    trajectory,
+    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, get,
+    leased_problem, post, post_until_acknowledged, trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -135,31 +135,14 @@ async fn a_proposal_leased_on_one_replica_is_the_same_on_the_other() {
     let (a, b) = (Server::start(&db, FAST), Server::start(&db, FAST));
     let http = reqwest::Client::new();
     let id = experiment(&http, &a.base, json!({"domain": {"kind": "kinematic"}})).await;
-    let ask = json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"});
     let (status, first) = post(
         &http,
         &format!("{}/v1/experiments/{id}/proposals", a.base),
-        &ask,
+        &leased_problem(),
     )
     .await;
     assert_eq!(status, 201, "{first}");
-    let (status, again) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", b.base),
-        &ask,
-    )
-    .await;
-    assert_eq!(status, 200, "the open lease is answered: {again}");
-    assert_eq!(again["id"], first["id"]);
-    assert_eq!(again["trajectory"], first["trajectory"]);
-    let other = json!({"start": [0.1, 0.1], "goal": [0.9, 0.2], "client_id": "arm-1"});
-    let (status, refused) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", b.base),
-        &other,
-    )
-    .await;
-    assert_eq!(status, 409, "{refused}");
+    assert_lease_answered(&http, &b.base, id, &first).await;
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
@@ -170,7 +153,7 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
     let Some(db) = database("kill_9").await else {
         return;
     };
-    let mut replicas = [Server::start(&db, FAST), Server::start(&db, FAST)];
+    let mut replicas = vec![Server::start(&db, FAST), Server::start(&db, FAST)];
     let http = reqwest::Client::builder()
         .timeout(Duration::from_secs(5))
         .build()
@@ -209,10 +192,14 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
             clients.iter().any(|c| !c.is_finished()),
             "kill {kill} comes while clients are ingesting"
         );
+        // The victim dies; until it is back, clients that send to it find it gone and retry
+        // on the other replica.
         let victim = rng.random_range(0..2);
+        let dead = replicas.remove(victim);
+        dead.kill9();
         let restarted = Server::start(&db, FAST);
         bases.write().unwrap()[victim] = restarted.base.clone();
-        std::mem::replace(&mut replicas[victim], restarted).kill9();
+        replicas.insert(victim, restarted);
     }
     let mut acked = Vec::new();
     let mut retries = 0;

@@ -247,3 +247,22 @@ pub async fn assert_stored_exactly_once(
     let (_, e) = get(http, &format!("{base}/v1/experiments/{id}")).await;
     assert_eq!(e["n_trajectories"], acked.len() as i64);
 }
+
+/// The problem [`assert_lease_answered`] asks again, for client `arm-1`.
+pub fn leased_problem() -> Value {
+    json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"})
+}
+
+/// Asking `base` again for [`leased_problem`], whose proposal `first` is leased to `arm-1`,
+/// answers that open lease (`200`, the same proposal); asking for another problem while it is
+/// open is `409`.
+pub async fn assert_lease_answered(http: &reqwest::Client, base: &str, id: i64, first: &Value) {
+    let url = format!("{base}/v1/experiments/{id}/proposals");
+    let (status, again) = post(http, &url, &leased_problem()).await;
+    assert_eq!(status, 200, "the open lease is answered: {again}");
+    assert_eq!(again["id"], first["id"]);
+    assert_eq!(again["trajectory"], first["trajectory"]);
+    let other = json!({"start": [0.1, 0.1], "goal": [0.9, 0.2], "client_id": "arm-1"});
+    let (status, refused) = post(http, &url, &other).await;
+    assert_eq!(status, 409, "{refused}");
+}
