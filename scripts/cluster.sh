@@ -37,6 +37,8 @@ start)
         $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null
     fi
     mkdir -p "$dir"
+    # PostgreSQL runs as its own user, which must reach its directory inside this one.
+    chmod 755 "$dir"
     admin="$(scripts/postgres.sh start "$dir/postgres")"
     db="${admin%/*}/precond"
     psql "$admin" -qc "CREATE DATABASE precond" >/dev/null

@@ -48,13 +48,21 @@ start)
         chown postgres: "$dir"
     fi
     port="$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
-    as_owner "$bin/initdb" -D "$dir/data" -U postgres --auth=trust --encoding=UTF8 \
-        --no-locale >"$dir/initdb.log" 2>&1
+    if ! as_owner "$bin/initdb" -D "$dir/data" -U postgres --auth=trust --encoding=UTF8 \
+        --no-locale >"$dir/initdb.log" 2>&1; then
+        echo "initdb failed (the server's user must reach $dir):" >&2
+        cat "$dir/initdb.log" >&2
+        exit 1
+    fi
     as_owner "$bin/pg_ctl" -D "$dir/data" -l "$dir/server.log" -w -t 60 \
         -o "-c listen_addresses=127.0.0.1 -c port=$port -c unix_socket_directories=$dir \
             -c fsync=off -c synchronous_commit=off -c full_page_writes=off \
             -c max_connections=400 -c shared_buffers=128MB" \
-        start >"$dir/pg_ctl.log" 2>&1
+        start >"$dir/pg_ctl.log" 2>&1 || {
+        echo "PostgreSQL did not start:" >&2
+        cat "$dir/pg_ctl.log" "$dir/server.log" >&2 || true
+        exit 1
+    }
     echo "postgres://postgres@127.0.0.1:$port/postgres"
     ;;
 stop)
