@@ -163,8 +163,15 @@ impl FitQueue {
                         Err(e)
                     }
                 };
-                if let Err(e) = fitted {
-                    tracing::error!(experiment = id, error = %e, "background fit failed");
+                match fitted {
+                    Ok(()) => {}
+                    // Nothing to fit, or the claim went to another replica: not a failure.
+                    Err(e @ Error::Conflict(_)) => {
+                        tracing::warn!(experiment = id, error = %e, "background fit not made");
+                    }
+                    Err(e) => {
+                        tracing::error!(experiment = id, error = %e, "background fit failed");
+                    }
                 }
             });
         }

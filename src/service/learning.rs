@@ -213,6 +213,11 @@ impl Service {
             .experiment(id)
             .await?
             .map_or(0, |e| e.n_trajectories);
+        if stored_now == 0 {
+            return Err(Error::Conflict(
+                "nothing to fit: the experiment has no transitions yet".into(),
+            ));
+        }
         self.store.request_fit(id, true).await?;
         let fit = {
             let (live, store, work, fits) = (
