@@ -153,6 +153,10 @@ pub(super) fn provenance_from_row(row: &AnyRow) -> Result<Option<Provenance>, sq
         .transpose()
 }
 
+/// Transitions one INSERT statement writes (8 parameters each: far below SQLite's and
+/// PostgreSQL's limits on parameters per statement).
+const INSERT_ROWS: usize = 256;
+
 const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
 
 impl Store {
@@ -236,23 +240,45 @@ impl Store {
         .bind(meta.source.and_then(|p| p.label.as_deref()))
         .fetch_one(&mut *tx)
         .await?;
-        for (step, t) in transitions.iter().enumerate() {
-            let o = &t.observed;
-            sqlx::query(
+        // Many rows a statement: one round trip per chunk, not per transition (PostgreSQL is
+        // across a network); rows are numbered in the order listed, so ids follow the steps.
+        for (chunk_index, chunk) in transitions.chunks(INSERT_ROWS).enumerate() {
+            let rows: Vec<String> = (0..chunk.len())
+                .map(|r| {
+                    let p = 8 * r;
+                    format!(
+                        "(${}, ${}, ${}, ${}, ${}, ${}, ${}, ${})",
+                        p + 1,
+                        p + 2,
+                        p + 3,
+                        p + 4,
+                        p + 5,
+                        p + 6,
+                        p + 7,
+                        p + 8
+                    )
+                })
+                .collect();
+            let sql = format!(
                 "INSERT INTO transitions
                    (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
-            )
-            .bind(experiment_id)
-            .bind(trajectory_id)
-            .bind(step as i64)
-            .bind(encode_vec(&o.s))
-            .bind(encode_vec(&o.a))
-            .bind(encode_vec(&o.s_next))
-            .bind(encode_vec(&t.s_pred))
-            .bind(t.deviation)
-            .execute(&mut *tx)
-            .await?;
+                 VALUES {}",
+                rows.join(", ")
+            );
+            let mut insert = sqlx::query(&sql);
+            for (k, t) in chunk.iter().enumerate() {
+                let o = &t.observed;
+                insert = insert
+                    .bind(experiment_id)
+                    .bind(trajectory_id)
+                    .bind((chunk_index * INSERT_ROWS + k) as i64)
+                    .bind(encode_vec(&o.s))
+                    .bind(encode_vec(&o.a))
+                    .bind(encode_vec(&o.s_next))
+                    .bind(encode_vec(&t.s_pred))
+                    .bind(t.deviation);
+            }
+            insert.execute(&mut *tx).await?;
         }
         let n_trajectories: i64 =
             sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = $1")

@@ -434,3 +434,35 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
     );
     app.stop().await;
 }
+
+#[tokio::test]
+async fn a_long_trajectory_is_stored_whole_in_its_order() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(json!({"domain": {"kind": "kinematic"}}))
+        .await;
+    // 700 steps (several INSERT statements' worth), each moving 80 % of a distinct action.
+    let transitions: Vec<Value> = (0..700)
+        .map(|k| {
+            let x = 0.1 + 0.001 * k as f64;
+            json!({"s": [x, 0.5], "a": [0.001, 0.0], "s_next": [x + 0.0008, 0.5]})
+        })
+        .collect();
+    let (status, created) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &json!({ "transitions": transitions }),
+        )
+        .await;
+    assert_eq!(status, 201, "{created}");
+    let stored = app.all_transitions(id).await;
+    assert_eq!(stored.len(), 700);
+    let mut last_id = 0;
+    for (k, (t, sent)) in stored.iter().zip(&transitions).enumerate() {
+        assert_eq!(t["step"], k as i64, "ids follow the steps");
+        assert_eq!(t["s"], sent["s"]);
+        assert!(t["id"].as_i64().unwrap() > last_id);
+        last_id = t["id"].as_i64().unwrap();
+    }
+    app.stop().await;
+}
