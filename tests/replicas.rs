@@ -275,6 +275,34 @@ async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
         .iter()
         .position(|r| holder.contains(&format!("-{}-", r.pid())))
         .expect("the claim names one of the replicas");
+    // Each replica's metrics say who fits: the holder "here", the other "elsewhere".
+    let fitting = |base: String, state: &'static str| {
+        let http = http.clone();
+        async move {
+            let text = http
+                .get(format!("{base}/metrics"))
+                .send()
+                .await
+                .unwrap()
+                .text()
+                .await
+                .unwrap();
+            text.lines()
+                .find_map(|l| {
+                    l.strip_prefix(&format!("precond_fit_requests{{state=\"{state}\"}} "))
+                        .map(|v| v.trim().parse::<f64>().unwrap())
+                })
+                .unwrap_or_default()
+        }
+    };
+    assert_eq!(
+        fitting(replicas[victim].base.clone(), "fitting_here").await,
+        1.0
+    );
+    assert_eq!(
+        fitting(replicas[1 - victim].base.clone(), "fitting_elsewhere").await,
+        1.0
+    );
     let survivor = replicas.remove(1 - victim);
     replicas.remove(0).kill9();
     // Nothing was stored by the dead replica; the survivor takes the fit over after the

@@ -110,6 +110,27 @@ pub async fn get_metrics(State(state): State<AppState>) -> ApiResult<Response> {
     metrics::gauge!("precond_store_trajectories").set(size.trajectories as f64);
     metrics::gauge!("precond_store_transitions").set(size.transitions as f64);
     metrics::gauge!("precond_planning_queue_depth").set(state.service.work().queue_depth() as f64);
+    // Fit requests over every replica of the database, and those this replica holds.
+    let jobs = state
+        .service
+        .store()
+        .fit_jobs()
+        .await
+        .map_err(crate::service::Error::from)?;
+    let replica = state.service.fits().replica();
+    let held = |mine: bool| {
+        jobs.iter()
+            .filter(|j| {
+                j.claimed_by
+                    .as_deref()
+                    .is_some_and(|r| (r == replica) == mine)
+            })
+            .count() as f64
+    };
+    let waiting = jobs.iter().filter(|j| j.claimed_by.is_none()).count() as f64;
+    metrics::gauge!("precond_fit_requests", "state" => "waiting").set(waiting);
+    metrics::gauge!("precond_fit_requests", "state" => "fitting_here").set(held(true));
+    metrics::gauge!("precond_fit_requests", "state" => "fitting_elsewhere").set(held(false));
     handle.run_upkeep();
     Ok((
         [(
