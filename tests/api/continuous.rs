@@ -76,8 +76,9 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
         for _ in 0..5 {
             let problem = world.sample_problem(&domain, &mut rng);
             let (status, proposal) = app
-                .post(
-                    &format!("/v1/experiments/{id}/proposals"),
+                .post_at(
+                    id,
+                    "proposals",
                     &json!({"start": problem.start(), "goal": problem.goal()}),
                 )
                 .await;
@@ -94,8 +95,9 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
                 s = next;
             }
             let (status, body) = app
-                .post(
-                    &format!("/v1/experiments/{id}/trajectories"),
+                .post_at(
+                    id,
+                    "trajectories",
                     &json!({"proposal_id": proposal["id"], "transitions": transitions}),
                 )
                 .await;
@@ -129,10 +131,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     }
     assert!(probes.len() >= 20, "{} probes", probes.len());
     let (status, judged) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({ "points": probes }),
-        )
+        .post_at(id, "precondition", &json!({ "points": probes }))
         .await;
     assert_eq!(status, 200, "{judged}");
     let trusted = judged["results"]
@@ -151,8 +150,9 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     for _ in 0..10 {
         let problem = world.sample_problem(&domain, &mut rng);
         let (status, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
+            .post_at(
+                id,
+                "plans",
                 &json!({"start": problem.start(), "goal": problem.goal()}),
             )
             .await;
@@ -220,10 +220,7 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
         }
     }
     let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &json!({ "transitions": transitions }),
-        )
+        .post_at(id, "trajectories", &json!({ "transitions": transitions }))
         .await;
     assert_eq!(status, 201);
     app.wait_for_model(id, 1).await;
@@ -237,10 +234,7 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
     for (start, goal) in problems {
         let problem = Problem::new(&domain, start.to_vec(), goal.to_vec()).unwrap();
         let (_, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": start, "goal": goal}),
-            )
+            .post_at(id, "plans", &json!({"start": start, "goal": goal}))
             .await;
         assert_eq!(plan["found"], true, "{plan}");
         let first = trajectory_of(&plan["trajectory"]);
@@ -254,10 +248,7 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
         let mut closed = ClosedLoop::new(&problem, first, 0.02);
         while let Some(at) = closed.advance(&mut Drift, &domain, &problem) {
             let (_, again) = app
-                .post(
-                    &format!("/v1/experiments/{id}/plans"),
-                    &json!({"start": at, "goal": goal}),
-                )
+                .post_at(id, "plans", &json!({"start": at, "goal": goal}))
                 .await;
             closed.replanned((again["found"] == true).then(|| trajectory_of(&again["trajectory"])));
         }

@@ -30,9 +30,7 @@ fn rows_of_moves(y0: i64, y1: i64) -> Vec<Value> {
 async fn post_all(app: &TestApp, id: i64, trajectories: &[Value]) -> Vec<Value> {
     let mut out = Vec::new();
     for t in trajectories {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), t)
-            .await;
+        let (status, body) = app.post_at(id, "trajectories", t).await;
         assert_eq!(status, 201, "{body}");
         out.push(body);
     }
@@ -179,9 +177,7 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
         .await;
     let trajectories = rows_of_moves(0, 5);
     post_all(&app, id, &trajectories[..5]).await;
-    let (status, refit) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{refit}");
     let (status, t) = app.get(&format!("/v1/experiments/{id}/timeline")).await;
     assert_eq!(status, 200, "{t}");
@@ -236,13 +232,9 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
     assert!(prior["mu"].as_array().unwrap().iter().all(|m| m == 0.0));
     assert!(prior["sigma"].as_array().unwrap().iter().all(|s| s == 1.0));
     post_all(&app, id, &rows_of_moves(0, 3)).await;
-    let (_, v1) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (_, v1) = app.post_at(id, "model/refit", &json!({})).await;
     post_all(&app, id, &rows_of_moves(3, 6)).await;
-    let (_, v2) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (_, v2) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(
         (v1["version"].as_i64(), v2["version"].as_i64()),
         (Some(1), Some(2))
@@ -320,9 +312,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
         "the prior has no labels: {err}"
     );
     post_all(&app, id, &rows_of_moves(0, 4)).await;
-    let (_, model) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (_, model) = app.post_at(id, "model/refit", &json!({})).await;
     let (status, d) = app.get(&format!("{path}?beta=2")).await;
     assert_eq!(status, 200, "{d}");
     assert_eq!(d["method"], "leave_one_out");
@@ -366,10 +356,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
         .map(|t| json!({"s": t["s"], "a": t["a"]}))
         .collect();
     let (_, judged) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({"points": points, "beta": 2.0}),
-        )
+        .post_at(id, "precondition", &json!({"points": points, "beta": 2.0}))
         .await;
     let (mut tp, mut tn) = (0, 0);
     for (t, j) in unseen.iter().zip(judged["results"].as_array().unwrap()) {

@@ -59,10 +59,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         .await;
     for k in 0..2 {
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{exact}/trajectories"),
-                &lattice_trajectory(800, 800 * k),
-            )
+            .post_at(exact, "trajectories", &lattice_trajectory(800, 800 * k))
             .await;
         assert_eq!(status, 201, "{body}");
     }
@@ -78,9 +75,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
             .unwrap()
             .contains("--max-fit-memory-mib")
     );
-    let (status, forced) = app
-        .post(&format!("/v1/experiments/{exact}/model/refit"), &json!({}))
-        .await;
+    let (status, forced) = app.post_at(exact, "model/refit", &json!({})).await;
     assert_eq!(status, 409, "{forced}");
     assert_eq!(forced["error"]["code"], "limit_reached");
     let (_, timeline) = app.get(&format!("/v1/experiments/{exact}/timeline")).await;
@@ -107,10 +102,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         .await;
     for k in 0..2 {
         let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{auto}/trajectories"),
-                &lattice_trajectory(800, 800 * k),
-            )
+            .post_at(auto, "trajectories", &lattice_trajectory(800, 800 * k))
             .await;
         assert_eq!(status, 201);
     }
@@ -125,8 +117,9 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
     assert_eq!(status, 200, "{model}");
     assert_eq!(model["version"], 0);
     let (status, judged) = app
-        .post(
-            &format!("/v1/experiments/{exact}/precondition"),
+        .post_at(
+            exact,
+            "precondition",
             &json!({"points": [{"s": [0.2, 0.2], "a": [0.05, 0.0]}]}),
         )
         .await;
@@ -152,35 +145,26 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         }))
         .await;
     for k in 0..3 {
-        app.post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &lattice_trajectory(40, 40 * k),
-        )
-        .await;
+        app.post_at(id, "trajectories", &lattice_trajectory(40, 40 * k))
+            .await;
     }
     let fitted = model_until(&app, id, |m| m["version"] == 1).await;
     assert_eq!(fitted["estimator"], "sparse");
     assert_eq!(fitted["online_trajectories"], 0);
     let probe = json!({"points": [{"s": [0.7, 0.9], "a": [0.05, 0.0]}], "beta": 0});
-    let (_, before) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, before) = app.post_at(id, "precondition", &probe).await;
     // One more trajectory, where the model is wrong, right at the probe: taken in at once.
     let at_probe = json!({"transitions": [
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
     ]});
-    let (status, _) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &at_probe)
-        .await;
+    let (status, _) = app.post_at(id, "trajectories", &at_probe).await;
     assert_eq!(status, 201);
     let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
     assert_eq!(updated["version"], 1, "no refit: {updated}");
     assert_eq!(updated["online_trajectories"], 1);
     assert_eq!(updated["n_train"], fitted["n_train"].as_i64().unwrap() + 2);
-    let (_, after) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, after) = app.post_at(id, "precondition", &probe).await;
     let mu = |j: &Value| j["results"][0]["mu"].as_f64().unwrap();
     let sigma = |j: &Value| j["results"][0]["sigma"].as_f64().unwrap();
     // The label there is 0.1: μ moves towards it and σ shrinks.
@@ -201,9 +185,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         ),
         (json!(1), json!(1))
     );
-    let (_, again) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, again) = app.post_at(id, "precondition", &probe).await;
     assert!((mu(&again) - mu(&after)).abs() < 1e-9, "{after} vs {again}");
     assert!((sigma(&again) - sigma(&after)).abs() < 1e-9);
     app.stop().await;

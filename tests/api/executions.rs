@@ -106,10 +106,7 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
     for k in 0..5 {
         let x = 0.1 + 0.01 * k as f64;
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}),
-            )
+            .post_at(id, "trajectories", &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}))
             .await;
         assert_eq!(status, 201, "{body}");
     }

@@ -226,20 +226,20 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
             "learning": {"k1": 1e6, "batch_size": 100}}))
         .await;
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
+        .post_at(
+            id,
+            "trajectories",
             &json!({"transitions": [{"s": [0, 0], "a": [1e11, 0], "s_next": [1e11, 5e10]},
                                     {"s": [1e11, 5e10], "a": [-1e11, 1e11], "s_next": [0, 1e11]}]}),
         )
         .await;
     assert_eq!(status, 201, "{body}");
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert!(status == 200 || status == 202, "{status} {body}");
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [9e11, 9e11]}),
         )
         .await;
@@ -273,16 +273,18 @@ async fn control_characters_in_names_and_client_ids_are_refused() {
         .create_experiment(json!({"name": "Bench 2 — arm ü"}))
         .await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "\u{0}\n\r\u{1b}"}),
         )
         .await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
     assert_eq!(err["error"]["details"]["field"], "client_id");
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
         )
         .await;

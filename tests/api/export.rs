@@ -110,10 +110,7 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
         .map(|(s, a)| json!({"s": s, "a": a}))
         .collect();
     let (status, answer) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({"points": body}),
-        )
+        .post_at(id, "precondition", &json!({"points": body}))
         .await;
     assert_eq!(status, 200, "{answer}");
     assert_eq!(answer["model_version"], doc["model_version"]);
@@ -220,8 +217,9 @@ async fn an_exported_exact_gp_answers_as_the_server() {
         .await;
     for k in 0..2 {
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{kinematic}/trajectories"),
+            .post_at(
+                kinematic,
+                "trajectories",
                 &kinematic_trajectory(60, 60 * k, k as u64),
             )
             .await;
@@ -247,9 +245,7 @@ async fn an_exported_exact_gp_answers_as_the_server() {
             }))
             .await;
         for t in gridworld_trajectories() {
-            let (status, body) = app
-                .post(&format!("/v1/experiments/{grid}/trajectories"), &t)
-                .await;
+            let (status, body) = app.post_at(grid, "trajectories", &t).await;
             assert_eq!(status, 201, "{body}");
         }
         app.wait_for_model(grid, 3).await;
@@ -272,8 +268,9 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
             .await;
         for k in 0..2 {
             let (status, body) = app
-                .post(
-                    &format!("/v1/experiments/{id}/trajectories"),
+                .post_at(
+                    id,
+                    "trajectories",
                     &kinematic_trajectory(150, 150 * k, k as u64),
                 )
                 .await;
@@ -286,10 +283,7 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         eprintln!("kinematic, sparse, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
         // One more trajectory is taken in online (no refit): the export follows it.
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &kinematic_trajectory(80, 300, 7),
-            )
+            .post_at(id, "trajectories", &kinematic_trajectory(80, 300, 7))
             .await;
         assert_eq!(status, 201, "{body}");
         let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
@@ -337,10 +331,7 @@ async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
     let (status, body) = app.get(&export("?versio=1")).await;
     assert_eq!(status, 422, "an unknown parameter: {body}");
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &kinematic_trajectory(20, 0, 0),
-        )
+        .post_at(id, "trajectories", &kinematic_trajectory(20, 0, 0))
         .await;
     assert_eq!(status, 201, "{body}");
     app.wait_for_model(id, 1).await;

@@ -212,6 +212,13 @@ impl TestApp {
         (status, r.json().await.unwrap_or(Value::Null))
     }
 
+    /// Posts `body` to `/v1/experiments/{id}/{tail}` (`tail` e.g. `trajectories`, `proposals`,
+    /// `plans`, `precondition`, `model/refit`).
+    pub async fn post_at(&self, id: i64, tail: &str, body: &Value) -> (u16, Value) {
+        self.post(&format!("/v1/experiments/{id}/{tail}"), body)
+            .await
+    }
+
     pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {
         let r = self
             .client

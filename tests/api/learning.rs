@@ -41,8 +41,9 @@ async fn before_any_data_the_prior_answers_and_says_so() {
         (Some(0), Some("prior"))
     );
     let (status, p) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
+        .post_at(
+            id,
+            "precondition",
             &json!({"points": [{"s": [3, 2], "a": [1, 0]}], "beta": 2.0}),
         )
         .await;
@@ -63,9 +64,7 @@ async fn before_any_data_the_prior_answers_and_says_so() {
         p["results"][0]["inside"], true,
         "β = −2 trusts the unexplored prior"
     );
-    let (status, _) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, _) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 409, "nothing to fit yet");
 }
 
@@ -110,9 +109,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         .await;
     let batches = every_transition();
     for t in batches.iter().take(5) {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), t)
-            .await;
+        let (status, body) = app.post_at(id, "trajectories", t).await;
         assert_eq!(status, 201, "{body}");
     }
     let model = app.wait_for_model(id, 5).await;
@@ -150,9 +147,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         assert!((1..=n).contains(&groups), "{t}");
     }
     let points = json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [0, 0], "a": [0, 1]}]});
-    let (_, before) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &points)
-        .await;
+    let (_, before) = app.post_at(id, "precondition", &points).await;
     assert_eq!(before["model_version"], 1);
 
     let app = app.restart().await;
@@ -169,9 +164,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         (lml0 - lml1).abs() <= 1e-9 * lml0.abs(),
         "{lml0} then {lml1}"
     );
-    let (_, after) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &points)
-        .await;
+    let (_, after) = app.post_at(id, "precondition", &points).await;
     for k in 0..2 {
         for f in ["mu", "sigma"] {
             let (b, a) = (
@@ -184,9 +177,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
             );
         }
     }
-    let (status, refit) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{refit}");
     assert_eq!(refit["version"], 2);
     app.stop().await;
@@ -206,20 +197,14 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
         .await;
     // Before any data the conservative test β trusts nothing.
     let problem = json!({"start": [5, 0], "goal": [5, 5]});
-    let (status, plan) = app
-        .post(&format!("/v1/experiments/{id}/plans"), &problem)
-        .await;
+    let (status, plan) = app.post_at(id, "plans", &problem).await;
     assert_eq!(status, 200, "{plan}");
     assert_eq!(plan["found"], false);
     for t in every_transition() {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), &t)
-            .await;
+        let (status, body) = app.post_at(id, "trajectories", &t).await;
         assert_eq!(status, 201, "{body}");
     }
-    let (status, model) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{model}");
     let grid = IcyGridworld::default_layout();
     // Problems that must cross or skirt an ice band. (Crossing the wall's two-cell gap is not
@@ -232,10 +217,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
         ([0, 7], [11, 11]),
     ] {
         let (status, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": start, "goal": goal}),
-            )
+            .post_at(id, "plans", &json!({"start": start, "goal": goal}))
             .await;
         assert_eq!(status, 200, "{plan}");
         assert_eq!(plan["found"], true, "{start:?} → {goal:?}: {plan}");
@@ -372,16 +354,12 @@ async fn proposals_are_leases() {
         .map(|(k, a)| json!({"s": states[k], "a": a, "s_next": states[k + 1]}))
         .collect();
     let body = json!({"proposal_id": pid, "transitions": transitions});
-    let (status, t) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
+    let (status, t) = app.post_at(id, "trajectories", &body).await;
     assert_eq!(status, 201, "{t}");
     assert_eq!(t["proposal_id"], pid);
     let (_, p) = app.get(&format!("{path}/{pid}")).await;
     assert_eq!(p["status"], "executed");
-    let (status, err) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
+    let (status, err) = app.post_at(id, "trajectories", &body).await;
     assert_eq!(
         (status, code(&err)),
         (409, "conflict"),
@@ -493,8 +471,9 @@ async fn no_plan_is_422_with_the_extensions_used() {
         }))
         .await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
         )
         .await;
@@ -502,8 +481,9 @@ async fn no_plan_is_422_with_the_extensions_used() {
     assert_eq!(code(&err), "no_plan");
     assert!(err["error"]["details"]["extensions"].as_u64().unwrap() >= 300);
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.1, 0.5, 0.0], "goal": [0.9, 0.5]}),
         )
         .await;
@@ -534,8 +514,9 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
             .await;
         // A safe move and a bump into the obstacle, far from the problem below.
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
+            .post_at(
+                id,
+                "trajectories",
                 &json!({"transitions": [
                     {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
                     {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}

@@ -54,8 +54,9 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
     // the prior trusts nothing, so the tree cannot grow and the search ends in about the
     // deadline's time; at β = −2, as in the proposal above, it grows a large tree and cannot.)
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/plans"),
+        .post_at(
+            id,
+            "plans",
             &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5], "beta": -2.0}),
         )
         .await;
@@ -80,12 +81,7 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
     tokio::time::sleep(Duration::from_millis(200)).await;
     let waiting = ask("waiting");
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let (status, refused) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
-            &blocked_ask("third"),
-        )
-        .await;
+    let (status, refused) = app.post_at(id, "proposals", &blocked_ask("third")).await;
     assert_eq!((status, code(&refused)), (429, "overloaded"), "{refused}");
     let started = Instant::now();
     for _ in 0..5 {
@@ -132,8 +128,9 @@ async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let started = Instant::now();
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{other}/proposals"),
+        .post_at(
+            other,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "victim"}),
         )
         .await;
@@ -166,15 +163,10 @@ async fn older_model_versions_are_rebuilt_through_the_work_gate() {
         .await;
     for y in 0..2 {
         let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
+            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
             .await;
         assert_eq!(status, 201);
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-            .await;
+        let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
         assert_eq!(status, 200, "{body}");
     }
     let walled = app.create_experiment(walled()).await;
@@ -240,8 +232,9 @@ async fn a_client_that_goes_away_cancels_its_search() {
     // A feasible problem now gets the slot at once.
     let started = Instant::now();
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
         )
         .await;
@@ -286,17 +279,11 @@ async fn the_operator_limits_experiments_and_transitions() {
     let (status, body) = app.post("/v1/experiments", &json!({})).await;
     assert_eq!((status, code(&body)), (409, "limit_reached"), "{body}");
     let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 3),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 3))
         .await;
     assert_eq!(status, 201);
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 4),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 4))
         .await;
     assert_eq!(status, 422);
     assert_eq!(body["error"]["details"]["field"], "transitions");
@@ -306,11 +293,8 @@ async fn the_operator_limits_experiments_and_transitions() {
 async fn metrics_and_request_ids_are_exposed() {
     let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
-    app.post(
-        &format!("/v1/experiments/{id}/trajectories"),
-        &free_row_trajectory(0, 0, 2),
-    )
-    .await;
+    app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
+        .await;
     let r = app.client.get(app.url("/metrics")).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     assert!(
@@ -371,16 +355,11 @@ async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_t
             })
             .collect();
         let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"transitions": transitions}),
-            )
+            .post_at(id, "trajectories", &json!({"transitions": transitions}))
             .await;
         assert_eq!(status, 201, "{body}");
     }
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 202, "{body}");
     assert_eq!(body["version"], 0, "the version still answering: {body}");
     // The fit goes on and is swapped in.

@@ -51,9 +51,7 @@ async fn an_answer_longer_or_wider_than_asked_is_refused_while_it_is_parsed() {
         let id = app
             .create_experiment(plane(&server.url(endpoint), 5000))
             .await;
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-            .await;
+        let (status, body) = app.post_at(id, "trajectories", &step()).await;
         assert_eq!((status, code(&body)), (502, "model_unavailable"), "{body}");
         let reason = body["error"]["details"]["reason"].as_str().unwrap();
         assert!(reason.contains(why), "{endpoint}: {reason}");
@@ -96,8 +94,9 @@ async fn a_hung_model_holds_only_its_own_calls_for_at_most_the_operators_timeout
     tokio::time::sleep(Duration::from_millis(200)).await;
     let asked = Instant::now();
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{local}/trajectories"),
+        .post_at(
+            local,
+            "trajectories",
             &json!({"transitions": [{"s": [0.1, 0.1], "a": [0.05, 0], "s_next": [0.15, 0.1]}]}),
         )
         .await;
@@ -143,9 +142,7 @@ async fn a_search_waits_for_a_hung_model_no_longer_than_its_budget() {
         .await;
     let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "client_id": "r"});
     let started = Instant::now();
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{hung}/proposals"), &ask)
-        .await;
+    let (status, body) = app.post_at(hung, "proposals", &ask).await;
     assert_eq!((status, code(&body)), (503, "deadline_exceeded"), "{body}");
     assert!(
         started.elapsed() < Duration::from_secs(3),
@@ -167,8 +164,9 @@ async fn a_search_waits_for_a_hung_model_no_longer_than_its_budget() {
     assert!(gone.unwrap_err().is_timeout());
     let started = Instant::now();
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{local}/proposals"),
+        .post_at(
+            local,
+            "proposals",
             &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
         )
         .await;
@@ -194,16 +192,12 @@ async fn a_revoked_model_url_is_refused_at_every_call() {
     let id = allowed
         .create_experiment(plane(&server.url("predict"), 2000))
         .await;
-    let (status, _) = allowed
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
+    let (status, _) = allowed.post_at(id, "trajectories", &step()).await;
     assert_eq!(status, 201);
     let calls = server.counts.calls.load(Ordering::Relaxed);
     // Restarted without --allow-model-url.
     let revoked = allowed.restart().await;
-    let (status, body) = revoked
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
+    let (status, body) = revoked.post_at(id, "trajectories", &step()).await;
     assert_eq!((status, code(&body)), (409, "model_not_allowed"), "{body}");
     assert_eq!(body["error"]["details"]["model"], server.url("predict"));
     assert!(
@@ -250,9 +244,7 @@ async fn model_urls_are_stored_as_checked_and_ambiguous_ones_refused() {
     assert_eq!(status, 201, "{body}");
     assert_eq!(body["domain"]["model"]["url"], server.url("predict"));
     let id = body["id"].as_i64().unwrap();
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
+    let (status, body) = app.post_at(id, "trajectories", &step()).await;
     assert_eq!(status, 201, "{body}");
     for url in [
         format!("http://127.0.0.1:{port}/pre dict"),

@@ -13,9 +13,7 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
         {"s": [2, 2], "a": [0, 1], "s_next": [2, 3]},
         {"s": [2, 3], "a": [0, 1], "s_next": [2, 4]}
     ]});
-    let (status, created) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
+    let (status, created) = app.post_at(id, "trajectories", &body).await;
     assert_eq!(status, 201, "{created}");
     assert_eq!(created["deviations"], json!([2.0, 0.0, 0.0]));
     assert_eq!(created["n_transitions"], 3);
@@ -23,10 +21,7 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
     let tid = created["id"].as_i64().unwrap();
     for k in 0..5 {
         let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, 0, 1 + k),
-            )
+            .post_at(id, "trajectories", &free_row_trajectory(0, 0, 1 + k))
             .await;
         assert_eq!(status, 201);
     }
@@ -190,10 +185,7 @@ async fn an_oversized_body_is_413() {
     .await;
     let id = app.create_experiment(json!({})).await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 100),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 100))
         .await;
     assert_eq!(status, 413, "{err}");
     assert_eq!(code(&err), "payload_too_large");
@@ -204,11 +196,8 @@ async fn an_oversized_body_is_413() {
 async fn transitions_come_as_csv_when_asked() {
     let (_dir, app) = fresh_app().await;
     let id = app.create_experiment(json!({})).await;
-    app.post(
-        &format!("/v1/experiments/{id}/trajectories"),
-        &free_row_trajectory(0, 0, 2),
-    )
-    .await;
+    app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
+        .await;
     let r = app
         .client
         .get(app.url(&format!("/v1/experiments/{id}/transitions")))
@@ -305,10 +294,7 @@ async fn an_online_backup_is_a_consistent_copy() {
     let id = app.create_experiment(json!({})).await;
     for y in 0..3 {
         let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
+            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
             .await;
         assert_eq!(status, 201);
     }
@@ -320,10 +306,7 @@ async fn an_online_backup_is_a_consistent_copy() {
     live.backup_to(copy.to_str().unwrap()).await.unwrap();
     live.close().await;
     let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 3, 4),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 3, 4))
         .await;
     assert_eq!(status, 201, "the server keeps writing");
     let backup = precond::store::Store::open(copy.to_str().unwrap())
@@ -350,10 +333,7 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
     let id = app.create_experiment(json!({})).await;
     for y in 0..2 {
         let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
+            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
             .await;
         assert_eq!(status, 201);
     }
