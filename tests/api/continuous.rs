@@ -94,14 +94,11 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
                 executed.push((s.clone(), a.clone()));
                 s = next;
             }
-            let (status, body) = app
-                .post_at(
-                    id,
-                    "trajectories",
-                    &json!({"proposal_id": proposal["id"], "transitions": transitions}),
-                )
-                .await;
-            assert_eq!(status, 201, "{body}");
+            app.store_trajectory(
+                id,
+                &json!({"proposal_id": proposal["id"], "transitions": transitions}),
+            )
+            .await;
             posted += 1;
         }
         app.wait_for_model(id, posted - posted % 5).await;
@@ -219,10 +216,8 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
             }
         }
     }
-    let (status, _) = app
-        .post_at(id, "trajectories", &json!({ "transitions": transitions }))
+    app.store_trajectory(id, &json!({ "transitions": transitions }))
         .await;
-    assert_eq!(status, 201);
     app.wait_for_model(id, 1).await;
     let domain = square();
     let (mut open_hits, mut closed_hits) = (0, 0);

@@ -61,8 +61,7 @@ async fn a_remote_model_labels_every_transition_in_one_call_with_the_declared_di
         .iter()
         .map(|(s, a, n)| json!({"s": s, "a": a, "s_next": n}))
         .collect::<Vec<_>>()});
-    let (status, created) = app.post_at(id, "trajectories", &body).await;
-    assert_eq!(status, 201, "{created}");
+    let created = app.store_trajectory(id, &body).await;
     assert_eq!(server.counts.calls.load(Ordering::Relaxed), 1);
     assert_eq!(server.counts.points.load(Ordering::Relaxed), 3);
     let stored = app.all_transitions(id).await;
@@ -151,13 +150,7 @@ async fn model_urls_are_allowed_only_under_the_operators_prefixes() {
         .await;
     assert_eq!(status, 422, "{body}");
     assert_eq!(body["error"]["details"]["field"], "domain.model.url");
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("--allow-model-url"),
-        "{body}"
-    );
+    assert!(reason(&body).contains("--allow-model-url"), "{body}");
 }
 
 #[tokio::test]
@@ -222,12 +215,7 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         .await;
     assert_eq!(status, 422, "{body}");
     assert_eq!(body["error"]["details"]["field"], "domain");
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("`url`")
-    );
+    assert!(reason(&body).contains("`url`"));
     let (_, list) = app.get("/v1/experiments").await;
     assert_eq!(list["items"].as_array().unwrap().len(), 0);
 }
@@ -459,14 +447,11 @@ async fn learn_then_plan(
         }
         assert_eq!(status, 201, "{p}");
         let (transitions, _) = execute(&p["trajectory"]["states"], &p["trajectory"]["actions"]);
-        let (status, body) = app
-            .post_at(
-                id,
-                "trajectories",
-                &json!({"proposal_id": p["id"], "transitions": transitions}),
-            )
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"proposal_id": p["id"], "transitions": transitions}),
+        )
+        .await;
         // The paper's loop: the next proposal waits for the fit on the finished batch, so the
         // run does not depend on how fast the background fit is.
         executed += 1;

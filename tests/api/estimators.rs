@@ -3,7 +3,7 @@
 //! `auto` hands such a fit to the sparse GP; the sparse GP takes each posted trajectory in at
 //! once and again after a restart.
 
-use super::helpers::{spawn_app_with_limits, temp_db};
+use super::helpers::{fresh_app_with_limits, spawn_app_with_limits};
 use precond::service::Limits;
 use serde_json::{Value, json};
 
@@ -47,8 +47,7 @@ async fn model_until(
 
 #[tokio::test]
 async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, small_budget()).await;
+    let (_dir, app) = fresh_app_with_limits(small_budget()).await;
     // The exact GP on 1600 transitions needs about 100 MB at its peak: beyond 64 MiB.
     let exact = app
         .create_experiment(json!({
@@ -58,10 +57,8 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        let (status, body) = app
-            .post_at(exact, "trajectories", &lattice_trajectory(800, 800 * k))
+        app.store_trajectory(exact, &lattice_trajectory(800, 800 * k))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
     let model = model_until(&app, exact, |m| !m["last_fit_refusal"].is_null()).await;
     assert_eq!(model["version"], 0, "the prior keeps answering: {model}");
@@ -101,10 +98,8 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        let (status, _) = app
-            .post_at(auto, "trajectories", &lattice_trajectory(800, 800 * k))
+        app.store_trajectory(auto, &lattice_trajectory(800, 800 * k))
             .await;
-        assert_eq!(status, 201);
     }
     let model = model_until(&app, auto, |m| m["version"] == 1).await;
     assert_eq!(model["estimator"], "sparse", "{model}");
@@ -134,8 +129,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
 
 #[tokio::test]
 async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restart() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, Limits::default()).await;
+    let (_dir, app) = fresh_app_with_limits(Limits::default()).await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},
@@ -158,8 +152,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
     ]});
-    let (status, _) = app.post_at(id, "trajectories", &at_probe).await;
-    assert_eq!(status, 201);
+    app.store_trajectory(id, &at_probe).await;
     let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
     assert_eq!(updated["version"], 1, "no refit: {updated}");
     assert_eq!(updated["online_trajectories"], 1);

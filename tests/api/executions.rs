@@ -105,10 +105,11 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
     // iteration 1.
     for k in 0..5 {
         let x = 0.1 + 0.01 * k as f64;
-        let (status, body) = app
-            .post_at(id, "trajectories", &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}))
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}),
+        )
+        .await;
     }
     app.wait_for_model(id, 5).await;
     let (status, err) = app
@@ -428,13 +429,7 @@ async fn a_trajectorys_source_is_stored_shown_and_checked() {
     unknown["source"] = json!({"dataset": "d", "episodes": 2});
     let (status, err) = app.post(&path, &unknown).await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
-    assert!(
-        err["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("episodes"),
-        "{err}"
-    );
+    assert!(message(&err).contains("episodes"), "{err}");
     let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
     assert_eq!(
         e["n_trajectories"], 3,

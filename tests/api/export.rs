@@ -5,7 +5,7 @@
 //! (after online updates too); the prior is refused with `409`, a bad `version` with `422`, a
 //! missing one with `404`.
 
-use super::helpers::{TestApp, code, fresh_app};
+use super::helpers::{TestApp, code, fresh_app, message};
 use precond::gp::GpPredictor;
 use precond::mde::ExportedModel;
 use rand::{Rng, SeedableRng};
@@ -216,14 +216,8 @@ async fn an_exported_exact_gp_answers_as_the_server() {
         }))
         .await;
     for k in 0..2 {
-        let (status, body) = app
-            .post_at(
-                kinematic,
-                "trajectories",
-                &kinematic_trajectory(60, 60 * k, k as u64),
-            )
+        app.store_trajectory(kinematic, &kinematic_trajectory(60, 60 * k, k as u64))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
     let fitted = app.wait_for_model(kinematic, 2).await;
     assert_eq!(fitted["estimator"], "exact", "{fitted}");
@@ -245,8 +239,7 @@ async fn an_exported_exact_gp_answers_as_the_server() {
             }))
             .await;
         for t in gridworld_trajectories() {
-            let (status, body) = app.post_at(grid, "trajectories", &t).await;
-            assert_eq!(status, 201, "{body}");
+            app.store_trajectory(grid, &t).await;
         }
         app.wait_for_model(grid, 3).await;
         let (_, mu, sigma) = parity(&app, grid, true, 2).await;
@@ -267,14 +260,8 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
             }))
             .await;
         for k in 0..2 {
-            let (status, body) = app
-                .post_at(
-                    id,
-                    "trajectories",
-                    &kinematic_trajectory(150, 150 * k, k as u64),
-                )
+            app.store_trajectory(id, &kinematic_trajectory(150, 150 * k, k as u64))
                 .await;
-            assert_eq!(status, 201, "{body}");
         }
         let fitted = app.wait_for_model(id, 2).await;
         assert_eq!(fitted["estimator"], "sparse", "{fitted}");
@@ -282,10 +269,8 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         assert_eq!(model.predictor.main.points.len(), 32);
         eprintln!("kinematic, sparse, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
         // One more trajectory is taken in online (no refit): the export follows it.
-        let (status, body) = app
-            .post_at(id, "trajectories", &kinematic_trajectory(80, 300, 7))
+        app.store_trajectory(id, &kinematic_trajectory(80, 300, 7))
             .await;
-        assert_eq!(status, 201, "{body}");
         let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
         assert_eq!(updated["online_trajectories"], 1, "{updated}");
         let (model, mu, sigma) = parity(&app, id, false, 4).await;
@@ -307,13 +292,7 @@ async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
     let export = |q: &str| format!("/v1/experiments/{id}/model/export{q}");
     let (status, body) = app.get(&export("")).await;
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("is the prior"),
-        "{body}"
-    );
+    assert!(message(&body).contains("is the prior"), "{body}");
     let (status, body) = app.get(&export("?version=0")).await;
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
     let (status, body) = app.get(&export("?version=-1")).await;
@@ -321,19 +300,11 @@ async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
     assert_eq!(body["error"]["details"]["field"], "version", "{body}");
     let (status, body) = app.get(&export("?version=one")).await;
     assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("version"),
-        "{body}"
-    );
+    assert!(message(&body).contains("version"), "{body}");
     let (status, body) = app.get(&export("?versio=1")).await;
     assert_eq!(status, 422, "an unknown parameter: {body}");
-    let (status, body) = app
-        .post_at(id, "trajectories", &kinematic_trajectory(20, 0, 0))
+    app.store_trajectory(id, &kinematic_trajectory(20, 0, 0))
         .await;
-    assert_eq!(status, 201, "{body}");
     app.wait_for_model(id, 1).await;
     let (status, body) = app.get(&export("?version=1")).await;
     assert_eq!(status, 200, "{body}");

@@ -85,6 +85,19 @@ pub async fn fresh_app() -> (tempfile::TempDir, TestApp) {
     (dir, spawn_app(&db).await)
 }
 
+/// A server with HTTP settings on a new database; the dir lives as long as the returned guard.
+pub async fn fresh_app_with(config: HttpConfig) -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    (dir, spawn_app_with(&db, config).await)
+}
+
+/// A server under the operator's `limits` on a new database; the dir lives as long as the
+/// returned guard.
+pub async fn fresh_app_with_limits(limits: Limits) -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    (dir, spawn_app_with_limits(&db, limits).await)
+}
+
 /// Starts a server on the database file at `db_path` (bind first, then spawn: no sleeps).
 pub async fn spawn_app(db_path: &Path) -> TestApp {
     spawn_app_with(db_path, HttpConfig::default()).await
@@ -219,6 +232,14 @@ impl TestApp {
             .await
     }
 
+    /// Posts a trajectory to experiment `id`, asserting that it is stored (201), and returns
+    /// the answer.
+    pub async fn store_trajectory(&self, id: i64, trajectory: &Value) -> Value {
+        let (status, body) = self.post_at(id, "trajectories", trajectory).await;
+        assert_eq!(status, 201, "{body}");
+        body
+    }
+
     pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {
         let r = self
             .client
@@ -299,4 +320,45 @@ pub fn free_row_trajectory(x0: i64, y: i64, n: i64) -> Value {
 /// The error code of an error body.
 pub fn code(body: &Value) -> &str {
     body["error"]["code"].as_str().unwrap_or("<none>")
+}
+
+/// The message of an error body (panics without one).
+pub fn message(body: &Value) -> &str {
+    body["error"]["message"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no error message in {body}"))
+}
+
+/// The `details.reason` of an error body (panics without one).
+pub fn reason(body: &Value) -> &str {
+    body["error"]["details"]["reason"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no details.reason in {body}"))
+}
+
+/// Every move from every open cell of the default gridworld's rows `rows` (all of them:
+/// `0..12`), executed in the true world, as trajectories of at most `per_trajectory`
+/// transitions.
+pub fn gridworld_moves(rows: std::ops::Range<i64>, per_trajectory: usize) -> Vec<Value> {
+    use precond::domain::{Cell, IcyGridworld, MOVES};
+    use precond::sim::Simulated;
+    let grid = IcyGridworld::default_layout();
+    let mut world = grid.world();
+    let mut transitions = Vec::new();
+    for y in rows {
+        for x in 0..grid.width() as i64 {
+            if grid.cell(x, y) == Some(Cell::Obstacle) {
+                continue;
+            }
+            for m in MOVES {
+                let s = [x as f64, y as f64];
+                let next = world.step(&s, &m);
+                transitions.push(json!({"s": s, "a": m, "s_next": next}));
+            }
+        }
+    }
+    transitions
+        .chunks(per_trajectory)
+        .map(|c| json!({"transitions": c}))
+        .collect()
 }

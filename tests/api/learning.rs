@@ -1,34 +1,9 @@
 //! The MDE, precondition queries, proposals with leases, and test-time plans.
 
 use crate::helpers::*;
-use precond::domain::{Cell, IcyGridworld, LocalModel, MOVES};
+use precond::domain::{Cell, IcyGridworld, LocalModel};
 use precond::sim::Simulated;
 use serde_json::{Value, json};
-
-/// Polls `/model` (bounded) until it covers `n_trajectories` trajectories.
-/// Every (cell, move) of the default gridworld, executed in the true world, as trajectories of
-/// at most 48 transitions.
-fn every_transition() -> Vec<Value> {
-    let grid = IcyGridworld::default_layout();
-    let mut world = grid.world();
-    let mut transitions = Vec::new();
-    for y in 0..grid.height() as i64 {
-        for x in 0..grid.width() as i64 {
-            if grid.cell(x, y) == Some(Cell::Obstacle) {
-                continue;
-            }
-            for m in MOVES {
-                let s = [x as f64, y as f64];
-                let next = world.step(&s, &m);
-                transitions.push(json!({"s": s, "a": m, "s_next": next}));
-            }
-        }
-    }
-    transitions
-        .chunks(48)
-        .map(|c| json!({"transitions": c}))
-        .collect()
-}
 
 #[tokio::test]
 async fn before_any_data_the_prior_answers_and_says_so() {
@@ -107,10 +82,9 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
     let id = app
         .create_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}}))
         .await;
-    let batches = every_transition();
+    let batches = gridworld_moves(0..12, 48);
     for t in batches.iter().take(5) {
-        let (status, body) = app.post_at(id, "trajectories", t).await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(id, t).await;
     }
     let model = app.wait_for_model(id, 5).await;
     assert_eq!(model["version"], 1);
@@ -200,9 +174,8 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
     let (status, plan) = app.post_at(id, "plans", &problem).await;
     assert_eq!(status, 200, "{plan}");
     assert_eq!(plan["found"], false);
-    for t in every_transition() {
-        let (status, body) = app.post_at(id, "trajectories", &t).await;
-        assert_eq!(status, 201, "{body}");
+    for t in gridworld_moves(0..12, 48) {
+        app.store_trajectory(id, &t).await;
     }
     let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{model}");
@@ -354,8 +327,7 @@ async fn proposals_are_leases() {
         .map(|(k, a)| json!({"s": states[k], "a": a, "s_next": states[k + 1]}))
         .collect();
     let body = json!({"proposal_id": pid, "transitions": transitions});
-    let (status, t) = app.post_at(id, "trajectories", &body).await;
-    assert_eq!(status, 201, "{t}");
+    let t = app.store_trajectory(id, &body).await;
     assert_eq!(t["proposal_id"], pid);
     let (_, p) = app.get(&format!("{path}/{pid}")).await;
     assert_eq!(p["status"], "executed");
@@ -513,17 +485,14 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
             }))
             .await;
         // A safe move and a bump into the obstacle, far from the problem below.
-        let (status, body) = app
-            .post_at(
-                id,
-                "trajectories",
-                &json!({"transitions": [
-                    {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
-                    {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}
-                ]}),
-            )
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"transitions": [
+                {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
+                {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}
+            ]}),
+        )
+        .await;
         app.wait_for_model(id, 1).await;
         ids.push(id);
     }

@@ -31,8 +31,7 @@ fn limits(slots: usize, queue: usize, timeout_ms: u64) -> Limits {
 
 #[tokio::test]
 async fn a_search_past_its_deadline_is_503_with_retry_after() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, limits(2, 4, 300)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(2, 4, 300)).await;
     let id = app.create_experiment(walled()).await;
     let started = Instant::now();
     let r = app
@@ -65,8 +64,7 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
 
 #[tokio::test]
 async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, limits(1, 1, 1500)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 1, 1500)).await;
     let id = app.create_experiment(walled()).await;
     let url = app.url(&format!("/v1/experiments/{id}/proposals"));
     let ask = |c: &'static str| {
@@ -99,14 +97,10 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
 /// every slot nor the whole queue: another experiment's small proposal is answered at once.
 #[tokio::test]
 async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(
-        &db,
-        Limits {
-            max_plans_per_experiment: 1,
-            ..limits(2, 4, 3000)
-        },
-    )
+    let (_dir, app) = fresh_app_with_limits(Limits {
+        max_plans_per_experiment: 1,
+        ..limits(2, 4, 3000)
+    })
     .await;
     let flooded = app.create_experiment(walled()).await;
     let other = app.create_experiment(json!({})).await;
@@ -154,18 +148,15 @@ async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
 /// gate like a search; the current version and the prior need none.
 #[tokio::test]
 async fn older_model_versions_are_rebuilt_through_the_work_gate() {
-    let (_dir, db) = temp_db();
     // One slot, no queue: while a search holds the slot, a rebuild is refused at once.
-    let app = spawn_app_with_limits(&db, limits(1, 0, 1500)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 0, 1500)).await;
     let id = app
         .create_experiment(json!({"mde": {"restarts": 0, "noise": "homoscedastic"},
                                   "learning": {"batch_size": 1000}}))
         .await;
     for y in 0..2 {
-        let (status, _) = app
-            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
             .await;
-        assert_eq!(status, 201);
         let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
         assert_eq!(status, 200, "{body}");
     }
@@ -200,9 +191,8 @@ async fn older_model_versions_are_rebuilt_through_the_work_gate() {
 
 #[tokio::test]
 async fn a_client_that_goes_away_cancels_its_search() {
-    let (_dir, db) = temp_db();
     // One slot and a long deadline: only cancellation can free the slot quickly.
-    let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
     let cancelled_before = cancelled_proposals(&app).await;
     let impatient = reqwest::Client::builder()
@@ -264,24 +254,18 @@ async fn cancelled_proposals(app: &TestApp) -> u64 {
 
 #[tokio::test]
 async fn the_operator_limits_experiments_and_transitions() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(
-        &db,
-        Limits {
-            max_experiments: 2,
-            max_transitions: 3,
-            ..Limits::default()
-        },
-    )
+    let (_dir, app) = fresh_app_with_limits(Limits {
+        max_experiments: 2,
+        max_transitions: 3,
+        ..Limits::default()
+    })
     .await;
     let id = app.create_experiment(json!({})).await;
     app.create_experiment(json!({})).await;
     let (status, body) = app.post("/v1/experiments", &json!({})).await;
     assert_eq!((status, code(&body)), (409, "limit_reached"), "{body}");
-    let (status, _) = app
-        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 3))
+    app.store_trajectory(id, &free_row_trajectory(0, 0, 3))
         .await;
-    assert_eq!(status, 201);
     let (status, body) = app
         .post_at(id, "trajectories", &free_row_trajectory(0, 0, 4))
         .await;
@@ -329,10 +313,9 @@ async fn metrics_and_request_ids_are_exposed() {
 
 #[tokio::test]
 async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_the_background() {
-    let (_dir, db) = temp_db();
     // 100 ms, the shortest deadline an operator may set, and a batch far larger than the data,
     // so only the forced refit fits.
-    let app = spawn_app_with_limits(&db, limits(2, 4, 100)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(2, 4, 100)).await;
     let id = app
         .create_experiment(json!({"domain": {"kind": "kinematic"},
                                   "mde": {"restarts": 20},
@@ -354,10 +337,8 @@ async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_t
                 json!({"s": s, "a": a, "s_next": [s[0] + a[0], s[1] + a[1]]})
             })
             .collect();
-        let (status, body) = app
-            .post_at(id, "trajectories", &json!({"transitions": transitions}))
+        app.store_trajectory(id, &json!({"transitions": transitions}))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
     let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 202, "{body}");

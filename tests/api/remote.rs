@@ -53,7 +53,7 @@ async fn an_answer_longer_or_wider_than_asked_is_refused_while_it_is_parsed() {
             .await;
         let (status, body) = app.post_at(id, "trajectories", &step()).await;
         assert_eq!((status, code(&body)), (502, "model_unavailable"), "{body}");
-        let reason = body["error"]["details"]["reason"].as_str().unwrap();
+        let reason = reason(&body);
         assert!(reason.contains(why), "{endpoint}: {reason}");
     }
 }
@@ -93,14 +93,11 @@ async fn a_hung_model_holds_only_its_own_calls_for_at_most_the_operators_timeout
         .collect();
     tokio::time::sleep(Duration::from_millis(200)).await;
     let asked = Instant::now();
-    let (status, body) = app
-        .post_at(
-            local,
-            "trajectories",
-            &json!({"transitions": [{"s": [0.1, 0.1], "a": [0.05, 0], "s_next": [0.15, 0.1]}]}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
+    app.store_trajectory(
+        local,
+        &json!({"transitions": [{"s": [0.1, 0.1], "a": [0.05, 0], "s_next": [0.15, 0.1]}]}),
+    )
+    .await;
     assert!(
         asked.elapsed() < Duration::from_millis(500),
         "{:?}",
@@ -192,20 +189,14 @@ async fn a_revoked_model_url_is_refused_at_every_call() {
     let id = allowed
         .create_experiment(plane(&server.url("predict"), 2000))
         .await;
-    let (status, _) = allowed.post_at(id, "trajectories", &step()).await;
-    assert_eq!(status, 201);
+    allowed.store_trajectory(id, &step()).await;
     let calls = server.counts.calls.load(Ordering::Relaxed);
     // Restarted without --allow-model-url.
     let revoked = allowed.restart().await;
     let (status, body) = revoked.post_at(id, "trajectories", &step()).await;
     assert_eq!((status, code(&body)), (409, "model_not_allowed"), "{body}");
     assert_eq!(body["error"]["details"]["model"], server.url("predict"));
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("--allow-model-url")
-    );
+    assert!(reason(&body).contains("--allow-model-url"));
     for (path, ask) in [
         (
             "proposals",
@@ -244,8 +235,7 @@ async fn model_urls_are_stored_as_checked_and_ambiguous_ones_refused() {
     assert_eq!(status, 201, "{body}");
     assert_eq!(body["domain"]["model"]["url"], server.url("predict"));
     let id = body["id"].as_i64().unwrap();
-    let (status, body) = app.post_at(id, "trajectories", &step()).await;
-    assert_eq!(status, 201, "{body}");
+    app.store_trajectory(id, &step()).await;
     for url in [
         format!("http://127.0.0.1:{port}/pre dict"),
         format!("http://127.0.0.1:{port}/predict\r\nX-Injected: 1"),

@@ -13,17 +13,14 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
         {"s": [2, 2], "a": [0, 1], "s_next": [2, 3]},
         {"s": [2, 3], "a": [0, 1], "s_next": [2, 4]}
     ]});
-    let (status, created) = app.post_at(id, "trajectories", &body).await;
-    assert_eq!(status, 201, "{created}");
+    let created = app.store_trajectory(id, &body).await;
     assert_eq!(created["deviations"], json!([2.0, 0.0, 0.0]));
     assert_eq!(created["n_transitions"], 3);
     assert_eq!(created["iteration"], 0);
     let tid = created["id"].as_i64().unwrap();
     for k in 0..5 {
-        let (status, _) = app
-            .post_at(id, "trajectories", &free_row_trajectory(0, 0, 1 + k))
+        app.store_trajectory(id, &free_row_trajectory(0, 0, 1 + k))
             .await;
-        assert_eq!(status, 201);
     }
     let before = app.all_transitions(id).await;
     assert_eq!(before.len(), 3 + 1 + 2 + 3 + 4 + 5);
@@ -139,12 +136,7 @@ async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
         assert_eq!(status, 422, "{body} -> {err}");
         assert_eq!(code(&err), "validation_failed");
         assert_eq!(err["error"]["details"]["field"], field, "{body}");
-        assert!(
-            !err["error"]["details"]["reason"]
-                .as_str()
-                .unwrap()
-                .is_empty()
-        );
+        assert!(!reason(&err).is_empty());
     }
     // Numbers JSON cannot hold as a finite f64 are refused too.
     let (status, err) = app
@@ -174,14 +166,10 @@ async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
 
 #[tokio::test]
 async fn an_oversized_body_is_413() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with(
-        &db,
-        HttpConfig {
-            max_body_bytes: 2048,
-            ..HttpConfig::default()
-        },
-    )
+    let (_dir, app) = fresh_app_with(HttpConfig {
+        max_body_bytes: 2048,
+        ..HttpConfig::default()
+    })
     .await;
     let id = app.create_experiment(json!({})).await;
     let (status, err) = app
@@ -293,10 +281,8 @@ async fn an_online_backup_is_a_consistent_copy() {
     let app = spawn_app(&db).await;
     let id = app.create_experiment(json!({})).await;
     for y in 0..3 {
-        let (status, _) = app
-            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
             .await;
-        assert_eq!(status, 201);
     }
     // While the server is serving.
     let live = precond::store::Store::open(db.to_str().unwrap())
@@ -332,10 +318,8 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
     let app = spawn_app(&db).await;
     let id = app.create_experiment(json!({})).await;
     for y in 0..2 {
-        let (status, _) = app
-            .post_at(id, "trajectories", &free_row_trajectory(0, y, 4))
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
             .await;
-        assert_eq!(status, 201);
     }
     let out = dir.path().join("out");
     std::fs::create_dir(&out).unwrap();
