@@ -603,28 +603,21 @@ export async function mapPage(root, params, id) {
   const legend = h('div');
   const fixed = h('div', { class: 'controls' });
   const opt = (v, sel) => h('option', { value: v, selected: v === sel }, v);
-  const xSel = h(
-    'select',
-    {
-      id: 'map-x',
-      onchange: ev => {
-        state.x = ev.target.value;
-        load();
+  // The choice of one axis (`x` or `y`) among the components; a change reloads the map.
+  const axisSel = axis =>
+    h(
+      'select',
+      {
+        id: `map-${axis}`,
+        onchange: ev => {
+          state[axis] = ev.target.value;
+          load();
+        },
       },
-    },
-    comps.map(c => opt(c.name, state.x)),
-  );
-  const ySel = h(
-    'select',
-    {
-      id: 'map-y',
-      onchange: ev => {
-        state.y = ev.target.value;
-        load();
-      },
-    },
-    comps.map(c => opt(c.name, state.y)),
-  );
+      comps.map(c => opt(c.name, state[axis])),
+    );
+  const xSel = axisSel('x');
+  const ySel = axisSel('y');
   const betaOut = h('output', {}, fmt(state.beta));
   const betaIn = h('input', {
     type: 'range',
