@@ -208,21 +208,11 @@ impl TestApp {
     }
 
     pub async fn get(&self, path: &str) -> (u16, Value) {
-        let r = self.client.get(self.url(path)).send().await.unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+        answer(self.client.get(self.url(path))).await
     }
 
     pub async fn post(&self, path: &str, body: &Value) -> (u16, Value) {
-        let r = self
-            .client
-            .post(self.url(path))
-            .json(body)
-            .send()
-            .await
-            .unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+        answer(self.client.post(self.url(path)).json(body)).await
     }
 
     /// Posts `body` to `/v1/experiments/{id}/{tail}` (`tail` e.g. `trajectories`, `proposals`,
@@ -241,16 +231,12 @@ impl TestApp {
     }
 
     pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {
-        let r = self
+        let request = self
             .client
             .post(self.url(path))
             .header("content-type", "application/json")
-            .body(body)
-            .send()
-            .await
-            .unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+            .body(body);
+        answer(request).await
     }
 
     /// Posts `body` to `path` from a client that gives up 300 ms in, as a robot that went
@@ -280,24 +266,17 @@ impl TestApp {
         body["id"].as_i64().unwrap()
     }
 
-    /// All transitions of an experiment, following the cursor.
+    /// All transitions of an experiment, following the cursor through pages of 7.
     pub async fn all_transitions(&self, id: i64) -> Vec<Value> {
-        let mut out = Vec::new();
-        let mut after = 0;
-        loop {
-            let (status, page) = self
-                .get(&format!(
-                    "/v1/experiments/{id}/transitions?after={after}&limit=7"
-                ))
-                .await;
-            assert_eq!(status, 200, "{page}");
-            out.extend(page["items"].as_array().unwrap().iter().cloned());
-            match page["next"].as_i64() {
-                Some(next) => after = next,
-                None => return out,
-            }
-        }
+        crate::common::transitions_in_pages(&self.client, &self.url(""), id, 7).await
     }
+}
+
+/// Sends `request`: its status and its JSON body (`null` when it has none).
+async fn answer(request: reqwest::RequestBuilder) -> (u16, Value) {
+    let r = request.send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
 }
 
 impl Drop for TestApp {
@@ -361,4 +340,10 @@ pub fn gridworld_moves(rows: std::ops::Range<i64>, per_trajectory: usize) -> Vec
         .chunks(per_trajectory)
         .map(|c| json!({"transitions": c}))
         .collect()
+}
+
+/// Asserts that less than `limit` has passed since `started` (saying how much did).
+pub fn assert_within(started: std::time::Instant, limit: std::time::Duration) {
+    let elapsed = started.elapsed();
+    assert!(elapsed < limit, "{elapsed:?}");
 }

@@ -110,14 +110,8 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
         .unwrap();
     assert_eq!(r.status(), 201);
 
-    let report = import(
-        &app,
-        id,
-        &["--label", "bench", "--max-transitions", "4"],
-        &[&csv],
-    )
-    .await
-    .unwrap();
+    let bench = ["--label", "bench", "--max-transitions", "4"];
+    let report = import(&app, id, &bench, &[&csv]).await.unwrap();
     // Episode 20 has 9 transitions: 3 trajectories of at most 4.
     assert_eq!(
         report,
@@ -171,14 +165,7 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
     );
 
     // Run again: nothing new.
-    let again = import(
-        &app,
-        id,
-        &["--label", "bench", "--max-transitions", "4"],
-        &[&csv],
-    )
-    .await
-    .unwrap();
+    let again = import(&app, id, &bench, &[&csv]).await.unwrap();
     assert_eq!(
         (again.created, again.replayed, again.trajectories),
         (0, 5, 5)

@@ -272,18 +272,25 @@ async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
     assert_eq!(experiment["iteration"], 16);
 }
 
+/// A server on a new database with one experiment that holds `rows` trajectories of 4
+/// transitions (rows `0..rows` of the gridworld); the dir lives as long as it is kept.
+async fn app_with_rows(rows: i64) -> (tempfile::TempDir, std::path::PathBuf, TestApp, i64) {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    for y in 0..rows {
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
+            .await;
+    }
+    (dir, db, app, id)
+}
+
 #[tokio::test]
 async fn an_online_backup_is_a_consistent_copy() {
     if super::helpers::sqlite_only("an_online_backup_is_a_consistent_copy") {
         return;
     }
-    let (dir, db) = temp_db();
-    let app = spawn_app(&db).await;
-    let id = app.create_experiment(json!({})).await;
-    for y in 0..3 {
-        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
-            .await;
-    }
+    let (dir, db, app, id) = app_with_rows(3).await;
     // While the server is serving.
     let live = precond::store::Store::open(db.to_str().unwrap())
         .await
@@ -314,13 +321,7 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
     ) {
         return;
     }
-    let (dir, db) = temp_db();
-    let app = spawn_app(&db).await;
-    let id = app.create_experiment(json!({})).await;
-    for y in 0..2 {
-        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
-            .await;
-    }
+    let (dir, db, app, _) = app_with_rows(2).await;
     let out = dir.path().join("out");
     std::fs::create_dir(&out).unwrap();
     let copy = out.join("copy.db");
