@@ -183,7 +183,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
 async fn a_quick_water_plant_experiment_draws_the_precondition_maps() {
     let dir = tempfile::tempdir().unwrap();
     let out = run_quick(
-        &["--domain", "water_plant", "--strategies", "active, random"],
+        &["--domain", "water_plant", "--strategies", "active,random"],
         dir.path(),
     )
     .await;
