@@ -2,7 +2,7 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::fresh_app;
+use super::helpers::fresh_experiment;
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
@@ -56,19 +56,17 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     let domain = world.domain();
     let d_max = world.d_max();
     let p = world.params();
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
-                       "action_low": p.action_low, "action_high": p.action_high,
-                       "goal_radius": p.goal_radius},
-            "d_max": d_max,
-            "seed": 1,
-            "mde": {"restarts": 1},
-            "learning": {"batch_size": 5, "iterations": 6, "n_candidates": 8,
-                         "max_extensions": 2000}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
+                   "action_low": p.action_low, "action_high": p.action_high,
+                   "goal_radius": p.goal_radius},
+        "d_max": d_max,
+        "seed": 1,
+        "mde": {"restarts": 1},
+        "learning": {"batch_size": 5, "iterations": 6, "n_candidates": 8,
+                     "max_extensions": 2000}
+    }))
+    .await;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let mut executed: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
     let mut posted = 0;
@@ -190,15 +188,13 @@ impl World for Drift {
 
 #[tokio::test]
 async fn closed_loop_execution_reaches_goals_open_loop_misses() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "goal_radius": 0.03},
-            "d_max": 0.02,
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 1}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "goal_radius": 0.03},
+        "d_max": 0.02,
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 1}
+    }))
+    .await;
     // Show the model that moves are right to within 0.012 everywhere.
     let mut transitions = Vec::new();
     for i in 0..8 {

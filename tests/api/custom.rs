@@ -115,7 +115,7 @@ async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored
             (status, code_wanted),
             "{endpoint}: {body}"
         );
-        let (_, exp) = app.get(&format!("/v1/experiments/{id}")).await;
+        let (_, exp) = app.get_at(id, "").await;
         assert_eq!(
             (
                 exp["n_trajectories"].as_i64(),
@@ -222,11 +222,9 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
 
 #[tokio::test]
 async fn a_linear_model_with_identities_labels_like_the_kinematic_shorthand() {
-    let (_dir, app) = fresh_app().await;
-    let linear = app
-        .create_experiment(json!({"domain": plane(json!({
+    let (_dir, app, linear) = fresh_experiment(json!({"domain": plane(json!({
             "kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}))}))
-        .await;
+    .await;
     let kinematic = app
         .create_experiment(json!({"domain": {"kind": "kinematic"}}))
         .await;
@@ -278,13 +276,11 @@ async fn plans_respect_the_robots_own_validity_check() {
 
 #[tokio::test]
 async fn a_client_model_posts_its_predictions_and_its_candidates() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
+    let (_dir, app, id) = fresh_experiment(json!({
             "domain": plane(json!({"kind": "client"})),
             "d_max": 0.05,
             "learning": {"c": 1.5, "gamma": 0.8}}))
-        .await;
+    .await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let (status, body) = app
         .post(

@@ -66,10 +66,8 @@ async fn experiments_come_in_pages_newest_first_with_their_last_activity() {
 
 #[tokio::test]
 async fn runs_list_proposals_and_trajectories_with_their_status() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1, "batch_size": 100}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"learning": {"proposal_ttl_seconds": 1, "batch_size": 100}})).await;
     let propose = |client: &str| json!({"start": [0, 0], "goal": [3, 0], "client_id": client});
     let path = format!("/v1/experiments/{id}/proposals");
     let (_, expiring) = app.post(&path, &propose("expiring")).await;
@@ -144,18 +142,16 @@ async fn runs_list_proposals_and_trajectories_with_their_status() {
 
 #[tokio::test]
 async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 2, "iterations": 4, "k1": 2.0, "k2": 0.5}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 2, "iterations": 4, "k1": 2.0, "k2": 0.5}
+    }))
+    .await;
     let trajectories = gridworld_moves(0..5, 40);
     post_all(&app, id, &trajectories[..5]).await;
     let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{refit}");
-    let (status, t) = app.get(&format!("/v1/experiments/{id}/timeline")).await;
+    let (status, t) = app.get_at(id, "timeline").await;
     assert_eq!(status, 200, "{t}");
     assert_eq!(
         (t["batch_size"].as_i64(), t["iterations_planned"].as_i64()),
@@ -194,10 +190,8 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
 
 #[tokio::test]
 async fn the_precondition_map_evaluates_any_version_on_a_grid() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}})).await;
     let map = |query: &str| format!("/v1/experiments/{id}/precondition/map?{query}");
     let (status, prior) = app.get(&map("x=s.x&y=s.y&nx=12&ny=12&a=1,0")).await;
     assert_eq!(status, 200, "{prior}");
@@ -276,10 +270,8 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
 
 #[tokio::test]
 async fn diagnostics_check_a_fit_by_leave_one_out() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}})).await;
     let path = format!("/v1/experiments/{id}/model/diagnostics");
     let (status, err) = app.get(&path).await;
     assert_eq!(

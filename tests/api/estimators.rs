@@ -36,7 +36,7 @@ async fn model_until(
     done: impl Fn(&Value) -> bool,
 ) -> Value {
     for _ in 0..9000 {
-        let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, model) = app.get_at(id, "model").await;
         if done(&model) {
             return model;
         }
@@ -75,7 +75,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
     let (status, forced) = app.post_at(exact, "model/refit", &json!({})).await;
     assert_eq!(status, 409, "{forced}");
     assert_eq!(forced["error"]["code"], "limit_reached");
-    let (_, timeline) = app.get(&format!("/v1/experiments/{exact}/timeline")).await;
+    let (_, timeline) = app.get_at(exact, "timeline").await;
     assert!(
         timeline["fit_refusals"].as_array().unwrap().len() >= 2,
         "{timeline}"
@@ -108,7 +108,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
     let path = app.db_path.clone();
     app.stop().await;
     let app = spawn_app_with_limits(&path, small_budget()).await;
-    let (status, model) = app.get(&format!("/v1/experiments/{exact}/model")).await;
+    let (status, model) = app.get_at(exact, "model").await;
     assert_eq!(status, 200, "{model}");
     assert_eq!(model["version"], 0);
     let (status, judged) = app
@@ -119,7 +119,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         )
         .await;
     assert_eq!(status, 200, "{judged}");
-    let (_, model) = app.get(&format!("/v1/experiments/{auto}/model")).await;
+    let (_, model) = app.get_at(auto, "model").await;
     assert_eq!(
         (model["version"].clone(), model["estimator"].clone()),
         (json!(1), json!("sparse"))
@@ -153,7 +153,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
     ]});
     app.store_trajectory(id, &at_probe).await;
-    let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_, updated) = app.get_at(id, "model").await;
     assert_eq!(updated["version"], 1, "no refit: {updated}");
     assert_eq!(updated["online_trajectories"], 1);
     assert_eq!(updated["n_train"], fitted["n_train"].as_i64().unwrap() + 2);
@@ -170,7 +170,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
     let path = app.db_path.clone();
     app.stop().await;
     let app = spawn_app_with_limits(&path, Limits::default()).await;
-    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_, restored) = app.get_at(id, "model").await;
     assert_eq!(
         (
             restored["version"].clone(),

@@ -5,7 +5,7 @@
 //! (after online updates too); the prior is refused with `409`, a bad `version` with `422`, a
 //! missing one with `404`.
 
-use super::helpers::{TestApp, code, fresh_app, message};
+use super::helpers::{TestApp, code, fresh_app, fresh_experiment, message};
 use precond::gp::GpPredictor;
 use precond::mde::ExportedModel;
 use rand::{Rng, SeedableRng};
@@ -96,12 +96,12 @@ fn random_points(experiment: &Value, grid: bool, seed: u64) -> Vec<(Vec<f64>, Ve
 /// server's at 200 random points. Returns the export and the largest relative differences of
 /// `μ` and `σ`.
 async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel, f64, f64) {
-    let (status, doc) = app.get(&format!("/v1/experiments/{id}/model/export")).await;
+    let (status, doc) = app.get_at(id, "model/export").await;
     assert_eq!(status, 200, "{doc}");
     assert_eq!(doc["format"], "precond-model");
     assert_eq!(doc["format_version"], 1);
     let model = ExportedModel::from_json(&doc.to_string()).expect("the document checks");
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(doc["model_version"], experiment["model_version"]);
     assert_eq!(doc["feature_names"], experiment["feature_names"]);
     let points = random_points(&experiment, grid, seed);
@@ -271,7 +271,7 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         // One more trajectory is taken in online (no refit): the export follows it.
         app.store_trajectory(id, &kinematic_trajectory(80, 300, 7))
             .await;
-        let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, updated) = app.get_at(id, "model").await;
         assert_eq!(updated["online_trajectories"], 1, "{updated}");
         let (model, mu, sigma) = parity(&app, id, false, 4).await;
         assert_eq!(model.n_train, 380);
@@ -281,14 +281,12 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
 
 #[tokio::test]
 async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic"},
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 1}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic"},
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 1}
+    }))
+    .await;
     let export = |q: &str| format!("/v1/experiments/{id}/model/export{q}");
     let (status, body) = app.get(&export("")).await;
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");

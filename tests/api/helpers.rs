@@ -85,6 +85,14 @@ pub async fn fresh_app() -> (tempfile::TempDir, TestApp) {
     (dir, spawn_app(&db).await)
 }
 
+/// A server on a new database with one experiment, created from `body`, and its id; the dir
+/// lives as long as the returned guard.
+pub async fn fresh_experiment(body: Value) -> (tempfile::TempDir, TestApp, i64) {
+    let (dir, app) = fresh_app().await;
+    let id = app.create_experiment(body).await;
+    (dir, app, id)
+}
+
 /// A server with HTTP settings on a new database; the dir lives as long as the returned guard.
 pub async fn fresh_app_with(config: HttpConfig) -> (tempfile::TempDir, TestApp) {
     let (dir, db) = temp_db();
@@ -213,6 +221,15 @@ impl TestApp {
 
     pub async fn post(&self, path: &str, body: &Value) -> (u16, Value) {
         answer(self.client.post(self.url(path)).json(body)).await
+    }
+
+    /// `GET /v1/experiments/{id}/{tail}` (`tail` e.g. `model`, `timeline`; `""`: the experiment
+    /// itself).
+    pub async fn get_at(&self, id: i64, tail: &str) -> (u16, Value) {
+        match tail {
+            "" => self.get(&format!("/v1/experiments/{id}")).await,
+            _ => self.get(&format!("/v1/experiments/{id}/{tail}")).await,
+        }
     }
 
     /// Posts `body` to `/v1/experiments/{id}/{tail}` (`tail` e.g. `trajectories`, `proposals`,

@@ -7,9 +7,8 @@ use serde_json::{Value, json};
 
 #[tokio::test]
 async fn before_any_data_the_prior_answers_and_says_so() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
-    let (status, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
+    let (status, model) = app.get_at(id, "model").await;
     assert_eq!(status, 200);
     assert_eq!(
         (model["version"].as_i64(), model["source"].as_str()),
@@ -45,8 +44,7 @@ async fn before_any_data_the_prior_answers_and_says_so() {
 
 #[tokio::test]
 async fn precondition_queries_validate_their_points() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/precondition");
     for (body, field) in [
         (
@@ -78,10 +76,8 @@ async fn precondition_queries_validate_their_points() {
 
 #[tokio::test]
 async fn the_model_advances_after_each_batch_and_survives_a_restart() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}})).await;
     let batches = gridworld_moves(0..12, 48);
     for t in batches.iter().take(5) {
         app.store_trajectory(id, t).await;
@@ -125,7 +121,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
     assert_eq!(before["model_version"], 1);
 
     let app = app.restart().await;
-    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_, restored) = app.get_at(id, "model").await;
     assert_eq!(restored["version"], 1);
     assert_eq!(restored["hyperparameters"], model["hyperparameters"]);
     assert_eq!(restored["label_cap"], model["label_cap"]);
@@ -218,8 +214,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
 
 #[tokio::test]
 async fn strategies_produce_what_they_promise() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({"seed": 3})).await;
+    let (_dir, app, id) = fresh_experiment(json!({"seed": 3})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let goal = json!([9, 10]);
     for strategy in ["active", "goal_conditioned"] {
@@ -284,10 +279,7 @@ async fn strategies_produce_what_they_promise() {
 
 #[tokio::test]
 async fn proposals_are_leases() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1}}))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({"learning": {"proposal_ttl_seconds": 1}})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let ask = json!({"start": [0, 0], "goal": [0, 4], "client_id": "robot-a"});
     let (status, first) = app.post(&path, &ask).await;
@@ -363,8 +355,7 @@ async fn proposals_are_leases() {
 
 #[tokio::test]
 async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robot_is() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let (status, first) = app
         .post(
@@ -435,13 +426,11 @@ async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robo
 
 #[tokio::test]
 async fn no_plan_is_422_with_the_extensions_used() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
-            "learning": {"max_extensions": 300}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
+        "learning": {"max_extensions": 300}
+    }))
+    .await;
     let (status, err) = app
         .post_at(
             id,
@@ -536,7 +525,7 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
         assert_eq!((status, code(&err)), (422, "no_plan"), "{err}");
     }
     for (id, relaxes) in ids.iter().zip([true, false]) {
-        let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+        let (_, e) = app.get_at(*id, "").await;
         assert_eq!(e["learning"]["relax_beta"], relaxes, "{e}");
     }
 }

@@ -84,7 +84,7 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
     let started = Instant::now();
     for _ in 0..5 {
         assert_eq!(app.get("/healthz").await.0, 200);
-        assert_eq!(app.get(&format!("/v1/experiments/{id}")).await.0, 200);
+        assert_eq!(app.get_at(id, "").await.0, 200);
     }
     assert!(started.elapsed() < Duration::from_millis(500));
     let (s1, r1) = running.await.unwrap();
@@ -267,8 +267,7 @@ async fn the_operator_limits_experiments_and_transitions() {
 
 #[tokio::test]
 async fn metrics_and_request_ids_are_exposed() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
         .await;
     let r = app.client.get(app.url("/metrics")).send().await.unwrap();
@@ -338,7 +337,7 @@ async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_t
     // The fit goes on and is swapped in.
     let started = Instant::now();
     loop {
-        let (_, m) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, m) = app.get_at(id, "model").await;
         if m["version"] == 1 {
             assert_eq!(m["n_train"], 400, "{m}");
             break;

@@ -208,7 +208,7 @@ async fn a_revoked_model_url_is_refused_at_every_call() {
         calls,
         "no call after revocation"
     );
-    let (status, body) = revoked.get(&format!("/v1/experiments/{id}")).await;
+    let (status, body) = revoked.get_at(id, "").await;
     assert_eq!(status, 200, "{body}");
     assert_eq!(body["n_trajectories"], 1);
 }

@@ -5,8 +5,7 @@ use std::collections::HashSet;
 
 #[tokio::test]
 async fn ingest_labels_transitions_and_survives_a_restart() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({"name": "restart"})).await;
+    let (_dir, app, id) = fresh_experiment(json!({"name": "restart"})).await;
     // On ice at (3, 2) the x-move [1, 0] ends at (2, 2): the model said (4, 2), deviation 2.
     let body = json!({"transitions": [
         {"s": [3, 2], "a": [1, 0], "s_next": [2, 2]},
@@ -24,7 +23,7 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
     }
     let before = app.all_transitions(id).await;
     assert_eq!(before.len(), 3 + 1 + 2 + 3 + 4 + 5);
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_trajectories"], 6);
     assert_eq!(experiment["iteration"], 1);
 
@@ -39,15 +38,14 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
     assert_eq!(steps.len(), 3);
     assert_eq!(steps[0]["s_pred"], json!([4.0, 2.0]));
     assert_eq!(steps[0]["deviation"], 2.0);
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_transitions"], 18);
     app.stop().await;
 }
 
 #[tokio::test]
 async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let r = app
         .client
         .post(app.url(&format!("/v1/experiments/{id}/trajectories")))
@@ -62,14 +60,13 @@ async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
         body["error"]["details"]["field"], "Idempotency-Key",
         "{body}"
     );
-    let (_, list) = app.get(&format!("/v1/experiments/{id}/transitions")).await;
+    let (_, list) = app.get_at(id, "transitions").await;
     assert_eq!(list["items"].as_array().unwrap().len(), 0, "{list}");
 }
 
 #[tokio::test]
 async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let body = free_row_trajectory(0, 0, 3);
     let send = |b: Value| {
@@ -95,8 +92,7 @@ async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
 
 #[tokio::test]
 async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let good = json!({"s": [0, 0], "a": [1, 0], "s_next": [1, 0]});
     let cases = [
@@ -182,8 +178,7 @@ async fn an_oversized_body_is_413() {
 
 #[tokio::test]
 async fn transitions_come_as_csv_when_asked() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
         .await;
     let r = app
@@ -211,8 +206,7 @@ async fn transitions_come_as_csv_when_asked() {
 
 #[tokio::test]
 async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let mut tasks = Vec::new();
     for client in 0..16i64 {
@@ -267,7 +261,7 @@ async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
     assert_eq!(all.len() as i64, expected_transitions);
     let unique: HashSet<i64> = all.iter().map(|t| t["id"].as_i64().unwrap()).collect();
     assert_eq!(unique.len(), all.len());
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_trajectories"], 80);
     assert_eq!(experiment["iteration"], 16);
 }
