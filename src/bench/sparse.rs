@@ -185,13 +185,7 @@ fn timings(model: &dyn Predictor, q: &DMatrix<f64>, yq: &DVector<f64>, reps: usi
         pred = Some(p);
     }
     let pred = pred.unwrap_or_else(|| model.predict(q));
-    let var: Vec<f64> = pred
-        .latent_variance
-        .iter()
-        .zip(&pred.noise_variance)
-        .map(|(a, b)| a + b)
-        .collect();
-    let (rmse, nll) = scores(&pred.mean, &var, yq);
+    let (rmse, nll) = scores(&pred.mean, &pred.variance(), yq);
     [single, q.nrows() as f64 / best, rmse, nll]
 }
 
