@@ -150,23 +150,34 @@ impl Default for GpParams {
     }
 }
 
-/// [`GpParams`] that passed [`GpParams::check`]; the only way to fit a model.
+/// Settings that passed their `check` ([`GpParams::check`], [`SparseParams::check`]); the only
+/// way to fit a model with them. Only those checks make one.
+///
+/// [`SparseParams::check`]: super::SparseParams::check
 #[derive(Clone, Debug, PartialEq)]
-pub struct ValidGpParams(GpParams);
+pub struct Checked<T>(T);
 
-impl ValidGpParams {
+impl<T> Checked<T> {
+    /// Settings the caller has just checked (the checks of the `gp` module alone call it).
+    pub(in crate::gp) fn new(params: T) -> Self {
+        Checked(params)
+    }
+
     /// The checked settings.
-    pub fn params(&self) -> &GpParams {
+    pub fn params(&self) -> &T {
         &self.0
     }
 }
 
-impl std::ops::Deref for ValidGpParams {
-    type Target = GpParams;
-    fn deref(&self) -> &GpParams {
+impl<T> std::ops::Deref for Checked<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
         &self.0
     }
 }
+
+/// [`GpParams`] that passed [`GpParams::check`]; the only way to fit a model.
+pub type ValidGpParams = Checked<GpParams>;
 
 fn invalid(name: &'static str, reason: impl Into<String>) -> GpError {
     GpError::InvalidParameter {
@@ -254,6 +265,6 @@ impl GpParams {
                 format!("must be at least 2, got {}", self.hetero_min_points),
             ));
         }
-        Ok(ValidGpParams(self.clone()))
+        Ok(Checked::new(self.clone()))
     }
 }

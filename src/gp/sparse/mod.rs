@@ -131,22 +131,7 @@ impl Default for SparseParams {
 }
 
 /// [`SparseParams`] that passed [`SparseParams::check`]; the only way to fit a [`SparseGp`].
-#[derive(Clone, Debug, PartialEq)]
-pub struct ValidSparseParams(SparseParams);
-
-impl ValidSparseParams {
-    /// The checked settings.
-    pub fn params(&self) -> &SparseParams {
-        &self.0
-    }
-}
-
-impl std::ops::Deref for ValidSparseParams {
-    type Target = SparseParams;
-    fn deref(&self) -> &SparseParams {
-        &self.0
-    }
-}
+pub type ValidSparseParams = super::params::Checked<SparseParams>;
 
 fn invalid(name: &'static str, reason: String) -> GpError {
     GpError::InvalidParameter { name, reason }
@@ -202,7 +187,7 @@ impl SparseParams {
                 format!("must be in (0, 1e-2], got {}", self.jitter),
             ));
         }
-        Ok(ValidSparseParams(self.clone()))
+        Ok(ValidSparseParams::new(self.clone()))
     }
 }
 
