@@ -9,6 +9,11 @@ use precond::planning::Trajectory;
 use precond::sim::World;
 use serde_json::{Value, json};
 
+/// The body that asks for a proposal or a plan for `problem`.
+fn ask(problem: &Problem) -> Value {
+    json!({"start": problem.start(), "goal": problem.goal()})
+}
+
 /// The kinematic unit square with moves of at most 0.1 per axis.
 fn square() -> Kinematic {
     Kinematic::new(KinematicParams::default()).unwrap()
@@ -73,13 +78,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     for _ in 0..6 {
         for _ in 0..5 {
             let problem = world.sample_problem(&domain, &mut rng);
-            let (status, proposal) = app
-                .post_at(
-                    id,
-                    "proposals",
-                    &json!({"start": problem.start(), "goal": problem.goal()}),
-                )
-                .await;
+            let (status, proposal) = app.post_at(id, "proposals", &ask(&problem)).await;
             if status != 201 {
                 continue;
             }
@@ -144,13 +143,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     let mut found = 0;
     for _ in 0..10 {
         let problem = world.sample_problem(&domain, &mut rng);
-        let (status, plan) = app
-            .post_at(
-                id,
-                "plans",
-                &json!({"start": problem.start(), "goal": problem.goal()}),
-            )
-            .await;
+        let (status, plan) = app.post_at(id, "plans", &ask(&problem)).await;
         assert_eq!(status, 200, "{plan}");
         if plan["found"] == true {
             found += 1;

@@ -204,22 +204,28 @@ fn variance_rounding(p: &GpPredictor, x: &[f64]) -> f64 {
     2.0 * bound
 }
 
-#[tokio::test]
-async fn an_exported_exact_gp_answers_as_the_server() {
-    let (_dir, app) = fresh_app().await;
-    // The default settings: kernel `auto`, heteroscedastic noise, the exact GP.
-    let kinematic = app
+/// A kinematic experiment with the `mde` settings and batches of 2, fed two trajectories of
+/// `steps` steps: its id and the model fitted on them.
+async fn fitted_kinematic(app: &TestApp, mde: Value, steps: usize) -> (i64, Value) {
+    let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},
-            "mde": {"restarts": 0},
+            "mde": mde,
             "learning": {"batch_size": 2}
         }))
         .await;
     for k in 0..2 {
-        app.store_trajectory(kinematic, &kinematic_trajectory(60, 60 * k, k as u64))
+        app.store_trajectory(id, &kinematic_trajectory(steps, steps * k, k as u64))
             .await;
     }
-    let fitted = app.wait_for_model(kinematic, 2).await;
+    (id, app.wait_for_model(id, 2).await)
+}
+
+#[tokio::test]
+async fn an_exported_exact_gp_answers_as_the_server() {
+    let (_dir, app) = fresh_app().await;
+    // The default settings: kernel `auto`, heteroscedastic noise, the exact GP.
+    let (kinematic, fitted) = fitted_kinematic(&app, json!({"restarts": 0}), 60).await;
     assert_eq!(fitted["estimator"], "exact", "{fitted}");
     assert_eq!(fitted["noise"], "heteroscedastic", "{fitted}");
     assert!(
@@ -251,19 +257,9 @@ async fn an_exported_exact_gp_answers_as_the_server() {
 async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates() {
     let (_dir, app) = fresh_app().await;
     for noise in ["homoscedastic", "heteroscedastic"] {
-        let id = app
-            .create_experiment(json!({
-                "domain": {"kind": "kinematic"},
-                "mde": {"estimator": "sparse", "restarts": 0, "inducing_points": 32,
-                        "noise": noise},
-                "learning": {"batch_size": 2}
-            }))
-            .await;
-        for k in 0..2 {
-            app.store_trajectory(id, &kinematic_trajectory(150, 150 * k, k as u64))
-                .await;
-        }
-        let fitted = app.wait_for_model(id, 2).await;
+        let mde = json!({"estimator": "sparse", "restarts": 0, "inducing_points": 32,
+                         "noise": noise});
+        let (id, fitted) = fitted_kinematic(&app, mde, 150).await;
         assert_eq!(fitted["estimator"], "sparse", "{fitted}");
         let (model, mu, sigma) = parity(&app, id, false, 3).await;
         assert_eq!(model.predictor.main.points.len(), 32);

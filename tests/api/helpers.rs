@@ -239,6 +239,21 @@ impl TestApp {
             .await
     }
 
+    /// Asks kinematic experiment `id` for a short proposal in free space and asserts that it is
+    /// made (201) within `limit`: a planner slot was free.
+    pub async fn assert_proposes_within(&self, id: i64, limit: std::time::Duration) {
+        let started = std::time::Instant::now();
+        let (status, body) = self
+            .post_at(
+                id,
+                "proposals",
+                &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+        assert_within(started, limit);
+    }
+
     /// Posts a trajectory to experiment `id`, asserting that it is stored (201), and returns
     /// the answer.
     pub async fn store_trajectory(&self, id: i64, trajectory: &Value) -> Value {
