@@ -3,7 +3,7 @@
 // through the API; then it opens each page 5 times in headless Chromium and prints the median
 // first contentful paint and the median time until the page's data is drawn.
 import { launchChromium } from './chromium.mjs';
-import { call, randomWalk, rng } from './seed.mjs';
+import { call, randomWalk, rng, unitSquare } from './seed.mjs';
 
 const [base] = process.argv.slice(2);
 if (!base) throw new Error('usage: node first-paint.mjs BASE_URL');
@@ -23,13 +23,7 @@ async function seed() {
   const big = await call(base, 'POST', '/v1/experiments', {
     name: 'fifty thousand',
     seed: 1,
-    domain: {
-      kind: 'kinematic',
-      state_low: [0, 0],
-      state_high: [1, 1],
-      action_low: [-0.05, -0.05],
-      action_high: [0.05, 0.05],
-    },
+    domain: unitSquare(0.05),
     // No refit: an exact GP on 50,000 points is out of reach (O(n³)); the pages are measured.
     learning: { batch_size: 10000 },
   });

@@ -15,6 +15,17 @@ export function rng(seed) {
   };
 }
 
+/** The kinematic domain on the unit square, with actions of at most `step` per component. */
+export function unitSquare(step) {
+  return {
+    kind: 'kinematic',
+    state_low: [0, 0],
+    state_high: [1, 1],
+    action_low: [-step, -step],
+    action_high: [step, step],
+  };
+}
+
 /**
  * A random walk of `steps` transitions in the unit square from a random start: each action
  * uniform in ±`span`/2 per component, moving the state by `gain(s)` times the action, clamped.
@@ -164,13 +175,7 @@ export async function seedKinematic(base, { name = 'kinematic arm', seed = 3 } =
   const e = await call(base, 'POST', '/v1/experiments', {
     name,
     seed,
-    domain: {
-      kind: 'kinematic',
-      state_low: [0, 0],
-      state_high: [1, 1],
-      action_low: [-0.1, -0.1],
-      action_high: [0.1, 0.1],
-    },
+    domain: unitSquare(0.1),
     mde: { restarts: 0, noise: 'homoscedastic' },
     learning: { batch_size: 100 },
   });
