@@ -179,6 +179,17 @@ impl<T> std::ops::Deref for Checked<T> {
 /// [`GpParams`] that passed [`GpParams::check`]; the only way to fit a model.
 pub type ValidGpParams = Checked<GpParams>;
 
+/// Checks a subset size that is 0 (off) or at least `min`; the error names the field `name`.
+pub(super) fn off_or_at_least(name: &'static str, value: usize, min: usize) -> Result<(), GpError> {
+    if value != 0 && value < min {
+        return Err(invalid(
+            name,
+            format!("must be 0 (off) or at least {min}, got {value}"),
+        ));
+    }
+    Ok(())
+}
+
 fn invalid(name: &'static str, reason: impl Into<String>) -> GpError {
     GpError::InvalidParameter {
         name,
@@ -226,12 +237,7 @@ impl GpParams {
                 format!("must be in (0, 1], got {}", self.gradient_tolerance),
             ));
         }
-        if self.screen_subset != 0 && self.screen_subset < 64 {
-            return Err(invalid(
-                "screen_subset",
-                format!("must be 0 (off) or at least 64, got {}", self.screen_subset),
-            ));
-        }
+        off_or_at_least("screen_subset", self.screen_subset, 64)?;
         if !(self.jitter_max.is_finite() && self.jitter_max > 0.0 && self.jitter_max <= 0.1) {
             return Err(invalid(
                 "jitter_max",
