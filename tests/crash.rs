@@ -5,8 +5,9 @@
 mod common;
 
 use common::{
-    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, get,
-    leased_problem, post, post_until_acknowledged, trajectory,
+    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
+    http_with_timeout, ingest_only, leased_problem, post, spawn_robots, trajectory,
+    two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -35,33 +36,13 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("crash.db");
     let server = Server::start(&db, &[]);
-    let http = reqwest::Client::builder()
-        .timeout(Duration::from_secs(5))
-        .build()
-        .unwrap();
-    let (status, e) = post(
-        &http,
-        &format!("{}/v1/experiments", server.base),
-        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
-    )
-    .await;
-    assert_eq!(status, 201, "{e}");
-    let id = e["id"].as_i64().unwrap();
+    let http = http_with_timeout(Duration::from_secs(5));
+    let id = experiment(&http, &server.base, ingest_only()).await;
     let base = Arc::new(RwLock::new(vec![server.base.clone()]));
     let started = Instant::now();
 
     // Clients: post each trajectory with its key until acknowledged, whatever happens.
-    let clients: Vec<_> = (0..CLIENTS)
-        .map(|c| {
-            tokio::spawn(post_until_acknowledged(
-                http.clone(),
-                base.clone(),
-                id,
-                c,
-                PER_CLIENT,
-            ))
-        })
-        .collect();
+    let clients = spawn_robots(&http, &base, id, CLIENTS, PER_CLIENT);
 
     // The killer: kill -9 at seeded random moments, restart on the same file.
     let mut rng = ChaCha8Rng::seed_from_u64(12);
@@ -102,13 +83,12 @@ async fn an_open_proposal_survives_a_crash_and_is_returned_to_its_client() {
     let db = dir.path().join("proposal.db");
     let server = Server::start(&db, &[]);
     let http = reqwest::Client::new();
-    let (_, e) = post(
+    let id = experiment(
         &http,
-        &format!("{}/v1/experiments", server.base),
-        &json!({"domain": {"kind": "kinematic"}}),
+        &server.base,
+        json!({"domain": {"kind": "kinematic"}}),
     )
     .await;
-    let id = e["id"].as_i64().unwrap();
     let (status, first) = post(
         &http,
         &format!("{}/v1/experiments/{id}/proposals", server.base),
@@ -126,17 +106,8 @@ async fn sigterm_during_ingest_finishes_or_fails_cleanly_and_exits_in_time() {
     let dir = tempfile::tempdir().unwrap();
     let db = dir.path().join("term.db");
     let mut server = Server::start(&db, &["--shutdown-grace-secs", "3"]);
-    let http = reqwest::Client::builder()
-        .timeout(Duration::from_secs(10))
-        .build()
-        .unwrap();
-    let (_, e) = post(
-        &http,
-        &format!("{}/v1/experiments", server.base),
-        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
-    )
-    .await;
-    let id = e["id"].as_i64().unwrap();
+    let http = http_with_timeout(Duration::from_secs(10));
+    let id = experiment(&http, &server.base, ingest_only()).await;
     let url = format!("{}/v1/experiments/{id}/trajectories", server.base);
     let mut clients = Vec::new();
     for c in 0..8 {
@@ -197,24 +168,16 @@ async fn sigterm_during_a_refit_exits_in_time_and_the_next_start_refits() {
     let http = reqwest::Client::new();
     // One batch of 40 trajectories (about 280 transitions): a heteroscedastic fit with a few
     // restarts takes seconds in a debug build, long enough to be caught running.
-    let (_, e) = post(
+    let id = experiment(
         &http,
-        &format!("{}/v1/experiments", server.base),
-        &json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 40},
+        &server.base,
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 40},
                 "mde": {"restarts": 3}}),
     )
     .await;
-    let id = e["id"].as_i64().unwrap();
     let url = format!("{}/v1/experiments/{id}/trajectories", server.base);
     for k in 0..40 {
-        let mut body = json!({"transitions": []});
-        for j in 0..2 {
-            let (t, _) = trajectory(200 + j, k);
-            body["transitions"]
-                .as_array_mut()
-                .unwrap()
-                .extend(t["transitions"].as_array().unwrap().iter().cloned());
-        }
+        let body = two_robots_trajectory(200, k);
         let (status, v) = post(&http, &url, &body).await;
         assert_eq!(status, 201, "{v}");
     }

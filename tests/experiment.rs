@@ -28,6 +28,20 @@ fn parse_csv(path: &Path) -> (Vec<String>, Vec<Vec<String>>) {
     (header, rows)
 }
 
+/// Runs `precond experiment --quick --no-progress ARGS --out OUT` and returns the directory
+/// it wrote its results to.
+async fn run_quick(args: &[&str], out: &Path) -> std::path::PathBuf {
+    let argv = ["precond", "experiment", "--quick", "--no-progress"]
+        .into_iter()
+        .chain(args.iter().copied())
+        .chain(["--out", out.to_str().unwrap()]);
+    let cli = Cli::try_parse_from(argv).unwrap();
+    let Command::Experiment(args) = cli.command else {
+        panic!("not the experiment command");
+    };
+    precond::experiment::run(args).await.unwrap()
+}
+
 fn is_rate(x: f64) -> bool {
     (0.0..=1.0).contains(&x)
 }
@@ -35,23 +49,7 @@ fn is_rate(x: f64) -> bool {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
     let dir = tempfile::tempdir().unwrap();
-    let cli = Cli::try_parse_from([
-        "precond",
-        "experiment",
-        "--domain",
-        "icy_gridworld",
-        "--quick",
-        "--no-progress",
-        "--jobs",
-        "2",
-        "--out",
-        dir.path().to_str().unwrap(),
-    ])
-    .unwrap();
-    let Command::Experiment(args) = cli.command else {
-        panic!("not the experiment command");
-    };
-    let out = precond::experiment::run(args).await.unwrap();
+    let out = run_quick(&["--domain", "icy_gridworld", "--jobs", "2"], dir.path()).await;
     assert_eq!(out, dir.path().join("icy_gridworld"));
 
     // iterations.csv: one row per strategy × seed × iteration, the documented columns.
@@ -168,23 +166,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
 
     // Deterministic: a second run gives the same measurements.
     let again = tempfile::tempdir().unwrap();
-    let cli = Cli::try_parse_from([
-        "precond",
-        "experiment",
-        "--quick",
-        "--no-progress",
-        "--strategies",
-        "active",
-        "--seeds",
-        "1",
-        "--out",
-        again.path().to_str().unwrap(),
-    ])
-    .unwrap();
-    let Command::Experiment(args) = cli.command else {
-        panic!("not the experiment command");
-    };
-    let out2 = precond::experiment::run(args).await.unwrap();
+    let out2 = run_quick(&["--strategies", "active", "--seeds", "1"], again.path()).await;
     let (_, rows2) = parse_csv(&out2.join("iterations.csv"));
     let first: Vec<&Vec<String>> = rows
         .iter()
@@ -200,23 +182,11 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_quick_water_plant_experiment_draws_the_precondition_maps() {
     let dir = tempfile::tempdir().unwrap();
-    let cli = Cli::try_parse_from([
-        "precond",
-        "experiment",
-        "--domain",
-        "water_plant",
-        "--quick",
-        "--no-progress",
-        "--strategies",
-        "active,random",
-        "--out",
-        dir.path().to_str().unwrap(),
-    ])
-    .unwrap();
-    let Command::Experiment(args) = cli.command else {
-        panic!("not the experiment command");
-    };
-    let out = precond::experiment::run(args).await.unwrap();
+    let out = run_quick(
+        &["--domain", "water_plant", "--strategies", "active,random"],
+        dir.path(),
+    )
+    .await;
     let (header, rows) = parse_csv(&out.join("iterations.csv"));
     assert_eq!(rows.len(), 2 * 2 * 3);
     // Every executed training trajectory has a type.

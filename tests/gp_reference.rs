@@ -156,12 +156,7 @@ fn two_level_data(n: usize, rng: &mut ChaCha8Rng) -> (DMatrix<f64>, DVector<f64>
 
 fn nlpd(model: &GpModel, x: &DMatrix<f64>, y: &DVector<f64>) -> f64 {
     let p = model.predict(x);
-    let var: Vec<f64> = p
-        .latent_variance
-        .iter()
-        .zip(&p.noise_variance)
-        .map(|(a, b)| a + b)
-        .collect();
+    let var = p.variance();
     (0..y.len())
         .map(|i| {
             0.5 * (2.0 * std::f64::consts::PI * var[i]).ln()

@@ -9,8 +9,9 @@
 mod common;
 
 use common::{
-    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, get,
-    leased_problem, post, post_until_acknowledged, trajectory,
+    Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
+    http_with_timeout, ingest_only, leased_problem, post, spawn_robots, trajectory,
+    two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -40,12 +41,6 @@ async fn database(test: &str) -> Option<String> {
 
 /// Replica options for tests: short leases and polls, so a takeover fits in a test.
 const FAST: &[&str] = &["--fit-lease-secs", "2", "--replica-poll-ms", "100"];
-
-async fn experiment(http: &reqwest::Client, base: &str, body: Value) -> i64 {
-    let (status, e) = post(http, &format!("{base}/v1/experiments"), &body).await;
-    assert_eq!(status, 201, "{e}");
-    e["id"].as_i64().unwrap()
-}
 
 /// Waits (at most `limit`) until `base` answers experiment `id` with a model of `version` or
 /// later, and returns it.
@@ -154,16 +149,8 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
         return;
     };
     let mut replicas = vec![Server::start(&db, FAST), Server::start(&db, FAST)];
-    let http = reqwest::Client::builder()
-        .timeout(Duration::from_secs(5))
-        .build()
-        .unwrap();
-    let id = experiment(
-        &http,
-        &replicas[0].base,
-        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}}),
-    )
-    .await;
+    let http = http_with_timeout(Duration::from_secs(5));
+    let id = experiment(&http, &replicas[0].base, ingest_only()).await;
     let bases = Arc::new(RwLock::new(vec![
         replicas[0].base.clone(),
         replicas[1].base.clone(),
@@ -172,17 +159,7 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
 
     // Clients: half start on each replica; after a failure they retry with the same key on the
     // other one, as a load balancer would send them.
-    let clients: Vec<_> = (0..CLIENTS)
-        .map(|c| {
-            tokio::spawn(post_until_acknowledged(
-                http.clone(),
-                bases.clone(),
-                id,
-                c,
-                PER_CLIENT,
-            ))
-        })
-        .collect();
+    let clients = spawn_robots(&http, &bases, id, CLIENTS, PER_CLIENT);
 
     // The killer: kill -9 one replica or the other at seeded moments, and restart it.
     let mut rng = ChaCha8Rng::seed_from_u64(27);
@@ -236,14 +213,7 @@ async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
     )
     .await;
     for k in 0..60 {
-        let mut body = json!({"transitions": []});
-        for j in 0..2 {
-            let (t, _) = trajectory(300 + j, k);
-            body["transitions"]
-                .as_array_mut()
-                .unwrap()
-                .extend(t["transitions"].as_array().unwrap().iter().cloned());
-        }
+        let body = two_robots_trajectory(300, k);
         let (status, v) = post(
             &http,
             &format!("{}/v1/experiments/{id}/trajectories", replicas[k % 2].base),

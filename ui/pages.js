@@ -230,70 +230,37 @@ function progress(e) {
 }
 
 function timelineCharts(e, t) {
+  // One chart per spec [title, series name, value of a row, options (`bars` for the series, the
+  // rest for the chart)], each row's value against its `x`.
+  const over = (rows, xOf, xlabel, specs) => {
+    const x = rows.map(xOf);
+    return specs.map(([title, name, value, { bars, ...options } = {}]) =>
+      lineChart({ title, x, xlabel, series: [{ name, values: rows.map(value), ...(bars && { bars }) }], ...options }),
+    );
+  };
   const charts = [];
   if (t.models.length) {
-    const v = t.models.map(m => m.version);
     charts.push(
-      lineChart({
-        title: 'Training transitions per model version',
-        x: v,
-        xlabel: 'version',
-        series: [{ name: 'n_train', values: t.models.map(m => m.n_train) }],
-      }),
-    );
-    charts.push(
-      lineChart({
-        title: 'Log marginal likelihood per version',
-        x: v,
-        xlabel: 'version',
-        series: [{ name: 'LML', values: t.models.map(m => m.log_marginal_likelihood) }],
-      }),
-    );
-    charts.push(
-      lineChart({
-        title: 'Fit seconds per version',
-        x: v,
-        xlabel: 'version',
-        series: [{ name: 'seconds', values: t.models.map(m => m.fit_seconds) }],
-      }),
+      ...over(t.models, m => m.version, 'version', [
+        ['Training transitions per model version', 'n_train', m => m.n_train],
+        ['Log marginal likelihood per version', 'LML', m => m.log_marginal_likelihood],
+        ['Fit seconds per version', 'seconds', m => m.fit_seconds],
+      ]),
     );
   }
   if (t.iterations.length) {
-    const it = t.iterations.map(r => r.iteration);
     charts.push(
-      lineChart({
-        title: 'Trajectories per iteration',
-        x: it,
-        xlabel: 'iteration',
-        series: [{ name: 'trajectories', values: t.iterations.map(r => r.n_trajectories), bars: true }],
-      }),
-    );
-    charts.push(
-      lineChart({
-        title: 'Refused proposal requests per iteration',
-        x: it,
-        xlabel: 'iteration',
-        series: [{ name: 'refused (no plan)', values: t.iterations.map(r => r.n_refused ?? 0), bars: true }],
-      }),
-    );
-    charts.push(
-      lineChart({
-        title: 'β per iteration (learning schedule)',
-        x: it,
-        xlabel: 'iteration',
-        series: [{ name: 'β', values: t.iterations.map(r => r.beta) }],
-        refs: [{ y: e.learning.test_beta, label: 'test β' }],
-      }),
-    );
-    charts.push(
-      lineChart({
-        title: 'Transitions within d_max per iteration',
-        x: it,
-        xlabel: 'iteration',
-        yMin: 0,
-        yMax: 1,
-        series: [{ name: 'share', values: t.iterations.map(r => r.share_within_d_max) }],
-      }),
+      ...over(t.iterations, r => r.iteration, 'iteration', [
+        ['Trajectories per iteration', 'trajectories', r => r.n_trajectories, { bars: true }],
+        ['Refused proposal requests per iteration', 'refused (no plan)', r => r.n_refused ?? 0, { bars: true }],
+        [
+          'β per iteration (learning schedule)',
+          'β',
+          r => r.beta,
+          { refs: [{ y: e.learning.test_beta, label: 'test β' }] },
+        ],
+        ['Transitions within d_max per iteration', 'share', r => r.share_within_d_max, { yMin: 0, yMax: 1 }],
+      ]),
     );
   }
   if (!charts.length) return h('p', { class: 'muted' }, 'No trajectories yet.');
@@ -603,28 +570,21 @@ export async function mapPage(root, params, id) {
   const legend = h('div');
   const fixed = h('div', { class: 'controls' });
   const opt = (v, sel) => h('option', { value: v, selected: v === sel }, v);
-  const xSel = h(
-    'select',
-    {
-      id: 'map-x',
-      onchange: ev => {
-        state.x = ev.target.value;
-        load();
+  // The choice of one axis (`x` or `y`) among the components; a change reloads the map.
+  const axisSel = axis =>
+    h(
+      'select',
+      {
+        id: `map-${axis}`,
+        onchange: ev => {
+          state[axis] = ev.target.value;
+          load();
+        },
       },
-    },
-    comps.map(c => opt(c.name, state.x)),
-  );
-  const ySel = h(
-    'select',
-    {
-      id: 'map-y',
-      onchange: ev => {
-        state.y = ev.target.value;
-        load();
-      },
-    },
-    comps.map(c => opt(c.name, state.y)),
-  );
+      comps.map(c => opt(c.name, state[axis])),
+    );
+  const xSel = axisSel('x');
+  const ySel = axisSel('y');
   const betaOut = h('output', {}, fmt(state.beta));
   const betaIn = h('input', {
     type: 'range',

@@ -11,7 +11,7 @@ use crate::mde::{
     EstimatorKind, EstimatorParams, HeldOutTrust, blocks, capped_labels, fit_choosing_label_cap,
     gp_params,
 };
-use crate::planning::Precondition;
+use crate::planning::{Agreement, Precondition};
 use crate::sim::ContinuousWorld;
 use crate::sim::Simulated;
 use crate::store::Store;
@@ -152,7 +152,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 let seconds = t0.elapsed().as_secs_f64();
                 let p = choice.gp.predict(&q);
                 let judge = |latent_only: bool| {
-                    let (mut tp, mut pos, mut tn, mut neg) = (0, 0, 0, 0);
+                    let mut agreement = Agreement::default();
                     let mut sigmas: Vec<f64> = Vec::with_capacity(held.len());
                     for (k, (_, d)) in held.iter().enumerate() {
                         let var = p.latent_variance[k]
@@ -163,19 +163,12 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                             };
                         let sd = var.max(0.0).sqrt();
                         sigmas.push(sd);
-                        let inside = precondition.inside(p.mean[k], sd);
-                        if *d < d_max {
-                            pos += 1;
-                            tp += usize::from(inside);
-                        } else {
-                            neg += 1;
-                            tn += usize::from(!inside);
-                        }
+                        agreement.count(*d, d_max, precondition.inside(p.mean[k], sd));
                     }
                     sigmas.sort_by(f64::total_cmp);
                     (
-                        tp as f64 / pos.max(1) as f64,
-                        tn as f64 / neg.max(1) as f64,
+                        agreement.tpr().unwrap_or(0.0),
+                        agreement.tnr().unwrap_or(0.0),
                         sigmas[sigmas.len() / 2],
                     )
                 };

@@ -78,18 +78,11 @@ fn plane(model: Arc<dyn DynamicsModel>) -> CustomDomain {
         high: vec![hi; 2],
         values: None,
     };
-    let params = CustomParams {
-        state: space(["x", "y"], 0.0, 1.0),
-        action: space(["dx", "dy"], -0.1, 0.1),
-        feature_state: vec![0, 1],
-        feature_action: vec![0, 1],
-        weights: vec![1.0, 1.0],
-        goal_components: vec![0, 1],
-        goal_radius: 0.05,
-        obstacles: vec![],
-        steer_samples: 8,
-        rollout_length: Some(20),
-    };
+    let params = CustomParams::plane(
+        space(["x", "y"], 0.0, 1.0),
+        space(["dx", "dy"], -0.1, 0.1),
+        Some(20),
+    );
     CustomDomain::new(params, model).expect("the benchmark's domain is valid")
 }
 

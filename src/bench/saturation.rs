@@ -54,15 +54,16 @@ fn summary(mut ms: Vec<f64>) -> String {
     )
 }
 
-/// Probes `paths` in turn every 10 ms until `stop`; latencies per path.
+/// Probes `paths` in turn every 10 ms for `phase`; latencies per path.
 async fn probe(
-    client: reqwest::Client,
-    base: String,
-    paths: Vec<String>,
-    stop: Arc<AtomicBool>,
+    client: &reqwest::Client,
+    base: &str,
+    paths: &[String],
+    phase: Duration,
 ) -> anyhow::Result<Vec<Vec<f64>>> {
+    let started = Instant::now();
     let mut out = vec![Vec::new(); paths.len()];
-    while !stop.load(Ordering::Relaxed) {
+    while started.elapsed() < phase {
         for (i, p) in paths.iter().enumerate() {
             let t = Instant::now();
             let r = client.get(format!("{base}{p}")).send().await?;
@@ -125,16 +126,7 @@ pub async fn run(options: &SaturationOptions) -> anyhow::Result<()> {
     let paths = vec!["/healthz".to_string(), format!("/v1/experiments/{id}")];
     let phase = Duration::from_secs_f64(options.seconds);
 
-    let stop = Arc::new(AtomicBool::new(false));
-    let idle = tokio::spawn(probe(
-        client.clone(),
-        base.clone(),
-        paths.clone(),
-        stop.clone(),
-    ));
-    tokio::time::sleep(phase).await;
-    stop.store(true, Ordering::Relaxed);
-    let idle = idle.await??;
+    let idle = probe(&client, &base, &paths, phase).await?;
 
     let stop = Arc::new(AtomicBool::new(false));
     let mut askers = Vec::new();
@@ -168,16 +160,7 @@ pub async fn run(options: &SaturationOptions) -> anyhow::Result<()> {
     }
     // Let the planner fill up before measuring.
     tokio::time::sleep(Duration::from_millis(500)).await;
-    let probe_stop = Arc::new(AtomicBool::new(false));
-    let busy = tokio::spawn(probe(
-        client.clone(),
-        base.clone(),
-        paths.clone(),
-        probe_stop.clone(),
-    ));
-    tokio::time::sleep(phase).await;
-    probe_stop.store(true, Ordering::Relaxed);
-    let busy = busy.await??;
+    let busy = probe(&client, &base, &paths, phase).await?;
     stop.store(true, Ordering::Relaxed);
     let mut outcomes: BTreeMap<String, usize> = BTreeMap::new();
     for a in askers {

@@ -120,13 +120,7 @@ pub struct SparseBenchRow {
 }
 
 fn vm_hwm() -> f64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            let l = s.lines().find(|l| l.starts_with("VmHWM:"))?.to_string();
-            l.split_whitespace().nth(1)?.parse::<f64>().ok()
-        })
-        .map_or(f64::NAN, |kb| kb * 1024.0)
+    crate::gp::cost::peak_rss_bytes().unwrap_or(f64::NAN)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -191,13 +185,7 @@ fn timings(model: &dyn Predictor, q: &DMatrix<f64>, yq: &DVector<f64>, reps: usi
         pred = Some(p);
     }
     let pred = pred.unwrap_or_else(|| model.predict(q));
-    let var: Vec<f64> = pred
-        .latent_variance
-        .iter()
-        .zip(&pred.noise_variance)
-        .map(|(a, b)| a + b)
-        .collect();
-    let (rmse, nll) = scores(&pred.mean, &var, yq);
+    let (rmse, nll) = scores(&pred.mean, &pred.variance(), yq);
     [single, q.nrows() as f64 / best, rmse, nll]
 }
 
@@ -298,17 +286,17 @@ fn spawn_child(spec: &ChildSpec) -> Result<SparseBenchRow, String> {
         .args(["bench", "gp", "--child", &json])
         .output()
         .map_err(|e| format!("spawning the child: {e}"))?;
+    read_row(&out, &format!("child failed ({})", out.status))
+}
+
+/// The row on the `ROW ` line of a child's or the reference's output; else the error `failed:`
+/// what it wrote on stderr.
+fn read_row(out: &std::process::Output, failed: &str) -> Result<SparseBenchRow, String> {
     let text = String::from_utf8_lossy(&out.stdout);
     let line = text
         .lines()
         .find(|l| l.starts_with("ROW "))
-        .ok_or_else(|| {
-            format!(
-                "child failed ({}): {}",
-                out.status,
-                String::from_utf8_lossy(&out.stderr).trim()
-            )
-        })?;
+        .ok_or_else(|| format!("{failed}: {}", String::from_utf8_lossy(&out.stderr).trim()))?;
     serde_json::from_str(&line[4..]).map_err(|e| e.to_string())
 }
 
@@ -473,17 +461,7 @@ fn run_reference(
         .output();
     let _ = std::fs::remove_dir_all(&dir);
     let out = out.map_err(|e| format!("running the reference: {e}"))?;
-    let text = String::from_utf8_lossy(&out.stdout);
-    let line = text
-        .lines()
-        .find(|l| l.starts_with("ROW "))
-        .ok_or_else(|| {
-            format!(
-                "reference failed: {}",
-                String::from_utf8_lossy(&out.stderr).trim()
-            )
-        })?;
-    serde_json::from_str(&line[4..]).map_err(|e| e.to_string())
+    read_row(&out, "reference failed")
 }
 
 fn print_row(r: &SparseBenchRow) {

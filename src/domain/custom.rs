@@ -55,6 +55,26 @@ pub struct CustomParams {
     pub rollout_length: Option<usize>,
 }
 
+impl CustomParams {
+    /// A point in a plane moved by planar actions: both components of the state and of the
+    /// action fed to the MDE, the distance unweighted, a goal within 0.05 of both state
+    /// components, no obstacles, 8 steering samples.
+    pub fn plane(state: Space, action: Space, rollout_length: Option<usize>) -> CustomParams {
+        CustomParams {
+            state,
+            action,
+            feature_state: vec![0, 1],
+            feature_action: vec![0, 1],
+            weights: vec![1.0, 1.0],
+            goal_components: vec![0, 1],
+            goal_radius: 0.05,
+            obstacles: vec![],
+            steer_samples: 8,
+            rollout_length,
+        }
+    }
+}
+
 /// The default tolerance `d_max` of a custom domain, in the units of its distance (clients
 /// usually set their own).
 pub const DEFAULT_D_MAX: f64 = 0.1;

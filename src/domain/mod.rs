@@ -44,10 +44,8 @@ impl Space {
         self.names.len()
     }
 
-    /// Checks dimension, finiteness, bounds and (for discrete spaces) membership of `v`.
-    ///
-    /// The error says which component is wrong and why, for the caller to put behind a field name.
-    pub fn check(&self, v: &[f64]) -> Result<(), DomainError> {
+    /// Checks that `v` has one entry per component; the error names the components.
+    pub fn check_dim(&self, v: &[f64]) -> Result<(), DomainError> {
         if v.len() != self.dim() {
             return Err(DomainError::new(format!(
                 "expected {} components ({}), got {}",
@@ -56,6 +54,14 @@ impl Space {
                 v.len()
             )));
         }
+        Ok(())
+    }
+
+    /// Checks dimension, finiteness, bounds and (for discrete spaces) membership of `v`.
+    ///
+    /// The error says which component is wrong and why, for the caller to put behind a field name.
+    pub fn check(&self, v: &[f64]) -> Result<(), DomainError> {
+        self.check_dim(v)?;
         for (i, x) in v.iter().enumerate() {
             if !x.is_finite() {
                 return Err(DomainError::new(format!(
@@ -268,14 +274,7 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// pushed slightly outside the nominal bounds, so bounds are not enforced by default).
     fn validate_observed_state(&self, s: &[f64]) -> Result<(), DomainError> {
         let space = self.state_space();
-        if s.len() != space.dim() {
-            return Err(DomainError::new(format!(
-                "expected {} components ({}), got {}",
-                space.dim(),
-                space.names.join(", "),
-                s.len()
-            )));
-        }
+        space.check_dim(s)?;
         match s.iter().position(|x| !x.is_finite()) {
             Some(i) => Err(DomainError::new(format!(
                 "component {i} ({}) is not a finite number",

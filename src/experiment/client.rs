@@ -54,6 +54,12 @@ impl ApiClient {
         format!("{}{}", self.base, path)
     }
 
+    /// A `POST` to experiment `id`'s `tail` (`proposals`, `plans`, `model/refit`, …).
+    fn post_to(&self, id: i64, tail: &str) -> reqwest::RequestBuilder {
+        self.http
+            .post(self.url(&format!("/v1/experiments/{id}/{tail}")))
+    }
+
     /// Sends a request and returns the status and the JSON body.
     async fn send(&self, req: reqwest::RequestBuilder, what: &str) -> anyhow::Result<(u16, Value)> {
         let resp = req
@@ -120,12 +126,7 @@ impl ApiClient {
         };
         let what = "POST /proposals";
         let (status, body) = self
-            .send(
-                self.http
-                    .post(self.url(&format!("/v1/experiments/{id}/proposals")))
-                    .json(&body),
-                what,
-            )
+            .send(self.post_to(id, "proposals").json(&body), what)
             .await?;
         let code = serde_json::from_value::<ErrorBody>(body.clone()).map(|e| e.error.code);
         match (status, code.as_deref()) {
@@ -155,9 +156,7 @@ impl ApiClient {
             transitions,
         };
         self.expect(
-            self.http
-                .post(self.url(&format!("/v1/experiments/{id}/trajectories")))
-                .json(&body),
+            self.post_to(id, "trajectories").json(&body),
             "POST /trajectories",
         )
         .await
@@ -179,11 +178,7 @@ impl ApiClient {
     pub async fn refit(&self, id: i64) -> anyhow::Result<ModelResponse> {
         let before = self.model(id).await?.version;
         let mut m: ModelResponse = self
-            .expect(
-                self.http
-                    .post(self.url(&format!("/v1/experiments/{id}/model/refit"))),
-                "POST /model/refit",
-            )
+            .expect(self.post_to(id, "model/refit"), "POST /model/refit")
             .await?;
         while m.version <= before {
             tokio::time::sleep(Duration::from_millis(100)).await;
@@ -231,12 +226,7 @@ impl ApiClient {
         };
         let what = "POST /plans";
         let (status, body) = self
-            .send(
-                self.http
-                    .post(self.url(&format!("/v1/experiments/{id}/plans")))
-                    .json(&body),
-                what,
-            )
+            .send(self.post_to(id, "plans").json(&body), what)
             .await?;
         if status == 503
             && let Ok(e) = serde_json::from_value::<ErrorBody>(body.clone())
@@ -283,9 +273,7 @@ impl ApiClient {
             };
             let j: PreconditionResponse = self
                 .expect(
-                    self.http
-                        .post(self.url(&format!("/v1/experiments/{id}/precondition")))
-                        .json(&body),
+                    self.post_to(id, "precondition").json(&body),
                     "POST /precondition",
                 )
                 .await?;

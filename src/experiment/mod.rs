@@ -90,28 +90,24 @@ fn parse_named<T: serde::de::DeserializeOwned>(
         .map_err(|_| format!("{s:?} is not {what}; use {choices}"))
 }
 
-fn parse_noise(s: &str) -> Result<NoiseMode, String> {
-    parse_named(s, "a noise model", "homoscedastic or heteroscedastic")
+/// `fn $parse(s) -> Result<$ty, String>` through [`parse_named`], for each setting the command line
+/// spells as the API does: what it is and the choices, once each.
+macro_rules! named_parsers {
+    ($($parse:ident: $ty:ty, $what:literal, $choices:literal;)+) => {
+        $(fn $parse(s: &str) -> Result<$ty, String> {
+            parse_named(s, $what, $choices)
+        })+
+    };
 }
 
-fn parse_kernel(s: &str) -> Result<KernelChoice, String> {
-    parse_named(s, "a kernel", "auto, matern12, matern32 or matern52")
-}
-
-fn parse_estimator(s: &str) -> Result<EstimatorChoice, String> {
-    parse_named(s, "an estimator", "auto, exact or sparse")
-}
-
-fn parse_aggregation(s: &str) -> Result<Aggregation, String> {
-    parse_named(s, "an aggregation", "max or sum")
-}
-
-fn parse_acquisition(s: &str) -> Result<AcquisitionKind, String> {
-    parse_named(s, "an acquisition", "lcb or level_set")
-}
-
-fn parse_preset(s: &str) -> Result<Preset, String> {
-    parse_named(s, "a preset", "default or paper")
+named_parsers! {
+    parse_noise: NoiseMode, "a noise model", "homoscedastic or heteroscedastic";
+    parse_kernel: KernelChoice, "a kernel", "auto, matern12, matern32 or matern52";
+    parse_estimator: EstimatorChoice, "an estimator", "auto, exact or sparse";
+    parse_aggregation: Aggregation, "an aggregation", "max or sum";
+    parse_acquisition: AcquisitionKind, "an acquisition", "lcb or level_set";
+    parse_preset: Preset, "a preset", "default or paper";
+    parse_grid_features: GridFeatures, "a feature map", "scaled or per_move";
 }
 
 fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
@@ -121,10 +117,6 @@ fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
     s.parse()
         .map(LabelCap::Fixed)
         .map_err(|_| format!("{s:?} is not a label cap; use auto or a number of d_max (0: raw)"))
-}
-
-fn parse_grid_features(s: &str) -> Result<GridFeatures, String> {
-    parse_named(s, "a feature map", "scaled or per_move")
 }
 
 /// Options of `precond experiment`. Unset numbers take the paper's defaults, or the `--quick`

@@ -32,7 +32,7 @@ use crate::domain::{
     DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, Kinematic, LocalModel, MOVES, Problem,
     Transition, WaterPlant,
 };
-use crate::planning::{Strategy, Trajectory};
+use crate::planning::{Agreement, Strategy, Trajectory};
 use crate::settings::{DomainSpec, LearningRequest, MdeRequest};
 use crate::sim::{ContinuousWorld, Simulated, World};
 use indicatif::ProgressBar;
@@ -1062,15 +1062,14 @@ impl Run<'_> {
         let mut sigmas: Vec<f64> = judged.iter().map(|j| j.sigma).collect();
         sigmas.sort_by(f64::total_cmp);
         rec.held_out_median_sigma = sigmas.get(sigmas.len() / 2).copied();
+        let mut agreement = Agreement::default();
         for (l, j) in held.iter().zip(&judged) {
-            if l.deviation < self.d_max {
-                rec.held_out_low += 1;
-                rec.true_positives += usize::from(j.inside);
-            } else {
-                rec.held_out_high += 1;
-                rec.true_negatives += usize::from(!j.inside);
-            }
+            agreement.count(l.deviation, self.d_max, j.inside);
         }
+        rec.held_out_low += agreement.positives;
+        rec.held_out_high += agreement.negatives;
+        rec.true_positives += agreement.true_positives;
+        rec.true_negatives += agreement.true_negatives;
         rec.tpr = ratio(rec.true_positives, rec.held_out_low);
         rec.tnr = ratio(rec.true_negatives, rec.held_out_high);
         Ok(())

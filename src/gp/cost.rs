@@ -165,6 +165,15 @@ pub fn sparse_fit_cost(n: usize, d: usize, p: &SparseParams) -> FitCost {
     FitCost::new(peak, flops)
 }
 
+/// The process's peak resident memory so far, bytes (`VmHWM` of `/proc/self/status`), against
+/// which the estimates are measured; `None` where that is not readable (not Linux).
+pub fn peak_rss_bytes() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb = line.split_whitespace().nth(1)?.parse::<f64>().ok()?;
+    Some(kb * 1024.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -262,13 +271,7 @@ mod tests {
     }
 
     fn vm_hwm() -> f64 {
-        std::fs::read_to_string("/proc/self/status")
-            .ok()
-            .and_then(|s| {
-                let l = s.lines().find(|l| l.starts_with("VmHWM:"))?.to_string();
-                l.split_whitespace().nth(1)?.parse::<f64>().ok()
-            })
-            .map_or(0.0, |kb| kb * 1024.0)
+        peak_rss_bytes().unwrap_or(0.0)
     }
 
     /// The child side of [`measured_growth`]: fits the model named by `PRECOND_RSS_CHILD`

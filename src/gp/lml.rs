@@ -34,6 +34,18 @@ pub(crate) enum NoiseSpec<'a> {
     Fixed(&'a [f64]),
 }
 
+impl NoiseSpec<'_> {
+    /// Length of `θ` over `d` inputs: `d` log length scales, the log signal variance and, when
+    /// homoscedastic, the log noise variance.
+    #[cfg(test)]
+    pub fn n_params(&self, d: usize) -> usize {
+        match self {
+            NoiseSpec::Homoscedastic => d + 2,
+            NoiseSpec::Fixed(_) => d + 1,
+        }
+    }
+}
+
 /// The jitter ladder: none, then `initial · mean diag`, ×10 per attempt up to `max · mean diag`.
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Jitter {
@@ -159,15 +171,6 @@ impl<'a> Objective<'a> {
             g: vec![0.0; nn],
             linv: vec![0.0; nn],
             evaluations: 0,
-        }
-    }
-
-    /// Length of `θ`.
-    #[cfg(test)]
-    pub fn n_params(&self) -> usize {
-        match self.noise {
-            NoiseSpec::Homoscedastic => self.x.d + 2,
-            NoiseSpec::Fixed(_) => self.x.d + 1,
         }
     }
 

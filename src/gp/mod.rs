@@ -55,7 +55,7 @@ pub use error::GpError;
 pub use export::{GpPredictor, NoisePredictor, PointPrediction, Predictor};
 pub use kernel::Kernel;
 pub use model::GpModel;
-pub use params::{Bounds, GpParams, NoiseMode, ValidGpParams};
+pub use params::{Bounds, Checked, GpParams, NoiseMode, ValidGpParams};
 pub use sparse::{DEFAULT_INDUCING_POINTS, SparseGp, SparseParams, SparseState, ValidSparseParams};
 
 /// Signal variance of the prior before any data ([`Hyperparameters::prior`]): `1.0`, i.e. a prior
@@ -218,13 +218,18 @@ pub struct Prediction {
 }
 
 impl Prediction {
-    /// Predictive standard deviation of an observation, `√(latent + noise)` — the σ reported to users.
-    pub fn std(&self) -> Vec<f64> {
+    /// Predictive variance of an observation, `latent + noise`.
+    pub fn variance(&self) -> Vec<f64> {
         self.latent_variance
             .iter()
             .zip(&self.noise_variance)
-            .map(|(a, b)| (a + b).sqrt())
+            .map(|(a, b)| a + b)
             .collect()
+    }
+
+    /// Predictive standard deviation of an observation, `√(latent + noise)` — the σ reported to users.
+    pub fn std(&self) -> Vec<f64> {
+        self.variance().into_iter().map(f64::sqrt).collect()
     }
 
     /// Number of predicted points.

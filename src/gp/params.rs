@@ -150,22 +150,44 @@ impl Default for GpParams {
     }
 }
 
-/// [`GpParams`] that passed [`GpParams::check`]; the only way to fit a model.
+/// Settings that passed their `check` ([`GpParams::check`], [`SparseParams::check`]); the only
+/// way to fit a model with them. Only those checks make one.
+///
+/// [`SparseParams::check`]: super::SparseParams::check
 #[derive(Clone, Debug, PartialEq)]
-pub struct ValidGpParams(GpParams);
+pub struct Checked<T>(T);
 
-impl ValidGpParams {
+impl<T> Checked<T> {
+    /// Settings the caller has just checked (the checks of the `gp` module alone call it).
+    pub(in crate::gp) fn new(params: T) -> Self {
+        Checked(params)
+    }
+
     /// The checked settings.
-    pub fn params(&self) -> &GpParams {
+    pub fn params(&self) -> &T {
         &self.0
     }
 }
 
-impl std::ops::Deref for ValidGpParams {
-    type Target = GpParams;
-    fn deref(&self) -> &GpParams {
+impl<T> std::ops::Deref for Checked<T> {
+    type Target = T;
+    fn deref(&self) -> &T {
         &self.0
     }
+}
+
+/// [`GpParams`] that passed [`GpParams::check`]; the only way to fit a model.
+pub type ValidGpParams = Checked<GpParams>;
+
+/// Checks a subset size that is 0 (off) or at least `min`; the error names the field `name`.
+pub(super) fn off_or_at_least(name: &'static str, value: usize, min: usize) -> Result<(), GpError> {
+    if value != 0 && value < min {
+        return Err(invalid(
+            name,
+            format!("must be 0 (off) or at least {min}, got {value}"),
+        ));
+    }
+    Ok(())
 }
 
 fn invalid(name: &'static str, reason: impl Into<String>) -> GpError {
@@ -215,12 +237,7 @@ impl GpParams {
                 format!("must be in (0, 1], got {}", self.gradient_tolerance),
             ));
         }
-        if self.screen_subset != 0 && self.screen_subset < 64 {
-            return Err(invalid(
-                "screen_subset",
-                format!("must be 0 (off) or at least 64, got {}", self.screen_subset),
-            ));
-        }
+        off_or_at_least("screen_subset", self.screen_subset, 64)?;
         if !(self.jitter_max.is_finite() && self.jitter_max > 0.0 && self.jitter_max <= 0.1) {
             return Err(invalid(
                 "jitter_max",
@@ -254,6 +271,6 @@ impl GpParams {
                 format!("must be at least 2, got {}", self.hetero_min_points),
             ));
         }
-        Ok(ValidGpParams(self.clone()))
+        Ok(Checked::new(self.clone()))
     }
 }

@@ -17,7 +17,9 @@ const JITTER: Jitter = Jitter {
     max: 1e-4,
 };
 
-fn data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
+/// `n` seeded random points in `[0, 1]^d` and smooth, slightly noisy targets at them (the sparse
+/// GP's tests use them too).
+pub(super) fn data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let x = DMatrix::from_fn(n, d, |_, _| rng.random::<f64>());
     let y = DVector::from_fn(n, |i, _| {
@@ -26,15 +28,19 @@ fn data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
     (x, y)
 }
 
-fn homo_params() -> ValidGpParams {
+/// GP settings with `noise`, `restarts` and `seed`, the rest default (the sparse GP's tests use
+/// them too).
+pub(super) fn gp_params(noise: NoiseMode, restarts: usize, seed: u64) -> GpParams {
     GpParams {
-        noise: NoiseMode::Homoscedastic,
-        restarts: 1,
-        seed: 5,
+        noise,
+        restarts,
+        seed,
         ..GpParams::default()
     }
-    .check()
-    .unwrap()
+}
+
+fn homo_params() -> ValidGpParams {
+    gp_params(NoiseMode::Homoscedastic, 1, 5).check().unwrap()
 }
 
 #[test]
@@ -129,23 +135,37 @@ fn every_kernel_builds_the_matrix_of_its_formula() {
     }
 }
 
-fn check_gradient(kernel: Kernel, noise: NoiseSpec<'_>, x: &Inputs, r: &[f64], theta: &[f64]) {
-    let mut obj = Objective::new(x, r, noise, kernel, JITTER);
-    let p = obj.n_params();
-    assert_eq!(p, theta.len());
+/// `f(θ)` and, per component of `θ`, the gradient `f` writes into its second argument beside
+/// the central finite difference (step 1e-5) of `f` there (the sparse GP's tests use it too).
+pub(super) fn gradient_vs_finite_differences(
+    mut f: impl FnMut(&[f64], &mut [f64]) -> f64,
+    theta: &[f64],
+) -> (f64, Vec<(f64, f64)>) {
+    let p = theta.len();
     let mut g = vec![0.0; p];
-    let f = obj.eval(theta, &mut g);
-    assert!(f.is_finite());
+    let value = f(theta, &mut g);
     let mut scratch = vec![0.0; p];
-    for k in 0..p {
-        let h = 1e-5;
-        let mut tp = theta.to_vec();
-        tp[k] += h;
-        let fp = obj.eval(&tp, &mut scratch);
-        tp[k] -= 2.0 * h;
-        let fm = obj.eval(&tp, &mut scratch);
-        let fd = (fp - fm) / (2.0 * h);
-        assert_relative_eq!(g[k], fd, epsilon = 1e-6, max_relative = 1e-5);
+    let pairs = (0..p)
+        .map(|k| {
+            let h = 1e-5;
+            let mut tp = theta.to_vec();
+            tp[k] += h;
+            let fp = f(&tp, &mut scratch);
+            tp[k] -= 2.0 * h;
+            let fm = f(&tp, &mut scratch);
+            (g[k], (fp - fm) / (2.0 * h))
+        })
+        .collect();
+    (value, pairs)
+}
+
+fn check_gradient(kernel: Kernel, noise: NoiseSpec<'_>, x: &Inputs, r: &[f64], theta: &[f64]) {
+    assert_eq!(noise.n_params(x.d), theta.len());
+    let mut obj = Objective::new(x, r, noise, kernel, JITTER);
+    let (f, pairs) = gradient_vs_finite_differences(|t, g| obj.eval(t, g), theta);
+    assert!(f.is_finite());
+    for (analytic, fd) in pairs {
+        assert_relative_eq!(analytic, fd, epsilon = 1e-6, max_relative = 1e-5);
     }
 }
 
@@ -226,14 +246,7 @@ fn log_residual_bias_matches_quadrature_references() {
 fn state_round_trips_exactly_through_json() {
     let (x, y) = data(40, 2, 4);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
-        let params = GpParams {
-            noise,
-            restarts: 1,
-            seed: 9,
-            ..GpParams::default()
-        }
-        .check()
-        .unwrap();
+        let params = gp_params(noise, 1, 9).check().unwrap();
         let model = GpModel::fit(&x, &y, &params).unwrap();
         assert_eq!(model.noise_mode(), noise);
         let (q, _) = data(25, 2, 5);
@@ -774,14 +787,7 @@ fn targets_whose_mean_square_overflows_are_an_error_not_a_panic() {
     let (x, _) = data(20, 2, 3);
     let y = DVector::from_element(20, 1e300);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
-        let params = GpParams {
-            noise,
-            restarts: 2,
-            seed: 5,
-            ..GpParams::default()
-        }
-        .check()
-        .unwrap();
+        let params = gp_params(noise, 2, 5).check().unwrap();
         let e = GpModel::fit(&x, &y, &params).unwrap_err();
         assert!(
             matches!(e, GpError::OptimisationFailed(ref m) if m.contains("overflows")),

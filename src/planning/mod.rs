@@ -98,7 +98,7 @@ pub use acquisition::{
 pub use cache::ModelCache;
 pub use given::{Path, Verdict, choose};
 pub use planner::Planner;
-pub use precondition::Precondition;
+pub use precondition::{Agreement, Precondition};
 pub use rrt::{Rejections, RrtOutcome};
 pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};
 pub use settings::{PlannerSettings, PlanningSettings};

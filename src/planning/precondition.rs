@@ -51,6 +51,43 @@ impl Precondition {
     }
 }
 
+/// How a precondition's verdicts agree with the true deviations of judged transitions: the
+/// positives (true deviation below `d_max`) it judged inside, the negatives it judged outside.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Agreement {
+    /// Transitions whose true deviation is below `d_max`.
+    pub positives: usize,
+    /// Transitions whose true deviation is at least `d_max`.
+    pub negatives: usize,
+    /// Positives judged inside.
+    pub true_positives: usize,
+    /// Negatives judged outside.
+    pub true_negatives: usize,
+}
+
+impl Agreement {
+    /// Counts one transition of true `deviation` that the precondition judged `inside` or not.
+    pub fn count(&mut self, deviation: f64, d_max: f64, inside: bool) {
+        if deviation < d_max {
+            self.positives += 1;
+            self.true_positives += usize::from(inside);
+        } else {
+            self.negatives += 1;
+            self.true_negatives += usize::from(!inside);
+        }
+    }
+
+    /// `true_positives / positives` (`None` without positives).
+    pub fn tpr(&self) -> Option<f64> {
+        (self.positives > 0).then(|| self.true_positives as f64 / self.positives as f64)
+    }
+
+    /// `true_negatives / negatives` (`None` without negatives).
+    pub fn tnr(&self) -> Option<f64> {
+        (self.negatives > 0).then(|| self.true_negatives as f64 / self.negatives as f64)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

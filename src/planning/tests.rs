@@ -808,18 +808,7 @@ fn random_rollouts_without_a_declared_length_are_as_long_as_a_plan() {
     let domain = |rollout_length: Option<usize>| {
         let model = LinearModel::new(eye.clone(), eye.clone(), vec![0.0; 2], &st, &ac).unwrap();
         CustomDomain::new(
-            CustomParams {
-                state: st.clone(),
-                action: ac.clone(),
-                feature_state: vec![0, 1],
-                feature_action: vec![0, 1],
-                weights: vec![1.0, 1.0],
-                goal_components: vec![0, 1],
-                goal_radius: 0.05,
-                obstacles: vec![],
-                steer_samples: 8,
-                rollout_length,
-            },
+            CustomParams::plane(st.clone(), ac.clone(), rollout_length),
             Arc::new(model),
         )
         .unwrap()

@@ -9,7 +9,7 @@ use crate::limits::{
     DEFAULT_MAP_SIDE, MAX_LATER_TRANSITIONS, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS,
 };
 use crate::mde::{Estimator, ExportedModel, ServedModel};
-use crate::planning::Precondition;
+use crate::planning::{Agreement, Precondition};
 use crate::store::StoredTransition;
 use std::sync::Arc;
 use std::time::Instant;
@@ -91,18 +91,10 @@ pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], precondition: Preconditio
         .map(|(r, sd)| -0.5 * (r / sd).powi(2) - sd.ln() - 0.5 * (2.0 * std::f64::consts::PI).ln())
         .sum::<f64>()
         / n.max(1) as f64;
-    let (mut positives, mut negatives, mut tp, mut tn) = (0, 0, 0, 0);
+    let mut agreement = Agreement::default();
     for (y, (r, sd)) in labels.iter().zip(loo) {
-        let inside = precondition.inside(y - r, *sd);
-        if *y < d_max {
-            positives += 1;
-            tp += usize::from(inside);
-        } else {
-            negatives += 1;
-            tn += usize::from(!inside);
-        }
+        agreement.count(*y, d_max, precondition.inside(y - r, *sd));
     }
-    let rate = |k: usize, of: usize| (of > 0).then(|| k as f64 / of as f64);
     LooSummary {
         n,
         rmse,
@@ -111,12 +103,12 @@ pub fn loo_summary(labels: &[f64], loo: &[(f64, f64)], precondition: Preconditio
         precondition: PreconditionRates {
             beta: precondition.beta(),
             d_max,
-            positives,
-            negatives,
-            true_positives: tp,
-            true_negatives: tn,
-            tpr: rate(tp, positives),
-            tnr: rate(tn, negatives),
+            positives: agreement.positives,
+            negatives: agreement.negatives,
+            true_positives: agreement.true_positives,
+            true_negatives: agreement.true_negatives,
+            tpr: agreement.tpr(),
+            tnr: agreement.tnr(),
         },
     }
 }

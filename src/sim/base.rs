@@ -147,10 +147,7 @@ impl BaseSim {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn dist(a: &[f64], b: &[f64]) -> f64 {
-        (a[0] - b[0]).hypot(a[1] - b[1])
-    }
+    use crate::domain::euclidean as dist;
 
     #[test]
     fn open_ground_is_exact_and_the_slope_punishes_long_moves_only() {

@@ -162,10 +162,7 @@ impl PusherSim {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn dist(a: &[f64], b: &[f64]) -> f64 {
-        (a[0] - b[0]).hypot(a[1] - b[1])
-    }
+    use crate::domain::euclidean as dist;
 
     #[test]
     fn dry_floor_is_nearly_exact_and_the_wet_patch_overshoots_fast_pushes() {

@@ -143,6 +143,20 @@ const MAX_BOUNCES: usize = 16;
 /// Bisection steps to locate a contact.
 const BISECTION_STEPS: usize = 40;
 
+/// Between `free` (not blocked) and `blocked`, the last value that is not, to
+/// [`BISECTION_STEPS`] halvings of the interval.
+fn last_free(mut free: f64, mut blocked: f64, is_blocked: impl Fn(f64) -> bool) -> f64 {
+    for _ in 0..BISECTION_STEPS {
+        let mid = 0.5 * (free + blocked);
+        if is_blocked(mid) {
+            blocked = mid;
+        } else {
+            free = mid;
+        }
+    }
+    free
+}
+
 impl WaterPlantSim {
     /// A simulator for the domain's scene with the default parameters and the nominal leaves.
     pub fn new(domain: &WaterPlant) -> Self {
@@ -234,16 +248,7 @@ impl WaterPlantSim {
                 theta: from.theta,
             };
         }
-        let (mut free, mut blocked) = (0.0, 1.0);
-        for _ in 0..BISECTION_STEPS {
-            let mid = 0.5 * (free + blocked);
-            if swept_hits(mid) {
-                blocked = mid;
-            } else {
-                free = mid;
-            }
-        }
-        at(free)
+        at(last_free(0.0, 1.0, swept_hits))
     }
 
     /// Turns the source at `from` towards tilt `to`; returns where it stops.
@@ -259,16 +264,7 @@ impl WaterPlantSim {
         for k in 1..=n {
             let theta = from.theta + (to - from.theta) * k as f64 / n as f64;
             if blocked_at(theta) {
-                let (mut free, mut blocked) = (prev, theta);
-                for _ in 0..BISECTION_STEPS {
-                    let mid = 0.5 * (free + blocked);
-                    if blocked_at(mid) {
-                        blocked = mid;
-                    } else {
-                        free = mid;
-                    }
-                }
-                return at(free);
+                return at(last_free(prev, theta, blocked_at));
             }
             prev = theta;
         }

@@ -2,12 +2,17 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::fresh_app;
+use super::helpers::fresh_experiment;
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
 use precond::sim::World;
 use serde_json::{Value, json};
+
+/// The body that asks for a proposal or a plan for `problem`.
+fn ask(problem: &Problem) -> Value {
+    json!({"start": problem.start(), "goal": problem.goal()})
+}
 
 /// The kinematic unit square with moves of at most 0.1 per axis.
 fn square() -> Kinematic {
@@ -56,31 +61,24 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     let domain = world.domain();
     let d_max = world.d_max();
     let p = world.params();
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
-                       "action_low": p.action_low, "action_high": p.action_high,
-                       "goal_radius": p.goal_radius},
-            "d_max": d_max,
-            "seed": 1,
-            "mde": {"restarts": 1},
-            "learning": {"batch_size": 5, "iterations": 6, "n_candidates": 8,
-                         "max_extensions": 2000}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "state_low": p.state_low, "state_high": p.state_high,
+                   "action_low": p.action_low, "action_high": p.action_high,
+                   "goal_radius": p.goal_radius},
+        "d_max": d_max,
+        "seed": 1,
+        "mde": {"restarts": 1},
+        "learning": {"batch_size": 5, "iterations": 6, "n_candidates": 8,
+                     "max_extensions": 2000}
+    }))
+    .await;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
     let mut executed: Vec<(Vec<f64>, Vec<f64>)> = Vec::new();
     let mut posted = 0;
     for _ in 0..6 {
         for _ in 0..5 {
             let problem = world.sample_problem(&domain, &mut rng);
-            let (status, proposal) = app
-                .post(
-                    &format!("/v1/experiments/{id}/proposals"),
-                    &json!({"start": problem.start(), "goal": problem.goal()}),
-                )
-                .await;
+            let (status, proposal) = app.post_at(id, "proposals", &ask(&problem)).await;
             if status != 201 {
                 continue;
             }
@@ -93,13 +91,11 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
                 executed.push((s.clone(), a.clone()));
                 s = next;
             }
-            let (status, body) = app
-                .post(
-                    &format!("/v1/experiments/{id}/trajectories"),
-                    &json!({"proposal_id": proposal["id"], "transitions": transitions}),
-                )
-                .await;
-            assert_eq!(status, 201, "{body}");
+            app.store_trajectory(
+                id,
+                &json!({"proposal_id": proposal["id"], "transitions": transitions}),
+            )
+            .await;
             posted += 1;
         }
         app.wait_for_model(id, posted - posted % 5).await;
@@ -129,10 +125,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     }
     assert!(probes.len() >= 20, "{} probes", probes.len());
     let (status, judged) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({ "points": probes }),
-        )
+        .post_at(id, "precondition", &json!({ "points": probes }))
         .await;
     assert_eq!(status, 200, "{judged}");
     let trusted = judged["results"]
@@ -150,12 +143,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     let mut found = 0;
     for _ in 0..10 {
         let problem = world.sample_problem(&domain, &mut rng);
-        let (status, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": problem.start(), "goal": problem.goal()}),
-            )
-            .await;
+        let (status, plan) = app.post_at(id, "plans", &ask(&problem)).await;
         assert_eq!(status, 200, "{plan}");
         if plan["found"] == true {
             found += 1;
@@ -193,15 +181,13 @@ impl World for Drift {
 
 #[tokio::test]
 async fn closed_loop_execution_reaches_goals_open_loop_misses() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "goal_radius": 0.03},
-            "d_max": 0.02,
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 1}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "goal_radius": 0.03},
+        "d_max": 0.02,
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 1}
+    }))
+    .await;
     // Show the model that moves are right to within 0.012 everywhere.
     let mut transitions = Vec::new();
     for i in 0..8 {
@@ -219,13 +205,8 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
             }
         }
     }
-    let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &json!({ "transitions": transitions }),
-        )
+    app.store_trajectory(id, &json!({ "transitions": transitions }))
         .await;
-    assert_eq!(status, 201);
     app.wait_for_model(id, 1).await;
     let domain = square();
     let (mut open_hits, mut closed_hits) = (0, 0);
@@ -237,10 +218,7 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
     for (start, goal) in problems {
         let problem = Problem::new(&domain, start.to_vec(), goal.to_vec()).unwrap();
         let (_, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": start, "goal": goal}),
-            )
+            .post_at(id, "plans", &json!({"start": start, "goal": goal}))
             .await;
         assert_eq!(plan["found"], true, "{plan}");
         let first = trajectory_of(&plan["trajectory"]);
@@ -254,10 +232,7 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
         let mut closed = ClosedLoop::new(&problem, first, 0.02);
         while let Some(at) = closed.advance(&mut Drift, &domain, &problem) {
             let (_, again) = app
-                .post(
-                    &format!("/v1/experiments/{id}/plans"),
-                    &json!({"start": at, "goal": goal}),
-                )
+                .post_at(id, "plans", &json!({"start": at, "goal": goal}))
                 .await;
             closed.replanned((again["found"] == true).then(|| trajectory_of(&again["trajectory"])));
         }

@@ -15,6 +15,20 @@ fn spec() -> serde_yaml::Value {
     serde_yaml::from_str(&text).expect("api/openapi.yaml is YAML")
 }
 
+/// Asserts that the server's `ours` and the spec's `theirs` hold the same items; the failure
+/// lists what only one side has, under `only_ours` or `only_theirs`.
+fn assert_same<T: Ord + std::fmt::Debug>(
+    ours: &BTreeSet<T>,
+    theirs: &BTreeSet<T>,
+    only_ours: &str,
+    only_theirs: &str,
+) {
+    let extra: Vec<_> = ours.difference(theirs).collect();
+    let missing: Vec<_> = theirs.difference(ours).collect();
+    assert!(extra.is_empty(), "{only_ours}: {extra:?}");
+    assert!(missing.is_empty(), "{only_theirs}: {missing:?}");
+}
+
 #[test]
 fn every_route_is_in_the_spec_and_every_spec_route_is_served() {
     let spec = spec();
@@ -32,15 +46,11 @@ fn every_route_is_in_the_spec_and_every_spec_route_is_served() {
         .iter()
         .map(|r| (r.method.to_string(), r.path.to_string()))
         .collect();
-    let missing_in_spec: Vec<_> = served.difference(&in_spec).collect();
-    let not_served: Vec<_> = in_spec.difference(&served).collect();
-    assert!(
-        missing_in_spec.is_empty(),
-        "served but not in the spec: {missing_in_spec:?}"
-    );
-    assert!(
-        not_served.is_empty(),
-        "in the spec but not served: {not_served:?}"
+    assert_same(
+        &served,
+        &in_spec,
+        "served but not in the spec",
+        "in the spec but not served",
     );
 }
 
@@ -165,14 +175,10 @@ fn the_error_codes_the_server_answers_are_the_specs_enum() {
             e.code().to_string()
         })
         .collect();
-    let not_in_spec: Vec<_> = answered.difference(&enumerated).collect();
-    let never_answered: Vec<_> = enumerated.difference(&answered).collect();
-    assert!(
-        not_in_spec.is_empty(),
-        "answered but not in ErrorBody.code: {not_in_spec:?}"
-    );
-    assert!(
-        never_answered.is_empty(),
-        "in ErrorBody.code but never answered: {never_answered:?}"
+    assert_same(
+        &answered,
+        &enumerated,
+        "answered but not in ErrorBody.code",
+        "in ErrorBody.code but never answered",
     );
 }

@@ -61,10 +61,7 @@ async fn a_remote_model_labels_every_transition_in_one_call_with_the_declared_di
         .iter()
         .map(|(s, a, n)| json!({"s": s, "a": a, "s_next": n}))
         .collect::<Vec<_>>()});
-    let (status, created) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
-    assert_eq!(status, 201, "{created}");
+    let created = app.store_trajectory(id, &body).await;
     assert_eq!(server.counts.calls.load(Ordering::Relaxed), 1);
     assert_eq!(server.counts.points.load(Ordering::Relaxed), 3);
     let stored = app.all_transitions(id).await;
@@ -94,8 +91,9 @@ async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored
             .create_experiment(json!({"domain": plane(remote(&server, endpoint))}))
             .await;
         let (got, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
+            .post_at(
+                id,
+                "trajectories",
                 &json!({"transitions": [{"s": [0.2, 0.2], "a": [0.1, 0], "s_next": [0.3, 0.2]}]}),
             )
             .await;
@@ -106,8 +104,9 @@ async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored
         );
         assert_eq!(body["error"]["details"]["model"], server.url(endpoint));
         let (got, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/proposals"),
+            .post_at(
+                id,
+                "proposals",
                 &json!({"start": [0.1, 0.1], "goal": [0.5, 0.5], "client_id": "robot"}),
             )
             .await;
@@ -116,7 +115,7 @@ async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored
             (status, code_wanted),
             "{endpoint}: {body}"
         );
-        let (_, exp) = app.get(&format!("/v1/experiments/{id}")).await;
+        let (_, exp) = app.get_at(id, "").await;
         assert_eq!(
             (
                 exp["n_trajectories"].as_i64(),
@@ -151,13 +150,7 @@ async fn model_urls_are_allowed_only_under_the_operators_prefixes() {
         .await;
     assert_eq!(status, 422, "{body}");
     assert_eq!(body["error"]["details"]["field"], "domain.model.url");
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("--allow-model-url"),
-        "{body}"
-    );
+    assert!(reason(&body).contains("--allow-model-url"), "{body}");
 }
 
 #[tokio::test]
@@ -222,35 +215,24 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         .await;
     assert_eq!(status, 422, "{body}");
     assert_eq!(body["error"]["details"]["field"], "domain");
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("`url`")
-    );
+    assert!(reason(&body).contains("`url`"));
     let (_, list) = app.get("/v1/experiments").await;
     assert_eq!(list["items"].as_array().unwrap().len(), 0);
 }
 
 #[tokio::test]
 async fn a_linear_model_with_identities_labels_like_the_kinematic_shorthand() {
-    let (_dir, app) = fresh_app().await;
-    let linear = app
-        .create_experiment(json!({"domain": plane(json!({
+    let (_dir, app, linear) = fresh_experiment(json!({"domain": plane(json!({
             "kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}))}))
-        .await;
+    .await;
     let kinematic = app
         .create_experiment(json!({"domain": {"kind": "kinematic"}}))
         .await;
     let body = json!({"transitions": [
         {"s": [0.95, 0.5], "a": [0.1, -0.05], "s_next": [1.0, 0.4]},
         {"s": [1.0, 0.4], "a": [-0.1, 0.0], "s_next": [0.85, 0.4]}]});
-    let (_, a) = app
-        .post(&format!("/v1/experiments/{linear}/trajectories"), &body)
-        .await;
-    let (_, b) = app
-        .post(&format!("/v1/experiments/{kinematic}/trajectories"), &body)
-        .await;
+    let (_, a) = app.post_at(linear, "trajectories", &body).await;
+    let (_, b) = app.post_at(kinematic, "trajectories", &body).await;
     let (a, b) = (&a["deviations"], &b["deviations"]);
     // Both clip the prediction to the bounds; the custom distance weighs y by 4.
     assert_eq!(a[1], b[1]);
@@ -268,8 +250,9 @@ async fn plans_respect_the_robots_own_validity_check() {
             "learning": {"n_candidates": 4, "max_extensions": 3000}}))
         .await;
     let (status, p) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5]}),
         )
         .await;
@@ -293,13 +276,11 @@ async fn plans_respect_the_robots_own_validity_check() {
 
 #[tokio::test]
 async fn a_client_model_posts_its_predictions_and_its_candidates() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
+    let (_dir, app, id) = fresh_experiment(json!({
             "domain": plane(json!({"kind": "client"})),
             "d_max": 0.05,
             "learning": {"c": 1.5, "gamma": 0.8}}))
-        .await;
+    .await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let (status, body) = app
         .post(
@@ -338,9 +319,7 @@ async fn a_client_model_posts_its_predictions_and_its_candidates() {
     let short = json!({"states": [[0.1, 0.1], [0.15, 0.1]], "actions": [[0.05, 0]]});
     let request = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1], "client_id": "arm",
                          "candidates": [straight, detour, short]});
-    let (status, p) = app
-        .post(&format!("/v1/experiments/{id}/proposals"), &request)
-        .await;
+    let (status, p) = app.post_at(id, "proposals", &request).await;
     assert_eq!(status, 201, "{p}");
     let candidates = p["candidates"].as_array().unwrap();
     assert_eq!(candidates.len(), 3);
@@ -381,7 +360,7 @@ async fn a_client_model_posts_its_predictions_and_its_candidates() {
     // A bad candidate is refused with its field named.
     let bad = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1],
                      "candidates": [{"states": [[0.2, 0.1], [0.3, 0.1]], "actions": [[0.1, 0]]}]});
-    let (status, body) = app.post(&format!("/v1/experiments/{id}/plans"), &bad).await;
+    let (status, body) = app.post_at(id, "plans", &bad).await;
     assert_eq!(status, 422, "{body}");
     assert_eq!(body["error"]["details"]["field"], "candidates[0].states[0]");
 }
@@ -453,8 +432,9 @@ async fn learn_then_plan(
     let mut executed = 0;
     for (start, goal) in &problems {
         let (status, p) = app
-            .post(
-                &format!("/v1/experiments/{id}/proposals"),
+            .post_at(
+                id,
+                "proposals",
                 &json!({"start": start, "goal": goal, "client_id": "robot"}),
             )
             .await;
@@ -463,13 +443,11 @@ async fn learn_then_plan(
         }
         assert_eq!(status, 201, "{p}");
         let (transitions, _) = execute(&p["trajectory"]["states"], &p["trajectory"]["actions"]);
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"proposal_id": p["id"], "transitions": transitions}),
-            )
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"proposal_id": p["id"], "transitions": transitions}),
+        )
+        .await;
         // The paper's loop: the next proposal waits for the fit on the finished batch, so the
         // run does not depend on how fast the background fit is.
         executed += 1;
@@ -477,18 +455,13 @@ async fn learn_then_plan(
             app.wait_for_model(id, executed).await;
         }
     }
-    let (status, model) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{model}");
     // Test time: across the patch's rows, executed in the true world.
     let mut out = TestPlans::default();
     for y in [0.15, 0.3, 0.45] {
         let (status, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": [0.1, y], "goal": [0.9, y]}),
-            )
+            .post_at(id, "plans", &json!({"start": [0.1, y], "goal": [0.9, y]}))
             .await;
         assert_eq!(status, 200, "{plan}");
         if plan["found"] != true {

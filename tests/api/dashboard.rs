@@ -2,38 +2,12 @@
 //! leave-one-out diagnostics) and its embedded pages.
 
 use crate::helpers::*;
-use precond::domain::{IcyGridworld, MOVES};
-use precond::sim::Simulated;
 use serde_json::{Value, json};
-
-/// Every move from every cell of the default gridworld's rows `y0..y1`, executed in the true
-/// world, as trajectories of at most 40 transitions.
-fn rows_of_moves(y0: i64, y1: i64) -> Vec<Value> {
-    let grid = IcyGridworld::default_layout();
-    let mut world = grid.world();
-    let mut transitions = Vec::new();
-    for y in y0..y1 {
-        for x in 0..grid.width() as i64 {
-            for m in MOVES {
-                let s = [x as f64, y as f64];
-                let next = world.step(&s, &m);
-                transitions.push(json!({"s": s, "a": m, "s_next": next}));
-            }
-        }
-    }
-    transitions
-        .chunks(40)
-        .map(|c| json!({"transitions": c}))
-        .collect()
-}
 
 async fn post_all(app: &TestApp, id: i64, trajectories: &[Value]) -> Vec<Value> {
     let mut out = Vec::new();
     for t in trajectories {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), t)
-            .await;
-        assert_eq!(status, 201, "{body}");
+        let body = app.store_trajectory(id, t).await;
         out.push(body);
     }
     out
@@ -92,10 +66,8 @@ async fn experiments_come_in_pages_newest_first_with_their_last_activity() {
 
 #[tokio::test]
 async fn runs_list_proposals_and_trajectories_with_their_status() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1, "batch_size": 100}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"learning": {"proposal_ttl_seconds": 1, "batch_size": 100}})).await;
     let propose = |client: &str| json!({"start": [0, 0], "goal": [3, 0], "client_id": client});
     let path = format!("/v1/experiments/{id}/proposals");
     let (_, expiring) = app.post(&path, &propose("expiring")).await;
@@ -170,20 +142,16 @@ async fn runs_list_proposals_and_trajectories_with_their_status() {
 
 #[tokio::test]
 async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 2, "iterations": 4, "k1": 2.0, "k2": 0.5}
-        }))
-        .await;
-    let trajectories = rows_of_moves(0, 5);
+    let (_dir, app, id) = fresh_experiment(json!({
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 2, "iterations": 4, "k1": 2.0, "k2": 0.5}
+    }))
+    .await;
+    let trajectories = gridworld_moves(0..5, 40);
     post_all(&app, id, &trajectories[..5]).await;
-    let (status, refit) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{refit}");
-    let (status, t) = app.get(&format!("/v1/experiments/{id}/timeline")).await;
+    let (status, t) = app.get_at(id, "timeline").await;
     assert_eq!(status, 200, "{t}");
     assert_eq!(
         (t["batch_size"].as_i64(), t["iterations_planned"].as_i64()),
@@ -222,10 +190,8 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
 
 #[tokio::test]
 async fn the_precondition_map_evaluates_any_version_on_a_grid() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}})).await;
     let map = |query: &str| format!("/v1/experiments/{id}/precondition/map?{query}");
     let (status, prior) = app.get(&map("x=s.x&y=s.y&nx=12&ny=12&a=1,0")).await;
     assert_eq!(status, 200, "{prior}");
@@ -235,14 +201,10 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
     );
     assert!(prior["mu"].as_array().unwrap().iter().all(|m| m == 0.0));
     assert!(prior["sigma"].as_array().unwrap().iter().all(|s| s == 1.0));
-    post_all(&app, id, &rows_of_moves(0, 3)).await;
-    let (_, v1) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
-    post_all(&app, id, &rows_of_moves(3, 6)).await;
-    let (_, v2) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    post_all(&app, id, &gridworld_moves(0..3, 40)).await;
+    let (_, v1) = app.post_at(id, "model/refit", &json!({})).await;
+    post_all(&app, id, &gridworld_moves(3..6, 40)).await;
+    let (_, v2) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(
         (v1["version"].as_i64(), v2["version"].as_i64()),
         (Some(1), Some(2))
@@ -308,10 +270,8 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
 
 #[tokio::test]
 async fn diagnostics_check_a_fit_by_leave_one_out() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}}))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"restarts": 0}, "learning": {"batch_size": 1000}})).await;
     let path = format!("/v1/experiments/{id}/model/diagnostics");
     let (status, err) = app.get(&path).await;
     assert_eq!(
@@ -319,10 +279,8 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
         (409, "conflict"),
         "the prior has no labels: {err}"
     );
-    post_all(&app, id, &rows_of_moves(0, 4)).await;
-    let (_, model) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    post_all(&app, id, &gridworld_moves(0..4, 40)).await;
+    let (_, model) = app.post_at(id, "model/refit", &json!({})).await;
     let (status, d) = app.get(&format!("{path}?beta=2")).await;
     assert_eq!(status, 200, "{d}");
     assert_eq!(d["method"], "leave_one_out");
@@ -350,7 +308,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
     }
     assert!(d["later"].is_null(), "the fit saw every transition: {d}");
     // Transitions posted after the fit are judged by it as they are: never seen, not refitted.
-    post_all(&app, id, &rows_of_moves(4, 6)).await;
+    post_all(&app, id, &gridworld_moves(4..6, 40)).await;
     let (_, d) = app.get(&format!("{path}?beta=2")).await;
     let later = &d["later"];
     assert_eq!(later["n"], 2 * 12 * 4, "{d}");
@@ -366,10 +324,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
         .map(|t| json!({"s": t["s"], "a": t["a"]}))
         .collect();
     let (_, judged) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({"points": points, "beta": 2.0}),
-        )
+        .post_at(id, "precondition", &json!({"points": points, "beta": 2.0}))
         .await;
     let (mut tp, mut tn) = (0, 0);
     for (t, j) in unseen.iter().zip(judged["results"].as_array().unwrap()) {
@@ -459,14 +414,10 @@ async fn the_dashboard_is_served_from_the_binary() {
 
 #[tokio::test]
 async fn only_configured_origins_may_read_the_api_from_a_browser() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with(
-        &db,
-        precond::http::HttpConfig {
-            cors_allow_origins: vec!["http://lab-pc:8080".into()],
-            ..Default::default()
-        },
-    )
+    let (_dir, app) = fresh_app_with(precond::http::HttpConfig {
+        cors_allow_origins: vec!["http://lab-pc:8080".into()],
+        ..Default::default()
+    })
     .await;
     for (origin, allowed) in [("http://lab-pc:8080", true), ("http://evil.example", false)] {
         let r = app

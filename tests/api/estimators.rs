@@ -3,7 +3,7 @@
 //! `auto` hands such a fit to the sparse GP; the sparse GP takes each posted trajectory in at
 //! once and again after a restart.
 
-use super::helpers::{spawn_app_with_limits, temp_db};
+use super::helpers::{fresh_app_with_limits, spawn_app_with_limits};
 use precond::service::Limits;
 use serde_json::{Value, json};
 
@@ -36,7 +36,7 @@ async fn model_until(
     done: impl Fn(&Value) -> bool,
 ) -> Value {
     for _ in 0..9000 {
-        let (_, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, model) = app.get_at(id, "model").await;
         if done(&model) {
             return model;
         }
@@ -47,8 +47,7 @@ async fn model_until(
 
 #[tokio::test]
 async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, small_budget()).await;
+    let (_dir, app) = fresh_app_with_limits(small_budget()).await;
     // The exact GP on 1600 transitions needs about 100 MB at its peak: beyond 64 MiB.
     let exact = app
         .create_experiment(json!({
@@ -58,13 +57,8 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{exact}/trajectories"),
-                &lattice_trajectory(800, 800 * k),
-            )
+        app.store_trajectory(exact, &lattice_trajectory(800, 800 * k))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
     let model = model_until(&app, exact, |m| !m["last_fit_refusal"].is_null()).await;
     assert_eq!(model["version"], 0, "the prior keeps answering: {model}");
@@ -78,12 +72,10 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
             .unwrap()
             .contains("--max-fit-memory-mib")
     );
-    let (status, forced) = app
-        .post(&format!("/v1/experiments/{exact}/model/refit"), &json!({}))
-        .await;
+    let (status, forced) = app.post_at(exact, "model/refit", &json!({})).await;
     assert_eq!(status, 409, "{forced}");
     assert_eq!(forced["error"]["code"], "limit_reached");
-    let (_, timeline) = app.get(&format!("/v1/experiments/{exact}/timeline")).await;
+    let (_, timeline) = app.get_at(exact, "timeline").await;
     assert!(
         timeline["fit_refusals"].as_array().unwrap().len() >= 2,
         "{timeline}"
@@ -106,13 +98,8 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{auto}/trajectories"),
-                &lattice_trajectory(800, 800 * k),
-            )
+        app.store_trajectory(auto, &lattice_trajectory(800, 800 * k))
             .await;
-        assert_eq!(status, 201);
     }
     let model = model_until(&app, auto, |m| m["version"] == 1).await;
     assert_eq!(model["estimator"], "sparse", "{model}");
@@ -121,17 +108,18 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
     let path = app.db_path.clone();
     app.stop().await;
     let app = spawn_app_with_limits(&path, small_budget()).await;
-    let (status, model) = app.get(&format!("/v1/experiments/{exact}/model")).await;
+    let (status, model) = app.get_at(exact, "model").await;
     assert_eq!(status, 200, "{model}");
     assert_eq!(model["version"], 0);
     let (status, judged) = app
-        .post(
-            &format!("/v1/experiments/{exact}/precondition"),
+        .post_at(
+            exact,
+            "precondition",
             &json!({"points": [{"s": [0.2, 0.2], "a": [0.05, 0.0]}]}),
         )
         .await;
     assert_eq!(status, 200, "{judged}");
-    let (_, model) = app.get(&format!("/v1/experiments/{auto}/model")).await;
+    let (_, model) = app.get_at(auto, "model").await;
     assert_eq!(
         (model["version"].clone(), model["estimator"].clone()),
         (json!(1), json!("sparse"))
@@ -141,8 +129,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
 
 #[tokio::test]
 async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restart() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, Limits::default()).await;
+    let (_dir, app) = fresh_app_with_limits(Limits::default()).await;
     let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},
@@ -152,35 +139,25 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         }))
         .await;
     for k in 0..3 {
-        app.post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &lattice_trajectory(40, 40 * k),
-        )
-        .await;
+        app.post_at(id, "trajectories", &lattice_trajectory(40, 40 * k))
+            .await;
     }
     let fitted = model_until(&app, id, |m| m["version"] == 1).await;
     assert_eq!(fitted["estimator"], "sparse");
     assert_eq!(fitted["online_trajectories"], 0);
     let probe = json!({"points": [{"s": [0.7, 0.9], "a": [0.05, 0.0]}], "beta": 0});
-    let (_, before) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, before) = app.post_at(id, "precondition", &probe).await;
     // One more trajectory, where the model is wrong, right at the probe: taken in at once.
     let at_probe = json!({"transitions": [
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
         {"s": [0.7, 0.9], "a": [0.05, 0.0], "s_next": [0.75, 1.0]},
     ]});
-    let (status, _) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &at_probe)
-        .await;
-    assert_eq!(status, 201);
-    let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    app.store_trajectory(id, &at_probe).await;
+    let (_, updated) = app.get_at(id, "model").await;
     assert_eq!(updated["version"], 1, "no refit: {updated}");
     assert_eq!(updated["online_trajectories"], 1);
     assert_eq!(updated["n_train"], fitted["n_train"].as_i64().unwrap() + 2);
-    let (_, after) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, after) = app.post_at(id, "precondition", &probe).await;
     let mu = |j: &Value| j["results"][0]["mu"].as_f64().unwrap();
     let sigma = |j: &Value| j["results"][0]["sigma"].as_f64().unwrap();
     // The label there is 0.1: μ moves towards it and σ shrinks.
@@ -193,7 +170,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
     let path = app.db_path.clone();
     app.stop().await;
     let app = spawn_app_with_limits(&path, Limits::default()).await;
-    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_, restored) = app.get_at(id, "model").await;
     assert_eq!(
         (
             restored["version"].clone(),
@@ -201,9 +178,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         ),
         (json!(1), json!(1))
     );
-    let (_, again) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &probe)
-        .await;
+    let (_, again) = app.post_at(id, "precondition", &probe).await;
     assert!((mu(&again) - mu(&after)).abs() < 1e-9, "{after} vs {again}");
     assert!((sigma(&again) - sigma(&after)).abs() < 1e-9);
     app.stop().await;

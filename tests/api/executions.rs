@@ -23,12 +23,10 @@ async fn runs(app: &TestApp, id: i64) -> Vec<Value> {
 
 #[tokio::test]
 async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(walled(json!({"max_extensions": 300, "batch_size": 5})))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(walled(json!({"max_extensions": 300, "batch_size": 5}))).await;
     let path = format!("/v1/experiments/{id}/proposals");
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_refused"], 0);
     let mut refusals = Vec::new();
     for (client, start) in [(json!("arm-1"), [0.1, 0.5]), (Value::Null, [0.2, 0.4])] {
@@ -41,7 +39,7 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
         refusals.push((client, start, err["error"]["details"]["extensions"].clone()));
     }
 
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(
         (e["n_refused"].as_i64(), e["n_trajectories"].as_i64()),
         (Some(2), Some(0))
@@ -83,7 +81,7 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
     assert_ne!(items[0]["refusal_id"], items[1]["refusal_id"]);
 
     // The timeline counts them in iteration 0, which has no trajectory yet.
-    let (_, t) = app.get(&format!("/v1/experiments/{id}/timeline")).await;
+    let (_, t) = app.get_at(id, "timeline").await;
     let it = &t["iterations"];
     assert_eq!(it.as_array().unwrap().len(), 1, "{t}");
     assert_eq!(
@@ -105,13 +103,11 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
     // iteration 1.
     for k in 0..5 {
         let x = 0.1 + 0.01 * k as f64;
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}),
-            )
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"transitions": [{"s": [x, 0.2], "a": [0.05, 0.0], "s_next": [x + 0.05, 0.2]}]}),
+        )
+        .await;
     }
     app.wait_for_model(id, 5).await;
     let (status, err) = app
@@ -121,7 +117,7 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
         )
         .await;
     assert_eq!((status, code(&err)), (422, "no_plan"), "{err}");
-    let (_, t) = app.get(&format!("/v1/experiments/{id}/timeline")).await;
+    let (_, t) = app.get_at(id, "timeline").await;
     let it = t["iterations"].as_array().unwrap();
     assert_eq!(it.len(), 2, "{t}");
     assert_eq!(
@@ -148,17 +144,15 @@ async fn a_refused_proposal_is_a_run_counted_in_its_iteration() {
         ),
         (Some(1), Some(1))
     );
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_refused"], 3);
     assert_eq!(e["last_activity"], items[0]["created_at"]);
 }
 
 #[tokio::test]
 async fn the_papers_preset_tries_one_beta_and_a_clients_candidates_are_refused_too() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(walled(json!({"max_extensions": 200, "preset": "paper"})))
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(walled(json!({"max_extensions": 200, "preset": "paper"}))).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let (status, err) = app
         .post(&path, &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}))
@@ -209,10 +203,7 @@ fn walk(start: [f64; 2], actions: &[[f64; 2]]) -> Vec<Value> {
 
 #[tokio::test]
 async fn an_execution_that_departs_from_its_proposal_is_flagged_and_a_prefix_is_not() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"learning": {"batch_size": 100}}))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({"learning": {"batch_size": 100}})).await;
     let path = format!("/v1/experiments/{id}");
     let start = [0.0, 0.0];
     let mut cases = Vec::new();
@@ -300,12 +291,9 @@ async fn an_execution_that_departs_from_its_proposal_is_flagged_and_a_prefix_is_
 
 #[tokio::test]
 async fn continuous_actions_equal_within_the_tolerance_do_not_deviate() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(
-            json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 100}}),
-        )
-        .await;
+    let (_dir, app, id) =
+        fresh_experiment(json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 100}}))
+            .await;
     let path = format!("/v1/experiments/{id}");
     for (client, scale, deviating) in [
         ("float32", 1.0 - 1e-8, false),
@@ -343,8 +331,7 @@ async fn continuous_actions_equal_within_the_tolerance_do_not_deviate() {
 
 #[tokio::test]
 async fn a_trajectorys_source_is_stored_shown_and_checked() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let source =
         json!({"dataset": "logs/grid.csv", "episode": 3, "first_step": 0, "label": "teleop"});
@@ -391,7 +378,7 @@ async fn a_trajectorys_source_is_stored_shown_and_checked() {
     relabelled["source"]["label"] = json!("other");
     let (status, _, err) = send("import-ep-3", relabelled).await;
     assert_eq!((status, code(&err)), (409, "conflict"), "{err}");
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_trajectories"], 1);
     // Only the dataset is required; without a source the answer says null.
     let mut bare = free_row_trajectory(0, 1, 1);
@@ -431,14 +418,8 @@ async fn a_trajectorys_source_is_stored_shown_and_checked() {
     unknown["source"] = json!({"dataset": "d", "episodes": 2});
     let (status, err) = app.post(&path, &unknown).await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
-    assert!(
-        err["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("episodes"),
-        "{err}"
-    );
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert!(message(&err).contains("episodes"), "{err}");
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(
         e["n_trajectories"], 3,
         "nothing stored for the refused bodies"

@@ -211,7 +211,7 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
             "{body} -> {err}"
         );
         assert_eq!(err["error"]["details"]["field"], field, "{body}: {err}");
-        let reason = err["error"]["details"]["reason"].as_str().unwrap();
+        let reason = reason(&err);
         assert!(
             reason.contains("at most 1e") || reason.contains("finite"),
             "{body}: the reason says the bound: {reason}"
@@ -225,21 +225,18 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
             "mde": {"prior_mean": 1e12, "noise": "homoscedastic", "restarts": 1},
             "learning": {"k1": 1e6, "batch_size": 100}}))
         .await;
-    let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &json!({"transitions": [{"s": [0, 0], "a": [1e11, 0], "s_next": [1e11, 5e10]},
+    app.store_trajectory(
+        id,
+        &json!({"transitions": [{"s": [0, 0], "a": [1e11, 0], "s_next": [1e11, 5e10]},
                                     {"s": [1e11, 5e10], "a": [-1e11, 1e11], "s_next": [0, 1e11]}]}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    )
+    .await;
+    let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert!(status == 200 || status == 202, "{status} {body}");
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [9e11, 9e11]}),
         )
         .await;
@@ -273,16 +270,18 @@ async fn control_characters_in_names_and_client_ids_are_refused() {
         .create_experiment(json!({"name": "Bench 2 — arm ü"}))
         .await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "\u{0}\n\r\u{1b}"}),
         )
         .await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
     assert_eq!(err["error"]["details"]["field"], "client_id");
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
         )
         .await;

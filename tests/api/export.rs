@@ -5,7 +5,7 @@
 //! (after online updates too); the prior is refused with `409`, a bad `version` with `422`, a
 //! missing one with `404`.
 
-use super::helpers::{TestApp, code, fresh_app};
+use super::helpers::{TestApp, code, fresh_app, fresh_experiment, message};
 use precond::gp::GpPredictor;
 use precond::mde::ExportedModel;
 use rand::{Rng, SeedableRng};
@@ -96,12 +96,12 @@ fn random_points(experiment: &Value, grid: bool, seed: u64) -> Vec<(Vec<f64>, Ve
 /// server's at 200 random points. Returns the export and the largest relative differences of
 /// `μ` and `σ`.
 async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel, f64, f64) {
-    let (status, doc) = app.get(&format!("/v1/experiments/{id}/model/export")).await;
+    let (status, doc) = app.get_at(id, "model/export").await;
     assert_eq!(status, 200, "{doc}");
     assert_eq!(doc["format"], "precond-model");
     assert_eq!(doc["format_version"], 1);
     let model = ExportedModel::from_json(&doc.to_string()).expect("the document checks");
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(doc["model_version"], experiment["model_version"]);
     assert_eq!(doc["feature_names"], experiment["feature_names"]);
     let points = random_points(&experiment, grid, seed);
@@ -110,10 +110,7 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
         .map(|(s, a)| json!({"s": s, "a": a}))
         .collect();
     let (status, answer) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
-            &json!({"points": body}),
-        )
+        .post_at(id, "precondition", &json!({"points": body}))
         .await;
     assert_eq!(status, 200, "{answer}");
     assert_eq!(answer["model_version"], doc["model_version"]);
@@ -207,27 +204,28 @@ fn variance_rounding(p: &GpPredictor, x: &[f64]) -> f64 {
     2.0 * bound
 }
 
-#[tokio::test]
-async fn an_exported_exact_gp_answers_as_the_server() {
-    let (_dir, app) = fresh_app().await;
-    // The default settings: kernel `auto`, heteroscedastic noise, the exact GP.
-    let kinematic = app
+/// A kinematic experiment with the `mde` settings and batches of 2, fed two trajectories of
+/// `steps` steps: its id and the model fitted on them.
+async fn fitted_kinematic(app: &TestApp, mde: Value, steps: usize) -> (i64, Value) {
+    let id = app
         .create_experiment(json!({
             "domain": {"kind": "kinematic"},
-            "mde": {"restarts": 0},
+            "mde": mde,
             "learning": {"batch_size": 2}
         }))
         .await;
     for k in 0..2 {
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{kinematic}/trajectories"),
-                &kinematic_trajectory(60, 60 * k, k as u64),
-            )
+        app.store_trajectory(id, &kinematic_trajectory(steps, steps * k, k as u64))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
-    let fitted = app.wait_for_model(kinematic, 2).await;
+    (id, app.wait_for_model(id, 2).await)
+}
+
+#[tokio::test]
+async fn an_exported_exact_gp_answers_as_the_server() {
+    let (_dir, app) = fresh_app().await;
+    // The default settings: kernel `auto`, heteroscedastic noise, the exact GP.
+    let (kinematic, fitted) = fitted_kinematic(&app, json!({"restarts": 0}), 60).await;
     assert_eq!(fitted["estimator"], "exact", "{fitted}");
     assert_eq!(fitted["noise"], "heteroscedastic", "{fitted}");
     assert!(
@@ -247,10 +245,7 @@ async fn an_exported_exact_gp_answers_as_the_server() {
             }))
             .await;
         for t in gridworld_trajectories() {
-            let (status, body) = app
-                .post(&format!("/v1/experiments/{grid}/trajectories"), &t)
-                .await;
-            assert_eq!(status, 201, "{body}");
+            app.store_trajectory(grid, &t).await;
         }
         app.wait_for_model(grid, 3).await;
         let (_, mu, sigma) = parity(&app, grid, true, 2).await;
@@ -262,37 +257,17 @@ async fn an_exported_exact_gp_answers_as_the_server() {
 async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates() {
     let (_dir, app) = fresh_app().await;
     for noise in ["homoscedastic", "heteroscedastic"] {
-        let id = app
-            .create_experiment(json!({
-                "domain": {"kind": "kinematic"},
-                "mde": {"estimator": "sparse", "restarts": 0, "inducing_points": 32,
-                        "noise": noise},
-                "learning": {"batch_size": 2}
-            }))
-            .await;
-        for k in 0..2 {
-            let (status, body) = app
-                .post(
-                    &format!("/v1/experiments/{id}/trajectories"),
-                    &kinematic_trajectory(150, 150 * k, k as u64),
-                )
-                .await;
-            assert_eq!(status, 201, "{body}");
-        }
-        let fitted = app.wait_for_model(id, 2).await;
+        let mde = json!({"estimator": "sparse", "restarts": 0, "inducing_points": 32,
+                         "noise": noise});
+        let (id, fitted) = fitted_kinematic(&app, mde, 150).await;
         assert_eq!(fitted["estimator"], "sparse", "{fitted}");
         let (model, mu, sigma) = parity(&app, id, false, 3).await;
         assert_eq!(model.predictor.main.points.len(), 32);
         eprintln!("kinematic, sparse, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
         // One more trajectory is taken in online (no refit): the export follows it.
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &kinematic_trajectory(80, 300, 7),
-            )
+        app.store_trajectory(id, &kinematic_trajectory(80, 300, 7))
             .await;
-        assert_eq!(status, 201, "{body}");
-        let (_, updated) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, updated) = app.get_at(id, "model").await;
         assert_eq!(updated["online_trajectories"], 1, "{updated}");
         let (model, mu, sigma) = parity(&app, id, false, 4).await;
         assert_eq!(model.n_train, 380);
@@ -302,24 +277,16 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
 
 #[tokio::test]
 async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic"},
-            "mde": {"restarts": 0},
-            "learning": {"batch_size": 1}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic"},
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 1}
+    }))
+    .await;
     let export = |q: &str| format!("/v1/experiments/{id}/model/export{q}");
     let (status, body) = app.get(&export("")).await;
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("is the prior"),
-        "{body}"
-    );
+    assert!(message(&body).contains("is the prior"), "{body}");
     let (status, body) = app.get(&export("?version=0")).await;
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
     let (status, body) = app.get(&export("?version=-1")).await;
@@ -327,22 +294,11 @@ async fn the_prior_a_bad_version_and_a_missing_one_are_refused() {
     assert_eq!(body["error"]["details"]["field"], "version", "{body}");
     let (status, body) = app.get(&export("?version=one")).await;
     assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
-    assert!(
-        body["error"]["message"]
-            .as_str()
-            .unwrap()
-            .contains("version"),
-        "{body}"
-    );
+    assert!(message(&body).contains("version"), "{body}");
     let (status, body) = app.get(&export("?versio=1")).await;
     assert_eq!(status, 422, "an unknown parameter: {body}");
-    let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &kinematic_trajectory(20, 0, 0),
-        )
+    app.store_trajectory(id, &kinematic_trajectory(20, 0, 0))
         .await;
-    assert_eq!(status, 201, "{body}");
     app.wait_for_model(id, 1).await;
     let (status, body) = app.get(&export("?version=1")).await;
     assert_eq!(status, 200, "{body}");

@@ -68,10 +68,7 @@ impl Loop {
             let (start, goal) = self.problem();
             let (status, p) = self
                 .app
-                .post(
-                    &format!("/v1/experiments/{}/proposals", self.id),
-                    &json!({"start": start, "goal": goal}),
-                )
+                .post_at(self.id, "proposals", &json!({"start": start, "goal": goal}))
                 .await;
             if status == 422 {
                 continue;
@@ -94,8 +91,9 @@ impl Loop {
                 .collect();
             let (status, body) = self
                 .app
-                .post(
-                    &format!("/v1/experiments/{}/trajectories", self.id),
+                .post_at(
+                    self.id,
+                    "trajectories",
                     &json!({"proposal_id": p["id"], "transitions": transitions}),
                 )
                 .await;
@@ -118,10 +116,7 @@ impl Loop {
             .collect();
         let (status, body) = self
             .app
-            .post(
-                &format!("/v1/experiments/{}/precondition", self.id),
-                &json!({ "points": points }),
-            )
+            .post_at(self.id, "precondition", &json!({ "points": points }))
             .await;
         assert_eq!(status, 200, "{body}");
         let results = body["results"].as_array().unwrap();
@@ -146,10 +141,7 @@ impl Loop {
         for (start, goal) in problems {
             let (status, plan) = self
                 .app
-                .post(
-                    &format!("/v1/experiments/{}/plans", self.id),
-                    &json!({"start": start, "goal": goal}),
-                )
+                .post_at(self.id, "plans", &json!({"start": start, "goal": goal}))
                 .await;
             assert_eq!(status, 200, "{plan}");
             if plan["found"] != true {
@@ -178,16 +170,14 @@ fn inside_set(judged: &[(Pair, bool)]) -> HashSet<Pair> {
 
 #[tokio::test]
 async fn learning_generalises_beyond_what_was_executed_and_keeps_exploring_once_beta_is_positive() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "icy_gridworld", "map": MAP},
-            "seed": 5,
-            "mde": {"restarts": 1},
-            "learning": {"iterations": ITERATIONS, "batch_size": BATCH,
-                         "n_candidates": 10, "max_extensions": 2000}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "icy_gridworld", "map": MAP},
+        "seed": 5,
+        "mde": {"restarts": 1},
+        "learning": {"iterations": ITERATIONS, "batch_size": BATCH,
+                     "n_candidates": 10, "max_extensions": 2000}
+    }))
+    .await;
     let mut l = Loop {
         app,
         id,

@@ -85,6 +85,27 @@ pub async fn fresh_app() -> (tempfile::TempDir, TestApp) {
     (dir, spawn_app(&db).await)
 }
 
+/// A server on a new database with one experiment, created from `body`, and its id; the dir
+/// lives as long as the returned guard.
+pub async fn fresh_experiment(body: Value) -> (tempfile::TempDir, TestApp, i64) {
+    let (dir, app) = fresh_app().await;
+    let id = app.create_experiment(body).await;
+    (dir, app, id)
+}
+
+/// A server with HTTP settings on a new database; the dir lives as long as the returned guard.
+pub async fn fresh_app_with(config: HttpConfig) -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    (dir, spawn_app_with(&db, config).await)
+}
+
+/// A server under the operator's `limits` on a new database; the dir lives as long as the
+/// returned guard.
+pub async fn fresh_app_with_limits(limits: Limits) -> (tempfile::TempDir, TestApp) {
+    let (dir, db) = temp_db();
+    (dir, spawn_app_with_limits(&db, limits).await)
+}
+
 /// Starts a server on the database file at `db_path` (bind first, then spawn: no sleeps).
 pub async fn spawn_app(db_path: &Path) -> TestApp {
     spawn_app_with(db_path, HttpConfig::default()).await
@@ -195,34 +216,59 @@ impl TestApp {
     }
 
     pub async fn get(&self, path: &str) -> (u16, Value) {
-        let r = self.client.get(self.url(path)).send().await.unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+        answer(self.client.get(self.url(path))).await
     }
 
     pub async fn post(&self, path: &str, body: &Value) -> (u16, Value) {
-        let r = self
-            .client
-            .post(self.url(path))
-            .json(body)
-            .send()
+        answer(self.client.post(self.url(path)).json(body)).await
+    }
+
+    /// `GET /v1/experiments/{id}/{tail}` (`tail` e.g. `model`, `timeline`; `""`: the experiment
+    /// itself).
+    pub async fn get_at(&self, id: i64, tail: &str) -> (u16, Value) {
+        match tail {
+            "" => self.get(&format!("/v1/experiments/{id}")).await,
+            _ => self.get(&format!("/v1/experiments/{id}/{tail}")).await,
+        }
+    }
+
+    /// Posts `body` to `/v1/experiments/{id}/{tail}` (`tail` e.g. `trajectories`, `proposals`,
+    /// `plans`, `precondition`, `model/refit`).
+    pub async fn post_at(&self, id: i64, tail: &str, body: &Value) -> (u16, Value) {
+        self.post(&format!("/v1/experiments/{id}/{tail}"), body)
             .await
-            .unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+    }
+
+    /// Asks kinematic experiment `id` for a short proposal in free space and asserts that it is
+    /// made (201) within `limit`: a planner slot was free.
+    pub async fn assert_proposes_within(&self, id: i64, limit: std::time::Duration) {
+        let started = std::time::Instant::now();
+        let (status, body) = self
+            .post_at(
+                id,
+                "proposals",
+                &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
+            )
+            .await;
+        assert_eq!(status, 201, "{body}");
+        assert_within(started, limit);
+    }
+
+    /// Posts a trajectory to experiment `id`, asserting that it is stored (201), and returns
+    /// the answer.
+    pub async fn store_trajectory(&self, id: i64, trajectory: &Value) -> Value {
+        let (status, body) = self.post_at(id, "trajectories", trajectory).await;
+        assert_eq!(status, 201, "{body}");
+        body
     }
 
     pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {
-        let r = self
+        let request = self
             .client
             .post(self.url(path))
             .header("content-type", "application/json")
-            .body(body)
-            .send()
-            .await
-            .unwrap();
-        let status = r.status().as_u16();
-        (status, r.json().await.unwrap_or(Value::Null))
+            .body(body);
+        answer(request).await
     }
 
     /// Posts `body` to `path` from a client that gives up 300 ms in, as a robot that went
@@ -252,24 +298,17 @@ impl TestApp {
         body["id"].as_i64().unwrap()
     }
 
-    /// All transitions of an experiment, following the cursor.
+    /// All transitions of an experiment, following the cursor through pages of 7.
     pub async fn all_transitions(&self, id: i64) -> Vec<Value> {
-        let mut out = Vec::new();
-        let mut after = 0;
-        loop {
-            let (status, page) = self
-                .get(&format!(
-                    "/v1/experiments/{id}/transitions?after={after}&limit=7"
-                ))
-                .await;
-            assert_eq!(status, 200, "{page}");
-            out.extend(page["items"].as_array().unwrap().iter().cloned());
-            match page["next"].as_i64() {
-                Some(next) => after = next,
-                None => return out,
-            }
-        }
+        crate::common::transitions_in_pages(&self.client, &self.url(""), id, 7).await
     }
+}
+
+/// Sends `request`: its status and its JSON body (`null` when it has none).
+async fn answer(request: reqwest::RequestBuilder) -> (u16, Value) {
+    let r = request.send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
 }
 
 impl Drop for TestApp {
@@ -292,4 +331,51 @@ pub fn free_row_trajectory(x0: i64, y: i64, n: i64) -> Value {
 /// The error code of an error body.
 pub fn code(body: &Value) -> &str {
     body["error"]["code"].as_str().unwrap_or("<none>")
+}
+
+/// The message of an error body (panics without one).
+pub fn message(body: &Value) -> &str {
+    body["error"]["message"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no error message in {body}"))
+}
+
+/// The `details.reason` of an error body (panics without one).
+pub fn reason(body: &Value) -> &str {
+    body["error"]["details"]["reason"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no details.reason in {body}"))
+}
+
+/// Every move from every open cell of the default gridworld's rows `rows` (all of them:
+/// `0..12`), executed in the true world, as trajectories of at most `per_trajectory`
+/// transitions.
+pub fn gridworld_moves(rows: std::ops::Range<i64>, per_trajectory: usize) -> Vec<Value> {
+    use precond::domain::{Cell, IcyGridworld, MOVES};
+    use precond::sim::Simulated;
+    let grid = IcyGridworld::default_layout();
+    let mut world = grid.world();
+    let mut transitions = Vec::new();
+    for y in rows {
+        for x in 0..grid.width() as i64 {
+            if grid.cell(x, y) == Some(Cell::Obstacle) {
+                continue;
+            }
+            for m in MOVES {
+                let s = [x as f64, y as f64];
+                let next = world.step(&s, &m);
+                transitions.push(json!({"s": s, "a": m, "s_next": next}));
+            }
+        }
+    }
+    transitions
+        .chunks(per_trajectory)
+        .map(|c| json!({"transitions": c}))
+        .collect()
+}
+
+/// Asserts that less than `limit` has passed since `started` (saying how much did).
+pub fn assert_within(started: std::time::Instant, limit: std::time::Duration) {
+    let elapsed = started.elapsed();
+    assert!(elapsed < limit, "{elapsed:?}");
 }

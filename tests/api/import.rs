@@ -110,14 +110,8 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
         .unwrap();
     assert_eq!(r.status(), 201);
 
-    let report = import(
-        &app,
-        id,
-        &["--label", "bench", "--max-transitions", "4"],
-        &[&csv],
-    )
-    .await
-    .unwrap();
+    let bench = ["--label", "bench", "--max-transitions", "4"];
+    let report = import(&app, id, &bench, &[&csv]).await.unwrap();
     // Episode 20 has 9 transitions: 3 trajectories of at most 4.
     assert_eq!(
         report,
@@ -145,7 +139,7 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
             "{t}"
         );
     }
-    let (_, page) = app.get(&format!("/v1/experiments/{id}/runs")).await;
+    let (_, page) = app.get_at(id, "runs").await;
     let mut sources: Vec<(i64, i64, usize)> = page["items"]
         .as_array()
         .unwrap()
@@ -171,19 +165,12 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
     );
 
     // Run again: nothing new.
-    let again = import(
-        &app,
-        id,
-        &["--label", "bench", "--max-transitions", "4"],
-        &[&csv],
-    )
-    .await
-    .unwrap();
+    let again = import(&app, id, &bench, &[&csv]).await.unwrap();
     assert_eq!(
         (again.created, again.replayed, again.trajectories),
         (0, 5, 5)
     );
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(
         (e["n_trajectories"].as_i64(), e["n_transitions"].as_i64()),
         (Some(5), Some(16))
@@ -202,7 +189,7 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
         text.contains("imported before with another request") && text.contains("409"),
         "{text}"
     );
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_trajectories"], 5);
 }
 
@@ -352,7 +339,7 @@ async fn a_lerobot_parquet_file_imports_frame_to_frame_per_episode() {
         let again = import(&app, id, &[], &[&path]).await.unwrap();
         assert_eq!((again.created, again.replayed), (0, 3), "{name}");
     }
-    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_trajectories"], 6);
 }
 

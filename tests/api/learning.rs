@@ -1,48 +1,23 @@
 //! The MDE, precondition queries, proposals with leases, and test-time plans.
 
 use crate::helpers::*;
-use precond::domain::{Cell, IcyGridworld, LocalModel, MOVES};
+use precond::domain::{Cell, IcyGridworld, LocalModel};
 use precond::sim::Simulated;
 use serde_json::{Value, json};
 
-/// Polls `/model` (bounded) until it covers `n_trajectories` trajectories.
-/// Every (cell, move) of the default gridworld, executed in the true world, as trajectories of
-/// at most 48 transitions.
-fn every_transition() -> Vec<Value> {
-    let grid = IcyGridworld::default_layout();
-    let mut world = grid.world();
-    let mut transitions = Vec::new();
-    for y in 0..grid.height() as i64 {
-        for x in 0..grid.width() as i64 {
-            if grid.cell(x, y) == Some(Cell::Obstacle) {
-                continue;
-            }
-            for m in MOVES {
-                let s = [x as f64, y as f64];
-                let next = world.step(&s, &m);
-                transitions.push(json!({"s": s, "a": m, "s_next": next}));
-            }
-        }
-    }
-    transitions
-        .chunks(48)
-        .map(|c| json!({"transitions": c}))
-        .collect()
-}
-
 #[tokio::test]
 async fn before_any_data_the_prior_answers_and_says_so() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
-    let (status, model) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
+    let (status, model) = app.get_at(id, "model").await;
     assert_eq!(status, 200);
     assert_eq!(
         (model["version"].as_i64(), model["source"].as_str()),
         (Some(0), Some("prior"))
     );
     let (status, p) = app
-        .post(
-            &format!("/v1/experiments/{id}/precondition"),
+        .post_at(
+            id,
+            "precondition",
             &json!({"points": [{"s": [3, 2], "a": [1, 0]}], "beta": 2.0}),
         )
         .await;
@@ -63,16 +38,13 @@ async fn before_any_data_the_prior_answers_and_says_so() {
         p["results"][0]["inside"], true,
         "β = −2 trusts the unexplored prior"
     );
-    let (status, _) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, _) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 409, "nothing to fit yet");
 }
 
 #[tokio::test]
 async fn precondition_queries_validate_their_points() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/precondition");
     for (body, field) in [
         (
@@ -104,16 +76,11 @@ async fn precondition_queries_validate_their_points() {
 
 #[tokio::test]
 async fn the_model_advances_after_each_batch_and_survives_a_restart() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}}))
-        .await;
-    let batches = every_transition();
+    let (_dir, app, id) =
+        fresh_experiment(json!({"mde": {"noise": "homoscedastic", "restarts": 0}})).await;
+    let batches = gridworld_moves(0..12, 48);
     for t in batches.iter().take(5) {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), t)
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(id, t).await;
     }
     let model = app.wait_for_model(id, 5).await;
     assert_eq!(model["version"], 1);
@@ -150,13 +117,11 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         assert!((1..=n).contains(&groups), "{t}");
     }
     let points = json!({"points": [{"s": [3, 2], "a": [1, 0]}, {"s": [0, 0], "a": [0, 1]}]});
-    let (_, before) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &points)
-        .await;
+    let (_, before) = app.post_at(id, "precondition", &points).await;
     assert_eq!(before["model_version"], 1);
 
     let app = app.restart().await;
-    let (_, restored) = app.get(&format!("/v1/experiments/{id}/model")).await;
+    let (_, restored) = app.get_at(id, "model").await;
     assert_eq!(restored["version"], 1);
     assert_eq!(restored["hyperparameters"], model["hyperparameters"]);
     assert_eq!(restored["label_cap"], model["label_cap"]);
@@ -169,9 +134,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
         (lml0 - lml1).abs() <= 1e-9 * lml0.abs(),
         "{lml0} then {lml1}"
     );
-    let (_, after) = app
-        .post(&format!("/v1/experiments/{id}/precondition"), &points)
-        .await;
+    let (_, after) = app.post_at(id, "precondition", &points).await;
     for k in 0..2 {
         for f in ["mu", "sigma"] {
             let (b, a) = (
@@ -184,9 +147,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
             );
         }
     }
-    let (status, refit) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{refit}");
     assert_eq!(refit["version"], 2);
     app.stop().await;
@@ -206,20 +167,13 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
         .await;
     // Before any data the conservative test β trusts nothing.
     let problem = json!({"start": [5, 0], "goal": [5, 5]});
-    let (status, plan) = app
-        .post(&format!("/v1/experiments/{id}/plans"), &problem)
-        .await;
+    let (status, plan) = app.post_at(id, "plans", &problem).await;
     assert_eq!(status, 200, "{plan}");
     assert_eq!(plan["found"], false);
-    for t in every_transition() {
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), &t)
-            .await;
-        assert_eq!(status, 201, "{body}");
+    for t in gridworld_moves(0..12, 48) {
+        app.store_trajectory(id, &t).await;
     }
-    let (status, model) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{model}");
     let grid = IcyGridworld::default_layout();
     // Problems that must cross or skirt an ice band. (Crossing the wall's two-cell gap is not
@@ -232,10 +186,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
         ([0, 7], [11, 11]),
     ] {
         let (status, plan) = app
-            .post(
-                &format!("/v1/experiments/{id}/plans"),
-                &json!({"start": start, "goal": goal}),
-            )
+            .post_at(id, "plans", &json!({"start": start, "goal": goal}))
             .await;
         assert_eq!(status, 200, "{plan}");
         assert_eq!(plan["found"], true, "{start:?} → {goal:?}: {plan}");
@@ -263,8 +214,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
 
 #[tokio::test]
 async fn strategies_produce_what_they_promise() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({"seed": 3})).await;
+    let (_dir, app, id) = fresh_experiment(json!({"seed": 3})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let goal = json!([9, 10]);
     for strategy in ["active", "goal_conditioned"] {
@@ -329,10 +279,7 @@ async fn strategies_produce_what_they_promise() {
 
 #[tokio::test]
 async fn proposals_are_leases() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({"learning": {"proposal_ttl_seconds": 1}}))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({"learning": {"proposal_ttl_seconds": 1}})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let ask = json!({"start": [0, 0], "goal": [0, 4], "client_id": "robot-a"});
     let (status, first) = app.post(&path, &ask).await;
@@ -372,16 +319,11 @@ async fn proposals_are_leases() {
         .map(|(k, a)| json!({"s": states[k], "a": a, "s_next": states[k + 1]}))
         .collect();
     let body = json!({"proposal_id": pid, "transitions": transitions});
-    let (status, t) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
-    assert_eq!(status, 201, "{t}");
+    let t = app.store_trajectory(id, &body).await;
     assert_eq!(t["proposal_id"], pid);
     let (_, p) = app.get(&format!("{path}/{pid}")).await;
     assert_eq!(p["status"], "executed");
-    let (status, err) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
+    let (status, err) = app.post_at(id, "trajectories", &body).await;
     assert_eq!(
         (status, code(&err)),
         (409, "conflict"),
@@ -413,8 +355,7 @@ async fn proposals_are_leases() {
 
 #[tokio::test]
 async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robot_is() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let (status, first) = app
         .post(
@@ -485,16 +426,15 @@ async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robo
 
 #[tokio::test]
 async fn no_plan_is_422_with_the_extensions_used() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(json!({
-            "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
-            "learning": {"max_extensions": 300}
-        }))
-        .await;
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
+        "learning": {"max_extensions": 300}
+    }))
+    .await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
         )
         .await;
@@ -502,8 +442,9 @@ async fn no_plan_is_422_with_the_extensions_used() {
     assert_eq!(code(&err), "no_plan");
     assert!(err["error"]["details"]["extensions"].as_u64().unwrap() >= 300);
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
+        .post_at(
+            id,
+            "proposals",
             &json!({"start": [0.1, 0.5, 0.0], "goal": [0.9, 0.5]}),
         )
         .await;
@@ -533,16 +474,14 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
             }))
             .await;
         // A safe move and a bump into the obstacle, far from the problem below.
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"transitions": [
-                    {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
-                    {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}
-                ]}),
-            )
-            .await;
-        assert_eq!(status, 201, "{body}");
+        app.store_trajectory(
+            id,
+            &json!({"transitions": [
+                {"s": [0, 0], "a": [1, 0], "s_next": [1, 0]},
+                {"s": [1, 0], "a": [1, 0], "s_next": [1, 0]}
+            ]}),
+        )
+        .await;
         app.wait_for_model(id, 1).await;
         ids.push(id);
     }
@@ -586,7 +525,7 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
         assert_eq!((status, code(&err)), (422, "no_plan"), "{err}");
     }
     for (id, relaxes) in ids.iter().zip([true, false]) {
-        let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+        let (_, e) = app.get_at(*id, "").await;
         assert_eq!(e["learning"]["relax_beta"], relaxes, "{e}");
     }
 }

@@ -31,8 +31,7 @@ fn limits(slots: usize, queue: usize, timeout_ms: u64) -> Limits {
 
 #[tokio::test]
 async fn a_search_past_its_deadline_is_503_with_retry_after() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, limits(2, 4, 300)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(2, 4, 300)).await;
     let id = app.create_experiment(walled()).await;
     let started = Instant::now();
     let r = app
@@ -54,8 +53,9 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
     // the prior trusts nothing, so the tree cannot grow and the search ends in about the
     // deadline's time; at β = −2, as in the proposal above, it grows a large tree and cannot.)
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/plans"),
+        .post_at(
+            id,
+            "plans",
             &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5], "beta": -2.0}),
         )
         .await;
@@ -64,8 +64,7 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
 
 #[tokio::test]
 async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(&db, limits(1, 1, 1500)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 1, 1500)).await;
     let id = app.create_experiment(walled()).await;
     let url = app.url(&format!("/v1/experiments/{id}/proposals"));
     let ask = |c: &'static str| {
@@ -80,17 +79,12 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
     tokio::time::sleep(Duration::from_millis(200)).await;
     let waiting = ask("waiting");
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let (status, refused) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
-            &blocked_ask("third"),
-        )
-        .await;
+    let (status, refused) = app.post_at(id, "proposals", &blocked_ask("third")).await;
     assert_eq!((status, code(&refused)), (429, "overloaded"), "{refused}");
     let started = Instant::now();
     for _ in 0..5 {
         assert_eq!(app.get("/healthz").await.0, 200);
-        assert_eq!(app.get(&format!("/v1/experiments/{id}")).await.0, 200);
+        assert_eq!(app.get_at(id, "").await.0, 200);
     }
     assert!(started.elapsed() < Duration::from_millis(500));
     let (s1, r1) = running.await.unwrap();
@@ -103,14 +97,10 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
 /// every slot nor the whole queue: another experiment's small proposal is answered at once.
 #[tokio::test]
 async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(
-        &db,
-        Limits {
-            max_plans_per_experiment: 1,
-            ..limits(2, 4, 3000)
-        },
-    )
+    let (_dir, app) = fresh_app_with_limits(Limits {
+        max_plans_per_experiment: 1,
+        ..limits(2, 4, 3000)
+    })
     .await;
     let flooded = app.create_experiment(walled()).await;
     let other = app.create_experiment(json!({})).await;
@@ -132,17 +122,14 @@ async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
     tokio::time::sleep(Duration::from_millis(300)).await;
     let started = Instant::now();
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{other}/proposals"),
+        .post_at(
+            other,
+            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "victim"}),
         )
         .await;
     assert_eq!(status, 201, "{body}");
-    assert!(
-        started.elapsed() < Duration::from_millis(2000),
-        "{:?}",
-        started.elapsed()
-    );
+    assert_within(started, Duration::from_millis(2000));
     let mut statuses: Vec<u16> = Vec::new();
     for f in flood {
         statuses.push(f.await.unwrap());
@@ -157,24 +144,16 @@ async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
 /// gate like a search; the current version and the prior need none.
 #[tokio::test]
 async fn older_model_versions_are_rebuilt_through_the_work_gate() {
-    let (_dir, db) = temp_db();
     // One slot, no queue: while a search holds the slot, a rebuild is refused at once.
-    let app = spawn_app_with_limits(&db, limits(1, 0, 1500)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 0, 1500)).await;
     let id = app
         .create_experiment(json!({"mde": {"restarts": 0, "noise": "homoscedastic"},
                                   "learning": {"batch_size": 1000}}))
         .await;
     for y in 0..2 {
-        let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
             .await;
-        assert_eq!(status, 201);
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-            .await;
+        let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
         assert_eq!(status, 200, "{body}");
     }
     let walled = app.create_experiment(walled()).await;
@@ -208,9 +187,8 @@ async fn older_model_versions_are_rebuilt_through_the_work_gate() {
 
 #[tokio::test]
 async fn a_client_that_goes_away_cancels_its_search() {
-    let (_dir, db) = temp_db();
     // One slot and a long deadline: only cancellation can free the slot quickly.
-    let app = spawn_app_with_limits(&db, limits(1, 4, 60_000)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(1, 4, 60_000)).await;
     let id = app.create_experiment(walled()).await;
     let cancelled_before = cancelled_proposals(&app).await;
     let impatient = reqwest::Client::builder()
@@ -238,19 +216,7 @@ async fn a_client_that_goes_away_cancels_its_search() {
     assert!(searching.unwrap_err().is_timeout());
     assert!(queued.unwrap_err().is_timeout());
     // A feasible problem now gets the slot at once.
-    let started = Instant::now();
-    let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
-            &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
-    assert!(
-        started.elapsed() < Duration::from_secs(5),
-        "{:?}",
-        started.elapsed()
-    );
+    app.assert_proposes_within(id, Duration::from_secs(5)).await;
     // The abandoned search counted itself before it gave its slot up (its request was gone),
     // and the abandoned wait for a slot was counted when it left the queue.
     let cancelled = cancelled_proposals(&app).await - cancelled_before;
@@ -271,32 +237,20 @@ async fn cancelled_proposals(app: &TestApp) -> u64 {
 
 #[tokio::test]
 async fn the_operator_limits_experiments_and_transitions() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with_limits(
-        &db,
-        Limits {
-            max_experiments: 2,
-            max_transitions: 3,
-            ..Limits::default()
-        },
-    )
+    let (_dir, app) = fresh_app_with_limits(Limits {
+        max_experiments: 2,
+        max_transitions: 3,
+        ..Limits::default()
+    })
     .await;
     let id = app.create_experiment(json!({})).await;
     app.create_experiment(json!({})).await;
     let (status, body) = app.post("/v1/experiments", &json!({})).await;
     assert_eq!((status, code(&body)), (409, "limit_reached"), "{body}");
-    let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 3),
-        )
+    app.store_trajectory(id, &free_row_trajectory(0, 0, 3))
         .await;
-    assert_eq!(status, 201);
     let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 4),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 4))
         .await;
     assert_eq!(status, 422);
     assert_eq!(body["error"]["details"]["field"], "transitions");
@@ -304,13 +258,9 @@ async fn the_operator_limits_experiments_and_transitions() {
 
 #[tokio::test]
 async fn metrics_and_request_ids_are_exposed() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
-    app.post(
-        &format!("/v1/experiments/{id}/trajectories"),
-        &free_row_trajectory(0, 0, 2),
-    )
-    .await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
+    app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
+        .await;
     let r = app.client.get(app.url("/metrics")).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 200);
     assert!(
@@ -345,10 +295,9 @@ async fn metrics_and_request_ids_are_exposed() {
 
 #[tokio::test]
 async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_the_background() {
-    let (_dir, db) = temp_db();
     // 100 ms, the shortest deadline an operator may set, and a batch far larger than the data,
     // so only the forced refit fits.
-    let app = spawn_app_with_limits(&db, limits(2, 4, 100)).await;
+    let (_dir, app) = fresh_app_with_limits(limits(2, 4, 100)).await;
     let id = app
         .create_experiment(json!({"domain": {"kind": "kinematic"},
                                   "mde": {"restarts": 20},
@@ -370,23 +319,16 @@ async fn a_refit_past_its_deadline_is_202_with_the_old_version_and_finishes_in_t
                 json!({"s": s, "a": a, "s_next": [s[0] + a[0], s[1] + a[1]]})
             })
             .collect();
-        let (status, body) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &json!({"transitions": transitions}),
-            )
+        app.store_trajectory(id, &json!({"transitions": transitions}))
             .await;
-        assert_eq!(status, 201, "{body}");
     }
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/model/refit"), &json!({}))
-        .await;
+    let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 202, "{body}");
     assert_eq!(body["version"], 0, "the version still answering: {body}");
     // The fit goes on and is swapped in.
     let started = Instant::now();
     loop {
-        let (_, m) = app.get(&format!("/v1/experiments/{id}/model")).await;
+        let (_, m) = app.get_at(id, "model").await;
         if m["version"] == 1 {
             assert_eq!(m["n_train"], 400, "{m}");
             break;

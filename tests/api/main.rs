@@ -1,6 +1,8 @@
 //! Integration tests over a real socket and a real SQLite file.
 
 mod auth;
+#[path = "../common/mod.rs"]
+mod common;
 mod continuous;
 mod contract;
 mod custom;

@@ -51,13 +51,23 @@ async fn an_answer_longer_or_wider_than_asked_is_refused_while_it_is_parsed() {
         let id = app
             .create_experiment(plane(&server.url(endpoint), 5000))
             .await;
-        let (status, body) = app
-            .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-            .await;
+        let (status, body) = app.post_at(id, "trajectories", &step()).await;
         assert_eq!((status, code(&body)), (502, "model_unavailable"), "{body}");
-        let reason = body["error"]["details"]["reason"].as_str().unwrap();
+        let reason = reason(&body);
         assert!(reason.contains(why), "{endpoint}: {reason}");
     }
+}
+
+/// Two experiments: one whose remote model hangs (declaring a 10-minute timeout) and a local
+/// kinematic one.
+async fn hung_and_local(app: &TestApp, server: &ModelServer) -> (i64, i64) {
+    let hung = app
+        .create_experiment(plane(&server.url("hang"), 600_000))
+        .await;
+    let local = app
+        .create_experiment(json!({"domain": {"kind": "kinematic"}}))
+        .await;
+    (hung, local)
 }
 
 /// A hung model holds only its own calls: at most `--max-model-calls-per-url` at once, each
@@ -72,12 +82,7 @@ async fn a_hung_model_holds_only_its_own_calls_for_at_most_the_operators_timeout
         max_timeout: Duration::from_millis(800),
     };
     let (_dir, app) = app(&server, limits(2, 30_000), calls).await;
-    let hung = app
-        .create_experiment(plane(&server.url("hang"), 600_000))
-        .await;
-    let local = app
-        .create_experiment(json!({"domain": {"kind": "kinematic"}}))
-        .await;
+    let (hung, local) = hung_and_local(&app, &server).await;
     let started = Instant::now();
     let hung_ingests: Vec<_> = (0..6)
         .map(|_| {
@@ -95,18 +100,12 @@ async fn a_hung_model_holds_only_its_own_calls_for_at_most_the_operators_timeout
         .collect();
     tokio::time::sleep(Duration::from_millis(200)).await;
     let asked = Instant::now();
-    let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{local}/trajectories"),
-            &json!({"transitions": [{"s": [0.1, 0.1], "a": [0.05, 0], "s_next": [0.15, 0.1]}]}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
-    assert!(
-        asked.elapsed() < Duration::from_millis(500),
-        "{:?}",
-        asked.elapsed()
-    );
+    app.store_trajectory(
+        local,
+        &json!({"transitions": [{"s": [0.1, 0.1], "a": [0.05, 0], "s_next": [0.15, 0.1]}]}),
+    )
+    .await;
+    assert_within(asked, Duration::from_millis(500));
     let mut codes = Vec::new();
     for h in hung_ingests {
         let (code, retry, took) = h.await.unwrap();
@@ -143,41 +142,19 @@ async fn a_search_waits_for_a_hung_model_no_longer_than_its_budget() {
         .await;
     let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "client_id": "r"});
     let started = Instant::now();
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{hung}/proposals"), &ask)
-        .await;
+    let (status, body) = app.post_at(hung, "proposals", &ask).await;
     assert_eq!((status, code(&body)), (503, "deadline_exceeded"), "{body}");
-    assert!(
-        started.elapsed() < Duration::from_secs(3),
-        "{:?}",
-        started.elapsed()
-    );
+    assert_within(started, Duration::from_secs(3));
 
     // One slot and a long deadline: only the client's going away can free the slot early.
     let (_dir2, app) = app_long(&server, calls).await;
-    let hung = app
-        .create_experiment(plane(&server.url("hang"), 600_000))
-        .await;
-    let local = app
-        .create_experiment(json!({"domain": {"kind": "kinematic"}}))
-        .await;
+    let (hung, local) = hung_and_local(&app, &server).await;
     let gone = app
         .post_and_go_away(&format!("/v1/experiments/{hung}/proposals"), &ask)
         .await;
     assert!(gone.unwrap_err().is_timeout());
-    let started = Instant::now();
-    let (status, body) = app
-        .post(
-            &format!("/v1/experiments/{local}/proposals"),
-            &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
-        )
+    app.assert_proposes_within(local, Duration::from_secs(2))
         .await;
-    assert_eq!(status, 201, "{body}");
-    assert!(
-        started.elapsed() < Duration::from_secs(2),
-        "{:?}",
-        started.elapsed()
-    );
 }
 
 async fn app_long(server: &ModelServer, calls: ModelCallLimits) -> (tempfile::TempDir, TestApp) {
@@ -194,24 +171,14 @@ async fn a_revoked_model_url_is_refused_at_every_call() {
     let id = allowed
         .create_experiment(plane(&server.url("predict"), 2000))
         .await;
-    let (status, _) = allowed
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
-    assert_eq!(status, 201);
+    allowed.store_trajectory(id, &step()).await;
     let calls = server.counts.calls.load(Ordering::Relaxed);
     // Restarted without --allow-model-url.
     let revoked = allowed.restart().await;
-    let (status, body) = revoked
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
+    let (status, body) = revoked.post_at(id, "trajectories", &step()).await;
     assert_eq!((status, code(&body)), (409, "model_not_allowed"), "{body}");
     assert_eq!(body["error"]["details"]["model"], server.url("predict"));
-    assert!(
-        body["error"]["details"]["reason"]
-            .as_str()
-            .unwrap()
-            .contains("--allow-model-url")
-    );
+    assert!(reason(&body).contains("--allow-model-url"));
     for (path, ask) in [
         (
             "proposals",
@@ -233,7 +200,7 @@ async fn a_revoked_model_url_is_refused_at_every_call() {
         calls,
         "no call after revocation"
     );
-    let (status, body) = revoked.get(&format!("/v1/experiments/{id}")).await;
+    let (status, body) = revoked.get_at(id, "").await;
     assert_eq!(status, 200, "{body}");
     assert_eq!(body["n_trajectories"], 1);
 }
@@ -250,10 +217,7 @@ async fn model_urls_are_stored_as_checked_and_ambiguous_ones_refused() {
     assert_eq!(status, 201, "{body}");
     assert_eq!(body["domain"]["model"]["url"], server.url("predict"));
     let id = body["id"].as_i64().unwrap();
-    let (status, body) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &step())
-        .await;
-    assert_eq!(status, 201, "{body}");
+    app.store_trajectory(id, &step()).await;
     for url in [
         format!("http://127.0.0.1:{port}/pre dict"),
         format!("http://127.0.0.1:{port}/predict\r\nX-Injected: 1"),

@@ -5,34 +5,25 @@ use std::collections::HashSet;
 
 #[tokio::test]
 async fn ingest_labels_transitions_and_survives_a_restart() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({"name": "restart"})).await;
+    let (_dir, app, id) = fresh_experiment(json!({"name": "restart"})).await;
     // On ice at (3, 2) the x-move [1, 0] ends at (2, 2): the model said (4, 2), deviation 2.
     let body = json!({"transitions": [
         {"s": [3, 2], "a": [1, 0], "s_next": [2, 2]},
         {"s": [2, 2], "a": [0, 1], "s_next": [2, 3]},
         {"s": [2, 3], "a": [0, 1], "s_next": [2, 4]}
     ]});
-    let (status, created) = app
-        .post(&format!("/v1/experiments/{id}/trajectories"), &body)
-        .await;
-    assert_eq!(status, 201, "{created}");
+    let created = app.store_trajectory(id, &body).await;
     assert_eq!(created["deviations"], json!([2.0, 0.0, 0.0]));
     assert_eq!(created["n_transitions"], 3);
     assert_eq!(created["iteration"], 0);
     let tid = created["id"].as_i64().unwrap();
     for k in 0..5 {
-        let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, 0, 1 + k),
-            )
+        app.store_trajectory(id, &free_row_trajectory(0, 0, 1 + k))
             .await;
-        assert_eq!(status, 201);
     }
     let before = app.all_transitions(id).await;
     assert_eq!(before.len(), 3 + 1 + 2 + 3 + 4 + 5);
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_trajectories"], 6);
     assert_eq!(experiment["iteration"], 1);
 
@@ -47,15 +38,14 @@ async fn ingest_labels_transitions_and_survives_a_restart() {
     assert_eq!(steps.len(), 3);
     assert_eq!(steps[0]["s_pred"], json!([4.0, 2.0]));
     assert_eq!(steps[0]["deviation"], 2.0);
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_transitions"], 18);
     app.stop().await;
 }
 
 #[tokio::test]
 async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let r = app
         .client
         .post(app.url(&format!("/v1/experiments/{id}/trajectories")))
@@ -70,14 +60,13 @@ async fn an_idempotency_key_with_a_tab_is_refused_and_nothing_stored() {
         body["error"]["details"]["field"], "Idempotency-Key",
         "{body}"
     );
-    let (_, list) = app.get(&format!("/v1/experiments/{id}/transitions")).await;
+    let (_, list) = app.get_at(id, "transitions").await;
     assert_eq!(list["items"].as_array().unwrap().len(), 0, "{list}");
 }
 
 #[tokio::test]
 async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let body = free_row_trajectory(0, 0, 3);
     let send = |b: Value| {
@@ -103,8 +92,7 @@ async fn a_retry_with_the_same_idempotency_key_stores_nothing_twice() {
 
 #[tokio::test]
 async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let path = format!("/v1/experiments/{id}/trajectories");
     let good = json!({"s": [0, 0], "a": [1, 0], "s_next": [1, 0]});
     let cases = [
@@ -144,12 +132,7 @@ async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
         assert_eq!(status, 422, "{body} -> {err}");
         assert_eq!(code(&err), "validation_failed");
         assert_eq!(err["error"]["details"]["field"], field, "{body}");
-        assert!(
-            !err["error"]["details"]["reason"]
-                .as_str()
-                .unwrap()
-                .is_empty()
-        );
+        assert!(!reason(&err).is_empty());
     }
     // Numbers JSON cannot hold as a finite f64 are refused too.
     let (status, err) = app
@@ -179,21 +162,14 @@ async fn invalid_trajectories_are_refused_whole_with_the_field_named() {
 
 #[tokio::test]
 async fn an_oversized_body_is_413() {
-    let (_dir, db) = temp_db();
-    let app = spawn_app_with(
-        &db,
-        HttpConfig {
-            max_body_bytes: 2048,
-            ..HttpConfig::default()
-        },
-    )
+    let (_dir, app) = fresh_app_with(HttpConfig {
+        max_body_bytes: 2048,
+        ..HttpConfig::default()
+    })
     .await;
     let id = app.create_experiment(json!({})).await;
     let (status, err) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 0, 100),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 0, 100))
         .await;
     assert_eq!(status, 413, "{err}");
     assert_eq!(code(&err), "payload_too_large");
@@ -202,13 +178,9 @@ async fn an_oversized_body_is_413() {
 
 #[tokio::test]
 async fn transitions_come_as_csv_when_asked() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
-    app.post(
-        &format!("/v1/experiments/{id}/trajectories"),
-        &free_row_trajectory(0, 0, 2),
-    )
-    .await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
+    app.post_at(id, "trajectories", &free_row_trajectory(0, 0, 2))
+        .await;
     let r = app
         .client
         .get(app.url(&format!("/v1/experiments/{id}/transitions")))
@@ -234,8 +206,7 @@ async fn transitions_come_as_csv_when_asked() {
 
 #[tokio::test]
 async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
-    let (_dir, app) = fresh_app().await;
-    let id = app.create_experiment(json!({})).await;
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
     let url = app.url(&format!("/v1/experiments/{id}/trajectories"));
     let mut tasks = Vec::new();
     for client in 0..16i64 {
@@ -290,9 +261,22 @@ async fn sixteen_concurrent_clients_lose_and_duplicate_nothing() {
     assert_eq!(all.len() as i64, expected_transitions);
     let unique: HashSet<i64> = all.iter().map(|t| t["id"].as_i64().unwrap()).collect();
     assert_eq!(unique.len(), all.len());
-    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(experiment["n_trajectories"], 80);
     assert_eq!(experiment["iteration"], 16);
+}
+
+/// A server on a new database with one experiment that holds `rows` trajectories of 4
+/// transitions (rows `0..rows` of the gridworld); the dir lives as long as it is kept.
+async fn app_with_rows(rows: i64) -> (tempfile::TempDir, std::path::PathBuf, TestApp, i64) {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = app.create_experiment(json!({})).await;
+    for y in 0..rows {
+        app.store_trajectory(id, &free_row_trajectory(0, y, 4))
+            .await;
+    }
+    (dir, db, app, id)
 }
 
 #[tokio::test]
@@ -300,18 +284,7 @@ async fn an_online_backup_is_a_consistent_copy() {
     if super::helpers::sqlite_only("an_online_backup_is_a_consistent_copy") {
         return;
     }
-    let (dir, db) = temp_db();
-    let app = spawn_app(&db).await;
-    let id = app.create_experiment(json!({})).await;
-    for y in 0..3 {
-        let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
-            .await;
-        assert_eq!(status, 201);
-    }
+    let (dir, db, app, id) = app_with_rows(3).await;
     // While the server is serving.
     let live = precond::store::Store::open(db.to_str().unwrap())
         .await
@@ -320,10 +293,7 @@ async fn an_online_backup_is_a_consistent_copy() {
     live.backup_to(copy.to_str().unwrap()).await.unwrap();
     live.close().await;
     let (status, _) = app
-        .post(
-            &format!("/v1/experiments/{id}/trajectories"),
-            &free_row_trajectory(0, 3, 4),
-        )
+        .post_at(id, "trajectories", &free_row_trajectory(0, 3, 4))
         .await;
     assert_eq!(status, 201, "the server keeps writing");
     let backup = precond::store::Store::open(copy.to_str().unwrap())
@@ -345,18 +315,7 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
     ) {
         return;
     }
-    let (dir, db) = temp_db();
-    let app = spawn_app(&db).await;
-    let id = app.create_experiment(json!({})).await;
-    for y in 0..2 {
-        let (status, _) = app
-            .post(
-                &format!("/v1/experiments/{id}/trajectories"),
-                &free_row_trajectory(0, y, 4),
-            )
-            .await;
-        assert_eq!(status, 201);
-    }
+    let (dir, db, app, _) = app_with_rows(2).await;
     let out = dir.path().join("out");
     std::fs::create_dir(&out).unwrap();
     let copy = out.join("copy.db");

@@ -1,7 +1,7 @@
 // End-to-end tests of the dashboard in headless Chromium: `node dashboard.mjs BASE_URL OUT_DIR`.
 // The server at BASE_URL must be empty; this script fills it through the API, opens every page,
 // checks what they show and saves screenshots in OUT_DIR. Exits non-zero on the first failure.
-import { chromium } from 'playwright-core';
+import { launchChromium } from './chromium.mjs';
 import assert from 'node:assert/strict';
 import { mkdirSync } from 'node:fs';
 import { call, seedGridworld, seedKinematic } from './seed.mjs';
@@ -9,17 +9,6 @@ import { call, seedGridworld, seedKinematic } from './seed.mjs';
 const [base, out] = process.argv.slice(2);
 if (!base || !out) throw new Error('usage: node dashboard.mjs BASE_URL OUT_DIR');
 mkdirSync(out, { recursive: true });
-
-const CHROMIUM_ARGS = [
-  '--headless',
-  '--no-sandbox',
-  '--disable-gpu',
-  '--disable-quic',
-  '--no-first-run',
-  '--disable-background-networking',
-  '--disable-component-update',
-  '--disable-sync',
-];
 
 const t0 = Date.now();
 const kin = await seedKinematic(base);
@@ -29,10 +18,7 @@ console.log(
   `seeded: gridworld #${grid} (${e.n_trajectories} trajectories, model v${e.model_version}), kinematic #${kin} in ${Date.now() - t0} ms`,
 );
 
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium',
-  args: CHROMIUM_ARGS,
-});
+const browser = await launchChromium();
 const context = await browser.newContext({ viewport: { width: 1280, height: 900 }, acceptDownloads: true });
 const page = await context.newPage();
 const errors = [];

@@ -2,8 +2,8 @@
 // creates 99 small experiments and one with 50,000 transitions (500 trajectories of 100), all
 // through the API; then it opens each page 5 times in headless Chromium and prints the median
 // first contentful paint and the median time until the page's data is drawn.
-import { chromium } from 'playwright-core';
-import { call, rng } from './seed.mjs';
+import { launchChromium } from './chromium.mjs';
+import { call, randomWalk, rng, unitSquare } from './seed.mjs';
 
 const [base] = process.argv.slice(2);
 if (!base) throw new Error('usage: node first-paint.mjs BASE_URL');
@@ -23,25 +23,12 @@ async function seed() {
   const big = await call(base, 'POST', '/v1/experiments', {
     name: 'fifty thousand',
     seed: 1,
-    domain: {
-      kind: 'kinematic',
-      state_low: [0, 0],
-      state_high: [1, 1],
-      action_low: [-0.05, -0.05],
-      action_high: [0.05, 0.05],
-    },
+    domain: unitSquare(0.05),
     // No refit: an exact GP on 50,000 points is out of reach (O(n³)); the pages are measured.
     learning: { batch_size: 10000 },
   });
   for (let k = 0; k < 500; k++) {
-    let s = [rand(), rand()];
-    const transitions = [];
-    for (let t = 0; t < 100; t++) {
-      const a = [(rand() - 0.5) * 0.1, (rand() - 0.5) * 0.1];
-      const next = s.map((v, i) => Math.min(1, Math.max(0, v + 0.9 * a[i])));
-      transitions.push({ s, a, s_next: next });
-      s = next;
-    }
+    const transitions = randomWalk(rand, 100, 0.1, () => 0.9);
     await call(base, 'POST', `/v1/experiments/${big.id}/trajectories`, { transitions });
   }
   console.log(`seeded 100 experiments and 50,000 transitions in ${((Date.now() - started) / 1000).toFixed(1)} s`);
@@ -54,19 +41,7 @@ const big = all.items.reduce((a, b) => (b.n_transitions > a.n_transitions ? b : 
 const traj = (await call(base, 'GET', `/v1/experiments/${big.id}/runs?limit=1`)).items[0].trajectory_id;
 console.log(`${all.total} experiments; the largest, #${big.id}, has ${big.n_transitions} transitions`);
 
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM ?? '/usr/bin/chromium',
-  args: [
-    '--headless',
-    '--no-sandbox',
-    '--disable-gpu',
-    '--disable-quic',
-    '--no-first-run',
-    '--disable-background-networking',
-    '--disable-component-update',
-    '--disable-sync',
-  ],
-});
+const browser = await launchChromium();
 const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
 const median = xs => xs.slice().sort((a, b) => a - b)[Math.floor(xs.length / 2)];
 const rows = [];

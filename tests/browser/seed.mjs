@@ -15,6 +15,34 @@ export function rng(seed) {
   };
 }
 
+/** The kinematic domain on the unit square, with actions of at most `step` per component. */
+export function unitSquare(step) {
+  return {
+    kind: 'kinematic',
+    state_low: [0, 0],
+    state_high: [1, 1],
+    action_low: [-step, -step],
+    action_high: [step, step],
+  };
+}
+
+/**
+ * A random walk of `steps` transitions in the unit square from a random start: each action
+ * uniform in ±`span`/2 per component, moving the state by `gain(s)` times the action, clamped.
+ */
+export function randomWalk(rand, steps, span, gain) {
+  let s = [rand(), rand()];
+  const transitions = [];
+  for (let t = 0; t < steps; t++) {
+    const a = [(rand() - 0.5) * span, (rand() - 0.5) * span];
+    const g = gain(s);
+    const next = s.map((v, i) => Math.min(1, Math.max(0, v + g * a[i])));
+    transitions.push({ s, a, s_next: next });
+    s = next;
+  }
+  return transitions;
+}
+
 export async function call(base, method, path, body) {
   const r = await fetch(base + path, {
     method,
@@ -147,26 +175,12 @@ export async function seedKinematic(base, { name = 'kinematic arm', seed = 3 } =
   const e = await call(base, 'POST', '/v1/experiments', {
     name,
     seed,
-    domain: {
-      kind: 'kinematic',
-      state_low: [0, 0],
-      state_high: [1, 1],
-      action_low: [-0.1, -0.1],
-      action_high: [0.1, 0.1],
-    },
+    domain: unitSquare(0.1),
     mde: { restarts: 0, noise: 'homoscedastic' },
     learning: { batch_size: 100 },
   });
   for (let k = 0; k < 4; k++) {
-    let s = [rand(), rand()];
-    const transitions = [];
-    for (let t = 0; t < 15; t++) {
-      const a = [(rand() - 0.5) * 0.2, (rand() - 0.5) * 0.2];
-      const drag = s[0] > 0.5 ? 0.5 : 0.95;
-      const next = s.map((v, i) => Math.min(1, Math.max(0, v + drag * a[i])));
-      transitions.push({ s, a, s_next: next });
-      s = next;
-    }
+    const transitions = randomWalk(rand, 15, 0.2, s => (s[0] > 0.5 ? 0.5 : 0.95));
     await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, { transitions });
   }
   await call(base, 'POST', `/v1/experiments/${e.id}/model/refit`, {});

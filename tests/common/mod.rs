@@ -118,14 +118,41 @@ pub async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
     (status, r.json().await.unwrap_or(Value::Null))
 }
 
+/// A client whose requests give up after `timeout`.
+pub fn http_with_timeout(timeout: Duration) -> reqwest::Client {
+    reqwest::Client::builder().timeout(timeout).build().unwrap()
+}
+
+/// Creates an experiment on the server at `base` and returns its id.
+pub async fn experiment(http: &reqwest::Client, base: &str, body: Value) -> i64 {
+    let (status, e) = post(http, &format!("{base}/v1/experiments"), &body).await;
+    assert_eq!(status, 201, "{e}");
+    e["id"].as_i64().unwrap()
+}
+
+/// A kinematic experiment whose batch is never full while the tests ingest: no refit.
+pub fn ingest_only() -> Value {
+    json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}})
+}
+
 /// Every transition of experiment `id`, following the cursor.
 pub async fn all_transitions(client: &reqwest::Client, base: &str, id: i64) -> Vec<Value> {
+    transitions_in_pages(client, base, id, 1000).await
+}
+
+/// Every transition of experiment `id`, following the cursor through pages of `limit`.
+pub async fn transitions_in_pages(
+    client: &reqwest::Client,
+    base: &str,
+    id: i64,
+    limit: usize,
+) -> Vec<Value> {
     let mut out = Vec::new();
     let mut after = 0;
     loop {
         let (status, page) = get(
             client,
-            &format!("{base}/v1/experiments/{id}/transitions?after={after}&limit=1000"),
+            &format!("{base}/v1/experiments/{id}/transitions?after={after}&limit={limit}"),
         )
         .await;
         assert_eq!(status, 200, "{page}");
@@ -157,6 +184,42 @@ pub fn trajectory(client: usize, k: usize) -> (Value, Vec<f64>) {
 
 /// A trajectory the server acknowledged: its id, the body posted and the labels it must carry.
 pub type Acked = (i64, Value, Vec<f64>);
+
+/// Robot `c`'s and robot `c + 1`'s trajectory `k` as the transitions of one body (to make
+/// batches of about 7 transitions a trajectory).
+pub fn two_robots_trajectory(c: usize, k: usize) -> Value {
+    let mut body = json!({"transitions": []});
+    for j in 0..2 {
+        let (t, _) = trajectory(c + j, k);
+        body["transitions"]
+            .as_array_mut()
+            .unwrap()
+            .extend(t["transitions"].as_array().unwrap().iter().cloned());
+    }
+    body
+}
+
+/// Robots `0..robots`, each posting `per_robot` trajectories with
+/// [`post_until_acknowledged`], started at once.
+pub fn spawn_robots(
+    http: &reqwest::Client,
+    servers: &Arc<RwLock<Vec<String>>>,
+    id: i64,
+    robots: usize,
+    per_robot: usize,
+) -> Vec<tokio::task::JoinHandle<(Vec<Acked>, usize)>> {
+    (0..robots)
+        .map(|c| {
+            tokio::spawn(post_until_acknowledged(
+                http.clone(),
+                servers.clone(),
+                id,
+                c,
+                per_robot,
+            ))
+        })
+        .collect()
+}
 
 /// Robot `c` posts its `n` seeded trajectories to experiment `id`, paced 10–60 ms apart (a robot
 /// takes a while to execute one), each under its own `Idempotency-Key` until acknowledged with

@@ -110,8 +110,12 @@ def precond_binary() -> Path:
     return binary
 
 
+MakeServer = Callable[..., PrecondServer]
+"""The type of the ``make_server`` fixture."""
+
+
 @pytest.fixture
-def make_server(precond_binary: Path, tmp_path: Path) -> Iterator[Callable[..., PrecondServer]]:
+def make_server(precond_binary: Path, tmp_path: Path) -> Iterator[MakeServer]:
     """A factory ``make_server(allow_model_urls, extra_args)`` of started servers, stopped at
     the end."""
     servers: list[PrecondServer] = []

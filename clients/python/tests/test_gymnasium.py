@@ -5,12 +5,11 @@ vector wrapper asking once per step."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import PrecondServer
+from conftest import MakeServer
 
 pytest.importorskip("gymnasium")
 
@@ -25,8 +24,6 @@ from precond_client.gymnasium import (
 )
 
 pytestmark = pytest.mark.integration
-
-MakeServer = Callable[..., PrecondServer]
 
 ICE = (0.5, 0.7)
 """On this stretch a push goes 2.5 times as far as commanded."""

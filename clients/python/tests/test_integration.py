@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from conftest import PrecondServer
+from conftest import MakeServer
 
 from precond_client import (
     Candidate,
@@ -29,8 +28,6 @@ from precond_client import (
 from precond_client.models import Array, Proposal
 
 pytestmark = pytest.mark.integration
-
-MakeServer = Callable[..., PrecondServer]
 
 ICE_LOW, ICE_HIGH, SLIP = 0.45, 0.75, 1.8
 

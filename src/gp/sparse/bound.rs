@@ -107,10 +107,7 @@ impl<'a> Bound<'a> {
     /// Length of `θ`.
     #[cfg(test)]
     pub fn n_params(&self) -> usize {
-        match self.noise {
-            NoiseSpec::Homoscedastic => self.x.d + 2,
-            NoiseSpec::Fixed(_) => self.x.d + 1,
-        }
+        self.noise.n_params(self.x.d)
     }
 
     /// `−F(θ)`, writing `−∇F` into `grad`. `+∞` when `K_mm` cannot be factorised.

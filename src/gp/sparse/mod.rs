@@ -65,6 +65,7 @@ use serde::{Deserialize, Serialize};
 
 pub use model::SparseGp;
 
+use super::params::off_or_at_least;
 use super::{GpError, GpParams, Hyperparameters, NoiseMode};
 
 /// Default number of inducing points: 256. Measured on the benchmark's data (n = 100 000, d = 6,
@@ -131,22 +132,7 @@ impl Default for SparseParams {
 }
 
 /// [`SparseParams`] that passed [`SparseParams::check`]; the only way to fit a [`SparseGp`].
-#[derive(Clone, Debug, PartialEq)]
-pub struct ValidSparseParams(SparseParams);
-
-impl ValidSparseParams {
-    /// The checked settings.
-    pub fn params(&self) -> &SparseParams {
-        &self.0
-    }
-}
-
-impl std::ops::Deref for ValidSparseParams {
-    type Target = SparseParams;
-    fn deref(&self) -> &SparseParams {
-        &self.0
-    }
-}
+pub type ValidSparseParams = super::params::Checked<SparseParams>;
 
 fn invalid(name: &'static str, reason: String) -> GpError {
     GpError::InvalidParameter { name, reason }
@@ -181,28 +167,15 @@ impl SparseParams {
                 "must be at least 1".to_string(),
             ));
         }
-        if self.screen_subset != 0 && self.screen_subset < 64 {
-            return Err(invalid(
-                "screen_subset",
-                format!("must be 0 (off) or at least 64, got {}", self.screen_subset),
-            ));
-        }
-        if self.presolve_subset != 0 && self.presolve_subset < 256 {
-            return Err(invalid(
-                "presolve_subset",
-                format!(
-                    "must be 0 (off) or at least 256, got {}",
-                    self.presolve_subset
-                ),
-            ));
-        }
+        off_or_at_least("screen_subset", self.screen_subset, 64)?;
+        off_or_at_least("presolve_subset", self.presolve_subset, 256)?;
         if !(self.jitter > 0.0 && self.jitter <= 1e-2) {
             return Err(invalid(
                 "jitter",
                 format!("must be in (0, 1e-2], got {}", self.jitter),
             ));
         }
-        Ok(ValidSparseParams(self.clone()))
+        Ok(ValidSparseParams::new(self.clone()))
     }
 }
 

@@ -8,19 +8,11 @@ use rand_chacha::ChaCha8Rng;
 
 use super::super::kernel::Inputs;
 use super::super::lml::{Jitter, NoiseSpec, Objective};
+use super::super::tests::{data, gp_params, gradient_vs_finite_differences};
 use super::super::{GpError, GpModel, GpParams, Kernel, ModelState, NoiseMode};
 use super::bound::Bound;
 use super::core::Ladder;
 use super::*;
-
-fn data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
-    let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let x = DMatrix::from_fn(n, d, |_, _| rng.random::<f64>());
-    let y = DVector::from_fn(n, |i, _| {
-        (4.0 * x[(i, 0)]).sin() + x.row(i).sum() * 0.3 + 0.05 * (rng.random::<f64>() - 0.5)
-    });
-    (x, y)
-}
 
 /// The first `m` rows of `x` as inducing inputs (they are random, hence spread out).
 fn first_rows(x: &DMatrix<f64>, m: usize) -> Inputs {
@@ -28,24 +20,13 @@ fn first_rows(x: &DMatrix<f64>, m: usize) -> Inputs {
 }
 
 fn check_gradient(bound: &mut Bound<'_>, theta: &[f64], what: &str) {
-    let p = bound.n_params();
-    assert_eq!(p, theta.len());
-    let mut g = vec![0.0; p];
-    let f = bound.eval(theta, &mut g);
+    assert_eq!(bound.n_params(), theta.len());
+    let (f, pairs) = gradient_vs_finite_differences(|t, g| bound.eval(t, g), theta);
     assert!(f.is_finite(), "{what}: f = {f}");
-    let mut scratch = vec![0.0; p];
-    for k in 0..p {
-        let h = 1e-5;
-        let mut tp = theta.to_vec();
-        tp[k] += h;
-        let fp = bound.eval(&tp, &mut scratch);
-        tp[k] -= 2.0 * h;
-        let fm = bound.eval(&tp, &mut scratch);
-        let fd = (fp - fm) / (2.0 * h);
+    for (k, (analytic, fd)) in pairs.into_iter().enumerate() {
         assert!(
-            (g[k] - fd).abs() <= 1e-6 + 2e-5 * fd.abs(),
-            "{what}: ∂/∂θ_{k} analytic {} vs finite differences {fd}",
-            g[k]
+            (analytic - fd).abs() <= 1e-6 + 2e-5 * fd.abs(),
+            "{what}: ∂/∂θ_{k} analytic {analytic} vs finite differences {fd}"
         );
     }
 }
@@ -139,12 +120,7 @@ fn bound_equals_the_exact_lml_when_inducing_inputs_are_the_training_inputs() {
 
 fn homo_sparse(m: usize) -> SparseParams {
     SparseParams {
-        gp: GpParams {
-            noise: NoiseMode::Homoscedastic,
-            restarts: 1,
-            seed: 5,
-            ..GpParams::default()
-        },
+        gp: gp_params(NoiseMode::Homoscedastic, 1, 5),
         inducing_points: m,
         ..SparseParams::default()
     }
@@ -219,12 +195,7 @@ fn online_updates_equal_conditioning_on_all_the_data() {
     let (x, y) = data(400, 3, 8);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
         let p = SparseParams {
-            gp: GpParams {
-                noise,
-                restarts: 0,
-                seed: 3,
-                ..GpParams::default()
-            },
+            gp: gp_params(noise, 0, 3),
             inducing_points: 40,
             inducing_rounds: 1,
             ..SparseParams::default()
@@ -267,12 +238,7 @@ fn state_round_trips_exactly_through_json() {
     let (x, y) = data(300, 2, 10);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
         let p = SparseParams {
-            gp: GpParams {
-                noise,
-                restarts: 1,
-                seed: 11,
-                ..GpParams::default()
-            },
+            gp: gp_params(noise, 1, 11),
             inducing_points: 30,
             ..SparseParams::default()
         }
@@ -392,12 +358,7 @@ fn a_large_fit_is_quick_and_predicts_well() {
         f(&row) + 0.1 * (rng.random::<f64>() - 0.5) * 3.46
     });
     let p = SparseParams {
-        gp: GpParams {
-            noise: NoiseMode::Homoscedastic,
-            restarts: 1,
-            seed: 1,
-            ..GpParams::default()
-        },
+        gp: gp_params(NoiseMode::Homoscedastic, 1, 1),
         presolve_subset: 4096,
         ..SparseParams::default()
     }

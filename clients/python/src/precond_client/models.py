@@ -12,9 +12,20 @@ schemas); its fields are that schema's properties, except those marked :data:`CL
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, ClassVar
+import types
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field, fields
+from typing import (
+    Annotated,
+    Any,
+    ClassVar,
+    TypeVar,
+    Union,
+    cast,
+    get_args,
+    get_origin,
+    get_type_hints,
+)
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -40,6 +51,10 @@ def mat(x: ArrayLike, cols: int | None = None) -> Array:
     return a.reshape(len(a), -1) if a.ndim != 2 else a
 
 
+Matrix = Annotated[Array, mat]
+"""A 2-D float64 array; a :class:`Wire` field of this type is read with :func:`mat`."""
+
+
 def as_list(x: ArrayLike) -> list[float]:
     """A vector as a JSON list of finite floats; raises ``ValueError`` on NaN or infinity."""
     v = vec(x)
@@ -56,8 +71,76 @@ def as_lists(x: ArrayLike) -> list[list[float]]:
     return [as_list(row) for row in a]
 
 
+_W = TypeVar("_W", bound="Wire")
+
+
+class Wire:
+    """A body the client reads: a frozen dataclass whose ``from_json`` reads each field from the
+    property of its name, by the field's type.
+
+    ``int``, ``float``, ``str`` and ``bool`` are read by that constructor, :data:`Array` by
+    :func:`vec`, ``Annotated[T, read]`` (e.g. :data:`Matrix`) by ``read``, ``list[T]`` item by
+    item, ``dict[str, Any]`` as a copy and another :class:`Wire` by its ``from_json``. A field
+    ``T | None`` reads an absent or ``null`` property as ``None``; any other property must be
+    there. Fields marked :data:`CLIENT_ONLY` are not read: a field ``raw`` keeps the JSON it was
+    read from, others are given to ``from_json`` by keyword (e.g. ``replayed``).
+    """
+
+    @classmethod
+    def from_json(cls: type[_W], d: Mapping[str, Any], **given: Any) -> _W:
+        """Reads the JSON form; ``given`` sets fields by keyword instead."""
+        readers, keeps_raw = _readers(cls)
+        read = {name: reader(d) for name, reader in readers.items() if name not in given}
+        if keeps_raw and "raw" not in given:
+            read["raw"] = d
+        return cls(**read, **given)
+
+
+_Readers = dict[str, Callable[[Mapping[str, Any]], Any]]
+_READERS: dict[type, tuple[_Readers, bool]] = {}
+
+
+def _readers(cls: type) -> tuple[_Readers, bool]:
+    """How each property of ``cls`` (see :class:`Wire`) is read from a JSON object, and whether
+    it keeps that object in ``raw``."""
+    if cls not in _READERS:
+        hints = get_type_hints(cls, include_extras=True)
+        wire = [f for f in fields(cls) if not f.metadata.get("client_only")]
+        keeps_raw = any(f.name == "raw" for f in fields(cls) if f.metadata.get("client_only"))
+        _READERS[cls] = ({f.name: _property(f.name, hints[f.name]) for f in wire}, keeps_raw)
+    return _READERS[cls]
+
+
+def _property(name: str, tp: Any) -> Callable[[Mapping[str, Any]], Any]:
+    if get_origin(tp) in (Union, types.UnionType) and type(None) in get_args(tp):
+        (inner,) = [a for a in get_args(tp) if a is not type(None)]
+        read = _value(inner)
+        return lambda d: None if d.get(name) is None else read(d[name])
+    read = _value(tp)
+    return lambda d: read(d[name])
+
+
+def _value(tp: Any) -> Callable[[Any], Any]:
+    """How a JSON value becomes a value of type ``tp``."""
+    if get_origin(tp) is Annotated:
+        reader: Callable[[Any], Any] = get_args(tp)[1]
+        return reader
+    if tp in (int, float, str, bool):
+        return cast(Callable[[Any], Any], tp)
+    if tp == Array:
+        return vec
+    if get_origin(tp) is list:
+        item = _value(get_args(tp)[0])
+        return lambda v: [item(x) for x in v]
+    if get_origin(tp) is dict:
+        return dict
+    if isinstance(tp, type) and issubclass(tp, Wire):
+        return tp.from_json
+    raise TypeError(f"no reader for a field of type {tp}")
+
+
 @dataclass(frozen=True)
-class Space:
+class Space(Wire):
     """A state or action space (schema ``Space``)."""
 
     SCHEMA: ClassVar[str] = "Space"
@@ -65,7 +148,7 @@ class Space:
     names: list[str]
     low: Array
     high: Array
-    values: Array | None = None
+    values: Matrix | None = None
     """The allowed actions of a discrete space, one per row."""
 
     @property
@@ -73,20 +156,9 @@ class Space:
         """Number of components."""
         return len(self.names)
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Space:
-        """Reads the JSON form."""
-        values = d.get("values")
-        return cls(
-            names=list(d["names"]),
-            low=vec(d["low"]),
-            high=vec(d["high"]),
-            values=mat(values) if values is not None else None,
-        )
-
 
 @dataclass(frozen=True)
-class Experiment:
+class Experiment(Wire):
     """An experiment with its resolved settings, spaces and progress (schema ``Experiment``)."""
 
     SCHEMA: ClassVar[str] = "Experiment"
@@ -112,30 +184,6 @@ class Experiment:
     """The latest of its creation, its last posted trajectory, its last proposal and its last
     refused proposal request."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Experiment:
-        """Reads the JSON form."""
-        return cls(
-            id=int(d["id"]),
-            name=str(d["name"]),
-            domain=dict(d["domain"]),
-            d_max=float(d["d_max"]),
-            seed=int(d["seed"]),
-            mde=dict(d["mde"]),
-            learning=dict(d["learning"]),
-            state_space=Space.from_json(d["state_space"]),
-            action_space=Space.from_json(d["action_space"]),
-            feature_names=list(d["feature_names"]),
-            created_at=str(d["created_at"]),
-            n_trajectories=int(d["n_trajectories"]),
-            n_transitions=int(d["n_transitions"]),
-            iteration=int(d["iteration"]),
-            model_version=int(d["model_version"]),
-            n_refused=int(d["n_refused"]),
-            last_activity=str(d["last_activity"]),
-            raw=d,
-        )
 
 
 @dataclass(frozen=True)
@@ -183,7 +231,7 @@ def transitions_from_states(
 
 
 @dataclass(frozen=True)
-class StoredTransition:
+class StoredTransition(Wire):
     """A stored, labelled transition (schema ``Transition``)."""
 
     SCHEMA: ClassVar[str] = "Transition"
@@ -197,23 +245,9 @@ class StoredTransition:
     s_pred: Array
     deviation: float
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> StoredTransition:
-        """Reads the JSON form."""
-        return cls(
-            id=int(d["id"]),
-            trajectory_id=int(d["trajectory_id"]),
-            step=int(d["step"]),
-            s=vec(d["s"]),
-            a=vec(d["a"]),
-            s_next=vec(d["s_next"]),
-            s_pred=vec(d["s_pred"]),
-            deviation=float(d["deviation"]),
-        )
-
 
 @dataclass(frozen=True)
-class Source:
+class Source(Wire):
     """Where a posted trajectory comes from (schema ``TrajectorySource``): a logged dataset or
     file, a simulated environment. Stored with the trajectory and shown with it."""
 
@@ -240,25 +274,9 @@ class Source:
             d["label"] = self.label
         return d
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Source:
-        """Reads the JSON form."""
-        ep, fs, label = d.get("episode"), d.get("first_step"), d.get("label")
-        return cls(
-            dataset=str(d["dataset"]),
-            episode=int(ep) if ep is not None else None,
-            first_step=int(fs) if fs is not None else None,
-            label=str(label) if label is not None else None,
-        )
-
-
-def _source(d: Mapping[str, Any]) -> Source | None:
-    s = d.get("source")
-    return Source.from_json(s) if s is not None else None
-
 
 @dataclass(frozen=True)
-class TrajectoryCreated:
+class TrajectoryCreated(Wire):
     """The answer to a posted trajectory (schema ``TrajectoryCreated``)."""
 
     SCHEMA: ClassVar[str] = "TrajectoryCreated"
@@ -282,29 +300,9 @@ class TrajectoryCreated:
     """Whether the server replayed the answer to an earlier request with the same
     ``Idempotency-Key`` (nothing new was stored)."""
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any], replayed: bool = False) -> TrajectoryCreated:
-        """Reads the JSON form."""
-        pid = d.get("proposal_id")
-        return cls(
-            id=int(d["id"]),
-            experiment_id=int(d["experiment_id"]),
-            proposal_id=int(pid) if pid is not None else None,
-            partial=bool(d["partial"]),
-            deviating=bool(d["deviating"]),
-            source=_source(d),
-            n_transitions=int(d["n_transitions"]),
-            deviations=vec(d["deviations"]),
-            iteration=int(d["iteration"]),
-            model_version=int(d["model_version"]),
-            n_trajectories=int(d["n_trajectories"]),
-            created_at=str(d["created_at"]),
-            replayed=replayed,
-        )
-
 
 @dataclass(frozen=True)
-class Trajectory:
+class Trajectory(Wire):
     """A stored trajectory with its labelled transitions in step order (schema
     ``Trajectory``)."""
 
@@ -337,25 +335,9 @@ class Trajectory:
         """The deviation labels ``(T,)``."""
         return np.array([t.deviation for t in self.transitions], dtype=np.float64)
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Trajectory:
-        """Reads the JSON form."""
-        pid = d.get("proposal_id")
-        return cls(
-            id=int(d["id"]),
-            experiment_id=int(d["experiment_id"]),
-            proposal_id=int(pid) if pid is not None else None,
-            partial=bool(d["partial"]),
-            deviating=bool(d["deviating"]),
-            source=_source(d),
-            created_at=str(d["created_at"]),
-            n_transitions=int(d["n_transitions"]),
-            transitions=[StoredTransition.from_json(t) for t in d["transitions"]],
-        )
-
 
 @dataclass(frozen=True)
-class Run:
+class Run(Wire):
     """A proposal with the trajectory that executed it, a trajectory posted without a
     proposal, or a refused proposal request (schema ``Run``)."""
 
@@ -381,38 +363,6 @@ class Run:
     source: Source | None
     max_deviation: float | None
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Run:
-        """Reads the JSON form."""
-
-        def opt_int(key: str) -> int | None:
-            v = d.get(key)
-            return int(v) if v is not None else None
-
-        def opt_float(key: str) -> float | None:
-            v = d.get(key)
-            return float(v) if v is not None else None
-
-        betas = d.get("betas_tried")
-        return cls(
-            proposal_id=opt_int("proposal_id"),
-            trajectory_id=opt_int("trajectory_id"),
-            refusal_id=opt_int("refusal_id"),
-            status=str(d["status"]),
-            client_id=d.get("client_id"),
-            iteration=opt_int("iteration"),
-            beta=opt_float("beta"),
-            betas_tried=vec(betas) if betas is not None else None,
-            extensions=opt_int("extensions"),
-            model_version=opt_int("model_version"),
-            created_at=str(d["created_at"]),
-            length=int(d["length"]),
-            partial=bool(d["partial"]),
-            deviating=bool(d["deviating"]),
-            source=_source(d),
-            max_deviation=opt_float("max_deviation"),
-        )
-
 
 @dataclass(frozen=True)
 class Candidate:
@@ -430,39 +380,24 @@ class Candidate:
 
 
 @dataclass(frozen=True)
-class PlannedTrajectory:
+class PlannedTrajectory(Wire):
     """A planned trajectory with the MDE's answer per step (schemas ``PlannedTrajectory`` and
     ``ProposedTrajectory``: a proposal's trajectory also has ``alpha_step`` and ``alpha``)."""
 
     SCHEMA: ClassVar[tuple[str, ...]] = ("PlannedTrajectory", "ProposedTrajectory")
 
-    states: Array
+    states: Matrix
     """Predicted states ``(T + 1, n)``, the start first."""
-    actions: Array
+    actions: Matrix
     """Actions ``(T, m)``."""
     mu: Array
     sigma: Array
     alpha_step: Array | None = None
     alpha: float | None = None
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> PlannedTrajectory:
-        """Reads the JSON form."""
-        states = mat(d["states"])
-        alpha_step = d.get("alpha_step")
-        alpha = d.get("alpha")
-        return cls(
-            states=states,
-            actions=mat(d["actions"]),
-            mu=vec(d["mu"]),
-            sigma=vec(d["sigma"]),
-            alpha_step=vec(alpha_step) if alpha_step is not None else None,
-            alpha=float(alpha) if alpha is not None else None,
-        )
-
 
 @dataclass(frozen=True)
-class CandidateScore:
+class CandidateScore(Wire):
     """A scored candidate of a proposal or plan (schema ``CandidateScore``); the verdict
     fields are set only for the client's own candidates."""
 
@@ -476,23 +411,9 @@ class CandidateScore:
     mu: Array | None = None
     sigma: Array | None = None
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> CandidateScore:
-        """Reads the JSON form."""
-        fo = d.get("first_outside")
-        return cls(
-            alpha=float(d["alpha"]),
-            length=int(d["length"]),
-            inside=d.get("inside"),
-            first_outside=int(fo) if fo is not None else None,
-            reaches_goal=d.get("reaches_goal"),
-            mu=vec(d["mu"]) if d.get("mu") is not None else None,
-            sigma=vec(d["sigma"]) if d.get("sigma") is not None else None,
-        )
-
 
 @dataclass(frozen=True)
-class Proposal:
+class Proposal(Wire):
     """A proposal: the trajectory to execute next, leased to a client (schema ``Proposal``)."""
 
     SCHEMA: ClassVar[str] = "Proposal"
@@ -531,32 +452,6 @@ class Proposal:
         """The model's predicted states, ``(T + 1, n)``."""
         return self.trajectory.states
 
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Proposal:
-        """Reads the JSON form."""
-        return cls(
-            id=int(d["id"]),
-            status=str(d["status"]),
-            deviating=bool(d["deviating"]),
-            client_id=d.get("client_id"),
-            iteration=int(d["iteration"]),
-            beta=float(d["beta"]),
-            strategy=str(d["strategy"]),
-            model_version=int(d["model_version"]),
-            start=vec(d["start"]),
-            goal=vec(d["goal"]),
-            created_at=str(d["created_at"]),
-            expires_at=str(d["expires_at"]),
-            trajectory=PlannedTrajectory.from_json(d["trajectory"]),
-            candidates=[CandidateScore.from_json(c) for c in d["candidates"]],
-            chosen_index=int(d["chosen_index"]),
-            extensions=int(d["extensions"]),
-            raw=d,
-            relaxed_from_beta=(
-                float(d["relaxed_from_beta"]) if d.get("relaxed_from_beta") is not None else None
-            ),
-        )
-
 
 @dataclass(frozen=True)
 class Continued:
@@ -578,7 +473,7 @@ class Continued:
 
 
 @dataclass(frozen=True)
-class RejectionCounts:
+class RejectionCounts(Wire):
     """Why a search's extensions added nothing to its tree (schema ``RejectionCounts``)."""
 
     SCHEMA: ClassVar[str] = "RejectionCounts"
@@ -588,14 +483,9 @@ class RejectionCounts:
     precondition: int
     """Some were, but none was trusted."""
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> RejectionCounts:
-        """Reads the JSON form."""
-        return cls(constraints=int(d["constraints"]), precondition=int(d["precondition"]))
-
 
 @dataclass(frozen=True)
-class Plan:
+class Plan(Wire):
     """A test-time plan (schema ``Plan``)."""
 
     SCHEMA: ClassVar[str] = "Plan"
@@ -611,25 +501,9 @@ class Plan:
     trajectory: PlannedTrajectory | None
     candidates: list[CandidateScore] | None = None
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Plan:
-        """Reads the JSON form."""
-        t = d.get("trajectory")
-        c = d.get("candidates")
-        return cls(
-            found=bool(d["found"]),
-            extensions=int(d["extensions"]),
-            rejections=RejectionCounts.from_json(d["rejections"]),
-            beta=float(d["beta"]),
-            d_max=float(d["d_max"]),
-            model_version=int(d["model_version"]),
-            trajectory=PlannedTrajectory.from_json(t) if t is not None else None,
-            candidates=[CandidateScore.from_json(x) for x in c] if c is not None else None,
-        )
-
 
 @dataclass(frozen=True)
-class Hyperparameters:
+class Hyperparameters(Wire):
     """A GP's hyperparameters in natural units (schema ``Hyperparameters``)."""
 
     SCHEMA: ClassVar[str] = "Hyperparameters"
@@ -642,19 +516,14 @@ class Hyperparameters:
     """The Matérn kernel: ``matern12``, ``matern32`` or ``matern52``."""
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> Hyperparameters:
+    def from_json(cls, d: Mapping[str, Any], **given: Any) -> Hyperparameters:
         """Reads the JSON form (``matern52`` when a server too old to say omits the kernel)."""
-        return cls(
-            length_scales=vec(d["length_scales"]),
-            signal_variance=float(d["signal_variance"]),
-            noise_variance=float(d["noise_variance"]),
-            prior_mean=float(d["prior_mean"]),
-            kernel=str(d.get("kernel", "matern52")),
-        )
+        given.setdefault("kernel", str(d.get("kernel", "matern52")))
+        return super().from_json(d, **given)
 
 
 @dataclass(frozen=True)
-class NoiseSummary:
+class NoiseSummary(Wire):
     """A heteroscedastic model's noise, summarised (schema ``NoiseSummary``)."""
 
     SCHEMA: ClassVar[str] = "NoiseSummary"
@@ -668,21 +537,9 @@ class NoiseSummary:
     homoscedastic_lml: float
     """Log marginal likelihood of the initial homoscedastic fit."""
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> NoiseSummary:
-        """Reads the JSON form."""
-        return cls(
-            min_noise_variance=float(d["min_noise_variance"]),
-            mean_noise_variance=float(d["mean_noise_variance"]),
-            max_noise_variance=float(d["max_noise_variance"]),
-            noise_model=Hyperparameters.from_json(d["noise_model"]),
-            rounds=int(d["rounds"]),
-            homoscedastic_lml=float(d["homoscedastic_lml"]),
-        )
-
 
 @dataclass(frozen=True)
-class HeldOutTrust:
+class HeldOutTrust(Wire):
     """How a candidate label cap's model judged its own training transitions, each distinct
     state-action held out in turn (schema ``HeldOutTrust``)."""
 
@@ -700,22 +557,9 @@ class HeldOutTrust:
     perfect); ``"auto"`` keeps the highest."""
     held_out_groups: int
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> HeldOutTrust:
-        """Reads the JSON form."""
-        return cls(
-            label_cap=float(d["label_cap"]),
-            safe=int(d["safe"]),
-            unsafe_transitions=int(d["unsafe_transitions"]),
-            trusted_safe=int(d["trusted_safe"]),
-            trusted_unsafe=int(d["trusted_unsafe"]),
-            log_score=float(d["log_score"]),
-            held_out_groups=int(d["held_out_groups"]),
-        )
-
 
 @dataclass(frozen=True)
-class KernelTrial:
+class KernelTrial(Wire):
     """One candidate kernel's fit when the kernel is chosen from the data (schema
     ``KernelTrial``)."""
 
@@ -728,19 +572,9 @@ class KernelTrial:
     """The mean held-out log probability of the training state-actions' side of ``d_max``
     (``None`` when not computed and for fits made before it existed)."""
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> KernelTrial:
-        """Reads the JSON form."""
-        score = d.get("held_out_log_score")
-        return cls(
-            kernel=str(d["kernel"]),
-            log_marginal_likelihood=float(d["log_marginal_likelihood"]),
-            held_out_log_score=float(score) if score is not None else None,
-        )
-
 
 @dataclass(frozen=True)
-class FitRefusal:
+class FitRefusal(Wire):
     """A fit the server did not attempt because its estimated peak memory exceeded the server's
     budget; the version before it kept answering (schema ``FitRefusal``)."""
 
@@ -756,22 +590,9 @@ class FitRefusal:
     reason: str
     refused_at: str
 
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> FitRefusal:
-        """Reads the JSON form."""
-        return cls(
-            n_train=int(d["n_train"]),
-            n_trajectories=int(d["n_trajectories"]),
-            estimator=str(d["estimator"]),
-            needed_bytes=float(d["needed_bytes"]),
-            budget_bytes=float(d["budget_bytes"]),
-            reason=str(d["reason"]),
-            refused_at=str(d["refused_at"]),
-        )
-
 
 @dataclass(frozen=True)
-class Model:
+class Model(Wire):
     """The MDE version answering queries (schema ``Model``)."""
 
     SCHEMA: ClassVar[str] = "Model"
@@ -805,39 +626,6 @@ class Model:
     """With ``mde.kernel`` ``auto``, each kernel's fit; the highest log marginal likelihood won
     unless another's held-out score was clearly better."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
-
-    @classmethod
-    def from_json(cls, d: dict[str, Any]) -> Model:
-        """Reads the JSON form."""
-        lml = d.get("log_marginal_likelihood")
-        fs = d.get("fit_seconds")
-        cap = d.get("label_cap")
-        noise_model = d.get("noise_model")
-        return cls(
-            experiment_id=int(d["experiment_id"]),
-            version=int(d["version"]),
-            source=str(d["source"]),
-            n_train=int(d["n_train"]),
-            noise=d.get("noise"),
-            feature_names=list(d["feature_names"]),
-            hyperparameters=Hyperparameters.from_json(d["hyperparameters"]),
-            noise_model=NoiseSummary.from_json(noise_model) if noise_model is not None else None,
-            log_marginal_likelihood=float(lml) if lml is not None else None,
-            fit_seconds=float(fs) if fs is not None else None,
-            fitted_at=d.get("fitted_at"),
-            n_trajectories=int(d["n_trajectories"]),
-            label_cap=float(cap) if cap is not None else None,
-            label_cap_trials=[HeldOutTrust.from_json(t) for t in d["label_cap_trials"]],
-            estimator=d.get("estimator"),
-            online_trajectories=int(d["online_trajectories"]),
-            last_fit_refusal=(
-                FitRefusal.from_json(d["last_fit_refusal"])
-                if d.get("last_fit_refusal") is not None
-                else None
-            ),
-            kernel_trials=[KernelTrial.from_json(t) for t in d["kernel_trials"]],
-            raw=d,
-        )
 
 
 @dataclass(frozen=True)
