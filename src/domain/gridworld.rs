@@ -7,6 +7,8 @@ use super::{
     euclidean,
 };
 use rand::{Rng, RngCore};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 
 /// The default layout: 12×12, an obstacle wall across row 6 with a two-cell gap at x = 5..6,
 /// and two bands of ice (rows 2–3 at x = 2..9, row 9 at x = 1..10).
@@ -40,17 +42,7 @@ pub enum Cell {
 }
 
 /// How a gridworld state-action is fed to the MDE.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    Default,
-    PartialEq,
-    Eq,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum GridFeatures {
     /// `(x, y, dx, dy)` scaled to the unit box: one set of length scales for every move (the

@@ -16,19 +16,11 @@
 
 use super::PlanningError;
 use super::trajectory::Trajectory;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 
 /// How per-step utilities combine into a trajectory utility.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Aggregation {
     /// `h_max = max_t γ^t α_step(t)`: a trajectory scores its (discounted) step whose lower
@@ -43,17 +35,7 @@ pub enum Aggregation {
 setting_names!(Aggregation, "aggregation", { Max => "max", Sum => "sum" });
 
 /// Which acquisition function scores a trajectory (see the [module docs](self)).
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum AcquisitionKind {
     /// The paper's: `α = h(μ − c σ)`, discounted over the steps.

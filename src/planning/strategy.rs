@@ -29,20 +29,12 @@ use super::trajectory::Trajectory;
 use super::{DeviationModel, PlanningError};
 use crate::budget::Budget;
 use rand::Rng;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 
 /// How a proposal chooses the trajectory to execute.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Strategy {
     /// Goal-reaching candidates, argmin of the acquisition function: the method. The default.

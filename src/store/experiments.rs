@@ -2,6 +2,8 @@
 
 use super::{Store, lock_experiment_list, now};
 use crate::settings::ExperimentSettings;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 use sqlx::Row;
 use sqlx::any::AnyRow;
 
@@ -28,17 +30,7 @@ pub struct Experiment {
 }
 
 /// Which end of the experiment list comes first.
-#[derive(
-    Debug,
-    Clone,
-    Copy,
-    PartialEq,
-    Eq,
-    Default,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ListOrder {
     /// Ascending id (creation order).
