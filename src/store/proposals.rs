@@ -208,6 +208,18 @@ async fn open_for_client(
 }
 
 impl Store {
+    /// A write transaction holding experiment `experiment_id`'s lock, its leases brought up to
+    /// date (those past their end marked `expired`).
+    async fn leases_current(
+        &self,
+        experiment_id: i64,
+    ) -> Result<sqlx::Transaction<'static, sqlx::Any>, sqlx::Error> {
+        let mut tx = self.write.begin().await?;
+        lock_experiment(&mut tx, self.backend, experiment_id).await?;
+        expire_leases(&mut tx, experiment_id).await?;
+        Ok(tx)
+    }
+
     /// The start and planned actions of a proposal of this experiment, or `None`.
     #[tracing::instrument(skip(self))]
     pub async fn proposal_plan(
@@ -261,9 +273,7 @@ impl Store {
         experiment_id: i64,
         p: &NewProposal,
     ) -> Result<(StoredProposal, bool), sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, experiment_id).await?;
-        expire_leases(&mut tx, experiment_id).await?;
+        let mut tx = self.leases_current(experiment_id).await?;
         if let Some(client) = &p.terms.client_id
             && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
         {
@@ -312,9 +322,7 @@ impl Store {
         experiment_id: i64,
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, experiment_id).await?;
-        expire_leases(&mut tx, experiment_id).await?;
+        let mut tx = self.leases_current(experiment_id).await?;
         let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
         tx.commit().await?;
         Ok(p)
@@ -328,9 +336,7 @@ impl Store {
         experiment_id: i64,
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, experiment_id).await?;
-        expire_leases(&mut tx, experiment_id).await?;
+        let mut tx = self.leases_current(experiment_id).await?;
         sqlx::query(
             "UPDATE proposals SET status = 'abandoned'
              WHERE experiment_id = $1 AND id = $2 AND status = 'open'",
