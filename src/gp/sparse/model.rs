@@ -468,12 +468,12 @@ impl SparseGp {
     /// heteroscedastic rounds. O(n m²) time per bound evaluation, O(n + m²) memory beyond the
     /// data. Same data and seed, same model.
     ///
-    /// # Errors
-    /// As [`GpModel::fit`](super::super::GpModel::fit).
-    ///
     /// With at most [`SparseParams::full_rank_up_to`] points the fit is full rank: the exact
     /// GP's fit in sparse form ([`from_exact_state`](Self::from_exact_state)), every distinct
     /// training input an inducing point.
+    ///
+    /// # Errors
+    /// As [`GpModel::fit`](super::super::GpModel::fit).
     pub fn fit(
         x: &DMatrix<f64>,
         y: &DVector<f64>,
