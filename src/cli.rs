@@ -112,6 +112,37 @@ pub struct MdeArgs {
     /// Held-out state-actions.
     #[arg(long, default_value_t = 2000)]
     pub held_out: usize,
+    /// The estimators to fit each setting with, comma-separated: `exact`, `sparse`.
+    #[arg(long, value_delimiter = ',', default_value = "exact,sparse", value_parser = parse_estimator_kind)]
+    pub estimators: Vec<crate::mde::EstimatorKind>,
+    /// Inducing points of the sparse GP.
+    #[arg(long, default_value_t = crate::gp::DEFAULT_INDUCING_POINTS)]
+    pub inducing_points: usize,
+    /// The noise models to fit, comma-separated: `homoscedastic`, `heteroscedastic`.
+    #[arg(long, value_delimiter = ',', default_value = "heteroscedastic", value_parser = parse_noise_mode)]
+    pub noise: Vec<crate::gp::NoiseMode>,
+}
+
+/// `homoscedastic` or `heteroscedastic`.
+fn parse_noise_mode(s: &str) -> Result<crate::gp::NoiseMode, String> {
+    match s {
+        "homoscedastic" => Ok(crate::gp::NoiseMode::Homoscedastic),
+        "heteroscedastic" => Ok(crate::gp::NoiseMode::Heteroscedastic),
+        other => Err(format!(
+            "{other:?} is not a noise model; use homoscedastic or heteroscedastic"
+        )),
+    }
+}
+
+/// `exact` or `sparse`.
+fn parse_estimator_kind(s: &str) -> Result<crate::mde::EstimatorKind, String> {
+    match s {
+        "exact" => Ok(crate::mde::EstimatorKind::Exact),
+        "sparse" => Ok(crate::mde::EstimatorKind::Sparse),
+        other => Err(format!(
+            "{other:?} is not an estimator; use exact or sparse"
+        )),
+    }
 }
 
 /// Options of `precond bench worlds`.
@@ -609,6 +640,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 n: args.n,
                 world,
                 held_out: args.held_out,
+                estimators: args.estimators,
+                inducing_points: args.inducing_points,
+                noise: args.noise,
             })
             .await
         }

@@ -4,12 +4,19 @@
 //! uniform held-out state-actions whose true deviation the world's simulator gives: the share
 //! of truly safe ones trusted (TPR) and of unsafe ones refused (TNR) at β = 2, with σ as served
 //! (latent and noise) and with the latent part alone, and the median σ.
+//!
+//! Each setting is fitted by every requested estimator (the exact GP and the sparse GP, on the
+//! same labels with the same kernel and cap), so the two can be compared on identical training
+//! sets: besides the judgements, the fitted signal and noise variances, the median noise part
+//! of σ, and the held-out log score — the mean `log Φ(±(d_max − μ)/σ)` the model gives to the
+//! side of `d_max` each held-out state-action truly fell on (0 is perfect), which needs no
+//! closed-form leave-out and so scores the sparse GP too.
 
 use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES};
-use crate::gp::{Kernel, NoiseMode};
+use crate::gp::{Kernel, NoiseMode, Prediction};
 use crate::mde::{
     EstimatorKind, EstimatorParams, HeldOutTrust, blocks, capped_labels, fit_choosing_label_cap,
-    gp_params,
+    gp_params, normal_tail,
 };
 use crate::planning::{Agreement, Precondition};
 use crate::sim::ContinuousWorld;
@@ -34,6 +41,12 @@ pub struct MdeBenchOptions {
     pub world: Option<ContinuousWorld>,
     /// Held-out state-actions.
     pub held_out: usize,
+    /// The estimators to fit each setting with.
+    pub estimators: Vec<EstimatorKind>,
+    /// Inducing points of the sparse GP.
+    pub inducing_points: usize,
+    /// The noise models to fit.
+    pub noise: Vec<NoiseMode>,
 }
 
 /// Runs the comparison and prints a table.
@@ -110,8 +123,10 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
         held.len()
     );
     println!(
-        "{:<10} {:<15} {:>6} | {:>5} {:>5} {:>7} | {:>5} {:>5} {:>7} | {:>9} {:>9} {:>7} {:>9} {:>7} {:>7} {:>6}",
+        "{:<10} {:<6} {:<15} {:>6} | {:>5} {:>5} {:>7} | {:>5} {:>5} {:>7} {:>7} | {:>9} {:>9} \
+         {:>9} {:>7} {:>9} {:>7} {:>7} {:>7} {:>6}",
         "kernel",
+        "est",
         "noise",
         "cap",
         "TPR",
@@ -120,19 +135,25 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
         "TPR·l",
         "TNR·l",
         "σl med",
+        "σn med",
+        "s²",
         "noise var",
         "min ℓ",
         "LOO lp",
         "LML",
         "blk3 lp",
         "blk5 lp",
+        "test lp",
         "s"
     );
     let precondition = Precondition::new(2.0, d_max)?;
     for kernel in [Kernel::Matern12, Kernel::Matern32, Kernel::Matern52] {
-        for noise in [NoiseMode::Heteroscedastic] {
-            for caps in [vec![2.0]] {
-                let params = EstimatorParams::new(gp_params(noise, kernel, 0.0, 2, 7), 256)?;
+        for &noise in &o.noise {
+            for (caps, &kind) in
+                std::iter::repeat_n(vec![2.0], o.estimators.len()).zip(&o.estimators)
+            {
+                let params =
+                    EstimatorParams::new(gp_params(noise, kernel, 0.0, 2, 7), o.inducing_points)?;
                 let t0 = Instant::now();
                 let (x_all, deviations_all) = (x.clone(), deviations.clone());
                 let (x, deviations, caps) = (x.clone(), deviations.clone(), caps.clone());
@@ -144,7 +165,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                         precondition,
                         &[kernel],
                         &caps,
-                        EstimatorKind::Exact,
+                        kind,
                         &params,
                     )
                 })
@@ -174,6 +195,8 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 };
                 let (tpr, tnr, med) = judge(false);
                 let (tpr_l, tnr_l, med_l) = judge(true);
+                let med_n = median_noise_sd(&p);
+                let test_lp = held_out_log_score(&p, &held, d_max);
                 let h = choice.gp.hyperparameters();
                 let min_l = h
                     .length_scales
@@ -200,20 +223,53 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 };
                 let (b3, b5) = (block_lp(3), block_lp(5));
                 println!(
-                    "{:<10} {:<15} {:>6} | {tpr:>5.2} {tnr:>5.2} {med:>7.4} | {tpr_l:>5.2} \
-                     {tnr_l:>5.2} {med_l:>7.4} | {:>9.2e} {min_l:>9.3} {loo:>7.4} {lml:>9.1} \
-                     {b3:>7.4} {b5:>7.4} {seconds:>6.1}",
+                    "{:<10} {:<6} {:<15} {:>6} | {tpr:>5.2} {tnr:>5.2} {med:>7.4} | \
+                     {tpr_l:>5.2} {tnr_l:>5.2} {med_l:>7.4} {med_n:>7.4} | {:>9.2e} {:>9.2e} \
+                     {min_l:>9.3} {loo:>7.4} {lml:>9.1} {b3:>7.4} {b5:>7.4} {test_lp:>7.4} \
+                     {seconds:>6.1}",
                     kernel.name(),
+                    kind.as_str(),
                     format!("{noise:?}").to_lowercase(),
                     if auto {
                         format!("a:{}", choice.label_cap)
+                    } else if choice.label_cap > 0.0 {
+                        format!("{}", choice.label_cap)
                     } else {
                         "raw".into()
                     },
+                    h.signal_variance,
                     h.noise_variance,
                 );
             }
         }
     }
     Ok(())
+}
+
+/// The median noise part `√noise` of the predictions' σ.
+fn median_noise_sd(p: &Prediction) -> f64 {
+    let mut sd: Vec<f64> = p.noise_variance.iter().map(|v| v.max(0.0).sqrt()).collect();
+    sd.sort_by(f64::total_cmp);
+    sd.get(sd.len() / 2).copied().unwrap_or(f64::NAN)
+}
+
+/// The mean log probability predictions `p` give to the side of `d_max` each held-out
+/// state-action's true deviation fell on: `log Φ((d_max − μ)/σ)` for a safe one,
+/// `log Φ((μ − d_max)/σ)` for an unsafe one (0 is perfect).
+fn held_out_log_score(p: &Prediction, held: &[(Vec<f64>, f64)], d_max: f64) -> f64 {
+    let sd = p.std();
+    let total: f64 = held
+        .iter()
+        .enumerate()
+        .map(|(k, (_, d))| {
+            let z = (d_max - p.mean[k]) / sd[k];
+            let correct = if *d < d_max {
+                normal_tail(-z)
+            } else {
+                normal_tail(z)
+            };
+            correct.max(1e-300).ln()
+        })
+        .sum();
+    total / held.len().max(1) as f64
 }

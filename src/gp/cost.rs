@@ -122,8 +122,21 @@ fn sparse_eval_flops(n: f64, m: f64, d: f64) -> f64 {
 /// subset) on the points fitted (the presolve subset when it engages); per heteroscedastic
 /// round 40 for the main GP and 40 for the noise GP; with the presolve, 30 more on all data
 /// for the refinement (and 10 for the noise GP).
+///
+/// A full-rank fit (`n ≤ p.full_rank_up_to`) is the exact GP's fit ([`exact_fit_cost`]) and its
+/// conversion: two greedy selections over all `n` points (`n³` each, an `n × n` factor) and two
+/// sparse cores with `m = n` (`K_mm`'s factor, `AAᵀ` and `B`'s factor, about `2 n³` each); the
+/// exact GP's buffers are freed before the conversion, so the peak is the larger of the two.
 pub fn sparse_fit_cost(n: usize, d: usize, p: &SparseParams) -> FitCost {
     let (nf, df) = (n as f64, d as f64);
+    if n <= p.full_rank_up_to {
+        let exact = exact_fit_cost(n, d, p.gp.restarts, p.gp.noise, p.gp.hetero_rounds);
+        let convert_peak = F64 * (4.0 * nf * nf + nf * (2.0 * df + 10.0));
+        return FitCost::new(
+            exact.peak_bytes.max(convert_peak),
+            exact.flops + 6.0 * nf * nf * nf,
+        );
+    }
     let m = p.inducing_points.min(n).max(1) as f64;
     let mn = p.noise_inducing_points.min(n).max(1) as f64;
     let pool = p.selection_candidates.max(4 * p.inducing_points).min(n) as f64;
@@ -179,9 +192,11 @@ mod tests {
     use super::*;
     use crate::gp::{GpModel, GpParams, SparseGp};
 
+    /// Low-rank settings with `m` inducing points at every size.
     fn sparse(m: usize) -> SparseParams {
         SparseParams {
             inducing_points: m,
+            full_rank_up_to: 0,
             ..SparseParams::default()
         }
     }
@@ -233,6 +248,28 @@ mod tests {
         // At n = 100 000 the sparse fit needs well under 1 GiB; the exact one 400 GB.
         assert!(sparse_fit_cost(100_000, 6, &sparse(256)).peak_bytes < 2e8);
         assert!(exact_fit_cost(100_000, 6, 2, het, 4).peak_bytes > 3e11);
+    }
+
+    #[test]
+    fn a_full_rank_sparse_fit_costs_the_exact_fit_and_a_little_more() {
+        let full = SparseParams::default();
+        let n = full.full_rank_up_to;
+        let (sparse_cost, exact) = (
+            sparse_fit_cost(n, 6, &full),
+            exact_fit_cost(n, 6, 2, NoiseMode::Heteroscedastic, 4),
+        );
+        assert_eq!(sparse_cost.peak_bytes, exact.peak_bytes);
+        let extra = sparse_cost.flops / exact.flops - 1.0;
+        assert!((0.0..0.1).contains(&extra), "{extra}");
+        // One point more and the fit is low rank again (m = 256), and cheaper.
+        let low = sparse_fit_cost(n + 1, 6, &full);
+        assert!(low.peak_bytes < exact.peak_bytes && low.flops < exact.flops);
+        // Off, the same size is a low-rank fit.
+        let off = SparseParams {
+            full_rank_up_to: 0,
+            ..SparseParams::default()
+        };
+        assert!(sparse_fit_cost(n, 6, &off).peak_bytes < exact.peak_bytes);
     }
 
     /// Peak RSS growth (bytes) of a fit run alone in a child process: this test binary again,

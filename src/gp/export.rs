@@ -361,21 +361,25 @@ mod tests {
         let (x, y) = data(400, 2);
         for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
             for kernel in [Kernel::Matern12, Kernel::Matern52] {
-                let params = SparseParams {
-                    gp: GpParams {
-                        noise,
-                        kernel,
-                        restarts: 0,
-                        ..GpParams::default()
-                    },
-                    inducing_points: 40,
-                    noise_inducing_points: 20,
-                    inducing_rounds: 1,
-                    ..SparseParams::default()
-                };
-                let gp = SparseGp::fit(&x, &y, &params.check().unwrap()).unwrap();
-                let w = worst(&gp.predictor(), |q| gp.predict(q));
-                assert!(w < 1e-10, "{noise:?} {kernel}: {w:e}");
+                // Low rank (40 inducing points), and full rank (all 400 inputs).
+                for full_rank_up_to in [0, 400] {
+                    let params = SparseParams {
+                        gp: GpParams {
+                            noise,
+                            kernel,
+                            restarts: 0,
+                            ..GpParams::default()
+                        },
+                        inducing_points: 40,
+                        noise_inducing_points: 20,
+                        inducing_rounds: 1,
+                        full_rank_up_to,
+                        ..SparseParams::default()
+                    };
+                    let gp = SparseGp::fit(&x, &y, &params.check().unwrap()).unwrap();
+                    let w = worst(&gp.predictor(), |q| gp.predict(q));
+                    assert!(w < 1e-10, "{noise:?} {kernel} {full_rank_up_to}: {w:e}");
+                }
             }
         }
     }

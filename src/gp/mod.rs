@@ -56,7 +56,10 @@ pub use export::{GpPredictor, NoisePredictor, PointPrediction, Predictor};
 pub use kernel::Kernel;
 pub use model::GpModel;
 pub use params::{Bounds, Checked, GpParams, NoiseMode, ValidGpParams};
-pub use sparse::{DEFAULT_INDUCING_POINTS, SparseGp, SparseParams, SparseState, ValidSparseParams};
+pub use sparse::{
+    DEFAULT_FULL_RANK_UP_TO, DEFAULT_INDUCING_POINTS, SparseGp, SparseParams, SparseState,
+    ValidSparseParams,
+};
 
 /// Signal variance of the prior before any data ([`Hyperparameters::prior`]): `1.0`, i.e. a prior
 /// standard deviation of 1 in target units — large next to typical deviation thresholds, so an

@@ -6,7 +6,9 @@
 //! - [`EstimatorKind::Exact`]: the exact GP ([`GpModel`]): `O(n³)` to fit, `O(n²)` memory, the
 //!   better choice while it fits (closed-form leave-one-out, no approximation).
 //! - [`EstimatorKind::Sparse`]: the sparse variational GP ([`SparseGp`], `m` inducing points):
-//!   `O(n m²)` to fit, `O(n m)` memory, online updates at fixed hyperparameters.
+//!   `O(n m²)` to fit, `O(n m)` memory, online updates at fixed hyperparameters. Up to
+//!   [`DEFAULT_FULL_RANK_UP_TO`](crate::gp::DEFAULT_FULL_RANK_UP_TO) transitions every training
+//!   input is an inducing point, and the fit is the exact GP's in sparse form.
 //!
 //! [`EstimatorChoice::Auto`] (the default) fits the exact GP up to [`AUTO_EXACT_MAX_N`]
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.

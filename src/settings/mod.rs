@@ -256,7 +256,9 @@ pub struct MdeSettings {
     /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
     /// [`EstimatorChoice`]).
     pub estimator: EstimatorChoice,
-    /// Inducing points of the sparse GP; 16 to 4096.
+    /// Inducing points of the sparse GP; 16 to 4096. With at most 1024 training transitions
+    /// ([`crate::gp::DEFAULT_FULL_RANK_UP_TO`]) the sparse GP uses every training input
+    /// instead, and is then the exact GP's fit in sparse form.
     pub inducing_points: usize,
 }
 

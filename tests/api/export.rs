@@ -262,7 +262,10 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         let (id, fitted) = fitted_kinematic(&app, mde, 150).await;
         assert_eq!(fitted["estimator"], "sparse", "{fitted}");
         let (model, mu, sigma) = parity(&app, id, false, 3).await;
-        assert_eq!(model.predictor.main.points.len(), 32);
+        // 300 transitions are within the full-rank size: every distinct input is an inducing
+        // point, whatever `inducing_points` says (the low-rank export is a unit test's).
+        let points = model.predictor.main.points.len();
+        assert!((33..=300).contains(&points), "{points} inducing points");
         eprintln!("kinematic, sparse, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
         // One more trajectory is taken in online (no refit): the export follows it.
         app.store_trajectory(id, &kinematic_trajectory(80, 300, 7))

@@ -40,6 +40,15 @@
 //! fitted ones and refits from there (kept only if the bound improves). Inducing locations are not
 //! optimised by gradient.
 //!
+//! Up to [`SparseParams::full_rank_up_to`] training points (default 1024) the fit is full rank
+//! instead: every distinct training input is an inducing point, `Q_nn = K_nn`, the trace term
+//! vanishes and the bound is the exact GP's log marginal likelihood. Its optimum is then found
+//! by the exact GP's own fit (one Cholesky per evaluation rather than the chunked passes), and
+//! written in sparse form ([`SparseGp::from_exact_state`]). At the MDE's sizes this matters:
+//! its deviations are nearly noise-free, so a low-rank `Q_nn` is paid for by a larger fitted
+//! noise (VFE's known overestimation), a larger σ everywhere and a precondition that trusts
+//! less (see [`DEFAULT_FULL_RANK_UP_TO`]).
+//!
 //! # Heteroscedastic noise
 //!
 //! The procedure of [`hetero`](super::hetero) with sparse GPs throughout: the noise GP is a sparse
@@ -73,6 +82,17 @@ use super::{GpError, GpParams, Hyperparameters, NoiseMode};
 /// one point in 0.014 ms; m = 512 fits in 81 s, predicts 90 000 points/s and one point in
 /// 0.08 ms, for a held-out NLL better by 0.5 % (−0.410 vs −0.408).
 pub const DEFAULT_INDUCING_POINTS: usize = 256;
+
+/// Default [`SparseParams::full_rank_up_to`]: 1024 training points. The deviations the MDE
+/// learns are nearly noise-free (fitted noise variances 1e-6–1e-4 against signal variances
+/// around 5e-4 on the continuous worlds), so VFE's trace penalty `tr(K_nn − Q_nn) / 2σ²` stays
+/// large until `m` is close to `n`, and the optimiser pays it by overestimating the noise: on
+/// the base and pusher worlds' 400–600 training transitions, m = 256 gave bounds 100–170 nats
+/// below the exact log marginal likelihood and noise variances 1.5–3× the exact GP's, and
+/// only m ≈ n closed the gap (`precond bench mde`, docs/measurements/performance.md). Up to
+/// 1024 points the exact fit takes seconds and its sparse form `O(n³)` work and `n²/2` stored
+/// numbers, about what the default fit costs at n = 100 000.
+pub const DEFAULT_FULL_RANK_UP_TO: usize = 1024;
 
 /// Settings for fitting a [`SparseGp`]. Build one (or start from [`Default`]), then call
 /// [`SparseParams::check`]; only the resulting [`ValidSparseParams`] can fit a model.
@@ -114,6 +134,15 @@ pub struct SparseParams {
     /// Jitter added to `K_mm`'s diagonal, relative to the signal variance (the first rung of a
     /// ladder that grows ×10 up to `gp.jitter_max`). Default `1e-6`; range `(0, 1e-2]`.
     pub jitter: f64,
+    /// With at most this many training points the fit is full rank: every distinct training
+    /// input is an inducing point of the main GP and of the noise GP, whatever
+    /// [`inducing_points`](Self::inducing_points) says. The collapsed bound is then the exact
+    /// log marginal likelihood, so its optimum is the exact GP's: the exact GP is fitted (with
+    /// `gp`, the same procedure and seeds) and written in sparse form
+    /// ([`SparseGp::from_exact_state`]), which predicts as it does. Costs `O(n³)` time and
+    /// `n²/2` stored numbers. Default [`DEFAULT_FULL_RANK_UP_TO`]; range `0..=4096`, `0` turns
+    /// it off.
+    pub full_rank_up_to: usize,
 }
 
 impl Default for SparseParams {
@@ -127,6 +156,7 @@ impl Default for SparseParams {
             screen_subset: 4096,
             presolve_subset: 16384,
             jitter: 1e-6,
+            full_rank_up_to: DEFAULT_FULL_RANK_UP_TO,
         }
     }
 }
@@ -169,6 +199,12 @@ impl SparseParams {
         }
         off_or_at_least("screen_subset", self.screen_subset, 64)?;
         off_or_at_least("presolve_subset", self.presolve_subset, 256)?;
+        if self.full_rank_up_to > 4096 {
+            return Err(invalid(
+                "full_rank_up_to",
+                format!("must be in 0..=4096, got {}", self.full_rank_up_to),
+            ));
+        }
         if !(self.jitter > 0.0 && self.jitter <= 1e-2) {
             return Err(invalid(
                 "jitter",

@@ -14,7 +14,8 @@ use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
 use super::super::model::{check_data, check_finite_matrix, check_query, predict_rows};
 use super::super::{
-    Bounds, FitStats, GpError, GpParams, Hyperparameters, NoiseMode, NoiseSummary, Prediction,
+    Bounds, FitStats, GpError, GpModel, GpParams, Hyperparameters, ModelState, NoiseMode,
+    NoiseSummary, Prediction,
 };
 use super::bound::Bound;
 use super::core::{Ladder, Lambda, SparseCore};
@@ -426,12 +427,50 @@ fn hetero_rounds(
     })
 }
 
+/// A GP with hyperparameters `h` conditioned on `(x, y)` with noise `lambda` (smallest
+/// `noise_min`), whose inducing points are every input of `x` not already determined by those
+/// before it: the greedy selection runs over all of `x` and stops below a conditional variance
+/// of `10⁻⁶ noise_min`, which is also `K_mm`'s first jitter (relative to `s²`, between `1e-12`
+/// and `sp.jitter`). Both perturb the bound by about `n · 10⁻⁶ / 2`, so it is the exact log
+/// marginal likelihood; a jitter relative to `s²` alone (`sp.jitter`) would not be, when the
+/// noise is 10⁻⁴ of the signal as the MDE's often is.
+fn full_rank_core(
+    x: &Inputs,
+    y: &[f64],
+    h: &Hyperparameters,
+    lambda: Lambda<'_>,
+    noise_min: f64,
+    sp: &SparseParams,
+) -> Result<SparseCore, GpError> {
+    let s2 = h.signal_variance;
+    let rel = (1e-6 * noise_min / s2).clamp(1e-12, sp.jitter);
+    let all = greedy_variance(h.kernel, x, &h.length_scales, s2, x.n, x.n, rel, sp.gp.seed);
+    SparseCore::build(
+        h.kernel,
+        x,
+        y,
+        h.prior_mean,
+        &x.subset(&all),
+        &h.length_scales,
+        s2,
+        lambda,
+        Ladder::Relative {
+            initial: rel,
+            max: sp.gp.jitter_max.max(sp.jitter),
+        },
+    )
+}
+
 impl SparseGp {
     /// Fits a sparse GP to training inputs `x` (rows are points, already scaled to the unit box)
     /// and targets `y`: selects inducing points, maximises the collapsed bound over the
     /// hyperparameters, and (heteroscedastic mode, `n ≥ gp.hetero_min_points`) runs the
     /// heteroscedastic rounds. O(n m²) time per bound evaluation, O(n + m²) memory beyond the
     /// data. Same data and seed, same model.
+    ///
+    /// With at most [`SparseParams::full_rank_up_to`] points the fit is full rank: the exact
+    /// GP's fit in sparse form ([`from_exact_state`](Self::from_exact_state)), every distinct
+    /// training input an inducing point.
     ///
     /// # Errors
     /// As [`GpModel::fit`](super::super::GpModel::fit).
@@ -441,7 +480,111 @@ impl SparseGp {
         params: &ValidSparseParams,
     ) -> Result<SparseGp, GpError> {
         let xi = check_data(x, y)?;
+        if xi.n <= params.full_rank_up_to {
+            let exact = GpModel::fit(x, y, &params.gp.check()?)?;
+            let (state, stats) = (exact.state(), exact.fit_stats().cloned());
+            // Its n × n factors are not needed for the conversion.
+            drop(exact);
+            let mut model = Self::from_exact_state(x, y, &state, params)?;
+            model.stats = stats;
+            return Ok(model);
+        }
         Self::fit_inner(&xi, y.as_slice(), params, None)
+    }
+
+    /// The exact GP `state`, fitted on `(x, y)`, in sparse form: the hyperparameters and the
+    /// noise GP's targets are the exact GP's, and every training input is an inducing point of
+    /// the main GP and of the noise GP except those the ones before them already determine —
+    /// by greedy variance selection under each GP's kernel, an input whose conditional
+    /// variance is below a millionth of that GP's smallest noise variance counts as determined
+    /// (so repeated inputs count once), and `K_mm` takes a jitter of that size. Each such
+    /// difference moves the bound by about its size over twice the noise, so the bound is the
+    /// exact log marginal likelihood and the predictions are the exact GP's (to about 1e-6
+    /// relative), from `O(m²)` numbers that need no training data. `O(n³)` time.
+    ///
+    /// # Errors
+    /// Data errors as for [`fit`](Self::fit); [`GpError::DimensionMismatch`] or
+    /// [`GpError::InvalidState`] when `state` was not fitted on `n` points of this dimension;
+    /// [`GpError::NotPositiveDefinite`] if `K_mm` does not factorise within the jitter ladder.
+    pub fn from_exact_state(
+        x: &DMatrix<f64>,
+        y: &DVector<f64>,
+        state: &ModelState,
+        params: &ValidSparseParams,
+    ) -> Result<SparseGp, GpError> {
+        let xi = check_data(x, y)?;
+        if state.n_train != xi.n {
+            return Err(GpError::DimensionMismatch {
+                what: "exact model's training points vs rows of x",
+                expected: state.n_train,
+                found: xi.n,
+            });
+        }
+        let sp = params.params();
+        let h = &state.hyperparameters;
+        h.check(xi.d, "exact model hyperparameters")?;
+        match (state.noise, &state.noise_model) {
+            (NoiseMode::Homoscedastic, None) => {
+                let core = full_rank_core(
+                    &xi,
+                    y.as_slice(),
+                    h,
+                    Lambda::Homo(h.noise_variance),
+                    h.noise_variance,
+                    sp,
+                )?;
+                Ok(SparseGp {
+                    mode: NoiseMode::Homoscedastic,
+                    hyper: core.hyperparameters(h.noise_variance),
+                    homo_bound: core.bound,
+                    main: core,
+                    noise_model: None,
+                    rounds: 0,
+                    stats: None,
+                })
+            }
+            (NoiseMode::Heteroscedastic, Some(ns)) => {
+                let g = &ns.hyperparameters;
+                g.check(xi.d, "exact model's noise GP hyperparameters")?;
+                if ns.log_noise_targets.len() != xi.n {
+                    return Err(GpError::DimensionMismatch {
+                        what: "noise GP targets vs rows of x",
+                        expected: xi.n,
+                        found: ns.log_noise_targets.len(),
+                    });
+                }
+                let core = full_rank_core(
+                    &xi,
+                    &ns.log_noise_targets,
+                    g,
+                    Lambda::Homo(g.noise_variance),
+                    g.noise_variance,
+                    sp,
+                )?;
+                let mut nm = SparseNoise {
+                    core,
+                    noise: g.noise_variance,
+                    clip: ns.noise_variance_clip,
+                    train: (0.0, 0.0, 0.0),
+                };
+                let lambda = nm.predict(&xi);
+                nm.train = min_mean_max(&lambda);
+                let core =
+                    full_rank_core(&xi, y.as_slice(), h, Lambda::Per(&lambda), nm.train.0, sp)?;
+                Ok(SparseGp {
+                    mode: NoiseMode::Heteroscedastic,
+                    hyper: core.hyperparameters(nm.train.1),
+                    main: core,
+                    noise_model: Some(nm),
+                    homo_bound: ns.homoscedastic_lml,
+                    rounds: ns.rounds,
+                    stats: None,
+                })
+            }
+            _ => Err(GpError::InvalidState(
+                "exact model's noise mode and noise model disagree".into(),
+            )),
+        }
     }
 
     /// Like [`fit`](Self::fit) with the inducing inputs given (rows are points, unit box) instead

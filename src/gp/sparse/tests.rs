@@ -122,6 +122,7 @@ fn homo_sparse(m: usize) -> SparseParams {
     SparseParams {
         gp: gp_params(NoiseMode::Homoscedastic, 1, 5),
         inducing_points: m,
+        full_rank_up_to: 0,
         ..SparseParams::default()
     }
 }
@@ -198,6 +199,7 @@ fn online_updates_equal_conditioning_on_all_the_data() {
             gp: gp_params(noise, 0, 3),
             inducing_points: 40,
             inducing_rounds: 1,
+            full_rank_up_to: 0,
             ..SparseParams::default()
         }
         .check()
@@ -240,6 +242,7 @@ fn state_round_trips_exactly_through_json() {
         let p = SparseParams {
             gp: gp_params(noise, 1, 11),
             inducing_points: 30,
+            full_rank_up_to: 0,
             ..SparseParams::default()
         }
         .check()
@@ -425,13 +428,26 @@ fn heteroscedastic_noise_follows_the_data() {
 
 #[test]
 fn degenerate_data_give_models_or_errors_never_panics() {
-    let p = homo_sparse(16).check().unwrap();
+    for full_rank_up_to in [0, DEFAULT_FULL_RANK_UP_TO] {
+        degenerate_data(full_rank_up_to);
+    }
+}
+
+/// [`degenerate_data_give_models_or_errors_never_panics`] with low-rank (`0`) or full-rank fits.
+fn degenerate_data(full_rank_up_to: usize) {
+    let p = SparseParams {
+        full_rank_up_to,
+        ..homo_sparse(16)
+    }
+    .check()
+    .unwrap();
     let het = SparseParams {
         gp: GpParams {
             restarts: 1,
             ..GpParams::default()
         },
         inducing_points: 16,
+        full_rank_up_to,
         ..SparseParams::default()
     }
     .check()
@@ -551,6 +567,13 @@ fn invalid_sparse_params_name_the_field() {
         "presolve_subset"
     );
     assert_eq!(name(SparseParams { jitter: 0.0, ..d() }), "jitter");
+    assert_eq!(
+        name(SparseParams {
+            full_rank_up_to: 4097,
+            ..d()
+        }),
+        "full_rank_up_to"
+    );
     let mut bad_gp = d();
     bad_gp.gp.restarts = 65;
     assert_eq!(name(bad_gp), "restarts");
@@ -565,13 +588,130 @@ fn sparse_model_is_send_and_sync_and_deterministic() {
     fn assert_send_sync<T: Send + Sync>() {}
     assert_send_sync::<SparseGp>();
     let (x, y) = data(200, 2, 22);
+    for full_rank_up_to in [0, DEFAULT_FULL_RANK_UP_TO] {
+        let p = SparseParams {
+            inducing_points: 20,
+            full_rank_up_to,
+            ..SparseParams::default()
+        }
+        .check()
+        .unwrap();
+        let a = SparseGp::fit(&x, &y, &p).unwrap();
+        let b = SparseGp::fit(&x, &y, &p).unwrap();
+        assert_eq!(a.state(), b.state());
+    }
+}
+
+/// Nearly noise-free data whose noise differs between the halves of the box, as the MDE's
+/// deviations are: a smooth function of both inputs, noise sd 0.002 on the left half and 0.02
+/// on the right.
+fn nearly_noise_free(n: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let x = DMatrix::from_fn(n, 2, |_, _| rng.random::<f64>());
+    let y = DVector::from_fn(n, |i, _| {
+        let sd = if x[(i, 0)] < 0.5 { 0.002 } else { 0.02 };
+        0.2 * (7.0 * x[(i, 1)]).sin() * (5.0 * x[(i, 0)]).cos()
+            + sd * 1.732 * (2.0 * rng.random::<f64>() - 1.0)
+    });
+    (x, y)
+}
+
+#[test]
+fn a_fit_of_at_most_full_rank_up_to_points_is_the_exact_gp_in_sparse_form() {
+    let (x, y) = nearly_noise_free(240, 30);
+    let (q, _) = nearly_noise_free(50, 31);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let gp = GpParams {
+            noise,
+            restarts: 1,
+            seed: 4,
+            ..GpParams::default()
+        };
+        // 24 inducing points asked for, far fewer than the 240 points.
+        let low_rank = SparseParams {
+            gp: gp.clone(),
+            inducing_points: 24,
+            noise_inducing_points: 12,
+            full_rank_up_to: 0,
+            ..SparseParams::default()
+        };
+        let full = SparseParams {
+            full_rank_up_to: 240,
+            ..low_rank.clone()
+        };
+        let exact = GpModel::fit(&x, &y, &gp.check().unwrap()).unwrap();
+        let sparse = SparseGp::fit(&x, &y, &full.check().unwrap()).unwrap();
+        assert_eq!(sparse.noise_mode(), noise);
+        // Every input that the others do not already determine (to 1e-6 of the noise).
+        assert!(
+            sparse.n_inducing() > 100,
+            "{noise:?}: {}",
+            sparse.n_inducing()
+        );
+        let (h, he) = (sparse.hyperparameters(), exact.hyperparameters());
+        assert_eq!(h.length_scales, he.length_scales);
+        assert_eq!(h.signal_variance, he.signal_variance);
+        assert_relative_eq!(
+            sparse.bound(),
+            exact.log_marginal_likelihood(),
+            max_relative = 1e-6
+        );
+        let (a, b) = (sparse.predict(&q), exact.predict(&q));
+        let sd = |p: &crate::gp::Prediction, j: usize| {
+            (p.latent_variance[j] + p.noise_variance[j]).sqrt()
+        };
+        for j in 0..q.nrows() {
+            assert!(
+                (a.mean[j] - b.mean[j]).abs() < 1e-3 * sd(&b, j),
+                "{noise:?} mean at {j}"
+            );
+            assert!(rel_close(sd(&a, j), sd(&b, j), 1e-3), "{noise:?} σ at {j}");
+            assert!(rel_close(a.noise_variance[j], b.noise_variance[j], 1e-3));
+        }
+        // What it replaces: the low-rank fit of these nearly noise-free data pays for its 24
+        // inducing points with a far lower bound (50 and 130 nats here) and, homoscedastic, a
+        // larger noise (×1.6).
+        let low = SparseGp::fit(&x, &y, &low_rank.check().unwrap()).unwrap();
+        assert_eq!(low.n_inducing(), 24);
+        assert!(low.bound() < exact.log_marginal_likelihood() - 25.0);
+        if noise == NoiseMode::Homoscedastic {
+            assert!(low.hyperparameters().noise_variance > 1.3 * he.noise_variance);
+        }
+        // One point more than full_rank_up_to and the fit is low rank.
+        let (x1, y1) = nearly_noise_free(241, 30);
+        let over = SparseGp::fit(&x1, &y1, &full.check().unwrap()).unwrap();
+        assert_eq!(over.n_inducing(), 24);
+    }
+}
+
+#[test]
+fn the_sparse_form_of_an_exact_gp_counts_each_repeated_input_once() {
+    let (x0, y0) = nearly_noise_free(40, 32);
+    let rows: Vec<usize> = (0..120).map(|i| i % 40).collect();
+    let x = x0.select_rows(&rows);
+    let y = DVector::from_fn(120, |i, _| y0[i % 40] + 0.001 * (i / 40) as f64);
+    let gp = GpParams {
+        restarts: 1,
+        ..GpParams::default()
+    };
     let p = SparseParams {
-        inducing_points: 20,
+        gp: gp.clone(),
         ..SparseParams::default()
     }
     .check()
     .unwrap();
-    let a = SparseGp::fit(&x, &y, &p).unwrap();
-    let b = SparseGp::fit(&x, &y, &p).unwrap();
-    assert_eq!(a.state(), b.state());
+    let exact = GpModel::fit(&x, &y, &gp.check().unwrap()).unwrap();
+    let sparse = SparseGp::from_exact_state(&x, &y, &exact.state(), &p).unwrap();
+    assert!(sparse.n_inducing() <= 40);
+    assert_relative_eq!(
+        sparse.bound(),
+        exact.log_marginal_likelihood(),
+        max_relative = 1e-6
+    );
+    // A state fitted on other data is refused, not converted.
+    let (x2, y2) = nearly_noise_free(30, 33);
+    assert!(matches!(
+        SparseGp::from_exact_state(&x2, &y2, &exact.state(), &p),
+        Err(GpError::DimensionMismatch { .. })
+    ));
 }
