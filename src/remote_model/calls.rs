@@ -3,8 +3,11 @@
 //!
 //! - A call needs a permit for its URL (at most [`ModelCallLimits::max_calls_per_url`]) and one
 //!   of all (at most [`ModelCallLimits::max_calls`]); it waits for them at most until its
-//!   deadline, then fails with [`DynamicsError::Busy`]. Waiting holds no thread: an ingest waits
-//!   as an async task, a search on its own thread.
+//!   deadline, then fails with [`DynamicsError::Busy`]. Permits that come with less than a
+//!   tenth of the call's time left ([`starts_too_late`]) are given back and the call fails
+//!   `Busy` too: a call that short would time out before a model could answer, a `Timeout` would
+//!   blame a model that was never called, and the model would receive a request nobody waits
+//!   for. Waiting holds no thread: an ingest waits as an async task, a search on its own thread.
 //! - A call's deadline is its experiment's `timeout_ms`, capped by the operator's
 //!   [`ModelCallLimits::max_timeout`], and during a search the search's own deadline, whichever
 //!   comes first; waiting for permits counts.
@@ -178,12 +181,20 @@ pub(crate) fn block_until<F: Future>(
     }
 }
 
+/// Whether a call that began waiting for its permits at `begun` and got them at `now` is too
+/// late to start: less than a tenth of its whole window (`begun` to `deadline`), and less than
+/// 1 ms, is left.
+pub(crate) fn starts_too_late(begun: Instant, now: Instant, deadline: Instant) -> bool {
+    let window = deadline.saturating_duration_since(begun);
+    deadline.saturating_duration_since(now) < (window / 10).max(Duration::from_millis(1))
+}
+
 /// The answer of a call that could not start within its deadline.
 pub(crate) fn busy(model: &str, limits: &ModelCallLimits) -> DynamicsError {
     DynamicsError::Busy {
         model: model.to_string(),
         reason: format!(
-            "no call could start before the deadline: {} calls to this model (or {} to all \
+            "no call could start in time (with a tenth of its time left): {} calls to this model (or {} to all \
              models) are already running (--max-model-calls-per-url, --max-model-calls)",
             limits.max_calls_per_url, limits.max_calls
         ),
@@ -193,6 +204,30 @@ pub(crate) fn busy(model: &str, limits: &ModelCallLimits) -> DynamicsError {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_call_needs_a_tenth_of_its_window_left_to_start() {
+        let begun = Instant::now();
+        let deadline = begun + Duration::from_millis(800);
+        let at = |ms| begun + Duration::from_millis(ms);
+        assert!(!starts_too_late(begun, at(0), deadline));
+        assert!(
+            !starts_too_late(begun, at(720), deadline),
+            "80 ms of 800 left"
+        );
+        assert!(
+            starts_too_late(begun, at(721), deadline),
+            "79 ms of 800 left"
+        );
+        assert!(
+            starts_too_late(begun, at(900), deadline),
+            "past the deadline"
+        );
+        // A window under 10 ms still starts with at least 1 ms left.
+        let short = begun + Duration::from_millis(5);
+        assert!(!starts_too_late(begun, at(3), short));
+        assert!(starts_too_late(begun, at(5), short));
+    }
 
     #[test]
     fn limits_are_checked_and_name_the_option() {

@@ -28,7 +28,7 @@ pub use policy::ModelUrlPolicy;
 use crate::budget::Budget;
 use crate::domain::{DynamicsError, DynamicsModel, Predicted};
 use answer::AnswerSeed;
-use calls::{Permits, block_until, busy};
+use calls::{Permits, block_until, busy, starts_too_late};
 use serde::Serialize;
 use std::io::Read;
 use std::sync::Arc;
@@ -164,11 +164,12 @@ impl RemoteModel {
     ) -> Result<Vec<Predicted>, DynamicsError> {
         let mut out = Vec::with_capacity(states.len());
         for mut call in self.prepare(states, actions)? {
-            call.deadline = Instant::now() + self.timeout();
+            let begun = Instant::now();
+            call.deadline = begun + self.timeout();
             let until = tokio::time::Instant::from_std(call.deadline);
             let permits =
                 match tokio::time::timeout_at(until, self.inner.gate.permits(&call.url)).await {
-                    Ok(Some(p)) => p,
+                    Ok(Some(p)) if !starts_too_late(begun, Instant::now(), call.deadline) => p,
                     _ => return Err(busy(&self.inner.url, self.inner.gate.limits())),
                 };
             let answer = self.start(call, permits)?;
@@ -334,12 +335,13 @@ impl DynamicsModel for RemoteModel {
     ) -> Result<Vec<Predicted>, DynamicsError> {
         let mut out = Vec::with_capacity(states.len());
         for mut call in self.prepare(states, actions)? {
-            let own = Instant::now() + self.timeout();
+            let begun = Instant::now();
+            let own = begun + self.timeout();
             call.deadline = budget.deadline().map_or(own, |d| d.min(own));
             let deadline = call.deadline;
             let stopped = || budget.stop().is_some();
             let permits = match block_until(self.inner.gate.permits(&call.url), deadline, stopped) {
-                Some(Some(p)) => p,
+                Some(Some(p)) if !starts_too_late(begun, Instant::now(), deadline) => p,
                 _ if budget.stop().is_some() => return Err(self.inner.timed_out()),
                 _ => return Err(busy(&self.inner.url, self.inner.gate.limits())),
             };
