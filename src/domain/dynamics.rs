@@ -49,8 +49,8 @@ pub enum DynamicsError {
         /// What went wrong.
         reason: String,
     },
-    /// No call could start before the deadline: the operator's limit of concurrent calls to
-    /// this model (or to all models) is reached. Nothing was sent.
+    /// No call could start with a tenth of its time left: the operator's limit of concurrent
+    /// calls to this model (or to all models) is reached. Nothing was sent.
     #[error("the dynamics model {model} is busy: {reason}")]
     Busy {
         /// Which model (e.g. its URL).
