@@ -15,8 +15,10 @@
 //! newest version within a poll interval of its fit. (One process owns a SQLite file, and swaps
 //! in what it fits itself.)
 
-use super::live::Registry;
+use super::live::{LiveExperiment, Registry};
+use super::work::{Slot, WorkGate};
 use super::{Error, Service};
+use crate::mde::ServedModel;
 use crate::store::{Backend, FitClaim, Store};
 use std::sync::Arc;
 use std::time::Duration;
@@ -85,12 +87,24 @@ impl FitQueue {
             .await?)
     }
 
-    /// Heartbeats `claim` every quarter lease until dropped.
-    pub(crate) fn keep_alive(
+    /// Fits `live` under `claim` on `slot` (see [`LiveExperiment::fit_under`]), heartbeating
+    /// the claim all the while so no other replica takes it over.
+    pub(crate) async fn fit(
         &self,
+        live: &Arc<LiveExperiment>,
         store: &Store,
-        claim: &FitClaim,
-    ) -> tokio::task::JoinHandle<()> {
+        gate: &WorkGate,
+        claim: FitClaim,
+        slot: Slot,
+    ) -> Result<Arc<ServedModel>, Error> {
+        let heartbeat = self.keep_alive(store, &claim);
+        let fitted = live.fit_under(store, gate, claim, slot, self.lease).await;
+        heartbeat.abort();
+        fitted
+    }
+
+    /// Heartbeats `claim` every quarter lease until aborted.
+    fn keep_alive(&self, store: &Store, claim: &FitClaim) -> tokio::task::JoinHandle<()> {
         let (store, claim, every) = (store.clone(), claim.clone(), self.lease / 4);
         tokio::spawn(async move {
             loop {
@@ -152,8 +166,8 @@ impl FitQueue {
             tokio::spawn(async move {
                 let id = claim.experiment_id;
                 let fitted = match service.live(id).await {
-                    Ok(live) => live
-                        .fit_under(service.store(), service.work(), &queue, claim, slot)
+                    Ok(live) => queue
+                        .fit(&live, service.store(), service.work(), claim, slot)
                         .await
                         .map(|_| ()),
                     Err(e) => {

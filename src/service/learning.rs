@@ -229,10 +229,7 @@ impl Service {
             tokio::spawn(async move {
                 let slot = work.fit_slot().await?;
                 match fits.claim(&store, id).await? {
-                    Some(claim) => live
-                        .fit_under(&store, &work, &fits, claim, slot)
-                        .await
-                        .map(Some),
+                    Some(claim) => fits.fit(&live, &store, &work, claim, slot).await.map(Some),
                     None => Ok(None),
                 }
             })

@@ -7,7 +7,6 @@
 //! so no request ever waits on a fit.
 
 use super::Error;
-use super::fitting::FitQueue;
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
@@ -24,7 +23,7 @@ use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
 use std::sync::{Arc, RwLock};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 /// One experiment's settings, domain and current model.
 #[derive(Debug)]
@@ -192,24 +191,23 @@ impl LiveExperiment {
     }
 
     /// Fits version `claim.version` on every stored transition under `claim` (this replica's
-    /// right to fit the experiment, heartbeated meanwhile), on the fit slot `slot`; stores it
+    /// right to fit the experiment, which the caller heartbeats meanwhile: see
+    /// [`FitQueue::fit`](super::FitQueue::fit); `lease` is its lease), on the fit slot `slot`; stores it
     /// and ends the claim in one transaction, then swaps it in. Without
     /// [`FitClaim::forced`], does nothing (but end the claim) when the latest stored version
     /// already covers the latest complete batch. Returns the version answering afterwards.
     ///
     /// Counted in `precond_fits_total` and `precond_fit_seconds`.
-    pub async fn fit_under(
+    pub(super) async fn fit_under(
         self: &Arc<Self>,
         store: &Store,
         gate: &WorkGate,
-        queue: &FitQueue,
         claim: FitClaim,
         slot: Slot,
+        lease: Duration,
     ) -> Result<Arc<ServedModel>, Error> {
         let _one_fit_at_a_time = self.fit_lock.lock().await;
-        let heartbeat = queue.keep_alive(store, &claim);
         let fitted = self.fit_claimed(store, gate, &claim, slot).await;
-        heartbeat.abort();
         let (stored, served) = match fitted {
             Ok(Some(fitted)) => fitted,
             Ok(None) => {
@@ -234,7 +232,7 @@ impl LiveExperiment {
                     "the fit of experiment {} was taken over by another replica (this one \
                      stalled past its {} s lease); its result was dropped",
                     self.id,
-                    queue.lease().as_secs()
+                    lease.as_secs()
                 )));
             }
         }
@@ -483,11 +481,11 @@ impl Registry {
 
     /// The live experiment `id`, loading it (and its latest model) from the store if needed;
     /// 404 if it does not exist. A batch that completed but was never fitted (the server stopped
-    /// first) is requested a fit, and `fits`' worker woken.
+    /// first) is requested a fit, and `fit_requested` called (to wake a fit worker).
     pub async fn get(
         &self,
         store: &Store,
-        fits: &FitQueue,
+        fit_requested: impl FnOnce(),
         model_calls: &Arc<ModelCalls>,
         id: i64,
     ) -> Result<Arc<LiveExperiment>, Error> {
@@ -540,7 +538,7 @@ impl Registry {
         }
         if live.iteration(stored.n_trajectories) > live.iteration(covered) {
             store.request_fit(id, false).await?;
-            fits.wake();
+            fit_requested();
         }
         Ok(live)
     }

@@ -214,7 +214,7 @@ impl Service {
     /// if there is no such experiment.
     pub async fn live(&self, id: i64) -> Result<Arc<LiveExperiment>> {
         self.live
-            .get(&self.store, &self.fits, &self.model_calls, id)
+            .get(&self.store, || self.fits.wake(), &self.model_calls, id)
             .await
     }
 
