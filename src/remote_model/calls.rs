@@ -194,8 +194,9 @@ pub(crate) fn busy(model: &str, limits: &ModelCallLimits) -> DynamicsError {
     DynamicsError::Busy {
         model: model.to_string(),
         reason: format!(
-            "no call could start in time (with a tenth of its time left): {} calls to this model (or {} to all \
-             models) are already running (--max-model-calls-per-url, --max-model-calls)",
+            "no call could start in time (with a tenth of its time left): {} calls to this \
+             model (or {} to all models) are already running (--max-model-calls-per-url, \
+             --max-model-calls)",
             limits.max_calls_per_url, limits.max_calls
         ),
     }

@@ -3,10 +3,10 @@
 //!
 //! A completed batch *requests* a fit in the store (`fit_jobs`, see
 //! [`store::fits`](crate::store::fits)). Each replica runs one [`FitQueue::run_worker`] loop:
-//! when a request is waiting it takes a fit slot of its own [`WorkGate`](super::WorkGate), *claims* the request
-//! (on PostgreSQL claimers skip each other's rows, so two replicas take two different
-//! experiments), fits on that slot while heartbeating, and stores the version and ends the
-//! request in one transaction. A replica that dies mid-fit stops heartbeating; after
+//! when a request is waiting it takes a fit slot of its own [`WorkGate`](super::WorkGate),
+//! *claims* the request (on PostgreSQL claimers skip each other's rows, so two replicas take
+//! two different experiments), fits on that slot while heartbeating, and stores the version and
+//! ends the request in one transaction. A replica that dies mid-fit stops heartbeating; after
 //! [`FitQueue::lease`] another takes its request over. So fits spread over the replicas'
 //! cores, each replica bounded by its own fit budget.
 //!

@@ -192,8 +192,8 @@ impl LiveExperiment {
 
     /// Fits version `claim.version` on every stored transition under `claim` (this replica's
     /// right to fit the experiment, which the caller heartbeats meanwhile: see
-    /// [`FitQueue::fit`](super::FitQueue::fit); `lease` is its lease), on the fit slot `slot`; stores it
-    /// and ends the claim in one transaction, then swaps it in. Without
+    /// [`FitQueue::fit`](super::FitQueue::fit); `lease` is its lease), on the fit slot `slot`;
+    /// stores it and ends the claim in one transaction, then swaps it in. Without
     /// [`FitClaim::forced`], does nothing (but end the claim) when the latest stored version
     /// already covers the latest complete batch. Returns the version answering afterwards.
     ///
