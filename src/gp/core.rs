@@ -2,6 +2,7 @@
 //! main GP and the heteroscedastic noise GP.
 
 use faer::Par;
+use nalgebra::DMatrix;
 
 use super::GpError;
 use super::export::{self, GpPredictor};
@@ -176,6 +177,66 @@ impl Core {
             var = vec![f64::NAN; m];
         }
         (mean, var)
+    }
+
+    /// Latent variances at `q` as if the points `p` had been observed as well, with noise
+    /// variances `noise_p`, at the same hyperparameters. A GP's variance does not depend on
+    /// the labels, so this is exact for any labels (and the mean is unchanged for labels equal
+    /// to it — a "fantasised" observation): `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
+    /// `c = k(P, q) − V_Pᵀ V_q` (the posterior covariance) and
+    /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`. `O(n² (k + m))` for `k` pending and `m` query
+    /// points. Without `L⁻¹` (a noise GP) the variances are NaN, as in
+    /// [`predict`](Self::predict).
+    pub fn fantasised_variance(&self, p: &Inputs, noise_p: &[f64], q: &Inputs) -> Vec<f64> {
+        let (n, d, k, m) = (self.n, self.d, p.n, q.n);
+        let (_, var) = self.predict(q, true);
+        if k == 0 || m == 0 || self.linv.len() != n * n || noise_p.len() != k {
+            return var;
+        }
+        let ps = p.scaled(&self.length_scales);
+        let qs = q.scaled(&self.length_scales);
+        // `L⁻¹ k(X, ·)` of the points `pts` (`cnt` of them, column-major).
+        let whitened = |pts: &[f64], cnt: usize| {
+            let mut ks = vec![0.0; n * cnt];
+            kernel::build_cross(self.kernel, &self.xs, n, pts, cnt, d, self.s2, &mut ks);
+            let mut v = vec![0.0; n * cnt];
+            linalg::lower_matmul(&self.linv, n, &ks, cnt, &mut v, linalg::par_for(n));
+            DMatrix::from_vec(n, cnt, v)
+        };
+        let vp = whitened(&ps, k);
+        let vq = whitened(&qs, m);
+        let mut kpp = vec![0.0; k * k];
+        kernel::build_cross(self.kernel, &ps, k, &ps, k, d, self.s2, &mut kpp);
+        let mut kpq = vec![0.0; k * m];
+        kernel::build_cross(self.kernel, &ps, k, &qs, m, d, self.s2, &mut kpq);
+        let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(&vp);
+        let c = DMatrix::from_vec(k, m, kpq) - vp.tr_mul(&vq);
+        // The pending points' noise keeps `S` positive definite; repeated pending points
+        // without noise need the jitter ladder.
+        let mut eps = self.jitter.max(1e-12 * self.s2);
+        let chol = loop {
+            let mut si = s.clone();
+            for (i, nv) in noise_p.iter().enumerate() {
+                si[(i, i)] += nv + eps;
+            }
+            if let Some(ch) = si.cholesky() {
+                break Some(ch);
+            }
+            if eps > 1e-4 * self.s2 {
+                break None;
+            }
+            eps *= 100.0;
+        };
+        let Some(chol) = chol else {
+            return var;
+        };
+        let Some(w) = chol.l().solve_lower_triangular(&c) else {
+            return var;
+        };
+        var.iter()
+            .zip(w.column_iter())
+            .map(|(v, col)| (v - col.norm_squared()).max(0.0))
+            .collect()
     }
 
     /// `‖L⁻¹ k_j‖²` for a few points `ks` (`mc` columns of `n`): the planner's rounds ask about

@@ -497,4 +497,34 @@ impl GpModel {
         check_query(x, self.x.d)?;
         Ok(self.predict(x))
     }
+
+    /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
+    /// this model's hyperparameters and with its noise there (a batch executed but not yet
+    /// fitted): the same mean, and the latent variance observing them would leave (see
+    /// `Core::fantasised_variance`; exact, since a GP's variance does not depend on the
+    /// labels). `O(n² (k + m))` for `k` pending rows and `m` query rows. A `pending` with the
+    /// wrong column count or a non-finite coordinate is ignored (the plain prediction).
+    pub fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+        if pending.nrows() == 0 || check_query(pending, self.x.d).is_err() {
+            return self.predict(x);
+        }
+        let p = Inputs::from_matrix(pending);
+        let noise_p = match &self.noise_model {
+            Some(nm) => nm.predict_noise(&p),
+            None => vec![self.hyper.noise_variance; p.n],
+        };
+        predict_rows(x, self.x.d, |q| {
+            let (mean, _) = self.main.predict(q, false);
+            let latent_variance = self.main.fantasised_variance(&p, &noise_p, q);
+            let noise_variance = match &self.noise_model {
+                Some(nm) => nm.predict_noise(q),
+                None => vec![self.hyper.noise_variance; q.n],
+            };
+            Prediction {
+                mean,
+                latent_variance,
+                noise_variance,
+            }
+        })
+    }
 }

@@ -795,3 +795,56 @@ fn targets_whose_mean_square_overflows_are_an_error_not_a_panic() {
         );
     }
 }
+
+#[test]
+fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
+    let (x, y) = data(40, 2, 21);
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let (pending, _) = data(6, 2, 22);
+    let (q, _) = data(15, 2, 23);
+    let fantasy = model.predict_fantasised(&q, &pending);
+    let plain = model.predict(&q);
+    // The same hyperparameters conditioned on the training points and the pending ones (any
+    // labels: a GP's variance does not depend on them).
+    let xa = DMatrix::from_fn(46, 2, |i, k| {
+        if i < 40 {
+            x[(i, k)]
+        } else {
+            pending[(i - 40, k)]
+        }
+    });
+    let ya = DVector::from_fn(46, |i, _| if i < 40 { y[i] } else { 0.0 });
+    let mut state = model.state();
+    state.n_train = 46;
+    let conditioned = GpModel::from_state(&xa, &ya, &state).unwrap();
+    let reference = conditioned.predict(&q);
+    for i in 0..15 {
+        assert_relative_eq!(fantasy.mean[i], plain.mean[i], epsilon = 1e-12);
+        assert_relative_eq!(
+            fantasy.latent_variance[i],
+            reference.latent_variance[i],
+            epsilon = 1e-9,
+            max_relative = 1e-6
+        );
+        assert!(fantasy.latent_variance[i] <= plain.latent_variance[i] + 1e-12);
+        assert_eq!(fantasy.noise_variance[i], plain.noise_variance[i]);
+    }
+    // One pending point, predicted at itself: `v σ²/(v + σ²)` (one more noisy observation).
+    let p0 = pending.rows(0, 1).into_owned();
+    let at = model.predict_fantasised(&p0, &p0);
+    let before = model.predict(&p0);
+    let (v, s2) = (
+        before.latent_variance[0],
+        before.noise_variance[0] + model.jitter(),
+    );
+    assert_relative_eq!(
+        at.latent_variance[0],
+        v * s2 / (v + s2),
+        max_relative = 1e-6
+    );
+    // Nothing pending, or pending points of the wrong width: the plain prediction.
+    let none = model.predict_fantasised(&q, &DMatrix::zeros(0, 2));
+    assert_eq!(none.latent_variance, plain.latent_variance);
+    let wrong = model.predict_fantasised(&q, &DMatrix::zeros(3, 5));
+    assert_eq!(wrong.latent_variance, plain.latent_variance);
+}

@@ -109,6 +109,11 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     fn noise_summary(&self) -> Option<NoiseSummary>;
     /// Batched predictions.
     fn predict(&self, x: &DMatrix<f64>) -> Prediction;
+    /// Batched predictions as if the rows of `pending` had been observed too, at the same
+    /// hyperparameters and noise (executions not yet fitted): the same mean, and the latent
+    /// variance observing them would leave. Choosing the next execution of a batch with it
+    /// keeps the batch from chasing one uncertainty.
+    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction;
     /// The fitted regressor as plain numbers, for evaluation outside the server
     /// ([`ExportedModel`](super::ExportedModel)).
     fn predictor(&self) -> Predictor;
@@ -264,6 +269,9 @@ impl Regressor for GpModel {
     fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         GpModel::predict(self, x)
     }
+    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+        GpModel::predict_fantasised(self, x, pending)
+    }
     fn predictor(&self) -> Predictor {
         GpModel::predictor(self)
     }
@@ -309,6 +317,9 @@ impl Regressor for SparseGp {
     }
     fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         SparseGp::predict(self, x)
+    }
+    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+        SparseGp::predict_fantasised(self, x, pending)
     }
     fn predictor(&self) -> Predictor {
         SparseGp::predictor(self)

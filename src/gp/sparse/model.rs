@@ -942,6 +942,39 @@ impl SparseGp {
         Ok(self.predict(x))
     }
 
+    /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
+    /// this model's hyperparameters, inducing points and noise (a batch executed but not yet
+    /// fitted): the same mean, and the latent variance after an [`update`](Self::update) of a
+    /// copy with labels equal to the mean (the variance does not depend on the labels).
+    /// `O((k + m) m_z²)` for `k` pending and `m` query rows with `m_z` inducing points. A
+    /// `pending` with the wrong column count or a non-finite coordinate, or an update that
+    /// fails, gives the plain prediction.
+    pub fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+        if pending.nrows() == 0 || check_query(pending, self.main.d).is_err() {
+            return self.predict(x);
+        }
+        let p = Inputs::from_matrix(pending);
+        let (mean_p, _) = self.main.predict(&p);
+        let lambda = self.noise_at(&p);
+        let l = match self.mode {
+            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
+            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
+        };
+        let mut fantasy = self.main.clone();
+        if fantasy.update(&p, &mean_p, l).is_err() {
+            return self.predict(x);
+        }
+        predict_rows(x, self.main.d, |q| {
+            let (mean, _) = self.main.predict(q);
+            let (_, latent_variance) = fantasy.predict(q);
+            Prediction {
+                mean,
+                latent_variance,
+                noise_variance: self.noise_at(q),
+            }
+        })
+    }
+
     /// The fitted GP as plain numbers ([`Predictor`]): inducing inputs, `w`, the inverses of
     /// the two triangles its variance solves with, and the noise. `O(m²)` numbers.
     pub fn predictor(&self) -> Predictor {

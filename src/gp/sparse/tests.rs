@@ -715,3 +715,41 @@ fn the_sparse_form_of_an_exact_gp_counts_each_repeated_input_once() {
         Err(GpError::DimensionMismatch { .. })
     ));
 }
+
+#[test]
+fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
+    let (x, y) = data(300, 3, 31);
+    for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
+        let p = SparseParams {
+            gp: gp_params(noise, 0, 3),
+            inducing_points: 40,
+            inducing_rounds: 1,
+            full_rank_up_to: 0,
+            ..SparseParams::default()
+        }
+        .check()
+        .unwrap();
+        let model = SparseGp::fit(&x, &y, &p).unwrap();
+        let (pending, _) = data(20, 3, 32);
+        let (q, _) = data(25, 3, 33);
+        let fantasy = model.predict_fantasised(&q, &pending);
+        let plain = model.predict(&q);
+        let mu_pending = model.predict(&pending).mean;
+        let xa = DMatrix::from_fn(320, 3, |i, k| {
+            if i < 300 {
+                x[(i, k)]
+            } else {
+                pending[(i - 300, k)]
+            }
+        });
+        let ya = DVector::from_fn(320, |i, _| if i < 300 { y[i] } else { mu_pending[i - 300] });
+        let reference = model.condition(&xa, &ya).unwrap().predict(&q);
+        assert_predictions_close(&fantasy, &reference, 1e-8);
+        for i in 0..25 {
+            assert!(fantasy.latent_variance[i] <= plain.latent_variance[i] + 1e-12);
+            assert_eq!(fantasy.mean[i], plain.mean[i]);
+        }
+        // The model itself is unchanged.
+        assert_eq!(model.n_train(), 300);
+    }
+}
