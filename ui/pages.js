@@ -160,9 +160,10 @@ function settingsCard(e) {
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],
     [
       'acquisition',
-      l.acquisition === 'level_set'
+      (l.acquisition === 'level_set'
         ? `level set, γ = ${fmt(l.gamma)}`
-        : `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`,
+        : `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`) +
+        (l.batch_diversity ? '; a batch spreads over what is uncertain (σ in flight fantasised)' : ''),
     ],
     [
       'β schedule',

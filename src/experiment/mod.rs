@@ -216,6 +216,10 @@ pub struct ExperimentArgs {
     /// Default: the preset's.
     #[arg(long, value_parser = parse_acquisition)]
     pub acquisition: Option<AcquisitionKind>,
+    /// Whether `active` scores candidates with the σ of state-actions in flight fantasised as
+    /// labelled (`true` or `false`). Default: the preset's.
+    #[arg(long)]
+    pub batch_diversity: Option<bool>,
 }
 
 impl ExperimentArgs {
@@ -272,6 +276,8 @@ pub struct Config {
     pub aggregation: Option<Aggregation>,
     /// The acquisition function (`None`: the preset's).
     pub acquisition: Option<AcquisitionKind>,
+    /// Whether `active` fantasises the state-actions in flight (`None`: the preset's).
+    pub batch_diversity: Option<bool>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -339,6 +345,7 @@ impl Config {
             c: args.c,
             aggregation: args.aggregation,
             acquisition: args.acquisition,
+            batch_diversity: args.batch_diversity,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

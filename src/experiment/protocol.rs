@@ -423,6 +423,7 @@ fn experiment_body(
                 .aggregation
                 .unwrap_or(LearningRequest::default().aggregation),
             acquisition: cfg.acquisition,
+            batch_diversity: cfg.batch_diversity,
             ..LearningRequest::default()
         },
     }

@@ -210,6 +210,23 @@ impl DeviationModel for ServedModel {
             .map(|a| (a.mu, a.sigma))
             .collect()
     }
+
+    /// A fitted regressor's [`Regressor::predict_fantasised`]; the prior does not fantasise
+    /// (its σ is the same everywhere, and stays so).
+    fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        let Estimator::Fitted(gp) = &self.estimator else {
+            return self.predict(features, dim);
+        };
+        if dim == 0 || pending.len() < dim {
+            return self.predict(features, dim);
+        }
+        let n = features.len() / dim;
+        let k = pending.len() / dim;
+        let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
+        let p = DMatrix::from_row_slice(k, dim, &pending[..k * dim]);
+        let answer = gp.predict_fantasised(&x, &p);
+        answer.mean.iter().copied().zip(answer.std()).collect()
+    }
 }
 
 /// Row-major features and labels as the GP wants them.

@@ -114,6 +114,17 @@ pub trait DeviationModel: Sync {
     /// The planner asks for many points at once where it can, and never asks twice for the same
     /// feature vector within one proposal (see [`ModelCache`]).
     fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)>;
+
+    /// (μ, σ) as if the state-actions `pending` (row-major, `dim` each: executions chosen or
+    /// posted since the model was fitted) had been labelled as well, at the same
+    /// hyperparameters: μ unchanged, σ what they would leave uncertain. The acquisition of
+    /// `active` scores candidates with it, so a batch's trajectories do not all chase one
+    /// uncertainty; which steps are trusted is still judged by [`predict`](Self::predict).
+    /// The default ignores `pending` (a model that cannot fantasise).
+    fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        let _ = pending;
+        self.predict(features, dim)
+    }
 }
 
 /// Why the planner could not answer.

@@ -43,6 +43,7 @@ pub struct Planner<'a> {
     model: &'a dyn DeviationModel,
     settings: &'a PlanningSettings,
     budget: Budget,
+    in_flight: &'a [f64],
 }
 
 impl<'a> Planner<'a> {
@@ -57,12 +58,23 @@ impl<'a> Planner<'a> {
             model,
             settings,
             budget: Budget::unlimited(),
+            in_flight: &[],
         }
     }
 
     /// The same planner stopping with [`PlanningError::Stopped`] once `budget` says so.
     pub fn within(mut self, budget: Budget) -> Self {
         self.budget = budget;
+        self
+    }
+
+    /// The same planner knowing the features (row-major, the domain's feature dimension each)
+    /// of the state-actions executed or chosen since its deviation model was fitted: `active`
+    /// scores its candidates as if those were labelled already
+    /// ([`DeviationModel::predict_fantasised`]), so one batch's trajectories do not chase the
+    /// same uncertainty. Trust is judged by the model as it is.
+    pub fn with_in_flight(mut self, features: &'a [f64]) -> Self {
+        self.in_flight = features;
         self
     }
 
@@ -123,6 +135,7 @@ impl<'a> Planner<'a> {
             &self.budget,
             strategy,
             seed,
+            self.in_flight,
         )
     }
 

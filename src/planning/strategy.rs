@@ -13,7 +13,12 @@
 //! `extensions` reports the sum over all runs.
 //!
 //! **Strategies.**
-//! - `active`: the candidate with the smallest acquisition value `α` (the first on ties).
+//! - `active`: the candidate with the smallest acquisition value `α` (the first on ties). With
+//!   state-actions in flight (executed or chosen since the model was fitted:
+//!   [`Planner::with_in_flight`](super::Planner::with_in_flight)), `α` is scored with each
+//!   step's σ as if those were labelled already, so the trajectories of one batch spread over
+//!   what is uncertain instead of all chasing the same doubt (batch diversity by fantasised
+//!   observations: the GP's variance does not depend on the labels).
 //! - `goal_conditioned`: a uniformly random candidate (its `α` is still reported).
 //! - `random`: a rollout of `Domain::rollout_length()` steps (for a domain that asks for it,
 //!   `Domain::rollout_like_plans`, as many as one RRT run's plan for the problem has) from the
@@ -110,13 +115,16 @@ pub struct Proposal {
 }
 
 /// The proposal of `strategy` for the task's problem inside its precondition, asking `model`
-/// within `budget` (see the module docs). The same inputs and `seed` give the same proposal.
+/// within `budget` (see the module docs). `in_flight`: features of state-actions executed or
+/// chosen since the model was fitted, which `active` scores as if labelled (see
+/// [`fantasised_scores`]). The same inputs and `seed` give the same proposal.
 pub(crate) fn propose(
     task: Task<'_>,
     model: &dyn DeviationModel,
     budget: &Budget,
     strategy: Strategy,
     seed: u64,
+    in_flight: &[f64],
 ) -> Result<Proposal, PlanningError> {
     let Task {
         domain,
@@ -172,11 +180,15 @@ pub(crate) fn propose(
         ));
     }
     let found = candidates(task, &mut cache, seed, budget)?;
-    let scored: Vec<(Vec<f64>, f64)> = found
-        .trajectories
-        .iter()
-        .map(|t| acquisition.score(t, precondition.d_max()))
-        .collect();
+    let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
+        fantasised_scores(task, model, in_flight, &found.trajectories)?
+    } else {
+        found
+            .trajectories
+            .iter()
+            .map(|t| acquisition.score(t, precondition.d_max()))
+            .collect()
+    };
     let alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
     let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
@@ -206,6 +218,44 @@ pub(crate) fn propose(
         model_calls: cache.calls(),
         dynamics_calls: found.dynamics_calls,
     })
+}
+
+/// The acquisition of each candidate (`α_step` per step and `α`) with each step's σ as if the
+/// state-actions `in_flight` were labelled already ([`DeviationModel::predict_fantasised`];
+/// μ as planned): a step near what the batch has already executed or chosen promises less. One
+/// call to the model for every step of every candidate.
+fn fantasised_scores(
+    task: Task<'_>,
+    model: &dyn DeviationModel,
+    in_flight: &[f64],
+    trajectories: &[Trajectory],
+) -> Result<Vec<(Vec<f64>, f64)>, PlanningError> {
+    let (domain, d_max) = (task.domain, task.precondition.d_max());
+    let dim = domain.feature_dim();
+    let features: Vec<f64> = trajectories
+        .iter()
+        .flat_map(|t| t.states.iter().zip(&t.actions))
+        .flat_map(|(s, a)| domain.features(s, a))
+        .collect();
+    let expected = trajectories.iter().map(Trajectory::len).sum::<usize>();
+    let answers = model.predict_fantasised(&features, in_flight, dim);
+    if answers.len() != expected {
+        return Err(PlanningError::ModelOutput {
+            expected,
+            got: answers.len(),
+        });
+    }
+    let mut answers = answers.into_iter();
+    Ok(trajectories
+        .iter()
+        .map(|t| {
+            let fantasy = Trajectory {
+                sigma: answers.by_ref().take(t.len()).map(|(_, s)| s).collect(),
+                ..t.clone()
+            };
+            task.settings.acquisition().score(&fantasy, d_max)
+        })
+        .collect())
 }
 
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.

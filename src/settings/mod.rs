@@ -306,6 +306,13 @@ impl Preset {
     pub fn relax_beta(self) -> bool {
         self == Self::Default
     }
+
+    /// Whether this preset's `active` proposals score candidates with the σ of state-actions
+    /// in flight fantasised as labelled (see [`LearningSettings::batch_diversity`]); the
+    /// paper chose each trajectory of a batch from the model alone.
+    pub fn batch_diversity(self) -> bool {
+        self == Self::Default
+    }
 }
 
 /// Which Matérn kernel fits use (see [`MdeSettings::kernel`]). In JSON `"auto"` or a kernel's
@@ -493,6 +500,10 @@ pub struct LearningRequest {
     /// false).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub relax_beta: Option<bool>,
+    /// [`LearningSettings::batch_diversity`]. Absent: the preset's (`default`: true,
+    /// `paper`: false).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub batch_diversity: Option<bool>,
 }
 
 impl Default for LearningRequest {
@@ -513,6 +524,7 @@ impl Default for LearningRequest {
             test_beta: 2.0,
             proposal_ttl_seconds: 600,
             relax_beta: None,
+            batch_diversity: None,
         }
     }
 }
@@ -562,6 +574,12 @@ pub struct LearningSettings {
     /// learning goes on where what is trusted ends (a passage the model doubts, after `β_j`
     /// turned positive). Test-time plans are never relaxed.
     pub relax_beta: bool,
+    /// `active` proposals score their candidates as if the state-actions in flight — executed
+    /// since the model was fitted, or planned by other clients' open proposals — were labelled
+    /// already (their σ fantasised; trust is still judged by the model as fitted), so the
+    /// trajectories of one batch do not chase one uncertainty. At most
+    /// [`MAX_IN_FLIGHT`](crate::service::proposals::MAX_IN_FLIGHT) state-actions count.
+    pub batch_diversity: bool,
 }
 
 /// An experiment's settings as a client posts them; every field optional.
@@ -711,6 +729,9 @@ impl ExperimentRequest {
             test_beta: l.test_beta,
             proposal_ttl_seconds: l.proposal_ttl_seconds,
             relax_beta: l.relax_beta.unwrap_or_else(|| l.preset.relax_beta()),
+            batch_diversity: l
+                .batch_diversity
+                .unwrap_or_else(|| l.preset.batch_diversity()),
         };
         learning.planning()?;
         Ok((

@@ -34,7 +34,9 @@ pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use experiments::{Experiment, ListOrder};
 pub use fits::{FitClaim, FitJob};
 pub use models::{FitRefusal, StoredModel};
-pub use proposals::{NewProposal, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal};
+pub use proposals::{
+    NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
+};
 pub use refusals::NewRefusal;
 pub use trajectories::{
     IdempotencyKey, IngestOutcome, IngestRecord, Provenance, StoredTrajectory, StoredTransition,

@@ -116,6 +116,16 @@ pub struct ProposalPlan {
     pub actions: Vec<Vec<f64>>,
 }
 
+/// The planned states and actions of an open proposal: state-actions a robot is about to
+/// execute.
+#[derive(Debug, Clone, PartialEq)]
+pub struct OpenPlan {
+    /// Planned states, the start first (one more than actions).
+    pub states: Vec<Vec<f64>>,
+    /// Planned actions, in order.
+    pub actions: Vec<Vec<f64>>,
+}
+
 /// What linking a trajectory to a proposal found.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum LinkOutcome {
@@ -252,6 +262,50 @@ impl Store {
             start: decode_vec(row.try_get("start")?)?,
             actions: body.trajectory.actions,
         }))
+    }
+
+    /// The plans of the open, unexpired proposals of an experiment not leased to `client_id`,
+    /// newest first, at most `limit`.
+    #[tracing::instrument(skip(self))]
+    pub async fn open_plans(
+        &self,
+        experiment_id: i64,
+        client_id: Option<&str>,
+        limit: i64,
+    ) -> Result<Vec<OpenPlan>, sqlx::Error> {
+        /// The part of a stored body that holds the plan.
+        #[derive(serde::Deserialize)]
+        struct Body {
+            trajectory: Planned,
+        }
+        #[derive(serde::Deserialize)]
+        struct Planned {
+            states: Vec<Vec<f64>>,
+            actions: Vec<Vec<f64>>,
+        }
+        sqlx::query(
+            "SELECT body FROM proposals
+             WHERE experiment_id = $1 AND status = 'open' AND expires_unix > $2
+               AND COALESCE(client_id, '') <> $3
+             ORDER BY id DESC LIMIT $4",
+        )
+        .bind(experiment_id)
+        .bind(unix_now())
+        .bind(client_id.unwrap_or(""))
+        .bind(limit)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(|row| {
+            let body: String = row.try_get("body")?;
+            let body: Body =
+                serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+            Ok(OpenPlan {
+                states: body.trajectory.states,
+                actions: body.trajectory.actions,
+            })
+        })
+        .collect()
     }
 
     /// The open, unexpired proposal leased to `client_id`, if any.

@@ -25,6 +25,7 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["mde"]["kernel"], "auto");
     assert_eq!(e["mde"]["estimator"], "auto");
     assert_eq!(e["learning"]["relax_beta"], true);
+    assert_eq!(e["learning"]["batch_diversity"], true);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
     let (status, listed) = app.get("/v1/experiments").await;
@@ -80,6 +81,19 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");
         assert_eq!(e["learning"]["relax_beta"], relaxes, "{body}");
+    }
+    for (body, diversifies) in [
+        (json!({"learning": {"preset": "paper"}}), false),
+        (
+            json!({"learning": {"preset": "paper", "batch_diversity": true}}),
+            true,
+        ),
+        (json!({"learning": {"batch_diversity": false}}), false),
+        (json!({"learning": {}}), true),
+    ] {
+        let (status, e) = app.post("/v1/experiments", &body).await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(e["learning"]["batch_diversity"], diversifies, "{body}");
     }
 }
 

@@ -529,3 +529,60 @@ async fn a_training_problem_beyond_the_precondition_is_relaxed_by_default_and_no
         assert_eq!(e["learning"]["relax_beta"], relaxes, "{e}");
     }
 }
+
+/// The state-actions of a proposal's planned trajectory.
+fn planned_steps(p: &Value) -> Vec<(Value, Value)> {
+    let t = &p["trajectory"];
+    let states = t["states"].as_array().unwrap();
+    t["actions"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .enumerate()
+        .map(|(k, a)| (states[k].clone(), a.clone()))
+        .collect()
+}
+
+#[tokio::test]
+async fn a_batch_does_not_chase_one_uncertainty_twice() {
+    // A fitted model, then one problem asked by three robots in one batch (no refit between).
+    let (_dir, app, id) = fresh_experiment(json!({
+        "seed": 5,
+        "mde": {"restarts": 0},
+        "learning": {"batch_size": 1000}
+    }))
+    .await;
+    for t in gridworld_moves(0..3, 48) {
+        app.store_trajectory(id, &t).await;
+    }
+    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
+    assert_eq!(status, 200, "{model}");
+    let path = format!("/v1/experiments/{id}/proposals");
+    let ask = |client: &str| json!({"start": [1, 2], "goal": [9, 10], "client_id": client});
+    let (status, a) = app.post(&path, &ask("robot-a")).await;
+    assert_eq!(status, 201, "{a}");
+    assert!(
+        a["candidates"].as_array().unwrap().len() > 1,
+        "a choice to make: {a}"
+    );
+    // With nothing in flight the same problem gets the same choice (the seed is the same) ...
+    let (status, _) = app
+        .post(&format!("{path}/{}/abandon", a["id"]), &json!({}))
+        .await;
+    assert_eq!(status, 200);
+    let (status, b) = app.post(&path, &ask("robot-b")).await;
+    assert_eq!(status, 201, "{b}");
+    assert_eq!(planned_steps(&b), planned_steps(&a));
+    // ... and while robot B's trajectory is in flight, robot C is sent elsewhere: the steps B
+    // will teach no longer count as uncertain.
+    let (status, c) = app.post(&path, &ask("robot-c")).await;
+    assert_eq!(status, 201, "{c}");
+    let b_steps = planned_steps(&b);
+    let c_steps = planned_steps(&c);
+    let shared = c_steps.iter().filter(|s| b_steps.contains(s)).count();
+    assert!(
+        shared < c_steps.len() / 2,
+        "C repeats {shared} of its {} steps from B's trajectory",
+        c_steps.len()
+    );
+}

@@ -56,7 +56,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     let (_dir, db) = temp_db();
     let mut conn = migrated_up_to(&db, 5).await;
 
-    // An experiment of that time: no kernel, no label cap, no relax_beta in its settings.
+    // An experiment of that time: no kernel, no label cap, no relax_beta, acquisition or batch_diversity in its settings.
     let (settings, _) = ExperimentRequest::default()
         .resolve(&Default::default())
         .unwrap();
@@ -66,6 +66,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
         "mde.label_cap",
         "learning.relax_beta",
         "learning.acquisition",
+        "learning.batch_diversity",
     ] {
         strip(&mut stored, path);
     }
@@ -168,6 +169,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(experiment["mde"]["label_cap"], 0.0);
     assert_eq!(experiment["learning"]["relax_beta"], false);
     assert_eq!(experiment["learning"]["acquisition"], "lcb");
+    assert_eq!(experiment["learning"]["batch_diversity"], false);
     assert_eq!(experiment["model_version"], 1);
 
     let (status, model) = app.get("/v1/experiments/1/model").await;
