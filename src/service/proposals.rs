@@ -19,16 +19,33 @@ use crate::api::{
     TrajectoryRequest,
 };
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
-use crate::mde::ServedModel;
+use crate::mde::{EstimatorKind, ServedModel};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{NewProposal, NewRefusal, ProposalStatus, ProposalTerms, StoredProposal};
 use std::time::Instant;
 
 /// At most this many state-actions in flight (executed since the last fit, or planned by
-/// open proposals) shape an `active` proposal's choice. Fantasising them costs `O(n² k)` for
-/// `k` of them and a model of `n` transitions: at n = 3000 and k = 256 about 2·10⁹ operations.
+/// open proposals) shape an `active` proposal's choice.
 pub const MAX_IN_FLIGHT: usize = 256;
+
+/// Fantasising `k` state-actions with an exact GP of `n` transitions costs about `n² k`
+/// multiply-adds (`L⁻¹` times their covariances); `k` is capped so that this stays within
+/// this many (about a second on one core): all 256 up to n = 3125, 25 at n = 10,000. The
+/// sparse GP's cost, `k m²`, is small at any `k`.
+pub const IN_FLIGHT_WORK: usize = 2_500_000_000;
+
+/// How many state-actions in flight a proposal fantasises with `model`.
+fn in_flight_limit(model: &ServedModel) -> usize {
+    match model.kind() {
+        None => 0,
+        Some(EstimatorKind::Sparse) => MAX_IN_FLIGHT,
+        Some(EstimatorKind::Exact) => {
+            let n = model.n_train().max(1);
+            (IN_FLIGHT_WORK / n.saturating_mul(n)).min(MAX_IN_FLIGHT)
+        }
+    }
+}
 
 /// A stored proposal with what it chose.
 #[derive(Debug, Clone)]
@@ -321,31 +338,33 @@ impl Service {
     /// Features (row-major) of the state-actions the current batch has in flight beyond what
     /// `model` was fitted on: the transitions stored after its training data (executed, not
     /// yet fitted; none for a sparse GP that took them in online) and the planned steps of
-    /// other clients' open proposals, at most [`MAX_IN_FLIGHT`] (executed ones first). Empty
-    /// for the prior, which does not fantasise.
+    /// other clients' open proposals, at most [`MAX_IN_FLIGHT`] (executed ones first) and
+    /// fewer for a large exact GP ([`IN_FLIGHT_WORK`]). Empty for the prior, which does not
+    /// fantasise.
     async fn in_flight(
         &self,
         live: &LiveExperiment,
         model: &ServedModel,
         client_id: Option<&str>,
     ) -> Result<Vec<f64>> {
-        if model.kind().is_none() {
+        let limit = in_flight_limit(model);
+        if limit == 0 {
             return Ok(Vec::new());
         }
         let dim = live.domain.feature_dim();
         let mut features = Vec::new();
         let executed = self
             .store
-            .transitions_after_first(live.id, model.n_train() as i64, MAX_IN_FLIGHT as i64)
+            .transitions_after_first(live.id, model.n_train() as i64, limit as i64)
             .await?;
         for t in &executed {
             features.extend(live.domain.features(&t.s, &t.a));
         }
-        let room = MAX_IN_FLIGHT - executed.len();
+        let room = limit - executed.len().min(limit);
         if room > 0 {
             let plans = self
                 .store
-                .open_plans(live.id, client_id, MAX_IN_FLIGHT as i64)
+                .open_plans(live.id, client_id, room as i64)
                 .await?;
             let steps = plans
                 .iter()
