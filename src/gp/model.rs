@@ -480,10 +480,7 @@ impl GpModel {
     pub fn predict(&self, x: &DMatrix<f64>) -> Prediction {
         predict_rows(x, self.x.d, |q| {
             let (mean, latent_variance) = self.main.predict(q, true);
-            let noise_variance = match &self.noise_model {
-                Some(nm) => nm.predict_noise(q),
-                None => vec![self.hyper.noise_variance; q.n],
-            };
+            let noise_variance = self.noise_at(q);
             Prediction {
                 mean,
                 latent_variance,
@@ -498,6 +495,14 @@ impl GpModel {
         Ok(self.predict(x))
     }
 
+    /// The observation-noise variance at each point of `q`.
+    fn noise_at(&self, q: &Inputs) -> Vec<f64> {
+        match &self.noise_model {
+            Some(nm) => nm.predict_noise(q),
+            None => vec![self.hyper.noise_variance; q.n],
+        }
+    }
+
     /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
     /// this model's hyperparameters and with its noise there (a batch executed but not yet
     /// fitted): the same mean, and the latent variance observing them would leave (see
@@ -509,17 +514,11 @@ impl GpModel {
             return self.predict(x);
         }
         let p = Inputs::from_matrix(pending);
-        let noise_p = match &self.noise_model {
-            Some(nm) => nm.predict_noise(&p),
-            None => vec![self.hyper.noise_variance; p.n],
-        };
+        let noise_p = self.noise_at(&p);
         predict_rows(x, self.x.d, |q| {
             let (mean, _) = self.main.predict(q, false);
             let latent_variance = self.main.fantasised_variance(&p, &noise_p, q);
-            let noise_variance = match &self.noise_model {
-                Some(nm) => nm.predict_noise(q),
-                None => vec![self.hyper.noise_variance; q.n],
-            };
+            let noise_variance = self.noise_at(q);
             Prediction {
                 mean,
                 latent_variance,

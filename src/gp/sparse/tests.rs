@@ -191,19 +191,24 @@ fn assert_predictions_close(a: &crate::gp::Prediction, b: &crate::gp::Prediction
     }
 }
 
+/// 40 inducing points chosen in one round, never full rank, no restarts.
+fn low_rank_40(noise: NoiseMode) -> ValidSparseParams {
+    SparseParams {
+        gp: gp_params(noise, 0, 3),
+        inducing_points: 40,
+        inducing_rounds: 1,
+        full_rank_up_to: 0,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap()
+}
+
 #[test]
 fn online_updates_equal_conditioning_on_all_the_data() {
     let (x, y) = data(400, 3, 8);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
-        let p = SparseParams {
-            gp: gp_params(noise, 0, 3),
-            inducing_points: 40,
-            inducing_rounds: 1,
-            full_rank_up_to: 0,
-            ..SparseParams::default()
-        }
-        .check()
-        .unwrap();
+        let p = low_rank_40(noise);
         let first = x.rows(0, 200).into_owned();
         let y_first = y.rows(0, 200).into_owned();
         let mut online = SparseGp::fit(&first, &y_first, &p).unwrap();
@@ -720,15 +725,7 @@ fn the_sparse_form_of_an_exact_gp_counts_each_repeated_input_once() {
 fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
     let (x, y) = data(300, 3, 31);
     for noise in [NoiseMode::Homoscedastic, NoiseMode::Heteroscedastic] {
-        let p = SparseParams {
-            gp: gp_params(noise, 0, 3),
-            inducing_points: 40,
-            inducing_rounds: 1,
-            full_rank_up_to: 0,
-            ..SparseParams::default()
-        }
-        .check()
-        .unwrap();
+        let p = low_rank_40(noise);
         let model = SparseGp::fit(&x, &y, &p).unwrap();
         let (pending, _) = data(20, 3, 32);
         let (q, _) = data(25, 3, 33);
