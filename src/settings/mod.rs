@@ -271,7 +271,8 @@ pub enum Preset {
     /// proposals that relax β rather than give up).
     #[default]
     Default,
-    /// The paper's exact configuration (raw labels, Matérn 5/2), kept as the baseline.
+    /// The paper's exact configuration (raw labels, Matérn 5/2, no β relaxation, no batch
+    /// diversity), kept as the baseline.
     Paper,
 }
 
