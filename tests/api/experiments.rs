@@ -25,7 +25,7 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(e["mde"]["kernel"], "auto");
     assert_eq!(e["mde"]["estimator"], "auto");
     assert_eq!(e["learning"]["relax_beta"], true);
-    assert_eq!(e["learning"]["batch_diversity"], true);
+    assert_eq!(e["learning"]["batch_diversity"], false);
     assert_eq!(e["state_space"]["names"], json!(["x", "y"]));
     assert_eq!(e["action_space"]["values"].as_array().unwrap().len(), 4);
     let (status, listed) = app.get("/v1/experiments").await;
@@ -88,8 +88,8 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
             json!({"learning": {"preset": "paper", "batch_diversity": true}}),
             true,
         ),
-        (json!({"learning": {"batch_diversity": false}}), false),
-        (json!({"learning": {}}), true),
+        (json!({"learning": {"batch_diversity": true}}), true),
+        (json!({"learning": {}}), false),
     ] {
         let (status, e) = app.post("/v1/experiments", &body).await;
         assert_eq!(status, 201, "{e}");

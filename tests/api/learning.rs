@@ -545,11 +545,33 @@ fn planned_steps(p: &Value) -> Vec<(Value, Value)> {
 
 #[tokio::test]
 async fn a_batch_does_not_chase_one_uncertainty_twice() {
-    // A fitted model, then one problem asked by three robots in one batch (no refit between).
+    for diversity in [true, false] {
+        let (b_steps, c_steps) = two_robots_in_one_batch(diversity).await;
+        let shared = c_steps.iter().filter(|s| b_steps.contains(s)).count();
+        if diversity {
+            // While robot B's trajectory is in flight, robot C is sent elsewhere: the steps B
+            // will teach no longer count as uncertain.
+            assert!(
+                shared < c_steps.len() / 2,
+                "C repeats {shared} of its {} steps from B's trajectory",
+                c_steps.len()
+            );
+        } else {
+            // Without batch diversity both get the same trajectory.
+            assert_eq!(c_steps, b_steps);
+        }
+    }
+}
+
+/// A gridworld experiment with a fitted model (`learning.batch_diversity` as given) where
+/// robot A asks for a problem and abandons it, then robots B and C ask for the same one in the
+/// same batch: checks that B gets A's trajectory (nothing was in flight for either, and the seed
+/// is the same), and returns B's and C's planned state-actions.
+async fn two_robots_in_one_batch(diversity: bool) -> (Vec<(Value, Value)>, Vec<(Value, Value)>) {
     let (_dir, app, id) = fresh_experiment(json!({
         "seed": 5,
         "mde": {"restarts": 0},
-        "learning": {"batch_size": 1000}
+        "learning": {"batch_size": 1000, "batch_diversity": diversity}
     }))
     .await;
     for t in gridworld_moves(0..3, 48) {
@@ -565,7 +587,6 @@ async fn a_batch_does_not_chase_one_uncertainty_twice() {
         a["candidates"].as_array().unwrap().len() > 1,
         "a choice to make: {a}"
     );
-    // With nothing in flight the same problem gets the same choice (the seed is the same) ...
     let (status, _) = app
         .post(&format!("{path}/{}/abandon", a["id"]), &json!({}))
         .await;
@@ -573,16 +594,7 @@ async fn a_batch_does_not_chase_one_uncertainty_twice() {
     let (status, b) = app.post(&path, &ask("robot-b")).await;
     assert_eq!(status, 201, "{b}");
     assert_eq!(planned_steps(&b), planned_steps(&a));
-    // ... and while robot B's trajectory is in flight, robot C is sent elsewhere: the steps B
-    // will teach no longer count as uncertain.
     let (status, c) = app.post(&path, &ask("robot-c")).await;
     assert_eq!(status, 201, "{c}");
-    let b_steps = planned_steps(&b);
-    let c_steps = planned_steps(&c);
-    let shared = c_steps.iter().filter(|s| b_steps.contains(s)).count();
-    assert!(
-        shared < c_steps.len() / 2,
-        "C repeats {shared} of its {} steps from B's trajectory",
-        c_steps.len()
-    );
+    (planned_steps(&b), planned_steps(&c))
 }
