@@ -31,8 +31,9 @@ pub const MAX_IN_FLIGHT: usize = 256;
 
 /// Fantasising `k` state-actions with an exact GP of `n` transitions costs about `n² k`
 /// multiply-adds (`L⁻¹` times their covariances); `k` is capped so that this stays within
-/// this many (about a second on one core): all 256 up to n = 3125, 25 at n = 10,000. The
-/// sparse GP's cost, `k m²`, is small at any `k`.
+/// this many: all 256 up to n = 3125, 25 at n = 10,000. Measured at n = 3000, d = 6, k = 256
+/// and 300 candidate steps (release build, 2 cores): 0.27 s, against 0.05 s for the plain
+/// prediction of those steps. The sparse GP's cost, `k m²`, is small at any `k`.
 pub const IN_FLIGHT_WORK: usize = 2_500_000_000;
 
 /// How many state-actions in flight a proposal fantasises with `model`.
