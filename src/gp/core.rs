@@ -179,32 +179,44 @@ impl Core {
         (mean, var)
     }
 
-    /// Latent variances at `q` as if the points `p` had been observed as well, with noise
-    /// variances `noise_p`, at the same hyperparameters. A GP's variance does not depend on
-    /// the labels, so this is exact for any labels (and the mean is unchanged for labels equal
-    /// to it — a "fantasised" observation): `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
+    /// Mean and latent variances at `q` as if the points `p` had been observed as well, with
+    /// noise variances `noise_p`, at the same hyperparameters. A GP's variance does not depend
+    /// on the labels, so this is exact for any labels (and the mean is unchanged for labels
+    /// equal to it — a "fantasised" observation): `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
     /// `c = k(P, q) − V_Pᵀ V_q` (the posterior covariance) and
     /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`. `O(n² (k + m))` for `k` pending and `m` query
-    /// points. Without `L⁻¹` (a noise GP) the variances are NaN, as in
-    /// [`predict`](Self::predict).
-    pub fn fantasised_variance(&self, p: &Inputs, noise_p: &[f64], q: &Inputs) -> Vec<f64> {
+    /// points, `k(X, q)` and `V_q` computed once for the mean, the variance and `c`. Without
+    /// `L⁻¹` (a noise GP), or with nothing pending, it is [`predict`](Self::predict).
+    pub fn predict_fantasised(
+        &self,
+        p: &Inputs,
+        noise_p: &[f64],
+        q: &Inputs,
+    ) -> (Vec<f64>, Vec<f64>) {
         let (n, d, k, m) = (self.n, self.d, p.n, q.n);
-        let (_, var) = self.predict(q, true);
         if k == 0 || m == 0 || self.linv.len() != n * n || noise_p.len() != k {
-            return var;
+            return self.predict(q, true);
         }
-        let ps = p.scaled(&self.length_scales);
-        let qs = q.scaled(&self.length_scales);
-        // `L⁻¹ k(X, ·)` of the points `pts` (`cnt` of them, column-major).
-        let whitened = |pts: &[f64], cnt: usize| {
+        // `k(X, ·)` and `L⁻¹ k(X, ·)` of the points `pts` (`cnt` of them, column-major).
+        let cross_and_whitened = |pts: &[f64], cnt: usize| {
             let mut ks = vec![0.0; n * cnt];
             kernel::build_cross(self.kernel, &self.xs, n, pts, cnt, d, self.s2, &mut ks);
             let mut v = vec![0.0; n * cnt];
             linalg::lower_matmul(&self.linv, n, &ks, cnt, &mut v, linalg::par_for(n));
-            DMatrix::from_vec(n, cnt, v)
+            (ks, DMatrix::from_vec(n, cnt, v))
         };
-        let vp = whitened(&ps, k);
-        let vq = whitened(&qs, m);
+        let ps = p.scaled(&self.length_scales);
+        let qs = q.scaled(&self.length_scales);
+        let (_, vp) = cross_and_whitened(&ps, k);
+        let (kq, vq) = cross_and_whitened(&qs, m);
+        let mean: Vec<f64> = kq
+            .chunks_exact(n)
+            .map(|col| self.mean + col.iter().zip(&self.alpha).map(|(a, b)| a * b).sum::<f64>())
+            .collect();
+        let var: Vec<f64> = vq
+            .column_iter()
+            .map(|col| (self.s2 - col.norm_squared()).max(0.0))
+            .collect();
         let mut kpp = vec![0.0; k * k];
         kernel::build_cross(self.kernel, &ps, k, &ps, k, d, self.s2, &mut kpp);
         let mut kpq = vec![0.0; k * m];
@@ -227,16 +239,15 @@ impl Core {
             }
             eps *= 100.0;
         };
-        let Some(chol) = chol else {
-            return var;
+        let Some(w) = chol.and_then(|ch| ch.l().solve_lower_triangular(&c)) else {
+            return (mean, var);
         };
-        let Some(w) = chol.l().solve_lower_triangular(&c) else {
-            return var;
-        };
-        var.iter()
+        let var = var
+            .iter()
             .zip(w.column_iter())
             .map(|(v, col)| (v - col.norm_squared()).max(0.0))
-            .collect()
+            .collect();
+        (mean, var)
     }
 
     /// `‖L⁻¹ k_j‖²` for a few points `ks` (`mc` columns of `n`): the planner's rounds ask about

@@ -506,7 +506,7 @@ impl GpModel {
     /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
     /// this model's hyperparameters and with its noise there (a batch executed but not yet
     /// fitted): the same mean, and the latent variance observing them would leave (see
-    /// `Core::fantasised_variance`; exact, since a GP's variance does not depend on the
+    /// `Core::predict_fantasised`; exact, since a GP's variance does not depend on the
     /// labels). `O(n² (k + m))` for `k` pending rows and `m` query rows. A `pending` with the
     /// wrong column count or a non-finite coordinate is ignored (the plain prediction).
     pub fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
@@ -516,8 +516,7 @@ impl GpModel {
         let p = Inputs::from_matrix(pending);
         let noise_p = self.noise_at(&p);
         predict_rows(x, self.x.d, |q| {
-            let (mean, _) = self.main.predict(q, false);
-            let latent_variance = self.main.fantasised_variance(&p, &noise_p, q);
+            let (mean, latent_variance) = self.main.predict_fantasised(&p, &noise_p, q);
             let noise_variance = self.noise_at(q);
             Prediction {
                 mean,

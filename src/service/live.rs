@@ -180,7 +180,7 @@ impl LiveExperiment {
     }
 
     /// Row-major features and deviations of `transitions`.
-    fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
+    pub(super) fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
         let mut deviations = Vec::with_capacity(transitions.len());
         for t in transitions {

@@ -352,15 +352,11 @@ impl Service {
         if limit == 0 {
             return Ok(Vec::new());
         }
-        let dim = live.domain.feature_dim();
-        let mut features = Vec::new();
         let executed = self
             .store
             .transitions_after_first(live.id, model.n_train() as i64, limit as i64)
             .await?;
-        for t in &executed {
-            features.extend(live.domain.features(&t.s, &t.a));
-        }
+        let (mut features, _) = live.training_set(&executed);
         let room = limit - executed.len().min(limit);
         if room > 0 {
             let plans = self
@@ -378,7 +374,6 @@ impl Service {
                 features.extend(live.domain.features(s, a));
             }
         }
-        debug_assert_eq!(features.len() % dim.max(1), 0);
         Ok(features)
     }
 

@@ -118,12 +118,23 @@ pub struct ProposalPlan {
 
 /// The planned states and actions of an open proposal: state-actions a robot is about to
 /// execute.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, serde::Deserialize)]
 pub struct OpenPlan {
     /// Planned states, the start first (one more than actions).
     pub states: Vec<Vec<f64>>,
     /// Planned actions, in order.
     pub actions: Vec<Vec<f64>>,
+}
+
+/// The planned states and actions of a stored proposal body (its `trajectory`).
+fn open_plan(body: &str) -> Result<OpenPlan, sqlx::Error> {
+    /// The part of a stored body that holds the plan.
+    #[derive(serde::Deserialize)]
+    struct Body {
+        trajectory: OpenPlan,
+    }
+    let body: Body = serde_json::from_str(body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+    Ok(body.trajectory)
 }
 
 /// What linking a trajectory to a proposal found.
@@ -246,21 +257,10 @@ impl Store {
         else {
             return Ok(None);
         };
-        /// The part of a stored body that holds the planned actions.
-        #[derive(serde::Deserialize)]
-        struct Body {
-            trajectory: Planned,
-        }
-        #[derive(serde::Deserialize)]
-        struct Planned {
-            actions: Vec<Vec<f64>>,
-        }
-        let body: String = row.try_get("body")?;
-        let body: Body =
-            serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
+        let plan = open_plan(&row.try_get::<String, _>("body")?)?;
         Ok(Some(ProposalPlan {
             start: decode_vec(row.try_get("start")?)?,
-            actions: body.trajectory.actions,
+            actions: plan.actions,
         }))
     }
 
@@ -273,16 +273,6 @@ impl Store {
         client_id: Option<&str>,
         limit: i64,
     ) -> Result<Vec<OpenPlan>, sqlx::Error> {
-        /// The part of a stored body that holds the plan.
-        #[derive(serde::Deserialize)]
-        struct Body {
-            trajectory: Planned,
-        }
-        #[derive(serde::Deserialize)]
-        struct Planned {
-            states: Vec<Vec<f64>>,
-            actions: Vec<Vec<f64>>,
-        }
         sqlx::query(
             "SELECT body FROM proposals
              WHERE experiment_id = $1 AND status = 'open' AND expires_unix > $2
@@ -296,15 +286,7 @@ impl Store {
         .fetch_all(&self.read)
         .await?
         .iter()
-        .map(|row| {
-            let body: String = row.try_get("body")?;
-            let body: Body =
-                serde_json::from_str(&body).map_err(|e| sqlx::Error::Decode(Box::new(e)))?;
-            Ok(OpenPlan {
-                states: body.trajectory.states,
-                actions: body.trajectory.actions,
-            })
-        })
+        .map(|row| open_plan(&row.try_get::<String, _>("body")?))
         .collect()
     }
 
