@@ -33,6 +33,19 @@ pub enum FeatureMap {
         /// The action components that feed the features after them, in order.
         action_components: Vec<usize>,
     },
+    /// The kinematic domain's `state_action_prediction` features: the state, then the action,
+    /// then the model's prediction `clip(s + a)` (each component clamped to the state bounds),
+    /// each scaled to the unit box by its own bounds — `3n` features for `n` components.
+    KinematicPrediction {
+        /// Lower bounds of every state component.
+        state_low: Vec<f64>,
+        /// Upper bounds of every state component.
+        state_high: Vec<f64>,
+        /// Lower bounds of every action component.
+        action_low: Vec<f64>,
+        /// Upper bounds of every action component.
+        action_high: Vec<f64>,
+    },
     /// The icy gridworld's `per_move` features: with `K` moves and `k` the index of the move
     /// equal to `a` (every component within `tolerance`), `3K` features, zero but for the
     /// state scaled to the unit box at positions `2k, 2k + 1` and a one at position `2K + k`.
@@ -80,6 +93,7 @@ impl FeatureMap {
                 action_components,
                 ..
             } => state_components.len() + action_components.len(),
+            Self::KinematicPrediction { state_low, .. } => 3 * state_low.len(),
             Self::PerMove { moves, .. } => 3 * moves.len(),
             Self::ActionAndRotation { action_low, .. } => action_low.len() + 1,
         }
@@ -88,9 +102,9 @@ impl FeatureMap {
     /// The state dimension the map reads (`None`: it does not fix it).
     pub fn state_dim(&self) -> Option<usize> {
         match self {
-            Self::UnitBox { state_low, .. } | Self::PerMove { state_low, .. } => {
-                Some(state_low.len())
-            }
+            Self::UnitBox { state_low, .. }
+            | Self::KinematicPrediction { state_low, .. }
+            | Self::PerMove { state_low, .. } => Some(state_low.len()),
             Self::ActionAndRotation { .. } => None,
         }
     }
@@ -98,9 +112,9 @@ impl FeatureMap {
     /// The action dimension the map reads (`None`: it does not fix it).
     pub fn action_dim(&self) -> Option<usize> {
         match self {
-            Self::UnitBox { action_low, .. } | Self::ActionAndRotation { action_low, .. } => {
-                Some(action_low.len())
-            }
+            Self::UnitBox { action_low, .. }
+            | Self::KinematicPrediction { action_low, .. }
+            | Self::ActionAndRotation { action_low, .. } => Some(action_low.len()),
             Self::PerMove { moves, .. } => moves.first().map(Vec::len),
         }
     }
@@ -156,6 +170,27 @@ impl FeatureMap {
                 indices("action_components", action_components, action_dim)?;
                 if self.dim() == 0 {
                     return err("state_components", "no component feeds the features".into());
+                }
+            }
+            Self::KinematicPrediction {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+            } => {
+                bounds("state_low", state_low, state_high, state_dim)?;
+                bounds("action_low", action_low, action_high, action_dim)?;
+                if state_dim != action_dim {
+                    return err(
+                        "action_low",
+                        format!(
+                            "the prediction s + a needs actions of the state's {state_dim} \
+                             components, got {action_dim}"
+                        ),
+                    );
+                }
+                if state_dim == 0 {
+                    return err("state_low", "no component feeds the features".into());
                 }
             }
             Self::PerMove {
@@ -223,6 +258,30 @@ impl FeatureMap {
                         .map(|&i| unit(a[i], action_low[i], action_high[i])),
                 );
             }
+            Self::KinematicPrediction {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+            } => {
+                let state = state_low.iter().zip(state_high);
+                out.extend(
+                    s.iter()
+                        .zip(state.clone())
+                        .map(|(v, (lo, hi))| unit(*v, *lo, *hi)),
+                );
+                out.extend(
+                    a.iter()
+                        .zip(action_low.iter().zip(action_high))
+                        .map(|(v, (lo, hi))| unit(*v, *lo, *hi)),
+                );
+                out.extend(
+                    s.iter()
+                        .zip(a)
+                        .zip(state)
+                        .map(|((x, d), (lo, hi))| unit((x + d).clamp(*lo, *hi), *lo, *hi)),
+                );
+            }
             Self::PerMove {
                 state_low,
                 state_high,
@@ -272,8 +331,8 @@ pub fn move_index(moves: &[Vec<f64>], a: &[f64], tolerance: f64) -> Option<usize
 #[cfg(test)]
 mod tests {
     use super::super::{
-        CustomDomain, CustomParams, Domain, GridFeatures, IcyGridworld, Kinematic, KinematicParams,
-        LinearModel, Space, WaterPlant,
+        CustomDomain, CustomParams, Domain, GridFeatures, IcyGridworld, Kinematic,
+        KinematicFeatures, KinematicParams, LinearModel, Space, WaterPlant,
     };
     use super::*;
     use rand::SeedableRng;
@@ -305,17 +364,29 @@ mod tests {
     fn every_built_in_domain_computes_its_maps_features() {
         agree(&IcyGridworld::default_layout());
         agree(&IcyGridworld::default_layout().with_features(GridFeatures::PerMove));
-        agree(&Kinematic::new(KinematicParams::default()).unwrap());
-        agree(
-            &Kinematic::new(KinematicParams {
-                state_low: vec![-2.0, 0.0, 1.0],
-                state_high: vec![2.0, 0.5, 1.25],
-                action_low: vec![-0.3, -0.1, 0.0],
-                action_high: vec![0.3, 0.1, 0.05],
-                ..KinematicParams::default()
-            })
-            .unwrap(),
-        );
+        for features in [
+            KinematicFeatures::StateAction,
+            KinematicFeatures::StateActionPrediction,
+        ] {
+            agree(
+                &Kinematic::new(KinematicParams {
+                    features,
+                    ..KinematicParams::default()
+                })
+                .unwrap(),
+            );
+            agree(
+                &Kinematic::new(KinematicParams {
+                    state_low: vec![-2.0, 0.0, 1.0],
+                    state_high: vec![2.0, 0.5, 1.25],
+                    action_low: vec![-0.3, -0.1, 0.0],
+                    action_high: vec![0.3, 0.1, 0.05],
+                    features,
+                    ..KinematicParams::default()
+                })
+                .unwrap(),
+            );
+        }
         agree(&WaterPlant::default());
         let space = |n: usize, lo: f64, hi: f64| Space {
             names: (0..n).map(|i| format!("c{i}")).collect(),

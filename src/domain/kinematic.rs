@@ -49,6 +49,38 @@ impl BoxObstacle {
     }
 }
 
+/// How a kinematic state-action is fed to the MDE.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum KinematicFeatures {
+    /// `(s, a)`, each scaled to the unit box by its bounds.
+    StateAction,
+    /// `(s, a, clip(s + a))`: the state, the action and the state the model predicts, each
+    /// scaled to the unit box. A deviation that depends on where a move ends (an obstacle it
+    /// runs into, a patch where the robot slides) is then a function of a few features — the
+    /// prediction's — that a kernel with per-feature length scales can follow, where over
+    /// `(s, a)` alone it lies along the diagonal `s + a = const` and is spread over every
+    /// feature.
+    #[default]
+    StateActionPrediction,
+}
+
+/// By hand, so that a wrong name says which setting it is: the domain spec is a tagged enum,
+/// whose variants' fields reach the request's error only as `domain`.
+impl<'de> serde::Deserialize<'de> for KinematicFeatures {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = String::deserialize(d)?;
+        match name.as_str() {
+            "state_action" => Ok(Self::StateAction),
+            "state_action_prediction" => Ok(Self::StateActionPrediction),
+            _ => Err(serde::de::Error::custom(format!(
+                "features: {name:?} is not a feature map; use state_action_prediction or \
+                 state_action"
+            ))),
+        }
+    }
+}
+
 /// The parameters of a kinematic domain, as given by a client.
 #[derive(Debug, Clone, PartialEq)]
 pub struct KinematicParams {
@@ -64,6 +96,8 @@ pub struct KinematicParams {
     pub obstacles: Vec<BoxObstacle>,
     /// A state within this Euclidean distance of the goal state has arrived.
     pub goal_radius: f64,
+    /// What the MDE sees of a state-action.
+    pub features: KinematicFeatures,
 }
 
 impl Default for KinematicParams {
@@ -76,6 +110,7 @@ impl Default for KinematicParams {
             action_high: vec![0.1, 0.1],
             obstacles: Vec::new(),
             goal_radius: 0.05,
+            features: KinematicFeatures::default(),
         }
     }
 }
@@ -291,34 +326,60 @@ impl Domain for Kinematic {
     }
 
     fn feature_dim(&self) -> usize {
-        2 * self.state_space.dim()
+        let n = self.state_space.dim();
+        match self.params.features {
+            KinematicFeatures::StateAction => 2 * n,
+            KinematicFeatures::StateActionPrediction => 3 * n,
+        }
     }
 
     fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        self.state_space
+        let mut phi: Vec<f64> = self
+            .state_space
             .to_unit(s)
             .chain(self.action_space.to_unit(a))
-            .collect()
+            .collect();
+        if self.params.features == KinematicFeatures::StateActionPrediction {
+            phi.extend(self.state_space.to_unit(&LocalModel::predict(self, s, a)));
+        }
+        phi
     }
 
     fn feature_map(&self) -> FeatureMap {
-        FeatureMap::UnitBox {
-            state_low: self.state_space.low.clone(),
-            state_high: self.state_space.high.clone(),
-            action_low: self.action_space.low.clone(),
-            action_high: self.action_space.high.clone(),
-            state_components: (0..self.state_space.dim()).collect(),
-            action_components: (0..self.action_space.dim()).collect(),
+        let (state_low, state_high) = (self.state_space.low.clone(), self.state_space.high.clone());
+        let (action_low, action_high) = (
+            self.action_space.low.clone(),
+            self.action_space.high.clone(),
+        );
+        match self.params.features {
+            KinematicFeatures::StateAction => FeatureMap::UnitBox {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+                state_components: (0..self.state_space.dim()).collect(),
+                action_components: (0..self.action_space.dim()).collect(),
+            },
+            KinematicFeatures::StateActionPrediction => FeatureMap::KinematicPrediction {
+                state_low,
+                state_high,
+                action_low,
+                action_high,
+            },
         }
     }
 
     fn feature_names(&self) -> Vec<String> {
-        self.state_space
-            .names
+        let names = &self.state_space.names;
+        let mut out: Vec<String> = names
             .iter()
             .chain(&self.action_space.names)
             .cloned()
-            .collect()
+            .collect();
+        if self.params.features == KinematicFeatures::StateActionPrediction {
+            out.extend(names.iter().map(|n| format!("predicted_{n}")));
+        }
+        out
     }
 
     fn validate_goal(&self, goal: &[f64]) -> Result<(), DomainError> {

@@ -19,7 +19,7 @@ pub use custom::{ClientModel, CustomDomain, CustomParams, LinearModel};
 pub use dynamics::{DynamicsError, DynamicsModel, LocalModel, Predicted};
 pub use features::FeatureMap;
 pub use gridworld::{Cell, DEFAULT_MAP, GridFeatures, IcyGridworld, MOVES};
-pub use kinematic::{BoxObstacle, Kinematic, KinematicParams};
+pub use kinematic::{BoxObstacle, Kinematic, KinematicFeatures, KinematicParams};
 pub use water_plant::WaterPlant;
 
 use rand::RngCore;

@@ -22,7 +22,7 @@ pub mod protocol;
 pub mod reference;
 pub mod report;
 
-use crate::domain::GridFeatures;
+use crate::domain::{GridFeatures, KinematicFeatures};
 use crate::gp::NoiseMode;
 use crate::http::{AppState, HttpConfig, serve};
 use crate::mde::EstimatorChoice;
@@ -108,6 +108,8 @@ named_parsers! {
     parse_acquisition: AcquisitionKind, "an acquisition", "lcb or level_set";
     parse_preset: Preset, "a preset", "default or paper";
     parse_grid_features: GridFeatures, "a feature map", "scaled or per_move";
+    parse_kinematic_features: KinematicFeatures, "a feature map",
+        "state_action or state_action_prediction";
 }
 
 fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
@@ -193,6 +195,10 @@ pub struct ExperimentArgs {
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
     pub grid_features: GridFeatures,
+    /// Continuous worlds: the MDE's features, `state_action_prediction` (the default) or
+    /// `state_action`.
+    #[arg(long, value_parser = parse_kinematic_features, default_value = "state_action_prediction")]
+    pub kinematic_features: KinematicFeatures,
     /// The experiments' preset: `default` (precond's) or `paper` (the paper's exact
     /// configuration).
     #[arg(long, value_parser = parse_preset, default_value = "default")]
@@ -264,6 +270,8 @@ pub struct Config {
     pub estimator: Option<EstimatorChoice>,
     /// The gridworld's MDE features.
     pub grid_features: GridFeatures,
+    /// The continuous worlds' MDE features.
+    pub kinematic_features: KinematicFeatures,
     /// The experiments' preset.
     pub preset: Preset,
     /// The MDE's label cap (`None`: the preset's).
@@ -339,6 +347,7 @@ impl Config {
             kernel: args.kernel,
             estimator: args.estimator,
             grid_features: args.grid_features,
+            kinematic_features: args.kinematic_features,
             preset: args.preset,
             label_cap: args.label_cap,
             relax_beta: args.relax_beta,

@@ -395,6 +395,7 @@ fn experiment_body(
                 action_high: p.action_high,
                 obstacles: Vec::new(),
                 goal_radius: p.goal_radius,
+                features: cfg.kinematic_features,
             }
         }
     };

@@ -11,7 +11,7 @@ pub use custom::{CustomSpec, DistanceSpec, FeaturesSpec, GoalSpec, ModelSpec, Sp
 
 use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, GridFeatures, IcyGridworld, Kinematic,
-    KinematicParams, WaterPlant,
+    KinematicFeatures, KinematicParams, WaterPlant,
 };
 use crate::gp::{DEFAULT_INDUCING_POINTS, Kernel, NoiseMode};
 use crate::limits::{
@@ -85,6 +85,12 @@ pub enum DomainSpec {
         /// Goal radius (Euclidean). Default 0.05.
         #[serde(default = "kinematic_defaults::goal_radius")]
         goal_radius: f64,
+        /// What the MDE sees of a state-action: `state_action_prediction` (the state, the
+        /// action and the model's prediction `clip(s + a)`) or `state_action`. Default
+        /// `state_action_prediction`; experiments created before the setting existed keep
+        /// `state_action`.
+        #[serde(default)]
+        features: KinematicFeatures,
     },
     /// The plant-watering world with its documented default scene (see
     /// `src/domain/water_plant/mod.rs`): pour one unit into the target without spilling more
@@ -155,6 +161,7 @@ impl DomainSpec {
                 action_high,
                 obstacles,
                 goal_radius,
+                features,
             } => Arc::new(
                 Kinematic::new(KinematicParams {
                     state_low: state_low.clone(),
@@ -169,6 +176,7 @@ impl DomainSpec {
                         })
                         .collect(),
                     goal_radius: *goal_radius,
+                    features: *features,
                 })
                 .map_err(wrap)?,
             ),

@@ -15,7 +15,7 @@ use super::World;
 use super::arm::{ArmParams, ArmSim};
 use super::base::{BaseParams, BaseSim};
 use super::pusher::{PusherParams, PusherSim};
-use crate::domain::{Domain, Kinematic, KinematicParams, LocalModel, Problem};
+use crate::domain::{Domain, Kinematic, KinematicFeatures, KinematicParams, LocalModel, Problem};
 use rand::RngCore;
 use std::sync::Arc;
 
@@ -69,6 +69,7 @@ impl ContinuousWorld {
                     action_high: vec![0.25; p.lengths.len()],
                     obstacles: Vec::new(),
                     goal_radius: 0.15,
+                    features: KinematicFeatures::default(),
                 }
             }
             Self::Base(_) => KinematicParams {
@@ -78,6 +79,7 @@ impl ContinuousWorld {
                 action_high: vec![0.1, 0.1],
                 obstacles: Vec::new(),
                 goal_radius: 0.05,
+                features: KinematicFeatures::default(),
             },
             Self::Pusher(sim) => {
                 let side = sim.params().side;
@@ -88,6 +90,7 @@ impl ContinuousWorld {
                     action_high: vec![0.12, 0.12],
                     obstacles: Vec::new(),
                     goal_radius: 0.05,
+                    features: KinematicFeatures::default(),
                 }
             }
         }

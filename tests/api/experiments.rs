@@ -110,7 +110,18 @@ async fn a_kinematic_experiment_shows_its_spaces() {
     assert_eq!(status, 201, "{e}");
     assert_eq!(e["state_space"]["high"], json!([1.0, 2.0, 3.0]));
     assert!(e["action_space"].get("values").is_none());
-    assert_eq!(e["feature_names"].as_array().unwrap().len(), 6);
+    // The state, the action and the model's prediction, unless told otherwise.
+    assert_eq!(e["domain"]["features"], "state_action_prediction");
+    assert_eq!(e["feature_names"].as_array().unwrap().len(), 9);
+    assert_eq!(e["feature_names"][6], "predicted_x0");
+    let (status, e) = app
+        .post(
+            "/v1/experiments",
+            &json!({"domain": {"kind": "kinematic", "features": "state_action"}}),
+        )
+        .await;
+    assert_eq!(status, 201, "{e}");
+    assert_eq!(e["feature_names"].as_array().unwrap().len(), 4);
 }
 
 #[tokio::test]
@@ -138,6 +149,10 @@ async fn bad_settings_name_the_field() {
             json!({"domain": {"kind": "kinematic", "goal_radius": 0}}),
             "domain.goal_radius",
         ),
+        (
+            json!({"domain": {"kind": "kinematic", "features": "next"}}),
+            "domain",
+        ),
         (json!({"domain": {"kind": "moon"}}), "domain"),
     ];
     for (body, field) in cases {
@@ -150,6 +165,15 @@ async fn bad_settings_name_the_field() {
             "{body}: field {got}, expected {field}"
         );
     }
+    // A kinematic domain's fields reach serde's error only as `domain`: the reason names it.
+    let (_, err) = app
+        .post(
+            "/v1/experiments",
+            &json!({"domain": {"kind": "kinematic", "features": "next"}}),
+        )
+        .await;
+    let reason = err["error"]["details"]["reason"].as_str().unwrap();
+    assert!(reason.starts_with("features: \"next\""), "{reason}");
     let (_, listed) = app.get("/v1/experiments").await;
     assert!(
         listed["items"].as_array().unwrap().is_empty(),

@@ -77,6 +77,21 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
         .execute(&mut conn)
         .await
         .unwrap();
+    // A kinematic experiment of that time: its domain without `features`.
+    let (kinematic, _) = serde_json::from_value::<ExperimentRequest>(json!({
+        "domain": {"kind": "kinematic"}
+    }))
+    .unwrap()
+    .resolve(&Default::default())
+    .unwrap();
+    let mut kinematic = serde_json::to_value(&kinematic).unwrap();
+    strip(&mut kinematic, "domain.features");
+    sqlx::query("INSERT INTO experiments (id, name, settings, created_at) VALUES (2, 'k', ?, ?)")
+        .bind(kinematic.to_string())
+        .bind(created)
+        .execute(&mut conn)
+        .await
+        .unwrap();
     // One trajectory of two gridworld moves, the second one off ice and bumped (deviation 1).
     let transitions = [
         ([0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0], 0.0),
@@ -171,6 +186,10 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(experiment["learning"]["acquisition"], "lcb");
     assert_eq!(experiment["learning"]["batch_diversity"], false);
     assert_eq!(experiment["model_version"], 1);
+    // The kinematic one keeps the features its models were fitted on.
+    let (status, old) = app.get("/v1/experiments/2").await;
+    assert_eq!(status, 200, "{old}");
+    assert_eq!(old["domain"]["features"], "state_action");
 
     let (status, model) = app.get("/v1/experiments/1/model").await;
     assert_eq!(status, 200, "{model}");

@@ -168,9 +168,11 @@ def kinematic_trajectory(rng: np.random.Generator, n: int) -> list[dict[str, Any
 
 
 @pytest.mark.integration
-@pytest.mark.parametrize("estimator", ["exact", "sparse"])
+@pytest.mark.parametrize(
+    ("estimator", "features"), [("exact", "state_action_prediction"), ("sparse", "state_action")]
+)
 def test_an_exported_model_answers_as_the_server(
-    make_server: MakeServer, tmp_path: Path, estimator: str
+    make_server: MakeServer, tmp_path: Path, estimator: str, features: str
 ) -> None:
     server = make_server()
     client = Client(server.url, timeout=60)
@@ -178,7 +180,10 @@ def test_an_exported_model_answers_as_the_server(
     if estimator == "sparse":
         mde["inducing_points"] = 24
     client.create_experiment(
-        domain={"kind": "kinematic"}, mde=mde, learning={"batch_size": 2}, d_max=0.05
+        domain={"kind": "kinematic", "features": features},
+        mde=mde,
+        learning={"batch_size": 2},
+        d_max=0.05,
     )
     with pytest.raises(Conflict):
         client.export_model()
@@ -190,6 +195,9 @@ def test_an_exported_model_answers_as_the_server(
 
     model = client.export_model()
     assert model.model_version == fitted.version and model.n_train == 80
+    assert model.raw["feature_map"]["kind"] == (
+        "kinematic_prediction" if features == "state_action_prediction" else "unit_box"
+    )
     path = tmp_path / "mde.json"
     model.save(path)
     loaded = ExportedModel.load(path)

@@ -244,6 +244,7 @@ const REACHED: &[&str] = &[
     "ResolvedLinearModelSpec",
     // the variants of FeatureMap and NoisePredictor (a model export's)
     "UnitBoxFeatureMap",
+    "KinematicPredictionFeatureMap",
     "PerMoveFeatureMap",
     "ActionAndRotationFeatureMap",
     "HomoscedasticNoise",

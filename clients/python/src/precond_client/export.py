@@ -142,6 +142,15 @@ class _FeatureMap:
             )
             if len(self.low[0]) != state_dim or len(self.low[1]) != action_dim:
                 raise ValueError("feature_map: bounds do not match state_dim and action_dim")
+        elif self.kind == "kinematic_prediction":
+            self.low = _vec(m["state_low"]), _vec(m["action_low"])
+            self.high = _vec(m["state_high"]), _vec(m["action_high"])
+            if len(self.low[0]) != state_dim or len(self.low[1]) != action_dim:
+                raise ValueError("feature_map: bounds do not match state_dim and action_dim")
+            if state_dim != action_dim:
+                raise ValueError(
+                    "feature_map: the prediction s + a needs actions of the state's size"
+                )
         elif self.kind == "per_move":
             self.low = _vec(m["state_low"]), np.zeros(0)
             self.high = _vec(m["state_high"]), np.zeros(0)
@@ -162,6 +171,15 @@ class _FeatureMap:
             fs = _unit(s, self.low[0], self.high[0])[:, self.components[0]]
             fa = _unit(a, self.low[1], self.high[1])[:, self.components[1]]
             return np.hstack([fs, fa])
+        if self.kind == "kinematic_prediction":
+            predicted = np.clip(s + a, self.low[0], self.high[0])
+            return np.hstack(
+                [
+                    _unit(s, self.low[0], self.high[0]),
+                    _unit(a, self.low[1], self.high[1]),
+                    _unit(predicted, self.low[0], self.high[0]),
+                ]
+            )
         if self.kind == "per_move":
             k_moves = len(self.moves)
             near = np.all(np.abs(self.moves[None, :, :] - a[:, None, :]) <= self.tolerance, axis=2)
