@@ -70,13 +70,6 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     ] {
         strip(&mut stored, path);
     }
-    let created = "2026-01-01T00:00:00Z";
-    sqlx::query("INSERT INTO experiments (id, name, settings, created_at) VALUES (1, '', ?, ?)")
-        .bind(stored.to_string())
-        .bind(created)
-        .execute(&mut conn)
-        .await
-        .unwrap();
     // A kinematic experiment of that time: its domain without `features`.
     let (kinematic, _) = serde_json::from_value::<ExperimentRequest>(json!({
         "domain": {"kind": "kinematic"}
@@ -86,12 +79,18 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     .unwrap();
     let mut kinematic = serde_json::to_value(&kinematic).unwrap();
     strip(&mut kinematic, "domain.features");
-    sqlx::query("INSERT INTO experiments (id, name, settings, created_at) VALUES (2, 'k', ?, ?)")
-        .bind(kinematic.to_string())
+    let created = "2026-01-01T00:00:00Z";
+    for (id, settings) in [(1, &stored), (2, &kinematic)] {
+        sqlx::query(
+            "INSERT INTO experiments (id, name, settings, created_at) VALUES (?, '', ?, ?)",
+        )
+        .bind(id)
+        .bind(settings.to_string())
         .bind(created)
         .execute(&mut conn)
         .await
         .unwrap();
+    }
     // One trajectory of two gridworld moves, the second one off ice and bumped (deviation 1).
     let transitions = [
         ([0.0, 0.0], [1.0, 0.0], [1.0, 0.0], [1.0, 0.0], 0.0),
