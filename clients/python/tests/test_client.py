@@ -32,6 +32,27 @@ def make_client(handler: Handler, **kw: Any) -> Client:
     return c
 
 
+def scripted(*answers: Handler) -> tuple[Handler, list[httpx.Request]]:
+    """A handler that answers its n-th request with ``answers[n]`` (the last one answers every
+    later request), and the list of the requests it was sent."""
+    sent: list[httpx.Request] = []
+
+    def handler(req: httpx.Request) -> httpx.Response:
+        sent.append(req)
+        return answers[min(len(sent), len(answers)) - 1](req)
+
+    return handler, sent
+
+
+def raises(failure: type[httpx.TransportError], message: str) -> Handler:
+    """A handler whose every request fails in transport with ``failure``."""
+
+    def handler(req: httpx.Request) -> httpx.Response:
+        raise failure(message, request=req)
+
+    return handler
+
+
 def error(status: int, code: str, message: str = "m", details: Any = None) -> httpx.Response:
     return httpx.Response(
         status, json={"error": {"code": code, "message": message, "details": details}}
@@ -133,16 +154,12 @@ def test_a_lease_conflict_exposes_the_held_proposal() -> None:
 
 
 def test_connection_errors_and_5xx_are_retried_then_succeed() -> None:
-    calls: list[str] = []
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        calls.append(req.url.path)
-        if len(calls) == 1:
-            raise httpx.ConnectError("refused", request=req)
-        if len(calls) in (2, 3):
-            return error(503, "unavailable")
-        return httpx.Response(200, json=experiment_json())
-
+    handler, calls = scripted(
+        raises(httpx.ConnectError, "refused"),
+        lambda _r: error(503, "unavailable"),
+        lambda _r: error(503, "unavailable"),
+        lambda _r: httpx.Response(200, json=experiment_json()),
+    )
     c = make_client(handler)
     assert c.get_experiment(1).id == 1
     assert len(calls) == 4
@@ -150,14 +167,10 @@ def test_connection_errors_and_5xx_are_retried_then_succeed() -> None:
 
 def test_429_and_retry_after_are_honoured() -> None:
     slept: list[float] = []
-    n = {"calls": 0}
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        n["calls"] += 1
-        if n["calls"] == 1:
-            return httpx.Response(429, headers={"Retry-After": "0.25"}, text="slow down")
-        return httpx.Response(200, json={"items": []})
-
+    handler, _ = scripted(
+        lambda _r: httpx.Response(429, headers={"Retry-After": "0.25"}, text="slow down"),
+        lambda _r: httpx.Response(200, json={"items": []}),
+    )
     c = make_client(handler)
     c._sleep = slept.append
     assert c.list_experiments() == []
@@ -165,52 +178,38 @@ def test_429_and_retry_after_are_honoured() -> None:
 
 
 def test_retries_give_up_with_a_transport_error() -> None:
-    def handler(req: httpx.Request) -> httpx.Response:
-        raise httpx.ConnectError("refused", request=req)
-
-    c = make_client(handler, retries=3)
+    c = make_client(raises(httpx.ConnectError, "refused"), retries=3)
     with pytest.raises(TransportError):
         c.list_experiments()
 
 
 def test_a_persistent_5xx_is_raised_with_its_code_after_the_retries() -> None:
-    n = {"calls": 0}
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        n["calls"] += 1
-        return error(502, "model_unavailable", "down", {"model": "http://m", "reason": "x"})
-
+    handler, calls = scripted(
+        lambda _r: error(502, "model_unavailable", "down", {"model": "http://m", "reason": "x"})
+    )
     c = make_client(handler, retries=2, experiment_id=1)
     with pytest.raises(ModelUnavailable) as e:
         c.plan([0, 0], [1, 1])
     assert e.value.details["model"] == "http://m"
-    assert n["calls"] == 3
+    assert len(calls) == 3
 
 
 def test_creating_an_experiment_is_not_repeated_once_it_may_have_arrived() -> None:
-    n = {"calls": 0}
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        n["calls"] += 1
-        if n["calls"] == 1:
-            raise httpx.ReadError("connection reset", request=req)
-        return httpx.Response(201, json=experiment_json())
-
+    handler, calls = scripted(
+        raises(httpx.ReadError, "connection reset"),
+        lambda _r: httpx.Response(201, json=experiment_json()),
+    )
     c = make_client(handler)
     with pytest.raises(TransportError):
         c.create_experiment(name="x")
-    assert n["calls"] == 1
+    assert len(calls) == 1
 
 
 def test_creating_an_experiment_is_retried_when_the_connection_was_refused() -> None:
-    n = {"calls": 0}
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        n["calls"] += 1
-        if n["calls"] == 1:
-            raise httpx.ConnectError("refused", request=req)
-        return httpx.Response(201, json=experiment_json(eid=4))
-
+    handler, _ = scripted(
+        raises(httpx.ConnectError, "refused"),
+        lambda _r: httpx.Response(201, json=experiment_json(eid=4)),
+    )
     c = make_client(handler)
     assert c.create_experiment(name="x").id == 4
     assert c.experiment_id == 4
@@ -587,15 +586,10 @@ def test_no_plan_can_be_raised_instead_of_skipped() -> None:
 
 
 def test_not_found_is_not_retried() -> None:
-    n = {"calls": 0}
-
-    def handler(req: httpx.Request) -> httpx.Response:
-        n["calls"] += 1
-        return error(404, "not_found", "no experiment 9")
-
+    handler, calls = scripted(lambda _r: error(404, "not_found", "no experiment 9"))
     with pytest.raises(NotFound):
         make_client(handler).get_experiment(9)
-    assert n["calls"] == 1
+    assert len(calls) == 1
 
 
 def test_learn_sends_the_clients_own_candidates_for_each_problem() -> None:
