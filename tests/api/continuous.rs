@@ -78,7 +78,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
     for _ in 0..6 {
         for _ in 0..5 {
             let problem = world.sample_problem(&domain, &mut rng);
-            let (status, proposal) = app.post_at(id, "proposals", &ask(&problem)).await;
+            let (status, proposal) = app.propose(id, &ask(&problem)).await;
             if status != 201 {
                 continue;
             }

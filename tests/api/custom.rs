@@ -104,9 +104,8 @@ async fn a_failing_remote_model_is_a_clear_error_naming_it_and_nothing_is_stored
         );
         assert_eq!(body["error"]["details"]["model"], server.url(endpoint));
         let (got, body) = app
-            .post_at(
+            .propose(
                 id,
-                "proposals",
                 &json!({"start": [0.1, 0.1], "goal": [0.5, 0.5], "client_id": "robot"}),
             )
             .await;
@@ -249,14 +248,9 @@ async fn plans_respect_the_robots_own_validity_check() {
             "domain": plane(remote(&server, "valid")),
             "learning": {"n_candidates": 4, "max_extensions": 3000}}))
         .await;
-    let (status, p) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5]}),
-        )
+    let p = app
+        .assert_proposes(id, &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5]}))
         .await;
-    assert_eq!(status, 201, "{p}");
     let states = p["trajectory"]["states"].as_array().unwrap();
     assert!(states.len() > 2);
     for s in &states[1..] {
@@ -319,8 +313,7 @@ async fn a_client_model_posts_its_predictions_and_its_candidates() {
     let short = json!({"states": [[0.1, 0.1], [0.15, 0.1]], "actions": [[0.05, 0]]});
     let request = json!({"start": [0.1, 0.1], "goal": [0.3, 0.1], "client_id": "arm",
                          "candidates": [straight, detour, short]});
-    let (status, p) = app.post_at(id, "proposals", &request).await;
-    assert_eq!(status, 201, "{p}");
+    let p = app.assert_proposes(id, &request).await;
     let candidates = p["candidates"].as_array().unwrap();
     assert_eq!(candidates.len(), 3);
     let (c, gamma, beta, d_max) = (1.5, 0.8, p["beta"].as_f64().unwrap(), 0.05);
@@ -432,9 +425,8 @@ async fn learn_then_plan(
     let mut executed = 0;
     for (start, goal) in &problems {
         let (status, p) = app
-            .post_at(
+            .propose(
                 id,
-                "proposals",
                 &json!({"start": start, "goal": goal, "client_id": "robot"}),
             )
             .await;

@@ -272,11 +272,7 @@ async fn settings_whose_arithmetic_overflows_are_refused_with_the_bound() {
     let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
     assert!(status == 200 || status == 202, "{status} {body}");
     let (status, body) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0, 0], "goal": [9e11, 9e11]}),
-        )
+        .propose(id, &json!({"start": [0, 0], "goal": [9e11, 9e11]}))
         .await;
     assert!(
         status == 201 || (status == 422 && code(&body) == "no_plan"),
@@ -308,22 +304,18 @@ async fn control_characters_in_names_and_client_ids_are_refused() {
         .create_experiment(json!({"name": "Bench 2 — arm ü"}))
         .await;
     let (status, err) = app
-        .post_at(
+        .propose(
             id,
-            "proposals",
             &json!({"start": [0, 0], "goal": [2, 0], "client_id": "\u{0}\n\r\u{1b}"}),
         )
         .await;
     assert_eq!((status, code(&err)), (422, "validation_failed"), "{err}");
     assert_eq!(err["error"]["details"]["field"], "client_id");
-    let (status, body) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
+    app.assert_proposes(
+        id,
+        &json!({"start": [0, 0], "goal": [2, 0], "client_id": "robot-ü 1"}),
+    )
+    .await;
 }
 
 #[tokio::test]

@@ -68,7 +68,7 @@ impl Loop {
             let (start, goal) = self.problem();
             let (status, p) = self
                 .app
-                .post_at(self.id, "proposals", &json!({"start": start, "goal": goal}))
+                .propose(self.id, &json!({"start": start, "goal": goal}))
                 .await;
             if status == 422 {
                 continue;

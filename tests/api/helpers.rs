@@ -239,18 +239,24 @@ impl TestApp {
             .await
     }
 
+    /// Asks experiment `id` for a proposal: posts `ask` to `/v1/experiments/{id}/proposals`.
+    pub async fn propose(&self, id: i64, ask: &Value) -> (u16, Value) {
+        self.post_at(id, "proposals", ask).await
+    }
+
+    /// Asks experiment `id` for a proposal, asserting that it is made (201), and returns it.
+    pub async fn assert_proposes(&self, id: i64, ask: &Value) -> Value {
+        let (status, body) = self.propose(id, ask).await;
+        assert_eq!(status, 201, "{body}");
+        body
+    }
+
     /// Asks kinematic experiment `id` for a short proposal in free space and asserts that it is
     /// made (201) within `limit`: a planner slot was free.
     pub async fn assert_proposes_within(&self, id: i64, limit: std::time::Duration) {
         let started = std::time::Instant::now();
-        let (status, body) = self
-            .post_at(
-                id,
-                "proposals",
-                &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}),
-            )
+        self.assert_proposes(id, &json!({"start": [0.1, 0.2], "goal": [0.3, 0.2]}))
             .await;
-        assert_eq!(status, 201, "{body}");
         assert_within(started, limit);
     }
 

@@ -432,21 +432,13 @@ async fn no_plan_is_422_with_the_extensions_used() {
     }))
     .await;
     let (status, err) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}),
-        )
+        .propose(id, &json!({"start": [0.1, 0.5], "goal": [0.9, 0.5]}))
         .await;
     assert_eq!(status, 422, "{err}");
     assert_eq!(code(&err), "no_plan");
     assert!(err["error"]["details"]["extensions"].as_u64().unwrap() >= 300);
     let (status, err) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0.1, 0.5, 0.0], "goal": [0.9, 0.5]}),
-        )
+        .propose(id, &json!({"start": [0.1, 0.5, 0.0], "goal": [0.9, 0.5]}))
         .await;
     assert_eq!(
         (status, err["error"]["details"]["field"].as_str()),

@@ -79,7 +79,7 @@ async fn a_saturated_planner_queues_then_refuses_while_health_stays_fast() {
     tokio::time::sleep(Duration::from_millis(200)).await;
     let waiting = ask("waiting");
     tokio::time::sleep(Duration::from_millis(200)).await;
-    let (status, refused) = app.post_at(id, "proposals", &blocked_ask("third")).await;
+    let (status, refused) = app.propose(id, &blocked_ask("third")).await;
     assert_eq!((status, code(&refused)), (429, "overloaded"), "{refused}");
     let started = Instant::now();
     for _ in 0..5 {
@@ -121,14 +121,11 @@ async fn a_flood_on_one_experiment_leaves_room_for_the_others() {
         .collect();
     tokio::time::sleep(Duration::from_millis(300)).await;
     let started = Instant::now();
-    let (status, body) = app
-        .post_at(
-            other,
-            "proposals",
-            &json!({"start": [0, 0], "goal": [2, 0], "client_id": "victim"}),
-        )
-        .await;
-    assert_eq!(status, 201, "{body}");
+    app.assert_proposes(
+        other,
+        &json!({"start": [0, 0], "goal": [2, 0], "client_id": "victim"}),
+    )
+    .await;
     assert_within(started, Duration::from_millis(2000));
     let mut statuses: Vec<u16> = Vec::new();
     for f in flood {

@@ -142,7 +142,7 @@ async fn a_search_waits_for_a_hung_model_no_longer_than_its_budget() {
         .await;
     let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "client_id": "r"});
     let started = Instant::now();
-    let (status, body) = app.post_at(hung, "proposals", &ask).await;
+    let (status, body) = app.propose(hung, &ask).await;
     assert_eq!((status, code(&body)), (503, "deadline_exceeded"), "{body}");
     assert_within(started, Duration::from_secs(3));
 
