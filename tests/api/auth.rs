@@ -153,13 +153,7 @@ async fn a_scoped_token_reaches_only_its_experiments() {
     }
     let (status, list) = call(&app, "GET", "/v1/experiments", Some(SCOPED), None).await;
     assert_eq!(status, 200);
-    let ids: Vec<i64> = list["items"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| e["id"].as_i64().unwrap())
-        .collect();
-    assert_eq!(ids, vec![2]);
+    assert_eq!(ints(&list["items"], "id"), vec![2]);
     // Its pages count only what it reaches.
     assert_eq!(list["total"], 1, "{list}");
     let (_, page) = call(

@@ -2,7 +2,7 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::fresh_experiment;
+use super::helpers::{count_true, fresh_experiment};
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
@@ -128,12 +128,7 @@ async fn after_a_few_iterations_unseen_moves_between_seen_ones_are_trusted_and_p
         .post_at(id, "precondition", &json!({ "points": probes }))
         .await;
     assert_eq!(status, 200, "{judged}");
-    let trusted = judged["results"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|r| r["inside"] == true)
-        .count();
+    let trusted = count_true(&judged["results"], "inside");
     assert!(
         2 * trusted >= probes.len(),
         "{trusted} of {} safe unseen moves between executed ones trusted at β = 2",

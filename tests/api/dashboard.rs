@@ -14,12 +14,7 @@ async fn post_all(app: &TestApp, id: i64, trajectories: &[Value]) -> Vec<Value> 
 }
 
 fn ids(page: &Value) -> Vec<i64> {
-    page["items"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|e| e["id"].as_i64().unwrap())
-        .collect()
+    ints(&page["items"], "id")
 }
 
 #[tokio::test]
@@ -158,11 +153,7 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
         (Some(2), Some(4))
     );
     let iterations = t["iterations"].as_array().unwrap();
-    let per: Vec<i64> = iterations
-        .iter()
-        .map(|r| r["n_trajectories"].as_i64().unwrap())
-        .collect();
-    assert_eq!(per, vec![2, 2, 1]);
+    assert_eq!(ints(&t["iterations"], "n_trajectories"), vec![2, 2, 1]);
     for (j, r) in iterations.iter().enumerate() {
         assert_eq!(r["iteration"], j as i64);
         let beta = 2.0 * 2.0 / (1.0 + (-0.5 * (j as f64 - 2.0)).exp()) - 2.0;
@@ -170,10 +161,7 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
         let share = r["share_within_d_max"].as_f64().unwrap();
         assert!((0.0..=1.0).contains(&share));
     }
-    let total: i64 = iterations
-        .iter()
-        .map(|r| r["n_transitions"].as_i64().unwrap())
-        .sum();
+    let total: i64 = ints(&t["iterations"], "n_transitions").iter().sum();
     assert_eq!(total, 5 * 40);
     let models = t["models"].as_array().unwrap();
     let last = models.last().expect("a version");
@@ -287,10 +275,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
     assert_eq!(d["n"], model["n_train"]);
     let coverage = d["coverage"].as_array().unwrap();
     assert_eq!(coverage.len(), 6);
-    let observed: Vec<f64> = coverage
-        .iter()
-        .map(|c| c["observed"].as_f64().unwrap())
-        .collect();
+    let observed = floats(&d["coverage"], "observed");
     assert!(observed.windows(2).all(|w| w[0] <= w[1]), "{observed:?}");
     assert!(observed.iter().all(|o| (0.0..=1.0).contains(o)));
     assert!((coverage[1]["nominal"].as_f64().unwrap() - 0.6827).abs() < 1e-4);

@@ -353,6 +353,31 @@ pub fn reason(body: &Value) -> &str {
         .unwrap_or_else(|| panic!("no details.reason in {body}"))
 }
 
+/// The integer `key` of every item of the array `list` (panics on anything else).
+pub fn ints(list: &Value, key: &str) -> Vec<i64> {
+    items(list)
+        .map(|item| item[key].as_i64().unwrap())
+        .collect()
+}
+
+/// The number `key` of every item of the array `list` (panics on anything else).
+pub fn floats(list: &Value, key: &str) -> Vec<f64> {
+    items(list)
+        .map(|item| item[key].as_f64().unwrap())
+        .collect()
+}
+
+/// How many items of the array `list` have `key` true.
+pub fn count_true(list: &Value, key: &str) -> usize {
+    items(list).filter(|item| item[key] == true).count()
+}
+
+fn items(list: &Value) -> std::slice::Iter<'_, Value> {
+    list.as_array()
+        .unwrap_or_else(|| panic!("not an array: {list}"))
+        .iter()
+}
+
 /// Every move from every open cell of the default gridworld's rows `rows` (all of them:
 /// `0..12`), executed in the true world, as trajectories of at most `per_trajectory`
 /// transitions.

@@ -102,10 +102,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
     // The default label cap is chosen at the fit among 2, 5 and raw labels; each candidate's
     // held-out judgement covers every training transition.
     let trials = model["label_cap_trials"].as_array().unwrap();
-    let caps: Vec<f64> = trials
-        .iter()
-        .map(|t| t["label_cap"].as_f64().unwrap())
-        .collect();
+    let caps = floats(&model["label_cap_trials"], "label_cap");
     assert_eq!(caps, vec![2.0, 5.0, 0.0]);
     assert!(caps.contains(&model["label_cap"].as_f64().unwrap()));
     for t in trials {
@@ -235,12 +232,7 @@ async fn strategies_produce_what_they_promise() {
         let n = t["actions"].as_array().unwrap().len();
         assert_eq!(t["mu"].as_array().unwrap().len(), n);
         assert_eq!(t["alpha_step"].as_array().unwrap().len(), n);
-        let alphas: Vec<f64> = p["candidates"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .map(|c| c["alpha"].as_f64().unwrap())
-            .collect();
+        let alphas = floats(&p["candidates"], "alpha");
         assert!(!alphas.is_empty());
         let chosen = p["chosen_index"].as_u64().unwrap() as usize;
         assert_eq!(alphas[chosen], t["alpha"].as_f64().unwrap());

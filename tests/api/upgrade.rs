@@ -3,7 +3,7 @@
 //! and serves exactly what it served before: the settings it was used with, its model version,
 //! and the first answer to a retried ingest.
 
-use super::helpers::{spawn_app, temp_db};
+use super::helpers::{count_true, spawn_app, temp_db};
 use nalgebra::{DMatrix, DVector};
 use precond::api::TrajectoryRequest;
 use precond::domain::Transition;
@@ -342,12 +342,7 @@ async fn migration_0009_flags_the_stored_executions_that_departed_from_their_pro
         }
     }
     let (_, page) = app.get("/v1/experiments/1/runs").await;
-    let flagged = page["items"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|r| r["deviating"] == true)
-        .count();
+    let flagged = count_true(&page["items"], "deviating");
     assert_eq!(flagged, 3, "{page}");
     app.stop().await;
 }
