@@ -51,12 +51,7 @@ async fn health_routes_stay_open_and_everything_else_needs_a_known_token() {
         assert_eq!(status, 401, "{token:?}: {body}");
         assert_eq!(code(&body), "unauthorized");
     }
-    let r = app
-        .client
-        .get(app.url("/v1/experiments"))
-        .send()
-        .await
-        .unwrap();
+    let r = app.request(reqwest::Method::GET, "/v1/experiments").await;
     assert_eq!(r.headers()["www-authenticate"], "Bearer");
     // Basic credentials are not a bearer token.
     let r = app

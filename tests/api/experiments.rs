@@ -333,11 +333,8 @@ async fn unknown_things_are_404_in_the_error_shape() {
         assert!(err["error"]["message"].is_string());
     }
     let r = app
-        .client
-        .delete(app.url("/v1/experiments"))
-        .send()
-        .await
-        .unwrap();
+        .request(reqwest::Method::DELETE, "/v1/experiments")
+        .await;
     assert_eq!(r.status().as_u16(), 405);
     let body: serde_json::Value = r.json().await.unwrap();
     assert_eq!(code(&body), "method_not_allowed");

@@ -158,7 +158,8 @@ pub async fn spawn_app_with_limits(db_path: &Path, limits: Limits) -> TestApp {
     .await
 }
 
-async fn open_store(db_path: &Path) -> Store {
+/// Opens the store at `db_path` (the server's file, a backup) as the server does.
+pub async fn open_store(db_path: &Path) -> Store {
     Store::open(db_path.to_str().unwrap())
         .await
         .expect("open store")
@@ -266,6 +267,16 @@ impl TestApp {
         let (status, body) = self.post_at(id, "trajectories", trajectory).await;
         assert_eq!(status, 201, "{body}");
         body
+    }
+
+    /// Sends a bodiless `method` request to `path` and returns the whole response (for the
+    /// headers and statuses that [`TestApp::get`] does not show).
+    pub async fn request(&self, method: reqwest::Method, path: &str) -> reqwest::Response {
+        self.client
+            .request(method, self.url(path))
+            .send()
+            .await
+            .unwrap()
     }
 
     pub async fn post_raw(&self, path: &str, body: impl Into<reqwest::Body>) -> (u16, Value) {

@@ -286,9 +286,7 @@ async fn an_online_backup_is_a_consistent_copy() {
     }
     let (dir, db, app, id) = app_with_rows(3).await;
     // While the server is serving.
-    let live = precond::store::Store::open(db.to_str().unwrap())
-        .await
-        .unwrap();
+    let live = open_store(&db).await;
     let copy = dir.path().join("backup.db");
     live.backup_to(copy.to_str().unwrap()).await.unwrap();
     live.close().await;
@@ -296,9 +294,7 @@ async fn an_online_backup_is_a_consistent_copy() {
         .post_at(id, "trajectories", &free_row_trajectory(0, 3, 4))
         .await;
     assert_eq!(status, 201, "the server keeps writing");
-    let backup = precond::store::Store::open(copy.to_str().unwrap())
-        .await
-        .unwrap();
+    let backup = open_store(&copy).await;
     let size = backup.size().await.unwrap();
     assert_eq!(
         (size.experiments, size.trajectories, size.transitions),
@@ -327,9 +323,7 @@ async fn a_backup_reports_its_own_counts_and_leaves_nothing_half_written() {
         (1, 2, 8)
     );
     assert_eq!(size.bytes as u64, std::fs::metadata(&copy).unwrap().len());
-    let opened = precond::store::Store::open(copy.to_str().unwrap())
-        .await
-        .unwrap();
+    let opened = open_store(&copy).await;
     let inside = opened.size().await.unwrap();
     assert_eq!(
         (inside.experiments, inside.trajectories, inside.transitions),
