@@ -21,6 +21,11 @@ async fn raw(app: &TestApp, request: String) -> (u16, Value) {
     (status, serde_json::from_str(body).unwrap_or(Value::Null))
 }
 
+/// A GET with `headers` (`Name: value` lines).
+fn get(path: &str, host: &str, headers: &str) -> String {
+    format!("GET {path} HTTP/1.1\r\nHost: {host}\r\n{headers}Connection: close\r\n\r\n")
+}
+
 /// A POST with `headers` (`Name: value` lines) and `body`.
 fn post(path: &str, host: &str, headers: &str, body: &str) -> String {
     format!(
@@ -28,6 +33,12 @@ fn post(path: &str, host: &str, headers: &str, body: &str) -> String {
          Connection: close\r\n\r\n{body}",
         body.len()
     )
+}
+
+/// A raw POST of `body` with `headers` to `/v1/experiments` on `host`: creates an experiment,
+/// or is refused.
+async fn post_experiment(app: &TestApp, host: &str, headers: &str, body: &str) -> (u16, Value) {
+    raw(app, post("/v1/experiments", host, headers, body)).await
 }
 
 async fn experiments(app: &TestApp) -> i64 {
@@ -47,11 +58,7 @@ async fn bodies_not_declared_as_json_are_415_in_the_error_shape() {
         None,
     ] {
         let header = content_type.map_or(String::new(), |ct| format!("Content-Type: {ct}\r\n"));
-        let (status, err) = raw(
-            &app,
-            post("/v1/experiments", &host, &header, r#"{"name":"csrf"}"#),
-        )
-        .await;
+        let (status, err) = post_experiment(&app, &host, &header, r#"{"name":"csrf"}"#).await;
         assert_eq!(
             (status, code(&err)),
             (415, "unsupported_media_type"),
@@ -62,16 +69,8 @@ async fn bodies_not_declared_as_json_are_415_in_the_error_shape() {
     assert_eq!(experiments(&app).await, 0, "nothing was created");
     // Declared as JSON (any case, with parameters) it is accepted.
     for ct in ["application/json", "Application/JSON; charset=utf-8"] {
-        let (status, body) = raw(
-            &app,
-            post(
-                "/v1/experiments",
-                &host,
-                &format!("Content-Type: {ct}\r\n"),
-                "{}",
-            ),
-        )
-        .await;
+        let (status, body) =
+            post_experiment(&app, &host, &format!("Content-Type: {ct}\r\n"), "{}").await;
         assert_eq!(status, 201, "{ct}: {body}");
     }
     // An ingest posted as a form is refused too; a bodiless POST (refit, abandon) needs none.
@@ -104,20 +103,12 @@ async fn a_tokenless_loopback_server_answers_only_its_own_names_and_pages() {
         format!("attacker.example:{port}"),
         "localhost.attacker.example".into(),
     ] {
-        let (status, err) = raw(
-            &app,
-            format!("GET /v1/experiments HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"),
-        )
-        .await;
+        let (status, err) = raw(&app, get("/v1/experiments", &host, "")).await;
         assert_eq!((status, code(&err)), (403, "forbidden"), "{host}: {err}");
         assert!(message(&err).contains(&host));
     }
     // Health probes stay open.
-    let (status, _) = raw(
-        &app,
-        "GET /healthz HTTP/1.1\r\nHost: probe.example\r\nConnection: close\r\n\r\n".into(),
-    )
-    .await;
+    let (status, _) = raw(&app, get("/healthz", "probe.example", "")).await;
     assert_eq!(status, 200);
     // This machine's names all pass.
     for host in [
@@ -125,11 +116,7 @@ async fn a_tokenless_loopback_server_answers_only_its_own_names_and_pages() {
         format!("localhost:{port}"),
         "[::1]".into(),
     ] {
-        let (status, body) = raw(
-            &app,
-            format!("GET /v1/experiments HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"),
-        )
-        .await;
+        let (status, body) = raw(&app, get("/v1/experiments", &host, "")).await;
         assert_eq!(status, 200, "{host}: {body}");
     }
     // A write from another site's page is refused, even declared as JSON; one from the
@@ -140,31 +127,15 @@ async fn a_tokenless_loopback_server_answers_only_its_own_names_and_pages() {
         "null".into(),
         format!("http://127.0.0.1:{}", port.wrapping_add(1)),
     ] {
-        let (status, err) = raw(
-            &app,
-            post(
-                "/v1/experiments",
-                &own,
-                &format!("{json_ct}Origin: {origin}\r\n"),
-                "{}",
-            ),
-        )
-        .await;
+        let (status, err) =
+            post_experiment(&app, &own, &format!("{json_ct}Origin: {origin}\r\n"), "{}").await;
         assert_eq!((status, code(&err)), (403, "forbidden"), "{origin}: {err}");
     }
     assert_eq!(experiments(&app).await, 0);
-    let (status, body) = raw(
-        &app,
-        post(
-            "/v1/experiments",
-            &own,
-            &format!("{json_ct}Origin: http://{own}\r\n"),
-            "{}",
-        ),
-    )
-    .await;
+    let same_site = format!("{json_ct}Origin: http://{own}\r\n");
+    let (status, body) = post_experiment(&app, &own, &same_site, "{}").await;
     assert_eq!(status, 201, "{body}");
-    let (status, body) = raw(&app, post("/v1/experiments", &own, json_ct, "{}")).await;
+    let (status, body) = post_experiment(&app, &own, json_ct, "{}").await;
     assert_eq!(status, 201, "{body}");
 }
 
@@ -185,32 +156,23 @@ async fn with_tokens_the_host_is_not_checked_but_bodies_must_be_json() {
     let auth = format!("Authorization: Bearer {token}\r\n");
     let (status, body) = raw(
         &app,
-        format!(
-            "GET /v1/experiments HTTP/1.1\r\nHost: lab-server.example:8080\r\n{auth}\
-             Connection: close\r\n\r\n"
-        ),
+        get("/v1/experiments", "lab-server.example:8080", &auth),
     )
     .await;
     assert_eq!(status, 200, "a lab server behind any name: {body}");
-    let (status, err) = raw(
+    let (status, err) = post_experiment(
         &app,
-        post(
-            "/v1/experiments",
-            "lab-server.example",
-            &format!("{auth}Content-Type: text/plain\r\n"),
-            "{}",
-        ),
+        "lab-server.example",
+        &format!("{auth}Content-Type: text/plain\r\n"),
+        "{}",
     )
     .await;
     assert_eq!((status, code(&err)), (415, "unsupported_media_type"));
-    let (status, body) = raw(
+    let (status, body) = post_experiment(
         &app,
-        post(
-            "/v1/experiments",
-            "lab-server.example",
-            &format!("{auth}Content-Type: application/json\r\n"),
-            &json!({}).to_string(),
-        ),
+        "lab-server.example",
+        &format!("{auth}Content-Type: application/json\r\n"),
+        &json!({}).to_string(),
     )
     .await;
     assert_eq!(status, 201, "{body}");
