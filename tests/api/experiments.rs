@@ -1,5 +1,5 @@
 use crate::helpers::*;
-use serde_json::json;
+use serde_json::{Value, json};
 
 #[tokio::test]
 async fn health_and_readiness_answer() {
@@ -36,11 +36,21 @@ async fn an_empty_request_resolves_every_default() {
     assert_eq!(one["learning"], e["learning"]);
 }
 
+/// Creates an experiment from each request body and asserts that it is created (201) with the
+/// setting at `section.field` resolved as paired.
+async fn assert_resolves(app: &TestApp, section: &str, field: &str, cases: &[(Value, Value)]) {
+    for (body, expected) in cases {
+        let (status, e) = app.post("/v1/experiments", body).await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(&e[section][field], expected, "{body}");
+    }
+}
+
 #[tokio::test]
 async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relaxes_unless_told_otherwise()
  {
     let (_dir, app) = fresh_app().await;
-    for (body, cap) in [
+    let cases = [
         (json!({"learning": {"preset": "paper"}}), json!(0.0)),
         (
             json!({"learning": {"preset": "paper"}, "mde": {"label_cap": 3}}),
@@ -51,50 +61,38 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
             json!({"learning": {"preset": "paper"}, "mde": {"label_cap": "auto"}}),
             json!("auto"),
         ),
-    ] {
-        let (status, e) = app.post("/v1/experiments", &body).await;
-        assert_eq!(status, 201, "{e}");
-        assert_eq!(e["mde"]["label_cap"], cap, "{body}");
-    }
-    for (body, kernel) in [
-        (json!({"learning": {"preset": "paper"}}), "matern52"),
+    ];
+    assert_resolves(&app, "mde", "label_cap", &cases).await;
+    let cases = [
+        (json!({"learning": {"preset": "paper"}}), json!("matern52")),
         (
             json!({"learning": {"preset": "paper"}, "mde": {"kernel": "matern12"}}),
-            "matern12",
+            json!("matern12"),
         ),
-        (json!({"mde": {"kernel": "matern32"}}), "matern32"),
-        (json!({"mde": {"kernel": null}}), "auto"),
-        (json!({"mde": {"kernel": "auto"}}), "auto"),
-    ] {
-        let (status, e) = app.post("/v1/experiments", &body).await;
-        assert_eq!(status, 201, "{e}");
-        assert_eq!(e["mde"]["kernel"], kernel, "{body}");
-    }
-    for (body, relaxes) in [
-        (json!({"learning": {"preset": "paper"}}), false),
+        (json!({"mde": {"kernel": "matern32"}}), json!("matern32")),
+        (json!({"mde": {"kernel": null}}), json!("auto")),
+        (json!({"mde": {"kernel": "auto"}}), json!("auto")),
+    ];
+    assert_resolves(&app, "mde", "kernel", &cases).await;
+    let cases = [
+        (json!({"learning": {"preset": "paper"}}), json!(false)),
         (
             json!({"learning": {"preset": "paper", "relax_beta": true}}),
-            true,
+            json!(true),
         ),
-        (json!({"learning": {"relax_beta": false}}), false),
-    ] {
-        let (status, e) = app.post("/v1/experiments", &body).await;
-        assert_eq!(status, 201, "{e}");
-        assert_eq!(e["learning"]["relax_beta"], relaxes, "{body}");
-    }
-    for (body, diversifies) in [
-        (json!({"learning": {"preset": "paper"}}), false),
+        (json!({"learning": {"relax_beta": false}}), json!(false)),
+    ];
+    assert_resolves(&app, "learning", "relax_beta", &cases).await;
+    let cases = [
+        (json!({"learning": {"preset": "paper"}}), json!(false)),
         (
             json!({"learning": {"preset": "paper", "batch_diversity": true}}),
-            true,
+            json!(true),
         ),
-        (json!({"learning": {"batch_diversity": true}}), true),
-        (json!({"learning": {}}), false),
-    ] {
-        let (status, e) = app.post("/v1/experiments", &body).await;
-        assert_eq!(status, 201, "{e}");
-        assert_eq!(e["learning"]["batch_diversity"], diversifies, "{body}");
-    }
+        (json!({"learning": {"batch_diversity": true}}), json!(true)),
+        (json!({"learning": {}}), json!(false)),
+    ];
+    assert_resolves(&app, "learning", "batch_diversity", &cases).await;
 }
 
 #[tokio::test]
