@@ -887,6 +887,11 @@ pub struct PlanRequest {
     /// is the client's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<CandidateTrajectory>>,
+    /// The search's extension budget for this plan, 1 to 200 000; default
+    /// `learning.max_extensions`. A longer search tells "no plan inside the precondition" from
+    /// "none found in time"; it still ends at the planning deadline. Not with `candidates`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub max_extensions: Option<u32>,
 }
 
 /// A test-time plan.

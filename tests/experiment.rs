@@ -232,3 +232,49 @@ async fn a_quick_water_plant_experiment_draws_the_precondition_maps() {
         assert!(svg.starts_with("<svg") && svg.len() > 1000, "{name}");
     }
 }
+
+/// On a continuous world the share solvable inside the learned precondition comes from a
+/// search ten times longer than the planner's: every problem the planner solved counts, and a
+/// problem counts only if one of the two searches found a plan.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_continuous_world_reports_what_a_long_search_finds_inside_the_learned_precondition() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = run_quick(
+        &[
+            "--domain",
+            "pusher",
+            "--seeds",
+            "1",
+            "--strategies",
+            "active",
+            "--test-problems",
+            "6",
+            "--max-extensions",
+            "300",
+            "--jobs",
+            "2",
+        ],
+        dir.path(),
+    )
+    .await;
+    let (header, rows) = parse_csv(&out.join("iterations.csv"));
+    let col = |name: &str| header.iter().position(|h| h == name).unwrap();
+    assert_eq!(rows.len(), 3);
+    for r in &rows {
+        let found: usize = r[col("plans_found")].parse().unwrap();
+        let learned: usize = r[col("learned_solvable")].parse().unwrap();
+        assert!(found <= learned && learned <= 6, "{r:?}");
+        let rate: f64 = r[col("learned_rate")].parse().unwrap();
+        assert!((rate - learned as f64 / 6.0).abs() < 1e-9, "{r:?}");
+    }
+    let (test_header, tests) = parse_csv(&out.join("tests.csv"));
+    let tcol = |name: &str| test_header.iter().position(|h| h == name).unwrap();
+    assert_eq!(tests.len(), 3 * 6);
+    for t in &tests {
+        let learned = &t[tcol("learned")];
+        assert!(learned == "true" || learned == "false", "{t:?}");
+        if t[tcol("found")] == "true" {
+            assert_eq!(learned, "true", "a plan found is inside: {t:?}");
+        }
+    }
+}

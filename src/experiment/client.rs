@@ -218,11 +218,24 @@ impl ApiClient {
     /// the server's planning deadline (`503 deadline_exceeded`) is answered as no plan found,
     /// with the extensions it spent.
     pub async fn plan(&self, id: i64, start: &[f64], goal: &[f64]) -> anyhow::Result<PlanResponse> {
+        self.plan_within(id, start, goal, None).await
+    }
+
+    /// [`plan`](Self::plan) with a search budget of `max_extensions` (`None`: the
+    /// experiment's `learning.max_extensions`).
+    pub async fn plan_within(
+        &self,
+        id: i64,
+        start: &[f64],
+        goal: &[f64],
+        max_extensions: Option<u32>,
+    ) -> anyhow::Result<PlanResponse> {
         let body = PlanRequest {
             start: start.to_vec(),
             goal: goal.to_vec(),
             beta: None,
             candidates: None,
+            max_extensions,
         };
         let what = "POST /plans";
         let (status, body) = self

@@ -43,6 +43,9 @@ use serde::Serialize;
 use std::sync::Arc;
 use std::time::Instant;
 
+/// See [`Bench::long_search_factor`].
+pub const LONG_SEARCH_FACTOR: u32 = 10;
+
 /// The client-side view of a built-in world: its domain (the model, goal test and samplers)
 /// and its simulator, like a robot's own code would hold them.
 #[derive(Debug, Clone)]
@@ -212,6 +215,15 @@ impl Bench {
             Self::Plant(p) => p.world(),
             Self::Continuous { world, .. } => world.world(),
         }
+    }
+
+    /// How many times the experiment's extension budget a continuous world's *learned*
+    /// solvability is searched with: a test problem the planner did not solve at the default
+    /// budget is searched again this much longer, and counts as solvable inside the learned
+    /// precondition if that search finds a plan (the gridworld's is exhaustive instead; the
+    /// water plant's is not measured). `None` where it does not apply.
+    pub fn long_search_factor(&self) -> Option<u32> {
+        matches!(self, Self::Continuous { .. }).then_some(LONG_SEARCH_FACTOR)
     }
 
     /// Whether plans are executed closed loop too (not the water plant, whose plans are a pour
@@ -510,8 +522,10 @@ pub struct IterationRecord {
     pub oracle_solvable: usize,
     /// `oracle_solvable / test_problems`, where the oracle is known.
     pub oracle_rate: Option<f64>,
-    /// Test problems solvable inside the *learned* precondition at test β (an exhaustive
-    /// search over the model's moves the service trusts; gridworld, 0 elsewhere).
+    /// Test problems solvable inside the *learned* precondition at test β (gridworld: an
+    /// exhaustive search over the model's moves the service trusts; continuous worlds: found
+    /// by the planner or by a search [`Bench::long_search_factor`] times longer; 0 for the
+    /// water plant).
     pub learned_solvable: usize,
     /// `learned_solvable / test_problems`, where it is known.
     pub learned_rate: Option<f64>,
@@ -620,7 +634,7 @@ pub struct TestRecord {
     /// The problem is solvable inside the true precondition (`None` where that is unknown).
     pub oracle: Option<bool>,
     /// The problem is solvable inside the learned precondition at test β (`None` where that
-    /// is not searched exhaustively: outside the gridworld).
+    /// is not searched: the water plant; see [`IterationRecord::learned_solvable`]).
     pub learned: Option<bool>,
     /// Steps of the plan whose true deviation from the plan's own state is at least `d_max`.
     pub unsafe_steps: usize,
@@ -962,6 +976,21 @@ impl Run<'_> {
                 oracle_closed_loop: references.map(|r| r.oracle_closed_loop),
                 baseline: references.map(|r| r.baseline),
             };
+            if let Some(factor) = self.bench.long_search_factor() {
+                test.learned = Some(
+                    plan.found || {
+                        let budget = self
+                            .cfg
+                            .max_extensions
+                            .saturating_mul(factor)
+                            .min(crate::limits::MAX_EXTENSIONS);
+                        self.client
+                            .plan_within(self.id, problem.start(), problem.goal(), Some(budget))
+                            .await?
+                            .found
+                    },
+                );
+            }
             if let (true, Some(traj)) = (plan.found, plan.trajectory.as_ref()) {
                 test.found = true;
                 test.plan_length = traj.actions.len();

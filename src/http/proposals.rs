@@ -87,6 +87,7 @@ pub async fn create_plan(
             request.goal,
             request.beta,
             request.candidates,
+            request.max_extensions,
         )
         .await?;
     Ok(Json(render::plan(planned)))

@@ -130,4 +130,15 @@ impl PlanningSettings {
     pub fn acquisition(&self) -> &AcquisitionSettings {
         &self.acquisition
     }
+
+    /// The same settings with a search budget of `max_extensions` (at least 1) per RRT run:
+    /// one test-time plan that searches longer or shorter than the experiment's default.
+    pub fn with_max_extensions(&self, max_extensions: usize) -> Self {
+        let mut planner = self.planner.clone();
+        planner.max_extensions = max_extensions.max(1);
+        Self {
+            planner,
+            acquisition: self.acquisition,
+        }
+    }
 }

@@ -359,8 +359,23 @@ impl Service {
         goal: Vec<f64>,
         beta: Option<f64>,
         candidates: Option<Vec<CandidateTrajectory>>,
+        max_extensions: Option<u32>,
     ) -> Result<Planned> {
         let arrived = std::time::Instant::now();
+        if let Some(n) = max_extensions {
+            if !(1..=crate::limits::MAX_EXTENSIONS).contains(&n) {
+                return Err(Error::validation(
+                    "max_extensions",
+                    format!("must lie in 1 to {}", crate::limits::MAX_EXTENSIONS),
+                ));
+            }
+            if candidates.is_some() {
+                return Err(Error::validation(
+                    "max_extensions",
+                    "applies to the service's search, not to the client's candidates",
+                ));
+            }
+        }
         let live = self.live(id).await?;
         let problem = live.problem(start, goal)?;
         let precondition = at_beta_or_test(&live, beta)?;
@@ -394,7 +409,11 @@ impl Service {
         );
         let outcome = self
             .search(id, arrived, super::SearchKind::Plan, move |budget| {
-                live.planner(&model)
+                let settings = match max_extensions {
+                    Some(n) => live.planning.with_max_extensions(n as usize),
+                    None => live.planning.clone(),
+                };
+                planning::Planner::new(live.domain.as_ref(), model.as_ref(), &settings)
                     .within(budget.clone())
                     .plan(&problem, precondition, seed)
             })

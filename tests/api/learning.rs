@@ -582,3 +582,47 @@ async fn two_robots_in_one_batch(diversity: bool) -> (Vec<(Value, Value)>, Vec<(
     assert_eq!(status, 201, "{c}");
     (planned_steps(&b), planned_steps(&c))
 }
+
+/// A test-time plan may search longer or shorter than the experiment's budget; the budget is
+/// checked at the door, and does not apply to the client's own candidates.
+#[tokio::test]
+async fn a_plan_searches_within_the_budget_it_asks_for() {
+    let (_dir, app, id) = fresh_experiment(json!({"learning": {"max_extensions": 20}})).await;
+    // Before any data nothing is trusted, so a search spends its whole budget.
+    let ask = |extra: Value| {
+        let mut body = json!({"start": [5, 0], "goal": [5, 5]});
+        body.as_object_mut()
+            .unwrap()
+            .extend(extra.as_object().unwrap().clone());
+        body
+    };
+    for (extra, spent) in [
+        (json!({}), 20),
+        (json!({"max_extensions": 50}), 50),
+        (json!({"max_extensions": 1}), 1),
+        (json!({"max_extensions": null}), 20),
+    ] {
+        let (status, plan) = app.post_at(id, "plans", &ask(extra.clone())).await;
+        assert_eq!(status, 200, "{extra}: {plan}");
+        assert_eq!(plan["found"], false, "{extra}");
+        assert_eq!(plan["extensions"], spent, "{extra}: {plan}");
+    }
+    for (extra, why) in [
+        (json!({"max_extensions": 0}), "must lie in 1 to 200000"),
+        (
+            json!({"max_extensions": 200_001}),
+            "must lie in 1 to 200000",
+        ),
+        (
+            json!({"max_extensions": 10,
+                   "candidates": [{"states": [[5, 0], [5, 1]], "actions": [[0, 1]]}]}),
+            "applies to the service's search, not to the client's candidates",
+        ),
+    ] {
+        let (status, err) = app.post_at(id, "plans", &ask(extra.clone())).await;
+        assert_eq!(status, 422, "{extra}: {err}");
+        assert_eq!(err["error"]["details"]["field"], "max_extensions", "{err}");
+        assert_eq!(reason(&err), why);
+    }
+    app.stop().await;
+}

@@ -198,6 +198,9 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         mine = Candidate([[0.1, 0.2], [0.2, 0.2], [0.3, 0.2]], [[0.1, 0.0], [0.1, 0.0]])
         scored = client.plan([0.1, 0.2], [0.3, 0.2], beta=-3.0, candidates=[mine])
         assert scored.candidates is not None and scored.candidates[0].reaches_goal
+        # Nothing is trusted at β = 1000, so a search spends the whole budget it asks for.
+        short = client.plan([0.1, 0.2], [0.9, 0.8], beta=1000.0, max_extensions=7)
+        assert not short.found and short.extensions == 7
 
 
 def test_a_proposal_continues_from_where_the_robot_is(make_server: MakeServer) -> None:

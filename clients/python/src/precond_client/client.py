@@ -403,14 +403,19 @@ class Client:
         goal: ArrayLike,
         beta: float | None = None,
         candidates: Sequence[Candidate] | None = None,
+        max_extensions: int | None = None,
     ) -> Plan:
         """A test-time plan inside the precondition at ``beta`` (default the experiment's test
-        β); ``found`` is false when there is none. Nothing is stored."""
+        β); ``found`` is false when there is none. Nothing is stored. ``max_extensions``: this
+        search's budget (default the experiment's ``learning.max_extensions``), e.g. ten times
+        it to tell "no plan inside the precondition" from "none found in time"."""
         body: dict[str, Any] = {"start": as_list(start), "goal": as_list(goal)}
         if beta is not None:
             body["beta"] = float(beta)
         if candidates is not None:
             body["candidates"] = [c.to_json() for c in candidates]
+        if max_extensions is not None:
+            body["max_extensions"] = int(max_extensions)
         return Plan.from_json(self._request("POST", self._path("/plans"), json=body).json())
 
     # ------------------------------------------------------------------ trajectories
