@@ -298,6 +298,18 @@ fn split_columns<'a>(mut buf: &'a mut [f64], n: usize, bounds: &[usize]) -> Vec<
     out
 }
 
+/// Calls the generic `$f::<K>($args)` with `K` the [`Form`] of `$kernel`: one compiled copy of
+/// the loops per kernel.
+macro_rules! with_form {
+    ($kernel:expr, $f:ident($($arg:expr),* $(,)?)) => {
+        match $kernel {
+            Kernel::Matern12 => $f::<M12>($($arg),*),
+            Kernel::Matern32 => $f::<M32>($($arg),*),
+            Kernel::Matern52 => $f::<M52>($($arg),*),
+        }
+    };
+}
+
 /// Fills the lower triangle (diagonal included) of the training covariance
 /// `a = s² R + diag(diag_add)` and, when `g` is given, the strict lower triangle of
 /// `G_ij = 5/3 s² (1 + √5 r_ij) exp(−√5 r_ij)`.
@@ -316,11 +328,7 @@ pub(crate) fn build_train(
     a: &mut [f64],
     g: Option<&mut [f64]>,
 ) {
-    match kernel {
-        Kernel::Matern12 => build_train_with::<M12>(xs, n, d, s2, diag_add, a, g),
-        Kernel::Matern32 => build_train_with::<M32>(xs, n, d, s2, diag_add, a, g),
-        Kernel::Matern52 => build_train_with::<M52>(xs, n, d, s2, diag_add, a, g),
-    }
+    with_form!(kernel, build_train_with(xs, n, d, s2, diag_add, a, g))
 }
 
 fn build_train_with<K: Form>(
@@ -398,38 +406,21 @@ pub(crate) fn build_cross(
     s2: f64,
     out: &mut [f64],
 ) {
-    match kernel {
-        Kernel::Matern12 => build_cross_with::<M12>(xs, n, qs, m, d, s2, out),
-        Kernel::Matern32 => build_cross_with::<M32>(xs, n, qs, m, d, s2, out),
-        Kernel::Matern52 => build_cross_with::<M52>(xs, n, qs, m, d, s2, out),
-    }
-}
-
-fn build_cross_with<K: Form>(
-    xs: &[f64],
-    n: usize,
-    qs: &[f64],
-    m: usize,
-    d: usize,
-    s2: f64,
-    out: &mut [f64],
-) {
     let threads = threads_for(n * m * (d + 4)).min(m.max(1));
+    // Query `j0 + j` is point `j` of `qs[j0..]` (coordinate stride `m`).
     let work = |j0: usize, part: &mut [f64]| {
-        for (jj, col) in part.chunks_exact_mut(n).enumerate() {
-            let j = j0 + jj;
-            col.iter_mut().for_each(|v| *v = 0.0);
-            for k in 0..d {
-                let q = qs[k * m + j];
-                for (acc, &v) in col.iter_mut().zip(&xs[k * n..(k + 1) * n]) {
-                    let t = v - q;
-                    *acc += t * t;
-                }
-            }
-            for v in col.iter_mut() {
-                *v = K::k(*v, s2);
-            }
-        }
+        cross_seq(
+            kernel,
+            xs,
+            n,
+            &qs[j0..],
+            m,
+            part.len() / n,
+            d,
+            s2,
+            part,
+            None,
+        );
     };
     if threads <= 1 {
         work(0, out);
@@ -461,11 +452,10 @@ pub(crate) fn cross_seq(
     k_out: &mut [f64],
     g_out: Option<&mut [f64]>,
 ) {
-    match kernel {
-        Kernel::Matern12 => cross_seq_with::<M12>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
-        Kernel::Matern32 => cross_seq_with::<M32>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
-        Kernel::Matern52 => cross_seq_with::<M52>(zs, m, qs, q_stride, c, d, s2, k_out, g_out),
-    }
+    with_form!(
+        kernel,
+        cross_seq_with(zs, m, qs, q_stride, c, d, s2, k_out, g_out)
+    )
 }
 
 #[allow(clippy::too_many_arguments)]
