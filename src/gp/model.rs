@@ -250,64 +250,44 @@ impl GpModel {
             initial: 0.0,
             max: 0.0,
         };
-        match (state.noise, &state.noise_model) {
-            (NoiseMode::Homoscedastic, None) => {
-                let main = Core::build(
-                    h.kernel,
-                    &x,
-                    y,
-                    h.prior_mean,
-                    &h.length_scales,
-                    h.signal_variance,
-                    vec![h.noise_variance; x.n],
-                    fixed,
-                    state.jitter,
-                )?;
-                Ok(GpModel {
-                    x,
-                    mode: NoiseMode::Homoscedastic,
-                    homo_lml: main.lml,
-                    main,
-                    noise_model: None,
-                    hyper: h.clone(),
-                    rounds: 0,
-                    stats: None,
-                })
-            }
+        let (noise, noise_model) = match (state.noise, &state.noise_model) {
+            (NoiseMode::Homoscedastic, None) => (vec![h.noise_variance; x.n], None),
             (NoiseMode::Heteroscedastic, Some(ns)) => {
                 let nm = NoiseModel::from_state(&x, ns)?;
-                let noise = nm.train_noise();
-                let main = Core::build(
-                    h.kernel,
-                    &x,
-                    y,
-                    h.prior_mean,
-                    &h.length_scales,
-                    h.signal_variance,
-                    noise,
-                    fixed,
-                    state.jitter,
-                )?;
-                let homo_lml = if ns.homoscedastic_lml.is_finite() {
-                    ns.homoscedastic_lml
-                } else {
-                    main.lml
-                };
-                Ok(GpModel {
-                    x,
-                    mode: NoiseMode::Heteroscedastic,
-                    main,
-                    noise_model: Some(nm),
-                    hyper: h.clone(),
-                    homo_lml,
-                    rounds: ns.rounds,
-                    stats: None,
-                })
+                (nm.train_noise(), Some((nm, ns)))
             }
-            _ => Err(GpError::InvalidState(
-                "noise mode and noise model disagree".into(),
-            )),
-        }
+            _ => {
+                return Err(GpError::InvalidState(
+                    "noise mode and noise model disagree".into(),
+                ));
+            }
+        };
+        let main = Core::build(
+            h.kernel,
+            &x,
+            y,
+            h.prior_mean,
+            &h.length_scales,
+            h.signal_variance,
+            noise,
+            fixed,
+            state.jitter,
+        )?;
+        let (homo_lml, rounds) = match &noise_model {
+            Some((_, ns)) if ns.homoscedastic_lml.is_finite() => (ns.homoscedastic_lml, ns.rounds),
+            Some((_, ns)) => (main.lml, ns.rounds),
+            None => (main.lml, 0),
+        };
+        Ok(GpModel {
+            x,
+            mode: state.noise,
+            main,
+            noise_model: noise_model.map(|(nm, _)| nm),
+            hyper: h.clone(),
+            homo_lml,
+            rounds,
+            stats: None,
+        })
     }
 
     /// The state to store so that [`from_state`](Self::from_state) can rebuild this model.
