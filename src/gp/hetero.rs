@@ -65,11 +65,11 @@ pub fn log_residual_bias(rho: f64) -> f64 {
 
 /// Relative function tolerance floor for the noise GP's optimiser: its targets are log
 /// residuals with a variance of several units, so optimising their LML to 1e-9 buys nothing.
-const NOISE_MODEL_FTOL: f64 = 1e-6;
+pub(crate) const NOISE_MODEL_FTOL: f64 = 1e-6;
 
 /// The noise GP's kernel, whatever the main GP's: the log noise level is a smooth summary of
 /// where the residuals are large, not a function that jumps.
-const NOISE_MODEL_KERNEL: Kernel = Kernel::Matern52;
+pub(crate) const NOISE_MODEL_KERNEL: Kernel = Kernel::Matern52;
 
 /// The fitted noise GP.
 #[derive(Clone, Debug)]
@@ -190,6 +190,25 @@ fn log_noise_targets(core: &Core) -> Vec<f64> {
         .collect()
 }
 
+/// The range the noise variances of a heteroscedastic GP with labels `y` are clipped to: the
+/// noise variance `bounds`, the upper one lowered to the labels' variance.
+///
+/// A point's noise variance cannot exceed the labels' total variance: otherwise the noise GP
+/// can absorb structure (a large-label cluster explained as noise around a flat mean), and the
+/// main GP, refitted under that fixed noise, has no reason to model it (a self-reinforcing
+/// fixed point of the alternation; seen on the water plant, where it left some fits with the
+/// signal variance at its floor and nothing trusted).
+pub(crate) fn noise_clip(y: &[f64], (lo, hi): (f64, f64)) -> (f64, f64) {
+    let my = mean(y);
+    let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
+    (lo, hi.min(var_y).max(lo))
+}
+
+/// The seed of the noise GP's fit in heteroscedastic round `round` of a fit seeded `seed`.
+pub(crate) fn round_seed(seed: u64, round: usize) -> u64 {
+    seed.wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1))
+}
+
 /// Runs steps 2–5 starting from the homoscedastic model `homo` whose `[log ℓ, log s²]` are `theta_main`.
 pub(crate) fn fit(
     x: &Inputs,
@@ -201,15 +220,7 @@ pub(crate) fn fit(
     let d = x.d;
     let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
     let jitter = fit::jitter(p);
-    // A point's noise variance cannot exceed the labels' total variance: otherwise the noise GP
-    // can absorb structure (a large-label cluster explained as noise around a flat mean), and the
-    // main GP, refitted under that fixed noise, has no reason to model it (a self-reinforcing
-    // fixed point of the alternation; seen on the water plant, where it left some fits with the
-    // signal variance at its floor and nothing trusted).
-    let my = mean(y);
-    let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
-    let (clip_lo, clip_hi) = p.bounds.noise_variance;
-    let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
+    let clip = noise_clip(y, p.bounds.noise_variance);
     let mut best: Option<Fitted> = None;
     let mut current_theta = theta_main.to_vec();
     let mut main_memory = Vec::new();
@@ -221,9 +232,7 @@ pub(crate) fn fit(
         let z = log_noise_targets(best.as_ref().map_or(&homo, |b| &b.main));
         let mz = mean(&z);
         let rz: Vec<f64> = z.iter().map(|v| v - mz).collect();
-        let seed = p
-            .seed
-            .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
+        let seed = round_seed(p.seed, round);
         let g = optimise(
             x,
             &rz,

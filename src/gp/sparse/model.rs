@@ -8,7 +8,9 @@ use rand_chacha::ChaCha8Rng;
 use super::super::core::mean;
 use super::super::export::{NoisePredictor, Predictor};
 use super::super::fit::{self, Optimum, Warm, default_start, optimise_with};
-use super::super::hetero::log_residual_bias;
+use super::super::hetero::{
+    NOISE_MODEL_FTOL, NOISE_MODEL_KERNEL, log_residual_bias, noise_clip, round_seed,
+};
 use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
@@ -21,12 +23,6 @@ use super::bound::Bound;
 use super::core::{Ladder, Lambda, SparseCore};
 use super::inducing::greedy_variance;
 use super::{SparseNoiseState, SparseParams, SparseState, ValidSparseParams};
-
-/// The noise GP's kernel (as in the exact heteroscedastic GP).
-const NOISE_MODEL_KERNEL: Kernel = Kernel::Matern52;
-
-/// Relative function tolerance floor of the noise GP's optimiser (as in the exact GP).
-const NOISE_MODEL_FTOL: f64 = 1e-6;
 
 /// Relative function tolerance floor of the main GP's optimiser in the refinement on all the
 /// data after a presolve ([`SparseParams::presolve_subset`]). The refinement starts at the
@@ -305,10 +301,7 @@ fn hetero_rounds(
     let d = x.d;
     let ladder = ladder(sp);
     let r: Vec<f64> = y.iter().map(|v| v - p.prior_mean).collect();
-    let my = mean(y);
-    let var_y = y.iter().map(|v| (v - my) * (v - my)).sum::<f64>() / y.len().max(1) as f64;
-    let (clip_lo, clip_hi) = p.bounds.noise_variance;
-    let clip = (clip_lo, clip_hi.min(var_y).max(clip_lo));
+    let clip = noise_clip(y, p.bounds.noise_variance);
     let noise_z = z.subset(&(0..z.n.min(sp.noise_inducing_points)).collect::<Vec<_>>());
     let noise_setup = Setup {
         p: sp,
@@ -337,9 +330,7 @@ fn hetero_rounds(
         };
         let mz = mean(&targets);
         let rz: Vec<f64> = targets.iter().map(|v| v - mz).collect();
-        let seed = p
-            .seed
-            .wrapping_add(0x9E37_79B9_7F4A_7C15u64.wrapping_mul(round as u64 + 1));
+        let seed = round_seed(p.seed, round);
         let g = optimise_sparse(
             &noise_setup,
             x,
