@@ -9,8 +9,10 @@
 //! the unit box of the state bounds, so that components in different units compare).
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
-use super::{FeatureMap, Space, check_magnitudes, euclidean, segment_clear, uniform_between};
-use crate::limits::MAX_MAGNITUDE;
+use super::{
+    FeatureMap, Space, check_goal_radius, check_magnitudes, euclidean, segment_clear,
+    uniform_between,
+};
 use rand::RngCore;
 use rand::seq::IndexedRandom;
 use std::sync::Arc;
@@ -204,15 +206,7 @@ impl CustomDomain {
             ));
         }
         check_indices(&params.goal_components, n, "goal.components")?;
-        if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
-            return Err(DomainError::at("goal.radius", "must be a positive number"));
-        }
-        if params.goal_radius > MAX_MAGNITUDE {
-            return Err(DomainError::at(
-                "goal.radius",
-                format!("must be at most {MAX_MAGNITUDE:e}"),
-            ));
-        }
+        check_goal_radius("goal.radius", params.goal_radius)?;
         if params.obstacles.len() > MAX_OBSTACLES {
             return Err(DomainError::at(
                 "obstacles",

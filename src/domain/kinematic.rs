@@ -3,10 +3,9 @@
 //! axis-aligned box obstacles for the approximate collision check; a goal is a state with a radius.
 
 use super::{
-    Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space, check_magnitudes,
-    euclidean, segment_clear, uniform_between,
+    Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space, check_goal_radius,
+    check_magnitudes, euclidean, segment_clear, uniform_between,
 };
-use crate::limits::MAX_MAGNITUDE;
 use rand::RngCore;
 
 /// An axis-aligned box that planned edges may not pass through.
@@ -193,15 +192,7 @@ impl Kinematic {
         for (k, o) in params.obstacles.iter().enumerate() {
             o.check(k, n)?;
         }
-        if !(params.goal_radius.is_finite() && params.goal_radius > 0.0) {
-            return Err(DomainError::at("goal_radius", "must be a positive number"));
-        }
-        if params.goal_radius > MAX_MAGNITUDE {
-            return Err(DomainError::at(
-                "goal_radius",
-                format!("must be at most {MAX_MAGNITUDE:e}"),
-            ));
-        }
+        check_goal_radius("goal_radius", params.goal_radius)?;
         let names = |prefix: &str| (0..n).map(|i| format!("{prefix}{i}")).collect::<Vec<_>>();
         let state_space = Space {
             names: names("x"),

@@ -383,6 +383,22 @@ pub fn check_magnitudes(field: &str, values: &[f64]) -> Result<(), DomainError> 
     }
 }
 
+/// Checks a goal radius: a positive number at most
+/// [`MAX_MAGNITUDE`](crate::limits::MAX_MAGNITUDE); the error names `field`.
+pub(crate) fn check_goal_radius(field: &str, radius: f64) -> Result<(), DomainError> {
+    use crate::limits::MAX_MAGNITUDE;
+    if !(radius.is_finite() && radius > 0.0) {
+        return Err(DomainError::at(field, "must be a positive number"));
+    }
+    if radius > MAX_MAGNITUDE {
+        return Err(DomainError::at(
+            field,
+            format!("must be at most {MAX_MAGNITUDE:e}"),
+        ));
+    }
+    Ok(())
+}
+
 /// Euclidean distance between two equally long vectors.
 pub fn euclidean(a: &[f64], b: &[f64]) -> f64 {
     a.iter()
