@@ -42,6 +42,16 @@ struct Served {
     points: AtomicU64,
 }
 
+impl Served {
+    /// The calls and the points served so far.
+    fn counts(&self) -> (u64, u64) {
+        (
+            self.calls.load(Ordering::Relaxed),
+            self.points.load(Ordering::Relaxed),
+        )
+    }
+}
+
 async fn predict(State(served): State<Arc<Served>>, Json(b): Json<Batch>) -> Json<Answer> {
     served.calls.fetch_add(1, Ordering::Relaxed);
     served
@@ -145,24 +155,19 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         st,
         ac,
     )?));
+    let propose = |domain: &CustomDomain, at: Precondition, seed: u64| {
+        Planner::new(domain, &mde, &settings).propose(Strategy::Active, &problem, at, seed)
+    };
     for beta in [-2.0, 0.0, 2.0] {
         let at = Precondition::new(beta, d_max)?;
         let mut runs: Vec<(Duration, u64, u64, String)> = Vec::new();
         for seed in 0..repeats as u64 {
-            let (c0, p0) = (
-                served.calls.load(Ordering::Relaxed),
-                served.points.load(Ordering::Relaxed),
-            );
+            let (c0, p0) = served.counts();
             let t = Instant::now();
-            let p = Planner::new(&domain, &mde, &settings).propose(
-                Strategy::Active,
-                &problem,
-                at,
-                seed,
-            );
+            let p = propose(&domain, at, seed);
             let elapsed = t.elapsed();
-            let calls = served.calls.load(Ordering::Relaxed) - c0;
-            let points = served.points.load(Ordering::Relaxed) - p0;
+            let (c1, p1) = served.counts();
+            let (calls, points) = (c1 - c0, p1 - p0);
             let what = match p {
                 Ok(p) => format!(
                     "{} runs, {} candidates, {} extensions, chosen length {}",
@@ -180,12 +185,7 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
         let mut local_times: Vec<Duration> = (0..repeats as u64)
             .map(|seed| {
                 let t = Instant::now();
-                let _ = Planner::new(&local, &mde, &settings).propose(
-                    Strategy::Active,
-                    &problem,
-                    at,
-                    seed,
-                );
+                let _ = propose(&local, at, seed);
                 t.elapsed()
             })
             .collect();
@@ -196,10 +196,7 @@ fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
             local_times[local_times.len() / 2].as_secs_f64() * 1e3
         );
     }
-    let (c0, p0) = (
-        served.calls.load(Ordering::Relaxed),
-        served.points.load(Ordering::Relaxed),
-    );
+    let (c0, p0) = served.counts();
     let t = Instant::now();
     let planner = Planner::new(&domain, &mde, &settings);
     let out = planner.plan(&problem, Precondition::new(2.0, d_max)?, 0)?;
