@@ -99,21 +99,15 @@ pub async fn get_metrics(State(state): State<AppState>) -> ApiResult<Response> {
     let handle = handle().ok_or_else(|| {
         ApiError::Unavailable("another metrics recorder is installed in this process".into())
     })?;
-    let size = state
-        .service
-        .store()
-        .size()
-        .await
-        .map_err(crate::service::Error::from)?;
+    let store = state.service.store();
+    let size = store.size().await.map_err(crate::service::Error::from)?;
     metrics::gauge!("precond_store_bytes").set(size.bytes as f64);
     metrics::gauge!("precond_store_experiments").set(size.experiments as f64);
     metrics::gauge!("precond_store_trajectories").set(size.trajectories as f64);
     metrics::gauge!("precond_store_transitions").set(size.transitions as f64);
     metrics::gauge!("precond_planning_queue_depth").set(state.service.work().queue_depth() as f64);
     // Fit requests over every replica of the database, and those this replica holds.
-    let jobs = state
-        .service
-        .store()
+    let jobs = store
         .fit_jobs()
         .await
         .map_err(crate::service::Error::from)?;
