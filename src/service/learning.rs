@@ -409,11 +409,15 @@ impl Service {
         );
         let outcome = self
             .search(id, arrived, super::SearchKind::Plan, move |budget| {
-                let settings = match max_extensions {
-                    Some(n) => live.planning.with_max_extensions(n as usize),
-                    None => live.planning.clone(),
+                // The experiment's planner, unless this plan asked for its own budget.
+                let asked = max_extensions.map(|n| live.planning.with_max_extensions(n as usize));
+                let planner = match &asked {
+                    Some(settings) => {
+                        planning::Planner::new(live.domain.as_ref(), model.as_ref(), settings)
+                    }
+                    None => live.planner(&model),
                 };
-                planning::Planner::new(live.domain.as_ref(), model.as_ref(), &settings)
+                planner
                     .within(budget.clone())
                     .plan(&problem, precondition, seed)
             })
