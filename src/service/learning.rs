@@ -218,6 +218,7 @@ impl Service {
                 "nothing to fit: the experiment has no transitions yet".into(),
             ));
         }
+        let refused_before = self.store.fit_refusal_count(id).await?;
         self.store.request_fit(id, true).await?;
         let fit = {
             let (live, store, work, fits) = (
@@ -241,7 +242,9 @@ impl Service {
             if let Some(model) = fitted {
                 return Ok::<_, Error>(model);
             }
-            // Another fit holds the claim: wait for the version it stores to answer here.
+            // Another fit holds the claim: wait for the version it stores to answer here,
+            // or for the refusal of a fit of this data (the fit in flight was refused and the
+            // worker refused the forced one after it).
             loop {
                 let model = live.model();
                 if model
@@ -250,6 +253,16 @@ impl Service {
                     .is_some_and(|f| f.n_trajectories >= stored_now)
                 {
                     return Ok(model);
+                }
+                if self.store.fit_refusal_count(id).await? > refused_before {
+                    if let Some(refusal) = self
+                        .store
+                        .latest_fit_refusal(id)
+                        .await?
+                        .filter(|r| r.n_trajectories >= stored_now)
+                    {
+                        return Err(Error::LimitReached(refusal.reason));
+                    }
                 }
                 tokio::time::sleep(std::time::Duration::from_millis(20)).await;
             }

@@ -169,15 +169,20 @@ impl Store {
         &self,
         experiment_id: i64,
     ) -> Result<Option<FitRefusal>, sqlx::Error> {
-        let count: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM fit_refusals WHERE experiment_id = $1")
-                .bind(experiment_id)
-                .fetch_one(&self.read)
-                .await?;
+        let count = self.fit_refusal_count(experiment_id).await?;
         Ok(self
             .fit_refusals_from(experiment_id, (count - 1).max(0), 1)
             .await?
             .pop())
+    }
+
+    /// How many fits of the experiment were refused so far.
+    #[tracing::instrument(skip(self))]
+    pub async fn fit_refusal_count(&self, experiment_id: i64) -> Result<i64, sqlx::Error> {
+        sqlx::query_scalar("SELECT COUNT(*) FROM fit_refusals WHERE experiment_id = $1")
+            .bind(experiment_id)
+            .fetch_one(&self.read)
+            .await
     }
 
     /// The experiment's refused fits, oldest first, at most `limit`.
