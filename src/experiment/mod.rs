@@ -226,6 +226,10 @@ pub struct ExperimentArgs {
     /// labelled (`true` or `false`). Default: the preset's.
     #[arg(long)]
     pub batch_diversity: Option<bool>,
+    /// The β of test plans and of the held-out judgements (`learning.test_beta`). Default: the
+    /// service's (2).
+    #[arg(long)]
+    pub test_beta: Option<f64>,
 }
 
 impl ExperimentArgs {
@@ -286,6 +290,8 @@ pub struct Config {
     pub acquisition: Option<AcquisitionKind>,
     /// Whether `active` fantasises the state-actions in flight (`None`: the preset's).
     pub batch_diversity: Option<bool>,
+    /// The test β (`None`: the service's).
+    pub test_beta: Option<f64>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -355,6 +361,7 @@ impl Config {
             aggregation: args.aggregation,
             acquisition: args.acquisition,
             batch_diversity: args.batch_diversity,
+            test_beta: args.test_beta,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -437,6 +437,9 @@ fn experiment_body(
                 .unwrap_or(LearningRequest::default().aggregation),
             acquisition: cfg.acquisition,
             batch_diversity: cfg.batch_diversity,
+            test_beta: cfg
+                .test_beta
+                .unwrap_or(LearningRequest::default().test_beta),
             ..LearningRequest::default()
         },
     }
