@@ -8,7 +8,7 @@
 
 use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
-use crate::mde::{EstimatorKind, HeldOutTrust, KernelTrial};
+use crate::mde::{BetaChoice, EstimatorKind, HeldOutTrust, KernelTrial};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{ListOrder, ProposalStatus, RunStatus};
@@ -614,6 +614,16 @@ pub struct ModelResponse {
     /// labels; the one with the highest log marginal likelihood was kept unless another was
     /// clearly better held out (empty otherwise).
     pub kernel_trials: Vec<KernelTrial>,
+    /// The test β the fit's judgement of its own training transitions, each state-action held
+    /// out with all its copies, certifies: the smallest β (grid of 0.1, at most
+    /// `learning.test_beta`) at which at most 2 % of the unsafe ones are trusted, estimated as
+    /// `(trusted unsafe + 1) / (unsafe + 2)`; `learning.test_beta` when none smaller is
+    /// certified (`null` for the prior, where it could not be computed, and for versions
+    /// fitted before it was recorded).
+    pub beta_choice: Option<BetaChoice>,
+    /// The β test plans and the precondition's default judgements use with this version:
+    /// `beta_choice.beta` with `learning.calibrate_test_beta`, else `learning.test_beta`.
+    pub test_beta: f64,
 }
 
 /// A fit the server did not attempt because its estimated peak memory exceeded the budget.

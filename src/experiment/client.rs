@@ -272,7 +272,18 @@ impl ApiClient {
         id: i64,
         points: &[(&[f64], &[f64])],
     ) -> anyhow::Result<Vec<Judgement>> {
+        Ok(self.precondition_at(id, points).await?.0)
+    }
+
+    /// [`ApiClient::precondition`] and the β the service judged at (the experiment's test β,
+    /// or the β its current version certifies).
+    pub async fn precondition_at(
+        &self,
+        id: i64,
+        points: &[(&[f64], &[f64])],
+    ) -> anyhow::Result<(Vec<Judgement>, f64)> {
         let mut out = Vec::with_capacity(points.len());
+        let mut beta = f64::NAN;
         for chunk in points.chunks(MAX_POINTS_PER_QUERY) {
             let body = PreconditionRequest {
                 points: chunk
@@ -297,8 +308,9 @@ impl ApiClient {
                     chunk.len()
                 );
             }
+            beta = j.beta;
             out.extend(j.results);
         }
-        Ok(out)
+        Ok((out, beta))
     }
 }

@@ -230,6 +230,10 @@ pub struct ExperimentArgs {
     /// service's (2).
     #[arg(long)]
     pub test_beta: Option<f64>,
+    /// Whether test plans and held-out judgements use the β each fitted version certifies
+    /// (`learning.calibrate_test_beta`: `true` or `false`). Default: the preset's.
+    #[arg(long)]
+    pub calibrate_test_beta: Option<bool>,
 }
 
 impl ExperimentArgs {
@@ -292,6 +296,8 @@ pub struct Config {
     pub batch_diversity: Option<bool>,
     /// The test β (`None`: the service's).
     pub test_beta: Option<f64>,
+    /// Whether test plans use the certified β (`None`: the preset's).
+    pub calibrate_test_beta: Option<bool>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -362,6 +368,7 @@ impl Config {
             acquisition: args.acquisition,
             batch_diversity: args.batch_diversity,
             test_beta: args.test_beta,
+            calibrate_test_beta: args.calibrate_test_beta,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -440,6 +440,7 @@ fn experiment_body(
             test_beta: cfg
                 .test_beta
                 .unwrap_or(LearningRequest::default().test_beta),
+            calibrate_test_beta: cfg.calibrate_test_beta,
             ..LearningRequest::default()
         },
     }
@@ -562,6 +563,9 @@ pub struct IterationRecord {
     pub baseline_rate: Option<f64>,
     /// Median σ of the model at the held-out state-actions.
     pub held_out_median_sigma: Option<f64>,
+    /// The β the held-out transitions were judged at: `learning.test_beta`, or the certified
+    /// one with `learning.calibrate_test_beta`.
+    pub test_beta: Option<f64>,
     /// Held-out transitions judged.
     pub held_out: usize,
     /// Held-out transitions with a true deviation below `d_max`.
@@ -1092,7 +1096,8 @@ impl Run<'_> {
             .iter()
             .map(|l| (l.t.s.as_slice(), l.t.a.as_slice()))
             .collect();
-        let judged = self.client.precondition(self.id, &points).await?;
+        let (judged, beta) = self.client.precondition_at(self.id, &points).await?;
+        rec.test_beta = Some(beta);
         let mut sigmas: Vec<f64> = judged.iter().map(|j| j.sigma).collect();
         sigmas.sort_by(f64::total_cmp);
         rec.held_out_median_sigma = sigmas.get(sigmas.len() / 2).copied();
@@ -1172,6 +1177,7 @@ impl IterationRecord {
             baseline_successes: 0,
             baseline_rate: None,
             held_out_median_sigma: None,
+            test_beta: None,
             held_out: spec.held_out.len(),
             held_out_low: 0,
             held_out_high: 0,
@@ -1230,7 +1236,7 @@ fn report(progress: &ProgressBar, rec: &IterationRecord) {
     progress.inc(1);
     let line = format!(
         "{} seed {} iteration {}: plan found {:.2}, success {:.2}, closed loop {}, oracle {}, \
-         baseline {}, TPR {}, TNR {}, σ {}, n_train {}, no_plan {}, {:.1} s",
+         baseline {}, TPR {}, TNR {}, σ {}, β {}, n_train {}, no_plan {}, {:.1} s",
         rec.strategy.as_str(),
         rec.seed,
         rec.iteration,
@@ -1242,6 +1248,7 @@ fn report(progress: &ProgressBar, rec: &IterationRecord) {
         fmt_opt(rec.tpr),
         fmt_opt(rec.tnr),
         fmt_opt(rec.held_out_median_sigma),
+        fmt_opt(rec.test_beta),
         rec.n_train,
         rec.train_no_plan,
         rec.seconds

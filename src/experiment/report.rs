@@ -13,7 +13,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 30] = [
+pub const METRICS: [&str; 31] = [
     "plan_found_rate",
     "unsafe_step_rate",
     "success_rate",
@@ -30,6 +30,7 @@ pub const METRICS: [&str; 30] = [
     "closed_loop_of_oracle",
     "open_loop_of_oracle_open_loop",
     "held_out_median_sigma",
+    "test_beta",
     "replans",
     "tpr",
     "tnr",
@@ -47,7 +48,7 @@ pub const METRICS: [&str; 30] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 49] = [
+pub const ITERATION_COLUMNS: [&str; 50] = [
     "domain",
     "layout",
     "strategy",
@@ -84,6 +85,7 @@ pub const ITERATION_COLUMNS: [&str; 49] = [
     "baseline_successes",
     "baseline_rate",
     "held_out_median_sigma",
+    "test_beta",
     "held_out",
     "held_out_low",
     "held_out_high",
@@ -141,6 +143,7 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
         "open_loop_of_oracle_open_loop" => (r.oracle_open_successes > 0)
             .then(|| r.successes as f64 / r.oracle_open_successes as f64),
         "held_out_median_sigma" => r.held_out_median_sigma,
+        "test_beta" => r.test_beta,
         "replans" => r.closed_loop_rate.map(|_| r.replans as f64),
         "tpr" => r.tpr,
         "tnr" => r.tnr,
@@ -250,6 +253,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             r.baseline_successes.to_string(),
             opt(r.baseline_rate),
             opt(r.held_out_median_sigma),
+            opt(r.test_beta),
             r.held_out.to_string(),
             r.held_out_low.to_string(),
             r.held_out_high.to_string(),

@@ -236,6 +236,8 @@ pub fn model(v: ModelView) -> ModelResponse {
             .as_ref()
             .map(|f| f.kernel_trials.clone())
             .unwrap_or_default(),
+        beta_choice: m.fit.as_ref().and_then(|f| f.beta_choice),
+        test_beta: v.test_beta,
     }
 }
 

@@ -99,6 +99,90 @@ impl HeldOutTrust {
     }
 }
 
+/// The test β the data certify: the smallest β on a grid of `0, 0.1, …, max_beta` at which the
+/// model, judging its own training state-actions each held out with all its copies, trusts
+/// (`μ₋ᵢ + β σ₋ᵢ < d_max`) few enough of the unsafe ones — the rule-of-succession estimate of
+/// the false-trust rate, `(trusted unsafe + 1) / (unsafe + 2)`, at most
+/// [`CALIBRATED_FALSE_TRUST`] — or `max_beta` when no smaller β is certified. The estimate's
+/// `+ 1` keeps β at `max_beta` until enough unsafe transitions were seen to certify anything
+/// (49 for a 2 % rate). The training state-actions are where the learner executed, dense where
+/// the deviation crosses `d_max`, so a rate held out there is a harder test than one over
+/// uniform state-actions.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct BetaChoice {
+    /// The certified β (at most the experiment's `learning.test_beta`).
+    pub beta: f64,
+    /// Training transitions whose deviation is below `d_max`.
+    pub safe: usize,
+    /// Training transitions whose deviation is `d_max` or more.
+    pub unsafe_transitions: usize,
+    /// Safe transitions trusted at `beta`, held out.
+    pub trusted_safe: usize,
+    /// Unsafe transitions trusted at `beta`, held out (false trust).
+    pub trusted_unsafe: usize,
+}
+
+/// The false-trust rate (unsafe transitions trusted, of all unsafe ones) a calibrated test β
+/// certifies on the held-out training state-actions ([`BetaChoice`]): 2 %, a true-negative rate
+/// of 0.98.
+pub const CALIBRATED_FALSE_TRUST: f64 = 0.02;
+
+impl BetaChoice {
+    /// The choice for `gp`, fitted on `labels` (the `deviations` capped), each group of `groups`
+    /// left out in turn; β on the grid `0, 0.1, …` up to `max_beta` (inclusive; `max_beta`
+    /// itself when it is below 0). `None` when the model has no closed-form leave-out.
+    pub fn of(
+        gp: &dyn Regressor,
+        labels: &[f64],
+        deviations: &[f64],
+        groups: &[Vec<usize>],
+        d_max: f64,
+        max_beta: f64,
+    ) -> Option<Self> {
+        let held_out = gp.leave_groups_out(groups)?;
+        let judged: Vec<(f64, f64, bool)> = held_out
+            .iter()
+            .zip(labels)
+            .zip(deviations)
+            .map(|((&(residual, sd), &label), &deviation)| {
+                (label - residual, sd, deviation < d_max)
+            })
+            .collect();
+        let at = |beta: f64| {
+            let mut c = Self {
+                beta,
+                safe: 0,
+                unsafe_transitions: 0,
+                trusted_safe: 0,
+                trusted_unsafe: 0,
+            };
+            for &(mu, sd, safe) in &judged {
+                let trusted = mu + beta * sd < d_max;
+                if safe {
+                    c.safe += 1;
+                    c.trusted_safe += usize::from(trusted);
+                } else {
+                    c.unsafe_transitions += 1;
+                    c.trusted_unsafe += usize::from(trusted);
+                }
+            }
+            c
+        };
+        let certified = |c: &Self| {
+            (c.trusted_unsafe as f64 + 1.0) / (c.unsafe_transitions as f64 + 2.0)
+                <= CALIBRATED_FALSE_TRUST
+        };
+        let steps = (max_beta / BETA_GRID_STEP).floor().max(0.0) as usize;
+        (0..steps)
+            .map(|k| at(k as f64 * BETA_GRID_STEP))
+            .find(certified)
+            .or_else(|| Some(at(max_beta)))
+    }
+}
+
+/// The spacing of the β grid a calibrated test β is chosen on.
+const BETA_GRID_STEP: f64 = 0.1;
+
 /// The rows of `x` grouped by identical values (bit for bit, `−0.0` folded into `0.0`, as the
 /// planner's caches key them), each group in row order, the groups in order of first
 /// appearance: every copy of one state-action in one group.
@@ -150,6 +234,9 @@ pub struct CapChoice {
     pub trials: Vec<HeldOutTrust>,
     /// Every candidate kernel's fit (empty when one kernel was given).
     pub kernel_trials: Vec<KernelTrial>,
+    /// The test β the chosen model's held-out judgements certify (`None` when they could not
+    /// be computed).
+    pub beta_choice: Option<BetaChoice>,
 }
 
 /// How one candidate kernel's fit did on the first candidate cap's labels.
@@ -200,25 +287,31 @@ pub fn fit_choosing_label_cap(
     params: &EstimatorParams,
 ) -> Result<CapChoice, GpError> {
     if kind == EstimatorKind::Sparse {
-        let (kernel, label_cap, trials, kernel_trials) = if caps.len() > 1 || kernels.len() > 1 {
-            let rows = evenly_spaced(x.nrows(), CAP_CHOICE_SUBSET);
-            let xs = x.select_rows(&rows);
-            let ds: Vec<f64> = rows.iter().map(|&i| deviations[i]).collect();
-            let c = choose_exact(&xs, &ds, precondition, kernels, caps, params)?;
-            (
-                c.gp.hyperparameters().kernel,
-                c.label_cap,
-                c.trials,
-                c.kernel_trials,
-            )
-        } else {
-            (
-                kernels.first().copied().unwrap_or(params.gp().kernel),
-                caps.first().copied().unwrap_or(0.0),
-                Vec::new(),
-                Vec::new(),
-            )
-        };
+        // The kernel, the cap and the test β are chosen by exact GPs on a subset when there
+        // is a choice to make; a fixed kernel and cap fit the sparse GP alone (no β is
+        // certified then: the sparse GP has no closed-form leave-out).
+        let (kernel, label_cap, trials, kernel_trials, beta_choice) =
+            if caps.len() > 1 || kernels.len() > 1 {
+                let rows = evenly_spaced(x.nrows(), CAP_CHOICE_SUBSET);
+                let xs = x.select_rows(&rows);
+                let ds: Vec<f64> = rows.iter().map(|&i| deviations[i]).collect();
+                let c = choose_exact(&xs, &ds, precondition, kernels, caps, params)?;
+                (
+                    c.gp.hyperparameters().kernel,
+                    c.label_cap,
+                    c.trials,
+                    c.kernel_trials,
+                    c.beta_choice,
+                )
+            } else {
+                (
+                    kernels.first().copied().unwrap_or(params.gp().kernel),
+                    caps.first().copied().unwrap_or(0.0),
+                    Vec::new(),
+                    Vec::new(),
+                    None,
+                )
+            };
         let labels = capped_labels(deviations, label_cap, precondition.d_max());
         let gp = fit(
             kind,
@@ -231,6 +324,7 @@ pub fn fit_choosing_label_cap(
             label_cap,
             trials,
             kernel_trials,
+            beta_choice,
         });
     }
     choose_exact(x, deviations, precondition, kernels, caps, params)
@@ -371,11 +465,20 @@ fn choose_exact(
         .filter_map(|(_, _, j)| j.as_ref().map(|(t, _)| *t))
         .collect();
     let (label_cap, gp, _) = fitted.swap_remove(best);
+    let beta_choice = BetaChoice::of(
+        gp.as_ref(),
+        &capped_labels(deviations, label_cap, d_max),
+        deviations,
+        &groups,
+        d_max,
+        precondition.beta(),
+    );
     Ok(CapChoice {
         gp,
         label_cap,
         trials,
         kernel_trials,
+        beta_choice,
     })
 }
 
@@ -436,6 +539,88 @@ mod tests {
         );
         let d = pts.iter().map(|&(a, b)| f(a, b)).collect();
         (x, d)
+    }
+
+    /// `n × 5` lattice points over the unit square with the deviation a function of the point.
+    fn dense_world(n: usize, f: impl Fn(f64, f64) -> f64) -> (DMatrix<f64>, Vec<f64>) {
+        let pts: Vec<(f64, f64)> = (0..n)
+            .flat_map(|i| (0..5).map(move |j| (i as f64 / (n - 1) as f64, j as f64 / 4.0)))
+            .collect();
+        let x = DMatrix::from_fn(
+            pts.len(),
+            2,
+            |r, c| if c == 0 { pts[r].0 } else { pts[r].1 },
+        );
+        (x, pts.iter().map(|&(a, b)| f(a, b)).collect())
+    }
+
+    #[test]
+    fn the_certified_beta_is_the_smallest_that_keeps_held_out_false_trust_within_the_rate() {
+        // A deviation that ramps through d_max: a small β trusts the unsafe side's edge.
+        let ramp = |a: f64, _: f64| (a - 0.3).max(0.0) * 0.5;
+        let (x, deviations) = dense_world(40, ramp);
+        let gp = fit(
+            EstimatorKind::Exact,
+            &x,
+            &DVector::from_column_slice(&deviations),
+            &params(),
+        )
+        .expect("fits");
+        let groups = identical_rows(&x);
+        let c = BetaChoice::of(gp.as_ref(), &deviations, &deviations, &groups, D_MAX, 2.0)
+            .expect("closed form");
+        let rate =
+            |c: &BetaChoice| (c.trusted_unsafe as f64 + 1.0) / (c.unsafe_transitions as f64 + 2.0);
+        assert_eq!(c.safe + c.unsafe_transitions, deviations.len());
+        assert!(c.unsafe_transitions >= 49, "{c:?}");
+        assert!(c.beta >= 0.0 && c.beta <= 2.0, "{c:?}");
+        if c.beta < 2.0 {
+            assert!(rate(&c) <= CALIBRATED_FALSE_TRUST, "{c:?}");
+        }
+        // Minimal: one grid step below, the rate is above the bound.
+        if c.beta >= BETA_GRID_STEP {
+            let below = BetaChoice::of(
+                gp.as_ref(),
+                &deviations,
+                &deviations,
+                &groups,
+                D_MAX,
+                c.beta - BETA_GRID_STEP + 1e-9,
+            )
+            .unwrap();
+            assert!(
+                below.beta < c.beta && rate(&below) > CALIBRATED_FALSE_TRUST,
+                "{c:?} {below:?}"
+            );
+        }
+        // A smooth ramp densely sampled is predicted well held out: some β below 2 is
+        // certified, and safe transitions are trusted at it.
+        assert!(c.beta < 2.0 && c.trusted_safe > 0, "{c:?}");
+    }
+
+    #[test]
+    fn too_few_unsafe_transitions_certify_nothing_below_the_bound() {
+        // 12 × 5 points, a cliff: at most 30 unsafe transitions, fewer than the 49 a 2 % rate
+        // needs even with none trusted.
+        let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 2.0 });
+        let gp = fit(
+            EstimatorKind::Exact,
+            &x,
+            &DVector::from_column_slice(&deviations),
+            &params(),
+        )
+        .expect("fits");
+        let c = BetaChoice::of(
+            gp.as_ref(),
+            &deviations,
+            &deviations,
+            &identical_rows(&x),
+            D_MAX,
+            2.0,
+        )
+        .expect("closed form");
+        assert!(c.unsafe_transitions < 49, "{c:?}");
+        assert_eq!(c.beta, 2.0, "{c:?}");
     }
 
     #[test]

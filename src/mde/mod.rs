@@ -19,8 +19,9 @@ pub use estimator::{
 };
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use labels::{
-    CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice, HeldOutTrust, KernelTrial, best_kernel,
-    blocks, capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
+    BetaChoice, CALIBRATED_FALSE_TRUST, CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice,
+    HeldOutTrust, KernelTrial, best_kernel, blocks, capped_labels, fit_choosing_label_cap,
+    identical_rows, normal_tail,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
@@ -54,6 +55,10 @@ pub struct FitRecord {
     pub online_trajectories: usize,
     /// Every candidate kernel's fit, when the kernel was chosen from the data.
     pub kernel_trials: Vec<KernelTrial>,
+    /// The test β this version's held-out judgements certify (`None` where they could not be
+    /// computed, and for versions fitted before it was recorded); used by test plans when
+    /// `learning.calibrate_test_beta` is on.
+    pub beta_choice: Option<BetaChoice>,
 }
 
 /// One version of an experiment's MDE.

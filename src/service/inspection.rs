@@ -316,7 +316,7 @@ impl Service {
         };
         Ok(PreconditionGrid {
             d_max: live.settings.d_max,
-            test_beta: live.settings.learning.test_beta,
+            test_beta: live.test_beta(&model),
             s,
             a,
             x: (request.x, xs),
@@ -348,7 +348,7 @@ impl Service {
             )));
         }
         let domain = live.domain.clone();
-        let (d_max, test_beta) = (live.settings.d_max, live.settings.learning.test_beta);
+        let (d_max, test_beta) = (live.settings.d_max, live.test_beta(&model));
         Self::blocking(move || ExportedModel::of(id, &model, domain.as_ref(), d_max, test_beta))
             .await?
             .ok_or_else(|| {
@@ -368,8 +368,8 @@ impl Service {
     ) -> Result<LooDiagnostics> {
         let arrived = Instant::now();
         let live = self.live(id).await?;
-        let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
         let model = self.model_version(&live, version, arrived).await?;
+        let precondition = live.precondition(beta.unwrap_or_else(|| live.test_beta(&model)))?;
         let Estimator::Fitted(gp) = &model.estimator else {
             return Err(Error::Conflict(format!(
                 "model version {} is the prior: there are no training labels to check",

@@ -26,6 +26,8 @@ pub struct ModelView {
     pub model: Arc<ServedModel>,
     /// The latest fit refused since the version (see [`crate::store::FitRefusal`]).
     pub last_refusal: Option<FitRefusal>,
+    /// The β test plans use with this version ([`LiveExperiment::test_beta`]).
+    pub test_beta: f64,
 }
 
 /// Precondition judgements of a batch of points.
@@ -162,9 +164,13 @@ pub(crate) fn needs_candidates(live: &LiveExperiment) -> Result<()> {
     Ok(())
 }
 
-/// The precondition at the request's `beta`, or at the experiment's test β.
-fn at_beta_or_test(live: &LiveExperiment, beta: Option<f64>) -> Result<Precondition> {
-    live.precondition(beta.unwrap_or(live.settings.learning.test_beta))
+/// The precondition at the request's `beta`, or at the test β of `model`.
+fn at_beta_or_test(
+    live: &LiveExperiment,
+    model: &ServedModel,
+    beta: Option<f64>,
+) -> Result<Precondition> {
+    live.precondition(beta.unwrap_or_else(|| live.test_beta(model)))
 }
 
 /// What a forced refit answers.
@@ -185,6 +191,7 @@ impl Service {
             experiment_id: id,
             feature_names: live.domain.feature_names(),
             last_refusal: self.last_refusal(id, &model).await?,
+            test_beta: live.test_beta(&model),
             model,
         })
     }
@@ -254,15 +261,14 @@ impl Service {
                 {
                     return Ok(model);
                 }
-                if self.store.fit_refusal_count(id).await? > refused_before {
-                    if let Some(refusal) = self
+                if self.store.fit_refusal_count(id).await? > refused_before
+                    && let Some(refusal) = self
                         .store
                         .latest_fit_refusal(id)
                         .await?
                         .filter(|r| r.n_trajectories >= stored_now)
-                    {
-                        return Err(Error::LimitReached(refusal.reason));
-                    }
+                {
+                    return Err(Error::LimitReached(refusal.reason));
                 }
                 tokio::time::sleep(std::time::Duration::from_millis(20)).await;
             }
@@ -277,6 +283,7 @@ impl Service {
                 experiment_id: id,
                 feature_names: live.domain.feature_names(),
                 last_refusal: self.last_refusal(id, &model).await?,
+                test_beta: live.test_beta(&model),
                 model,
             },
             finished,
@@ -322,7 +329,8 @@ impl Service {
                 format!("at most {MAX_POINTS} points"),
             ));
         }
-        let precondition = at_beta_or_test(&live, beta)?;
+        let model = live.model();
+        let precondition = at_beta_or_test(&live, &model, beta)?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
         let mut features = Vec::with_capacity(points.len() * dim);
@@ -330,7 +338,6 @@ impl Service {
             live.check_step(&format!("points[{i}]"), &p.s, &p.a)?;
             features.extend(domain.features(&p.s, &p.a));
         }
-        let model = live.model();
         let answers = if points.len() > INLINE_POINTS {
             let model = model.clone();
             let slot = self.work.evaluation_slot(arrived).await?;
@@ -391,9 +398,9 @@ impl Service {
         }
         let live = self.live(id).await?;
         let problem = live.problem(start, goal)?;
-        let precondition = at_beta_or_test(&live, beta)?;
-        let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model = live.model();
+        let precondition = at_beta_or_test(&live, &model, beta)?;
+        let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model_version = model.version;
         if let Some(candidates) = candidates {
             let checked = check_candidates(&live, problem.start(), candidates)?;

@@ -152,6 +152,23 @@ impl LiveExperiment {
         Problem::new(self.domain.as_ref(), start, goal).map_err(|e| Error::invalid_at("", e))
     }
 
+    /// The β test plans and default judgements use with `model`: `learning.test_beta`, or,
+    /// with `learning.calibrate_test_beta`, the β `model` certifies ([`BetaChoice`]: at most
+    /// `test_beta`; `test_beta` itself until a version certifies one).
+    ///
+    /// [`BetaChoice`]: crate::mde::BetaChoice
+    pub fn test_beta(&self, model: &ServedModel) -> f64 {
+        let l = &self.settings.learning;
+        if !l.calibrate_test_beta {
+            return l.test_beta;
+        }
+        model
+            .fit
+            .as_ref()
+            .and_then(|f| f.beta_choice)
+            .map_or(l.test_beta, |c| c.beta.min(l.test_beta))
+    }
+
     /// The precondition at `beta` under the experiment's `d_max`; errors name `beta`.
     pub fn precondition(&self, beta: f64) -> Result<Precondition, Error> {
         Ok(Precondition::new(beta, self.settings.d_max)?)
@@ -334,6 +351,7 @@ impl LiveExperiment {
             label_cap_trials: choice.trials,
             online_trajectories: 0,
             kernel_trials: choice.kernel_trials,
+            beta_choice: choice.beta_choice,
         };
         let stored = StoredModel {
             version,
@@ -346,6 +364,7 @@ impl LiveExperiment {
             label_cap: fit.label_cap,
             label_cap_trials: fit.label_cap_trials.clone(),
             kernel_trials: fit.kernel_trials.clone(),
+            beta_choice: fit.beta_choice,
         };
         Ok(Some((
             stored,
@@ -447,6 +466,7 @@ impl LiveExperiment {
                 label_cap_trials: stored.label_cap_trials,
                 online_trajectories: 0,
                 kernel_trials: stored.kernel_trials,
+                beta_choice: stored.beta_choice,
             }),
         })
     }

@@ -316,6 +316,12 @@ impl Preset {
         self == Self::Default
     }
 
+    /// Whether this preset's test plans use the β each fitted version certifies (see
+    /// [`LearningSettings::calibrate_test_beta`]).
+    pub fn calibrate_test_beta(self) -> bool {
+        false
+    }
+
     /// Whether this preset's `active` proposals score candidates with the σ of state-actions
     /// in flight fantasised as labelled (see [`LearningSettings::batch_diversity`]): neither's.
     /// The paper chose each trajectory of a batch from the model alone; `default` does too,
@@ -516,6 +522,9 @@ pub struct LearningRequest {
     /// [`LearningSettings::batch_diversity`]. Absent: the preset's (false in both).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub batch_diversity: Option<bool>,
+    /// [`LearningSettings::calibrate_test_beta`]. Absent: the preset's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub calibrate_test_beta: Option<bool>,
 }
 
 impl Default for LearningRequest {
@@ -537,6 +546,7 @@ impl Default for LearningRequest {
             proposal_ttl_seconds: 600,
             relax_beta: None,
             batch_diversity: None,
+            calibrate_test_beta: None,
         }
     }
 }
@@ -592,6 +602,12 @@ pub struct LearningSettings {
     /// trajectories of one batch do not chase one uncertainty. At most
     /// [`MAX_IN_FLIGHT`](crate::service::proposals::MAX_IN_FLIGHT) state-actions count.
     pub batch_diversity: bool,
+    /// Test plans, and the precondition's default judgements, use the β the current model
+    /// version certifies — the smallest β, at most `test_beta`, at which it trusts held out at
+    /// most 2 % of its unsafe training transitions (see [`crate::mde::BetaChoice`]) — instead
+    /// of `test_beta` itself. `test_beta` stays the bound, and the β until a version certifies
+    /// one.
+    pub calibrate_test_beta: bool,
 }
 
 /// An experiment's settings as a client posts them; every field optional.
@@ -744,6 +760,9 @@ impl ExperimentRequest {
             batch_diversity: l
                 .batch_diversity
                 .unwrap_or_else(|| l.preset.batch_diversity()),
+            calibrate_test_beta: l
+                .calibrate_test_beta
+                .unwrap_or_else(|| l.preset.calibrate_test_beta()),
         };
         learning.planning()?;
         Ok((

@@ -2,7 +2,7 @@
 
 use super::{Store, now};
 use crate::gp::Hyperparameters;
-use crate::mde::{EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial};
+use crate::mde::{BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial};
 use sqlx::AnyConnection;
 
 /// A stored model version.
@@ -28,6 +28,8 @@ pub struct StoredModel {
     pub label_cap_trials: Vec<HeldOutTrust>,
     /// Every candidate kernel's fit, when the kernel was chosen from the data.
     pub kernel_trials: Vec<KernelTrial>,
+    /// The test β its held-out judgements certify, when they were made.
+    pub beta_choice: Option<BetaChoice>,
 }
 
 fn json_err(e: serde_json::Error) -> sqlx::Error {
@@ -47,11 +49,12 @@ pub(super) async fn insert_model_on(
     let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
     let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
     let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
+    let beta_choice = serde_json::to_string(&model.beta_choice).map_err(json_err)?;
     sqlx::query(
         "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
                              hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
-                             label_cap, label_cap_trials, kernel_trials)
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13)",
+                             label_cap, label_cap_trials, kernel_trials, beta_choice)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)",
     )
     .bind(experiment_id)
     .bind(model.version)
@@ -66,6 +69,7 @@ pub(super) async fn insert_model_on(
     .bind(model.label_cap)
     .bind(trials)
     .bind(kernel_trials)
+    .bind(beta_choice)
     .execute(conn)
     .await?;
     Ok(())
@@ -101,10 +105,22 @@ impl Store {
     ) -> Result<Option<StoredModel>, sqlx::Error> {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
-                    label_cap_trials, log_marginal_likelihood, kernel_trials
+                    label_cap_trials, log_marginal_likelihood, kernel_trials, beta_choice
              FROM models WHERE experiment_id = $1 {clause}"
         );
-        type Row = (i64, i64, i64, String, f64, String, f64, String, f64, String);
+        type Row = (
+            i64,
+            i64,
+            i64,
+            String,
+            f64,
+            String,
+            f64,
+            String,
+            f64,
+            String,
+            String,
+        );
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
             query = query.bind(v);
@@ -123,6 +139,7 @@ impl Store {
             trials,
             lml,
             kernel_trials,
+            beta_choice,
         ) = row;
         Ok(Some(StoredModel {
             version,
@@ -135,6 +152,7 @@ impl Store {
             label_cap,
             label_cap_trials: serde_json::from_str(&trials).map_err(json_err)?,
             kernel_trials: serde_json::from_str(&kernel_trials).map_err(json_err)?,
+            beta_choice: serde_json::from_str(&beta_choice).map_err(json_err)?,
         }))
     }
 

@@ -247,3 +247,84 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
     );
     app.stop().await;
 }
+
+/// A kinematic trajectory of `n` moves by `(0.05, 0)` on a lattice of the unit square, where
+/// the world pushes the robot up by 0.1 right of `x = 0.5` (the model is wrong there).
+fn pushed_lattice(n: usize, offset: usize) -> Value {
+    let transitions: Vec<Value> = (0..n)
+        .map(|k| {
+            let i = k + offset;
+            let (x, y) = ((i % 19) as f64 / 20.0, ((i / 19) % 19) as f64 / 20.0);
+            let push = if x > 0.5 { 0.1 } else { 0.0 };
+            json!({"s": [x, y], "a": [0.05, 0.0], "s_next": [x + 0.05, (y + push).min(1.0)]})
+        })
+        .collect();
+    json!({ "transitions": transitions })
+}
+
+/// `learning.calibrate_test_beta`: every version says the β its held-out training transitions
+/// certify, test plans and default judgements use it when the setting is on (at most
+/// `test_beta`) and `test_beta` when off, and the choice is kept across a restart.
+#[tokio::test]
+async fn a_calibrated_test_beta_is_the_one_the_version_certifies_and_survives_a_restart() {
+    let body = |calibrate: bool| {
+        json!({
+            "domain": {"kind": "kinematic"},
+            "d_max": 0.05,
+            "mde": {"kernel": "matern52", "label_cap": 0, "restarts": 0},
+            "learning": {"batch_size": 2, "calibrate_test_beta": calibrate}
+        })
+    };
+    let (_dir, app, calibrated) = fresh_experiment(body(true)).await;
+    let fixed = app.create_experiment(body(false)).await;
+    let (_, e) = app.get_at(calibrated, "").await;
+    assert_eq!(e["learning"]["calibrate_test_beta"], true, "{e}");
+    for id in [calibrated, fixed] {
+        for k in 0..2 {
+            app.store_trajectory(id, &pushed_lattice(180, 180 * k))
+                .await;
+        }
+    }
+    let point = json!({"points": [{"s": [0.2, 0.5], "a": [0.05, 0.0]}]});
+    let mut certified = f64::NAN;
+    for (id, calibrate) in [(calibrated, true), (fixed, false)] {
+        let model = app.wait_for_model(id, 2).await;
+        let choice = &model["beta_choice"];
+        let beta = choice["beta"].as_f64().expect("an exact fit certifies a β");
+        assert!((0.0..=2.0).contains(&beta), "{model}");
+        let unsafe_n = choice["unsafe_transitions"].as_u64().unwrap();
+        assert_eq!(
+            choice["safe"].as_u64().unwrap() + unsafe_n,
+            model["n_train"].as_u64().unwrap()
+        );
+        assert!(unsafe_n >= 49, "the pushed half is unsafe: {model}");
+        if beta < 2.0 {
+            let trusted = choice["trusted_unsafe"].as_f64().unwrap();
+            assert!((trusted + 1.0) / (unsafe_n as f64 + 2.0) <= 0.02, "{model}");
+        }
+        let in_use = if calibrate { beta } else { 2.0 };
+        assert_eq!(model["test_beta"].as_f64(), Some(in_use), "{model}");
+        let (status, judged) = app.post_at(id, "precondition", &point).await;
+        assert_eq!(status, 200, "{judged}");
+        assert_eq!(judged["beta"].as_f64(), Some(in_use), "{judged}");
+        let (_, plan) = app
+            .post_at(
+                id,
+                "plans",
+                &json!({"start": [0.1, 0.1], "goal": [0.3, 0.1]}),
+            )
+            .await;
+        assert_eq!(plan["beta"].as_f64(), Some(in_use), "{plan}");
+        if calibrate {
+            certified = beta;
+        }
+    }
+    let app = app.restart().await;
+    let (_, model) = app.get_at(calibrated, "model").await;
+    assert_eq!(
+        model["beta_choice"]["beta"].as_f64(),
+        Some(certified),
+        "{model}"
+    );
+    assert_eq!(model["test_beta"].as_f64(), Some(certified), "{model}");
+}

@@ -414,6 +414,8 @@ def model_json(version: int, n_trajectories: int) -> dict[str, Any]:
         "online_trajectories": 0,
         "last_fit_refusal": None,
         "kernel_trials": [],
+        "beta_choice": None,
+        "test_beta": 2.0,
     }
 
 

@@ -164,6 +164,7 @@ const ENTRIES: &[Entry] = &[
     entry::<HeldOutTrust>("HeldOutTrust", Response),
     entry::<api::FitRefusalView>("FitRefusal", Response),
     entry::<precond::mde::KernelTrial>("KernelTrial", Response),
+    entry::<precond::mde::BetaChoice>("BetaChoice", Response),
     entry::<api::ModelExport>("ModelExport", Response),
     entry::<precond::domain::FeatureMap>("FeatureMap", Response),
     entry::<precond::gp::Predictor>("Predictor", Response),

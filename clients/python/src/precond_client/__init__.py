@@ -45,6 +45,7 @@ from .export import ExportedModel
 from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
 from .models import (
+    BetaChoice,
     Candidate,
     CandidateScore,
     Continued,
@@ -74,6 +75,7 @@ from .robot import Episode, Learner, Progress
 __all__ = [
     "ApiError",
     "BadRequest",
+    "BetaChoice",
     "Cancelled",
     "Candidate",
     "CandidateScore",

@@ -574,6 +574,23 @@ class KernelTrial(Wire):
 
 
 @dataclass(frozen=True)
+class BetaChoice(Wire):
+    """The test β a fitted version certifies on its own training transitions, each state-action
+    held out with its copies: the smallest β (grid of 0.1, at most ``learning.test_beta``) at
+    which at most 2 % of the unsafe ones are trusted (schema ``BetaChoice``)."""
+
+    SCHEMA: ClassVar[str] = "BetaChoice"
+
+    beta: float
+    safe: int
+    unsafe_transitions: int
+    trusted_safe: int
+    """Safe training transitions trusted at :attr:`beta`, held out."""
+    trusted_unsafe: int
+    """Unsafe training transitions trusted at :attr:`beta`, held out (false trust)."""
+
+
+@dataclass(frozen=True)
 class FitRefusal(Wire):
     """A fit the server did not attempt because its estimated peak memory exceeded the server's
     budget; the version before it kept answering (schema ``FitRefusal``)."""
@@ -625,6 +642,11 @@ class Model(Wire):
     kernel_trials: list[KernelTrial]
     """With ``mde.kernel`` ``auto``, each kernel's fit; the highest log marginal likelihood won
     unless another's held-out score was clearly better."""
+    beta_choice: BetaChoice | None
+    """The test β this version certifies (``None`` for the prior and where not computed)."""
+    test_beta: float
+    """The β test plans use with this version (``beta_choice.beta`` with
+    ``learning.calibrate_test_beta``, else ``learning.test_beta``)."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
 
