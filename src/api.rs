@@ -18,6 +18,9 @@ use serde_json::Value;
 
 pub use crate::mde::Judgement;
 pub use crate::settings::ExperimentRequest;
+/// A fit the server did not attempt because its estimated peak memory exceeded the budget, as
+/// stored.
+pub use crate::store::FitRefusal as FitRefusalView;
 
 /// `GET /healthz` and `GET /readyz`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -614,25 +617,6 @@ pub struct ModelResponse {
     /// labels; the one with the highest log marginal likelihood was kept unless another was
     /// clearly better held out (empty otherwise).
     pub kernel_trials: Vec<KernelTrial>,
-}
-
-/// A fit the server did not attempt because its estimated peak memory exceeded the budget.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct FitRefusalView {
-    /// Transitions the fit would have been trained on.
-    pub n_train: i64,
-    /// Trajectories stored then.
-    pub n_trajectories: i64,
-    /// The regressor it would have fitted: `exact` or `sparse`.
-    pub estimator: EstimatorKind,
-    /// Its estimated peak memory (bytes).
-    pub needed_bytes: f64,
-    /// The server's budget (bytes, `--max-fit-memory-mib`).
-    pub budget_bytes: f64,
-    /// Why, in words.
-    pub reason: String,
-    /// When (RFC 3339).
-    pub refused_at: String,
 }
 
 /// One state-action to judge.

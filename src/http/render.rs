@@ -2,19 +2,17 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    CandidateView, Diagnostics, ExperimentResponse, FitRefusalView, LaterRates, MapAxis, MapPoint,
-    ModelResponse, ModelSource, PlanResponse, PreconditionMap, PreconditionResponse,
-    ProposalResponse, RejectionCounts, RunPage, RunView, Timeline, TimelineIteration,
-    TimelineModel, TrajectoryCreated, TrajectoryResponse, TrajectorySource, TransitionView,
+    CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
+    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
+    RejectionCounts, RunPage, RunView, Timeline, TimelineIteration, TimelineModel,
+    TrajectoryCreated, TrajectoryResponse, TrajectorySource, TransitionView,
 };
 use crate::mde::ServedModel;
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{
-    FitRefusal, Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition,
-};
+use crate::store::{Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -121,7 +119,7 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
                 label_cap: m.label_cap,
             })
             .collect(),
-        fit_refusals: t.fit_refusals.into_iter().map(fit_refusal).collect(),
+        fit_refusals: t.fit_refusals,
     }
 }
 
@@ -230,25 +228,12 @@ pub fn model(v: ModelView) -> ModelResponse {
             .unwrap_or_default(),
         estimator: m.kind(),
         online_trajectories: m.fit.as_ref().map_or(0, |f| f.online_trajectories),
-        last_fit_refusal: v.last_refusal.map(fit_refusal),
+        last_fit_refusal: v.last_refusal,
         kernel_trials: m
             .fit
             .as_ref()
             .map(|f| f.kernel_trials.clone())
             .unwrap_or_default(),
-    }
-}
-
-/// A refused fit.
-pub fn fit_refusal(r: FitRefusal) -> FitRefusalView {
-    FitRefusalView {
-        n_train: r.n_train,
-        n_trajectories: r.n_trajectories,
-        estimator: r.estimator,
-        needed_bytes: r.needed_bytes,
-        budget_bytes: r.budget_bytes,
-        reason: r.reason,
-        refused_at: r.refused_at,
     }
 }
 
