@@ -11,7 +11,7 @@ use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::mde::{EstimatorKind, HeldOutTrust, KernelTrial};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
-use crate::store::{ListOrder, ProposalStatus, RunStatus};
+use crate::store::{ListOrder, ProposalStatus, ProposalTerms, RunStatus};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -832,20 +832,9 @@ pub struct ProposalResponse {
     /// another start; a prefix does not); `false` until executed.
     #[serde(default)]
     pub deviating: bool,
-    /// The client it is leased to.
-    pub client_id: Option<String>,
-    /// The learning iteration it was made in.
-    pub iteration: i64,
-    /// β it was planned with.
-    pub beta: f64,
-    /// The strategy that chose it.
-    pub strategy: Strategy,
-    /// The MDE version that scored it.
-    pub model_version: i64,
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Goal.
-    pub goal: Vec<f64>,
+    /// The problem, the client it is leased to and the learning state that shaped it.
+    #[serde(flatten)]
+    pub terms: ProposalTerms,
     /// Creation time (RFC 3339).
     pub created_at: String,
     /// End of the lease (RFC 3339).
