@@ -254,15 +254,14 @@ impl Service {
                 {
                     return Ok(model);
                 }
-                if self.store.fit_refusal_count(id).await? > refused_before {
-                    if let Some(refusal) = self
+                if self.store.fit_refusal_count(id).await? > refused_before
+                    && let Some(refusal) = self
                         .store
                         .latest_fit_refusal(id)
                         .await?
                         .filter(|r| r.n_trajectories >= stored_now)
-                    {
-                        return Err(Error::LimitReached(refusal.reason));
-                    }
+                {
+                    return Err(Error::LimitReached(refusal.reason));
                 }
                 tokio::time::sleep(std::time::Duration::from_millis(20)).await;
             }
