@@ -21,6 +21,10 @@ pub use crate::settings::ExperimentRequest;
 /// A fit the server did not attempt because its estimated peak memory exceeded the budget, as
 /// stored.
 pub use crate::store::FitRefusal as FitRefusalView;
+/// Where a posted trajectory comes from, as posted, stored and shown.
+pub use crate::store::Provenance as TrajectorySource;
+/// A stored transition with its prediction and label.
+pub use crate::store::StoredTransition as TransitionView;
 
 /// `GET /healthz` and `GET /readyz`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -420,26 +424,6 @@ pub struct LaterRates {
     pub rates: PreconditionRates,
 }
 
-/// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
-/// Stored with the trajectory and shown with it and in the runs list.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
-pub struct TrajectorySource {
-    /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
-    /// (1 to 1000 characters).
-    pub dataset: String,
-    /// The episode of the dataset (≥ 0).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub episode: Option<i64>,
-    /// The step of the episode the trajectory's first transition was (≥ 0): an episode longer
-    /// than one post allows is posted as several trajectories.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub first_step: Option<i64>,
-    /// A free-form label (at most 1000 characters).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub label: Option<String>,
-}
-
 /// `POST /v1/experiments/{id}/trajectories` body.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -488,27 +472,6 @@ pub struct TrajectoryCreated {
     pub n_trajectories: i64,
     /// Ingest time (RFC 3339).
     pub created_at: String,
-}
-
-/// A stored transition with its prediction and label.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct TransitionView {
-    /// Identifier; ascending in ingest order.
-    pub id: i64,
-    /// The trajectory it belongs to.
-    pub trajectory_id: i64,
-    /// Position in the trajectory, from 0.
-    pub step: i64,
-    /// State.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// Observed next state.
-    pub s_next: Vec<f64>,
-    /// Predicted next state.
-    pub s_pred: Vec<f64>,
-    /// Deviation label.
-    pub deviation: f64,
 }
 
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.

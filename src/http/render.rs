@@ -5,14 +5,14 @@ use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
     ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
     RejectionCounts, RunPage, RunView, Timeline, TimelineIteration, TimelineModel,
-    TrajectoryCreated, TrajectoryResponse, TrajectorySource, TransitionView,
+    TrajectoryCreated, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition};
+use crate::store::{Run, StoredProposal, StoredTrajectory};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -20,16 +20,6 @@ pub fn source(m: &ServedModel) -> ModelSource {
         ModelSource::Fit
     } else {
         ModelSource::Prior
-    }
-}
-
-/// Where a trajectory comes from.
-pub fn provenance(p: Provenance) -> TrajectorySource {
-    TrajectorySource {
-        dataset: p.dataset,
-        episode: p.episode,
-        first_step: p.first_step,
-        label: p.label,
     }
 }
 
@@ -79,7 +69,7 @@ fn run(r: Run) -> RunView {
         length: r.length,
         partial: r.partial,
         deviating: r.deviating,
-        source: r.source.map(provenance),
+        source: r.source,
         max_deviation: r.max_deviation,
     }
 }
@@ -183,24 +173,10 @@ pub fn trajectory(t: StoredTrajectory) -> TrajectoryResponse {
         proposal_id: t.proposal_id,
         partial: t.partial,
         deviating: t.deviating,
-        source: t.source.map(provenance),
+        source: t.source,
         created_at: t.created_at,
         n_transitions: t.transitions.len(),
-        transitions: t.transitions.into_iter().map(transition).collect(),
-    }
-}
-
-/// One transition.
-pub fn transition(t: StoredTransition) -> TransitionView {
-    TransitionView {
-        id: t.id,
-        trajectory_id: t.trajectory_id,
-        step: t.step,
-        s: t.s,
-        a: t.a,
-        s_next: t.s_next,
-        s_pred: t.s_pred,
-        deviation: t.deviation,
+        transitions: t.transitions,
     }
 }
 
@@ -301,7 +277,7 @@ pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
         proposal_id: r.proposal_id,
         partial: r.partial,
         deviating: r.deviating,
-        source: r.source.clone().map(provenance),
+        source: r.source.clone(),
         n_transitions: r.deviations.len(),
         deviations: r.deviations.clone(),
         iteration: i.iteration,
