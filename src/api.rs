@@ -11,7 +11,7 @@ use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::mde::{EstimatorKind, HeldOutTrust, KernelTrial};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
-use crate::store::{ListOrder, ProposalStatus, ProposalTerms, RunStatus};
+use crate::store::{IterationStats, ListOrder, ModelSummary, ProposalStatus, ProposalTerms};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
@@ -25,6 +25,8 @@ pub use crate::store::FitRefusal as FitRefusalView;
 pub use crate::store::Provenance as TrajectorySource;
 /// A stored transition with its prediction and label.
 pub use crate::store::StoredTransition as TransitionView;
+/// A run as the store lists it.
+pub use crate::store::{Run as RunView, RunStatus};
 
 /// `GET /healthz` and `GET /readyz`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -130,53 +132,6 @@ pub struct PageQuery {
     pub limit: Option<i64>,
 }
 
-/// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
-/// refused proposal request.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct RunView {
-    /// The proposal, if there was one.
-    pub proposal_id: Option<i64>,
-    /// The executed trajectory, if one was posted.
-    pub trajectory_id: Option<i64>,
-    /// The refusal, for a refused proposal request (`status` `refused`).
-    #[serde(default)]
-    pub refusal_id: Option<i64>,
-    /// Where it stands.
-    pub status: RunStatus,
-    /// The client the proposal was leased to (or that was refused).
-    pub client_id: Option<String>,
-    /// The learning iteration the proposal was made (or refused) in (`null` without a
-    /// proposal).
-    pub iteration: Option<i64>,
-    /// β the proposal was planned with; for a refusal, the first β tried (the iteration's
-    /// `β_j`) (`null` without a proposal).
-    pub beta: Option<f64>,
-    /// Every β a refused request tried, in order (`null` unless refused).
-    #[serde(default)]
-    pub betas_tried: Option<Vec<f64>>,
-    /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
-    #[serde(default)]
-    pub extensions: Option<i64>,
-    /// The MDE version that scored the proposal (`null` without a proposal).
-    pub model_version: Option<i64>,
-    /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
-    pub created_at: String,
-    /// Actions: executed transitions when a trajectory was posted, else the proposal's planned
-    /// actions.
-    pub length: i64,
-    /// Whether the posted trajectory stopped early.
-    pub partial: bool,
-    /// Whether the posted trajectory departs from its proposal (other actions, longer, or
-    /// another start; a prefix does not).
-    #[serde(default)]
-    pub deviating: bool,
-    /// Where the posted trajectory comes from, when its client said.
-    #[serde(default)]
-    pub source: Option<TrajectorySource>,
-    /// The largest deviation label of the executed trajectory (`null` before one was posted).
-    pub max_deviation: Option<f64>,
-}
-
 /// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them,
 /// trajectories posted without a proposal and refused proposal requests, newest first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -195,23 +150,9 @@ pub struct RunPage {
 pub struct TimelineIteration {
     /// `β_j` of the learning schedule at this iteration.
     pub beta: f64,
-    /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
-    /// next batch's first, in ingest order).
-    pub iteration: i64,
-    /// Trajectories posted in it (0 when it only refused proposal requests so far).
-    pub n_trajectories: i64,
-    /// Their transitions.
-    pub n_transitions: i64,
-    /// Mean deviation label of those transitions (`null` without any).
-    pub mean_deviation: Option<f64>,
-    /// Largest deviation label (`null` without any).
-    pub max_deviation: Option<f64>,
-    /// Share of the transitions with a deviation below `d_max` (the model was right there;
-    /// `null` without any).
-    pub share_within_d_max: Option<f64>,
-    /// Proposal requests refused with `no_plan` in it.
-    #[serde(default)]
-    pub n_refused: i64,
+    /// Its statistics, as the store counts them.
+    #[serde(flatten)]
+    pub stats: IterationStats,
 }
 
 /// One model version of `GET /v1/experiments/{id}/timeline` (no training data, no noise
@@ -220,23 +161,9 @@ pub struct TimelineIteration {
 pub struct TimelineModel {
     /// The learning iteration its training data reached (`n_trajectories / batch_size`).
     pub iteration: i64,
-    /// Version (1, 2, …).
-    pub version: i64,
-    /// Training transitions (the experiment's first `n_train`).
-    pub n_train: i64,
-    /// Trajectories stored when the fit started.
-    pub n_trajectories: i64,
-    /// Noise mode of the fit.
-    pub noise: String,
-    /// Log marginal likelihood of the fit.
-    pub log_marginal_likelihood: f64,
-    /// Seconds the fit took.
-    pub fit_seconds: f64,
-    /// When it finished (RFC 3339).
-    pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels; migration 0007
-    /// recorded one for every version fitted before caps were).
-    pub label_cap: f64,
+    /// The version, as stored.
+    #[serde(flatten)]
+    pub model: ModelSummary,
 }
 
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.

@@ -4,15 +4,15 @@
 use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
     ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
-    RejectionCounts, RunPage, RunView, Timeline, TimelineIteration, TimelineModel,
-    TrajectoryCreated, TrajectoryResponse,
+    RejectionCounts, RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated,
+    TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{Run, StoredProposal, StoredTrajectory};
+use crate::store::{StoredProposal, StoredTrajectory};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -46,31 +46,9 @@ pub fn experiment(s: ExperimentState) -> ExperimentResponse {
 /// A page of runs.
 pub fn runs(r: Runs) -> RunPage {
     RunPage {
-        items: r.items.into_iter().map(run).collect(),
+        items: r.items,
         total: r.total,
         next: r.next,
-    }
-}
-
-/// One run.
-fn run(r: Run) -> RunView {
-    RunView {
-        proposal_id: r.proposal_id,
-        trajectory_id: r.trajectory_id,
-        refusal_id: r.refusal_id,
-        status: r.status,
-        client_id: r.client_id,
-        iteration: r.iteration,
-        beta: r.beta,
-        betas_tried: r.betas_tried,
-        extensions: r.extensions,
-        model_version: r.model_version,
-        created_at: r.created_at,
-        length: r.length,
-        partial: r.partial,
-        deviating: r.deviating,
-        source: r.source,
-        max_deviation: r.max_deviation,
     }
 }
 
@@ -83,31 +61,12 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
         iterations: t
             .iterations
             .into_iter()
-            .map(|(beta, s)| TimelineIteration {
-                beta,
-                iteration: s.iteration,
-                n_trajectories: s.n_trajectories,
-                n_transitions: s.n_transitions,
-                mean_deviation: s.mean_deviation,
-                max_deviation: s.max_deviation,
-                share_within_d_max: s.share_within_d_max,
-                n_refused: s.n_refused,
-            })
+            .map(|(beta, stats)| TimelineIteration { beta, stats })
             .collect(),
         models: t
             .models
             .into_iter()
-            .map(|(iteration, m)| TimelineModel {
-                iteration,
-                version: m.version,
-                n_train: m.n_train,
-                n_trajectories: m.n_trajectories,
-                noise: m.noise,
-                log_marginal_likelihood: m.log_marginal_likelihood,
-                fit_seconds: m.fit_seconds,
-                fitted_at: m.fitted_at,
-                label_cap: m.label_cap,
-            })
+            .map(|(iteration, model)| TimelineModel { iteration, model })
             .collect(),
         fit_refusals: t.fit_refusals,
     }
