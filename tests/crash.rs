@@ -6,8 +6,8 @@ mod common;
 
 use common::{
     Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
-    http_with_timeout, ingest_only, lease, metrics, post, refits_every, spawn_robots, trajectory,
-    two_robots_trajectory,
+    http_with_timeout, ingest_only, join_robots, lease, metrics, post, refits_every, spawn_robots,
+    trajectory, two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -57,13 +57,7 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
         server = Server::start(&db, &[]);
         base.write().unwrap()[0] = server.base.clone();
     }
-    let mut acked = Vec::new();
-    let mut retries = 0;
-    for c in clients {
-        let (a, r) = c.await.unwrap();
-        acked.extend(a);
-        retries += r;
-    }
+    let (acked, retries) = join_robots(clients).await;
     assert!(started.elapsed() < Duration::from_secs(40));
     assert!(
         retries >= KILLS,

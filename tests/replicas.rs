@@ -10,8 +10,8 @@ mod common;
 
 use common::{
     Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
-    http_with_timeout, ingest_only, lease, metrics, post, refits_every, spawn_robots, trajectory,
-    two_robots_trajectory,
+    http_with_timeout, ingest_only, join_robots, lease, metrics, post, refits_every, spawn_robots,
+    trajectory, two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -166,13 +166,7 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
         bases.write().unwrap()[victim] = restarted.base.clone();
         replicas.insert(victim, restarted);
     }
-    let mut acked = Vec::new();
-    let mut retries = 0;
-    for c in clients {
-        let (a, r) = c.await.unwrap();
-        acked.extend(a);
-        retries += r;
-    }
+    let (acked, retries) = join_robots(clients).await;
     assert!(started.elapsed() < Duration::from_secs(60));
     assert!(retries > 0, "the kills interrupted ingest");
     assert_eq!(acked.len(), CLIENTS * PER_CLIENT);

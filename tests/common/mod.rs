@@ -239,6 +239,20 @@ pub fn spawn_robots(
         .collect()
 }
 
+/// Waits for every robot of [`spawn_robots`]: all they had acknowledged and the retries it took.
+pub async fn join_robots(
+    robots: Vec<tokio::task::JoinHandle<(Vec<Acked>, usize)>>,
+) -> (Vec<Acked>, usize) {
+    let mut acked = Vec::new();
+    let mut retries = 0;
+    for robot in robots {
+        let (a, r) = robot.await.unwrap();
+        acked.extend(a);
+        retries += r;
+    }
+    (acked, retries)
+}
+
 /// Robot `c` posts its `n` seeded trajectories to experiment `id`, paced 10–60 ms apart (a robot
 /// takes a while to execute one), each under its own `Idempotency-Key` until acknowledged with
 /// `201` — any other answer but a 5xx fails the test. It starts on server `c mod servers`
