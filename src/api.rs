@@ -368,17 +368,17 @@ pub struct TrajectoryRequest {
     pub transitions: Vec<Transition>,
 }
 
-/// `201` answer to a posted trajectory (replayed as it was for a retry with the same
-/// `Idempotency-Key`).
+/// What every answer about one stored trajectory starts with: which it is, what it executed and
+/// where it comes from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct TrajectoryCreated {
+pub struct TrajectoryHeader {
     /// Identifier of the stored trajectory.
     pub id: i64,
     /// Its experiment.
     pub experiment_id: i64,
     /// The proposal it executed, if any.
     pub proposal_id: Option<i64>,
-    /// Whether the robot stopped early.
+    /// Whether the robot stopped before the end.
     pub partial: bool,
     /// Whether it departs from its proposal (other actions, longer, or another start; a
     /// prefix does not).
@@ -387,6 +387,15 @@ pub struct TrajectoryCreated {
     /// Where it comes from, when the client said.
     #[serde(default)]
     pub source: Option<TrajectorySource>,
+}
+
+/// `201` answer to a posted trajectory (replayed as it was for a retry with the same
+/// `Idempotency-Key`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct TrajectoryCreated {
+    /// The stored trajectory.
+    #[serde(flatten)]
+    pub trajectory: TrajectoryHeader,
     /// Transitions stored.
     pub n_transitions: usize,
     /// Each transition's deviation label `d(f̂(s, a), s_next)`, in order.
@@ -404,21 +413,9 @@ pub struct TrajectoryCreated {
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TrajectoryResponse {
-    /// Identifier.
-    pub id: i64,
-    /// Owning experiment.
-    pub experiment_id: i64,
-    /// The proposal it executed, if any.
-    pub proposal_id: Option<i64>,
-    /// Whether the robot stopped before the end.
-    pub partial: bool,
-    /// Whether it departs from its proposal (other actions, longer, or another start; a
-    /// prefix does not).
-    #[serde(default)]
-    pub deviating: bool,
-    /// Where it comes from, when the client said.
-    #[serde(default)]
-    pub source: Option<TrajectorySource>,
+    /// Which trajectory it is.
+    #[serde(flatten)]
+    pub trajectory: TrajectoryHeader,
     /// Ingest time (RFC 3339).
     pub created_at: String,
     /// Its transitions in order, with their predictions and labels.

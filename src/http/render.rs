@@ -5,7 +5,7 @@ use crate::api::{
     CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
     ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
     RejectionCounts, RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated,
-    TrajectoryResponse,
+    TrajectoryHeader, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{
@@ -127,12 +127,14 @@ pub fn diagnostics(experiment_id: i64, d: LooDiagnostics) -> Diagnostics {
 /// A trajectory with its transitions.
 pub fn trajectory(t: StoredTrajectory) -> TrajectoryResponse {
     TrajectoryResponse {
-        id: t.id,
-        experiment_id: t.experiment_id,
-        proposal_id: t.proposal_id,
-        partial: t.partial,
-        deviating: t.deviating,
-        source: t.source,
+        trajectory: TrajectoryHeader {
+            id: t.id,
+            experiment_id: t.experiment_id,
+            proposal_id: t.proposal_id,
+            partial: t.partial,
+            deviating: t.deviating,
+            source: t.source,
+        },
         created_at: t.created_at,
         n_transitions: t.transitions.len(),
         transitions: t.transitions,
@@ -231,12 +233,14 @@ pub fn plan(p: Planned) -> PlanResponse {
 pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
     let r = &i.record;
     TrajectoryCreated {
-        id: r.trajectory_id,
-        experiment_id: i.experiment_id,
-        proposal_id: r.proposal_id,
-        partial: r.partial,
-        deviating: r.deviating,
-        source: r.source.clone(),
+        trajectory: TrajectoryHeader {
+            id: r.trajectory_id,
+            experiment_id: i.experiment_id,
+            proposal_id: r.proposal_id,
+            partial: r.partial,
+            deviating: r.deviating,
+            source: r.source.clone(),
+        },
         n_transitions: r.deviations.len(),
         deviations: r.deviations.clone(),
         iteration: i.iteration,
