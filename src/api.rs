@@ -11,13 +11,22 @@ use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::mde::{BetaChoice, EstimatorKind, HeldOutTrust, KernelTrial};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
-use crate::store::{ListOrder, ProposalStatus, RunStatus};
+use crate::store::{IterationStats, ListOrder, ModelSummary, ProposalStatus, ProposalTerms};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 pub use crate::mde::Judgement;
 pub use crate::settings::ExperimentRequest;
+/// A fit the server did not attempt because its estimated peak memory exceeded the budget, as
+/// stored.
+pub use crate::store::FitRefusal as FitRefusalView;
+/// Where a posted trajectory comes from, as posted, stored and shown.
+pub use crate::store::Provenance as TrajectorySource;
+/// A stored transition with its prediction and label.
+pub use crate::store::StoredTransition as TransitionView;
+/// A run as the store lists it.
+pub use crate::store::{Run as RunView, RunStatus};
 
 /// `GET /healthz` and `GET /readyz`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -123,53 +132,6 @@ pub struct PageQuery {
     pub limit: Option<i64>,
 }
 
-/// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
-/// refused proposal request.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct RunView {
-    /// The proposal, if there was one.
-    pub proposal_id: Option<i64>,
-    /// The executed trajectory, if one was posted.
-    pub trajectory_id: Option<i64>,
-    /// The refusal, for a refused proposal request (`status` `refused`).
-    #[serde(default)]
-    pub refusal_id: Option<i64>,
-    /// Where it stands.
-    pub status: RunStatus,
-    /// The client the proposal was leased to (or that was refused).
-    pub client_id: Option<String>,
-    /// The learning iteration the proposal was made (or refused) in (`null` without a
-    /// proposal).
-    pub iteration: Option<i64>,
-    /// β the proposal was planned with; for a refusal, the first β tried (the iteration's
-    /// `β_j`) (`null` without a proposal).
-    pub beta: Option<f64>,
-    /// Every β a refused request tried, in order (`null` unless refused).
-    #[serde(default)]
-    pub betas_tried: Option<Vec<f64>>,
-    /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
-    #[serde(default)]
-    pub extensions: Option<i64>,
-    /// The MDE version that scored the proposal (`null` without a proposal).
-    pub model_version: Option<i64>,
-    /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
-    pub created_at: String,
-    /// Actions: executed transitions when a trajectory was posted, else the proposal's planned
-    /// actions.
-    pub length: i64,
-    /// Whether the posted trajectory stopped early.
-    pub partial: bool,
-    /// Whether the posted trajectory departs from its proposal (other actions, longer, or
-    /// another start; a prefix does not).
-    #[serde(default)]
-    pub deviating: bool,
-    /// Where the posted trajectory comes from, when its client said.
-    #[serde(default)]
-    pub source: Option<TrajectorySource>,
-    /// The largest deviation label of the executed trajectory (`null` before one was posted).
-    pub max_deviation: Option<f64>,
-}
-
 /// `GET /v1/experiments/{id}/runs`: proposals with the trajectories that executed them,
 /// trajectories posted without a proposal and refused proposal requests, newest first.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -188,23 +150,9 @@ pub struct RunPage {
 pub struct TimelineIteration {
     /// `β_j` of the learning schedule at this iteration.
     pub beta: f64,
-    /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
-    /// next batch's first, in ingest order).
-    pub iteration: i64,
-    /// Trajectories posted in it (0 when it only refused proposal requests so far).
-    pub n_trajectories: i64,
-    /// Their transitions.
-    pub n_transitions: i64,
-    /// Mean deviation label of those transitions (`null` without any).
-    pub mean_deviation: Option<f64>,
-    /// Largest deviation label (`null` without any).
-    pub max_deviation: Option<f64>,
-    /// Share of the transitions with a deviation below `d_max` (the model was right there;
-    /// `null` without any).
-    pub share_within_d_max: Option<f64>,
-    /// Proposal requests refused with `no_plan` in it.
-    #[serde(default)]
-    pub n_refused: i64,
+    /// Its statistics, as the store counts them.
+    #[serde(flatten)]
+    pub stats: IterationStats,
 }
 
 /// One model version of `GET /v1/experiments/{id}/timeline` (no training data, no noise
@@ -213,23 +161,9 @@ pub struct TimelineIteration {
 pub struct TimelineModel {
     /// The learning iteration its training data reached (`n_trajectories / batch_size`).
     pub iteration: i64,
-    /// Version (1, 2, …).
-    pub version: i64,
-    /// Training transitions (the experiment's first `n_train`).
-    pub n_train: i64,
-    /// Trajectories stored when the fit started.
-    pub n_trajectories: i64,
-    /// Noise mode of the fit.
-    pub noise: String,
-    /// Log marginal likelihood of the fit.
-    pub log_marginal_likelihood: f64,
-    /// Seconds the fit took.
-    pub fit_seconds: f64,
-    /// When it finished (RFC 3339).
-    pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels; migration 0007
-    /// recorded one for every version fitted before caps were).
-    pub label_cap: f64,
+    /// The version, as stored.
+    #[serde(flatten)]
+    pub model: ModelSummary,
 }
 
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.
@@ -417,26 +351,6 @@ pub struct LaterRates {
     pub rates: PreconditionRates,
 }
 
-/// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
-/// Stored with the trajectory and shown with it and in the runs list.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
-#[serde(deny_unknown_fields)]
-pub struct TrajectorySource {
-    /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
-    /// (1 to 1000 characters).
-    pub dataset: String,
-    /// The episode of the dataset (≥ 0).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub episode: Option<i64>,
-    /// The step of the episode the trajectory's first transition was (≥ 0): an episode longer
-    /// than one post allows is posted as several trajectories.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub first_step: Option<i64>,
-    /// A free-form label (at most 1000 characters).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub label: Option<String>,
-}
-
 /// `POST /v1/experiments/{id}/trajectories` body.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -454,17 +368,17 @@ pub struct TrajectoryRequest {
     pub transitions: Vec<Transition>,
 }
 
-/// `201` answer to a posted trajectory (replayed as it was for a retry with the same
-/// `Idempotency-Key`).
+/// What every answer about one stored trajectory starts with: which it is, what it executed and
+/// where it comes from.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct TrajectoryCreated {
+pub struct TrajectoryHeader {
     /// Identifier of the stored trajectory.
     pub id: i64,
     /// Its experiment.
     pub experiment_id: i64,
     /// The proposal it executed, if any.
     pub proposal_id: Option<i64>,
-    /// Whether the robot stopped early.
+    /// Whether the robot stopped before the end.
     pub partial: bool,
     /// Whether it departs from its proposal (other actions, longer, or another start; a
     /// prefix does not).
@@ -473,6 +387,15 @@ pub struct TrajectoryCreated {
     /// Where it comes from, when the client said.
     #[serde(default)]
     pub source: Option<TrajectorySource>,
+}
+
+/// `201` answer to a posted trajectory (replayed as it was for a retry with the same
+/// `Idempotency-Key`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct TrajectoryCreated {
+    /// The stored trajectory.
+    #[serde(flatten)]
+    pub trajectory: TrajectoryHeader,
     /// Transitions stored.
     pub n_transitions: usize,
     /// Each transition's deviation label `d(f̂(s, a), s_next)`, in order.
@@ -487,45 +410,12 @@ pub struct TrajectoryCreated {
     pub created_at: String,
 }
 
-/// A stored transition with its prediction and label.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct TransitionView {
-    /// Identifier; ascending in ingest order.
-    pub id: i64,
-    /// The trajectory it belongs to.
-    pub trajectory_id: i64,
-    /// Position in the trajectory, from 0.
-    pub step: i64,
-    /// State.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// Observed next state.
-    pub s_next: Vec<f64>,
-    /// Predicted next state.
-    pub s_pred: Vec<f64>,
-    /// Deviation label.
-    pub deviation: f64,
-}
-
 /// `GET /v1/experiments/{id}/trajectories/{tid}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TrajectoryResponse {
-    /// Identifier.
-    pub id: i64,
-    /// Owning experiment.
-    pub experiment_id: i64,
-    /// The proposal it executed, if any.
-    pub proposal_id: Option<i64>,
-    /// Whether the robot stopped before the end.
-    pub partial: bool,
-    /// Whether it departs from its proposal (other actions, longer, or another start; a
-    /// prefix does not).
-    #[serde(default)]
-    pub deviating: bool,
-    /// Where it comes from, when the client said.
-    #[serde(default)]
-    pub source: Option<TrajectorySource>,
+    /// Which trajectory it is.
+    #[serde(flatten)]
+    pub trajectory: TrajectoryHeader,
     /// Ingest time (RFC 3339).
     pub created_at: String,
     /// Its transitions in order, with their predictions and labels.
@@ -624,25 +514,6 @@ pub struct ModelResponse {
     /// The β test plans and the precondition's default judgements use with this version:
     /// `beta_choice.beta` with `learning.calibrate_test_beta`, else `learning.test_beta`.
     pub test_beta: f64,
-}
-
-/// A fit the server did not attempt because its estimated peak memory exceeded the budget.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct FitRefusalView {
-    /// Transitions the fit would have been trained on.
-    pub n_train: i64,
-    /// Trajectories stored then.
-    pub n_trajectories: i64,
-    /// The regressor it would have fitted: `exact` or `sparse`.
-    pub estimator: EstimatorKind,
-    /// Its estimated peak memory (bytes).
-    pub needed_bytes: f64,
-    /// The server's budget (bytes, `--max-fit-memory-mib`).
-    pub budget_bytes: f64,
-    /// Why, in words.
-    pub reason: String,
-    /// When (RFC 3339).
-    pub refused_at: String,
 }
 
 /// One state-action to judge.
@@ -858,20 +729,9 @@ pub struct ProposalResponse {
     /// another start; a prefix does not); `false` until executed.
     #[serde(default)]
     pub deviating: bool,
-    /// The client it is leased to.
-    pub client_id: Option<String>,
-    /// The learning iteration it was made in.
-    pub iteration: i64,
-    /// β it was planned with.
-    pub beta: f64,
-    /// The strategy that chose it.
-    pub strategy: Strategy,
-    /// The MDE version that scored it.
-    pub model_version: i64,
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Goal.
-    pub goal: Vec<f64>,
+    /// The problem, the client it is leased to and the learning state that shaped it.
+    #[serde(flatten)]
+    pub terms: ProposalTerms,
     /// Creation time (RFC 3339).
     pub created_at: String,
     /// End of the lease (RFC 3339).

@@ -6,8 +6,8 @@ mod common;
 
 use common::{
     Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
-    http_with_timeout, ingest_only, leased_problem, post, spawn_robots, trajectory,
-    two_robots_trajectory,
+    http_with_timeout, ingest_only, join_robots, lease, metrics, post, refits_every, spawn_robots,
+    trajectory, two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -57,13 +57,7 @@ async fn kill_9_during_concurrent_ingest_loses_no_acknowledged_trajectory() {
         server = Server::start(&db, &[]);
         base.write().unwrap()[0] = server.base.clone();
     }
-    let mut acked = Vec::new();
-    let mut retries = 0;
-    for c in clients {
-        let (a, r) = c.await.unwrap();
-        acked.extend(a);
-        retries += r;
-    }
+    let (acked, retries) = join_robots(clients).await;
     assert!(started.elapsed() < Duration::from_secs(40));
     assert!(
         retries >= KILLS,
@@ -89,13 +83,7 @@ async fn an_open_proposal_survives_a_crash_and_is_returned_to_its_client() {
         json!({"domain": {"kind": "kinematic"}}),
     )
     .await;
-    let (status, first) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", server.base),
-        &leased_problem(),
-    )
-    .await;
-    assert_eq!(status, 201, "{first}");
+    let first = lease(&http, &server.base, id).await;
     server.kill9();
     let server = Server::start(&db, &[]);
     assert_lease_answered(&http, &server.base, id, &first).await;
@@ -168,13 +156,7 @@ async fn sigterm_during_a_refit_exits_in_time_and_the_next_start_refits() {
     let http = reqwest::Client::new();
     // One batch of 40 trajectories (about 280 transitions): a heteroscedastic fit with a few
     // restarts takes seconds in a debug build, long enough to be caught running.
-    let id = experiment(
-        &http,
-        &server.base,
-        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 40},
-                "mde": {"restarts": 3}}),
-    )
-    .await;
+    let id = experiment(&http, &server.base, refits_every(40, 3)).await;
     let url = format!("{}/v1/experiments/{id}/trajectories", server.base);
     for k in 0..40 {
         let body = two_robots_trajectory(200, k);
@@ -184,15 +166,10 @@ async fn sigterm_during_a_refit_exits_in_time_and_the_next_start_refits() {
     // The batch is complete: a background fit starts. Wait until it runs, then stop.
     let started = Instant::now();
     loop {
-        let text = http
-            .get(format!("{}/metrics", server.base))
-            .send()
+        if metrics(&http, &server.base)
             .await
-            .unwrap()
-            .text()
-            .await
-            .unwrap();
-        if text.contains("precond_planning_running 1") {
+            .contains("precond_planning_running 1")
+        {
             break;
         }
         assert!(

@@ -10,8 +10,8 @@ mod common;
 
 use common::{
     Server, all_transitions, assert_lease_answered, assert_stored_exactly_once, experiment, get,
-    http_with_timeout, ingest_only, leased_problem, post, spawn_robots, trajectory,
-    two_robots_trajectory,
+    http_with_timeout, ingest_only, join_robots, lease, metrics, post, refits_every, spawn_robots,
+    trajectory, two_robots_trajectory,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -74,13 +74,7 @@ async fn a_trajectory_posted_to_one_replica_is_labelled_once_and_seen_by_the_oth
     };
     let (a, b) = (Server::start(&db, FAST), Server::start(&db, FAST));
     let http = reqwest::Client::new();
-    let id = experiment(
-        &http,
-        &a.base,
-        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 2},
-               "mde": {"restarts": 1}}),
-    )
-    .await;
+    let id = experiment(&http, &a.base, refits_every(2, 1)).await;
     let (body, labels) = trajectory(1, 1);
     let send = |base: &str| {
         http.post(format!("{base}/v1/experiments/{id}/trajectories"))
@@ -130,13 +124,7 @@ async fn a_proposal_leased_on_one_replica_is_the_same_on_the_other() {
     let (a, b) = (Server::start(&db, FAST), Server::start(&db, FAST));
     let http = reqwest::Client::new();
     let id = experiment(&http, &a.base, json!({"domain": {"kind": "kinematic"}})).await;
-    let (status, first) = post(
-        &http,
-        &format!("{}/v1/experiments/{id}/proposals", a.base),
-        &leased_problem(),
-    )
-    .await;
-    assert_eq!(status, 201, "{first}");
+    let first = lease(&http, &a.base, id).await;
     assert_lease_answered(&http, &b.base, id, &first).await;
 }
 
@@ -178,13 +166,7 @@ async fn kill_9_of_either_replica_loses_and_duplicates_nothing() {
         bases.write().unwrap()[victim] = restarted.base.clone();
         replicas.insert(victim, restarted);
     }
-    let mut acked = Vec::new();
-    let mut retries = 0;
-    for c in clients {
-        let (a, r) = c.await.unwrap();
-        acked.extend(a);
-        retries += r;
-    }
+    let (acked, retries) = join_robots(clients).await;
     assert!(started.elapsed() < Duration::from_secs(60));
     assert!(retries > 0, "the kills interrupted ingest");
     assert_eq!(acked.len(), CLIENTS * PER_CLIENT);
@@ -205,13 +187,7 @@ async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
     let http = reqwest::Client::new();
     // One batch of 60 trajectories (about 420 transitions) fitted with several restarts:
     // seconds in a test build, long enough to be caught running.
-    let id = experiment(
-        &http,
-        &replicas[0].base,
-        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 60},
-               "mde": {"restarts": 4}}),
-    )
-    .await;
+    let id = experiment(&http, &replicas[0].base, refits_every(60, 4)).await;
     for k in 0..60 {
         let body = two_robots_trajectory(300, k);
         let (status, v) = post(
@@ -249,15 +225,9 @@ async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
     let fitting = |base: String, state: &'static str| {
         let http = http.clone();
         async move {
-            let text = http
-                .get(format!("{base}/metrics"))
-                .send()
+            metrics(&http, &base)
                 .await
-                .unwrap()
-                .text()
-                .await
-                .unwrap();
-            text.lines()
+                .lines()
                 .find_map(|l| {
                     l.strip_prefix(&format!("precond_fit_requests{{state=\"{state}\"}} "))
                         .map(|v| v.trim().parse::<f64>().unwrap())

@@ -904,8 +904,8 @@ impl Run<'_> {
                 .post_trajectory(self.id, Some(p.id), transitions)
                 .await?;
             self.posted += 1;
-            rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.beta));
-            train.beta = Some(p.beta);
+            rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.terms.beta));
+            train.beta = Some(p.terms.beta);
             train.relaxed = p.content.relaxed_from_beta.is_some();
             train.executed = true;
             train.length = exec.steps.len();

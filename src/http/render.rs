@@ -2,19 +2,17 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    CandidateView, Diagnostics, ExperimentResponse, FitRefusalView, LaterRates, MapAxis, MapPoint,
-    ModelResponse, ModelSource, PlanResponse, PreconditionMap, PreconditionResponse,
-    ProposalResponse, RejectionCounts, RunPage, RunView, Timeline, TimelineIteration,
-    TimelineModel, TrajectoryCreated, TrajectoryResponse, TrajectorySource, TransitionView,
+    CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
+    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
+    RejectionCounts, RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated,
+    TrajectoryHeader, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{
-    FitRefusal, Provenance, Run, StoredProposal, StoredTrajectory, StoredTransition,
-};
+use crate::store::{StoredProposal, StoredTrajectory};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -22,16 +20,6 @@ pub fn source(m: &ServedModel) -> ModelSource {
         ModelSource::Fit
     } else {
         ModelSource::Prior
-    }
-}
-
-/// Where a trajectory comes from.
-pub fn provenance(p: Provenance) -> TrajectorySource {
-    TrajectorySource {
-        dataset: p.dataset,
-        episode: p.episode,
-        first_step: p.first_step,
-        label: p.label,
     }
 }
 
@@ -58,31 +46,9 @@ pub fn experiment(s: ExperimentState) -> ExperimentResponse {
 /// A page of runs.
 pub fn runs(r: Runs) -> RunPage {
     RunPage {
-        items: r.items.into_iter().map(run).collect(),
+        items: r.items,
         total: r.total,
         next: r.next,
-    }
-}
-
-/// One run.
-fn run(r: Run) -> RunView {
-    RunView {
-        proposal_id: r.proposal_id,
-        trajectory_id: r.trajectory_id,
-        refusal_id: r.refusal_id,
-        status: r.status,
-        client_id: r.client_id,
-        iteration: r.iteration,
-        beta: r.beta,
-        betas_tried: r.betas_tried,
-        extensions: r.extensions,
-        model_version: r.model_version,
-        created_at: r.created_at,
-        length: r.length,
-        partial: r.partial,
-        deviating: r.deviating,
-        source: r.source.map(provenance),
-        max_deviation: r.max_deviation,
     }
 }
 
@@ -95,33 +61,14 @@ pub fn timeline(experiment_id: i64, t: LearningTimeline) -> Timeline {
         iterations: t
             .iterations
             .into_iter()
-            .map(|(beta, s)| TimelineIteration {
-                beta,
-                iteration: s.iteration,
-                n_trajectories: s.n_trajectories,
-                n_transitions: s.n_transitions,
-                mean_deviation: s.mean_deviation,
-                max_deviation: s.max_deviation,
-                share_within_d_max: s.share_within_d_max,
-                n_refused: s.n_refused,
-            })
+            .map(|(beta, stats)| TimelineIteration { beta, stats })
             .collect(),
         models: t
             .models
             .into_iter()
-            .map(|(iteration, m)| TimelineModel {
-                iteration,
-                version: m.version,
-                n_train: m.n_train,
-                n_trajectories: m.n_trajectories,
-                noise: m.noise,
-                log_marginal_likelihood: m.log_marginal_likelihood,
-                fit_seconds: m.fit_seconds,
-                fitted_at: m.fitted_at,
-                label_cap: m.label_cap,
-            })
+            .map(|(iteration, model)| TimelineModel { iteration, model })
             .collect(),
-        fit_refusals: t.fit_refusals.into_iter().map(fit_refusal).collect(),
+        fit_refusals: t.fit_refusals,
     }
 }
 
@@ -180,29 +127,17 @@ pub fn diagnostics(experiment_id: i64, d: LooDiagnostics) -> Diagnostics {
 /// A trajectory with its transitions.
 pub fn trajectory(t: StoredTrajectory) -> TrajectoryResponse {
     TrajectoryResponse {
-        id: t.id,
-        experiment_id: t.experiment_id,
-        proposal_id: t.proposal_id,
-        partial: t.partial,
-        deviating: t.deviating,
-        source: t.source.map(provenance),
+        trajectory: TrajectoryHeader {
+            id: t.id,
+            experiment_id: t.experiment_id,
+            proposal_id: t.proposal_id,
+            partial: t.partial,
+            deviating: t.deviating,
+            source: t.source,
+        },
         created_at: t.created_at,
         n_transitions: t.transitions.len(),
-        transitions: t.transitions.into_iter().map(transition).collect(),
-    }
-}
-
-/// One transition.
-pub fn transition(t: StoredTransition) -> TransitionView {
-    TransitionView {
-        id: t.id,
-        trajectory_id: t.trajectory_id,
-        step: t.step,
-        s: t.s,
-        a: t.a,
-        s_next: t.s_next,
-        s_pred: t.s_pred,
-        deviation: t.deviation,
+        transitions: t.transitions,
     }
 }
 
@@ -230,7 +165,7 @@ pub fn model(v: ModelView) -> ModelResponse {
             .unwrap_or_default(),
         estimator: m.kind(),
         online_trajectories: m.fit.as_ref().map_or(0, |f| f.online_trajectories),
-        last_fit_refusal: v.last_refusal.map(fit_refusal),
+        last_fit_refusal: v.last_refusal,
         kernel_trials: m
             .fit
             .as_ref()
@@ -238,19 +173,6 @@ pub fn model(v: ModelView) -> ModelResponse {
             .unwrap_or_default(),
         beta_choice: m.fit.as_ref().and_then(|f| f.beta_choice),
         test_beta: v.test_beta,
-    }
-}
-
-/// A refused fit.
-pub fn fit_refusal(r: FitRefusal) -> FitRefusalView {
-    FitRefusalView {
-        n_train: r.n_train,
-        n_trajectories: r.n_trajectories,
-        estimator: r.estimator,
-        needed_bytes: r.needed_bytes,
-        budget_bytes: r.budget_bytes,
-        reason: r.reason,
-        refused_at: r.refused_at,
     }
 }
 
@@ -282,13 +204,7 @@ pub fn proposal(p: ProposalRecord) -> ProposalResponse {
         id,
         status,
         deviating,
-        client_id: terms.client_id,
-        iteration: terms.iteration,
-        beta: terms.beta,
-        strategy: terms.strategy,
-        model_version: terms.model_version,
-        start: terms.start,
-        goal: terms.goal,
+        terms,
         created_at,
         expires_at,
         content: p.content,
@@ -319,12 +235,14 @@ pub fn plan(p: Planned) -> PlanResponse {
 pub fn trajectory_created(i: &Ingested) -> TrajectoryCreated {
     let r = &i.record;
     TrajectoryCreated {
-        id: r.trajectory_id,
-        experiment_id: i.experiment_id,
-        proposal_id: r.proposal_id,
-        partial: r.partial,
-        deviating: r.deviating,
-        source: r.source.clone().map(provenance),
+        trajectory: TrajectoryHeader {
+            id: r.trajectory_id,
+            experiment_id: i.experiment_id,
+            proposal_id: r.proposal_id,
+            partial: r.partial,
+            deviating: r.deviating,
+            source: r.source.clone(),
+        },
         n_transitions: r.deviations.len(),
         deviations: r.deviations.clone(),
         iteration: i.iteration,

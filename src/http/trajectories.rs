@@ -73,7 +73,6 @@ pub async fn list_transitions(
     let limit = query.limit.or(if csv { None } else { Some(DEFAULT_PAGE) });
     let (items, next) = state.service.transitions(id, query.after, limit).await?;
     if !csv {
-        let items = items.into_iter().map(render::transition).collect();
         return Ok(Json(TransitionPage { items, next }).into_response());
     }
     let domain = state.service.experiment(id).await?.domain;

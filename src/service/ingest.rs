@@ -90,12 +90,7 @@ pub fn check_source(source: TrajectorySource) -> Result<Provenance> {
             ));
         }
     }
-    Ok(Provenance {
-        dataset: source.dataset,
-        episode: source.episode,
-        first_step: source.first_step,
-        label: source.label,
-    })
+    Ok(source)
 }
 
 /// An `Idempotency-Key` as sent (the header's bytes), checked: 1 to

@@ -72,15 +72,9 @@ impl ContinuousWorld {
                     features: KinematicFeatures::default(),
                 }
             }
-            Self::Base(_) => KinematicParams {
-                state_low: vec![0.0, 0.0],
-                state_high: vec![1.0, 1.0],
-                action_low: vec![-0.1, -0.1],
-                action_high: vec![0.1, 0.1],
-                obstacles: Vec::new(),
-                goal_radius: 0.05,
-                features: KinematicFeatures::default(),
-            },
+            // The base's arena is the default kinematic domain: the unit square, moves of at
+            // most 0.1 per axis, goal radius 0.05.
+            Self::Base(_) => KinematicParams::default(),
             Self::Pusher(sim) => {
                 let side = sim.params().side;
                 KinematicParams {

@@ -29,29 +29,32 @@ pub enum RunStatus {
     Refused,
 }
 
-/// A proposal and the trajectory that executed it, or a trajectory posted without a proposal.
-#[derive(Debug, Clone, PartialEq)]
+/// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
+/// refused proposal request: a row of the runs list, shown as listed (`Run` of the API).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct Run {
     /// The proposal, if there was one.
     pub proposal_id: Option<i64>,
     /// The executed trajectory, if one was posted.
     pub trajectory_id: Option<i64>,
-    /// The refusal, for a refused proposal request.
+    /// The refusal, for a refused proposal request (`status` `refused`).
+    #[serde(default)]
     pub refusal_id: Option<i64>,
     /// Where it stands.
     pub status: RunStatus,
-    /// The client the proposal was leased to.
+    /// The client the proposal was leased to (or that was refused).
     pub client_id: Option<String>,
-    /// The learning iteration the proposal was made (or refused) in (`None` without a
+    /// The learning iteration the proposal was made (or refused) in (`null` without a
     /// proposal).
     pub iteration: Option<i64>,
-    /// β the proposal was planned with; for a refusal the first β tried (`None` without a
-    /// proposal).
+    /// β the proposal was planned with; for a refusal, the first β tried (the iteration's
+    /// `β_j`) (`null` without a proposal).
     pub beta: Option<f64>,
-    /// Every β a refused request tried, in order (`None` unless refused).
+    /// Every β a refused request tried, in order (`null` unless refused).
+    #[serde(default)]
     pub betas_tried: Option<Vec<f64>>,
-    /// RRT extensions the proposal's (or the refusal's) search spent (`None` without a
-    /// proposal).
+    /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
+    #[serde(default)]
     pub extensions: Option<i64>,
     /// The MDE version that scored the proposal (`null` without a proposal).
     pub model_version: Option<i64>,
@@ -62,37 +65,43 @@ pub struct Run {
     pub length: i64,
     /// Whether the posted trajectory stopped early.
     pub partial: bool,
-    /// Whether the posted trajectory departs from its proposal.
+    /// Whether the posted trajectory departs from its proposal (other actions, longer, or
+    /// another start; a prefix does not).
+    #[serde(default)]
     pub deviating: bool,
     /// Where the posted trajectory comes from, when its client said.
+    #[serde(default)]
     pub source: Option<Provenance>,
-    /// The largest deviation label of the executed trajectory (`None` before one was posted).
+    /// The largest deviation label of the executed trajectory (`null` before one was posted).
     pub max_deviation: Option<f64>,
 }
 
-/// Executed trajectories and transitions of one learning iteration.
-#[derive(Debug, Clone, PartialEq)]
+/// Executed trajectories and transitions of one learning iteration, and its refused proposal
+/// requests (shown in the API's timeline).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct IterationStats {
     /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
     /// next batch's first, in ingest order).
     pub iteration: i64,
-    /// Trajectories posted in it.
+    /// Trajectories posted in it (0 when it only refused proposal requests so far).
     pub n_trajectories: i64,
     /// Their transitions.
     pub n_transitions: i64,
-    /// Mean deviation label of those transitions (`None` without any).
+    /// Mean deviation label of those transitions (`null` without any).
     pub mean_deviation: Option<f64>,
-    /// Largest deviation label (`None` without any).
+    /// Largest deviation label (`null` without any).
     pub max_deviation: Option<f64>,
     /// Share of the transitions with a deviation below `d_max` (the model was right there;
-    /// `None` without any).
+    /// `null` without any).
     pub share_within_d_max: Option<f64>,
-    /// Proposal requests refused (`no_plan`) in it.
+    /// Proposal requests refused with `no_plan` in it.
+    #[serde(default)]
     pub n_refused: i64,
 }
 
-/// A stored model version's summary (no training data, no noise model).
-#[derive(Debug, Clone, PartialEq)]
+/// A stored model version's summary (no training data, no noise model; shown in the API's
+/// timeline).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct ModelSummary {
     /// Version (1, 2, …).
     pub version: i64,
@@ -108,7 +117,8 @@ pub struct ModelSummary {
     pub fit_seconds: f64,
     /// When it finished (RFC 3339).
     pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels).
+    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels; migration 0007
+    /// recorded one for every version fitted before caps were).
     pub label_cap: f64,
 }
 

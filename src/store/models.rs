@@ -252,14 +252,14 @@ impl Store {
 }
 
 /// A fit the server did not attempt because its estimated peak memory exceeded the budget; the
-/// version before it kept answering.
-#[derive(Debug, Clone, PartialEq)]
+/// version before it kept answering. Shown as stored (`FitRefusal` of the API).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct FitRefusal {
     /// Transitions the fit would have been trained on.
     pub n_train: i64,
     /// Trajectories stored then.
     pub n_trajectories: i64,
-    /// The regressor it would have fitted.
+    /// The regressor it would have fitted: `exact` or `sparse`.
     pub estimator: EstimatorKind,
     /// Its estimated peak memory (bytes).
     pub needed_bytes: f64,

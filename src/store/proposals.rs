@@ -53,8 +53,8 @@ fn parse_strategy(s: &str) -> Result<Strategy, sqlx::Error> {
 }
 
 /// What a proposal answered and under which conditions: the problem, the client it is leased
-/// to, and the learning state that shaped it.
-#[derive(Debug, Clone, PartialEq)]
+/// to, and the learning state that shaped it. Shown as stored, in the API's proposal.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct ProposalTerms {
     /// The client it is leased to.
     pub client_id: Option<String>,

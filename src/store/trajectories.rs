@@ -6,8 +6,8 @@ use crate::domain::LabelledTransition;
 use sqlx::Row;
 use sqlx::any::AnyRow;
 
-/// A stored transition.
-#[derive(Debug, Clone, PartialEq)]
+/// A stored transition with its prediction and label (`Transition` of the API, as stored).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct StoredTransition {
     /// Identifier; ascending in ingest order.
     pub id: i64,
@@ -27,18 +27,26 @@ pub struct StoredTransition {
     pub deviation: f64,
 }
 
-/// Where a trajectory comes from, when its client said: a logged dataset, a file, a simulated
-/// environment.
-#[derive(Debug, Clone, PartialEq, Eq)]
+/// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
+/// Posted with the trajectory (`TrajectorySource` of the API, checked by
+/// `service::ingest::check_source`), stored with it and shown with it and in the runs list.
+#[derive(
+    Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(deny_unknown_fields)]
 pub struct Provenance {
-    /// The dataset, file or environment.
+    /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
+    /// (1 to 1000 characters).
     pub dataset: String,
-    /// The episode of the dataset.
+    /// The episode of the dataset (≥ 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub episode: Option<i64>,
-    /// The step of the episode its first transition was (an episode split into several
-    /// trajectories).
+    /// The step of the episode the trajectory's first transition was (≥ 0): an episode longer
+    /// than one post allows is posted as several trajectories.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub first_step: Option<i64>,
-    /// A free-form label.
+    /// A free-form label (at most 1000 characters).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub label: Option<String>,
 }
 

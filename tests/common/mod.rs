@@ -130,6 +130,24 @@ pub async fn experiment(http: &reqwest::Client, base: &str, body: Value) -> i64 
     e["id"].as_i64().unwrap()
 }
 
+/// A kinematic experiment that refits after every `batch_size` trajectories with `restarts`
+/// optimiser restarts (more restarts: a longer fit, to be caught running).
+pub fn refits_every(batch_size: usize, restarts: usize) -> Value {
+    json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": batch_size},
+           "mde": {"restarts": restarts}})
+}
+
+/// The server's `/metrics` text.
+pub async fn metrics(http: &reqwest::Client, base: &str) -> String {
+    http.get(format!("{base}/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap()
+}
+
 /// A kinematic experiment whose batch is never full while the tests ingest: no refit.
 pub fn ingest_only() -> Value {
     json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}})
@@ -219,6 +237,20 @@ pub fn spawn_robots(
             ))
         })
         .collect()
+}
+
+/// Waits for every robot of [`spawn_robots`]: all they had acknowledged and the retries it took.
+pub async fn join_robots(
+    robots: Vec<tokio::task::JoinHandle<(Vec<Acked>, usize)>>,
+) -> (Vec<Acked>, usize) {
+    let mut acked = Vec::new();
+    let mut retries = 0;
+    for robot in robots {
+        let (a, r) = robot.await.unwrap();
+        acked.extend(a);
+        retries += r;
+    }
+    (acked, retries)
 }
 
 /// Robot `c` posts its `n` seeded trajectories to experiment `id`, paced 10–60 ms apart (a robot
@@ -314,6 +346,15 @@ pub async fn assert_stored_exactly_once(
 /// The problem [`assert_lease_answered`] asks again, for client `arm-1`.
 pub fn leased_problem() -> Value {
     json!({"start": [0.1, 0.1], "goal": [0.6, 0.6], "client_id": "arm-1"})
+}
+
+/// Proposes [`leased_problem`] on `base` (a kinematic experiment `id`): `201`, the proposal leased
+/// to `arm-1`.
+pub async fn lease(http: &reqwest::Client, base: &str, id: i64) -> Value {
+    let url = format!("{base}/v1/experiments/{id}/proposals");
+    let (status, first) = post(http, &url, &leased_problem()).await;
+    assert_eq!(status, 201, "{first}");
+    first
 }
 
 /// Asking `base` again for [`leased_problem`], whose proposal `first` is leased to `arm-1`,
