@@ -554,18 +554,23 @@ mod tests {
         (x, pts.iter().map(|&(a, b)| f(a, b)).collect())
     }
 
+    /// The exact GP of [`params`] fitted on raw `deviations`.
+    fn exact_fit(x: &DMatrix<f64>, deviations: &[f64]) -> Box<dyn Regressor> {
+        fit(
+            EstimatorKind::Exact,
+            x,
+            &DVector::from_column_slice(deviations),
+            &params(),
+        )
+        .expect("fits")
+    }
+
     #[test]
     fn the_certified_beta_is_the_smallest_that_keeps_held_out_false_trust_within_the_rate() {
         // A deviation that ramps through d_max: a small β trusts the unsafe side's edge.
         let ramp = |a: f64, _: f64| (a - 0.3).max(0.0) * 0.5;
         let (x, deviations) = dense_world(40, ramp);
-        let gp = fit(
-            EstimatorKind::Exact,
-            &x,
-            &DVector::from_column_slice(&deviations),
-            &params(),
-        )
-        .expect("fits");
+        let gp = exact_fit(&x, &deviations);
         let groups = identical_rows(&x);
         let c = BetaChoice::of(gp.as_ref(), &deviations, &deviations, &groups, D_MAX, 2.0)
             .expect("closed form");
@@ -603,13 +608,7 @@ mod tests {
         // 12 × 5 points, a cliff: at most 30 unsafe transitions, fewer than the 49 a 2 % rate
         // needs even with none trusted.
         let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 2.0 });
-        let gp = fit(
-            EstimatorKind::Exact,
-            &x,
-            &DVector::from_column_slice(&deviations),
-            &params(),
-        )
-        .expect("fits");
+        let gp = exact_fit(&x, &deviations);
         let c = BetaChoice::of(
             gp.as_ref(),
             &deviations,

@@ -2,7 +2,7 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::{count_true, fresh_experiment};
+use super::helpers::{count_true, fresh_experiment, pushed_lattice};
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
@@ -246,20 +246,6 @@ async fn closed_loop_execution_reaches_goals_open_loop_misses() {
         problems.len()
     );
     app.stop().await;
-}
-
-/// A kinematic trajectory of `n` moves by `(0.05, 0)` on a lattice of the unit square, where
-/// the world pushes the robot up by 0.1 right of `x = 0.5` (the model is wrong there).
-fn pushed_lattice(n: usize, offset: usize) -> Value {
-    let transitions: Vec<Value> = (0..n)
-        .map(|k| {
-            let i = k + offset;
-            let (x, y) = ((i % 19) as f64 / 20.0, ((i / 19) % 19) as f64 / 20.0);
-            let push = if x > 0.5 { 0.1 } else { 0.0 };
-            json!({"s": [x, y], "a": [0.05, 0.0], "s_next": [x + 0.05, (y + push).min(1.0)]})
-        })
-        .collect();
-    json!({ "transitions": transitions })
 }
 
 /// `learning.calibrate_test_beta`: every version says the β its held-out training transitions

@@ -3,23 +3,9 @@
 //! `auto` hands such a fit to the sparse GP; the sparse GP takes each posted trajectory in at
 //! once and again after a restart.
 
-use super::helpers::{fresh_app_with_limits, spawn_app_with_limits};
+use super::helpers::{fresh_app_with_limits, pushed_lattice, spawn_app_with_limits};
 use precond::service::Limits;
 use serde_json::{Value, json};
-
-/// `n` kinematic transitions on a lattice of the unit square, moving by `(0.05, 0)`; the world
-/// pushes the robot up by 0.1 where `x > 0.5` (the model is wrong there).
-fn lattice_trajectory(n: usize, offset: usize) -> Value {
-    let transitions: Vec<Value> = (0..n)
-        .map(|k| {
-            let i = k + offset;
-            let (x, y) = ((i % 37) as f64 / 40.0, ((i / 37) % 37) as f64 / 40.0);
-            let push = if x > 0.5 { 0.1 } else { 0.0 };
-            json!({"s": [x, y], "a": [0.05, 0.0], "s_next": [x + 0.05, (y + push).min(1.0)]})
-        })
-        .collect();
-    json!({ "transitions": transitions })
-}
 
 fn small_budget() -> Limits {
     Limits {
@@ -57,7 +43,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        app.store_trajectory(exact, &lattice_trajectory(800, 800 * k))
+        app.store_trajectory(exact, &pushed_lattice(800, 800 * k))
             .await;
     }
     let model = model_until(&app, exact, |m| !m["last_fit_refusal"].is_null()).await;
@@ -98,7 +84,7 @@ async fn a_fit_beyond_the_memory_budget_is_refused_and_the_server_keeps_serving(
         }))
         .await;
     for k in 0..2 {
-        app.store_trajectory(auto, &lattice_trajectory(800, 800 * k))
+        app.store_trajectory(auto, &pushed_lattice(800, 800 * k))
             .await;
     }
     let model = model_until(&app, auto, |m| m["version"] == 1).await;
@@ -139,7 +125,7 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
         }))
         .await;
     for k in 0..3 {
-        app.post_at(id, "trajectories", &lattice_trajectory(40, 40 * k))
+        app.post_at(id, "trajectories", &pushed_lattice(40, 40 * k))
             .await;
     }
     let fitted = model_until(&app, id, |m| m["version"] == 1).await;

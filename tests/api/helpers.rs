@@ -421,3 +421,17 @@ pub fn assert_within(started: std::time::Instant, limit: std::time::Duration) {
     let elapsed = started.elapsed();
     assert!(elapsed < limit, "{elapsed:?}");
 }
+
+/// `n` kinematic transitions on a lattice of the unit square, moving by `(0.05, 0)`; the world
+/// pushes the robot up by 0.1 where `x > 0.5` (the model is wrong there).
+pub fn pushed_lattice(n: usize, offset: usize) -> Value {
+    let transitions: Vec<Value> = (0..n)
+        .map(|k| {
+            let i = k + offset;
+            let (x, y) = ((i % 37) as f64 / 40.0, ((i / 37) % 37) as f64 / 40.0);
+            let push = if x > 0.5 { 0.1 } else { 0.0 };
+            json!({"s": [x, y], "a": [0.05, 0.0], "s_next": [x + 0.05, (y + push).min(1.0)]})
+        })
+        .collect();
+    json!({ "transitions": transitions })
+}
