@@ -238,7 +238,8 @@ pub struct PreconditionMap {
     pub n_train: usize,
     /// The experiment's tolerance.
     pub d_max: f64,
-    /// The experiment's test β (`learning.test_beta`).
+    /// The test β of the answering version (`learning.test_beta`, or the version's certified β
+    /// with `learning.calibrate_test_beta`).
     pub test_beta: f64,
     /// The state fixing the components not on an axis.
     pub s: Vec<f64>,
@@ -262,7 +263,7 @@ pub struct PreconditionMap {
 pub struct DiagnosticsQuery {
     /// The model version to check; default the one answering now.
     pub version: Option<i64>,
-    /// β of the precondition whose rates are reported; default `learning.test_beta`.
+    /// β of the precondition whose rates are reported; default the version's test β.
     pub beta: Option<f64>,
 }
 
@@ -532,7 +533,8 @@ pub struct Point {
 pub struct PreconditionRequest {
     /// The state-actions to judge.
     pub points: Vec<Point>,
-    /// Confidence multiplier β; default: the experiment's `learning.test_beta`.
+    /// Confidence multiplier β; default: the version's test β (`learning.test_beta`, or its
+    /// certified β).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub beta: Option<f64>,
 }
@@ -545,7 +547,7 @@ pub struct PointQuery {
     pub s: String,
     /// Action, e.g. `a=1,0`.
     pub a: String,
-    /// β; default `learning.test_beta`.
+    /// β; default the version's test β (`learning.test_beta`, or its certified β).
     pub beta: Option<f64>,
 }
 
@@ -749,7 +751,7 @@ pub struct PlanRequest {
     pub start: Vec<f64>,
     /// Goal.
     pub goal: Vec<f64>,
-    /// β; default `learning.test_beta`.
+    /// β; default the version's test β (`learning.test_beta`, or its certified β).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub beta: Option<f64>,
     /// The client's own candidate trajectories: the plan is the one with the smallest `α` among

@@ -39,7 +39,8 @@ pub struct ExportedModel {
     pub n_train: usize,
     /// The experiment's deviation tolerance.
     pub d_max: f64,
-    /// The experiment's test β (`learning.test_beta`), the β the server judges with by default.
+    /// The test β of this version, the β the server judges with by default: `learning.test_beta`,
+    /// or the version's certified β with `learning.calibrate_test_beta`.
     pub test_beta: f64,
     /// Components of a state.
     pub state_dim: usize,

@@ -41,7 +41,7 @@ pub struct PreconditionGrid {
     pub model: Arc<ServedModel>,
     /// The experiment's tolerance.
     pub d_max: f64,
-    /// The experiment's test β.
+    /// The test β of the answering version (see `LiveExperiment::test_beta`).
     pub test_beta: f64,
     /// The fixed state.
     pub s: Vec<f64>,
