@@ -60,8 +60,27 @@ impl HeldOutTrust {
         groups: &[Vec<usize>],
         precondition: Precondition,
     ) -> Option<(Self, Vec<f64>)> {
+        Self::judge(
+            &gp.leave_groups_out(groups)?,
+            label_cap,
+            labels,
+            deviations,
+            groups,
+            precondition,
+        )
+    }
+
+    /// [`HeldOutTrust::of`] from the held-out `(y_i − μ₋ᵢ, σ₋ᵢ)` of every training point
+    /// ([`Regressor::leave_groups_out`]), computed once for every judgement made of one model.
+    pub fn judge(
+        held_out: &[(f64, f64)],
+        label_cap: f64,
+        labels: &[f64],
+        deviations: &[f64],
+        groups: &[Vec<usize>],
+        precondition: Precondition,
+    ) -> Option<(Self, Vec<f64>)> {
         let d_max = precondition.d_max();
-        let held_out = gp.leave_groups_out(groups)?;
         let mut log_p = Vec::with_capacity(held_out.len());
         let mut t = Self {
             label_cap,
@@ -139,7 +158,23 @@ impl BetaChoice {
         d_max: f64,
         max_beta: f64,
     ) -> Option<Self> {
-        let held_out = gp.leave_groups_out(groups)?;
+        Some(Self::from_held_out(
+            &gp.leave_groups_out(groups)?,
+            labels,
+            deviations,
+            d_max,
+            max_beta,
+        ))
+    }
+
+    /// [`BetaChoice::of`] from the held-out `(y_i − μ₋ᵢ, σ₋ᵢ)` of every training point.
+    pub fn from_held_out(
+        held_out: &[(f64, f64)],
+        labels: &[f64],
+        deviations: &[f64],
+        d_max: f64,
+        max_beta: f64,
+    ) -> Self {
         let judged: Vec<(f64, f64, bool)> = held_out
             .iter()
             .zip(labels)
@@ -176,7 +211,7 @@ impl BetaChoice {
         (0..steps)
             .map(|k| at(k as f64 * BETA_GRID_STEP))
             .find(certified)
-            .or_else(|| Some(at(max_beta)))
+            .unwrap_or_else(|| at(max_beta))
     }
 }
 
@@ -439,8 +474,15 @@ fn choose_exact(
                 &params,
             )?,
         };
-        let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
-        fitted.push((cap, gp, judged));
+        // One leave-out per candidate serves its judgement and the β it would certify.
+        let held_out = gp.leave_groups_out(&groups);
+        let judged = held_out
+            .as_deref()
+            .and_then(|h| HeldOutTrust::judge(h, cap, &labels, deviations, &groups, precondition));
+        let beta = held_out
+            .as_deref()
+            .map(|h| BetaChoice::from_held_out(h, &labels, deviations, d_max, precondition.beta()));
+        fitted.push((cap, gp, judged, beta));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
     let score = |j: &Option<(HeldOutTrust, Vec<f64>)>| {
@@ -448,13 +490,13 @@ fn choose_exact(
     };
     let mut best = (0..fitted.len())
         .max_by(|&a, &b| {
-            let ((ca, _, ja), (cb, _, jb)) = (&fitted[a], &fitted[b]);
+            let ((ca, _, ja, _), (cb, _, jb, _)) = (&fitted[a], &fitted[b]);
             score(ja)
                 .total_cmp(&score(jb))
                 .then(size(*ca).total_cmp(&size(*cb)))
         })
         .ok_or_else(|| GpError::InvalidState("no label cap to fit with".into()))?;
-    if let Some(raw) = fitted.iter().position(|(cap, _, _)| *cap == 0.0)
+    if let Some(raw) = fitted.iter().position(|(cap, ..)| *cap == 0.0)
         && let (Some((_, lp_best)), Some((_, lp_raw))) = (&fitted[best].2, &fitted[raw].2)
         && !clearly_better(lp_best, lp_raw)
     {
@@ -462,17 +504,9 @@ fn choose_exact(
     }
     let trials = fitted
         .iter()
-        .filter_map(|(_, _, j)| j.as_ref().map(|(t, _)| *t))
+        .filter_map(|(_, _, j, _)| j.as_ref().map(|(t, _)| *t))
         .collect();
-    let (label_cap, gp, _) = fitted.swap_remove(best);
-    let beta_choice = BetaChoice::of(
-        gp.as_ref(),
-        &capped_labels(deviations, label_cap, d_max),
-        deviations,
-        &groups,
-        d_max,
-        precondition.beta(),
-    );
+    let (label_cap, gp, _, beta_choice) = fitted.swap_remove(best);
     Ok(CapChoice {
         gp,
         label_cap,

@@ -369,7 +369,7 @@ impl Service {
         let arrived = Instant::now();
         let live = self.live(id).await?;
         let model = self.model_version(&live, version, arrived).await?;
-        let precondition = live.precondition(beta.unwrap_or_else(|| live.test_beta(&model)))?;
+        let precondition = live.precondition_for(&model, beta)?;
         let Estimator::Fitted(gp) = &model.estimator else {
             return Err(Error::Conflict(format!(
                 "model version {} is the prior: there are no training labels to check",

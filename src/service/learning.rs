@@ -164,15 +164,6 @@ pub(crate) fn needs_candidates(live: &LiveExperiment) -> Result<()> {
     Ok(())
 }
 
-/// The precondition at the request's `beta`, or at the test β of `model`.
-fn at_beta_or_test(
-    live: &LiveExperiment,
-    model: &ServedModel,
-    beta: Option<f64>,
-) -> Result<Precondition> {
-    live.precondition(beta.unwrap_or_else(|| live.test_beta(model)))
-}
-
 /// What a forced refit answers.
 #[derive(Debug, Clone)]
 pub struct Refit {
@@ -330,7 +321,7 @@ impl Service {
             ));
         }
         let model = live.model();
-        let precondition = at_beta_or_test(&live, &model, beta)?;
+        let precondition = live.precondition_for(&model, beta)?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
         let mut features = Vec::with_capacity(points.len() * dim);
@@ -399,7 +390,7 @@ impl Service {
         let live = self.live(id).await?;
         let problem = live.problem(start, goal)?;
         let model = live.model();
-        let precondition = at_beta_or_test(&live, &model, beta)?;
+        let precondition = live.precondition_for(&model, beta)?;
         let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model_version = model.version;
         if let Some(candidates) = candidates {

@@ -169,6 +169,16 @@ impl LiveExperiment {
             .map_or(l.test_beta, |c| c.beta.min(l.test_beta))
     }
 
+    /// The precondition at a request's `beta`, or at `model`'s test β
+    /// ([`LiveExperiment::test_beta`]); errors name `beta`.
+    pub fn precondition_for(
+        &self,
+        model: &ServedModel,
+        beta: Option<f64>,
+    ) -> Result<Precondition, Error> {
+        self.precondition(beta.unwrap_or_else(|| self.test_beta(model)))
+    }
+
     /// The precondition at `beta` under the experiment's `d_max`; errors name `beta`.
     pub fn precondition(&self, beta: f64) -> Result<Precondition, Error> {
         Ok(Precondition::new(beta, self.settings.d_max)?)
