@@ -505,8 +505,8 @@ pub struct ModelResponse {
     /// labels; the one with the highest log marginal likelihood was kept unless another was
     /// clearly better held out (empty otherwise).
     pub kernel_trials: Vec<KernelTrial>,
-    /// The test β the fit's judgement of its own training transitions, each state-action held
-    /// out with all its copies, certifies: the smallest β (grid of 0.1, at most
+    /// The test β the fit's judgement of its own training transitions, each executed trajectory
+    /// held out whole with every copy of its state-actions, certifies: the smallest β (grid of 0.1, at most
     /// `learning.test_beta`) at which at most 2 % of the unsafe ones are trusted, estimated as
     /// `(trusted unsafe + 1) / (unsafe + 2)`; `learning.test_beta` when none smaller is
     /// certified (`null` for the prior, where it could not be computed, and for versions

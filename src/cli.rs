@@ -121,6 +121,11 @@ pub struct MdeArgs {
     /// The noise models to fit, comma-separated: `homoscedastic`, `heteroscedastic`.
     #[arg(long, value_delimiter = ',', default_value = "heteroscedastic", value_parser = parse_noise_mode)]
     pub noise: Vec<crate::gp::NoiseMode>,
+    /// Instead of the settings table: the test β certified by leaving training state-actions
+    /// out in groups of several kinds (copies, trajectories, feature-space blocks), and the
+    /// false trust met at each on the held-out state-actions.
+    #[arg(long)]
+    pub calibration: bool,
 }
 
 /// `homoscedastic` or `heteroscedastic`.
@@ -643,6 +648,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 estimators: args.estimators,
                 inducing_points: args.inducing_points,
                 noise: args.noise,
+                calibration: args.calibration,
             })
             .await
         }

@@ -119,14 +119,14 @@ impl HeldOutTrust {
 }
 
 /// The test β the data certify: the smallest β on a grid of `0, 0.1, …, max_beta` at which the
-/// model, judging its own training state-actions each held out with all its copies, trusts
+/// model, judging its own training state-actions held out in groups — by [`fit_choosing_label_cap`],
+/// each executed trajectory whole with every copy of its state-actions ([`trajectory_groups`]) — trusts
 /// (`μ₋ᵢ + β σ₋ᵢ < d_max`) few enough of the unsafe ones — the rule-of-succession estimate of
 /// the false-trust rate, `(trusted unsafe + 1) / (unsafe + 2)`, at most
 /// [`CALIBRATED_FALSE_TRUST`] — or `max_beta` when no smaller β is certified. The estimate's
 /// `+ 1` keeps β at `max_beta` until enough unsafe transitions were seen to certify anything
-/// (49 for a 2 % rate). The training state-actions are where the learner executed, dense where
-/// the deviation crosses `d_max`, so a rate held out there is a harder test than one over
-/// uniform state-actions.
+/// (49 for a 2 % rate). The rate is estimated where the learner executed; on moves far from
+/// every executed trajectory it can be higher (measured in docs/research/continuous-worlds.md).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct BetaChoice {
     /// The certified β (at most the experiment's `learning.test_beta`).
@@ -257,6 +257,79 @@ pub fn blocks(x: &DMatrix<f64>, bins: usize) -> Vec<Vec<usize>> {
     groups
 }
 
+/// Rows grouped so that every transition of one executed trajectory, and every copy of any of
+/// its state-actions ([`identical_rows`]), are left out together: `trajectories[i]` names row
+/// `i`'s trajectory. The groups in order of their first row, each in row order. With every row
+/// its own trajectory these are exactly [`identical_rows`].
+///
+/// Why a certified test β ([`BetaChoice`]) is judged on these groups: a state-action held out
+/// alone keeps its trajectory's neighbours (the states just before and after it, the same
+/// steering), so it is predicted more easily than a move where nothing was executed, which is
+/// what a plan asks of the model. On the arm, copies alone certified β 0.2 where the uniform
+/// held-out false trust then was 12.8 %; whole trajectories certified 1.4 (0.9 %)
+/// (`precond bench mde --calibration`, docs/research/continuous-worlds.md).
+pub fn trajectory_groups(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Vec<usize>> {
+    fn root(parent: &mut [usize], mut i: usize) -> usize {
+        while parent[i] != i {
+            parent[i] = parent[parent[i]];
+            i = parent[i];
+        }
+        i
+    }
+    fn join(parent: &mut [usize], rows: &[usize]) {
+        for w in rows.windows(2) {
+            let (a, b) = (root(parent, w[0]), root(parent, w[1]));
+            parent[a.max(b)] = a.min(b);
+        }
+    }
+    let n = x.nrows().min(trajectories.len());
+    let mut parent: Vec<usize> = (0..n).collect();
+    for g in identical_rows(x) {
+        let g: Vec<usize> = g.into_iter().filter(|&i| i < n).collect();
+        join(&mut parent, &g);
+    }
+    let mut by_trajectory = std::collections::HashMap::<i64, Vec<usize>>::new();
+    for (i, &t) in trajectories.iter().take(n).enumerate() {
+        by_trajectory.entry(t).or_default().push(i);
+    }
+    for g in by_trajectory.values() {
+        join(&mut parent, g);
+    }
+    // Each root is its group's smallest row, so groups keyed by root come in first-row order.
+    let mut groups = std::collections::BTreeMap::<usize, Vec<usize>>::new();
+    for i in 0..n {
+        let r = root(&mut parent, i);
+        groups.entry(r).or_default().push(i);
+    }
+    groups.into_values().collect()
+}
+
+/// Training transitions as the estimator is fitted on them: their features (one row each),
+/// deviations, and the executed trajectory each belongs to (which rows a certified test β
+/// leaves out together, [`trajectory_groups`]).
+#[derive(Debug, Clone, Copy)]
+pub struct Training<'a> {
+    /// Features, one row per transition.
+    pub x: &'a DMatrix<f64>,
+    /// Deviation labels, one per row.
+    pub deviations: &'a [f64],
+    /// The trajectory of each row (any identifiers; equal for rows of one trajectory).
+    pub trajectories: &'a [i64],
+}
+
+impl Training<'_> {
+    /// The rows `rows` of this set, owned.
+    fn select(&self, rows: &[usize]) -> (DMatrix<f64>, Vec<f64>, Vec<i64>) {
+        (
+            self.x.select_rows(rows),
+            rows.iter().map(|&i| self.deviations[i]).collect(),
+            rows.iter()
+                .map(|&i| self.trajectories.get(i).copied().unwrap_or(i as i64))
+                .collect(),
+        )
+    }
+}
+
 /// A model fitted with the kernel and the label cap chosen from the data, and how every
 /// candidate did.
 #[derive(Debug)]
@@ -269,8 +342,8 @@ pub struct CapChoice {
     pub trials: Vec<HeldOutTrust>,
     /// Every candidate kernel's fit (empty when one kernel was given).
     pub kernel_trials: Vec<KernelTrial>,
-    /// The test β the chosen model's held-out judgements certify (`None` when they could not
-    /// be computed).
+    /// The test β the chosen model certifies, each executed trajectory left out whole
+    /// ([`trajectory_groups`]; `None` when it could not be computed).
     pub beta_choice: Option<BetaChoice>,
 }
 
@@ -313,8 +386,7 @@ pub struct KernelTrial {
 /// [`CAP_CHOICE_SUBSET`] transitions, and the sparse GP is then fitted on all of them with
 /// them.
 pub fn fit_choosing_label_cap(
-    x: &DMatrix<f64>,
-    deviations: &[f64],
+    training: Training<'_>,
     precondition: Precondition,
     kernels: &[Kernel],
     caps: &[f64],
@@ -327,10 +399,14 @@ pub fn fit_choosing_label_cap(
         // certified then: the sparse GP has no closed-form leave-out).
         let (kernel, label_cap, trials, kernel_trials, beta_choice) =
             if caps.len() > 1 || kernels.len() > 1 {
-                let rows = evenly_spaced(x.nrows(), CAP_CHOICE_SUBSET);
-                let xs = x.select_rows(&rows);
-                let ds: Vec<f64> = rows.iter().map(|&i| deviations[i]).collect();
-                let c = choose_exact(&xs, &ds, precondition, kernels, caps, params)?;
+                let rows = evenly_spaced(training.x.nrows(), CAP_CHOICE_SUBSET);
+                let (x, deviations, trajectories) = training.select(&rows);
+                let subset = Training {
+                    x: &x,
+                    deviations: &deviations,
+                    trajectories: &trajectories,
+                };
+                let c = choose_exact(subset, precondition, kernels, caps, params)?;
                 (
                     c.gp.hyperparameters().kernel,
                     c.label_cap,
@@ -347,10 +423,10 @@ pub fn fit_choosing_label_cap(
                     None,
                 )
             };
-        let labels = capped_labels(deviations, label_cap, precondition.d_max());
+        let labels = capped_labels(training.deviations, label_cap, precondition.d_max());
         let gp = fit(
             kind,
-            x,
+            training.x,
             &DVector::from_vec(labels),
             &params.with_kernel(kernel)?,
         )?;
@@ -362,7 +438,7 @@ pub fn fit_choosing_label_cap(
             beta_choice,
         });
     }
-    choose_exact(x, deviations, precondition, kernels, caps, params)
+    choose_exact(training, precondition, kernels, caps, params)
 }
 
 /// The kernel to keep among `trials`, given each trial's held-out log probabilities per
@@ -414,13 +490,13 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
 
 /// [`fit_choosing_label_cap`] with exact GPs.
 fn choose_exact(
-    x: &DMatrix<f64>,
-    deviations: &[f64],
+    training: Training<'_>,
     precondition: Precondition,
     kernels: &[Kernel],
     caps: &[f64],
     params: &EstimatorParams,
 ) -> Result<CapChoice, GpError> {
+    let (x, deviations) = (training.x, training.deviations);
     let d_max = precondition.d_max();
     let first_cap = caps.first().copied().unwrap_or(0.0);
     let mut kernel_trials = Vec::new();
@@ -474,15 +550,8 @@ fn choose_exact(
                 &params,
             )?,
         };
-        // One leave-out per candidate serves its judgement and the β it would certify.
-        let held_out = gp.leave_groups_out(&groups);
-        let judged = held_out
-            .as_deref()
-            .and_then(|h| HeldOutTrust::judge(h, cap, &labels, deviations, &groups, precondition));
-        let beta = held_out
-            .as_deref()
-            .map(|h| BetaChoice::from_held_out(h, &labels, deviations, d_max, precondition.beta()));
-        fitted.push((cap, gp, judged, beta));
+        let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
+        fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
     let score = |j: &Option<(HeldOutTrust, Vec<f64>)>| {
@@ -490,7 +559,7 @@ fn choose_exact(
     };
     let mut best = (0..fitted.len())
         .max_by(|&a, &b| {
-            let ((ca, _, ja, _), (cb, _, jb, _)) = (&fitted[a], &fitted[b]);
+            let ((ca, _, ja), (cb, _, jb)) = (&fitted[a], &fitted[b]);
             score(ja)
                 .total_cmp(&score(jb))
                 .then(size(*ca).total_cmp(&size(*cb)))
@@ -504,9 +573,18 @@ fn choose_exact(
     }
     let trials = fitted
         .iter()
-        .filter_map(|(_, _, j, _)| j.as_ref().map(|(t, _)| *t))
+        .filter_map(|(_, _, j)| j.as_ref().map(|(t, _)| *t))
         .collect();
-    let (label_cap, gp, _, beta_choice) = fitted.swap_remove(best);
+    let (label_cap, gp, _) = fitted.swap_remove(best);
+    // The test β the chosen model certifies, each trajectory left out whole.
+    let beta_choice = BetaChoice::of(
+        gp.as_ref(),
+        &capped_labels(deviations, label_cap, d_max),
+        deviations,
+        &trajectory_groups(x, training.trajectories),
+        d_max,
+        precondition.beta(),
+    );
     Ok(CapChoice {
         gp,
         label_cap,
@@ -588,6 +666,11 @@ mod tests {
         (x, pts.iter().map(|&(a, b)| f(a, b)).collect())
     }
 
+    /// Every row its own trajectory.
+    fn own_trajectories(x: &DMatrix<f64>) -> Vec<i64> {
+        (0..x.nrows() as i64).collect()
+    }
+
     /// The exact GP of [`params`] fitted on raw `deviations`.
     fn exact_fit(x: &DMatrix<f64>, deviations: &[f64]) -> Box<dyn Regressor> {
         fit(
@@ -638,6 +721,58 @@ mod tests {
     }
 
     #[test]
+    fn trajectories_and_copies_are_left_out_together() {
+        // Rows 0 and 3 are copies; trajectories {0, 1}, {2}, {3}, {4, 5}.
+        let x = DMatrix::from_row_slice(6, 1, &[0.0, 0.1, 0.2, 0.0, 0.4, 0.5]);
+        let groups = trajectory_groups(&x, &[7, 7, 8, 9, 3, 3]);
+        assert_eq!(groups, vec![vec![0, 1, 3], vec![2], vec![4, 5]]);
+        // Every row its own trajectory: the copies alone.
+        assert_eq!(
+            trajectory_groups(&x, &[0, 1, 2, 3, 4, 5]),
+            identical_rows(&x)
+        );
+    }
+
+    #[test]
+    fn a_trajectory_held_out_whole_certifies_a_larger_beta_than_its_points_alone() {
+        // Trajectories run along the first feature, densely; the deviation ramps through d_max
+        // along the second, across trajectories. A point held out alone is predicted from its
+        // trajectory's neighbours; a trajectory held out whole only from the next ones.
+        let ramp = |a: f64, b: f64| (b - 0.3).max(0.0) * 0.5 + 0.02 * (6.0 * a).sin();
+        let (x, deviations) = dense_world(40, |a, b| ramp(b, a));
+        let along: Vec<i64> = (0..x.nrows())
+            .map(|r| (x[(r, 1)] * 4.0).round() as i64)
+            .collect();
+        let c = fit_choosing_label_cap(
+            Training {
+                x: &x,
+                deviations: &deviations,
+                trajectories: &along,
+            },
+            at_beta_2(),
+            &[Kernel::Matern52],
+            &[0.0],
+            EstimatorKind::Exact,
+            &params(),
+        )
+        .expect("fits");
+        let by_trajectory = c.beta_choice.expect("closed form");
+        let alone = BetaChoice::of(
+            c.gp.as_ref(),
+            &deviations,
+            &deviations,
+            &identical_rows(&x),
+            D_MAX,
+            2.0,
+        )
+        .expect("closed form");
+        assert!(
+            by_trajectory.beta > alone.beta,
+            "{by_trajectory:?} {alone:?}"
+        );
+    }
+
+    #[test]
     fn too_few_unsafe_transitions_certify_nothing_below_the_bound() {
         // 12 × 5 points, a cliff: at most 30 unsafe transitions, fewer than the 49 a 2 % rate
         // needs even with none trusted.
@@ -667,8 +802,11 @@ mod tests {
         for (x, deviations) in &worlds {
             let caps = [2.0, 5.0, 0.0];
             let c = fit_choosing_label_cap(
-                x,
-                deviations,
+                Training {
+                    x,
+                    deviations,
+                    trajectories: &own_trajectories(x),
+                },
                 at_beta_2(),
                 &[Kernel::Matern52],
                 &caps,
@@ -769,8 +907,11 @@ mod tests {
     fn one_candidate_is_kept_and_judged() {
         let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 1.0 });
         let c = fit_choosing_label_cap(
-            &x,
-            &deviations,
+            Training {
+                x: &x,
+                deviations: &deviations,
+                trajectories: &own_trajectories(&x),
+            },
             at_beta_2(),
             &[Kernel::Matern52],
             &[0.0],
@@ -841,8 +982,11 @@ mod tests {
         ];
         for (x, deviations) in &worlds {
             let c = fit_choosing_label_cap(
-                x,
-                deviations,
+                Training {
+                    x,
+                    deviations,
+                    trajectories: &own_trajectories(x),
+                },
                 at_beta_2(),
                 &Kernel::ALL,
                 &[2.0, 0.0],

@@ -10,7 +10,7 @@ use super::Error;
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
-    Estimator, EstimatorKind, EstimatorParams, FitRecord, ServedModel, capped_labels,
+    Estimator, EstimatorKind, EstimatorParams, FitRecord, ServedModel, Training, capped_labels,
     fit_choosing_label_cap, gp_params, training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
@@ -304,6 +304,7 @@ impl LiveExperiment {
         }
         let version = claim.version;
         let (features, deviations) = self.training_set(&transitions);
+        let trajectories: Vec<i64> = transitions.iter().map(|t| t.trajectory_id).collect();
         let dim = self.domain.feature_dim();
         let mde = &self.settings.mde;
         let params = EstimatorParams::new(
@@ -336,15 +337,12 @@ impl LiveExperiment {
         let gp = super::work::run_niced(move || {
             let _slot = slot;
             let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
-            fit_choosing_label_cap(
-                &x,
-                &deviations,
-                precondition,
-                &kernels,
-                &caps,
-                kind,
-                &params,
-            )
+            let training = Training {
+                x: &x,
+                deviations: &deviations,
+                trajectories: &trajectories,
+            };
+            fit_choosing_label_cap(training, precondition, &kernels, &caps, kind, &params)
         })
         .await?;
         let result = if gp.is_ok() { "ok" } else { "failed" };

@@ -575,8 +575,8 @@ class KernelTrial(Wire):
 
 @dataclass(frozen=True)
 class BetaChoice(Wire):
-    """The test β a fitted version certifies on its own training transitions, each state-action
-    held out with its copies: the smallest β (grid of 0.1, at most ``learning.test_beta``) at
+    """The test β a fitted version certifies on its own training transitions, each executed
+    trajectory held out whole with every copy of its state-actions: the smallest β (grid of 0.1, at most ``learning.test_beta``) at
     which at most 2 % of the unsafe ones are trusted (schema ``BetaChoice``)."""
 
     SCHEMA: ClassVar[str] = "BetaChoice"
