@@ -7,7 +7,7 @@ use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
 use super::kernel::Inputs;
-use super::lml::{Jitter, NoiseSpec};
+use super::lml::Jitter;
 use super::{
     FitStats, GpError, Hyperparameters, ModelState, NoiseMode, NoiseSummary, Prediction,
     ValidGpParams,
@@ -136,19 +136,7 @@ impl GpModel {
             evaluations,
             converged,
             ..
-        } = fit::optimise(
-            &x,
-            &r,
-            NoiseSpec::Homoscedastic,
-            &p.bounds,
-            p.kernel,
-            p,
-            p.restarts,
-            None,
-            p.seed,
-            0.0,
-            true,
-        )?;
+        } = fit::optimise_homoscedastic(&x, &r, p)?;
         let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
         let s2 = theta[d].exp();
         let noise = theta[d + 1].exp();

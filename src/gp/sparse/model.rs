@@ -208,21 +208,9 @@ fn exact_start(x: &Inputs, r: &[f64], p: &GpParams) -> Option<Vec<f64>> {
         idx.sort_unstable();
         (x.subset(&idx), idx.iter().map(|&i| r[i]).collect())
     };
-    fit::optimise(
-        &xs,
-        &rs,
-        NoiseSpec::Homoscedastic,
-        &p.bounds,
-        p.kernel,
-        p,
-        p.restarts,
-        None,
-        p.seed,
-        0.0,
-        true,
-    )
-    .ok()
-    .map(|o| o.theta)
+    fit::optimise_homoscedastic(&xs, &rs, p)
+        .ok()
+        .map(|o| o.theta)
 }
 
 fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
