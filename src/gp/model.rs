@@ -414,19 +414,14 @@ impl GpModel {
     /// `L⁻¹` and the noise (the noise GP's inputs and `α` in heteroscedastic mode). `O(n²)`
     /// numbers.
     pub fn predictor(&self) -> Predictor {
-        let noise = match &self.noise_model {
-            None => NoisePredictor::Homoscedastic {
-                noise_variance: self.hyper.noise_variance,
-            },
-            Some(nm) => NoisePredictor::Heteroscedastic {
-                log_noise: nm.core.predictor(&self.x, false),
-                noise_variance_min: nm.clip.0,
-                noise_variance_max: nm.clip.1,
-            },
-        };
         Predictor {
             main: self.main.predictor(&self.x, true),
-            noise,
+            noise: NoisePredictor::new(
+                self.hyper.noise_variance,
+                self.noise_model
+                    .as_ref()
+                    .map(|nm| (nm.core.predictor(&self.x, false), nm.clip)),
+            ),
         }
     }
 
