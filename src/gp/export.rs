@@ -66,6 +66,23 @@ pub enum NoisePredictor {
     },
 }
 
+impl NoisePredictor {
+    /// One noise variance `noise_variance` without a noise GP, else the noise GP `log_noise`
+    /// with its clip `(min, max)`: the noise of the exact and the sparse GP's [`Predictor`].
+    pub(crate) fn new(noise_variance: f64, log_noise: Option<(GpPredictor, (f64, f64))>) -> Self {
+        match log_noise {
+            None => NoisePredictor::Homoscedastic { noise_variance },
+            Some((log_noise, (noise_variance_min, noise_variance_max))) => {
+                NoisePredictor::Heteroscedastic {
+                    log_noise,
+                    noise_variance_min,
+                    noise_variance_max,
+                }
+            }
+        }
+    }
+}
+
 /// A fitted GP's predictions as plain numbers: the main GP and its noise.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Predictor {

@@ -189,6 +189,29 @@ pub(crate) fn optimise(
     )
 }
 
+/// The homoscedastic optimum of a new fit on `(x, r)` with `p`'s bounds, kernel, restarts and
+/// seed, the default start always on all the data: the exact GP's first fit, and the sparse
+/// GP's start from an exact fit on a subset.
+pub(crate) fn optimise_homoscedastic(
+    x: &Inputs,
+    r: &[f64],
+    p: &GpParams,
+) -> Result<Optimum, GpError> {
+    optimise(
+        x,
+        r,
+        NoiseSpec::Homoscedastic,
+        &p.bounds,
+        p.kernel,
+        p,
+        p.restarts,
+        None,
+        p.seed,
+        0.0,
+        true,
+    )
+}
+
 /// [`optimise`] for any objective: `runner` performs one optimiser run, `screen_subset` replaces
 /// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one), and `first`,
 /// when given, replaces the deterministic default start (the sparse GP starts from an exact fit

@@ -7,7 +7,7 @@ use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
 use super::kernel::Inputs;
-use super::lml::{Jitter, NoiseSpec};
+use super::lml::Jitter;
 use super::{
     FitStats, GpError, Hyperparameters, ModelState, NoiseMode, NoiseSummary, Prediction,
     ValidGpParams,
@@ -136,19 +136,7 @@ impl GpModel {
             evaluations,
             converged,
             ..
-        } = fit::optimise(
-            &x,
-            &r,
-            NoiseSpec::Homoscedastic,
-            &p.bounds,
-            p.kernel,
-            p,
-            p.restarts,
-            None,
-            p.seed,
-            0.0,
-            true,
-        )?;
+        } = fit::optimise_homoscedastic(&x, &r, p)?;
         let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
         let s2 = theta[d].exp();
         let noise = theta[d + 1].exp();
@@ -426,19 +414,14 @@ impl GpModel {
     /// `L⁻¹` and the noise (the noise GP's inputs and `α` in heteroscedastic mode). `O(n²)`
     /// numbers.
     pub fn predictor(&self) -> Predictor {
-        let noise = match &self.noise_model {
-            None => NoisePredictor::Homoscedastic {
-                noise_variance: self.hyper.noise_variance,
-            },
-            Some(nm) => NoisePredictor::Heteroscedastic {
-                log_noise: nm.core.predictor(&self.x, false),
-                noise_variance_min: nm.clip.0,
-                noise_variance_max: nm.clip.1,
-            },
-        };
         Predictor {
             main: self.main.predictor(&self.x, true),
-            noise,
+            noise: NoisePredictor::new(
+                self.hyper.noise_variance,
+                self.noise_model
+                    .as_ref()
+                    .map(|nm| (nm.core.predictor(&self.x, false), nm.clip)),
+            ),
         }
     }
 

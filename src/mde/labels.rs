@@ -222,17 +222,7 @@ const BETA_GRID_STEP: f64 = 0.1;
 /// planner's caches key them), each group in row order, the groups in order of first
 /// appearance: every copy of one state-action in one group.
 pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
-    let mut index = std::collections::HashMap::<Vec<u64>, usize>::new();
-    let mut groups: Vec<Vec<usize>> = Vec::new();
-    for (i, row) in x.row_iter().enumerate() {
-        let key = row.iter().map(|v| (v + 0.0).to_bits()).collect();
-        let g = *index.entry(key).or_insert_with(|| {
-            groups.push(Vec::new());
-            groups.len() - 1
-        });
-        groups[g].push(i);
-    }
-    groups
+    group_rows(x, |v| (v + 0.0).to_bits())
 }
 
 /// The rows of `x` grouped by the block of a regular grid of `bins` cells per feature (features
@@ -241,13 +231,22 @@ pub fn identical_rows(x: &DMatrix<f64>) -> Vec<Vec<usize>> {
 /// has not seen, as planning asks of it.
 pub fn blocks(x: &DMatrix<f64>, bins: usize) -> Vec<Vec<usize>> {
     let bins = bins.max(1);
-    let mut index = std::collections::HashMap::<Vec<usize>, usize>::new();
+    group_rows(x, |v| {
+        ((v.clamp(0.0, 1.0) * bins as f64) as usize).min(bins - 1)
+    })
+}
+
+/// The rows of `x` grouped by the values `cell` maps their features to (rows alike in every
+/// feature in one group), each group in row order, the groups in order of first appearance:
+/// [`identical_rows`] and [`blocks`].
+fn group_rows<K: Eq + std::hash::Hash>(
+    x: &DMatrix<f64>,
+    cell: impl Fn(f64) -> K,
+) -> Vec<Vec<usize>> {
+    let mut index = std::collections::HashMap::<Vec<K>, usize>::new();
     let mut groups: Vec<Vec<usize>> = Vec::new();
     for (i, row) in x.row_iter().enumerate() {
-        let key = row
-            .iter()
-            .map(|v| ((v.clamp(0.0, 1.0) * bins as f64) as usize).min(bins - 1))
-            .collect();
+        let key = row.iter().map(|&v| cell(v)).collect();
         let g = *index.entry(key).or_insert_with(|| {
             groups.push(Vec::new());
             groups.len() - 1

@@ -208,21 +208,9 @@ fn exact_start(x: &Inputs, r: &[f64], p: &GpParams) -> Option<Vec<f64>> {
         idx.sort_unstable();
         (x.subset(&idx), idx.iter().map(|&i| r[i]).collect())
     };
-    fit::optimise(
-        &xs,
-        &rs,
-        NoiseSpec::Homoscedastic,
-        &p.bounds,
-        p.kernel,
-        p,
-        p.restarts,
-        None,
-        p.seed,
-        0.0,
-        true,
-    )
-    .ok()
-    .map(|o| o.theta)
+    fit::optimise_homoscedastic(&xs, &rs, p)
+        .ok()
+        .map(|o| o.theta)
 }
 
 fn setup<'a>(sp: &'a SparseParams, z: &'a Inputs, ladder: Ladder) -> Setup<'a> {
@@ -969,19 +957,14 @@ impl SparseGp {
     /// The fitted GP as plain numbers ([`Predictor`]): inducing inputs, `w`, the inverses of
     /// the two triangles its variance solves with, and the noise. `O(m²)` numbers.
     pub fn predictor(&self) -> Predictor {
-        let noise = match &self.noise_model {
-            None => NoisePredictor::Homoscedastic {
-                noise_variance: self.hyper.noise_variance,
-            },
-            Some(nm) => NoisePredictor::Heteroscedastic {
-                log_noise: nm.core.predictor(false),
-                noise_variance_min: nm.clip.0,
-                noise_variance_max: nm.clip.1,
-            },
-        };
         Predictor {
             main: self.main.predictor(true),
-            noise,
+            noise: NoisePredictor::new(
+                self.hyper.noise_variance,
+                self.noise_model
+                    .as_ref()
+                    .map(|nm| (nm.core.predictor(false), nm.clip)),
+            ),
         }
     }
 

@@ -108,6 +108,17 @@ def settings_differences(asked: Any, stored: Any, path: str = "") -> list[tuple[
     return [] if same else [(path, asked, stored)]
 
 
+def _transitions_json(
+    transitions: Iterable[Transition | Mapping[str, Any]], empty: str
+) -> list[dict[str, Any]]:
+    """The JSON form of ``transitions`` (a trajectory posted or a proposal's executed prefix);
+    ``ValueError(empty)`` when there are none."""
+    items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
+    if not items:
+        raise ValueError(empty)
+    return items
+
+
 class Client:
     """A client of one precond server.
 
@@ -237,6 +248,19 @@ class Client:
 
     def _path(self, suffix: str, experiment_id: int | None = None) -> str:
         return f"/v1/experiments/{self._exp(experiment_id)}{suffix}"
+
+    def _post_idempotent(
+        self, suffix: str, body: dict[str, Any], idempotency_key: str
+    ) -> tuple[Any, bool]:
+        """POSTs ``body`` to the current experiment's ``suffix`` under ``idempotency_key``;
+        returns the answer's JSON and whether the server replayed a stored answer."""
+        r = self._request(
+            "POST",
+            self._path(suffix),
+            json=body,
+            headers={"Idempotency-Key": idempotency_key},
+        )
+        return r.json(), r.headers.get("idempotent-replayed", "").lower() == "true"
 
     # ------------------------------------------------------------------ health
 
@@ -382,20 +406,16 @@ class Client:
         a lost answer stores nothing twice and returns the same new proposal. With
         ``candidates`` (a client-side model) the server scores them instead of planning.
         """
-        items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
-        if not items:
-            raise ValueError("continuing a proposal needs the executed prefix")
+        items = _transitions_json(transitions, "continuing a proposal needs the executed prefix")
         body: dict[str, Any] = {"transitions": items}
         if candidates is not None:
             body["candidates"] = [c.to_json() for c in candidates]
-        r = self._request(
-            "POST",
-            self._path(f"/proposals/{int(proposal_id)}/continue"),
-            json=body,
-            headers={"Idempotency-Key": idempotency_key or f"continue-{int(proposal_id)}"},
+        answer, replayed = self._post_idempotent(
+            f"/proposals/{int(proposal_id)}/continue",
+            body,
+            idempotency_key or f"continue-{int(proposal_id)}",
         )
-        replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
-        return Continued.from_json(r.json(), replayed=replayed)
+        return Continued.from_json(answer, replayed=replayed)
 
     def plan(
         self,
@@ -439,9 +459,7 @@ class Client:
         from its start (or a prefix of them) is stored all the same and comes back
         ``deviating``.
         """
-        items = [t.to_json() if isinstance(t, Transition) else dict(t) for t in transitions]
-        if not items:
-            raise ValueError("a trajectory needs at least one transition")
+        items = _transitions_json(transitions, "a trajectory needs at least one transition")
         body: dict[str, Any] = {"transitions": items, "partial": bool(partial)}
         if proposal_id is not None:
             body["proposal_id"] = int(proposal_id)
@@ -451,14 +469,8 @@ class Client:
             idempotency_key = (
                 f"proposal-{proposal_id}" if proposal_id is not None else f"py-{uuid.uuid4()}"
             )
-        r = self._request(
-            "POST",
-            self._path("/trajectories"),
-            json=body,
-            headers={"Idempotency-Key": idempotency_key},
-        )
-        replayed = r.headers.get("idempotent-replayed", "").lower() == "true"
-        return TrajectoryCreated.from_json(r.json(), replayed=replayed)
+        answer, replayed = self._post_idempotent("/trajectories", body, idempotency_key)
+        return TrajectoryCreated.from_json(answer, replayed=replayed)
 
     def get_trajectory(self, trajectory_id: int) -> Trajectory:
         """A stored trajectory with its labelled transitions, whether it deviated from its

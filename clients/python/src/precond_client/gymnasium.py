@@ -96,21 +96,27 @@ class Verdicts:
     model_version: int | None
     """The MDE version that answered (``None`` when no point was asked)."""
 
-    def info(self, k: int, with_cost: bool) -> dict[str, Any]:
-        """Point ``k``'s entry of ``info``: ``{"precondition": {...}}`` and, with
-        ``with_cost``, ``"cost"``."""
+    def info(self, k: int | None, with_cost: bool) -> dict[str, Any]:
+        """Point ``k``'s entry of ``info`` (Python numbers), or with ``k=None`` every point's
+        (arrays, one entry per point, as a vector environment's): ``{"precondition": {...}}``
+        and, with ``with_cost``, ``"cost"`` (0.0 inside the precondition, else 1.0)."""
+
+        def at(column: NDArray[Any]) -> Any:
+            return column if k is None else column[k].item()
+
         out: dict[str, Any] = {
             "precondition": {
-                "mu": float(self.mu[k]),
-                "sigma": float(self.sigma[k]),
-                "upper": float(self.upper[k]),
-                "inside": bool(self.inside[k]),
-                "in_domain": bool(self.in_domain[k]),
+                "mu": at(self.mu),
+                "sigma": at(self.sigma),
+                "upper": at(self.upper),
+                "inside": at(self.inside),
+                "in_domain": at(self.in_domain),
                 "model_version": self.model_version,
             }
         }
         if with_cost:
-            out["cost"] = 0.0 if self.inside[k] else 1.0
+            cost = np.where(at(self.inside), 0.0, 1.0)
+            out["cost"] = cost if k is None else cost.item()
         return out
 
 
@@ -143,7 +149,23 @@ def judge(
     return Verdicts(mu, sigma, upper, inside, ok, version)
 
 
-class PreconditionWrapper(gymnasium.Wrapper[Any, Any, Any, Any]):
+class _Judging:
+    """What :class:`PreconditionWrapper` and :class:`PreconditionVectorWrapper` judge each
+    step with: their arguments, the experiment's boxes and the observation last seen."""
+
+    def _judge_with(
+        self, client: Client, beta: float | None, cost: bool, state_fn: StateFn, action_fn: StateFn
+    ) -> None:
+        self.client = client
+        self.beta = beta
+        self.cost = cost
+        self.state_fn = state_fn
+        self.action_fn = action_fn
+        self.box = Box.of(client.get_experiment())
+        self._obs: Any = None
+
+
+class PreconditionWrapper(gymnasium.Wrapper[Any, Any, Any, Any], _Judging):
     """Adds the precondition's verdict on each step's (observation, action) to ``info``.
 
     Args:
@@ -168,13 +190,7 @@ class PreconditionWrapper(gymnasium.Wrapper[Any, Any, Any, Any]):
         action_fn: StateFn = _flat,
     ) -> None:
         super().__init__(env)
-        self.client = client
-        self.beta = beta
-        self.cost = cost
-        self.state_fn = state_fn
-        self.action_fn = action_fn
-        self.box = Box.of(client.get_experiment())
-        self._obs: Any = None
+        self._judge_with(client, beta, cost, state_fn, action_fn)
 
     def reset(
         self, *, seed: int | None = None, options: dict[str, Any] | None = None
@@ -198,7 +214,7 @@ class PreconditionWrapper(gymnasium.Wrapper[Any, Any, Any, Any]):
         return obs, reward, terminated, truncated, {**info, **verdict.info(0, self.cost)}
 
 
-class PreconditionVectorWrapper(gymnasium.vector.VectorWrapper):
+class PreconditionVectorWrapper(gymnasium.vector.VectorWrapper, _Judging):
     """:class:`PreconditionWrapper` for a vector environment: one query per step for every
     sub-environment. ``info["precondition"]`` holds arrays (one entry per sub-environment:
     ``mu``, ``sigma``, ``upper``, ``inside``, ``in_domain``) and ``info["cost"]`` an array.
@@ -219,13 +235,7 @@ class PreconditionVectorWrapper(gymnasium.vector.VectorWrapper):
         action_fn: StateFn = _flat,
     ) -> None:
         super().__init__(env)
-        self.client = client
-        self.beta = beta
-        self.cost = cost
-        self.state_fn = state_fn
-        self.action_fn = action_fn
-        self.box = Box.of(client.get_experiment())
-        self._obs: Any = None
+        self._judge_with(client, beta, cost, state_fn, action_fn)
 
     def reset(
         self, *, seed: int | list[int] | None = None, options: dict[str, Any] | None = None
@@ -244,18 +254,7 @@ class PreconditionVectorWrapper(gymnasium.vector.VectorWrapper):
         v = judge(self.client, states, acts, beta=self.beta, box=self.box)
         obs, reward, terminated, truncated, info = self.env.step(actions)
         self._obs = obs
-        info = dict(info)
-        info["precondition"] = {
-            "mu": v.mu,
-            "sigma": v.sigma,
-            "upper": v.upper,
-            "inside": v.inside,
-            "in_domain": v.in_domain,
-            "model_version": v.model_version,
-        }
-        if self.cost:
-            info["cost"] = np.where(v.inside, 0.0, 1.0)
-        return obs, reward, terminated, truncated, info
+        return obs, reward, terminated, truncated, {**info, **v.info(None, self.cost)}
 
 
 @dataclass
