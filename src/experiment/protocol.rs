@@ -20,7 +20,9 @@
 //! skipped. Retrying keeps every batch at `batch_size` trajectories, which keeps the service's
 //! iteration counter (and so its β schedule and its background refits) in step with the
 //! harness. Should a slot be skipped anyway, the harness forces a refit at the end of the
-//! iteration (and the service's batches then no longer align with the harness's iterations).
+//! iteration (and the service's batches then no longer align with the harness's iterations);
+//! when a later post completes one of the service's batches mid-iteration, the harness waits
+//! for its background fit before the next proposal, so a seed's run repeats exactly.
 
 use super::client::{ApiClient, Proposed};
 use super::layouts::Layout;
@@ -904,6 +906,15 @@ impl Run<'_> {
                 .post_trajectory(self.id, Some(p.id), transitions)
                 .await?;
             self.posted += 1;
+            // A batch the service completes mid-iteration (after a skipped slot) is refitted
+            // in the background; wait for that fit, so the next proposal is answered by the
+            // same version in every run of this seed, not by whichever the race left.
+            let batch = self.cfg.batch_size as i64;
+            if self.posted % batch == 0 && slot + 1 < self.cfg.batch_size {
+                self.client
+                    .wait_for_fit(self.id, self.posted, self.cfg.fit_timeout)
+                    .await?;
+            }
             rec.beta_train = Some(p.content.relaxed_from_beta.unwrap_or(p.terms.beta));
             train.beta = Some(p.terms.beta);
             train.relaxed = p.content.relaxed_from_beta.is_some();
