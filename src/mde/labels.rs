@@ -665,6 +665,13 @@ mod tests {
         (x, pts.iter().map(|&(a, b)| f(a, b)).collect())
     }
 
+    /// The β `gp` (fitted on raw `deviations`) certifies at most 2 with each state-action held
+    /// out with its copies alone.
+    fn certified_on_copies(gp: &dyn Regressor, x: &DMatrix<f64>, deviations: &[f64]) -> BetaChoice {
+        BetaChoice::of(gp, deviations, deviations, &identical_rows(x), D_MAX, 2.0)
+            .expect("closed form")
+    }
+
     /// Every row its own trajectory.
     fn own_trajectories(x: &DMatrix<f64>) -> Vec<i64> {
         (0..x.nrows() as i64).collect()
@@ -756,15 +763,7 @@ mod tests {
         )
         .expect("fits");
         let by_trajectory = c.beta_choice.expect("closed form");
-        let alone = BetaChoice::of(
-            c.gp.as_ref(),
-            &deviations,
-            &deviations,
-            &identical_rows(&x),
-            D_MAX,
-            2.0,
-        )
-        .expect("closed form");
+        let alone = certified_on_copies(c.gp.as_ref(), &x, &deviations);
         assert!(
             by_trajectory.beta > alone.beta,
             "{by_trajectory:?} {alone:?}"
@@ -777,15 +776,7 @@ mod tests {
         // needs even with none trusted.
         let (x, deviations) = world(|a, _| if a < 0.5 { 0.0 } else { 2.0 });
         let gp = exact_fit(&x, &deviations);
-        let c = BetaChoice::of(
-            gp.as_ref(),
-            &deviations,
-            &deviations,
-            &identical_rows(&x),
-            D_MAX,
-            2.0,
-        )
-        .expect("closed form");
+        let c = certified_on_copies(gp.as_ref(), &x, &deviations);
         assert!(c.unsafe_transitions < 49, "{c:?}");
         assert_eq!(c.beta, 2.0, "{c:?}");
     }
