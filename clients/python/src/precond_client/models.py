@@ -576,8 +576,9 @@ class KernelTrial(Wire):
 @dataclass(frozen=True)
 class BetaChoice(Wire):
     """The test β a fitted version certifies on its own training transitions, each executed
-    trajectory held out whole with every copy of its state-actions: the smallest β (grid of 0.1, at most ``learning.test_beta``) at
-    which at most 2 % of the unsafe ones are trusted (schema ``BetaChoice``)."""
+    trajectory held out whole with every copy of its state-actions: the smallest β (grid of
+    0.1, at most ``learning.test_beta``) at which at most 2 % of the unsafe ones are trusted
+    (schema ``BetaChoice``)."""
 
     SCHEMA: ClassVar[str] = "BetaChoice"
 
