@@ -13,10 +13,10 @@
 //! closed-form leave-out and so scores the sparse GP too.
 
 use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES};
-use crate::gp::{Kernel, NoiseMode, Prediction};
+use crate::gp::{Fold, Kernel, NoiseMode, Prediction};
 use crate::mde::{
     BetaChoice, EstimatorKind, EstimatorParams, HeldOutTrust, Training, blocks, capped_labels,
-    fit_choosing_label_cap, gp_params, identical_rows, normal_tail, trajectory_groups,
+    fit_choosing_label_cap, gp_params, identical_rows, normal_tail, trajectory_folds,
 };
 use crate::planning::{Agreement, Precondition};
 use crate::sim::ContinuousWorld;
@@ -307,15 +307,15 @@ async fn calibration(
         "{:<12} {:>7} {:>6} | {:>5} {:>8} {:>9} | {:>5} {:>5} {:>11}",
         "groups", "groups", "β", "unsafe", "trusted", "certified", "TPR", "TNR", "false trust"
     );
-    let by: Vec<(String, Vec<Vec<usize>>)> = vec![
-        ("copies".into(), identical_rows(&x)),
-        ("trajectory".into(), trajectory_groups(&x, &trajectories)),
-        ("blocks 2".into(), blocks(&x, 2)),
-        ("blocks 3".into(), blocks(&x, 3)),
-        ("blocks 4".into(), blocks(&x, 4)),
+    let by: Vec<(String, Vec<Fold>)> = vec![
+        ("copies".into(), Fold::whole(&identical_rows(&x))),
+        ("trajectory".into(), trajectory_folds(&x, &trajectories)),
+        ("blocks 2".into(), Fold::whole(&blocks(&x, 2))),
+        ("blocks 3".into(), Fold::whole(&blocks(&x, 3))),
+        ("blocks 4".into(), Fold::whole(&blocks(&x, 4))),
     ];
     for (name, groups) in by {
-        let Some(h) = choice.gp.leave_groups_out(&groups) else {
+        let Some(h) = choice.gp.leave_folds_out(&groups) else {
             println!("{name:<12} no closed-form leave-out");
             continue;
         };

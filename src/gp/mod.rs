@@ -54,7 +54,7 @@ pub use cost::{FitCost, exact_fit_cost, sparse_fit_cost};
 pub use error::GpError;
 pub use export::{GpPredictor, NoisePredictor, PointPrediction, Predictor};
 pub use kernel::Kernel;
-pub use model::GpModel;
+pub use model::{Fold, GpModel};
 pub use params::{Bounds, Checked, GpParams, NoiseMode, ValidGpParams};
 pub use sparse::{
     DEFAULT_FULL_RANK_UP_TO, DEFAULT_INDUCING_POINTS, SparseGp, SparseParams, SparseState,

@@ -13,6 +13,29 @@ use super::{
     ValidGpParams,
 };
 
+/// Training rows left out together, of which the first `judged` are predicted from the rest
+/// ([`GpModel::leave_folds_out`]).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct Fold {
+    /// The rows left out, the judged ones first.
+    pub rows: Vec<usize>,
+    /// How many of `rows`, from the first, are predicted.
+    pub judged: usize,
+}
+
+impl Fold {
+    /// Each group left out and judged whole.
+    pub fn whole(groups: &[Vec<usize>]) -> Vec<Fold> {
+        groups
+            .iter()
+            .map(|g| Fold {
+                rows: g.clone(),
+                judged: g.len(),
+            })
+            .collect()
+    }
+}
+
 /// A fitted GP model deviation estimator.
 ///
 /// Holds the training inputs, the inverse Cholesky factor `L⁻¹` and `α = K⁻¹(y − m)` of the main
@@ -368,10 +391,24 @@ impl GpModel {
     /// Costs `O(n · Σ|G|²)` on the cached `L⁻¹`; `None` when the factor is absent, a group
     /// names a point that does not exist, or a block cannot be inverted.
     pub fn leave_groups_out(&self, groups: &[Vec<usize>]) -> Option<Vec<(f64, f64)>> {
+        self.leave_folds_out(&Fold::whole(groups))
+    }
+
+    /// [`leave_groups_out`](Self::leave_groups_out) where what is left out and what is judged
+    /// differ: for each fold, its first `judged` rows are predicted by the model conditioned on
+    /// the points outside all of its `rows` (the marginal of the block form over the judged
+    /// rows). Folds may overlap: a trajectory's rows judged with every copy of them left out
+    /// too, where a copy belongs to another trajectory's fold. A point judged by no fold is left
+    /// out alone; a point judged by several takes its last fold's answer.
+    ///
+    /// Costs `O(n · Σ|rows|²)` on the cached `L⁻¹`; `None` when the factor is absent, a fold
+    /// names a point that does not exist, or a block cannot be inverted.
+    pub fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
         let n = self.main.n;
         let linv = &self.main.linv;
         let mut out = self.leave_one_out()?;
-        for group in groups.iter().filter(|g| g.len() > 1) {
+        for fold in folds.iter().filter(|f| f.rows.len() > 1 && f.judged > 0) {
+            let group = &fold.rows;
             if group.iter().any(|&i| i >= n) {
                 return None;
             }
@@ -399,7 +436,7 @@ impl GpModel {
             let cov = b.cholesky()?.inverse();
             let alpha = DVector::from_iterator(g, group.iter().map(|&i| self.main.alpha[i]));
             let residual = &cov * alpha;
-            for (a, &i) in group.iter().enumerate() {
+            for (a, &i) in group.iter().enumerate().take(fold.judged) {
                 let var = cov[(a, a)];
                 if !(var.is_finite() && var > 0.0) {
                     return None;

@@ -781,6 +781,46 @@ fn leaving_a_group_out_matches_refitting_without_it() {
 }
 
 #[test]
+fn a_fold_judges_its_first_rows_without_any_of_its_rows() {
+    // Overlapping folds: rows 0..3 judged without rows 3..6 either, and rows 3..6 judged
+    // without rows 0..2; each judged row matches a refit without its whole fold.
+    let (x, y) = data(20, 2, 5);
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let folds = [
+        Fold {
+            rows: vec![0, 1, 2, 3, 4, 5],
+            judged: 3,
+        },
+        Fold {
+            rows: vec![3, 4, 5, 0, 1],
+            judged: 3,
+        },
+    ];
+    let out = model.leave_folds_out(&folds).expect("the factor is kept");
+    let noise = model.hyperparameters().noise_variance + model.jitter();
+    for fold in &folds {
+        let keep: Vec<usize> = (0..20).filter(|k| !fold.rows.contains(k)).collect();
+        let xs = x.select_rows(&keep);
+        let ys = DVector::from_iterator(keep.len(), keep.iter().map(|&k| y[k]));
+        let mut state = model.state();
+        state.n_train = keep.len();
+        let without = GpModel::from_state(&xs, &ys, &state).unwrap();
+        for &i in &fold.rows[..fold.judged] {
+            let p = without.predict(&x.rows(i, 1).into_owned());
+            let (residual, sd) = out[i];
+            assert_relative_eq!(y[i] - residual, p.mean[0], epsilon = 1e-6);
+            assert_relative_eq!(
+                sd,
+                (p.latent_variance[0] + noise).sqrt(),
+                max_relative = 1e-5
+            );
+        }
+    }
+    // A row no fold judges is left out alone.
+    assert_eq!(out[10], model.leave_one_out().unwrap()[10]);
+}
+
+#[test]
 fn targets_whose_mean_square_overflows_are_an_error_not_a_panic() {
     // Labels 1e300 away from the prior mean: their mean square is infinite, so there is no
     // range to draw random starts from (this panicked in `random_range`).

@@ -14,7 +14,7 @@
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.
 
 use crate::gp::{
-    FitCost, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
+    FitCost, Fold, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
     NoiseSummary, Prediction, Predictor, SparseGp, SparseParams, SparseState, ValidGpParams,
     ValidSparseParams, exact_fit_cost, sparse_fit_cost,
 };
@@ -121,7 +121,12 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     /// regressor has it in closed form (`None` otherwise).
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>>;
     /// The same with each group of rows left out together.
-    fn leave_groups_out(&self, groups: &[Vec<usize>]) -> Option<Vec<(f64, f64)>>;
+    fn leave_groups_out(&self, groups: &[Vec<usize>]) -> Option<Vec<(f64, f64)>> {
+        self.leave_folds_out(&Fold::whole(groups))
+    }
+    /// The same with each fold's rows left out together and its judged rows predicted
+    /// ([`GpModel::leave_folds_out`]).
+    fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>>;
     /// The same regressor conditioned on more points `(x, y)` as well, at the same
     /// hyperparameters (an online update); an error for a regressor that only refits.
     fn update(&self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError>;
@@ -278,8 +283,8 @@ impl Regressor for GpModel {
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         GpModel::leave_one_out(self)
     }
-    fn leave_groups_out(&self, groups: &[Vec<usize>]) -> Option<Vec<(f64, f64)>> {
-        GpModel::leave_groups_out(self, groups)
+    fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
+        GpModel::leave_folds_out(self, folds)
     }
     /// The exact GP is refitted after each batch, not updated: an error.
     fn update(&self, _x: &DMatrix<f64>, _y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {
@@ -327,7 +332,7 @@ impl Regressor for SparseGp {
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         None
     }
-    fn leave_groups_out(&self, _groups: &[Vec<usize>]) -> Option<Vec<(f64, f64)>> {
+    fn leave_folds_out(&self, _folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
         None
     }
     fn update(&self, x: &DMatrix<f64>, y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {

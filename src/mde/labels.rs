@@ -3,7 +3,7 @@
 //! training transitions held out ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
-use crate::gp::{GpError, Kernel};
+use crate::gp::{Fold, GpError, Kernel};
 use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -120,7 +120,7 @@ impl HeldOutTrust {
 
 /// The test β the data certify: the smallest β on a grid of `0, 0.1, …, max_beta` at which the
 /// model, judging its own training state-actions held out in groups — by [`fit_choosing_label_cap`],
-/// each executed trajectory whole with every copy of its state-actions ([`trajectory_groups`]) — trusts
+/// each executed trajectory whole with every copy of its state-actions ([`trajectory_folds`]) — trusts
 /// (`μ₋ᵢ + β σ₋ᵢ < d_max`) few enough of the unsafe ones — the rule-of-succession estimate of
 /// the false-trust rate, `(trusted unsafe + 1) / (unsafe + 2)`, at most
 /// [`CALIBRATED_FALSE_TRUST`] — or `max_beta` when no smaller β is certified. The estimate's
@@ -147,19 +147,19 @@ pub struct BetaChoice {
 pub const CALIBRATED_FALSE_TRUST: f64 = 0.02;
 
 impl BetaChoice {
-    /// The choice for `gp`, fitted on `labels` (the `deviations` capped), each group of `groups`
-    /// left out in turn; β on the grid `0, 0.1, …` up to `max_beta` (inclusive; `max_beta`
+    /// The choice for `gp`, fitted on `labels` (the `deviations` capped), each fold of `folds`
+    /// left out in turn and its judged rows predicted; β on the grid `0, 0.1, …` up to `max_beta` (inclusive; `max_beta`
     /// itself when it is below 0). `None` when the model has no closed-form leave-out.
     pub fn of(
         gp: &dyn Regressor,
         labels: &[f64],
         deviations: &[f64],
-        groups: &[Vec<usize>],
+        folds: &[Fold],
         d_max: f64,
         max_beta: f64,
     ) -> Option<Self> {
         Some(Self::from_held_out(
-            &gp.leave_groups_out(groups)?,
+            &gp.leave_folds_out(folds)?,
             labels,
             deviations,
             d_max,
@@ -256,56 +256,69 @@ fn group_rows<K: Eq + std::hash::Hash>(
     groups
 }
 
-/// Rows grouped so that every transition of one executed trajectory, and every copy of any of
-/// its state-actions ([`identical_rows`]), are left out together: `trajectories[i]` names row
-/// `i`'s trajectory. The groups in order of their first row, each in row order. With every row
-/// its own trajectory these are exactly [`identical_rows`].
+/// Rows in folds of whole executed trajectories: fold `T` leaves out every transition of
+/// trajectory `T` and every copy of any of its state-actions ([`identical_rows`]), wherever it
+/// was executed, and judges `T`'s own transitions. `trajectories[i]` names row `i`'s trajectory;
+/// the folds come in order of their first row. With every row its own trajectory these are the
+/// copies of each state-action, left out together.
 ///
-/// Why a certified test β ([`BetaChoice`]) is judged on these groups: a state-action held out
+/// Why a certified test β ([`BetaChoice`]) is judged on these folds: a state-action held out
 /// alone keeps its trajectory's neighbours (the states just before and after it, the same
 /// steering), so it is predicted more easily than a move where nothing was executed, which is
 /// what a plan asks of the model. On the arm, copies alone certified β 0.2 where the uniform
 /// held-out false trust then was 12.8 %; whole trajectories certified 1.4 (0.9 %)
-/// (`precond bench mde --calibration`, docs/research/continuous-worlds.md).
-pub fn trajectory_groups(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Vec<usize>> {
-    fn root(parent: &mut [usize], mut i: usize) -> usize {
-        while parent[i] != i {
-            parent[i] = parent[parent[i]];
-            i = parent[i];
-        }
-        i
-    }
-    fn join(parent: &mut [usize], rows: &[usize]) {
-        for w in rows.windows(2) {
-            let (a, b) = (root(parent, w[0]), root(parent, w[1]));
-            parent[a.max(b)] = a.min(b);
-        }
-    }
+/// (`precond bench mde --calibration`, docs/research/continuous-worlds.md). Copies do not join
+/// two trajectories into one fold: a gridworld's trajectories revisit the same cells, and
+/// joined they fell into a few giant groups whose absence made every unsafe move look
+/// untrusted at a small β (β 1.5 certified where the default map's unseen moves then had
+/// 5.4 % false trust).
+pub fn trajectory_folds(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Fold> {
     let n = x.nrows().min(trajectories.len());
-    let mut parent: Vec<usize> = (0..n).collect();
-    for g in identical_rows(x) {
-        let g: Vec<usize> = g.into_iter().filter(|&i| i < n).collect();
-        join(&mut parent, &g);
+    let mut copies_of = vec![0usize; n];
+    let copies: Vec<Vec<usize>> = identical_rows(x)
+        .into_iter()
+        .map(|g| g.into_iter().filter(|&i| i < n).collect())
+        .collect();
+    for (k, g) in copies.iter().enumerate() {
+        for &i in g {
+            copies_of[i] = k;
+        }
     }
+    let mut order = Vec::<i64>::new();
     let mut by_trajectory = std::collections::HashMap::<i64, Vec<usize>>::new();
     for (i, &t) in trajectories.iter().take(n).enumerate() {
-        by_trajectory.entry(t).or_default().push(i);
+        by_trajectory
+            .entry(t)
+            .or_insert_with(|| {
+                order.push(t);
+                Vec::new()
+            })
+            .push(i);
     }
-    for g in by_trajectory.values() {
-        join(&mut parent, g);
-    }
-    // Each root is its group's smallest row, so groups keyed by root come in first-row order.
-    let mut groups = std::collections::BTreeMap::<usize, Vec<usize>>::new();
-    for i in 0..n {
-        let r = root(&mut parent, i);
-        groups.entry(r).or_default().push(i);
-    }
-    groups.into_values().collect()
+    order
+        .into_iter()
+        .map(|t| {
+            let own = &by_trajectory[&t];
+            let mut rows = own.clone();
+            let mut seen: std::collections::HashSet<usize> = own.iter().copied().collect();
+            for &i in own {
+                for &j in &copies[copies_of[i]] {
+                    if seen.insert(j) {
+                        rows.push(j);
+                    }
+                }
+            }
+            Fold {
+                rows,
+                judged: own.len(),
+            }
+        })
+        .collect()
 }
 
 /// Training transitions as the estimator is fitted on them: their features (one row each),
 /// deviations, and the executed trajectory each belongs to (which rows a certified test β
-/// leaves out together, [`trajectory_groups`]).
+/// leaves out together, [`trajectory_folds`]).
 #[derive(Debug, Clone, Copy)]
 pub struct Training<'a> {
     /// Features, one row per transition.
@@ -342,7 +355,7 @@ pub struct CapChoice {
     /// Every candidate kernel's fit (empty when one kernel was given).
     pub kernel_trials: Vec<KernelTrial>,
     /// The test β the chosen model certifies, each executed trajectory left out whole
-    /// ([`trajectory_groups`]; `None` when it could not be computed).
+    /// ([`trajectory_folds`]; `None` when it could not be computed).
     pub beta_choice: Option<BetaChoice>,
 }
 
@@ -580,7 +593,7 @@ fn choose_exact(
         gp.as_ref(),
         &capped_labels(deviations, label_cap, d_max),
         deviations,
-        &trajectory_groups(x, training.trajectories),
+        &trajectory_folds(x, training.trajectories),
         d_max,
         precondition.beta(),
     );
@@ -668,8 +681,15 @@ mod tests {
     /// The β `gp` (fitted on raw `deviations`) certifies at most 2 with each state-action held
     /// out with its copies alone.
     fn certified_on_copies(gp: &dyn Regressor, x: &DMatrix<f64>, deviations: &[f64]) -> BetaChoice {
-        BetaChoice::of(gp, deviations, deviations, &identical_rows(x), D_MAX, 2.0)
-            .expect("closed form")
+        BetaChoice::of(
+            gp,
+            deviations,
+            deviations,
+            &Fold::whole(&identical_rows(x)),
+            D_MAX,
+            2.0,
+        )
+        .expect("closed form")
     }
 
     /// Every row its own trajectory.
@@ -694,7 +714,7 @@ mod tests {
         let ramp = |a: f64, _: f64| (a - 0.3).max(0.0) * 0.5;
         let (x, deviations) = dense_world(40, ramp);
         let gp = exact_fit(&x, &deviations);
-        let groups = identical_rows(&x);
+        let groups = Fold::whole(&identical_rows(&x));
         let c = BetaChoice::of(gp.as_ref(), &deviations, &deviations, &groups, D_MAX, 2.0)
             .expect("closed form");
         let rate =
@@ -728,15 +748,30 @@ mod tests {
 
     #[test]
     fn trajectories_and_copies_are_left_out_together() {
-        // Rows 0 and 3 are copies; trajectories {0, 1}, {2}, {3}, {4, 5}.
-        let x = DMatrix::from_row_slice(6, 1, &[0.0, 0.1, 0.2, 0.0, 0.4, 0.5]);
-        let groups = trajectory_groups(&x, &[7, 7, 8, 9, 3, 3]);
-        assert_eq!(groups, vec![vec![0, 1, 3], vec![2], vec![4, 5]]);
-        // Every row its own trajectory: the copies alone.
+        // Rows 0 and 3 are copies, so are 2 and 6; trajectories {0, 1}, {2}, {3}, {4, 5}, {6}.
+        let x = DMatrix::from_row_slice(7, 1, &[0.0, 0.1, 0.2, 0.0, 0.4, 0.5, 0.2]);
+        let folds = trajectory_folds(&x, &[7, 7, 8, 9, 3, 3, 2]);
+        let fold = |rows: &[usize], judged| Fold {
+            rows: rows.to_vec(),
+            judged,
+        };
+        // Each trajectory judged on its own rows, with every copy of them left out too; a copy
+        // does not join two trajectories' folds.
         assert_eq!(
-            trajectory_groups(&x, &[0, 1, 2, 3, 4, 5]),
-            identical_rows(&x)
+            folds,
+            vec![
+                fold(&[0, 1, 3], 2),
+                fold(&[2, 6], 1),
+                fold(&[3, 0], 1),
+                fold(&[4, 5], 2),
+                fold(&[6, 2], 1),
+            ]
         );
+        // Every row its own trajectory: the copies of each state-action.
+        let alone = trajectory_folds(&x, &[0, 1, 2, 3, 4, 5, 6]);
+        assert_eq!(alone[0], fold(&[0, 3], 1));
+        assert_eq!(alone[3], fold(&[3, 0], 1));
+        assert_eq!(alone[1], fold(&[1], 1));
     }
 
     #[test]
