@@ -401,11 +401,22 @@ impl GpModel {
     /// too, where a copy belongs to another trajectory's fold. A point judged by no fold is left
     /// out alone; a point judged by several takes its last fold's answer.
     ///
-    /// Costs `O(n · Σ|rows|²)` on the cached `L⁻¹`; `None` when the factor is absent, a fold
-    /// names a point that does not exist, or a block cannot be inverted.
+    /// Costs `O(n · Σ|rows|²)` on the cached `L⁻¹`, and is refused (`None`) beyond the most a
+    /// partition of the rows can cost, `Σ|rows|² ≤ n²` (on the order of the fit's own
+    /// factorisation): overlapping folds could otherwise multiply it by their number — the same
+    /// state-action posted in every trajectory puts all its copies in every fold. `None` also
+    /// when the factor is absent, a fold names a point that does not exist, or a block cannot
+    /// be inverted.
     pub fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
         let n = self.main.n;
         let linv = &self.main.linv;
+        let work = folds
+            .iter()
+            .map(|f| f.rows.len().saturating_mul(f.rows.len()))
+            .fold(0usize, usize::saturating_add);
+        if work > n.saturating_mul(n) {
+            return None;
+        }
         let mut out = self.leave_one_out()?;
         for fold in folds.iter().filter(|f| f.rows.len() > 1 && f.judged > 0) {
             let group = &fold.rows;

@@ -818,6 +818,13 @@ fn a_fold_judges_its_first_rows_without_any_of_its_rows() {
     }
     // A row no fold judges is left out alone.
     assert_eq!(out[10], model.leave_one_out().unwrap()[10]);
+    // Folds that together cost more than any partition could are refused, not computed: every
+    // fold holding every row costs 20 · 20² where a partition costs at most 20².
+    let all = Fold {
+        rows: (0..20).collect(),
+        judged: 1,
+    };
+    assert!(model.leave_folds_out(&vec![all; 20]).is_none());
 }
 
 #[test]

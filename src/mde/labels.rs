@@ -271,7 +271,10 @@ fn group_rows<K: Eq + std::hash::Hash>(
 /// two trajectories into one fold: a gridworld's trajectories revisit the same cells, and
 /// joined they fell into a few giant groups whose absence made every unsafe move look
 /// untrusted at a small β (β 1.5 certified where the default map's unseen moves then had
-/// 5.4 % false trust).
+/// 5.4 % false trust). Folds overlap, so a robot that executes one state-action in every
+/// trajectory puts all its copies in every fold; beyond what a partition of the rows would
+/// cost the leave-out is refused ([`crate::gp::GpModel::leave_folds_out`]) and the fit
+/// certifies nothing (its test β stays `learning.test_beta`).
 pub fn trajectory_folds(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Fold> {
     let n = x.nrows().min(trajectories.len());
     let mut copies_of = vec![0usize; n];
@@ -772,6 +775,37 @@ mod tests {
         assert_eq!(alone[0], fold(&[0, 3], 1));
         assert_eq!(alone[3], fold(&[3, 0], 1));
         assert_eq!(alone[1], fold(&[1], 1));
+    }
+
+    #[test]
+    fn a_state_action_repeated_in_every_trajectory_certifies_nothing_rather_than_costing_more() {
+        // 60 trajectories, each one state-action of its own and one shared by all: every fold
+        // holds all 60 copies of the shared one, 60 · 61² in all where a partition of the 120
+        // rows costs at most 120². The fit stands; the certification is refused.
+        let mut rows = Vec::new();
+        let mut deviations = Vec::new();
+        let mut trajectories = Vec::new();
+        for t in 0..60 {
+            rows.extend([t as f64 / 59.0, 0.5, 0.5, 0.5]);
+            deviations.extend([if t < 30 { 0.0 } else { 2.0 * D_MAX }, 0.0]);
+            trajectories.extend([t, t]);
+        }
+        let x = DMatrix::from_row_slice(120, 2, &rows);
+        assert_eq!(trajectory_folds(&x, &trajectories)[0].rows.len(), 61);
+        let c = fit_choosing_label_cap(
+            Training {
+                x: &x,
+                deviations: &deviations,
+                trajectories: &trajectories,
+            },
+            at_beta_2(),
+            &[Kernel::Matern52],
+            &[0.0],
+            EstimatorKind::Exact,
+            &params(),
+        )
+        .expect("fits");
+        assert_eq!(c.beta_choice, None);
     }
 
     #[test]
