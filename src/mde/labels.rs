@@ -777,6 +777,23 @@ mod tests {
         assert_eq!(alone[1], fold(&[1], 1));
     }
 
+    /// The label-cap choice with raw labels and Matérn 5/2 only, at β = 2.
+    fn fit_raw_matern52(x: &DMatrix<f64>, deviations: &[f64], trajectories: &[i64]) -> CapChoice {
+        fit_choosing_label_cap(
+            Training {
+                x,
+                deviations,
+                trajectories,
+            },
+            at_beta_2(),
+            &[Kernel::Matern52],
+            &[0.0],
+            EstimatorKind::Exact,
+            &params(),
+        )
+        .expect("fits")
+    }
+
     #[test]
     fn a_state_action_repeated_in_every_trajectory_certifies_nothing_rather_than_costing_more() {
         // 60 trajectories, each one state-action of its own and one shared by all: every fold
@@ -792,19 +809,7 @@ mod tests {
         }
         let x = DMatrix::from_row_slice(120, 2, &rows);
         assert_eq!(trajectory_folds(&x, &trajectories)[0].rows.len(), 61);
-        let c = fit_choosing_label_cap(
-            Training {
-                x: &x,
-                deviations: &deviations,
-                trajectories: &trajectories,
-            },
-            at_beta_2(),
-            &[Kernel::Matern52],
-            &[0.0],
-            EstimatorKind::Exact,
-            &params(),
-        )
-        .expect("fits");
+        let c = fit_raw_matern52(&x, &deviations, &trajectories);
         assert_eq!(c.beta_choice, None);
     }
 
@@ -818,19 +823,7 @@ mod tests {
         let along: Vec<i64> = (0..x.nrows())
             .map(|r| (x[(r, 1)] * 4.0).round() as i64)
             .collect();
-        let c = fit_choosing_label_cap(
-            Training {
-                x: &x,
-                deviations: &deviations,
-                trajectories: &along,
-            },
-            at_beta_2(),
-            &[Kernel::Matern52],
-            &[0.0],
-            EstimatorKind::Exact,
-            &params(),
-        )
-        .expect("fits");
+        let c = fit_raw_matern52(&x, &deviations, &along);
         let by_trajectory = c.beta_choice.expect("closed form");
         let alone = certified_on_copies(c.gp.as_ref(), &x, &deviations);
         assert!(
