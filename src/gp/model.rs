@@ -24,6 +24,12 @@ pub struct Fold {
 }
 
 impl Fold {
+    /// The most work [`GpModel::leave_folds_out`] takes on for `n` training rows, as `Σ|rows|²`
+    /// over the folds: what a partition of the rows costs at worst, `n²`.
+    pub fn max_work(n: usize) -> usize {
+        n.saturating_mul(n)
+    }
+
     /// Each group left out and judged whole.
     pub fn whole(groups: &[Vec<usize>]) -> Vec<Fold> {
         groups
@@ -414,7 +420,7 @@ impl GpModel {
             .iter()
             .map(|f| f.rows.len().saturating_mul(f.rows.len()))
             .fold(0usize, usize::saturating_add);
-        if work > n.saturating_mul(n) {
+        if work > Fold::max_work(n) {
             return None;
         }
         let mut out = self.leave_one_out()?;

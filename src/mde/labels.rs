@@ -272,10 +272,11 @@ fn group_rows<K: Eq + std::hash::Hash>(
 /// joined they fell into a few giant groups whose absence made every unsafe move look
 /// untrusted at a small β (β 1.5 certified where the default map's unseen moves then had
 /// 5.4 % false trust). Folds overlap, so a robot that executes one state-action in every
-/// trajectory puts all its copies in every fold; beyond what a partition of the rows would
-/// cost the leave-out is refused ([`crate::gp::GpModel::leave_folds_out`]) and the fit
-/// certifies nothing (its test β stays `learning.test_beta`).
-pub fn trajectory_folds(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Fold> {
+/// trajectory puts all its copies in every fold: `None`, found while building (so the folds
+/// never hold more than that), when they would cost the leave-out more than a partition of
+/// the rows could ([`Fold::max_work`]); the fit then certifies nothing (its test β stays
+/// `learning.test_beta`).
+pub fn trajectory_folds(x: &DMatrix<f64>, trajectories: &[i64]) -> Option<Vec<Fold>> {
     let n = x.nrows().min(trajectories.len());
     let mut copies_of = vec![0usize; n];
     let copies: Vec<Vec<usize>> = identical_rows(x)
@@ -298,25 +299,29 @@ pub fn trajectory_folds(x: &DMatrix<f64>, trajectories: &[i64]) -> Vec<Fold> {
             })
             .push(i);
     }
-    order
-        .into_iter()
-        .map(|t| {
-            let own = &by_trajectory[&t];
-            let mut rows = own.clone();
-            let mut seen: std::collections::HashSet<usize> = own.iter().copied().collect();
-            for &i in own {
-                for &j in &copies[copies_of[i]] {
-                    if seen.insert(j) {
-                        rows.push(j);
-                    }
+    let mut work = 0usize;
+    let mut folds = Vec::with_capacity(order.len());
+    for t in order {
+        let own = &by_trajectory[&t];
+        let mut rows = own.clone();
+        let mut seen: std::collections::HashSet<usize> = own.iter().copied().collect();
+        for &i in own {
+            for &j in &copies[copies_of[i]] {
+                if seen.insert(j) {
+                    rows.push(j);
                 }
             }
-            Fold {
-                rows,
-                judged: own.len(),
-            }
-        })
-        .collect()
+        }
+        work = work.saturating_add(rows.len().saturating_mul(rows.len()));
+        if work > Fold::max_work(n) {
+            return None;
+        }
+        folds.push(Fold {
+            rows,
+            judged: own.len(),
+        });
+    }
+    Some(folds)
 }
 
 /// Training transitions as the estimator is fitted on them: their features (one row each),
@@ -592,14 +597,16 @@ fn choose_exact(
         .collect();
     let (label_cap, gp, _) = fitted.swap_remove(best);
     // The test β the chosen model certifies, each trajectory left out whole.
-    let beta_choice = BetaChoice::of(
-        gp.as_ref(),
-        &capped_labels(deviations, label_cap, d_max),
-        deviations,
-        &trajectory_folds(x, training.trajectories),
-        d_max,
-        precondition.beta(),
-    );
+    let beta_choice = trajectory_folds(x, training.trajectories).and_then(|folds| {
+        BetaChoice::of(
+            gp.as_ref(),
+            &capped_labels(deviations, label_cap, d_max),
+            deviations,
+            &folds,
+            d_max,
+            precondition.beta(),
+        )
+    });
     Ok(CapChoice {
         gp,
         label_cap,
@@ -753,7 +760,7 @@ mod tests {
     fn trajectories_and_copies_are_left_out_together() {
         // Rows 0 and 3 are copies, so are 2 and 6; trajectories {0, 1}, {2}, {3}, {4, 5}, {6}.
         let x = DMatrix::from_row_slice(7, 1, &[0.0, 0.1, 0.2, 0.0, 0.4, 0.5, 0.2]);
-        let folds = trajectory_folds(&x, &[7, 7, 8, 9, 3, 3, 2]);
+        let folds = trajectory_folds(&x, &[7, 7, 8, 9, 3, 3, 2]).expect("within budget");
         let fold = |rows: &[usize], judged| Fold {
             rows: rows.to_vec(),
             judged,
@@ -771,7 +778,7 @@ mod tests {
             ]
         );
         // Every row its own trajectory: the copies of each state-action.
-        let alone = trajectory_folds(&x, &[0, 1, 2, 3, 4, 5, 6]);
+        let alone = trajectory_folds(&x, &[0, 1, 2, 3, 4, 5, 6]).expect("within budget");
         assert_eq!(alone[0], fold(&[0, 3], 1));
         assert_eq!(alone[3], fold(&[3, 0], 1));
         assert_eq!(alone[1], fold(&[1], 1));
@@ -797,8 +804,9 @@ mod tests {
     #[test]
     fn a_state_action_repeated_in_every_trajectory_certifies_nothing_rather_than_costing_more() {
         // 60 trajectories, each one state-action of its own and one shared by all: every fold
-        // holds all 60 copies of the shared one, 60 · 61² in all where a partition of the 120
-        // rows costs at most 120². The fit stands; the certification is refused.
+        // would hold all 60 copies of the shared one, 60 · 61² in all where a partition of the
+        // 120 rows costs at most 120². The folds are refused while being built; the fit stands
+        // and certifies nothing.
         let mut rows = Vec::new();
         let mut deviations = Vec::new();
         let mut trajectories = Vec::new();
@@ -808,7 +816,7 @@ mod tests {
             trajectories.extend([t, t]);
         }
         let x = DMatrix::from_row_slice(120, 2, &rows);
-        assert_eq!(trajectory_folds(&x, &trajectories)[0].rows.len(), 61);
+        assert_eq!(trajectory_folds(&x, &trajectories), None);
         let c = fit_raw_matern52(&x, &deviations, &trajectories);
         assert_eq!(c.beta_choice, None);
     }
