@@ -164,6 +164,12 @@ pub struct ExperimentArgs {
     /// Problems a training slot tries before it is skipped when none has a plan. Default 5.
     #[arg(long, default_value_t = 5)]
     pub problem_tries: usize,
+    /// Continuous worlds: a test problem the planner did not solve is searched again this many
+    /// times longer to tell whether it is solvable inside the learned precondition
+    /// (`learned_rate`); 0 skips that search (`learned_rate` is then left empty), which makes
+    /// a run with many unsolved problems several times faster.
+    #[arg(long, default_value_t = protocol::LONG_SEARCH_FACTOR)]
+    pub long_search: u32,
     /// Runs (strategy × seed) in flight at once; each is independent and seeded, so results do
     /// not depend on it. Default 1.
     #[arg(long, default_value_t = 1)]
@@ -316,6 +322,8 @@ pub struct Config {
     pub pool_trajectories: usize,
     /// Problems a training slot tries.
     pub problem_tries: usize,
+    /// The long search's factor over `max_extensions` (0: none).
+    pub long_search: u32,
     /// Runs in flight at once.
     pub jobs: usize,
     /// Iterations at which the water plant's precondition maps are taken (first seed, the
@@ -378,6 +386,7 @@ impl Config {
             max_extensions: args.max_extensions.unwrap_or(if q { 1000 } else { 5000 }),
             pool_trajectories: pick(args.pool_trajectories, 20, 6),
             problem_tries: args.problem_tries.max(1),
+            long_search: args.long_search,
             jobs: args.jobs.max(1),
             map_iterations: {
                 let mut m: Vec<usize> = [0, 5, 10, iterations.saturating_sub(1)]

@@ -220,12 +220,13 @@ impl Bench {
     }
 
     /// How many times the experiment's extension budget a continuous world's *learned*
-    /// solvability is searched with: a test problem the planner did not solve at the default
-    /// budget is searched again this much longer, and counts as solvable inside the learned
-    /// precondition if that search finds a plan (the gridworld's is exhaustive instead; the
-    /// water plant's is not measured). `None` where it does not apply.
-    pub fn long_search_factor(&self) -> Option<u32> {
-        matches!(self, Self::Continuous { .. }).then_some(LONG_SEARCH_FACTOR)
+    /// solvability is searched with, given the run's `factor` (`--long-search`): a test
+    /// problem the planner did not solve at the default budget is searched again this much
+    /// longer, and counts as solvable inside the learned precondition if that search finds a
+    /// plan (the gridworld's is exhaustive instead; the water plant's is not measured). `None`
+    /// where it does not apply or `factor` is 0.
+    pub fn long_search_factor(&self, factor: u32) -> Option<u32> {
+        (matches!(self, Self::Continuous { .. }) && factor > 0).then_some(factor)
     }
 
     /// Whether plans are executed closed loop too (not the water plant, whose plans are a pour
@@ -994,7 +995,7 @@ impl Run<'_> {
                 oracle_closed_loop: references.map(|r| r.oracle_closed_loop),
                 baseline: references.map(|r| r.baseline),
             };
-            if let Some(factor) = self.bench.long_search_factor() {
+            if let Some(factor) = self.bench.long_search_factor(self.cfg.long_search) {
                 test.learned = Some(
                     plan.found || {
                         let budget = self
