@@ -35,7 +35,9 @@ pub enum FeatureMap {
     },
     /// The kinematic domain's `state_action_prediction` features: the state, then the action,
     /// then the model's prediction `clip(s + a)` (each component clamped to the state bounds),
-    /// each scaled to the unit box by its own bounds — `3n` features for `n` components.
+    /// each scaled to the unit box by its own bounds — `3n` features for `n` components; with
+    /// `move_length` (`state_action_prediction_length`) one more, the length of the predicted
+    /// move ([`predicted_move_fraction`]) — `3n + 1`.
     KinematicPrediction {
         /// Lower bounds of every state component.
         state_low: Vec<f64>,
@@ -45,6 +47,9 @@ pub enum FeatureMap {
         action_low: Vec<f64>,
         /// Upper bounds of every action component.
         action_high: Vec<f64>,
+        /// Whether the length of the predicted move follows as the last feature.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        move_length: bool,
     },
     /// The icy gridworld's `per_move` features: with `K` moves and `k` the index of the move
     /// equal to `a` (every component within `tolerance`), `3K` features, zero but for the
@@ -93,7 +98,11 @@ impl FeatureMap {
                 action_components,
                 ..
             } => state_components.len() + action_components.len(),
-            Self::KinematicPrediction { state_low, .. } => 3 * state_low.len(),
+            Self::KinematicPrediction {
+                state_low,
+                move_length,
+                ..
+            } => 3 * state_low.len() + usize::from(*move_length),
             Self::PerMove { moves, .. } => 3 * moves.len(),
             Self::ActionAndRotation { action_low, .. } => action_low.len() + 1,
         }
@@ -177,6 +186,7 @@ impl FeatureMap {
                 state_high,
                 action_low,
                 action_high,
+                ..
             } => {
                 bounds("state_low", state_low, state_high, state_dim)?;
                 bounds("action_low", action_low, action_high, action_dim)?;
@@ -263,6 +273,7 @@ impl FeatureMap {
                 state_high,
                 action_low,
                 action_high,
+                move_length,
             } => {
                 let state = state_low.iter().zip(state_high);
                 out.extend(
@@ -281,6 +292,16 @@ impl FeatureMap {
                         .zip(state)
                         .map(|((x, d), (lo, hi))| unit((x + d).clamp(*lo, *hi), *lo, *hi)),
                 );
+                if *move_length {
+                    out.push(predicted_move_fraction(
+                        s,
+                        a,
+                        state_low,
+                        state_high,
+                        action_low,
+                        action_high,
+                    ));
+                }
             }
             Self::PerMove {
                 state_low,
@@ -318,6 +339,39 @@ impl FeatureMap {
         let mut out = Vec::with_capacity(self.dim());
         self.features_into(s, a, &mut out);
         out
+    }
+}
+
+/// The length of the move a kinematic model predicts, `‖clip(s + a) − s‖` (Euclidean, the
+/// prediction clamped to `[state_low, state_high]`), as a fraction of the longest move an action
+/// can command, `‖(max(|action_low_i|, |action_high_i|))_i‖` (0 when every action bound is 0):
+/// in `[0, 1]` for actions within their bounds. An inaccurate model's error often grows with the
+/// size of the move it predicts (a robot that slides on, turns or sags by a share of each
+/// move): over `(s, a)` that is a cone around `a = 0`, which a stationary kernel follows only
+/// with short length scales; this feature makes it one smooth direction.
+pub fn predicted_move_fraction(
+    s: &[f64],
+    a: &[f64],
+    state_low: &[f64],
+    state_high: &[f64],
+    action_low: &[f64],
+    action_high: &[f64],
+) -> f64 {
+    let moved: f64 = s
+        .iter()
+        .zip(a)
+        .zip(state_low.iter().zip(state_high))
+        .map(|((x, d), (lo, hi))| ((x + d).clamp(*lo, *hi) - x).powi(2))
+        .sum();
+    let longest: f64 = action_low
+        .iter()
+        .zip(action_high)
+        .map(|(lo, hi)| lo.abs().max(hi.abs()).powi(2))
+        .sum();
+    if longest > 0.0 {
+        (moved / longest).sqrt()
+    } else {
+        0.0
     }
 }
 
@@ -367,6 +421,7 @@ mod tests {
         for features in [
             KinematicFeatures::StateAction,
             KinematicFeatures::StateActionPrediction,
+            KinematicFeatures::StateActionPredictionLength,
         ] {
             agree(
                 &Kinematic::new(KinematicParams {
@@ -415,6 +470,27 @@ mod tests {
         )
         .unwrap();
         agree(&CustomDomain::new(params, Arc::new(model)).unwrap());
+    }
+
+    #[test]
+    fn the_move_length_is_the_predicted_moves_share_of_the_longest_one() {
+        let d = Kinematic::new(KinematicParams {
+            features: KinematicFeatures::StateActionPredictionLength,
+            action_low: vec![-0.1, -0.2],
+            action_high: vec![0.3, 0.2],
+            ..KinematicParams::default()
+        })
+        .unwrap();
+        let length = |s: &[f64], a: &[f64]| *d.features(s, a).last().unwrap();
+        // The longest commandable move is (0.3, 0.2); the feature is its share.
+        assert!((length(&[0.5, 0.5], &[0.3, 0.2]) - 1.0).abs() < 1e-12);
+        assert!((length(&[0.5, 0.5], &[-0.1, 0.0]) - 0.1 / 0.13f64.sqrt()).abs() < 1e-12);
+        assert_eq!(length(&[0.5, 0.5], &[0.0, 0.0]), 0.0);
+        // A move into the state bounds is clipped: the model predicts a shorter one.
+        assert_eq!(length(&[1.0, 0.5], &[0.3, 0.0]), 0.0);
+        assert!((length(&[0.9, 0.5], &[0.3, 0.0]) - 0.1 / 0.13f64.sqrt()).abs() < 1e-12);
+        assert_eq!(d.feature_dim(), 7);
+        assert_eq!(d.feature_names()[6], "predicted_move_length");
     }
 
     #[test]

@@ -4,7 +4,7 @@
 
 use super::{
     Domain, DomainError, DynamicsModel, FeatureMap, LocalModel, Problem, Space, check_goal_radius,
-    check_magnitudes, euclidean, segment_clear, uniform_between,
+    check_magnitudes, euclidean, predicted_move_fraction, segment_clear, uniform_between,
 };
 use rand::RngCore;
 
@@ -60,8 +60,26 @@ pub enum KinematicFeatures {
     /// prediction's — that a kernel with per-feature length scales can follow, where over
     /// `(s, a)` alone it lies along the diagonal `s + a = const` and is spread over every
     /// feature.
-    #[default]
     StateActionPrediction,
+    /// `(s, a, clip(s + a), ‖clip(s + a) − s‖)`: the prediction's features and the length of
+    /// the predicted move, as a fraction of the longest commandable one
+    /// ([`predicted_move_fraction`]). A deviation that grows with the size of the move (the
+    /// robot slides on after a push, turns on a slope by a share of each move) is then smooth
+    /// in one feature instead of a cone around `a = 0`.
+    #[default]
+    StateActionPredictionLength,
+}
+
+impl KinematicFeatures {
+    /// Whether the features include the model's prediction `clip(s + a)`.
+    fn prediction(self) -> bool {
+        self != Self::StateAction
+    }
+
+    /// Whether the features end with the length of the predicted move.
+    fn move_length(self) -> bool {
+        self == Self::StateActionPredictionLength
+    }
 }
 
 /// By hand, so that a wrong name says which setting it is: the domain spec is a tagged enum,
@@ -72,9 +90,10 @@ impl<'de> serde::Deserialize<'de> for KinematicFeatures {
         match name.as_str() {
             "state_action" => Ok(Self::StateAction),
             "state_action_prediction" => Ok(Self::StateActionPrediction),
+            "state_action_prediction_length" => Ok(Self::StateActionPredictionLength),
             _ => Err(serde::de::Error::custom(format!(
-                "features: {name:?} is not a feature map; use state_action_prediction or \
-                 state_action"
+                "features: {name:?} is not a feature map; use state_action_prediction_length, \
+                 state_action_prediction or state_action"
             ))),
         }
     }
@@ -318,9 +337,11 @@ impl Domain for Kinematic {
 
     fn feature_dim(&self) -> usize {
         let n = self.state_space.dim();
-        match self.params.features {
-            KinematicFeatures::StateAction => 2 * n,
-            KinematicFeatures::StateActionPrediction => 3 * n,
+        let f = self.params.features;
+        if f.prediction() {
+            3 * n + usize::from(f.move_length())
+        } else {
+            2 * n
         }
     }
 
@@ -330,8 +351,20 @@ impl Domain for Kinematic {
             .to_unit(s)
             .chain(self.action_space.to_unit(a))
             .collect();
-        if self.params.features == KinematicFeatures::StateActionPrediction {
+        let f = self.params.features;
+        if f.prediction() {
             phi.extend(self.state_space.to_unit(&LocalModel::predict(self, s, a)));
+        }
+        if f.move_length() {
+            let (state, action) = (&self.state_space, &self.action_space);
+            phi.push(predicted_move_fraction(
+                s,
+                a,
+                &state.low,
+                &state.high,
+                &action.low,
+                &action.high,
+            ));
         }
         phi
     }
@@ -351,11 +384,13 @@ impl Domain for Kinematic {
                 state_components: (0..self.state_space.dim()).collect(),
                 action_components: (0..self.action_space.dim()).collect(),
             },
-            KinematicFeatures::StateActionPrediction => FeatureMap::KinematicPrediction {
+            KinematicFeatures::StateActionPrediction
+            | KinematicFeatures::StateActionPredictionLength => FeatureMap::KinematicPrediction {
                 state_low,
                 state_high,
                 action_low,
                 action_high,
+                move_length: self.params.features.move_length(),
             },
         }
     }
@@ -367,8 +402,12 @@ impl Domain for Kinematic {
             .chain(&self.action_space.names)
             .cloned()
             .collect();
-        if self.params.features == KinematicFeatures::StateActionPrediction {
+        let f = self.params.features;
+        if f.prediction() {
             out.extend(names.iter().map(|n| format!("predicted_{n}")));
+        }
+        if f.move_length() {
+            out.push("predicted_move_length".to_string());
         }
         out
     }

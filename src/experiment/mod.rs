@@ -109,7 +109,7 @@ named_parsers! {
     parse_preset: Preset, "a preset", "default or paper";
     parse_grid_features: GridFeatures, "a feature map", "scaled or per_move";
     parse_kinematic_features: KinematicFeatures, "a feature map",
-        "state_action or state_action_prediction";
+        "state_action_prediction_length, state_action_prediction or state_action";
 }
 
 fn parse_label_cap(s: &str) -> Result<LabelCap, String> {
@@ -201,9 +201,9 @@ pub struct ExperimentArgs {
     /// Gridworld: the MDE's features, `scaled` (the paper's) or `per_move`.
     #[arg(long, value_parser = parse_grid_features, default_value = "scaled")]
     pub grid_features: GridFeatures,
-    /// Continuous worlds: the MDE's features, `state_action_prediction` (the default) or
-    /// `state_action`.
-    #[arg(long, value_parser = parse_kinematic_features, default_value = "state_action_prediction")]
+    /// Continuous worlds: the MDE's features, `state_action_prediction_length` (the default),
+    /// `state_action_prediction` or `state_action`.
+    #[arg(long, value_parser = parse_kinematic_features, default_value = "state_action_prediction_length")]
     pub kinematic_features: KinematicFeatures,
     /// The experiments' preset: `default` (precond's) or `paper` (the paper's exact
     /// configuration).

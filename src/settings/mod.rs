@@ -85,10 +85,11 @@ pub enum DomainSpec {
         /// Goal radius (Euclidean). Default 0.05.
         #[serde(default = "kinematic_defaults::goal_radius")]
         goal_radius: f64,
-        /// What the MDE sees of a state-action: `state_action_prediction` (the state, the
-        /// action and the model's prediction `clip(s + a)`) or `state_action`. Default
-        /// `state_action_prediction`; experiments created before the setting existed keep
-        /// `state_action`.
+        /// What the MDE sees of a state-action: `state_action_prediction_length` (the state,
+        /// the action, the model's prediction `clip(s + a)` and the length of the predicted
+        /// move), `state_action_prediction` (without the length) or `state_action`. Default
+        /// `state_action_prediction_length`; experiments keep the features they were created
+        /// with (those created before the setting existed: `state_action`).
         #[serde(default)]
         features: KinematicFeatures,
     },

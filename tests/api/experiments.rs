@@ -108,10 +108,20 @@ async fn a_kinematic_experiment_shows_its_spaces() {
     assert_eq!(status, 201, "{e}");
     assert_eq!(e["state_space"]["high"], json!([1.0, 2.0, 3.0]));
     assert!(e["action_space"].get("values").is_none());
-    // The state, the action and the model's prediction, unless told otherwise.
-    assert_eq!(e["domain"]["features"], "state_action_prediction");
-    assert_eq!(e["feature_names"].as_array().unwrap().len(), 9);
+    // The state, the action, the model's prediction and the length of its move, unless told
+    // otherwise.
+    assert_eq!(e["domain"]["features"], "state_action_prediction_length");
+    assert_eq!(e["feature_names"].as_array().unwrap().len(), 10);
     assert_eq!(e["feature_names"][6], "predicted_x0");
+    assert_eq!(e["feature_names"][9], "predicted_move_length");
+    let (status, e) = app
+        .post(
+            "/v1/experiments",
+            &json!({"domain": {"kind": "kinematic", "features": "state_action_prediction"}}),
+        )
+        .await;
+    assert_eq!(status, 201, "{e}");
+    assert_eq!(e["feature_names"].as_array().unwrap().len(), 6);
     let (status, e) = app
         .post(
             "/v1/experiments",

@@ -169,7 +169,12 @@ def kinematic_trajectory(rng: np.random.Generator, n: int) -> list[dict[str, Any
 
 @pytest.mark.integration
 @pytest.mark.parametrize(
-    ("estimator", "features"), [("exact", "state_action_prediction"), ("sparse", "state_action")]
+    ("estimator", "features"),
+    [
+        ("exact", "state_action_prediction_length"),
+        ("exact", "state_action_prediction"),
+        ("sparse", "state_action"),
+    ],
 )
 def test_an_exported_model_answers_as_the_server(
     make_server: MakeServer, tmp_path: Path, estimator: str, features: str
@@ -196,7 +201,10 @@ def test_an_exported_model_answers_as_the_server(
     model = client.export_model()
     assert model.model_version == fitted.version and model.n_train == 80
     assert model.raw["feature_map"]["kind"] == (
-        "kinematic_prediction" if features == "state_action_prediction" else "unit_box"
+        "unit_box" if features == "state_action" else "kinematic_prediction"
+    )
+    assert model.raw["feature_map"].get("move_length", False) == (
+        features == "state_action_prediction_length"
     )
     path = tmp_path / "mde.json"
     model.save(path)

@@ -151,6 +151,7 @@ class _FeatureMap:
                 raise ValueError(
                     "feature_map: the prediction s + a needs actions of the state's size"
                 )
+            self.move_length = bool(m.get("move_length", False))
         elif self.kind == "per_move":
             self.low = _vec(m["state_low"]), np.zeros(0)
             self.high = _vec(m["state_high"]), np.zeros(0)
@@ -173,13 +174,18 @@ class _FeatureMap:
             return np.hstack([fs, fa])
         if self.kind == "kinematic_prediction":
             predicted = np.clip(s + a, self.low[0], self.high[0])
-            return np.hstack(
-                [
-                    _unit(s, self.low[0], self.high[0]),
-                    _unit(a, self.low[1], self.high[1]),
-                    _unit(predicted, self.low[0], self.high[0]),
-                ]
-            )
+            parts = [
+                _unit(s, self.low[0], self.high[0]),
+                _unit(a, self.low[1], self.high[1]),
+                _unit(predicted, self.low[0], self.high[0]),
+            ]
+            if self.move_length:
+                # The predicted move's length over the longest commandable one (0 if none).
+                moved = np.sum((predicted - s) ** 2, axis=1)
+                longest = float(np.sum(np.maximum(np.abs(self.low[1]), np.abs(self.high[1])) ** 2))
+                fraction = np.sqrt(moved / longest) if longest > 0.0 else np.zeros(len(s))
+                parts.append(fraction[:, None])
+            return np.hstack(parts)
         if self.kind == "per_move":
             k_moves = len(self.moves)
             near = np.all(np.abs(self.moves[None, :, :] - a[:, None, :]) <= self.tolerance, axis=2)
