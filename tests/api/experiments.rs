@@ -114,22 +114,21 @@ async fn a_kinematic_experiment_shows_its_spaces() {
     assert_eq!(e["feature_names"].as_array().unwrap().len(), 10);
     assert_eq!(e["feature_names"][6], "predicted_x0");
     assert_eq!(e["feature_names"][9], "predicted_move_length");
-    let (status, e) = app
-        .post(
-            "/v1/experiments",
-            &json!({"domain": {"kind": "kinematic", "features": "state_action_prediction"}}),
-        )
-        .await;
-    assert_eq!(status, 201, "{e}");
-    assert_eq!(e["feature_names"].as_array().unwrap().len(), 6);
-    let (status, e) = app
-        .post(
-            "/v1/experiments",
-            &json!({"domain": {"kind": "kinematic", "features": "state_action"}}),
-        )
-        .await;
-    assert_eq!(status, 201, "{e}");
-    assert_eq!(e["feature_names"].as_array().unwrap().len(), 4);
+    // The other maps, on the default 2-D square.
+    for (features, dim) in [("state_action_prediction", 6), ("state_action", 4)] {
+        let (status, e) = app
+            .post(
+                "/v1/experiments",
+                &json!({"domain": {"kind": "kinematic", "features": features}}),
+            )
+            .await;
+        assert_eq!(status, 201, "{e}");
+        assert_eq!(
+            e["feature_names"].as_array().unwrap().len(),
+            dim,
+            "{features}"
+        );
+    }
 }
 
 #[tokio::test]
