@@ -10,8 +10,8 @@
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
 use super::{
-    FeatureMap, Space, check_goal_radius, check_magnitudes, euclidean, segment_clear,
-    uniform_between,
+    FeatureMap, Space, action_length_fraction, check_goal_radius, check_magnitudes, euclidean,
+    segment_clear, uniform_between,
 };
 use rand::RngCore;
 use rand::seq::IndexedRandom;
@@ -42,6 +42,9 @@ pub struct CustomParams {
     pub feature_state: Vec<usize>,
     /// Action components fed to the MDE, in order.
     pub feature_action: Vec<usize>,
+    /// Whether the length of those action components ([`action_length_fraction`]) follows as
+    /// the last feature.
+    pub action_length: bool,
     /// Weights `w_i ≥ 0` (not all 0) of `d = sqrt(Σ w_i (ŝ_i − s_i)²)`, one per state component.
     pub weights: Vec<f64>,
     /// State components the goal test compares.
@@ -67,6 +70,7 @@ impl CustomParams {
             action,
             feature_state: vec![0, 1],
             feature_action: vec![0, 1],
+            action_length: false,
             weights: vec![1.0, 1.0],
             goal_components: vec![0, 1],
             goal_radius: 0.05,
@@ -174,6 +178,12 @@ impl CustomDomain {
             return Err(DomainError::at(
                 "features",
                 "at least one state or action component must feed the MDE",
+            ));
+        }
+        if params.action_length && params.feature_action.is_empty() {
+            return Err(DomainError::at(
+                "features.action_length",
+                "the action's length needs at least one component in features.action",
             ));
         }
         if params.weights.len() != n {
@@ -291,7 +301,8 @@ impl Domain for CustomDomain {
     }
 
     fn feature_dim(&self) -> usize {
-        self.params.feature_state.len() + self.params.feature_action.len()
+        let p = &self.params;
+        p.feature_state.len() + p.feature_action.len() + usize::from(p.action_length)
     }
 
     fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
@@ -304,11 +315,21 @@ impl Domain for CustomDomain {
             }
         };
         let p = &self.params;
-        p.feature_state
+        let mut phi: Vec<f64> = p
+            .feature_state
             .iter()
             .map(|&i| unit(&p.state, s, i))
             .chain(p.feature_action.iter().map(|&i| unit(&p.action, a, i)))
-            .collect()
+            .collect();
+        if p.action_length {
+            phi.push(action_length_fraction(
+                a,
+                &p.feature_action,
+                &p.action.low,
+                &p.action.high,
+            ));
+        }
+        phi
     }
 
     fn feature_map(&self) -> FeatureMap {
@@ -320,6 +341,7 @@ impl Domain for CustomDomain {
             action_high: p.action.high.clone(),
             state_components: p.feature_state.clone(),
             action_components: p.feature_action.clone(),
+            action_length: p.action_length,
         }
     }
 
@@ -329,6 +351,7 @@ impl Domain for CustomDomain {
             .iter()
             .map(|&i| p.state.names[i].clone())
             .chain(p.feature_action.iter().map(|&i| p.action.names[i].clone()))
+            .chain(p.action_length.then(|| "action_length".to_string()))
             .collect()
     }
 
@@ -576,6 +599,7 @@ mod tests {
             action: space(&["ax", "ay"], &[-0.1, -0.1], &[0.1, 0.1]),
             feature_state: vec![0, 1],
             feature_action: vec![1],
+            action_length: false,
             weights: vec![1.0, 4.0, 0.0],
             goal_components: vec![0, 1],
             goal_radius: 0.05,
@@ -612,6 +636,32 @@ mod tests {
             vec![0.5, 0.5, 1.0]
         );
         assert_eq!(d.feature_names(), vec!["x", "y", "ay"]);
+        let with_length = CustomDomain::new(
+            CustomParams {
+                feature_action: vec![0, 1],
+                action_length: true,
+                ..params()
+            },
+            Arc::new(linear(&params())),
+        )
+        .unwrap();
+        let phi = with_length.features(&[1.0, 0.5, 0.0], &[0.1, -0.05]);
+        assert_eq!(phi.len(), with_length.feature_dim());
+        assert!((phi[4] - (0.5f64 * (1.0 + 0.25)).sqrt()).abs() < 1e-12);
+        assert_eq!(with_length.feature_names()[4], "action_length");
+        let refused = CustomDomain::new(
+            CustomParams {
+                feature_action: vec![],
+                action_length: true,
+                ..params()
+            },
+            Arc::new(linear(&params())),
+        )
+        .unwrap_err();
+        assert_eq!(
+            refused.path_under("domain"),
+            "domain.features.action_length"
+        );
         assert!(d.is_goal(&[1.0, 0.5, 0.9], &[1.03, 0.5]));
         assert!(!d.is_goal(&[1.0, 0.5, 0.9], &[1.06, 0.5]));
     }

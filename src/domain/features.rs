@@ -32,6 +32,9 @@ pub enum FeatureMap {
         state_components: Vec<usize>,
         /// The action components that feed the features after them, in order.
         action_components: Vec<usize>,
+        /// Whether the length of the listed action components follows as the last feature.
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        action_length: bool,
     },
     /// The kinematic domain's `state_action_prediction` features: the state, then the action,
     /// then the model's prediction `clip(s + a)` (each component clamped to the state bounds),
@@ -96,8 +99,9 @@ impl FeatureMap {
             Self::UnitBox {
                 state_components,
                 action_components,
+                action_length,
                 ..
-            } => state_components.len() + action_components.len(),
+            } => state_components.len() + action_components.len() + usize::from(*action_length),
             Self::KinematicPrediction {
                 state_low,
                 move_length,
@@ -172,6 +176,7 @@ impl FeatureMap {
                 action_high,
                 state_components,
                 action_components,
+                action_length,
             } => {
                 bounds("state_low", state_low, state_high, state_dim)?;
                 bounds("action_low", action_low, action_high, action_dim)?;
@@ -179,6 +184,12 @@ impl FeatureMap {
                 indices("action_components", action_components, action_dim)?;
                 if self.dim() == 0 {
                     return err("state_components", "no component feeds the features".into());
+                }
+                if *action_length && action_components.is_empty() {
+                    return err(
+                        "action_length",
+                        "the action's length needs at least one action component".into(),
+                    );
                 }
             }
             Self::KinematicPrediction {
@@ -256,6 +267,7 @@ impl FeatureMap {
                 action_high,
                 state_components,
                 action_components,
+                action_length,
             } => {
                 out.extend(
                     state_components
@@ -267,6 +279,14 @@ impl FeatureMap {
                         .iter()
                         .map(|&i| unit(a[i], action_low[i], action_high[i])),
                 );
+                if *action_length {
+                    out.push(action_length_fraction(
+                        a,
+                        action_components,
+                        action_low,
+                        action_high,
+                    ));
+                }
             }
             Self::KinematicPrediction {
                 state_low,
@@ -375,6 +395,32 @@ pub fn predicted_move_fraction(
     }
 }
 
+/// The length of the action components `components` of `a`, each over the largest magnitude
+/// its bounds allow (`max(|low_i|, |high_i|)`, a component with both bounds 0 counting 0), as
+/// the root mean square over the components, clamped to `[0, 1]`: `0` for no command, `1` for
+/// the longest command in every listed component. Unit-free, so components in different units
+/// weigh alike. Where a model's error grows with the size of the command, this one input
+/// carries what an ARD kernel would otherwise need short length scales in every action
+/// component for.
+pub fn action_length_fraction(
+    a: &[f64],
+    components: &[usize],
+    action_low: &[f64],
+    action_high: &[f64],
+) -> f64 {
+    if components.is_empty() {
+        return 0.0;
+    }
+    let sum: f64 = components
+        .iter()
+        .map(|&i| {
+            let r = action_low[i].abs().max(action_high[i].abs());
+            if r > 0.0 { (a[i] / r).powi(2) } else { 0.0 }
+        })
+        .sum();
+    (sum / components.len() as f64).sqrt().min(1.0)
+}
+
 /// The index of the move within `tolerance` of `a` in every component, if any.
 pub fn move_index(moves: &[Vec<f64>], a: &[f64], tolerance: f64) -> Option<usize> {
     moves.iter().position(|m| {
@@ -454,6 +500,7 @@ mod tests {
             action: space(2, -0.5, 0.5),
             feature_state: vec![2, 0],
             feature_action: vec![1],
+            action_length: true,
             weights: vec![1.0; 4],
             goal_components: vec![0],
             goal_radius: 0.1,
@@ -494,6 +541,30 @@ mod tests {
     }
 
     #[test]
+    fn the_action_length_weighs_each_component_by_its_own_bounds() {
+        // Components in different units: a push of 0.05 m of 0.1 m, a turn of 1 rad of 2 rad.
+        let (low, high) = ([-0.1, -2.0, 0.0], [0.1, 1.0, 3.0]);
+        let f = |a: &[f64], c: &[usize]| action_length_fraction(a, c, &low, &high);
+        assert!((f(&[0.05, 1.0, 9.0], &[0, 1]) - 0.5).abs() < 1e-12);
+        assert!((f(&[-0.1, -2.0, 0.0], &[0, 1]) - 1.0).abs() < 1e-12);
+        assert_eq!(f(&[0.0, 0.0, 3.0], &[0, 1]), 0.0);
+        assert!((f(&[0.0, 0.0, 3.0], &[2]) - 1.0).abs() < 1e-12);
+        // Beyond the bounds it is clamped; no component, no length.
+        assert_eq!(f(&[0.0, 0.0, 6.0], &[2]), 1.0);
+        assert_eq!(f(&[0.1, 0.0, 0.0], &[]), 0.0);
+        let map = FeatureMap::UnitBox {
+            state_low: vec![0.0],
+            state_high: vec![1.0],
+            action_low: low.to_vec(),
+            action_high: high.to_vec(),
+            state_components: vec![0],
+            action_components: vec![],
+            action_length: true,
+        };
+        assert_eq!(map.check(1, 3).unwrap_err().0, "action_length");
+    }
+
+    #[test]
     fn per_move_features_find_a_move_within_the_tolerance() {
         let g = IcyGridworld::default_layout().with_features(GridFeatures::PerMove);
         let exact = g.features(&[3.0, 4.0], &[-1.0, 0.0]);
@@ -514,6 +585,7 @@ mod tests {
             action_high: vec![1.0],
             state_components: vec![0, 2],
             action_components: vec![0],
+            action_length: false,
         };
         assert_eq!(map.check(2, 1).unwrap_err().0, "state_components[1]");
         assert_eq!(map.check(3, 1).unwrap_err().0, "state_low");

@@ -305,6 +305,7 @@ impl Domain for IcyGridworld {
                 action_high: self.action_space.high.clone(),
                 state_components: vec![0, 1],
                 action_components: vec![0, 1],
+                action_length: false,
             },
             GridFeatures::PerMove => FeatureMap::PerMove {
                 state_low: state.low.clone(),

@@ -383,6 +383,7 @@ impl Domain for Kinematic {
                 action_high,
                 state_components: (0..self.state_space.dim()).collect(),
                 action_components: (0..self.action_space.dim()).collect(),
+                action_length: false,
             },
             KinematicFeatures::StateActionPrediction
             | KinematicFeatures::StateActionPredictionLength => FeatureMap::KinematicPrediction {

@@ -54,7 +54,16 @@ pub struct FeaturesSpec {
     /// Action components, by index.
     #[serde(default)]
     pub action: Vec<usize>,
+    /// Whether one more feature follows: the length of those action components, each over the
+    /// largest magnitude its bounds allow (root mean square, in `[0, 1]`). Default: `true`
+    /// when `action` lists a component (experiments stored before it existed: `false`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub action_length: Option<bool>,
 }
+
+/// Whether a custom domain's features end with the action's length unless the request says
+/// ([`FeaturesSpec::action_length`]).
+pub const DEFAULT_ACTION_LENGTH: bool = true;
 
 /// The weighted Euclidean distance `d = sqrt(Σ w_i (ŝ_i − s_i)²)`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
@@ -257,10 +266,14 @@ impl CustomSpec {
         self.state = self.state.resolve("state", "s")?;
         self.action = self.action.resolve("action", "a")?;
         let (n, m) = (self.state.names.len(), self.action.names.len());
-        self.features.get_or_insert_with(|| FeaturesSpec {
+        let features = self.features.get_or_insert_with(|| FeaturesSpec {
             state: (0..n).collect(),
             action: (0..m).collect(),
+            action_length: None,
         });
+        features
+            .action_length
+            .get_or_insert(DEFAULT_ACTION_LENGTH && !features.action.is_empty());
         self.distance.get_or_insert_with(|| DistanceSpec {
             weights: vec![1.0; n],
         });
@@ -309,12 +322,15 @@ impl CustomSpec {
         let features = self.features.clone().unwrap_or(FeaturesSpec {
             state: (0..n).collect(),
             action: (0..m).collect(),
+            action_length: None,
         });
         let params = CustomParams {
             state,
             action,
             feature_state: features.state,
             feature_action: features.action,
+            // Resolved settings always say (stored ones since migration 0017).
+            action_length: features.action_length.unwrap_or(false),
             weights: self
                 .distance
                 .as_ref()

@@ -47,10 +47,13 @@ async fn a_remote_model_labels_every_transition_in_one_call_with_the_declared_di
     // The resolved settings say what is used.
     assert_eq!(
         exp["domain"]["features"],
-        json!({"state": [0, 1], "action": [0, 1]})
+        json!({"state": [0, 1], "action": [0, 1], "action_length": true})
     );
     assert_eq!(exp["domain"]["goal"]["components"], json!([0, 1]));
-    assert_eq!(exp["feature_names"], json!(["x", "y", "dx", "dy"]));
+    assert_eq!(
+        exp["feature_names"],
+        json!(["x", "y", "dx", "dy", "action_length"])
+    );
     let id = exp["id"].as_i64().unwrap();
     let transitions = [
         ([0.2, 0.3], [0.05, 0.0], [0.26, 0.31]),
@@ -180,6 +183,10 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         (
             json!({"features": {"state": [], "action": [5]}}),
             "domain.features.action[0]",
+        ),
+        (
+            json!({"features": {"state": [0], "action": [], "action_length": true}}),
+            "domain.features.action_length",
         ),
         (
             json!({"model": {"kind": "linear", "A": [[1, 0]], "B": [[1, 0], [0, 1]]}}),

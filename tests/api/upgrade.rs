@@ -79,8 +79,21 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     .unwrap();
     let mut kinematic = serde_json::to_value(&kinematic).unwrap();
     strip(&mut kinematic, "domain.features");
+    // A custom one: its features without `action_length`.
+    let (custom, _) = serde_json::from_value::<ExperimentRequest>(json!({
+        "domain": {"kind": "custom",
+                   "state": {"low": [0, 0], "high": [1, 1]},
+                   "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+                   "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}}
+    }))
+    .unwrap()
+    .resolve(&Default::default())
+    .unwrap();
+    let mut custom = serde_json::to_value(&custom).unwrap();
+    assert_eq!(custom["domain"]["features"]["action_length"], true);
+    strip(&mut custom, "domain.features.action_length");
     let created = "2026-01-01T00:00:00Z";
-    for (id, settings) in [(1, &stored), (2, &kinematic)] {
+    for (id, settings) in [(1, &stored), (2, &kinematic), (3, &custom)] {
         sqlx::query(
             "INSERT INTO experiments (id, name, settings, created_at) VALUES (?, '', ?, ?)",
         )
@@ -189,6 +202,10 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     let (status, old) = app.get("/v1/experiments/2").await;
     assert_eq!(status, 200, "{old}");
     assert_eq!(old["domain"]["features"], "state_action");
+    let (status, old) = app.get("/v1/experiments/3").await;
+    assert_eq!(status, 200, "{old}");
+    assert_eq!(old["domain"]["features"]["action_length"], false);
+    assert_eq!(old["domain"]["features"]["action"], json!([0, 1]));
 
     let (status, model) = app.get("/v1/experiments/1/model").await;
     assert_eq!(status, 200, "{model}");

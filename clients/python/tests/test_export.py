@@ -48,7 +48,7 @@ def documents() -> Iterator[dict[str, Any]]:
         "test_beta": 2.0,
         "state_dim": 2,
         "action_dim": 2,
-        "feature_names": ["x", "y", "dx", "dy"],
+        "feature_names": ["x", "y", "dx", "dy", "action_length"],
         "feature_map": {
             "kind": "unit_box",
             "state_low": [0, 0],
@@ -57,9 +57,10 @@ def documents() -> Iterator[dict[str, Any]]:
             "action_high": [0.1, 0.1],
             "state_components": [0, 1],
             "action_components": [0, 1],
+            "action_length": True,
         },
         "predictor": {
-            "main": gp(3, 4, variance=True),
+            "main": gp(3, 5, variance=True),
             "noise": {"kind": "homoscedastic", "noise_variance": 1e-4},
         },
     }
@@ -67,10 +68,10 @@ def documents() -> Iterator[dict[str, Any]]:
     hetero = copy.deepcopy(base)
     hetero["estimator"] = "sparse"
     hetero["predictor"] = {
-        "main": gp(3, 4, variance=True, correction=True),
+        "main": gp(3, 5, variance=True, correction=True),
         "noise": {
             "kind": "heteroscedastic",
-            "log_noise": gp(2, 4, variance=False),
+            "log_noise": gp(2, 5, variance=False),
             "noise_variance_min": 1e-6,
             "noise_variance_max": 1.0,
         },
@@ -89,6 +90,8 @@ def documents() -> Iterator[dict[str, Any]]:
     yield grid
     water = copy.deepcopy(base)
     water["state_dim"], water["action_dim"] = 7, 3
+    water["feature_names"] = ["f0", "f1", "f2", "rotation"]
+    water["predictor"]["main"] = gp(3, 4, variance=True)
     water["feature_map"] = {
         "kind": "action_and_rotation",
         "action_low": [0, 0, 0],
@@ -167,6 +170,16 @@ def kinematic_trajectory(rng: np.random.Generator, n: int) -> list[dict[str, Any
     return transitions
 
 
+# A custom domain whose linear model is the kinematic one, ``clip(s + a)``, with action
+# bounds of different sizes (its features end with the action's length).
+CUSTOM_DOMAIN: dict[str, Any] = {
+    "kind": "custom",
+    "state": {"low": [0, 0], "high": [1, 1]},
+    "action": {"low": [-0.1, -0.2], "high": [0.1, 0.2]},
+    "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]},
+}
+
+
 @pytest.mark.integration
 @pytest.mark.parametrize(
     ("estimator", "features"),
@@ -174,6 +187,7 @@ def kinematic_trajectory(rng: np.random.Generator, n: int) -> list[dict[str, Any
         ("exact", "state_action_prediction_length"),
         ("exact", "state_action_prediction"),
         ("sparse", "state_action"),
+        ("exact", "custom"),
     ],
 )
 def test_an_exported_model_answers_as_the_server(
@@ -185,7 +199,9 @@ def test_an_exported_model_answers_as_the_server(
     if estimator == "sparse":
         mde["inducing_points"] = 24
     client.create_experiment(
-        domain={"kind": "kinematic", "features": features},
+        domain=CUSTOM_DOMAIN
+        if features == "custom"
+        else {"kind": "kinematic", "features": features},
         mde=mde,
         learning={"batch_size": 2},
         d_max=0.05,
@@ -200,12 +216,12 @@ def test_an_exported_model_answers_as_the_server(
 
     model = client.export_model()
     assert model.model_version == fitted.version and model.n_train == 80
-    assert model.raw["feature_map"]["kind"] == (
-        "unit_box" if features == "state_action" else "kinematic_prediction"
+    feature_map = model.raw["feature_map"]
+    assert feature_map["kind"] == (
+        "unit_box" if features in ("state_action", "custom") else "kinematic_prediction"
     )
-    assert model.raw["feature_map"].get("move_length", False) == (
-        features == "state_action_prediction_length"
-    )
+    assert feature_map.get("move_length", False) == (features == "state_action_prediction_length")
+    assert feature_map.get("action_length", False) == (features == "custom")
     path = tmp_path / "mde.json"
     model.save(path)
     loaded = ExportedModel.load(path)

@@ -177,7 +177,8 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
             client.post_trajectory(transitions_from_states(states, actions))
         fitted = client.refit()
         assert fitted.source == "fit" and fitted.n_train == 32 and fitted.version >= 1
-        assert len(fitted.hyperparameters.length_scales) == 4
+        # One per feature: x, y, dx, dy and the action's length.
+        assert len(fitted.hyperparameters.length_scales) == 5
         assert fitted.label_cap in (2.0, 5.0, 0.0)  # chosen at the fit ("auto")
         assert len(fitted.raw["label_cap_trials"]) == 3
         # The prior already names the kernel every fit of the experiment uses.

@@ -142,6 +142,9 @@ class _FeatureMap:
             )
             if len(self.low[0]) != state_dim or len(self.low[1]) != action_dim:
                 raise ValueError("feature_map: bounds do not match state_dim and action_dim")
+            self.action_length = bool(m.get("action_length", False))
+            if self.action_length and not self.components[1]:
+                raise ValueError("feature_map.action_length: needs an action component")
         elif self.kind == "kinematic_prediction":
             self.low = _vec(m["state_low"]), _vec(m["action_low"])
             self.high = _vec(m["state_high"]), _vec(m["action_high"])
@@ -167,11 +170,30 @@ class _FeatureMap:
         else:
             raise ValueError(f"unknown feature map {self.kind!r}")
 
+    @property
+    def dim(self) -> int:
+        """How many features the map computes."""
+        if self.kind == "unit_box":
+            return sum(len(c) for c in self.components) + int(self.action_length)
+        if self.kind == "kinematic_prediction":
+            return 3 * len(self.low[0]) + int(self.move_length)
+        if self.kind == "per_move":
+            return 3 * len(self.moves)
+        return len(self.low[1]) + 1
+
     def __call__(self, s: Array, a: Array) -> Array:
         if self.kind == "unit_box":
             fs = _unit(s, self.low[0], self.high[0])[:, self.components[0]]
             fa = _unit(a, self.low[1], self.high[1])[:, self.components[1]]
-            return np.hstack([fs, fa])
+            if not self.action_length:
+                return np.hstack([fs, fa])
+            # The listed action components' length, each over its largest magnitude (RMS).
+            comps = self.components[1]
+            reach = np.maximum(np.abs(self.low[1]), np.abs(self.high[1]))[comps]
+            safe = np.where(reach > 0.0, reach, 1.0)
+            share = np.where(reach > 0.0, a[:, comps] / safe, 0.0)
+            length = np.minimum(np.sqrt(np.mean(share**2, axis=1)), 1.0)
+            return np.hstack([fs, fa, length[:, None]])
         if self.kind == "kinematic_prediction":
             predicted = np.clip(s + a, self.low[0], self.high[0])
             parts = [
@@ -251,6 +273,10 @@ class ExportedModel:
         if len(self.feature_names) != self._main.dim:
             raise ValueError(
                 f"{len(self.feature_names)} feature names for {self._main.dim} features"
+            )
+        if self._map.dim != self._main.dim:
+            raise ValueError(
+                f"feature_map: computes {self._map.dim} features, the GP reads {self._main.dim}"
             )
 
     @classmethod
