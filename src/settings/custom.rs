@@ -5,7 +5,7 @@
 //! {"kind": "custom",
 //!  "state":  {"names": ["x", "y"], "low": [0, 0], "high": [1, 1]},
 //!  "action": {"names": ["dx", "dy"], "low": [-0.1, -0.1], "high": [0.1, 0.1]},
-//!  "features": {"state": [0, 1], "action": [0, 1]},
+//!  "features": {"state": [0, 1], "action": [0, 1], "action_length": true},
 //!  "distance": {"weights": [1, 1]},
 //!  "goal": {"components": [0, 1], "radius": 0.05},
 //!  "obstacles": [{"low": [0.4, 0], "high": [0.5, 0.6]}],
