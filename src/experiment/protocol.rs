@@ -180,6 +180,70 @@ impl Bench {
         }))
     }
 
+    /// For a problem the learned precondition does not solve (gridworld), the truly safe moves
+    /// it does not trust that would each, trusted alone, make the problem solvable: a move from
+    /// a cell the start reaches inside the learned precondition into (by the model) a cell from
+    /// which the goal is reached inside it. Empty when no single move would do (the problem is
+    /// further from solvable); `None` outside the gridworld. What the learner missed is then
+    /// attributed: a blocking move that was executed and labelled safe yet is not trusted is
+    /// the estimator's loss; one never executed is the choice of executions'.
+    pub fn blocking_moves(
+        &self,
+        problem: &Problem,
+        d_max: f64,
+        trusted: impl Fn(&[f64], &[f64]) -> bool,
+    ) -> Option<Vec<[i64; 4]>> {
+        let Self::Grid(g) = self else {
+            return None;
+        };
+        let cell = |s: &[f64]| (s[0] as i64, s[1] as i64);
+        let moves = self.all_state_actions();
+        // Forward from the start and backward from the goal, over trusted moves only.
+        let mut ahead = std::collections::HashSet::from([cell(problem.start())]);
+        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
+        while let Some(s) = queue.pop_front() {
+            for m in MOVES {
+                let next = g.predict(&s, &m);
+                if g.edge_allowed(&s, &m, &next) && trusted(&s, &m) && ahead.insert(cell(&next)) {
+                    queue.push_back(next);
+                }
+            }
+        }
+        let mut into: std::collections::HashMap<(i64, i64), Vec<Vec<f64>>> = Default::default();
+        for (s, m) in moves.iter().filter(|(s, m)| trusted(s, m)) {
+            into.entry(cell(&g.predict(s, m)))
+                .or_default()
+                .push(s.clone());
+        }
+        let mut behind: std::collections::HashSet<(i64, i64)> = moves
+            .iter()
+            .flat_map(|(s, m)| [s.clone(), g.predict(s, m)])
+            .filter(|s| g.is_goal(s, problem.goal()))
+            .map(|s| cell(&s))
+            .collect();
+        let mut queue: std::collections::VecDeque<(i64, i64)> = behind.iter().copied().collect();
+        while let Some(c) = queue.pop_front() {
+            for s in into.get(&c).into_iter().flatten() {
+                if behind.insert(cell(s)) {
+                    queue.push_back(cell(s));
+                }
+            }
+        }
+        let mut world = g.world();
+        Some(
+            moves
+                .iter()
+                .filter(|(s, m)| {
+                    ahead.contains(&cell(s))
+                        && !trusted(s, m)
+                        && behind.contains(&cell(&g.predict(s, m)))
+                        && g.deviation(s, m, &world.step(s, m)) < d_max
+                })
+                .map(|(s, m)| move_key(s, m))
+                .collect(),
+        )
+    }
+
     /// Every state-action of the gridworld the planner may consider (each cell × each move the
     /// model allows; obstacles included, since the model does not know them), for judging a
     /// learned precondition in full. Empty elsewhere.
@@ -536,6 +600,12 @@ pub struct IterationRecord {
     pub learned_solvable: usize,
     /// `learned_solvable / test_problems`, where it is known.
     pub learned_rate: Option<f64>,
+    /// Test problems the oracle solves and the learned precondition does not, one truly safe
+    /// untrusted move short of solvable ([`Bench::blocking_moves`]; gridworld).
+    pub one_move_short: usize,
+    /// Of those, problems where some such move was executed in training (labelled safe, yet
+    /// not trusted: the estimator's loss rather than the choice of executions').
+    pub one_move_short_executed: usize,
     /// `plans_found / test_problems`.
     pub plan_found_rate: f64,
     /// Steps of the test plans found.
@@ -646,6 +716,10 @@ pub struct TestRecord {
     /// The problem is solvable inside the learned precondition at test β (`None` where that
     /// is not searched: the water plant; see [`IterationRecord::learned_solvable`]).
     pub learned: Option<bool>,
+    /// For a problem the oracle solves and the learned precondition does not (gridworld): how
+    /// many truly safe untrusted moves would each alone make it solvable, and how many of them
+    /// were executed in training ([`Bench::blocking_moves`]).
+    pub blocking: Option<(usize, usize)>,
     /// Steps of the plan whose true deviation from the plan's own state is at least `d_max`.
     pub unsafe_steps: usize,
     /// The learned plan executed closed loop reached the goal (`None`: not measured).
@@ -965,6 +1039,14 @@ impl Run<'_> {
         let mut known_baseline = false;
         let trusted = Self::trusted_moves(self.client, self.bench, self.id).await?;
         let trusted = |s: &[f64], a: &[f64]| trusted.contains(&move_key(s, a));
+        let executed: std::collections::HashSet<[i64; 4]> = match self.bench {
+            Bench::Grid(_) => self
+                .executed
+                .iter()
+                .map(|l| move_key(&l.t.s, &l.t.a))
+                .collect(),
+            _ => Default::default(),
+        };
         for k in 0..self.cfg.test_problems {
             let problem =
                 self.bench
@@ -988,6 +1070,7 @@ impl Run<'_> {
                 success: false,
                 oracle: references.map(|r| r.oracle_solvable),
                 learned: self.bench.learned_solvable(&problem, trusted),
+                blocking: None,
                 unsafe_steps: 0,
                 closed_loop_success: self.bench.closed_loop().then_some(false),
                 replans: 0,
@@ -995,6 +1078,15 @@ impl Run<'_> {
                 oracle_closed_loop: references.map(|r| r.oracle_closed_loop),
                 baseline: references.map(|r| r.baseline),
             };
+            if test.oracle == Some(true) && test.learned == Some(false) {
+                test.blocking = self
+                    .bench
+                    .blocking_moves(&problem, self.d_max, trusted)
+                    .map(|moves| {
+                        let executed = moves.iter().filter(|m| executed.contains(*m)).count();
+                        (moves.len(), executed)
+                    });
+            }
             if let Some(factor) = self.bench.long_search_factor(self.cfg.long_search) {
                 test.learned = Some(
                     plan.found || {
@@ -1048,6 +1140,10 @@ impl Run<'_> {
             rec.replans += test.replans;
             rec.oracle_solvable += usize::from(test.oracle == Some(true));
             rec.learned_solvable += usize::from(test.learned == Some(true));
+            if let Some((short, executed)) = test.blocking {
+                rec.one_move_short += usize::from(short > 0);
+                rec.one_move_short_executed += usize::from(executed > 0);
+            }
             known_learned |= test.learned.is_some();
             rec.oracle_open_successes += usize::from(test.oracle_open_loop == Some(true));
             rec.oracle_closed_successes += usize::from(test.oracle_closed_loop == Some(true));
@@ -1176,6 +1272,8 @@ impl IterationRecord {
             oracle_rate: None,
             learned_solvable: 0,
             learned_rate: None,
+            one_move_short: 0,
+            one_move_short_executed: 0,
             planned_steps: 0,
             unsafe_planned_steps: 0,
             unsafe_step_rate: None,
@@ -1377,6 +1475,33 @@ mod tests {
         assert_eq!(bench.learned_solvable(&problem, not_wall), Some(true));
         let no_gap = |s: &[f64], a: &[f64]| not_wall(s, a) && !(s[0] == 1.0 && s[1] == 1.0);
         assert_eq!(bench.learned_solvable(&problem, no_gap), Some(false));
+    }
+
+    #[test]
+    fn the_one_untrusted_safe_move_between_two_trusted_regions_is_the_blocking_one() {
+        let (bench, g) = gap_bench();
+        let problem = Problem::new(&g, vec![0.0, 0.0], vec![4.0, 0.0]).expect("a problem");
+        let not_wall = |s: &[f64], a: &[f64]| {
+            let to = [s[0] + a[0], s[1] + a[1]];
+            s[0] != 2.0 && to[0] != 2.0 || s[1] == 1.0 && to[1] == 1.0
+        };
+        let gap_closed = |s: &[f64], a: &[f64]| not_wall(s, a) && !(s == [1.0, 1.0] && a[0] == 1.0);
+        assert_eq!(
+            bench.blocking_moves(&problem, 0.1, gap_closed),
+            Some(vec![[1, 1, 1, 0]]),
+            "into the gap: safe, untrusted, and the only way across"
+        );
+        // Two moves short (the way out of the gap closed too): no single move would do.
+        let two_closed =
+            |s: &[f64], a: &[f64]| gap_closed(s, a) && !(s == [2.0, 1.0] && a[0] == 1.0);
+        assert_eq!(
+            bench.blocking_moves(&problem, 0.1, two_closed),
+            Some(vec![])
+        );
+        assert_eq!(
+            Bench::Plant(WaterPlant::default()).blocking_moves(&problem, 0.1, |_, _| true),
+            None
+        );
     }
 
     #[test]

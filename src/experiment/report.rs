@@ -13,7 +13,7 @@ use std::fmt::Write as _;
 use std::path::Path;
 
 /// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 31] = [
+pub const METRICS: [&str; 33] = [
     "plan_found_rate",
     "unsafe_step_rate",
     "success_rate",
@@ -22,6 +22,8 @@ pub const METRICS: [&str; 31] = [
     "learned_rate",
     "learned_of_oracle",
     "plans_of_learned",
+    "one_move_short_rate",
+    "one_move_short_executed_rate",
     "closed_loop_rate",
     "oracle_open_loop_rate",
     "oracle_closed_loop_rate",
@@ -48,7 +50,7 @@ pub const METRICS: [&str; 31] = [
 ];
 
 /// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 50] = [
+pub const ITERATION_COLUMNS: [&str; 52] = [
     "domain",
     "layout",
     "strategy",
@@ -77,6 +79,8 @@ pub const ITERATION_COLUMNS: [&str; 50] = [
     "oracle_rate",
     "learned_solvable",
     "learned_rate",
+    "one_move_short",
+    "one_move_short_executed",
     "closed_loop_successes",
     "closed_loop_rate",
     "replans",
@@ -125,6 +129,15 @@ pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
             .learned_rate
             .filter(|_| r.learned_solvable > 0)
             .map(|_| r.plans_found as f64 / r.learned_solvable as f64),
+        // Known where the learned search is exhaustive and the oracle known (gridworlds).
+        "one_move_short_rate" => r
+            .oracle_rate
+            .and(r.learned_rate)
+            .map(|_| r.one_move_short as f64 / r.test_problems.max(1) as f64),
+        "one_move_short_executed_rate" => r
+            .oracle_rate
+            .and(r.learned_rate)
+            .map(|_| r.one_move_short_executed as f64 / r.test_problems.max(1) as f64),
         "closed_loop_rate" => r.closed_loop_rate,
         "oracle_open_loop_rate" => r
             .oracle_rate
@@ -245,6 +258,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             opt(r.oracle_rate),
             r.learned_solvable.to_string(),
             opt(r.learned_rate),
+            r.one_move_short.to_string(),
+            r.one_move_short_executed.to_string(),
             r.closed_loop_successes.to_string(),
             opt(r.closed_loop_rate),
             r.replans.to_string(),
@@ -295,7 +310,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
 
     let mut csv = String::from(
         "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle,\
-         learned,unsafe_steps,closed_loop_success,replans,oracle_open_loop,oracle_closed_loop,baseline\n",
+         learned,blocking_moves,blocking_executed,unsafe_steps,closed_loop_success,replans,oracle_open_loop,\
+         oracle_closed_loop,baseline\n",
     );
     let vector = |v: &[f64]| {
         v.iter()
@@ -306,7 +322,7 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     for t in results.runs.iter().flat_map(|run| &run.tests) {
         let _ = writeln!(
             csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
+            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
             t.strategy.as_str(),
             t.seed,
             t.iteration,
@@ -319,6 +335,8 @@ pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
             t.success,
             flag(t.oracle),
             flag(t.learned),
+            t.blocking.map_or(String::new(), |b| b.0.to_string()),
+            t.blocking.map_or(String::new(), |b| b.1.to_string()),
             t.unsafe_steps,
             flag(t.closed_loop_success),
             t.replans,
@@ -453,7 +471,7 @@ pub fn summary(results: &Results) -> Value {
         "server": results.server,
         "seconds": results.seconds,
         "held_out_pool_sizes": results.pool_sizes,
-        "metrics": METRICS,
+        "metrics": METRICS.as_slice(),
         "strategies": strategies,
         "final": finals,
     })
