@@ -162,7 +162,8 @@ function settingsCard(e) {
       'acquisition',
       (l.acquisition === 'level_set'
         ? `level set, γ = ${fmt(l.gamma)}`
-        : `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`) +
+        : (l.acquisition === 'bottleneck' ? 'bottleneck, else ' : '') +
+          `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`) +
         (l.batch_diversity ? '; a batch spreads over what is uncertain (σ in flight fantasised)' : ''),
     ],
     [

@@ -351,6 +351,23 @@ impl Domain for IcyGridworld {
         euclidean(s, s_pred) > 0.5
     }
 
+    /// Each cell × each move the model allows (obstacles included: the model does not know
+    /// them).
+    fn finite_state_actions(&self) -> Option<Vec<(Vec<f64>, Vec<f64>)>> {
+        let mut out = Vec::new();
+        for y in 0..self.height {
+            for x in 0..self.width {
+                let c = [x as f64, y as f64];
+                for m in MOVES {
+                    if self.edge_allowed(&c, &m, &self.predict(&c, &m)) {
+                        out.push((c.to_vec(), m.to_vec()));
+                    }
+                }
+            }
+        }
+        Some(out)
+    }
+
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
         vec![
             rng.random_range(0..self.width) as f64,

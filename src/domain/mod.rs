@@ -339,6 +339,13 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
 
     /// A random planning problem from the domain's distribution of problems.
     fn sample_problem(&self, rng: &mut dyn RngCore) -> Problem;
+
+    /// Every state-action the planner may consider, where there are finitely many (a grid's
+    /// cells × its moves, each step the domain allows): what a search over the whole learned
+    /// precondition needs. `None` (the default) for a continuous domain.
+    fn finite_state_actions(&self) -> Option<Vec<(Vec<f64>, Vec<f64>)>> {
+        None
+    }
 }
 
 /// A uniform draw from `[low, high]` that cannot panic: `rand`'s own draw when the width is

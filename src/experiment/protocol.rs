@@ -248,21 +248,10 @@ impl Bench {
     /// model allows; obstacles included, since the model does not know them), for judging a
     /// learned precondition in full. Empty elsewhere.
     pub fn all_state_actions(&self) -> Vec<(Vec<f64>, Vec<f64>)> {
-        let Self::Grid(g) = self else {
-            return Vec::new();
-        };
-        let mut out = Vec::new();
-        for y in 0..g.height() {
-            for x in 0..g.width() {
-                let c = [x as f64, y as f64];
-                for m in MOVES {
-                    if g.edge_allowed(&c, &m, &g.predict(&c, &m)) {
-                        out.push((c.to_vec(), m.to_vec()));
-                    }
-                }
-            }
+        match self {
+            Self::Grid(g) => g.finite_state_actions().unwrap_or_default(),
+            _ => Vec::new(),
         }
-        out
     }
 
     /// The domain, with its model run in-process.

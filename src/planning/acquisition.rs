@@ -13,6 +13,10 @@
 //!   from elsewhere and teach little about the plan). `α_step = −r_t · 4 p_t (1 − p_t)` and
 //!   `α = Σ_t γ^t α_step(t)`: the smallest `α` is the trajectory expected to settle the most
 //!   doubtful steps. `aggregation` and `c` do not apply.
+//! - `bottleneck`: in a domain with finitely many state-actions, the candidate whose untrusted
+//!   steps would open the most problems of the domain's distribution at the test β
+//!   ([`bottleneck`](super::bottleneck)); `lcb` where no candidate crosses such a step, and in
+//!   continuous domains.
 
 use super::PlanningError;
 use super::trajectory::Trajectory;
@@ -43,9 +47,15 @@ pub enum AcquisitionKind {
     Lcb,
     /// Reach-weighted ambiguity of each step's side of `d_max`, negated and summed.
     LevelSet,
+    /// The steps that would open the most sampled problems (finite domains), else `lcb`.
+    Bottleneck,
 }
 
-setting_names!(AcquisitionKind, "acquisition", { Lcb => "lcb", LevelSet => "level_set" });
+setting_names!(AcquisitionKind, "acquisition", {
+    Lcb => "lcb",
+    LevelSet => "level_set",
+    Bottleneck => "bottleneck",
+});
 
 /// The acquisition's parameters (experiment settings).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -60,6 +70,8 @@ pub struct AcquisitionSettings {
     pub gamma: f64,
     /// `max` (default) or `sum`.
     pub aggregation: Aggregation,
+    /// The β test plans are made at, which `bottleneck` values its steps against. Default 2.
+    pub test_beta: f64,
 }
 
 impl Default for AcquisitionSettings {
@@ -69,6 +81,7 @@ impl Default for AcquisitionSettings {
             c: 1.0,
             gamma: 0.9,
             aggregation: Aggregation::Max,
+            test_beta: 2.0,
         }
     }
 }
@@ -82,6 +95,12 @@ impl AcquisitionSettings {
         if !(self.gamma > 0.0 && self.gamma <= 1.0) {
             return Err(PlanningError::settings("gamma", "must lie in (0, 1]"));
         }
+        if !self.test_beta.is_finite() {
+            return Err(PlanningError::settings(
+                "test_beta",
+                "must be a finite number",
+            ));
+        }
         Ok(())
     }
 
@@ -90,7 +109,7 @@ impl AcquisitionSettings {
     pub fn score(&self, trajectory: &Trajectory, d_max: f64) -> (Vec<f64>, f64) {
         let pairs = trajectory.mu.iter().zip(&trajectory.sigma);
         match self.kind {
-            AcquisitionKind::Lcb => {
+            AcquisitionKind::Lcb | AcquisitionKind::Bottleneck => {
                 let steps: Vec<f64> = pairs.map(|(m, s)| alpha_step(*m, *s, self.c)).collect();
                 let alpha = aggregate(&steps, self.gamma, self.aggregation);
                 (steps, alpha)
@@ -202,6 +221,7 @@ mod tests {
             c: 2.0,
             gamma: 0.5,
             aggregation: Aggregation::Sum,
+            ..AcquisitionSettings::default()
         };
         let (steps, alpha) = settings.score(&t, 0.1);
         assert_abs_diff_eq!(steps[0], 0.2, epsilon = 1e-12);

@@ -228,6 +228,7 @@ mod tests {
             c: 1.0,
             gamma: 0.9,
             aggregation: Aggregation::Max,
+            test_beta: 2.0,
         };
         let candidates = vec![
             // Through x ≥ 5 with x-moves: outside from step 1.

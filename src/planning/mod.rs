@@ -77,6 +77,7 @@ macro_rules! setting_names {
 }
 
 pub mod acquisition;
+pub mod bottleneck;
 pub mod cache;
 pub mod given;
 pub mod planner;

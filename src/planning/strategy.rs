@@ -28,6 +28,8 @@
 //!   (each counts as an extension); when none fits the rollout stops there. It fails with
 //!   `NoPlan` only when not even the first step is possible.
 
+use super::acquisition::AcquisitionKind;
+use super::bottleneck;
 use super::cache::ModelCache;
 use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
 use super::trajectory::Trajectory;
@@ -189,7 +191,19 @@ pub(crate) fn propose(
             .map(|t| acquisition.score(t, precondition.d_max()))
             .collect()
     };
-    let alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
+    let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
+    if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Bottleneck {
+        let at_test = precondition.at_beta(acquisition.test_beta)?;
+        if let Some(values) =
+            bottleneck::candidate_values(domain, &mut cache, &at_test, &found.trajectories, seed)?
+            && values.iter().any(|v| *v > 0.0)
+        {
+            // The most valuable candidate; `lcb` only breaks exact ties.
+            for (alpha, v) in alphas.iter_mut().zip(&values) {
+                *alpha = -v + 1e-9 * alpha.tanh();
+            }
+        }
+    }
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
     let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
     let candidates = found
@@ -201,7 +215,8 @@ pub(crate) fn propose(
             length: t.len(),
         })
         .collect();
-    let (alpha_step, alpha) = scored[chosen_index].clone();
+    // The chosen candidate's `α` as it was compared (for `bottleneck`, the value negated).
+    let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
     let mut trajectories = found.trajectories;
     let trajectory = trajectories.swap_remove(chosen_index);
     Ok(Proposal {

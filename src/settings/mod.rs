@@ -576,8 +576,9 @@ pub struct LearningSettings {
     pub gamma: f64,
     /// Aggregation `h` (of the `lcb` acquisition).
     pub aggregation: Aggregation,
-    /// The acquisition function `active` minimises: `lcb` (the paper's `h(μ − c σ)`) or
-    /// `level_set` (the reach-weighted ambiguity of each step's side of `d_max`; see
+    /// The acquisition function `active` minimises: `lcb` (the paper's `h(μ − c σ)`),
+    /// `level_set` (the reach-weighted ambiguity of each step's side of `d_max`) or
+    /// `bottleneck` (the untrusted steps that would open the most sampled problems; see
     /// [`AcquisitionKind`]).
     pub acquisition: AcquisitionKind,
     /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`].
@@ -866,6 +867,7 @@ impl LearningSettings {
                 c: self.c,
                 gamma: self.gamma,
                 aggregation: self.aggregation,
+                test_beta: self.test_beta,
             },
         )
         .map_err(|e| match e {
