@@ -34,6 +34,7 @@ use crate::domain::{
     DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, Kinematic, LocalModel, MOVES, Problem,
     Transition, WaterPlant,
 };
+use crate::planning::bottleneck::TrustedGraph;
 use crate::planning::{Agreement, Strategy, Trajectory};
 use crate::settings::{DomainSpec, LearningRequest, MdeRequest};
 use crate::sim::{ContinuousWorld, Simulated, World};
@@ -183,8 +184,9 @@ impl Bench {
     /// For a problem the learned precondition does not solve (gridworld), the truly safe moves
     /// it does not trust that would each, trusted alone, make the problem solvable: a move from
     /// a cell the start reaches inside the learned precondition into (by the model) a cell from
-    /// which the goal is reached inside it. Empty when no single move would do (the problem is
-    /// further from solvable); `None` outside the gridworld. What the learner missed is then
+    /// which the goal is reached inside it ([`TrustedGraph::opening_moves`], filtered by the
+    /// true world). Empty when no single move would do (the problem is further from solvable,
+    /// or solvable already); `None` outside the gridworld. What the learner missed is then
     /// attributed: a blocking move that was executed and labelled safe yet is not trusted is
     /// the estimator's loss; one never executed is the choice of executions'.
     pub fn blocking_moves(
@@ -196,49 +198,18 @@ impl Bench {
         let Self::Grid(g) = self else {
             return None;
         };
-        let cell = |s: &[f64]| (s[0] as i64, s[1] as i64);
         let moves = self.all_state_actions();
-        // Forward from the start and backward from the goal, over trusted moves only.
-        let mut ahead = std::collections::HashSet::from([cell(problem.start())]);
-        let mut queue = std::collections::VecDeque::from([problem.start().to_vec()]);
-        while let Some(s) = queue.pop_front() {
-            for m in MOVES {
-                let next = g.predict(&s, &m);
-                if g.edge_allowed(&s, &m, &next) && trusted(&s, &m) && ahead.insert(cell(&next)) {
-                    queue.push_back(next);
-                }
-            }
-        }
-        let mut into: std::collections::HashMap<(i64, i64), Vec<Vec<f64>>> = Default::default();
-        for (s, m) in moves.iter().filter(|(s, m)| trusted(s, m)) {
-            into.entry(cell(&g.predict(s, m)))
-                .or_default()
-                .push(s.clone());
-        }
-        let mut behind: std::collections::HashSet<(i64, i64)> = moves
-            .iter()
-            .flat_map(|(s, m)| [s.clone(), g.predict(s, m)])
-            .filter(|s| g.is_goal(s, problem.goal()))
-            .map(|s| cell(&s))
-            .collect();
-        let mut queue: std::collections::VecDeque<(i64, i64)> = behind.iter().copied().collect();
-        while let Some(c) = queue.pop_front() {
-            for s in into.get(&c).into_iter().flatten() {
-                if behind.insert(cell(s)) {
-                    queue.push_back(cell(s));
-                }
-            }
-        }
+        let next: Vec<Vec<f64>> = moves.iter().map(|(s, m)| g.predict(s, m)).collect();
+        let ok: Vec<bool> = moves.iter().map(|(s, m)| trusted(s, m)).collect();
+        let graph = TrustedGraph::new(g, &moves, &next, &ok);
         let mut world = g.world();
         Some(
-            moves
-                .iter()
-                .filter(|(s, m)| {
-                    ahead.contains(&cell(s))
-                        && !trusted(s, m)
-                        && behind.contains(&cell(&g.predict(s, m)))
-                        && g.deviation(s, m, &world.step(s, m)) < d_max
-                })
+            graph
+                .opening_moves(problem)
+                .unwrap_or_default()
+                .into_iter()
+                .map(|i| &moves[i])
+                .filter(|(s, m)| g.deviation(s, m, &world.step(s, m)) < d_max)
                 .map(|(s, m)| move_key(s, m))
                 .collect(),
         )

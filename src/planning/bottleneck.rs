@@ -22,7 +22,8 @@ use super::cache::ModelCache;
 use super::precondition::Precondition;
 use super::rrt::seeded_rng;
 use super::trajectory::Trajectory;
-use crate::domain::Domain;
+use crate::budget::Budget;
+use crate::domain::{Domain, Problem};
 use std::collections::{HashMap, HashSet, VecDeque};
 
 /// Problems drawn to value the bottlenecks.
@@ -43,8 +44,98 @@ fn key(s: &[f64]) -> Key {
     s.iter().map(|x| (x + 0.0).to_bits()).collect()
 }
 
+/// A finite domain's learned precondition as a graph: its state-actions, the model's next state
+/// of each and whether each is trusted. One definition of "one untrusted move short", for the
+/// acquisition and the harness's attribution alike.
+pub struct TrustedGraph<'a> {
+    domain: &'a dyn Domain,
+    moves: &'a [(Vec<f64>, Vec<f64>)],
+    next: &'a [Vec<f64>],
+    trusted: &'a [bool],
+    /// Trusted moves by the state they leave.
+    from: HashMap<Key, Vec<usize>>,
+    /// Trusted moves by the state they enter.
+    into: HashMap<Key, Vec<usize>>,
+}
+
+impl<'a> TrustedGraph<'a> {
+    /// The graph of `moves` (`(s, a)`), `next[i] = f̂(moves[i])`, `trusted[i]` whether move
+    /// `i` is inside the precondition (all three equally long).
+    pub fn new(
+        domain: &'a dyn Domain,
+        moves: &'a [(Vec<f64>, Vec<f64>)],
+        next: &'a [Vec<f64>],
+        trusted: &'a [bool],
+    ) -> Self {
+        let mut from: HashMap<Key, Vec<usize>> = HashMap::new();
+        let mut into: HashMap<Key, Vec<usize>> = HashMap::new();
+        for (i, (s, _)) in moves.iter().enumerate().filter(|(i, _)| trusted[*i]) {
+            from.entry(key(s)).or_default().push(i);
+            into.entry(key(&next[i])).or_default().push(i);
+        }
+        Self {
+            domain,
+            moves,
+            next,
+            trusted,
+            from,
+            into,
+        }
+    }
+
+    /// The untrusted moves (indices) that would each, trusted alone, make `problem` solvable: a
+    /// move from a state the start reaches over trusted moves into a state from which the goal
+    /// is reached over trusted moves. `None` when the problem is solvable already; empty when
+    /// no single move would do.
+    pub fn opening_moves(&self, problem: &Problem) -> Option<Vec<usize>> {
+        let (start, goal) = (problem.start(), problem.goal());
+        let is_goal = |s: &[f64]| self.domain.is_goal(s, goal);
+        let mut ahead = HashSet::from([key(start)]);
+        let mut queue = VecDeque::from([start]);
+        let mut solved = is_goal(start);
+        while let Some(s) = queue.pop_front() {
+            for &i in self.from.get(&key(s)).into_iter().flatten() {
+                if ahead.insert(key(&self.next[i])) {
+                    solved |= is_goal(&self.next[i]);
+                    queue.push_back(&self.next[i]);
+                }
+            }
+        }
+        if solved {
+            return None;
+        }
+        let mut behind: HashSet<Key> = self
+            .moves
+            .iter()
+            .map(|(s, _)| s)
+            .chain(self.next)
+            .filter(|s| is_goal(s))
+            .map(|s| key(s))
+            .collect();
+        let mut queue: VecDeque<Key> = behind.iter().cloned().collect();
+        while let Some(k) = queue.pop_front() {
+            for &i in self.into.get(&k).into_iter().flatten() {
+                let before = key(&self.moves[i].0);
+                if behind.insert(before.clone()) {
+                    queue.push_back(before);
+                }
+            }
+        }
+        Some(
+            (0..self.moves.len())
+                .filter(|&i| {
+                    !self.trusted[i]
+                        && ahead.contains(&key(&self.moves[i].0))
+                        && behind.contains(&key(&self.next[i]))
+                })
+                .collect(),
+        )
+    }
+}
+
 /// The value of each of `trajectories` (see the module docs), or `None` when the domain has no
-/// finite set of state-actions (or more than [`MAX_STATE_ACTIONS`]). `trusted` is the precondition at the test β; every state-action
+/// finite set of state-actions (or more than [`MAX_STATE_ACTIONS`]), or when `budget` has
+/// already run out (the choice is then `lcb`'s, which costs nothing more). `trusted` is the precondition at the test β; every state-action
 /// of the domain is judged once through `cache`.
 pub fn candidate_values(
     domain: &dyn Domain,
@@ -52,10 +143,11 @@ pub fn candidate_values(
     trusted: &Precondition,
     trajectories: &[Trajectory],
     seed: u64,
+    budget: &Budget,
 ) -> Result<Option<Vec<f64>>, PlanningError> {
     let Some(moves) = domain
         .finite_state_actions()
-        .filter(|m| m.len() <= MAX_STATE_ACTIONS)
+        .filter(|m| m.len() <= MAX_STATE_ACTIONS && budget.stop().is_none())
     else {
         return Ok(None);
     };
@@ -75,61 +167,13 @@ pub fn candidate_values(
         .map(|((mu, sigma), p)| p.valid && trusted.inside(*mu, *sigma))
         .collect();
     let next: Vec<Vec<f64>> = predicted.into_iter().map(|p| p.next).collect();
-    // The trusted graph, forward and backward, by state key.
-    let mut ahead_of: HashMap<Key, Vec<usize>> = HashMap::new();
-    let mut into: HashMap<Key, Vec<usize>> = HashMap::new();
-    for (i, (s, _)) in moves.iter().enumerate() {
-        if ok[i] {
-            ahead_of.entry(key(s)).or_default().push(i);
-            into.entry(key(&next[i])).or_default().push(i);
-        }
-    }
-    let states: Vec<&Vec<f64>> = {
-        let mut seen = HashSet::new();
-        moves
-            .iter()
-            .map(|(s, _)| s)
-            .chain(next.iter())
-            .filter(|s| seen.insert(key(s)))
-            .collect()
-    };
+    let graph = TrustedGraph::new(domain, &moves, &next, &ok);
     let mut value: HashMap<usize, f64> = HashMap::new();
     let mut rng = seeded_rng(seed, PROBLEM_STREAM);
     for _ in 0..PROBLEMS {
         let problem = domain.sample_problem(&mut rng);
-        let (start, goal) = (problem.start(), problem.goal());
-        let mut ahead = HashSet::from([key(start)]);
-        let mut queue = VecDeque::from([start.to_vec()]);
-        let mut solved = domain.is_goal(start, goal);
-        while let Some(s) = queue.pop_front() {
-            for &i in ahead_of.get(&key(&s)).into_iter().flatten() {
-                if ahead.insert(key(&next[i])) {
-                    solved |= domain.is_goal(&next[i], goal);
-                    queue.push_back(next[i].clone());
-                }
-            }
-        }
-        if solved {
-            continue;
-        }
-        let mut behind: HashSet<Key> = states
-            .iter()
-            .filter(|s| domain.is_goal(s, goal))
-            .map(|s| key(s))
-            .collect();
-        let mut queue: VecDeque<Key> = behind.iter().cloned().collect();
-        while let Some(k) = queue.pop_front() {
-            for &i in into.get(&k).into_iter().flatten() {
-                let from = key(&moves[i].0);
-                if behind.insert(from.clone()) {
-                    queue.push_back(from);
-                }
-            }
-        }
-        for (i, (s, _)) in moves.iter().enumerate() {
-            if !ok[i] && ahead.contains(&key(s)) && behind.contains(&key(&next[i])) {
-                *value.entry(i).or_default() += 1.0;
-            }
+        for i in graph.opening_moves(&problem).into_iter().flatten() {
+            *value.entry(i).or_default() += 1.0;
         }
     }
     let index: HashMap<(Key, Key), usize> = moves
@@ -224,9 +268,16 @@ mod tests {
         let lower = path([0.0, 2.0], &[d, r, r, r, r, u], &Learned);
         let at_test = Precondition::new(2.0, 0.1).unwrap();
         let mut cache = ModelCache::new(&Learned, 4);
-        let values = candidate_values(&g, &mut cache, &at_test, &[upper.clone(), lower.clone()], 7)
-            .unwrap()
-            .expect("a grid is finite");
+        let values = candidate_values(
+            &g,
+            &mut cache,
+            &at_test,
+            &[upper.clone(), lower.clone()],
+            7,
+            &Budget::unlimited(),
+        )
+        .unwrap()
+        .expect("a grid is finite");
         // Trusting the way into the upper gap opens every crossing problem; either of the lower
         // gap's two moves opens only problems that start or end in that gap.
         assert!(
@@ -234,10 +285,19 @@ mod tests {
             "the upper gap's way opens more sampled problems: {values:?}"
         );
         let direct = path([0.0, 0.0], &[d, r], &Learned);
-        let none = candidate_values(&g, &mut cache, &at_test, &[direct], 7).unwrap();
+        let none =
+            candidate_values(&g, &mut cache, &at_test, &[direct], 7, &Budget::unlimited()).unwrap();
         assert_eq!(none, Some(vec![0.0]), "a trusted way opens nothing");
         // Seeded: the same problems, the same values.
-        let again = candidate_values(&g, &mut cache, &at_test, &[upper, lower], 7).unwrap();
+        let again = candidate_values(
+            &g,
+            &mut cache,
+            &at_test,
+            &[upper, lower],
+            7,
+            &Budget::unlimited(),
+        )
+        .unwrap();
         assert_eq!(again, Some(values));
         // A continuous domain has no graph: the acquisition is `lcb` there.
         let plane = crate::domain::Kinematic::new(crate::domain::KinematicParams::default())
@@ -248,7 +308,7 @@ mod tests {
         };
         let mut cache = ModelCache::new(&model, plane.feature_dim());
         assert_eq!(
-            candidate_values(&plane, &mut cache, &at_test, &[], 7).unwrap(),
+            candidate_values(&plane, &mut cache, &at_test, &[], 7, &Budget::unlimited()).unwrap(),
             None
         );
     }

@@ -194,9 +194,14 @@ pub(crate) fn propose(
     let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
     if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Bottleneck {
         let at_test = precondition.at_beta(acquisition.test_beta)?;
-        if let Some(values) =
-            bottleneck::candidate_values(domain, &mut cache, &at_test, &found.trajectories, seed)?
-            && values.iter().any(|v| *v > 0.0)
+        if let Some(values) = bottleneck::candidate_values(
+            domain,
+            &mut cache,
+            &at_test,
+            &found.trajectories,
+            seed,
+            budget,
+        )? && values.iter().any(|v| *v > 0.0)
         {
             // The most valuable candidate; `lcb` only breaks exact ties.
             for (alpha, v) in alphas.iter_mut().zip(&values) {
