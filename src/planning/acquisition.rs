@@ -13,9 +13,10 @@
 //!   from elsewhere and teach little about the plan). `α_step = −r_t · 4 p_t (1 − p_t)` and
 //!   `α = Σ_t γ^t α_step(t)`: the smallest `α` is the trajectory expected to settle the most
 //!   doubtful steps. `aggregation` and `c` do not apply.
-//! - `bottleneck`: in a domain with finitely many state-actions, the candidate whose untrusted
-//!   steps would open the most problems of the domain's distribution at the test β
-//!   ([`bottleneck`](super::bottleneck)); `lcb` where no candidate crosses such a step, and in
+//! - `bottleneck`: in a domain with finitely many state-actions, of the candidates and a probe
+//!   (a way to the most promising untrusted step, ending there), the one whose execution is
+//!   expected to open the most problems of the domain's distribution at the test β
+//!   ([`bottleneck`](super::bottleneck)); `lcb` where nothing crosses such a step, and in
 //!   continuous domains.
 
 use super::PlanningError;

@@ -19,6 +19,9 @@
 //!   step's σ as if those were labelled already, so the trajectories of one batch spread over
 //!   what is uncertain instead of all chasing the same doubt (batch diversity by fantasised
 //!   observations: the GP's variance does not depend on the labels).
+//!   Under the `bottleneck` acquisition in a finite domain the candidates are joined by a
+//!   *probe*, a way to the most promising untrusted step other problems need, which ends there
+//!   and not at the goal ([`bottleneck`](super::bottleneck)); the most valuable is executed.
 //! - `goal_conditioned`: a uniformly random candidate (its `α` is still reported).
 //! - `random`: a rollout of `Domain::rollout_length()` steps (for a domain that asks for it,
 //!   `Domain::rollout_like_plans`, as many as one RRT run's plan for the problem has) from the
@@ -100,7 +103,8 @@ pub struct Proposal {
     pub alpha_step: Vec<f64>,
     /// Its acquisition value `α`.
     pub alpha: f64,
-    /// All candidates in the order they were found (for `random`, the rollout alone).
+    /// All candidates in the order they were found (for `random`, the rollout alone; a
+    /// `bottleneck` probe last).
     pub candidates: Vec<CandidateScore>,
     /// Index of the chosen trajectory in `candidates`.
     pub chosen_index: usize,
@@ -181,7 +185,30 @@ pub(crate) fn propose(
             "the start already satisfies the goal: there is nothing to plan",
         ));
     }
-    let found = candidates(task, &mut cache, seed, budget)?;
+    let mut found = candidates(task, &mut cache, seed, budget)?;
+    let bottleneck_values =
+        if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Bottleneck {
+            bottleneck::assess(
+                task,
+                &mut cache,
+                &found.trajectories,
+                in_flight,
+                seed,
+                budget,
+            )?
+            .map(|assessment| {
+                let mut values = assessment.values;
+                if let Some((probe, value)) = assessment.probe
+                    && value > 0.0
+                {
+                    found.trajectories.push(probe);
+                    values.push(value);
+                }
+                values
+            })
+        } else {
+            None
+        };
     let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
         fantasised_scores(task, model, in_flight, &found.trajectories)?
     } else {
@@ -192,21 +219,12 @@ pub(crate) fn propose(
             .collect()
     };
     let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
-    if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Bottleneck {
-        let at_test = precondition.at_beta(acquisition.test_beta)?;
-        if let Some(values) = bottleneck::candidate_values(
-            domain,
-            &mut cache,
-            &at_test,
-            &found.trajectories,
-            seed,
-            budget,
-        )? && values.iter().any(|v| *v > 0.0)
-        {
-            // The most valuable candidate; `lcb` only breaks exact ties.
-            for (alpha, v) in alphas.iter_mut().zip(&values) {
-                *alpha = -v + 1e-9 * alpha.tanh();
-            }
+    if let Some(values) = bottleneck_values
+        && values.iter().any(|v| *v > 0.0)
+    {
+        // The most valuable candidate; `lcb` only breaks exact ties.
+        for (alpha, v) in alphas.iter_mut().zip(&values) {
+            *alpha = -v + 1e-9 * alpha.tanh();
         }
     }
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.

@@ -901,3 +901,69 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
         }
     );
 }
+
+/// A 5 × 5 map whose wall (column 2) has one gap, in row 2, and what a learner might know of
+/// it: every move trusted but those touching the wall's column (they bump), and the way into
+/// the gap doubtful (`μ` at half `d_max`, `σ` as large: untrusted at β 2, within with
+/// probability 0.84).
+struct OneGap;
+
+impl DeviationModel for OneGap {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim)
+            .map(|f| {
+                let (x, y) = ((f[0] * 4.0).round(), (f[1] * 4.0).round());
+                let (dx, dy) = (2.0 * f[2] - 1.0, 2.0 * f[3] - 1.0);
+                let to = x + dx;
+                if (x, y, dx, dy) == (1.0, 2.0, 1.0, 0.0) {
+                    (0.05, 0.05)
+                } else if (x, y, dx, dy) == (2.0, 2.0, 1.0, 0.0) {
+                    (0.0, 0.001)
+                } else if x == 2.0 || to == 2.0 {
+                    (1.0, 0.001)
+                } else {
+                    (0.0, 0.001)
+                }
+            })
+            .collect()
+    }
+}
+
+#[test]
+fn a_bottleneck_probe_executes_the_gap_that_the_asked_problem_does_not_need() {
+    let grid = IcyGridworld::new(&["..#..", "..#..", ".....", "..#..", "..#.."]).unwrap();
+    // The asked problem stays on the left of the wall; the training β is the test β (late in
+    // learning), so no candidate may cross the doubtful move.
+    let ask = |kind| {
+        Ask::new(&grid, &OneGap, &[0.0, 0.0], &[0.0, 4.0])
+            .planner(&small_settings())
+            .acquisition(&AcquisitionSettings {
+                kind,
+                ..Default::default()
+            })
+            .propose(Strategy::Active, 3)
+            .unwrap()
+    };
+    let into_gap = |t: &Trajectory| {
+        t.states
+            .iter()
+            .zip(&t.actions)
+            .any(|(s, a)| s == &[1.0, 2.0] && a == &[1.0, 0.0])
+    };
+    let paper = ask(AcquisitionKind::Lcb);
+    assert!(!into_gap(&paper.trajectory), "{:?}", paper.trajectory);
+    assert!(grid.is_goal(paper.trajectory.states.last().unwrap(), &[0.0, 4.0]));
+    let probing = ask(AcquisitionKind::Bottleneck);
+    assert!(into_gap(&probing.trajectory), "{:?}", probing.trajectory);
+    // It is a probe: the way there inside the precondition, the gap's move last, reported as
+    // the last of the candidates and chosen for its value (negated as `α`).
+    let t = &probing.trajectory;
+    assert_eq!(t.actions.last(), Some(&vec![1.0, 0.0]));
+    assert_eq!(t.states[t.len() - 1], vec![1.0, 2.0]);
+    assert!((0..t.len() - 1).all(|k| t.mu[k] + 2.0 * t.sigma[k] < 0.1));
+    assert_eq!(probing.chosen_index, probing.candidates.len() - 1);
+    assert!(probing.alpha < 0.0, "{}", probing.alpha);
+    // The same seed, the same probe.
+    assert_eq!(ask(AcquisitionKind::Bottleneck), probing);
+}
