@@ -276,8 +276,8 @@ pub struct MdeSettings {
 #[serde(rename_all = "snake_case")]
 pub enum Preset {
     /// precond's defaults: the paper's method with the changes measured to learn more from the
-    /// same executions (a label cap chosen from the data, the rough ν = 1/2 kernel, training
-    /// proposals that relax β rather than give up).
+    /// same executions (a label cap and a kernel chosen from the data, training proposals that
+    /// relax β rather than give up, the `bottleneck` acquisition).
     #[default]
     Default,
     /// The paper's exact configuration (raw labels, Matérn 5/2, no β relaxation, no batch
@@ -306,7 +306,9 @@ impl Preset {
     /// [`LearningSettings::acquisition`]).
     pub fn acquisition(self) -> AcquisitionKind {
         match self {
-            Self::Default => AcquisitionKind::Lcb,
+            // The measured best on gridworlds (docs/research/active-selection.md, "A probe to
+            // the bottleneck"); in continuous domains it is `lcb`.
+            Self::Default => AcquisitionKind::Bottleneck,
             Self::Paper => AcquisitionKind::Lcb,
         }
     }

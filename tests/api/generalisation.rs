@@ -174,8 +174,11 @@ async fn learning_generalises_beyond_what_was_executed_and_keeps_exploring_once_
         "domain": {"kind": "icy_gridworld", "map": MAP},
         "seed": 5,
         "mde": {"restarts": 1},
+        // The paper's acquisition, whose candidates all lie inside the training precondition:
+        // what is explored once β > 0 is then the β schedule's doing. (`bottleneck` probes
+        // untrusted moves on purpose; it is measured in the harness.)
         "learning": {"iterations": ITERATIONS, "batch_size": BATCH,
-                     "n_candidates": 10, "max_extensions": 2000}
+                     "n_candidates": 10, "max_extensions": 2000, "acquisition": "lcb"}
     }))
     .await;
     let mut l = Loop {

@@ -211,7 +211,10 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
 
 #[tokio::test]
 async fn strategies_produce_what_they_promise() {
-    let (_dir, app, id) = fresh_experiment(json!({"seed": 3})).await;
+    // The paper's acquisition: `active` executes a goal-reaching candidate (the default,
+    // `bottleneck`, may execute a probe instead; see below).
+    let (_dir, app, id) =
+        fresh_experiment(json!({"seed": 3, "learning": {"acquisition": "lcb"}})).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let goal = json!([9, 10]);
     for strategy in ["active", "goal_conditioned"] {
@@ -267,6 +270,32 @@ async fn strategies_produce_what_they_promise() {
         json!([9.0, 10.0]),
         "17 moves away: 8 random moves cannot arrive"
     );
+
+    // The default acquisition, `bottleneck`: the argmin of the reported `α` (minus each
+    // trajectory's value), either a goal-reaching candidate or the probe, listed last, whose
+    // value is positive.
+    let (_dir, app, id) = fresh_experiment(json!({"seed": 3})).await;
+    let (status, p) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [1, 1], "goal": goal, "strategy": "active"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{p}");
+    let alphas = floats(&p["candidates"], "alpha");
+    let chosen = p["chosen_index"].as_u64().unwrap() as usize;
+    let alpha = p["trajectory"]["alpha"].as_f64().unwrap();
+    assert_eq!(alphas[chosen], alpha);
+    assert_eq!(alpha, alphas.iter().cloned().fold(f64::INFINITY, f64::min));
+    let last = p["trajectory"]["states"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap();
+    if last != &json!([9.0, 10.0]) {
+        assert_eq!(chosen, alphas.len() - 1, "a probe is listed last: {p}");
+        assert!(alpha < 0.0, "a probe is chosen for its value: {p}");
+    }
 }
 
 #[tokio::test]
