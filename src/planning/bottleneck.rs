@@ -303,41 +303,23 @@ mod tests {
     use crate::domain::IcyGridworld;
     use crate::planning::DeviationModel;
     use crate::planning::precondition::Precondition;
+    use crate::planning::synthetic::WallGapsModel;
 
     /// A 5 × 5 map whose wall (column 2) has two gaps, rows 1 and 3.
     fn two_gaps() -> IcyGridworld {
         IcyGridworld::new(&["..#..", ".....", "..#..", ".....", "..#.."]).expect("a valid map")
     }
 
-    /// What a learner might know of it: every move trusted but those touching the wall's
-    /// column, which bump; the way into the upper gap is doubtful (one untrusted move), the
-    /// lower gap's two moves are doubtful (two untrusted moves).
-    #[derive(Debug)]
-    struct Learned;
-    impl DeviationModel for Learned {
-        fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
-            features
-                .chunks(dim)
-                .map(|f| {
-                    let (x, y) = ((f[0] * 4.0).round(), (f[1] * 4.0).round());
-                    let dx = 2.0 * f[2] - 1.0;
-                    let to = x + dx;
-                    let doubtful = [(1.0, 1.0), (1.0, 3.0), (2.0, 3.0)];
-                    if dx == 1.0 && doubtful.contains(&(x, y)) {
-                        (0.05, 0.05)
-                    } else if dx == 1.0 && (x, y) == (2.0, 1.0) {
-                        (0.0, 0.001)
-                    } else if x == 2.0 || to == 2.0 {
-                        (1.0, 0.001)
-                    } else {
-                        (0.0, 0.001)
-                    }
-                })
-                .collect()
+    /// What a learner might know of it: the way into the upper gap is doubtful (one untrusted
+    /// move), the lower gap's two moves are doubtful (two untrusted moves).
+    fn learned() -> WallGapsModel {
+        WallGapsModel {
+            doubtful: vec![(1.0, 1.0), (1.0, 3.0), (2.0, 3.0)],
+            through: vec![(2.0, 1.0)],
         }
     }
 
-    fn path(start: [f64; 2], moves: &[[f64; 2]], model: &Learned) -> Trajectory {
+    fn path(start: [f64; 2], moves: &[[f64; 2]], model: &WallGapsModel) -> Trajectory {
         let g = two_gaps();
         let mut states = vec![start.to_vec()];
         for m in moves {
@@ -375,13 +357,14 @@ mod tests {
     #[test]
     fn the_way_one_untrusted_move_from_open_is_worth_more_than_the_way_two_moves_short() {
         let g = two_gaps();
+        let model = learned();
         let (r, u, d) = ([1.0, 0.0], [0.0, -1.0], [0.0, 1.0]);
-        let upper = path([0.0, 2.0], &[u, r, r, r, r, d], &Learned);
-        let lower = path([0.0, 2.0], &[d, r, r, r, r, u], &Learned);
+        let upper = path([0.0, 2.0], &[u, r, r, r, r, d], &model);
+        let lower = path([0.0, 2.0], &[d, r, r, r, r, u], &model);
         let settings = crate::planning::PlanningSettings::default();
         let problem = Problem::new(&g, vec![0.0, 2.0], vec![4.0, 2.0]).unwrap();
         let task = ask(&g, &problem, &settings);
-        let mut cache = ModelCache::new(&Learned, 4);
+        let mut cache = ModelCache::new(&model, 4);
         let assess_all = |cache: &mut ModelCache<'_>, ts: &[Trajectory], in_flight: &[f64]| {
             assess(task, cache, ts, in_flight, 7, &Budget::unlimited())
                 .unwrap()
@@ -395,7 +378,7 @@ mod tests {
             "the upper gap's way opens more sampled problems: {:?}",
             both.values
         );
-        let direct = path([0.0, 0.0], &[d, r], &Learned);
+        let direct = path([0.0, 0.0], &[d, r], &model);
         assert_eq!(
             assess_all(&mut cache, &[direct], &[]).values,
             vec![0.0],

@@ -71,3 +71,37 @@ impl DeviationModel for IceModel {
             .collect()
     }
 }
+
+/// What a learner might know of a 5 × 5 gridworld whose column 2 is a wall with gaps: the
+/// rightward moves from the `doubtful` cells `(x, y)` are doubtful (`μ` half of a `d_max` of
+/// 0.1, `σ` as large: untrusted at β 2, within with probability 0.84), those from the `through`
+/// cells trusted, every other move touching column 2 bumps (`μ = 1`); the rest is trusted.
+#[derive(Debug, Clone, PartialEq)]
+pub struct WallGapsModel {
+    /// Cells whose rightward move is doubtful.
+    pub doubtful: Vec<(f64, f64)>,
+    /// Cells of column 2 whose rightward move is trusted (the way out of a gap).
+    pub through: Vec<(f64, f64)>,
+}
+
+impl DeviationModel for WallGapsModel {
+    /// Decodes `φ = (x, y, dx, dy)` scaled to the unit box of a 5 × 5 grid.
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim.max(1))
+            .map(|f| {
+                let (x, y) = ((f[0] * 4.0).round(), (f[1] * 4.0).round());
+                let dx = 2.0 * f[2] - 1.0;
+                if dx == 1.0 && self.doubtful.contains(&(x, y)) {
+                    (0.05, 0.05)
+                } else if dx == 1.0 && self.through.contains(&(x, y)) {
+                    (0.0, 0.001)
+                } else if x == 2.0 || x + dx == 2.0 {
+                    (1.0, 0.001)
+                } else {
+                    (0.0, 0.001)
+                }
+            })
+            .collect()
+    }
+}

@@ -1,6 +1,6 @@
 //! Planner-level tests: invariants of every planned edge, the icy gridworld, the strategies.
 
-use super::synthetic::{ConstantModel, IceModel};
+use super::synthetic::{ConstantModel, IceModel, WallGapsModel};
 use super::*;
 use crate::domain::{BoxObstacle, Domain, IcyGridworld, Kinematic, KinematicParams, Problem};
 use proptest::prelude::{Just, ProptestConfig, any, prop_assert, prop_oneof, proptest};
@@ -902,41 +902,23 @@ fn a_relaxed_proposal_is_planned_at_the_first_beta_of_the_ladder_with_a_plan() {
     );
 }
 
-/// A 5 × 5 map whose wall (column 2) has one gap, in row 2, and what a learner might know of
-/// it: every move trusted but those touching the wall's column (they bump), and the way into
-/// the gap doubtful (`μ` at half `d_max`, `σ` as large: untrusted at β 2, within with
-/// probability 0.84).
-struct OneGap;
-
-impl DeviationModel for OneGap {
-    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
-        features
-            .chunks(dim)
-            .map(|f| {
-                let (x, y) = ((f[0] * 4.0).round(), (f[1] * 4.0).round());
-                let (dx, dy) = (2.0 * f[2] - 1.0, 2.0 * f[3] - 1.0);
-                let to = x + dx;
-                if (x, y, dx, dy) == (1.0, 2.0, 1.0, 0.0) {
-                    (0.05, 0.05)
-                } else if (x, y, dx, dy) == (2.0, 2.0, 1.0, 0.0) {
-                    (0.0, 0.001)
-                } else if x == 2.0 || to == 2.0 {
-                    (1.0, 0.001)
-                } else {
-                    (0.0, 0.001)
-                }
-            })
-            .collect()
+/// A 5 × 5 map's learner (see [`WallGapsModel`]) whose wall has one gap, in row 2, the way into
+/// it doubtful.
+fn one_gap() -> WallGapsModel {
+    WallGapsModel {
+        doubtful: vec![(1.0, 2.0)],
+        through: vec![(2.0, 2.0)],
     }
 }
 
 #[test]
 fn a_bottleneck_probe_executes_the_gap_that_the_asked_problem_does_not_need() {
     let grid = IcyGridworld::new(&["..#..", "..#..", ".....", "..#..", "..#.."]).unwrap();
+    let model = one_gap();
     // The asked problem stays on the left of the wall; the training β is the test β (late in
     // learning), so no candidate may cross the doubtful move.
     let ask = |kind| {
-        Ask::new(&grid, &OneGap, &[0.0, 0.0], &[0.0, 4.0])
+        Ask::new(&grid, &model, &[0.0, 0.0], &[0.0, 4.0])
             .planner(&small_settings())
             .acquisition(&AcquisitionSettings {
                 kind,
