@@ -25,6 +25,7 @@
 use super::PlanningError;
 use super::acquisition::within_probability;
 use super::cache::ModelCache;
+use super::precondition::Precondition;
 use super::rrt::{Task, seeded_rng};
 use super::trajectory::Trajectory;
 use crate::budget::Budget;
@@ -38,6 +39,9 @@ pub const PROBLEMS: usize = 32;
 /// grid's); a larger one is valued like a continuous domain (`lcb`), so that a proposal's cost
 /// stays that of its candidates.
 pub const MAX_STATE_ACTIONS: usize = 16_384;
+
+/// State-actions judged per call to the deviation model, between checks of the budget.
+const JUDGED_PER_CALL: usize = 1024;
 
 /// The stream of the proposal seed the problems are drawn from (far from the candidates' runs,
 /// streams `1 ..= n_candidates + 1`).
@@ -160,8 +164,9 @@ pub struct Assessment {
 /// trajectories of one batch probe different ones.
 ///
 /// `None` when the domain has no finite set of state-actions (or more than
-/// [`MAX_STATE_ACTIONS`]), or when `budget` has already run out (the choice is then `lcb`'s,
-/// which costs nothing more). Every state-action of the domain is judged once through `cache`.
+/// [`MAX_STATE_ACTIONS`]), or when `budget` runs out before every state-action of the domain
+/// is judged (once, through `cache`, in chunks of 1024; the choice is then `lcb`'s, which costs
+/// nothing more).
 pub(crate) fn assess(
     task: Task<'_>,
     cache: &mut ModelCache<'_>,
@@ -185,18 +190,30 @@ pub(crate) fn assess(
         .iter()
         .flat_map(|(s, a)| domain.features(s, a))
         .collect();
-    let judged = cache.predict(&features)?;
+    // Judged in chunks, so that a large graph on a large model stops within a chunk of the
+    // budget's end (the choice is then `lcb`'s) instead of overrunning it.
+    let mut judged = Vec::with_capacity(moves.len());
+    for chunk in features.chunks(JUDGED_PER_CALL * dim) {
+        if budget.stop().is_some() {
+            return Ok(None);
+        }
+        judged.extend(cache.predict(chunk)?);
+    }
     let (s_refs, a_refs): (Vec<&[f64]>, Vec<&[f64]>) = moves
         .iter()
         .map(|(s, a)| (s.as_slice(), a.as_slice()))
         .unzip();
     let predicted = domain.dynamics().predict_batch(&s_refs, &a_refs)?;
-    let valid: Vec<bool> = predicted.iter().map(|p| p.valid).collect();
-    let ok: Vec<bool> = judged
-        .iter()
-        .zip(&valid)
-        .map(|((mu, sigma), v)| *v && trusted.inside(*mu, *sigma))
-        .collect();
+    // Which moves are valid and inside a precondition.
+    let inside_of = |pre: Precondition| -> Vec<bool> {
+        judged
+            .iter()
+            .zip(&predicted)
+            .map(|((mu, sigma), p)| p.valid && pre.inside(*mu, *sigma))
+            .collect()
+    };
+    let ok = inside_of(trusted);
+    let inside = inside_of(task.precondition);
     let next: Vec<Vec<f64>> = predicted.into_iter().map(|p| p.next).collect();
     let graph = TrustedGraph::new(domain, &moves, &next, &ok);
     let mut value: HashMap<usize, f64> = HashMap::new();
@@ -229,11 +246,6 @@ pub(crate) fn assess(
         total
     };
     let values = trajectories.iter().map(worth).collect();
-    let inside: Vec<bool> = judged
-        .iter()
-        .zip(&valid)
-        .map(|((mu, sigma), v)| *v && task.precondition.inside(*mu, *sigma))
-        .collect();
     let promise: HashMap<usize, f64> = value
         .iter()
         .map(|(&i, v)| (i, v * within_probability(judged[i].0, judged[i].1, d_max)))
@@ -302,7 +314,6 @@ mod tests {
     use super::*;
     use crate::domain::IcyGridworld;
     use crate::planning::DeviationModel;
-    use crate::planning::precondition::Precondition;
     use crate::planning::synthetic::WallGapsModel;
 
     /// A 5 × 5 map whose wall (column 2) has two gaps, rows 1 and 3.
