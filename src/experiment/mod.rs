@@ -241,6 +241,18 @@ pub struct ExperimentArgs {
     /// (`learning.calibrate_test_beta`: `true` or `false`). Default: the preset's.
     #[arg(long)]
     pub calibrate_test_beta: Option<bool>,
+    /// The β schedule's amplitude `k1` (`learning.k1`): training β runs from about `−k1` to
+    /// about `k1`. Default: the service's (2).
+    #[arg(long)]
+    pub k1: Option<f64>,
+    /// The β schedule's steepness `k2` per iteration (`learning.k2`). Default: the service's
+    /// (0.5).
+    #[arg(long)]
+    pub k2: Option<f64>,
+    /// The iterations `J` the β schedule is planned over (`learning.iterations`; β crosses 0 at
+    /// `J / 2`). Default: the run's `--iterations`.
+    #[arg(long)]
+    pub schedule_iterations: Option<usize>,
 }
 
 impl ExperimentArgs {
@@ -305,6 +317,12 @@ pub struct Config {
     pub test_beta: Option<f64>,
     /// Whether test plans use the certified β (`None`: the preset's).
     pub calibrate_test_beta: Option<bool>,
+    /// The β schedule's `k1` (`None`: the service's).
+    pub k1: Option<f64>,
+    /// The β schedule's `k2` (`None`: the service's).
+    pub k2: Option<f64>,
+    /// The β schedule's planned iterations (`None`: `iterations`).
+    pub schedule_iterations: Option<usize>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -378,6 +396,9 @@ impl Config {
             batch_diversity: args.batch_diversity,
             test_beta: args.test_beta,
             calibrate_test_beta: args.calibrate_test_beta,
+            k1: args.k1,
+            k2: args.k2,
+            schedule_iterations: args.schedule_iterations,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

@@ -454,7 +454,7 @@ fn experiment_body(
             preset: cfg.preset,
             strategy,
             batch_size: cfg.batch_size as u32,
-            iterations: cfg.iterations as u32,
+            iterations: cfg.schedule_iterations.unwrap_or(cfg.iterations) as u32,
             n_candidates: cfg.n_candidates,
             max_extensions: cfg.max_extensions,
             relax_beta: cfg.relax_beta,
@@ -468,6 +468,8 @@ fn experiment_body(
                 .test_beta
                 .unwrap_or(LearningRequest::default().test_beta),
             calibrate_test_beta: cfg.calibrate_test_beta,
+            k1: cfg.k1.unwrap_or(LearningRequest::default().k1),
+            k2: cfg.k2.unwrap_or(LearningRequest::default().k2),
             ..LearningRequest::default()
         },
     }
