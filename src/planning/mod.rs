@@ -9,6 +9,8 @@
 //! - [`schedule`]: `β_j` over the learning iterations, and the ladder of lower βs a training
 //!   problem with no plan at `β_j` tries ([`Planner::propose_relaxing`]).
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
+//! - [`bottleneck`]: the `bottleneck` acquisition's cross-problem value on a finite domain —
+//!   the untrusted steps that would open the most sampled problems, and a probe to the best.
 //! - [`Budget`] (from [`crate::budget`]): the deadline and cancel flag a search checks between
 //!   rounds (a planner's [`Planner::within`]).
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
