@@ -252,7 +252,7 @@ pub struct ExperimentArgs {
     /// The iterations `J` the β schedule is planned over (`learning.iterations`; β crosses 0 at
     /// `J / 2`). Default: the run's `--iterations`.
     #[arg(long)]
-    pub schedule_iterations: Option<usize>,
+    pub schedule_iterations: Option<u32>,
 }
 
 impl ExperimentArgs {
@@ -322,7 +322,7 @@ pub struct Config {
     /// The β schedule's `k2` (`None`: the service's).
     pub k2: Option<f64>,
     /// The β schedule's planned iterations (`None`: `iterations`).
-    pub schedule_iterations: Option<usize>,
+    pub schedule_iterations: Option<u32>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.

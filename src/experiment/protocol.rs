@@ -438,6 +438,7 @@ fn experiment_body(
             }
         }
     };
+    let learning = LearningRequest::default();
     ExperimentRequest {
         name,
         domain,
@@ -454,23 +455,19 @@ fn experiment_body(
             preset: cfg.preset,
             strategy,
             batch_size: cfg.batch_size as u32,
-            iterations: cfg.schedule_iterations.unwrap_or(cfg.iterations) as u32,
+            iterations: cfg.schedule_iterations.unwrap_or(cfg.iterations as u32),
             n_candidates: cfg.n_candidates,
             max_extensions: cfg.max_extensions,
             relax_beta: cfg.relax_beta,
-            c: cfg.c.unwrap_or(LearningRequest::default().c),
-            aggregation: cfg
-                .aggregation
-                .unwrap_or(LearningRequest::default().aggregation),
+            c: cfg.c.unwrap_or(learning.c),
+            aggregation: cfg.aggregation.unwrap_or(learning.aggregation),
             acquisition: cfg.acquisition,
             batch_diversity: cfg.batch_diversity,
-            test_beta: cfg
-                .test_beta
-                .unwrap_or(LearningRequest::default().test_beta),
+            test_beta: cfg.test_beta.unwrap_or(learning.test_beta),
             calibrate_test_beta: cfg.calibrate_test_beta,
-            k1: cfg.k1.unwrap_or(LearningRequest::default().k1),
-            k2: cfg.k2.unwrap_or(LearningRequest::default().k2),
-            ..LearningRequest::default()
+            k1: cfg.k1.unwrap_or(learning.k1),
+            k2: cfg.k2.unwrap_or(learning.k2),
+            ..learning
         },
     }
 }
