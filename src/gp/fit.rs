@@ -31,6 +31,73 @@ pub(crate) struct Warm<'a> {
     pub memory: lbfgs::Memory,
 }
 
+/// Where an optimisation starts and how closely it converges; see [`optimise`].
+pub(crate) struct Starts<'a> {
+    /// A warm start: then it is the only start and nothing is screened.
+    pub warm: Option<Warm<'a>>,
+    /// Seeded random starts beside the default one (without `warm`).
+    pub restarts: usize,
+    /// Replaces the deterministic default start (without `warm`).
+    pub first: Option<&'a [f64]>,
+    /// Seeds the random starts and the screening subset.
+    pub seed: u64,
+    /// Loosens the relative function tolerance to at least this.
+    pub ftol_floor: f64,
+    /// Whether the default start skips screening and always runs on all the data.
+    pub default_on_full_data: bool,
+}
+
+impl<'a> Starts<'a> {
+    /// A new fit: the default start (always on all the data) and `restarts` random ones.
+    pub fn new(restarts: usize, seed: u64) -> Self {
+        Self {
+            warm: None,
+            restarts,
+            first: None,
+            seed,
+            ftol_floor: 0.0,
+            default_on_full_data: true,
+        }
+    }
+
+    /// From `warm` alone (a refinement of a previous optimum).
+    pub fn warm(warm: Warm<'a>, seed: u64) -> Self {
+        Self {
+            warm: Some(warm),
+            ..Self::new(0, seed)
+        }
+    }
+
+    /// From `warm` when there is one, otherwise as [`Starts::new`].
+    pub fn warm_or_new(warm: Option<Warm<'a>>, restarts: usize, seed: u64) -> Self {
+        Self {
+            warm,
+            ..Self::new(restarts, seed)
+        }
+    }
+
+    /// With `first` in place of the deterministic default start.
+    pub fn first(self, first: &'a [f64]) -> Self {
+        Self {
+            first: Some(first),
+            ..self
+        }
+    }
+
+    /// With the relative function tolerance loosened to at least `ftol_floor`.
+    pub fn ftol_floor(self, ftol_floor: f64) -> Self {
+        Self { ftol_floor, ..self }
+    }
+
+    /// With the default start screened like the random ones (cheaper; the noise GP's).
+    pub fn default_screened(self) -> Self {
+        Self {
+            default_on_full_data: false,
+            ..self
+        }
+    }
+}
+
 /// Lower and upper log-bounds for `θ`.
 pub(crate) fn log_bounds(d: usize, b: &Bounds, homoscedastic: bool) -> (Vec<f64>, Vec<f64>) {
     let mut lo = vec![b.length_scale.0.ln(); d];
@@ -130,8 +197,8 @@ pub(crate) type Runner<'r> = dyn FnMut(
 
 /// Maximises the LML of a GP with inputs `x`, centred targets `r` and noise `noise`.
 ///
-/// Starts: `warm` if given (then no random starts are added, and no screening), otherwise the
-/// default start plus `restarts` seeded random ones. With `p.screen_subset > 0` and
+/// Starts ([`Starts`]): `warm` if given (then no random starts are added, and no screening),
+/// otherwise the default start plus `restarts` seeded random ones. With `p.screen_subset > 0` and
 /// `n > screen_subset` and at least one random start, the random starts are first optimised on a
 /// seeded random subset (with the matching part of a fixed noise vector), and only the best is
 /// refined on all the data — from a point near
@@ -145,7 +212,6 @@ pub(crate) type Runner<'r> = dyn FnMut(
 ///
 /// `ftol_floor` loosens the relative function tolerance (used for the noise GP, whose targets are
 /// themselves very noisy estimates).
-#[allow(clippy::too_many_arguments)] // internal; each call site names its arguments
 pub(crate) fn optimise(
     x: &Inputs,
     r: &[f64],
@@ -153,11 +219,7 @@ pub(crate) fn optimise(
     bounds: &Bounds,
     kernel: Kernel,
     p: &GpParams,
-    restarts: usize,
-    warm: Option<Warm<'_>>,
-    seed: u64,
-    ftol_floor: f64,
-    default_on_full_data: bool,
+    starts: Starts<'_>,
 ) -> Result<Optimum, GpError> {
     let mut runner = |x: &Inputs,
                       r: &[f64],
@@ -172,21 +234,7 @@ pub(crate) fn optimise(
         );
         (out, evals)
     };
-    optimise_with(
-        &mut runner,
-        x,
-        r,
-        noise,
-        bounds,
-        p,
-        p.screen_subset,
-        restarts,
-        warm,
-        None,
-        seed,
-        ftol_floor,
-        default_on_full_data,
-    )
+    optimise_with(&mut runner, x, r, noise, bounds, p, p.screen_subset, starts)
 }
 
 /// The homoscedastic optimum of a new fit on `(x, r)` with `p`'s bounds, kernel, restarts and
@@ -204,18 +252,14 @@ pub(crate) fn optimise_homoscedastic(
         &p.bounds,
         p.kernel,
         p,
-        p.restarts,
-        None,
-        p.seed,
-        0.0,
-        true,
+        Starts::new(p.restarts, p.seed),
     )
 }
 
 /// [`optimise`] for any objective: `runner` performs one optimiser run, `screen_subset` replaces
-/// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one), and `first`,
-/// when given, replaces the deterministic default start (the sparse GP starts from an exact fit
-/// on a small subset).
+/// `p.screen_subset` (the sparse GP screens on larger subsets than the exact one), and
+/// `starts.first`, when given, replaces the deterministic default start (the sparse GP starts
+/// from an exact fit on a small subset).
 #[allow(clippy::too_many_arguments)] // internal; each call site names its arguments
 pub(crate) fn optimise_with(
     runner: &mut Runner<'_>,
@@ -225,13 +269,16 @@ pub(crate) fn optimise_with(
     bounds: &Bounds,
     p: &GpParams,
     screen_subset: usize,
-    restarts: usize,
-    warm: Option<Warm<'_>>,
-    first: Option<&[f64]>,
-    seed: u64,
-    ftol_floor: f64,
-    default_on_full_data: bool,
+    starts: Starts<'_>,
 ) -> Result<Optimum, GpError> {
+    let Starts {
+        warm,
+        restarts,
+        first,
+        seed,
+        ftol_floor,
+        default_on_full_data,
+    } = starts;
     // The starts are drawn around the targets' mean square: one that overflows (labels near
     // ±1e154 from the prior mean) leaves no range to draw from.
     let scale = target_scale(r);

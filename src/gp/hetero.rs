@@ -22,7 +22,7 @@
 //! At a query point the noise variance is `exp(μ₂(x*))`, clipped the same way.
 
 use super::core::{Core, mean};
-use super::fit::{self, Warm, optimise};
+use super::fit::{self, Starts, Warm, optimise};
 use super::kernel::{Inputs, Kernel};
 use super::lml::{Jitter, NoiseSpec};
 use super::{GpError, GpParams, Hyperparameters, NoiseModelState};
@@ -240,14 +240,16 @@ pub(crate) fn fit(
             &p.noise_model_bounds,
             NOISE_MODEL_KERNEL,
             p,
-            p.restarts,
-            noise_theta.as_deref().map(|theta| Warm {
-                theta,
-                memory: noise_memory.clone(),
-            }),
-            seed,
-            NOISE_MODEL_FTOL,
-            false,
+            Starts::warm_or_new(
+                noise_theta.as_deref().map(|theta| Warm {
+                    theta,
+                    memory: noise_memory.clone(),
+                }),
+                p.restarts,
+                seed,
+            )
+            .ftol_floor(NOISE_MODEL_FTOL)
+            .default_screened(),
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());
@@ -285,14 +287,13 @@ pub(crate) fn fit(
             &p.bounds,
             p.kernel,
             p,
-            0,
-            Some(Warm {
-                theta: &current_theta,
-                memory: main_memory.clone(),
-            }),
-            p.seed,
-            0.0,
-            true,
+            Starts::warm(
+                Warm {
+                    theta: &current_theta,
+                    memory: main_memory.clone(),
+                },
+                p.seed,
+            ),
         )?;
         let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
         let main = Core::build(

@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::super::core::mean;
 use super::super::export::{NoisePredictor, Predictor};
-use super::super::fit::{self, Optimum, Warm, default_start, optimise_with};
+use super::super::fit::{self, Optimum, Starts, Warm, default_start, optimise_with};
 use super::super::hetero::{
     NOISE_MODEL_FTOL, NOISE_MODEL_KERNEL, log_residual_bias, noise_clip, round_seed,
 };
@@ -82,18 +82,12 @@ struct Setup<'a> {
 
 /// Maximises the bound for inducing inputs `z` (see `fit::optimise_with` for the starts and the
 /// screening).
-#[allow(clippy::too_many_arguments)]
 fn optimise_sparse(
     s: &Setup<'_>,
     x: &Inputs,
     r: &[f64],
     noise: NoiseSpec<'_>,
-    restarts: usize,
-    warm: Option<Warm<'_>>,
-    first: Option<&[f64]>,
-    seed: u64,
-    ftol_floor: f64,
-    default_on_full_data: bool,
+    starts: Starts<'_>,
 ) -> Result<Optimum, GpError> {
     let (z, kernel, ladder) = (s.z, s.kernel, s.ladder);
     let mut runner = |x: &Inputs,
@@ -116,12 +110,7 @@ fn optimise_sparse(
         s.bounds,
         &s.p.gp,
         s.p.screen_subset,
-        restarts,
-        warm,
-        first,
-        seed,
-        ftol_floor,
-        default_on_full_data,
+        starts,
     )
 }
 
@@ -324,15 +313,16 @@ fn hetero_rounds(
             x,
             &rz,
             NoiseSpec::Homoscedastic,
-            p.restarts,
-            noise_theta.as_deref().map(|theta| Warm {
-                theta,
-                memory: noise_memory.clone(),
-            }),
-            None,
-            seed,
-            NOISE_MODEL_FTOL,
-            false,
+            Starts::warm_or_new(
+                noise_theta.as_deref().map(|theta| Warm {
+                    theta,
+                    memory: noise_memory.clone(),
+                }),
+                p.restarts,
+                seed,
+            )
+            .ftol_floor(NOISE_MODEL_FTOL)
+            .default_screened(),
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let gn = g.theta[d + 1].exp();
@@ -360,15 +350,14 @@ fn hetero_rounds(
             x,
             &r,
             NoiseSpec::Fixed(&lambda),
-            0,
-            Some(Warm {
-                theta: &current_theta,
-                memory: main_memory.clone(),
-            }),
-            None,
-            p.seed,
-            start.main_ftol,
-            true,
+            Starts::warm(
+                Warm {
+                    theta: &current_theta,
+                    memory: main_memory.clone(),
+                },
+                p.seed,
+            )
+            .ftol_floor(start.main_ftol),
         )?;
         let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
         let main = SparseCore::build(
@@ -671,12 +660,7 @@ impl SparseGp {
             x,
             &r,
             NoiseSpec::Homoscedastic,
-            p.restarts,
-            None,
-            Some(&theta0),
-            p.seed,
-            0.0,
-            true,
+            Starts::new(p.restarts, p.seed).first(&theta0),
         )?;
         let mut evaluations = opt.evaluations;
         let mut homo = build_homo(x, y, sp, &z, &opt.theta)?;
@@ -689,15 +673,13 @@ impl SparseGp {
                     x,
                     &r,
                     NoiseSpec::Homoscedastic,
-                    0,
-                    Some(Warm {
-                        theta: &opt.theta,
-                        memory: opt.memory.clone(),
-                    }),
-                    None,
-                    p.seed,
-                    0.0,
-                    true,
+                    Starts::warm(
+                        Warm {
+                            theta: &opt.theta,
+                            memory: opt.memory.clone(),
+                        },
+                        p.seed,
+                    ),
                 )?;
                 evaluations += o2.evaluations;
                 let c2 = build_homo(x, y, sp, &z2, &o2.theta)?;
@@ -761,15 +743,14 @@ impl SparseGp {
                     x,
                     &r,
                     NoiseSpec::Homoscedastic,
-                    0,
-                    Some(Warm {
-                        theta: &pre.homo.0,
-                        memory: rescale(&pre.homo.1, pre.n, x.n),
-                    }),
-                    None,
-                    p.seed,
-                    REFINE_FTOL,
-                    true,
+                    Starts::warm(
+                        Warm {
+                            theta: &pre.homo.0,
+                            memory: rescale(&pre.homo.1, pre.n, x.n),
+                        },
+                        p.seed,
+                    )
+                    .ftol_floor(REFINE_FTOL),
                 )?;
                 let core = build_homo(x, y, sp, z, &o.theta)?;
                 Ok(SparseGp::homoscedastic(
