@@ -154,7 +154,13 @@ function settingsCard(e) {
     ['domain', e.domain.kind],
     ['d_max', fmt(e.d_max)],
     ['seed', e.seed],
-    ['strategy', l.strategy],
+    [
+      'strategy',
+      l.strategy +
+        (l.warmup_iterations > 0
+          ? ` (active: random rollouts for the first ${l.warmup_iterations} iteration${l.warmup_iterations === 1 ? '' : 's'})`
+          : ''),
+    ],
     ['batch size', l.batch_size],
     ['iterations J', l.iterations],
     ['candidates × extensions', `${l.n_candidates} × ${l.max_extensions}`],

@@ -253,6 +253,10 @@ pub struct ExperimentArgs {
     /// `J / 2`). Default: the run's `--iterations`.
     #[arg(long)]
     pub schedule_iterations: Option<u32>,
+    /// The first iterations whose `active` proposals are random rollouts
+    /// (`learning.warmup_iterations`). Default: the preset's.
+    #[arg(long)]
+    pub warmup_iterations: Option<u32>,
 }
 
 impl ExperimentArgs {
@@ -323,6 +327,8 @@ pub struct Config {
     pub k2: Option<f64>,
     /// The β schedule's planned iterations (`None`: `iterations`).
     pub schedule_iterations: Option<u32>,
+    /// `active`'s random first iterations (`None`: the preset's).
+    pub warmup_iterations: Option<u32>,
     /// Seeds `0..seeds`.
     pub seeds: usize,
     /// Iterations per run.
@@ -399,6 +405,7 @@ impl Config {
             k1: args.k1,
             k2: args.k2,
             schedule_iterations: args.schedule_iterations,
+            warmup_iterations: args.warmup_iterations,
             seeds: pick(args.seeds, 10, 2),
             iterations,
             strategies,

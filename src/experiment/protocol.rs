@@ -467,6 +467,7 @@ fn experiment_body(
             calibrate_test_beta: cfg.calibrate_test_beta,
             k1: cfg.k1.unwrap_or(learning.k1),
             k2: cfg.k2.unwrap_or(learning.k2),
+            warmup_iterations: cfg.warmup_iterations,
             ..learning
         },
     }

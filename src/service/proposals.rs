@@ -210,7 +210,10 @@ impl Service {
             .into_iter()
             .map(|beta| live.precondition(beta))
             .collect::<Result<Vec<_>>>()?;
-        let strategy = request.strategy.unwrap_or(live.settings.learning.strategy);
+        let strategy = live
+            .settings
+            .learning
+            .answering_strategy(request.strategy, iteration);
         let model = live.model();
         let model_version = model.version;
         let seed = seed::mix_values(

@@ -319,6 +319,17 @@ impl Preset {
         self == Self::Default
     }
 
+    /// How many first iterations this preset answers `active` with random rollouts (see
+    /// [`LearningSettings::warmup_iterations`]): none in either. One random iteration gains
+    /// per executed transition early on every world measured but costs the pusher and the
+    /// gridworlds later (docs/research/active-selection.md, "Continuous worlds at equal
+    /// cost").
+    pub fn warmup_iterations(self) -> u32 {
+        match self {
+            Self::Default | Self::Paper => 0,
+        }
+    }
+
     /// Whether this preset's test plans use the β each fitted version certifies (see
     /// [`LearningSettings::calibrate_test_beta`]).
     pub fn calibrate_test_beta(self) -> bool {
@@ -528,6 +539,9 @@ pub struct LearningRequest {
     /// [`LearningSettings::calibrate_test_beta`]. Absent: the preset's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calibrate_test_beta: Option<bool>,
+    /// [`LearningSettings::warmup_iterations`]. Absent: the preset's (0 in both).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub warmup_iterations: Option<u32>,
 }
 
 impl Default for LearningRequest {
@@ -550,6 +564,7 @@ impl Default for LearningRequest {
             relax_beta: None,
             batch_diversity: None,
             calibrate_test_beta: None,
+            warmup_iterations: None,
         }
     }
 }
@@ -612,6 +627,12 @@ pub struct LearningSettings {
     /// of `test_beta` itself. `test_beta` stays the bound, and the β until a version certifies
     /// one.
     pub calibrate_test_beta: bool,
+    /// During the first this many iterations an `active` proposal is a random rollout (what
+    /// `random` answers: uniformly drawn actions inside the iteration's precondition) — an
+    /// initial design spread over the space before the acquisition has a model worth
+    /// following. The proposal says `random` as its strategy. `goal_conditioned` and `random`
+    /// requests are unchanged. At most `iterations`.
+    pub warmup_iterations: u32,
 }
 
 /// An experiment's settings as a client posts them; every field optional.
@@ -767,7 +788,16 @@ impl ExperimentRequest {
             calibrate_test_beta: l
                 .calibrate_test_beta
                 .unwrap_or_else(|| l.preset.calibrate_test_beta()),
+            warmup_iterations: l
+                .warmup_iterations
+                .unwrap_or_else(|| l.preset.warmup_iterations()),
         };
+        in_range(
+            "learning.warmup_iterations",
+            learning.warmup_iterations,
+            0,
+            learning.iterations,
+        )?;
         learning.planning()?;
         Ok((
             ExperimentSettings {
@@ -893,6 +923,18 @@ impl LearningSettings {
             k1: self.k1,
             k2: self.k2,
             iterations: self.iterations as usize,
+        }
+    }
+
+    /// The strategy that answers a training proposal asking for `requested` (default
+    /// [`strategy`](Self::strategy)) in `iteration`: `random` for `active` during the
+    /// [`warmup_iterations`](Self::warmup_iterations), else what was asked.
+    pub fn answering_strategy(&self, requested: Option<Strategy>, iteration: i64) -> Strategy {
+        let strategy = requested.unwrap_or(self.strategy);
+        if strategy == Strategy::Active && iteration < i64::from(self.warmup_iterations) {
+            Strategy::Random
+        } else {
+            strategy
         }
     }
 

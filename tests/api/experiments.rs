@@ -93,6 +93,26 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
         (json!({"learning": {}}), json!(false)),
     ];
     assert_resolves(&app, "learning", "batch_diversity", &cases).await;
+    let cases = [
+        (json!({"learning": {"preset": "paper"}}), json!(0)),
+        (json!({"learning": {}}), json!(0)),
+        (
+            json!({"learning": {"preset": "paper", "warmup_iterations": 2}}),
+            json!(2),
+        ),
+        (json!({"learning": {"warmup_iterations": 1}}), json!(1)),
+        (json!({"learning": {"warmup_iterations": null}}), json!(0)),
+    ];
+    assert_resolves(&app, "learning", "warmup_iterations", &cases).await;
+    // More random iterations than the schedule plans is refused by name.
+    let (status, e) = app
+        .post(
+            "/v1/experiments",
+            &json!({"learning": {"iterations": 3, "warmup_iterations": 4}}),
+        )
+        .await;
+    assert_eq!(status, 422, "{e}");
+    assert!(e.to_string().contains("learning.warmup_iterations"), "{e}");
 }
 
 #[tokio::test]

@@ -213,8 +213,10 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
 async fn strategies_produce_what_they_promise() {
     // The paper's acquisition: `active` executes a goal-reaching candidate (the default,
     // `bottleneck`, may execute a probe instead; see below).
-    let (_dir, app, id) =
-        fresh_experiment(json!({"seed": 3, "learning": {"acquisition": "lcb"}})).await;
+    let (_dir, app, id) = fresh_experiment(
+        json!({"seed": 3, "learning": {"acquisition": "lcb", "warmup_iterations": 0}}),
+    )
+    .await;
     let path = format!("/v1/experiments/{id}/proposals");
     let goal = json!([9, 10]);
     for strategy in ["active", "goal_conditioned"] {
@@ -554,6 +556,49 @@ fn planned_steps(p: &Value) -> Vec<(Value, Value)> {
         .enumerate()
         .map(|(k, a)| (states[k].clone(), a.clone()))
         .collect()
+}
+
+#[tokio::test]
+async fn active_answers_its_warm_up_iterations_with_random_rollouts() {
+    // Batches of 2 and one warm-up iteration: the first two `active` proposals are random
+    // rollouts and say so; from the second iteration on the acquisition chooses.
+    let (_dir, app, id) = fresh_experiment(json!({
+        "seed": 3,
+        "learning": {"batch_size": 2, "warmup_iterations": 1}
+    }))
+    .await;
+    let path = format!("/v1/experiments/{id}/proposals");
+    let ask = json!({"start": [1, 1], "goal": [9, 10], "strategy": "active"});
+    for _ in 0..2 {
+        let (status, p) = app.post(&path, &ask).await;
+        assert_eq!(status, 201, "{p}");
+        assert_eq!(p["strategy"], "random", "{p}");
+        assert_eq!(p["iteration"], 0, "{p}");
+        assert_eq!(p["candidates"].as_array().unwrap().len(), 1, "{p}");
+        let t = &p["trajectory"];
+        let executed = json!({
+            "proposal_id": p["id"],
+            "transitions": t["actions"].as_array().unwrap().iter().enumerate().map(|(i, a)| json!({
+                "s": t["states"][i], "a": a, "s_next": t["states"][i + 1]
+            })).collect::<Vec<_>>()
+        });
+        app.store_trajectory(id, &executed).await;
+    }
+    let (status, p) = app.post(&path, &ask).await;
+    assert_eq!(status, 201, "{p}");
+    assert_eq!(p["iteration"], 1, "{p}");
+    assert_eq!(p["strategy"], "active", "{p}");
+    assert!(p["candidates"].as_array().unwrap().len() > 1, "{p}");
+    // `goal_conditioned` is never replaced.
+    let (_dir, app, id) = fresh_experiment(json!({"learning": {"warmup_iterations": 1}})).await;
+    let (status, p) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [1, 1], "goal": [9, 10], "strategy": "goal_conditioned"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{p}");
+    assert_eq!(p["strategy"], "goal_conditioned");
 }
 
 #[tokio::test]

@@ -56,7 +56,8 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     let (_dir, db) = temp_db();
     let mut conn = migrated_up_to(&db, 5).await;
 
-    // An experiment of that time: no kernel, no label cap, no relax_beta, acquisition or batch_diversity in its settings.
+    // An experiment of that time: no kernel, no label cap, no relax_beta, acquisition,
+    // batch_diversity or warmup_iterations in its settings.
     let (settings, _) = ExperimentRequest::default()
         .resolve(&Default::default())
         .unwrap();
@@ -67,6 +68,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
         "learning.relax_beta",
         "learning.acquisition",
         "learning.batch_diversity",
+        "learning.warmup_iterations",
     ] {
         strip(&mut stored, path);
     }
@@ -197,6 +199,8 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(experiment["learning"]["relax_beta"], false);
     assert_eq!(experiment["learning"]["acquisition"], "lcb");
     assert_eq!(experiment["learning"]["batch_diversity"], false);
+    // Every `active` trajectory was the acquisition's.
+    assert_eq!(experiment["learning"]["warmup_iterations"], 0);
     assert_eq!(experiment["model_version"], 1);
     // The kinematic one keeps the features its models were fitted on.
     let (status, old) = app.get("/v1/experiments/2").await;
