@@ -121,11 +121,25 @@ pub struct MdeArgs {
     /// The noise models to fit, comma-separated: `homoscedastic`, `heteroscedastic`.
     #[arg(long, value_delimiter = ',', default_value = "heteroscedastic", value_parser = parse_noise_mode)]
     pub noise: Vec<crate::gp::NoiseMode>,
+    /// The label caps to fit, comma-separated, in units of `d_max` (0 = raw labels; at most
+    /// 1000): one row each.
+    #[arg(long, value_delimiter = ',', default_value = "2", value_parser = parse_label_cap)]
+    pub label_caps: Vec<f64>,
     /// Instead of the settings table: the test β certified by leaving training state-actions
     /// out in groups of several kinds (copies, trajectories, feature-space blocks), and the
     /// false trust met at each on the held-out state-actions.
     #[arg(long)]
     pub calibration: bool,
+}
+
+/// A label cap: a finite number from 0 to 1000 (units of `d_max`).
+fn parse_label_cap(s: &str) -> Result<f64, String> {
+    match s.trim().parse::<f64>() {
+        Ok(v) if v.is_finite() && (0.0..=1000.0).contains(&v) => Ok(v),
+        _ => Err(format!(
+            "{s:?} is not a label cap: a number from 0 (raw labels) to 1000, in units of d_max"
+        )),
+    }
 }
 
 /// `homoscedastic` or `heteroscedastic`.
@@ -648,6 +662,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 estimators: args.estimators,
                 inducing_points: args.inducing_points,
                 noise: args.noise,
+                label_caps: args.label_caps,
                 calibration: args.calibration,
             })
             .await

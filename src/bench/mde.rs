@@ -47,6 +47,8 @@ pub struct MdeBenchOptions {
     pub inducing_points: usize,
     /// The noise models to fit.
     pub noise: Vec<NoiseMode>,
+    /// The label caps to fit (units of `d_max`; 0 = raw labels), one row each.
+    pub label_caps: Vec<f64>,
     /// Instead of the settings table: the test β each way of grouping the training
     /// state-actions for leave-out certifies, and what the served model trusts at it on the
     /// uniform held-out state-actions ([`calibration`]).
@@ -157,8 +159,10 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
     let precondition = Precondition::new(2.0, d_max)?;
     for kernel in [Kernel::Matern12, Kernel::Matern32, Kernel::Matern52] {
         for &noise in &o.noise {
-            for (caps, &kind) in
-                std::iter::repeat_n(vec![2.0], o.estimators.len()).zip(&o.estimators)
+            for (caps, &kind) in o
+                .label_caps
+                .iter()
+                .flat_map(|&cap| o.estimators.iter().map(move |kind| (vec![cap], kind)))
             {
                 let params =
                     EstimatorParams::new(gp_params(noise, kernel, 0.0, 2, 7), o.inducing_points)?;
