@@ -24,6 +24,7 @@
 use super::core::{Core, mean};
 use super::fit::{self, Starts, Warm, optimise};
 use super::kernel::{Inputs, Kernel};
+use super::lbfgs;
 use super::lml::{Jitter, NoiseSpec};
 use super::{GpError, GpParams, Hyperparameters, NoiseModelState};
 
@@ -66,6 +67,28 @@ pub fn log_residual_bias(rho: f64) -> f64 {
 /// Relative function tolerance floor for the noise GP's optimiser: its targets are log
 /// residuals with a variance of several units, so optimising their LML to 1e-9 buys nothing.
 pub(crate) const NOISE_MODEL_FTOL: f64 = 1e-6;
+
+/// The noise GP's starts in hetero round `seed`'s fit: from the previous round's optimum
+/// `theta` (with its L-BFGS `memory`) when there is one, else the default start and
+/// `restarts` random ones, all screened, to [`NOISE_MODEL_FTOL`]. Shared by the exact and the
+/// sparse GP.
+pub(crate) fn noise_gp_starts<'a>(
+    theta: Option<&'a [f64]>,
+    memory: &lbfgs::Memory,
+    restarts: usize,
+    seed: u64,
+) -> Starts<'a> {
+    Starts::warm_or_new(
+        theta.map(|theta| Warm {
+            theta,
+            memory: memory.clone(),
+        }),
+        restarts,
+        seed,
+    )
+    .ftol_floor(NOISE_MODEL_FTOL)
+    .default_screened()
+}
 
 /// The noise GP's kernel, whatever the main GP's: the log noise level is a smooth summary of
 /// where the residuals are large, not a function that jumps.
@@ -240,16 +263,7 @@ pub(crate) fn fit(
             &p.noise_model_bounds,
             NOISE_MODEL_KERNEL,
             p,
-            Starts::warm_or_new(
-                noise_theta.as_deref().map(|theta| Warm {
-                    theta,
-                    memory: noise_memory.clone(),
-                }),
-                p.restarts,
-                seed,
-            )
-            .ftol_floor(NOISE_MODEL_FTOL)
-            .default_screened(),
+            noise_gp_starts(noise_theta.as_deref(), &noise_memory, p.restarts, seed),
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());

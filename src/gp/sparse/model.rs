@@ -9,7 +9,7 @@ use super::super::core::mean;
 use super::super::export::{NoisePredictor, Predictor};
 use super::super::fit::{self, Optimum, Starts, Warm, default_start, optimise_with};
 use super::super::hetero::{
-    NOISE_MODEL_FTOL, NOISE_MODEL_KERNEL, log_residual_bias, noise_clip, round_seed,
+    NOISE_MODEL_KERNEL, log_residual_bias, noise_clip, noise_gp_starts, round_seed,
 };
 use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
@@ -313,16 +313,7 @@ fn hetero_rounds(
             x,
             &rz,
             NoiseSpec::Homoscedastic,
-            Starts::warm_or_new(
-                noise_theta.as_deref().map(|theta| Warm {
-                    theta,
-                    memory: noise_memory.clone(),
-                }),
-                p.restarts,
-                seed,
-            )
-            .ftol_floor(NOISE_MODEL_FTOL)
-            .default_screened(),
+            noise_gp_starts(noise_theta.as_deref(), &noise_memory, p.restarts, seed),
         )?;
         let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
         let gn = g.theta[d + 1].exp();
