@@ -168,8 +168,11 @@ function settingsCard(e) {
       'acquisition',
       (l.acquisition === 'level_set'
         ? `level set, γ = ${fmt(l.gamma)}`
-        : (l.acquisition === 'bottleneck' ? 'bottleneck, else ' : '') +
-          `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`) +
+        : (l.acquisition === 'bottleneck'
+            ? 'bottleneck, else '
+            : l.acquisition === 'spread'
+              ? 'spread (boundary σ removed over the space), ties by '
+              : '') + `${l.aggregation}, c = ${fmt(l.c)}, γ = ${fmt(l.gamma)}`) +
         (l.batch_diversity ? '; a batch spreads over what is uncertain (σ in flight fantasised)' : ''),
     ],
     [

@@ -105,7 +105,7 @@ named_parsers! {
     parse_kernel: KernelChoice, "a kernel", "auto, matern12, matern32 or matern52";
     parse_estimator: EstimatorChoice, "an estimator", "auto, exact or sparse";
     parse_aggregation: Aggregation, "an aggregation", "max or sum";
-    parse_acquisition: AcquisitionKind, "an acquisition", "lcb, level_set or bottleneck";
+    parse_acquisition: AcquisitionKind, "an acquisition", "lcb, level_set, bottleneck or spread";
     parse_preset: Preset, "a preset", "default or paper";
     parse_grid_features: GridFeatures, "a feature map", "scaled or per_move";
     parse_kinematic_features: KinematicFeatures, "a feature map",
@@ -224,8 +224,8 @@ pub struct ExperimentArgs {
     /// (`max`).
     #[arg(long, value_parser = parse_aggregation)]
     pub aggregation: Option<Aggregation>,
-    /// The acquisition `active` minimises: `lcb` (the paper's `h(μ − cσ)`), `level_set` or
-    /// `bottleneck`.
+    /// The acquisition `active` minimises: `lcb` (the paper's `h(μ − cσ)`), `level_set`,
+    /// `bottleneck` or `spread`.
     /// Default: the preset's.
     #[arg(long, value_parser = parse_acquisition)]
     pub acquisition: Option<AcquisitionKind>,

@@ -50,12 +50,16 @@ pub enum AcquisitionKind {
     LevelSet,
     /// The steps that would open the most sampled problems (finite domains), else `lcb`.
     Bottleneck,
+    /// The uncertainty about the precondition's boundary a candidate's execution would remove
+    /// over a uniform sample of state-actions ([`spread`](super::spread)); `lcb` breaks ties.
+    Spread,
 }
 
 setting_names!(AcquisitionKind, "acquisition", {
     Lcb => "lcb",
     LevelSet => "level_set",
     Bottleneck => "bottleneck",
+    Spread => "spread",
 });
 
 /// The acquisition's parameters (experiment settings).
@@ -110,7 +114,7 @@ impl AcquisitionSettings {
     pub fn score(&self, trajectory: &Trajectory, d_max: f64) -> (Vec<f64>, f64) {
         let pairs = trajectory.mu.iter().zip(&trajectory.sigma);
         match self.kind {
-            AcquisitionKind::Lcb | AcquisitionKind::Bottleneck => {
+            AcquisitionKind::Lcb | AcquisitionKind::Bottleneck | AcquisitionKind::Spread => {
                 let steps: Vec<f64> = pairs.map(|(m, s)| alpha_step(*m, *s, self.c)).collect();
                 let alpha = aggregate(&steps, self.gamma, self.aggregation);
                 (steps, alpha)

@@ -11,6 +11,8 @@
 //! - [`acquisition`]: `α_step = μ − c σ` and its discounted aggregation over a trajectory.
 //! - [`bottleneck`]: the `bottleneck` acquisition's cross-problem value on a finite domain —
 //!   the untrusted steps that would open the most sampled problems, and a probe to the best.
+//! - [`spread`]: the `spread` acquisition's value — the σ near `d_max` a candidate would
+//!   remove over a uniform sample of state-actions (targeted integrated variance).
 //! - [`Budget`] (from [`crate::budget`]): the deadline and cancel flag a search checks between
 //!   rounds (a planner's [`Planner::within`]).
 //! - [`cache`]: batching and memoising the deviation model's predictions within one proposal.
@@ -87,6 +89,7 @@ pub mod precondition;
 pub mod rrt;
 pub mod schedule;
 pub mod settings;
+pub mod spread;
 pub mod strategy;
 pub mod synthetic;
 pub mod trajectory;

@@ -35,6 +35,7 @@ use super::acquisition::AcquisitionKind;
 use super::bottleneck;
 use super::cache::ModelCache;
 use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
+use super::spread;
 use super::trajectory::Trajectory;
 use super::{DeviationModel, PlanningError};
 use crate::budget::Budget;
@@ -208,6 +209,19 @@ pub(crate) fn propose(
             })
         } else {
             None
+        };
+    let bottleneck_values =
+        if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Spread {
+            Some(spread::values(
+                task,
+                model,
+                in_flight,
+                &found.trajectories,
+                seed,
+                budget,
+            )?)
+        } else {
+            bottleneck_values
         };
     let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
         fantasised_scores(task, model, in_flight, &found.trajectories)?

@@ -594,8 +594,9 @@ pub struct LearningSettings {
     /// Aggregation `h` (of the `lcb` acquisition).
     pub aggregation: Aggregation,
     /// The acquisition function `active` minimises: `lcb` (the paper's `h(μ − c σ)`),
-    /// `level_set` (the reach-weighted ambiguity of each step's side of `d_max`) or
-    /// `bottleneck` (the untrusted steps that would open the most sampled problems; see
+    /// `level_set` (the reach-weighted ambiguity of each step's side of `d_max`),
+    /// `bottleneck` (the untrusted steps that would open the most sampled problems) or
+    /// `spread` (the boundary uncertainty a candidate removes over the whole space; see
     /// [`AcquisitionKind`]).
     pub acquisition: AcquisitionKind,
     /// β schedule amplitude `k1`; `0 ..=` [`MAX_LEARNING_SCALE`].

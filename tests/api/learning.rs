@@ -602,6 +602,54 @@ async fn active_answers_its_warm_up_iterations_with_random_rollouts() {
 }
 
 #[tokio::test]
+async fn spread_executes_the_candidate_that_settles_the_most_of_the_boundary() {
+    // The right half of the square pushes every move 0.1 along x (the deviation is d_max),
+    // the left half moves as the model says: the boundary of the precondition runs through
+    // the right half.
+    let (_dir, app, id) = fresh_experiment(json!({
+        "domain": {"kind": "kinematic"},
+        "seed": 2,
+        "mde": {"restarts": 0},
+        "learning": {"acquisition": "spread", "batch_size": 1000}
+    }))
+    .await;
+    for row in 0..4 {
+        let y = 0.2 + 0.2 * f64::from(row);
+        let transitions: Vec<Value> = (0..9)
+            .map(|k| {
+                let x = 0.05 + 0.1 * f64::from(k);
+                let push = if x > 0.5 { 0.1 } else { 0.0 };
+                json!({"s": [x, y], "a": [0.1, 0.0], "s_next": [(x + 0.1 + push).min(1.0), y]})
+            })
+            .collect();
+        app.store_trajectory(id, &json!({"transitions": transitions}))
+            .await;
+    }
+    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
+    assert_eq!(status, 200, "{model}");
+    let (status, p) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals"),
+            &json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "strategy": "active"}),
+        )
+        .await;
+    assert_eq!(status, 201, "{p}");
+    let alphas = floats(&p["candidates"], "alpha");
+    assert!(alphas.len() > 1, "a choice to make: {p}");
+    // Each candidate's α is minus the boundary σ its execution would remove, and the chosen
+    // one removes the most.
+    assert!(alphas.iter().all(|a| *a <= 0.0), "{alphas:?}");
+    let chosen = p["chosen_index"].as_u64().unwrap() as usize;
+    let best = alphas.iter().cloned().fold(f64::INFINITY, f64::min);
+    assert_eq!(alphas[chosen], best);
+    assert!(best < 0.0, "some candidate settles something: {alphas:?}");
+    assert!(
+        alphas.iter().any(|a| *a > best * 0.99),
+        "candidates differ in what they settle: {alphas:?}"
+    );
+}
+
+#[tokio::test]
 async fn a_batch_does_not_chase_one_uncertainty_twice() {
     for diversity in [true, false] {
         let (b_steps, c_steps) = two_robots_in_one_batch(diversity).await;
