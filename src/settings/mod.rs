@@ -277,7 +277,8 @@ pub struct MdeSettings {
 pub enum Preset {
     /// precond's defaults: the paper's method with the changes measured to learn more from the
     /// same executions (a label cap and a kernel chosen from the data, training proposals that
-    /// relax β rather than give up, the `bottleneck` acquisition).
+    /// relax β rather than give up, the `bottleneck` acquisition on a finite domain and
+    /// `spread` on a continuous one).
     #[default]
     Default,
     /// The paper's exact configuration (raw labels, Matérn 5/2, no β relaxation, no batch
@@ -303,12 +304,14 @@ impl Preset {
     }
 
     /// The acquisition function this preset uses when `learning.acquisition` is absent (see
-    /// [`LearningSettings::acquisition`]).
-    pub fn acquisition(self) -> AcquisitionKind {
+    /// [`LearningSettings::acquisition`]), in a domain with finitely many state-actions
+    /// (`finite`, the gridworld) or not.
+    pub fn acquisition(self, finite: bool) -> AcquisitionKind {
         match self {
             // The measured best on gridworlds (docs/research/active-selection.md, "A probe to
-            // the bottleneck"); in continuous domains it is `lcb`.
-            Self::Default => AcquisitionKind::Bottleneck,
+            // the bottleneck"), and on the continuous worlds ("The spread acquisition").
+            Self::Default if finite => AcquisitionKind::Bottleneck,
+            Self::Default => AcquisitionKind::Spread,
             Self::Paper => AcquisitionKind::Lcb,
         }
     }
@@ -518,7 +521,8 @@ pub struct LearningRequest {
     pub gamma: f64,
     /// [`LearningSettings::aggregation`]. Default `max`.
     pub aggregation: Aggregation,
-    /// [`LearningSettings::acquisition`]. Absent: the preset's.
+    /// [`LearningSettings::acquisition`]. Absent: the preset's (`default`: `bottleneck` on a finite
+    /// domain, `spread` elsewhere; `paper`: `lcb`).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub acquisition: Option<AcquisitionKind>,
     /// [`LearningSettings::k1`]. Default 2.
@@ -777,7 +781,10 @@ impl ExperimentRequest {
             c: l.c,
             gamma: l.gamma,
             aggregation: l.aggregation,
-            acquisition: l.acquisition.unwrap_or_else(|| l.preset.acquisition()),
+            acquisition: l.acquisition.unwrap_or_else(|| {
+                l.preset
+                    .acquisition(domain.finite_state_actions().is_some())
+            }),
             k1: l.k1,
             k2: l.k2,
             test_beta: l.test_beta,

@@ -104,6 +104,26 @@ async fn the_paper_preset_fits_raw_labels_with_the_smooth_kernel_and_never_relax
         (json!({"learning": {"warmup_iterations": null}}), json!(0)),
     ];
     assert_resolves(&app, "learning", "warmup_iterations", &cases).await;
+    // The acquisition: `bottleneck` on a graph, `spread` in a continuous domain, the paper's
+    // `lcb` under its preset or when asked.
+    let kinematic = json!({"kind": "kinematic"});
+    let cases = [
+        (json!({}), json!("bottleneck")),
+        (json!({"domain": kinematic}), json!("spread")),
+        (
+            json!({"domain": kinematic, "learning": {"preset": "paper"}}),
+            json!("lcb"),
+        ),
+        (
+            json!({"domain": kinematic, "learning": {"acquisition": "lcb"}}),
+            json!("lcb"),
+        ),
+        (
+            json!({"learning": {"acquisition": "spread"}}),
+            json!("spread"),
+        ),
+    ];
+    assert_resolves(&app, "learning", "acquisition", &cases).await;
     // More random iterations than the schedule plans is refused by name.
     let (status, e) = app
         .post(
