@@ -28,8 +28,9 @@ pub const REFERENCES: usize = 256;
 /// Stream of the proposal seed the reference state-actions are drawn from.
 const REFERENCE_STREAM: u64 = 7;
 
-/// Each candidate's value `V` (see the module docs), in order; stops with the budget between
-/// candidates.
+/// Each candidate's value `V` (see the module docs), in order; `None` when the budget ends
+/// before every candidate is valued (the choice is then `lcb`'s, as for a model that cannot
+/// fantasise), so that a large model never turns a proposal into a missed deadline.
 pub(crate) fn values(
     task: Task<'_>,
     model: &dyn DeviationModel,
@@ -37,7 +38,7 @@ pub(crate) fn values(
     trajectories: &[Trajectory],
     seed: u64,
     budget: &Budget,
-) -> Result<Vec<f64>, PlanningError> {
+) -> Result<Option<Vec<f64>>, PlanningError> {
     let (domain, d_max) = (task.domain, task.precondition.d_max());
     let dim = domain.feature_dim();
     let mut rng = seeded_rng(seed, REFERENCE_STREAM);
@@ -65,11 +66,8 @@ pub(crate) fn values(
         .collect();
     let mut values = Vec::with_capacity(trajectories.len());
     for t in trajectories {
-        if let Some(reason) = budget.stop() {
-            return Err(PlanningError::Stopped {
-                reason,
-                extensions: 0,
-            });
+        if budget.stop().is_some() {
+            return Ok(None);
         }
         let mut pending = in_flight.to_vec();
         for (s, a) in t.states.iter().zip(&t.actions) {
@@ -85,7 +83,7 @@ pub(crate) fn values(
         // A model answer that is not a number values the candidate at nothing.
         values.push(if value.is_finite() { value } else { 0.0 });
     }
-    Ok(values)
+    Ok(Some(values))
 }
 
 /// `φ((d_max − μ)/σ) / σ`, the density of `d_max` under `N(μ, σ²)` (without the `1/√(2π)`,
@@ -160,7 +158,9 @@ mod tests {
             settings: &settings,
         };
         let walks = [walk(0.05), walk(0.5), walk(0.95)];
-        let v = values(task, &Boundary, &[], &walks, 3, &Budget::unlimited()).unwrap();
+        let v = values(task, &Boundary, &[], &walks, 3, &Budget::unlimited())
+            .unwrap()
+            .unwrap();
         assert!(v.iter().all(|x| *x >= 0.0), "{v:?}");
         // The weight at x = 0.5 (μ = d_max) is e^{1.8²/2} ≈ 5 times that at x = 0.05 or 0.95
         // (μ 1.8 σ from d_max), and each walk settles σ over as many references.
@@ -182,14 +182,22 @@ mod tests {
             &Budget::unlimited(),
         )
         .unwrap();
-        assert_eq!(again, vec![0.0]);
+        assert_eq!(again, Some(vec![0.0]));
         // A model that cannot fantasise values every candidate at nothing (`lcb` chooses).
         let flat = crate::planning::synthetic::ConstantModel {
             mu: 0.05,
             sigma: 0.05,
         };
         let none = values(task, &flat, &[], &walks, 3, &Budget::unlimited()).unwrap();
-        assert_eq!(none, vec![0.0; 3]);
+        assert_eq!(none, Some(vec![0.0; 3]));
+        // A budget already spent values nothing, and the proposal is still answered (by `lcb`).
+        let spent = Budget::unlimited().cancelled_by(std::sync::Arc::new(
+            std::sync::atomic::AtomicBool::new(true),
+        ));
+        assert_eq!(
+            values(task, &Boundary, &[], &walks, 3, &spent).unwrap(),
+            None
+        );
     }
 
     #[test]

@@ -212,14 +212,7 @@ pub(crate) fn propose(
         };
     let bottleneck_values =
         if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Spread {
-            Some(spread::values(
-                task,
-                model,
-                in_flight,
-                &found.trajectories,
-                seed,
-                budget,
-            )?)
+            spread::values(task, model, in_flight, &found.trajectories, seed, budget)?
         } else {
             bottleneck_values
         };
