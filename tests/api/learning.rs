@@ -591,13 +591,8 @@ async fn active_answers_its_warm_up_iterations_with_random_rollouts() {
     assert!(p["candidates"].as_array().unwrap().len() > 1, "{p}");
     // `goal_conditioned` is never replaced.
     let (_dir, app, id) = fresh_experiment(json!({"learning": {"warmup_iterations": 1}})).await;
-    let (status, p) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
-            &json!({"start": [1, 1], "goal": [9, 10], "strategy": "goal_conditioned"}),
-        )
-        .await;
-    assert_eq!(status, 201, "{p}");
+    let ask = json!({"start": [1, 1], "goal": [9, 10], "strategy": "goal_conditioned"});
+    let p = app.assert_proposes(id, &ask).await;
     assert_eq!(p["strategy"], "goal_conditioned");
 }
 
@@ -627,13 +622,8 @@ async fn spread_executes_the_candidate_that_settles_the_most_of_the_boundary() {
     }
     let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
     assert_eq!(status, 200, "{model}");
-    let (status, p) = app
-        .post(
-            &format!("/v1/experiments/{id}/proposals"),
-            &json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "strategy": "active"}),
-        )
-        .await;
-    assert_eq!(status, 201, "{p}");
+    let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "strategy": "active"});
+    let p = app.assert_proposes(id, &ask).await;
     let alphas = floats(&p["candidates"], "alpha");
     assert!(alphas.len() > 1, "a choice to make: {p}");
     // Each candidate's α is minus the boundary σ its execution would remove, and the chosen
