@@ -22,6 +22,8 @@
 //!   Under the `bottleneck` acquisition in a finite domain the candidates are joined by a
 //!   *probe*, a way to the most promising untrusted step other problems need, which ends there
 //!   and not at the goal ([`bottleneck`](super::bottleneck)); the most valuable is executed.
+//!   Under `spread` the candidate whose steps would settle the most of the precondition's
+//!   boundary over a uniform sample of the space is executed ([`spread`](super::spread)).
 //! - `goal_conditioned`: a uniformly random candidate (its `α` is still reported).
 //! - `random`: a rollout of `Domain::rollout_length()` steps (for a domain that asks for it,
 //!   `Domain::rollout_like_plans`, as many as one RRT run's plan for the problem has) from the
@@ -187,35 +189,31 @@ pub(crate) fn propose(
         ));
     }
     let mut found = candidates(task, &mut cache, seed, budget)?;
-    let bottleneck_values =
-        if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Bottleneck {
-            bottleneck::assess(
-                task,
-                &mut cache,
-                &found.trajectories,
-                in_flight,
-                seed,
-                budget,
-            )?
-            .map(|assessment| {
-                let mut values = assessment.values;
-                if let Some((probe, value)) = assessment.probe
-                    && value > 0.0
-                {
-                    found.trajectories.push(probe);
-                    values.push(value);
-                }
-                values
-            })
-        } else {
-            None
-        };
-    let bottleneck_values =
-        if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Spread {
+    // The value-based acquisitions' value of each candidate (`None`: `lcb`'s α chooses).
+    let values = match (strategy, acquisition.kind) {
+        (Strategy::Active, AcquisitionKind::Bottleneck) => bottleneck::assess(
+            task,
+            &mut cache,
+            &found.trajectories,
+            in_flight,
+            seed,
+            budget,
+        )?
+        .map(|assessment| {
+            let mut values = assessment.values;
+            if let Some((probe, value)) = assessment.probe
+                && value > 0.0
+            {
+                found.trajectories.push(probe);
+                values.push(value);
+            }
+            values
+        }),
+        (Strategy::Active, AcquisitionKind::Spread) => {
             spread::values(task, model, in_flight, &found.trajectories, seed, budget)?
-        } else {
-            bottleneck_values
-        };
+        }
+        _ => None,
+    };
     let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
         fantasised_scores(task, model, in_flight, &found.trajectories)?
     } else {
@@ -226,7 +224,7 @@ pub(crate) fn propose(
             .collect()
     };
     let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
-    if let Some(values) = bottleneck_values
+    if let Some(values) = values
         && values.iter().any(|v| *v > 0.0)
     {
         // The most valuable candidate; `lcb` only breaks exact ties.
@@ -245,7 +243,8 @@ pub(crate) fn propose(
             length: t.len(),
         })
         .collect();
-    // The chosen candidate's `α` as it was compared (for `bottleneck`, the value negated).
+    // The chosen candidate's `α` as it was compared (for `bottleneck` and `spread`, the value
+    // negated).
     let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
     let mut trajectories = found.trajectories;
     let trajectory = trajectories.swap_remove(chosen_index);
