@@ -121,8 +121,8 @@ pub struct MdeArgs {
     /// The noise models to fit, comma-separated: `homoscedastic`, `heteroscedastic`.
     #[arg(long, value_delimiter = ',', default_value = "heteroscedastic", value_parser = parse_noise_mode)]
     pub noise: Vec<crate::gp::NoiseMode>,
-    /// The label caps to fit, comma-separated, in units of `d_max` (0 = raw labels; at most
-    /// 1000): one row each.
+    /// The label caps to fit, comma-separated, in units of `d_max` (0 = raw labels, else 1 to
+    /// 1000, as `mde.label_cap`): one row each.
     #[arg(long, value_delimiter = ',', default_value = "2", value_parser = parse_label_cap)]
     pub label_caps: Vec<f64>,
     /// Instead of the settings table: the test β certified by leaving training state-actions
@@ -132,14 +132,15 @@ pub struct MdeArgs {
     pub calibration: bool,
 }
 
-/// A label cap: a finite number from 0 to 1000 (units of `d_max`).
+/// A fixed label cap, as `mde.label_cap` accepts one ([`crate::settings::LabelCap::check_fixed`]).
 fn parse_label_cap(s: &str) -> Result<f64, String> {
-    match s.trim().parse::<f64>() {
-        Ok(v) if v.is_finite() && (0.0..=1000.0).contains(&v) => Ok(v),
-        _ => Err(format!(
-            "{s:?} is not a label cap: a number from 0 (raw labels) to 1000, in units of d_max"
-        )),
-    }
+    let cap: f64 = s
+        .trim()
+        .parse()
+        .map_err(|_| format!("{s:?} is not a label cap: a number, in units of d_max"))?;
+    crate::settings::LabelCap::check_fixed(cap)
+        .map(|()| cap)
+        .map_err(|accepted| format!("must be {accepted}"))
 }
 
 /// `homoscedastic` or `heteroscedastic`.

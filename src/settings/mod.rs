@@ -439,6 +439,20 @@ pub enum LabelCap {
     Fixed(f64),
 }
 
+impl LabelCap {
+    /// Checks a fixed cap: 0 (raw labels) or between 1 and 1000 (times `d_max`); the error
+    /// lists what is accepted (`"0 (raw labels) or … got 0.5"`).
+    pub fn check_fixed(cap: f64) -> Result<(), String> {
+        if cap == 0.0 || (1.0..=1000.0).contains(&cap) {
+            Ok(())
+        } else {
+            Err(format!(
+                "0 (raw labels) or between 1 and 1000 (times d_max), got {cap}"
+            ))
+        }
+    }
+}
+
 /// The caps (units of `d_max`) [`LabelCap::Auto`] tries beside raw labels: 2 makes the midpoint
 /// between a safe and a failed neighbour `d_max`; 5 keeps gradual deviations up to half a
 /// typical spill's size.
@@ -705,15 +719,10 @@ impl ExperimentRequest {
             .mde
             .label_cap
             .unwrap_or_else(|| self.learning.preset.label_cap());
-        if let LabelCap::Fixed(cap) = cap
-            && !(cap == 0.0 || (1.0..=1000.0).contains(&cap))
-        {
-            return Err(InvalidSetting::new(
-                "mde.label_cap",
-                format!(
-                    "must be \"auto\", 0 (raw labels) or between 1 and 1000 (times d_max), got {cap}"
-                ),
-            ));
+        if let LabelCap::Fixed(cap) = cap {
+            LabelCap::check_fixed(cap).map_err(|accepted| {
+                InvalidSetting::new("mde.label_cap", format!("must be \"auto\", {accepted}"))
+            })?;
         }
         let m = &self.mde;
         at_most("mde.prior_mean", m.prior_mean, MAX_PRIOR_MEAN)?;
