@@ -60,26 +60,7 @@ impl HeldOutTrust {
         groups: &[Vec<usize>],
         precondition: Precondition,
     ) -> Option<(Self, Vec<f64>)> {
-        Self::judge(
-            &gp.leave_groups_out(groups)?,
-            label_cap,
-            labels,
-            deviations,
-            groups,
-            precondition,
-        )
-    }
-
-    /// [`HeldOutTrust::of`] from the held-out `(y_i − μ₋ᵢ, σ₋ᵢ)` of every training point
-    /// ([`Regressor::leave_groups_out`]), computed once for every judgement made of one model.
-    pub fn judge(
-        held_out: &[(f64, f64)],
-        label_cap: f64,
-        labels: &[f64],
-        deviations: &[f64],
-        groups: &[Vec<usize>],
-        precondition: Precondition,
-    ) -> Option<(Self, Vec<f64>)> {
+        let held_out = gp.leave_groups_out(groups)?;
         let d_max = precondition.d_max();
         let mut log_p = Vec::with_capacity(held_out.len());
         let mut t = Self {
