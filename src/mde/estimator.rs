@@ -252,33 +252,40 @@ pub fn fit(
     })
 }
 
+/// The [`Regressor`] methods both GPs answer with their inherent method of the same name.
+macro_rules! inherent_methods {
+    ($gp:ident) => {
+        fn n_train(&self) -> usize {
+            $gp::n_train(self)
+        }
+        fn hyperparameters(&self) -> &Hyperparameters {
+            $gp::hyperparameters(self)
+        }
+        fn noise_mode(&self) -> NoiseMode {
+            $gp::noise_mode(self)
+        }
+        fn noise_summary(&self) -> Option<NoiseSummary> {
+            $gp::noise_summary(self)
+        }
+        fn predict(&self, x: &DMatrix<f64>) -> Prediction {
+            $gp::predict(self, x)
+        }
+        fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+            $gp::predict_fantasised(self, x, pending)
+        }
+        fn predictor(&self) -> Predictor {
+            $gp::predictor(self)
+        }
+    };
+}
+
 impl Regressor for GpModel {
+    inherent_methods!(GpModel);
     fn kind(&self) -> EstimatorKind {
         EstimatorKind::Exact
     }
-    fn n_train(&self) -> usize {
-        GpModel::n_train(self)
-    }
-    fn hyperparameters(&self) -> &Hyperparameters {
-        GpModel::hyperparameters(self)
-    }
     fn log_marginal_likelihood(&self) -> f64 {
         GpModel::log_marginal_likelihood(self)
-    }
-    fn noise_mode(&self) -> NoiseMode {
-        GpModel::noise_mode(self)
-    }
-    fn noise_summary(&self) -> Option<NoiseSummary> {
-        GpModel::noise_summary(self)
-    }
-    fn predict(&self, x: &DMatrix<f64>) -> Prediction {
-        GpModel::predict(self, x)
-    }
-    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
-        GpModel::predict_fantasised(self, x, pending)
-    }
-    fn predictor(&self) -> Predictor {
-        GpModel::predictor(self)
     }
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         GpModel::leave_one_out(self)
@@ -302,32 +309,12 @@ impl Regressor for GpModel {
 }
 
 impl Regressor for SparseGp {
+    inherent_methods!(SparseGp);
     fn kind(&self) -> EstimatorKind {
         EstimatorKind::Sparse
     }
-    fn n_train(&self) -> usize {
-        SparseGp::n_train(self)
-    }
-    fn hyperparameters(&self) -> &Hyperparameters {
-        SparseGp::hyperparameters(self)
-    }
     fn log_marginal_likelihood(&self) -> f64 {
         self.bound()
-    }
-    fn noise_mode(&self) -> NoiseMode {
-        SparseGp::noise_mode(self)
-    }
-    fn noise_summary(&self) -> Option<NoiseSummary> {
-        SparseGp::noise_summary(self)
-    }
-    fn predict(&self, x: &DMatrix<f64>) -> Prediction {
-        SparseGp::predict(self, x)
-    }
-    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
-        SparseGp::predict_fantasised(self, x, pending)
-    }
-    fn predictor(&self) -> Predictor {
-        SparseGp::predictor(self)
     }
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
         None
