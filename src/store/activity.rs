@@ -78,7 +78,15 @@ pub struct Run {
 
 /// Executed trajectories and transitions of one learning iteration, and its refused proposal
 /// requests (shown in the API's timeline).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[derive(
+    Debug,
+    Clone,
+    PartialEq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+    sqlx::FromRow,
+)]
 pub struct IterationStats {
     /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
     /// next batch's first, in ingest order).
@@ -101,7 +109,15 @@ pub struct IterationStats {
 
 /// A stored model version's summary (no training data, no noise model; shown in the API's
 /// timeline).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[derive(
+    Debug,
+    Clone,
+    PartialEq,
+    serde::Serialize,
+    serde::Deserialize,
+    schemars::JsonSchema,
+    sqlx::FromRow,
+)]
 pub struct ModelSummary {
     /// Version (1, 2, …).
     pub version: i64,
@@ -254,7 +270,7 @@ impl Store {
         d_max: f64,
         limit: i64,
     ) -> Result<Vec<IterationStats>, sqlx::Error> {
-        sqlx::query(
+        sqlx::query_as(
             "WITH t AS (
                  SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / $2 AS iteration
                  FROM trajectories WHERE experiment_id = $1
@@ -264,7 +280,7 @@ impl Store {
                         COUNT(*) AS n_transitions, AVG(x.deviation) AS mean_deviation,
                         MAX(x.deviation) AS max_deviation,
                         CAST(AVG(CASE WHEN x.deviation < $3 THEN 1.0 ELSE 0.0 END)
-                             AS DOUBLE PRECISION) AS share_within
+                             AS DOUBLE PRECISION) AS share_within_d_max
                  FROM t JOIN transitions x ON x.trajectory_id = t.id
                  GROUP BY t.iteration
              ),
@@ -277,7 +293,7 @@ impl Store {
              )
              SELECT i.iteration, COALESCE(e.n_trajectories, 0) AS n_trajectories,
                     COALESCE(e.n_transitions, 0) AS n_transitions, e.mean_deviation,
-                    e.max_deviation, e.share_within, COALESCE(r.n_refused, 0) AS n_refused
+                    e.max_deviation, e.share_within_d_max, COALESCE(r.n_refused, 0) AS n_refused
              FROM iterations i
              LEFT JOIN executed e ON e.iteration = i.iteration
              LEFT JOIN refused r ON r.iteration = i.iteration
@@ -288,20 +304,7 @@ impl Store {
         .bind(d_max)
         .bind(limit)
         .fetch_all(&self.read)
-        .await?
-        .iter()
-        .map(|row| {
-            Ok(IterationStats {
-                iteration: row.try_get("iteration")?,
-                n_trajectories: row.try_get("n_trajectories")?,
-                n_transitions: row.try_get("n_transitions")?,
-                mean_deviation: row.try_get("mean_deviation")?,
-                max_deviation: row.try_get("max_deviation")?,
-                share_within_d_max: row.try_get("share_within")?,
-                n_refused: row.try_get("n_refused")?,
-            })
-        })
-        .collect()
+        .await
     }
 
     /// The first `limit` model versions of an experiment, oldest first.
@@ -311,7 +314,7 @@ impl Store {
         experiment_id: i64,
         limit: i64,
     ) -> Result<Vec<ModelSummary>, sqlx::Error> {
-        sqlx::query(
+        sqlx::query_as(
             "SELECT version, n_train, n_trajectories, noise, log_marginal_likelihood,
                     fit_seconds, fitted_at, label_cap
              FROM models WHERE experiment_id = $1 ORDER BY version LIMIT $2",
@@ -319,21 +322,7 @@ impl Store {
         .bind(experiment_id)
         .bind(limit)
         .fetch_all(&self.read)
-        .await?
-        .iter()
-        .map(|row| {
-            Ok(ModelSummary {
-                version: row.try_get("version")?,
-                n_train: row.try_get("n_train")?,
-                n_trajectories: row.try_get("n_trajectories")?,
-                noise: row.try_get("noise")?,
-                log_marginal_likelihood: row.try_get("log_marginal_likelihood")?,
-                fit_seconds: row.try_get("fit_seconds")?,
-                fitted_at: row.try_get("fitted_at")?,
-                label_cap: row.try_get("label_cap")?,
-            })
-        })
-        .collect()
+        .await
     }
 
     /// The first `n` deviation labels of an experiment, in id order (a model version's training
