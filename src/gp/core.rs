@@ -4,11 +4,55 @@
 use faer::Par;
 use nalgebra::DMatrix;
 
-use super::GpError;
 use super::export::{self, GpPredictor};
 use super::kernel::{self, Inputs, Kernel};
 use super::linalg;
 use super::lml::{self, Jitter};
+use super::{GpError, Hyperparameters};
+
+/// A GP prior: kernel, constant mean, ARD length scales and signal variance, what a conditioned
+/// GP ([`Core`], the sparse core) is built from besides its data and noise.
+#[derive(Clone, Debug, PartialEq)]
+pub(crate) struct Prior {
+    pub kernel: Kernel,
+    pub mean: f64,
+    pub length_scales: Vec<f64>,
+    pub s2: f64,
+}
+
+impl Prior {
+    /// From the optimiser's log hyperparameters `[log ℓ_1, …, log ℓ_d, log s²]`.
+    pub fn from_log(kernel: Kernel, mean: f64, log: &[f64]) -> Prior {
+        let (log_s2, log_ls) = log.split_last().expect("a signal variance");
+        Prior {
+            kernel,
+            mean,
+            length_scales: log_ls.iter().map(|v| v.exp()).collect(),
+            s2: log_s2.exp(),
+        }
+    }
+
+    /// The hyperparameters of this prior with homoscedastic noise variance `noise_variance`.
+    pub fn with_noise(self, noise_variance: f64) -> Hyperparameters {
+        Hyperparameters {
+            length_scales: self.length_scales,
+            signal_variance: self.s2,
+            noise_variance,
+            prior_mean: self.mean,
+            kernel: self.kernel,
+        }
+    }
+
+    /// The prior of fitted hyperparameters.
+    pub fn of(h: &Hyperparameters) -> Prior {
+        Prior {
+            kernel: h.kernel,
+            mean: h.prior_mean,
+            length_scales: h.length_scales.clone(),
+            s2: h.signal_variance,
+        }
+    }
+}
 
 /// One conditioned GP: scaled training inputs, `L⁻¹` and `α = K⁻¹(y − m)`.
 #[derive(Clone, Debug)]
@@ -33,20 +77,23 @@ pub(crate) struct Core {
 }
 
 impl Core {
-    /// Factorises the covariance for the given hyperparameters. `jitter` is the ladder; `first_eps`
-    /// the first absolute jitter tried (0 for a new fit, the stored value for a rebuild).
-    #[allow(clippy::too_many_arguments)]
+    /// Conditions `prior` on `(x, y)` with per-point noise variances `noise`. `jitter` is the
+    /// ladder; `first_eps` the first absolute jitter tried (0 for a new fit, the stored value
+    /// for a rebuild).
     pub fn build(
-        kernel: Kernel,
+        prior: &Prior,
         x: &Inputs,
         y: &[f64],
-        mean: f64,
-        length_scales: &[f64],
-        s2: f64,
         noise: Vec<f64>,
         jitter: Jitter,
         first_eps: f64,
     ) -> Result<Core, GpError> {
+        let Prior {
+            kernel,
+            mean,
+            ref length_scales,
+            s2,
+        } = *prior;
         let (n, d) = (x.n, x.d);
         let r: Vec<f64> = y.iter().map(|v| v - mean).collect();
         let xs = x.scaled(length_scales);

@@ -21,7 +21,7 @@
 //!
 //! At a query point the noise variance is `exp(μ₂(x*))`, clipped the same way.
 
-use super::core::{Core, mean};
+use super::core::{Core, Prior, mean};
 use super::fit::{self, Starts, Warm, optimise};
 use super::kernel::{Inputs, Kernel};
 use super::lbfgs;
@@ -164,12 +164,9 @@ impl NoiseModel {
         }
         let h = &s.hyperparameters;
         let core = Core::build(
-            h.kernel,
+            &Prior::of(h),
             x,
             &s.log_noise_targets,
-            h.prior_mean,
-            &h.length_scales,
-            h.signal_variance,
             vec![h.noise_variance; x.n],
             Jitter {
                 initial: 0.0,
@@ -265,26 +262,10 @@ pub(crate) fn fit(
             p,
             noise_gp_starts(noise_theta.as_deref(), &noise_memory, p.restarts, seed),
         )?;
-        let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
-        let (gs2, gn) = (g.theta[d].exp(), g.theta[d + 1].exp());
-        let core = Core::build(
-            NOISE_MODEL_KERNEL,
-            x,
-            &z,
-            mz,
-            &gls,
-            gs2,
-            vec![gn; x.n],
-            jitter,
-            0.0,
-        )?;
-        let hyper = Hyperparameters {
-            length_scales: gls,
-            signal_variance: gs2,
-            noise_variance: gn,
-            prior_mean: mz,
-            kernel: NOISE_MODEL_KERNEL,
-        };
+        let prior = Prior::from_log(NOISE_MODEL_KERNEL, mz, &g.theta[..=d]);
+        let gn = g.theta[d + 1].exp();
+        let core = Core::build(&prior, x, &z, vec![gn; x.n], jitter, 0.0)?;
+        let hyper = prior.with_noise(gn);
         let nm = NoiseModel {
             core,
             hyper,
@@ -309,18 +290,8 @@ pub(crate) fn fit(
                 p.seed,
             ),
         )?;
-        let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
-        let main = Core::build(
-            p.kernel,
-            x,
-            y,
-            p.prior_mean,
-            &ls,
-            f.theta[d].exp(),
-            noise,
-            jitter,
-            0.0,
-        )?;
+        let prior = Prior::from_log(p.kernel, p.prior_mean, &f.theta[..=d]);
+        let main = Core::build(&prior, x, y, noise, jitter, 0.0)?;
         evaluations += g.evaluations + f.evaluations;
         let improved = match &best {
             None => true,

@@ -2,7 +2,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::core::{Core, mean};
+use super::core::{Core, Prior, mean};
 use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
@@ -166,30 +166,13 @@ impl GpModel {
             converged,
             ..
         } = fit::optimise_homoscedastic(&x, &r, p)?;
-        let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
-        let s2 = theta[d].exp();
+        let prior = Prior::from_log(p.kernel, p.prior_mean, &theta[..=d]);
         let noise = theta[d + 1].exp();
-        let homo = Core::build(
-            p.kernel,
-            &x,
-            y,
-            p.prior_mean,
-            &ls,
-            s2,
-            vec![noise; x.n],
-            jitter,
-            0.0,
-        )?;
+        let homo = Core::build(&prior, &x, y, vec![noise; x.n], jitter, 0.0)?;
         let homo_lml = homo.lml;
         let hetero = p.noise == NoiseMode::Heteroscedastic && x.n >= p.hetero_min_points;
         if !hetero {
-            let hyper = Hyperparameters {
-                length_scales: ls,
-                signal_variance: s2,
-                noise_variance: noise,
-                prior_mean: p.prior_mean,
-                kernel: p.kernel,
-            };
+            let hyper = prior.with_noise(noise);
             let stats = Some(FitStats {
                 evaluations,
                 converged,
@@ -279,17 +262,7 @@ impl GpModel {
                 ));
             }
         };
-        let main = Core::build(
-            h.kernel,
-            &x,
-            y,
-            h.prior_mean,
-            &h.length_scales,
-            h.signal_variance,
-            noise,
-            fixed,
-            state.jitter,
-        )?;
+        let main = Core::build(&Prior::of(h), &x, y, noise, fixed, state.jitter)?;
         let (homo_lml, rounds) = match &noise_model {
             Some((_, ns)) if ns.homoscedastic_lml.is_finite() => (ns.homoscedastic_lml, ns.rounds),
             Some((_, ns)) => (main.lml, ns.rounds),

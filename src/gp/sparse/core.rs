@@ -4,6 +4,7 @@
 
 use faer::Par;
 
+use super::super::core::Prior;
 use super::super::export::{self, GpPredictor};
 use super::super::kernel::{self, Inputs, Kernel, build_train, cross_seq};
 use super::super::linalg;
@@ -345,19 +346,21 @@ pub(crate) struct SparseCore {
 }
 
 impl SparseCore {
-    /// Conditions the sparse GP with inducing inputs `z` on `(x, y)` with noise `lambda`.
-    #[allow(clippy::too_many_arguments)]
+    /// Conditions `prior` with inducing inputs `z` on `(x, y)` with noise `lambda`.
     pub fn build(
-        kernel: Kernel,
+        prior: &Prior,
         x: &Inputs,
         y: &[f64],
-        mean: f64,
         z: &Inputs,
-        length_scales: &[f64],
-        s2: f64,
         lambda: Lambda<'_>,
         ladder: Ladder,
     ) -> Result<SparseCore, GpError> {
+        let Prior {
+            kernel,
+            mean,
+            ref length_scales,
+            s2,
+        } = *prior;
         let (m, d) = (z.n, z.d);
         let zs = scaled(z, length_scales);
         let (l, jitter, _) = factor_kmm(kernel, &zs, m, d, s2, ladder, None, false)?;
@@ -552,15 +555,19 @@ impl SparseCore {
         }
     }
 
+    /// The prior it was conditioned from.
+    pub fn prior(&self) -> Prior {
+        Prior {
+            kernel: self.kernel,
+            mean: self.mean,
+            length_scales: self.length_scales.clone(),
+            s2: self.s2,
+        }
+    }
+
     /// The hyperparameters with the given noise figure.
     pub fn hyperparameters(&self, noise_variance: f64) -> Hyperparameters {
-        Hyperparameters {
-            length_scales: self.length_scales.clone(),
-            signal_variance: self.s2,
-            noise_variance,
-            prior_mean: self.mean,
-            kernel: self.kernel,
-        }
+        self.prior().with_noise(noise_variance)
     }
 
     /// The stored form (see [`SparseCoreState`]).

@@ -5,7 +5,7 @@ use rand::SeedableRng;
 use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
-use super::super::core::mean;
+use super::super::core::{Prior, mean};
 use super::super::export::{NoisePredictor, Predictor};
 use super::super::fit::{self, Optimum, Starts, Warm, default_start, optimise_with};
 use super::super::hetero::{
@@ -229,18 +229,9 @@ fn build_homo(
     theta: &[f64],
 ) -> Result<SparseCore, GpError> {
     let d = x.d;
-    let ls: Vec<f64> = theta[..d].iter().map(|v| v.exp()).collect();
-    SparseCore::build(
-        sp.gp.kernel,
-        x,
-        y,
-        sp.gp.prior_mean,
-        z,
-        &ls,
-        theta[d].exp(),
-        Lambda::Homo(theta[d + 1].exp()),
-        ladder(sp),
-    )
+    let prior = Prior::from_log(sp.gp.kernel, sp.gp.prior_mean, &theta[..=d]);
+    let noise = Lambda::Homo(theta[d + 1].exp());
+    SparseCore::build(&prior, x, y, z, noise, ladder(sp))
 }
 
 /// Where the heteroscedastic rounds start.
@@ -315,16 +306,13 @@ fn hetero_rounds(
             NoiseSpec::Homoscedastic,
             noise_gp_starts(noise_theta.as_deref(), &noise_memory, p.restarts, seed),
         )?;
-        let gls: Vec<f64> = g.theta[..d].iter().map(|v| v.exp()).collect();
+        let noise_prior = Prior::from_log(NOISE_MODEL_KERNEL, mz, &g.theta[..=d]);
         let gn = g.theta[d + 1].exp();
         let ncore = SparseCore::build(
-            NOISE_MODEL_KERNEL,
+            &noise_prior,
             x,
             &targets,
-            mz,
             &noise_z,
-            &gls,
-            g.theta[d].exp(),
             Lambda::Homo(gn),
             ladder,
         )?;
@@ -350,18 +338,8 @@ fn hetero_rounds(
             )
             .ftol_floor(start.main_ftol),
         )?;
-        let ls: Vec<f64> = f.theta[..d].iter().map(|v| v.exp()).collect();
-        let main = SparseCore::build(
-            p.kernel,
-            x,
-            y,
-            p.prior_mean,
-            z,
-            &ls,
-            f.theta[d].exp(),
-            Lambda::Per(&lambda),
-            ladder,
-        )?;
+        let prior = Prior::from_log(p.kernel, p.prior_mean, &f.theta[..=d]);
+        let main = SparseCore::build(&prior, x, y, z, Lambda::Per(&lambda), ladder)?;
         evaluations += g.evaluations + f.evaluations;
         let improved = match &best {
             None => true,
@@ -416,13 +394,10 @@ fn full_rank_core(
     let rel = (1e-6 * noise_min / s2).clamp(1e-12, sp.jitter);
     let all = greedy_variance(h.kernel, x, &h.length_scales, s2, x.n, x.n, rel, sp.gp.seed);
     SparseCore::build(
-        h.kernel,
+        &Prior::of(h),
         x,
         y,
-        h.prior_mean,
         &x.subset(&all),
-        &h.length_scales,
-        s2,
         lambda,
         Ladder::Relative {
             initial: rel,
@@ -799,17 +774,7 @@ impl SparseGp {
             NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
         };
         let c = &self.main;
-        let main = SparseCore::build(
-            c.kernel,
-            xi,
-            y,
-            c.mean,
-            &c.z,
-            &c.length_scales,
-            c.s2,
-            l,
-            Ladder::Exact(c.jitter),
-        )?;
+        let main = SparseCore::build(&c.prior(), xi, y, &c.z, l, Ladder::Exact(c.jitter))?;
         Ok(SparseGp {
             main,
             stats: None,
