@@ -4,6 +4,7 @@
   precondition queries and plans, with numpy arrays in and out.
 - :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
+- :func:`spawn_server` — start a local precond server binary on a free port (examples, scripts).
 - :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
   logged data (CSV, Parquet, LeRobot v3, Minari) into an experiment, idempotently
   (:mod:`precond_client.imports`).
@@ -71,6 +72,7 @@ from .models import (
     transitions_from_states,
 )
 from .robot import Episode, Learner, Progress
+from .spawn import spawn_server
 
 __all__ = [
     "ApiError",
@@ -132,6 +134,7 @@ __all__ = [
     "UnsupportedMediaType",
     "ValidationFailed",
     "serve_model",
+    "spawn_server",
     "transitions_from_states",
 ]
 
