@@ -33,11 +33,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
-import subprocess
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -45,7 +41,7 @@ from typing import Any
 import gymnasium
 import numpy as np
 from numpy.typing import NDArray
-from precond_client import Client
+from precond_client import Client, spawn_server
 from precond_client.gymnasium import CollectEpisodes, PreconditionWrapper, judge
 
 Array = NDArray[np.float64]
@@ -105,24 +101,6 @@ def act(kind: str, noise: float, obs: Array, rng: np.random.Generator) -> NDArra
     else:
         a = float(np.clip(GAINS @ obs + noise * rng.standard_normal(), -3.0, 3.0))
     return np.array([a], dtype=np.float32)
-
-
-def spawn_server(binary: str, db: Path) -> tuple[subprocess.Popen[str], str]:
-    """Starts ``binary serve`` on a free port; returns the process and its URL."""
-    proc = subprocess.Popen(
-        [binary, "serve", "--addr", "127.0.0.1:0", "--database-url", str(db)],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "NO_COLOR": "1", "RUST_LOG": "warn,precond::http=info"},
-    )
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        m = re.search(r"serving.*?addr\W+(127\.0\.0\.1:\d+)", line)
-        if m:
-            threading.Thread(target=proc.stdout.read, daemon=True).start()  # drain the log
-            return proc, f"http://{m.group(1)}"
-    raise RuntimeError(f"{binary} serve did not start")
 
 
 def collect(client: Client, episodes: int, steps: int, seed: int) -> dict[str, int]:

@@ -21,12 +21,8 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
-import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +32,7 @@ import matplotlib.ticker
 import mujoco
 import numpy as np
 from numpy.typing import NDArray
-from precond_client import Client, serve_model
+from precond_client import Client, serve_model, spawn_server
 from tqdm import tqdm
 
 matplotlib.use("Agg")
@@ -125,33 +121,6 @@ class Evaluation:
     it at every fit)."""
 
 
-def spawn_server(binary: str, model_prefix: str, db: Path) -> tuple[subprocess.Popen[str], str]:
-    """Starts ``binary serve`` on a free port; returns the process and its URL."""
-    proc = subprocess.Popen(
-        [
-            binary,
-            "serve",
-            "--addr",
-            "127.0.0.1:0",
-            "--database-url",
-            str(db),
-            "--allow-model-url",
-            model_prefix,
-        ],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.STDOUT,
-        text=True,
-        env={**os.environ, "NO_COLOR": "1", "RUST_LOG": "warn,precond::http=info"},
-    )
-    assert proc.stdout is not None
-    for line in proc.stdout:
-        m = re.search(r"serving.*?addr\W+(127\.0\.0\.1:\d+)", line)
-        if m:
-            threading.Thread(target=proc.stdout.read, daemon=True).start()  # drain the log
-            return proc, f"http://{m.group(1)}"
-    raise RuntimeError(f"{binary} serve did not start")
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -182,7 +151,9 @@ def main() -> None:
         url = args.server
         if args.spawn_server:
             db = Path(tempfile.mkdtemp()) / "pusher.db"
-            proc, url = spawn_server(args.spawn_server, f"http://127.0.0.1:{model.port}/", db)
+            proc, url = spawn_server(
+                args.spawn_server, db, "--allow-model-url", f"http://127.0.0.1:{model.port}/"
+            )
         try:
             client = Client(url, timeout=120, client_id="pusher-1")
             client.wait_ready(30)
