@@ -12,17 +12,13 @@
 # reach the replicas (e.g. PRECOND_TOKEN_FILE). Logs go to DIR/replica-K.log and DIR/nginx/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+. scripts/common.sh
 
 cmd="${1:-}"
 dir="${2:-}"
 if [ -z "$cmd" ] || [ -z "$dir" ]; then
-    echo "usage: $0 start DIR [REPLICAS] [PORT] | stop DIR" >&2
-    exit 2
+    usage "start DIR [REPLICAS] [PORT] | stop DIR"
 fi
-
-free_port() {
-    python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
-}
 
 case "$cmd" in
 start)
@@ -31,10 +27,7 @@ start)
     bin="${PRECOND_BIN:-target/release/precond}"
     [ -x "$bin" ] || { echo "no binary at $bin (cargo build --release)" >&2; exit 1; }
     if ! command -v nginx >/dev/null && [ ! -x /usr/sbin/nginx ]; then
-        sudo=""
-        [ "$(id -u)" -eq 0 ] || sudo="sudo"
-        $sudo apt-get update -qq
-        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null
+        apt_install nginx
     fi
     mkdir -p "$dir"
     # PostgreSQL runs as its own user, which must reach its directory inside this one.
@@ -90,7 +83,6 @@ stop)
     scripts/postgres.sh stop "$dir/postgres"
     ;;
 *)
-    echo "usage: $0 start DIR [REPLICAS] [PORT] | stop DIR" >&2
-    exit 2
+    usage "start DIR [REPLICAS] [PORT] | stop DIR"
     ;;
 esac

@@ -8,12 +8,12 @@
 #
 # The server runs as the `postgres` system user when started by root (initdb refuses root).
 set -euo pipefail
+. "$(dirname "$0")/common.sh"
 
 cmd="${1:-}"
 dir="${2:-}"
 if [ -z "$cmd" ] || [ -z "$dir" ]; then
-    echo "usage: $0 start|stop DIR" >&2
-    exit 2
+    usage "start|stop DIR"
 fi
 
 bindir() {
@@ -36,18 +36,14 @@ as_owner() {
 case "$cmd" in
 start)
     if ! bin="$(bindir)"; then
-        echo "== apt-get install postgresql (not on this machine)" >&2
-        sudo=""
-        [ "$(id -u)" -eq 0 ] || sudo="sudo"
-        $sudo apt-get update -qq >&2
-        $sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql >&2
+        apt_install postgresql
         bin="$(bindir)"
     fi
     mkdir -p "$dir"
     if [ "$(id -u)" = 0 ]; then
         chown postgres: "$dir"
     fi
-    port="$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
+    port="$(free_port)"
     if ! as_owner "$bin/initdb" -D "$dir/data" -U postgres --auth=trust --encoding=UTF8 \
         --no-locale >"$dir/initdb.log" 2>&1; then
         echo "initdb failed (the server's user must reach $dir):" >&2
@@ -71,7 +67,6 @@ stop)
     fi
     ;;
 *)
-    echo "usage: $0 start|stop DIR" >&2
-    exit 2
+    usage "start|stop DIR"
     ;;
 esac
