@@ -88,15 +88,9 @@ impl Core {
         jitter: Jitter,
         first_eps: f64,
     ) -> Result<Core, GpError> {
-        let Prior {
-            kernel,
-            mean,
-            ref length_scales,
-            s2,
-        } = *prior;
-        let (n, d) = (x.n, x.d);
-        let r: Vec<f64> = y.iter().map(|v| v - mean).collect();
-        let xs = x.scaled(length_scales);
+        let (n, d, kernel, s2) = (x.n, x.d, prior.kernel, prior.s2);
+        let r: Vec<f64> = y.iter().map(|v| v - prior.mean).collect();
+        let xs = x.scaled(&prior.length_scales);
         let fac = lml::factorise(
             kernel,
             &xs,
@@ -119,9 +113,9 @@ impl Core {
             n,
             d,
             xs,
-            length_scales: length_scales.to_vec(),
+            length_scales: prior.length_scales.clone(),
             s2,
-            mean,
+            mean: prior.mean,
             noise,
             jitter: fac.jitter,
             linv,

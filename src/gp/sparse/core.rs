@@ -355,17 +355,11 @@ impl SparseCore {
         lambda: Lambda<'_>,
         ladder: Ladder,
     ) -> Result<SparseCore, GpError> {
-        let Prior {
-            kernel,
-            mean,
-            ref length_scales,
-            s2,
-        } = *prior;
-        let (m, d) = (z.n, z.d);
-        let zs = scaled(z, length_scales);
+        let (m, d, kernel, s2) = (z.n, z.d, prior.kernel, prior.s2);
+        let zs = scaled(z, &prior.length_scales);
         let (l, jitter, _) = factor_kmm(kernel, &zs, m, d, s2, ladder, None, false)?;
-        let r: Vec<f64> = y.iter().map(|v| v - mean).collect();
-        let xs = scaled(x, length_scales);
+        let r: Vec<f64> = y.iter().map(|v| v - prior.mean).collect();
+        let xs = scaled(x, &prior.length_scales);
         let acc = accumulate(kernel, &zs, m, &l, &xs, x.n, d, s2, &r, lambda);
         let mut stats = Stats::of(&r, lambda);
         stats.trace_aat = trace(&acc.aat, m);
@@ -376,9 +370,9 @@ impl SparseCore {
             m,
             z: z.clone(),
             zs,
-            length_scales: length_scales.to_vec(),
+            length_scales: prior.length_scales.clone(),
             s2,
-            mean,
+            mean: prior.mean,
             jitter,
             l,
             lb,
