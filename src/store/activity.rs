@@ -3,13 +3,13 @@
 
 use super::trajectories::provenance_from_row;
 use super::{Backend, Provenance, Store, decode_vec, flag};
-use sqlx::Row;
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
 use sqlx::any::AnyRow;
+use sqlx::{FromRow, Row};
 
 /// Where a run stands: a proposal's lease status, or what its trajectory was.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum RunStatus {
     /// A proposal leased to its client, waiting for the executed trajectory.
@@ -31,7 +31,7 @@ pub enum RunStatus {
 
 /// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
 /// refused proposal request: a row of the runs list, shown as listed (`Run` of the API).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Run {
     /// The proposal, if there was one.
     pub proposal_id: Option<i64>,
@@ -78,15 +78,7 @@ pub struct Run {
 
 /// Executed trajectories and transitions of one learning iteration, and its refused proposal
 /// requests (shown in the API's timeline).
-#[derive(
-    Debug,
-    Clone,
-    PartialEq,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-    sqlx::FromRow,
-)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema, FromRow)]
 pub struct IterationStats {
     /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
     /// next batch's first, in ingest order).
@@ -109,15 +101,7 @@ pub struct IterationStats {
 
 /// A stored model version's summary (no training data, no noise model; shown in the API's
 /// timeline).
-#[derive(
-    Debug,
-    Clone,
-    PartialEq,
-    serde::Serialize,
-    serde::Deserialize,
-    schemars::JsonSchema,
-    sqlx::FromRow,
-)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema, FromRow)]
 pub struct ModelSummary {
     /// Version (1, 2, …).
     pub version: i64,
