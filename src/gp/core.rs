@@ -54,6 +54,67 @@ impl Prior {
     }
 }
 
+/// Query points prepared for fantasised variances ([`Core::fantasy`]): the posterior at them
+/// now, and `L⁻¹ k(X, q)`, which every pending set's answer reuses.
+pub(crate) struct Fantasy<'a> {
+    core: &'a Core,
+    /// The query points, scaled by the length scales (column-major `m × d`).
+    qs: Vec<f64>,
+    /// `V_q = L⁻¹ k(X, q)` (`n × m`).
+    vq: DMatrix<f64>,
+    /// The posterior mean at the query points.
+    pub mean: Vec<f64>,
+    /// The latent posterior variance at the query points, before any pending point.
+    pub var: Vec<f64>,
+}
+
+impl Fantasy<'_> {
+    /// The latent variances at the query points as if the points `p` had been observed as
+    /// well, with noise variances `noise_p`: `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
+    /// `c = k(P, q) − V_Pᵀ V_q` (the posterior covariance) and
+    /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`. `O(n² k + n k m)` for `k` pending points.
+    /// Nothing pending (or noise of the wrong length): the variances now.
+    pub fn variances(&self, p: &Inputs, noise_p: &[f64]) -> Vec<f64> {
+        let core = self.core;
+        let (d, k, m) = (core.d, p.n, self.var.len());
+        if k == 0 || noise_p.len() != k {
+            return self.var.clone();
+        }
+        let ps = p.scaled(&core.length_scales);
+        let (_, vp) = core.cross_and_whitened(&ps, k);
+        let mut kpp = vec![0.0; k * k];
+        kernel::build_cross(core.kernel, &ps, k, &ps, k, d, core.s2, &mut kpp);
+        let mut kpq = vec![0.0; k * m];
+        kernel::build_cross(core.kernel, &ps, k, &self.qs, m, d, core.s2, &mut kpq);
+        let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(&vp);
+        let c = DMatrix::from_vec(k, m, kpq) - vp.tr_mul(&self.vq);
+        // The pending points' noise keeps `S` positive definite; repeated pending points
+        // without noise need the jitter ladder.
+        let mut eps = core.jitter.max(1e-12 * core.s2);
+        let chol = loop {
+            let mut si = s.clone();
+            for (i, nv) in noise_p.iter().enumerate() {
+                si[(i, i)] += nv + eps;
+            }
+            if let Some(ch) = si.cholesky() {
+                break Some(ch);
+            }
+            if eps > 1e-4 * core.s2 {
+                break None;
+            }
+            eps *= 100.0;
+        };
+        let Some(w) = chol.and_then(|ch| ch.l().solve_lower_triangular(&c)) else {
+            return self.var.clone();
+        };
+        self.var
+            .iter()
+            .zip(w.column_iter())
+            .map(|(v, col)| (v - col.norm_squared()).max(0.0))
+            .collect()
+    }
+}
+
 /// One conditioned GP: scaled training inputs, `L⁻¹` and `α = K⁻¹(y − m)`.
 #[derive(Clone, Debug)]
 pub(crate) struct Core {
@@ -220,75 +281,44 @@ impl Core {
         (mean, var)
     }
 
-    /// Mean and latent variances at `q` as if the points `p` had been observed as well, with
-    /// noise variances `noise_p`, at the same hyperparameters. A GP's variance does not depend
-    /// on the labels, so this is exact for any labels (and the mean is unchanged for labels
-    /// equal to it — a "fantasised" observation): `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
-    /// `c = k(P, q) − V_Pᵀ V_q` (the posterior covariance) and
-    /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`. `O(n² (k + m))` for `k` pending and `m` query
-    /// points, `k(X, q)` and `V_q` computed once for the mean, the variance and `c`. Without
-    /// `L⁻¹` (a noise GP), or with nothing pending, it is [`predict`](Self::predict).
-    pub fn predict_fantasised(
-        &self,
-        p: &Inputs,
-        noise_p: &[f64],
-        q: &Inputs,
-    ) -> (Vec<f64>, Vec<f64>) {
-        let (n, d, k, m) = (self.n, self.d, p.n, q.n);
-        if k == 0 || m == 0 || self.linv.len() != n * n || noise_p.len() != k {
-            return self.predict(q, true);
+    /// The query points `q` prepared for their latent variances as if the points of any
+    /// number of alternative pending sets had been observed as well ([`Fantasy::variances`]):
+    /// `k(X, q)` and `V_q = L⁻¹ k(X, q)`, the `O(n² m)` part of each answer, computed once. A
+    /// GP's variance does not depend on the labels, so the answers are exact for any labels
+    /// (and the mean is unchanged for labels equal to it — a "fantasised" observation). `None`
+    /// without `L⁻¹` (a noise GP) or without query points.
+    pub fn fantasy(&self, q: &Inputs) -> Option<Fantasy<'_>> {
+        let (n, m) = (self.n, q.n);
+        if m == 0 || self.linv.len() != n * n {
+            return None;
         }
-        // `k(X, ·)` and `L⁻¹ k(X, ·)` of the points `pts` (`cnt` of them, column-major).
-        let cross_and_whitened = |pts: &[f64], cnt: usize| {
-            let mut ks = vec![0.0; n * cnt];
-            kernel::build_cross(self.kernel, &self.xs, n, pts, cnt, d, self.s2, &mut ks);
-            let mut v = vec![0.0; n * cnt];
-            linalg::lower_matmul(&self.linv, n, &ks, cnt, &mut v, linalg::par_for(n));
-            (ks, DMatrix::from_vec(n, cnt, v))
-        };
-        let ps = p.scaled(&self.length_scales);
         let qs = q.scaled(&self.length_scales);
-        let (_, vp) = cross_and_whitened(&ps, k);
-        let (kq, vq) = cross_and_whitened(&qs, m);
-        let mean: Vec<f64> = kq
+        let (kq, vq) = self.cross_and_whitened(&qs, m);
+        let mean = kq
             .chunks_exact(n)
             .map(|col| self.mean + col.iter().zip(&self.alpha).map(|(a, b)| a * b).sum::<f64>())
             .collect();
-        let var: Vec<f64> = vq
+        let var = vq
             .column_iter()
             .map(|col| (self.s2 - col.norm_squared()).max(0.0))
             .collect();
-        let mut kpp = vec![0.0; k * k];
-        kernel::build_cross(self.kernel, &ps, k, &ps, k, d, self.s2, &mut kpp);
-        let mut kpq = vec![0.0; k * m];
-        kernel::build_cross(self.kernel, &ps, k, &qs, m, d, self.s2, &mut kpq);
-        let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(&vp);
-        let c = DMatrix::from_vec(k, m, kpq) - vp.tr_mul(&vq);
-        // The pending points' noise keeps `S` positive definite; repeated pending points
-        // without noise need the jitter ladder.
-        let mut eps = self.jitter.max(1e-12 * self.s2);
-        let chol = loop {
-            let mut si = s.clone();
-            for (i, nv) in noise_p.iter().enumerate() {
-                si[(i, i)] += nv + eps;
-            }
-            if let Some(ch) = si.cholesky() {
-                break Some(ch);
-            }
-            if eps > 1e-4 * self.s2 {
-                break None;
-            }
-            eps *= 100.0;
-        };
-        let Some(w) = chol.and_then(|ch| ch.l().solve_lower_triangular(&c)) else {
-            return (mean, var);
-        };
-        let var = var
-            .iter()
-            .zip(w.column_iter())
-            .map(|(v, col)| (v - col.norm_squared()).max(0.0))
-            .collect();
-        (mean, var)
+        Some(Fantasy {
+            core: self,
+            qs,
+            vq,
+            mean,
+            var,
+        })
+    }
+
+    /// `k(X, ·)` and `L⁻¹ k(X, ·)` of the scaled points `pts` (`cnt` of them, column-major).
+    fn cross_and_whitened(&self, pts: &[f64], cnt: usize) -> (Vec<f64>, DMatrix<f64>) {
+        let (n, d) = (self.n, self.d);
+        let mut ks = vec![0.0; n * cnt];
+        kernel::build_cross(self.kernel, &self.xs, n, pts, cnt, d, self.s2, &mut ks);
+        let mut v = vec![0.0; n * cnt];
+        linalg::lower_matmul(&self.linv, n, &ks, cnt, &mut v, linalg::par_for(n));
+        (ks, DMatrix::from_vec(n, cnt, v))
     }
 
     /// `‖L⁻¹ k_j‖²` for a few points `ks` (`mc` columns of `n`): the planner's rounds ask about

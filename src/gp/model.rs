@@ -2,7 +2,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::core::{Core, Prior, mean};
+use super::core::{Core, Fantasy, Prior, mean};
 use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
@@ -116,6 +116,12 @@ pub(crate) fn predict_rows(
     }
     let q = Inputs::from_matrix(x);
     let mut p = at(&q);
+    mark_non_finite(&q, &mut p);
+    p
+}
+
+/// NaN for every row of `p` whose query row in `q` has a non-finite coordinate.
+fn mark_non_finite(q: &Inputs, p: &mut Prediction) {
     for i in 0..q.n {
         if (0..q.d).any(|k| !q.cols[k * q.n + i].is_finite()) {
             p.mean[i] = f64::NAN;
@@ -123,7 +129,6 @@ pub(crate) fn predict_rows(
             p.noise_variance[i] = f64::NAN;
         }
     }
-    p
 }
 
 /// A query `try_predict` accepts: `d` columns, every coordinate finite.
@@ -496,23 +501,59 @@ impl GpModel {
     /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
     /// this model's hyperparameters and with its noise there (a batch executed but not yet
     /// fitted): the same mean, and the latent variance observing them would leave (see
-    /// `Core::predict_fantasised`; exact, since a GP's variance does not depend on the
+    /// `Core::fantasy`; exact, since a GP's variance does not depend on the
     /// labels). `O(n² (k + m))` for `k` pending rows and `m` query rows. A `pending` with the
     /// wrong column count or a non-finite coordinate is ignored (the plain prediction).
     pub fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
-        if pending.nrows() == 0 || check_query(pending, self.x.d).is_err() {
-            return self.predict(x);
+        self.fantasy(x.clone()).predict(pending)
+    }
+
+    /// The rows of `x` prepared for [`predict_fantasised`](Self::predict_fantasised) with
+    /// many alternative `pending` sets ([`FantasyQueries::predict`]): the `O(n² m)` whitening
+    /// of the `m` rows is done here, once, and each set then costs `O(n² k + n k m)` for its
+    /// `k` rows. The `spread` acquisition asks this about every candidate of a proposal.
+    pub fn fantasy(&self, x: DMatrix<f64>) -> FantasyQueries<'_> {
+        let prepared = (x.ncols() == self.x.d).then(|| {
+            let q = Inputs::from_matrix(&x);
+            let fantasy = self.main.fantasy(&q)?;
+            let noise = self.noise_at(&q);
+            Some((q, fantasy, noise))
+        });
+        FantasyQueries {
+            model: self,
+            x,
+            prepared: prepared.flatten(),
+        }
+    }
+}
+
+/// Query rows prepared for predictions as if different pending rows had been observed
+/// ([`GpModel::fantasy`]).
+pub struct FantasyQueries<'a> {
+    model: &'a GpModel,
+    x: DMatrix<f64>,
+    /// The rows as inputs, their whitening and their noise; `None` where the plain prediction
+    /// is every answer (wrong column count, no rows, or no `L⁻¹`).
+    prepared: Option<(Inputs, Fantasy<'a>, Vec<f64>)>,
+}
+
+impl FantasyQueries<'_> {
+    /// [`GpModel::predict_fantasised`] of the prepared rows with these `pending` rows.
+    pub fn predict(&self, pending: &DMatrix<f64>) -> Prediction {
+        let model = self.model;
+        let Some((q, fantasy, noise)) = &self.prepared else {
+            return model.predict(&self.x);
+        };
+        if pending.nrows() == 0 || check_query(pending, model.x.d).is_err() {
+            return model.predict(&self.x);
         }
         let p = Inputs::from_matrix(pending);
-        let noise_p = self.noise_at(&p);
-        predict_rows(x, self.x.d, |q| {
-            let (mean, latent_variance) = self.main.predict_fantasised(&p, &noise_p, q);
-            let noise_variance = self.noise_at(q);
-            Prediction {
-                mean,
-                latent_variance,
-                noise_variance,
-            }
-        })
+        let mut prediction = Prediction {
+            mean: fantasy.mean.clone(),
+            latent_variance: fantasy.variances(&p, &model.noise_at(&p)),
+            noise_variance: noise.clone(),
+        };
+        mark_non_finite(q, &mut prediction);
+        prediction
     }
 }

@@ -843,6 +843,28 @@ fn targets_whose_mean_square_overflows_are_an_error_not_a_panic() {
     }
 }
 
+/// `model` (fitted on `(x, y)`) at the same hyperparameters conditioned on the `pending` rows
+/// too, with any labels (a GP's variance does not depend on them).
+fn conditioned_on_pending_too(
+    model: &GpModel,
+    x: &DMatrix<f64>,
+    y: &DVector<f64>,
+    pending: &DMatrix<f64>,
+) -> GpModel {
+    let (n, k) = (x.nrows(), pending.nrows());
+    let xa = DMatrix::from_fn(n + k, x.ncols(), |i, j| {
+        if i < n {
+            x[(i, j)]
+        } else {
+            pending[(i - n, j)]
+        }
+    });
+    let ya = DVector::from_fn(n + k, |i, _| if i < n { y[i] } else { 0.0 });
+    let mut state = model.state();
+    state.n_train = n + k;
+    GpModel::from_state(&xa, &ya, &state).unwrap()
+}
+
 #[test]
 fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
     let (x, y) = data(40, 2, 21);
@@ -851,20 +873,7 @@ fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
     let (q, _) = data(15, 2, 23);
     let fantasy = model.predict_fantasised(&q, &pending);
     let plain = model.predict(&q);
-    // The same hyperparameters conditioned on the training points and the pending ones (any
-    // labels: a GP's variance does not depend on them).
-    let xa = DMatrix::from_fn(46, 2, |i, k| {
-        if i < 40 {
-            x[(i, k)]
-        } else {
-            pending[(i - 40, k)]
-        }
-    });
-    let ya = DVector::from_fn(46, |i, _| if i < 40 { y[i] } else { 0.0 });
-    let mut state = model.state();
-    state.n_train = 46;
-    let conditioned = GpModel::from_state(&xa, &ya, &state).unwrap();
-    let reference = conditioned.predict(&q);
+    let reference = conditioned_on_pending_too(&model, &x, &y, &pending).predict(&q);
     for i in 0..15 {
         assert_relative_eq!(fantasy.mean[i], plain.mean[i], epsilon = 1e-12);
         assert_relative_eq!(
@@ -894,4 +903,34 @@ fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
     assert_eq!(none.latent_variance, plain.latent_variance);
     let wrong = model.predict_fantasised(&q, &DMatrix::zeros(3, 5));
     assert_eq!(wrong.latent_variance, plain.latent_variance);
+}
+
+#[test]
+fn one_preparation_of_the_queries_answers_every_pending_set_as_conditioning_would() {
+    let (x, y) = data(40, 2, 21);
+    let model = GpModel::fit(&x, &y, &homo_params()).unwrap();
+    let (q, _) = data(15, 2, 23);
+    let prepared = model.fantasy(q.clone());
+    let (six, _) = data(6, 2, 22);
+    let (three, _) = data(3, 2, 24);
+    // The sets in turn, the first again: each answer is its own conditioning's.
+    for pending in [&six, &three, &six.rows(0, 2).into_owned(), &six] {
+        let answer = prepared.predict(pending);
+        let reference = conditioned_on_pending_too(&model, &x, &y, pending).predict(&q);
+        for i in 0..15 {
+            assert_relative_eq!(
+                answer.latent_variance[i],
+                reference.latent_variance[i],
+                epsilon = 1e-9,
+                max_relative = 1e-6
+            );
+        }
+        assert_eq!(answer, model.predict_fantasised(&q, pending));
+    }
+    // A query row that is not a number answers NaN there, as the plain prediction does.
+    let mut bad = q.clone();
+    bad[(4, 1)] = f64::NAN;
+    let answer = model.fantasy(bad).predict(&three);
+    assert!(answer.mean[4].is_nan() && answer.latent_variance[4].is_nan());
+    assert!(answer.latent_variance[3].is_finite());
 }
