@@ -7,8 +7,8 @@ use crate::domain::{Domain, IcyGridworld, LabelledTransition, LocalModel, Transi
 use crate::gp::{GpModel, GpParams};
 use crate::mde::{Estimator, ServedModel, training_data};
 use crate::planning::{
-    AcquisitionSettings, DeviationModel, Planner, PlannerSettings, PlanningSettings, Precondition,
-    Strategy,
+    AcquisitionKind, AcquisitionSettings, DeviationModel, Planner, PlannerSettings,
+    PlanningSettings, Precondition, Strategy,
 };
 use crate::sim::Simulated;
 use rand::{Rng, SeedableRng};
@@ -76,6 +76,25 @@ pub struct BenchFigures {
     pub plan: Duration,
     /// Median wall time of one random-strategy proposal.
     pub random: Duration,
+    /// Median wall time of one `active` proposal with the `spread` acquisition at β = 0: its
+    /// reference state-actions prepared once for every candidate, and (the reference) asked
+    /// about anew for each candidate.
+    pub spread: (Duration, Duration),
+}
+
+/// A model that prepares nothing for fantasised predictions: every pending set is answered by
+/// [`DeviationModel::predict_fantasised`] anew (the trait's default), as the `spread`
+/// acquisition asked before its references were prepared once.
+struct Unprepared<'a>(&'a dyn DeviationModel);
+
+impl DeviationModel for Unprepared<'_> {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.0.predict(features, dim)
+    }
+
+    fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.0.predict_fantasised(features, pending, dim)
+    }
 }
 
 /// Runs the benchmark on `grid` with `model` and prints the figures; an error when the
@@ -176,10 +195,45 @@ pub fn run(
     let random = median(&mut times);
     println!("  proposal (random, β =    0):   {:>8.2} ms", ms(random));
 
+    let spread = AcquisitionSettings {
+        kind: AcquisitionKind::Spread,
+        ..AcquisitionSettings::default()
+    };
+    let spread = PlanningSettings::new(options.planner.clone(), spread)?;
+    let at = Precondition::new(0.0, d_max)?;
+    let unprepared = Unprepared(model);
+    let mut figures = Vec::new();
+    for (how, model) in [
+        ("references prepared once", model),
+        (
+            "anew per candidate (reference)",
+            &unprepared as &dyn DeviationModel,
+        ),
+    ] {
+        let planner = Planner::new(grid, model, &spread);
+        let mut times = Vec::new();
+        let mut chosen = Vec::new();
+        for seed in 0..repeats as u64 {
+            let t0 = Instant::now();
+            let p = planner.propose(Strategy::Active, &problem, at, seed);
+            times.push(t0.elapsed());
+            chosen.push(p.ok().map(|p| p.trajectory.actions));
+        }
+        let time = median(&mut times);
+        println!(
+            "  proposal (spread, β =    0):   {:>8.2} ms  [{how}]",
+            ms(time)
+        );
+        figures.push((time, chosen));
+    }
+    let same = figures[0].1 == figures[1].1;
+    println!("  spread: the same trajectories chosen both ways: {same}");
+
     Ok(BenchFigures {
         proposal,
         plan: plan_time,
         random,
+        spread: (figures[0].0, figures[1].0),
     })
 }
 

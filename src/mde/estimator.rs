@@ -92,6 +92,10 @@ impl EstimatorChoice {
     }
 }
 
+/// What [`Regressor::fantasy`] answers: the prediction at its rows given one set of pending
+/// rows.
+pub type PreparedRows<'a> = Box<dyn Fn(&DMatrix<f64>) -> Prediction + 'a>;
+
 /// A fitted regressor as the MDE uses it. Inputs are feature rows scaled to the unit box.
 pub trait Regressor: Send + Sync + std::fmt::Debug {
     /// Which one it is.
@@ -114,6 +118,12 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     /// variance observing them would leave. Choosing the next execution of a batch with it
     /// keeps the batch from chasing one uncertainty.
     fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction;
+    /// [`predict_fantasised`](Self::predict_fantasised) at the rows of `x` for any number of
+    /// alternative pending sets, one per call of the returned function. The exact GP whitens
+    /// `x` once for all of them ([`GpModel::fantasy`]); the default asks anew each time.
+    fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
+        Box::new(move |pending| self.predict_fantasised(&x, pending))
+    }
     /// The fitted regressor as plain numbers, for evaluation outside the server
     /// ([`ExportedModel`](super::ExportedModel)).
     fn predictor(&self) -> Predictor;
@@ -292,6 +302,10 @@ impl Regressor for GpModel {
     }
     fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
         GpModel::leave_folds_out(self, folds)
+    }
+    fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
+        let prepared = GpModel::fantasy(self, x);
+        Box::new(move |pending| prepared.predict(pending))
     }
     /// The exact GP is refitted after each batch, not updated: an error.
     fn update(&self, _x: &DMatrix<f64>, _y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {

@@ -25,7 +25,7 @@ pub use labels::{
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
-use crate::planning::{DeviationModel, Precondition};
+use crate::planning::{DeviationModel, Fantasy, Precondition};
 use nalgebra::{DMatrix, DVector};
 
 /// What answers queries.
@@ -219,18 +219,28 @@ impl DeviationModel for ServedModel {
     /// A fitted regressor's [`Regressor::predict_fantasised`]; the prior does not fantasise
     /// (its σ is the same everywhere, and stays so).
     fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.fantasy(features, dim)(pending)
+    }
+
+    /// The fitted regressor's [`Regressor::fantasy`] of `features`, asked about each pending
+    /// set; the prior's plain answer.
+    fn fantasy<'a>(&'a self, features: &'a [f64], dim: usize) -> Fantasy<'a> {
         let Estimator::Fitted(gp) = &self.estimator else {
-            return self.predict(features, dim);
+            return Box::new(move |_| self.predict(features, dim));
         };
-        if dim == 0 || pending.len() < dim {
-            return self.predict(features, dim);
+        if dim == 0 {
+            return Box::new(move |_| self.predict(features, dim));
         }
         let n = features.len() / dim;
-        let k = pending.len() / dim;
-        let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
-        let p = DMatrix::from_row_slice(k, dim, &pending[..k * dim]);
-        let answer = gp.predict_fantasised(&x, &p);
-        answer.mean.iter().copied().zip(answer.std()).collect()
+        let prepared = gp.fantasy(DMatrix::from_row_slice(n, dim, &features[..n * dim]));
+        Box::new(move |pending| {
+            if pending.len() < dim {
+                return self.predict(features, dim);
+            }
+            let k = pending.len() / dim;
+            let answer = prepared(&DMatrix::from_row_slice(k, dim, &pending[..k * dim]));
+            answer.mean.iter().copied().zip(answer.std()).collect()
+        })
     }
 }
 

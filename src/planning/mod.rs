@@ -131,7 +131,20 @@ pub trait DeviationModel: Sync {
         let _ = pending;
         self.predict(features, dim)
     }
+
+    /// [`predict_fantasised`](Self::predict_fantasised) at the same `features` for any number
+    /// of alternative pending sets, one per call of the returned function: the `spread`
+    /// acquisition asks it about every candidate of a proposal. A model may prepare
+    /// `features` once for all of them (the exact GP whitens them once); the default asks
+    /// anew each time.
+    fn fantasy<'a>(&'a self, features: &'a [f64], dim: usize) -> Fantasy<'a> {
+        Box::new(move |pending| self.predict_fantasised(features, pending, dim))
+    }
 }
+
+/// What [`DeviationModel::fantasy`] answers: `(μ, σ)` at its features given one pending set
+/// (row-major, the features' dimension each).
+pub type Fantasy<'a> = Box<dyn Fn(&[f64]) -> Vec<(f64, f64)> + 'a>;
 
 /// Why the planner could not answer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

@@ -14,7 +14,9 @@
 //! the density of `d_max` under the model's Gaussian at `x`: a point whose side of `d_max` is
 //! already clear counts little, one near the level set counts much. The σ after labelling is
 //! fantasised ([`DeviationModel::predict_fantasised`], exact for a GP: its variance does not
-//! depend on the labels), with the state-actions in flight counted as labelled in both terms.
+//! depend on the labels), with the state-actions in flight counted as labelled in both terms;
+//! the references are prepared once for every candidate ([`DeviationModel::fantasy`]: the exact
+//! GP whitens them once).
 //! A model that cannot fantasise values every candidate 0, and the choice is then `lcb`'s.
 
 use super::rrt::Task;
@@ -48,8 +50,9 @@ pub(crate) fn values(
         let a = domain.sample_action(&s, &mut rng);
         references.extend(domain.features(&s, &a));
     }
+    let fantasy = model.fantasy(&references, dim);
     let predict = |pending: &[f64]| {
-        let answers = model.predict_fantasised(&references, pending, dim);
+        let answers = fantasy(pending);
         if answers.len() == REFERENCES {
             Ok(answers)
         } else {
