@@ -69,24 +69,63 @@ pub(crate) struct Fantasy<'a> {
 }
 
 impl Fantasy<'_> {
-    /// The latent variances at the query points as if the points `p` had been observed as
-    /// well, with noise variances `noise_p`: `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
+    /// The latent variances at the query points as if the points `p` of a pending set `(p,
+    /// noise_p)` had been observed as well, with noise variances `noise_p`, for each of
+    /// several alternative sets: `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
     /// `c = k(P, q) − V_Pᵀ V_q` (the posterior covariance) and
-    /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`. `O(n² k + n k m)` for `k` pending points.
-    /// Nothing pending (or noise of the wrong length): the variances now.
-    pub fn variances(&self, p: &Inputs, noise_p: &[f64]) -> Vec<f64> {
+    /// `S = k(P, P) + diag(noise_p) − V_Pᵀ V_P`; `O(n² k + n k m)` for `k` pending points. Every
+    /// set's `V_P` comes from one product with `L⁻¹`, which reads the `n × n` triangle once
+    /// for all of them rather than once per set. An empty set (or noise of the wrong
+    /// length): the variances now.
+    pub fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>> {
         let core = self.core;
-        let (d, k, m) = (core.d, p.n, self.var.len());
-        if k == 0 || noise_p.len() != k {
-            return self.var.clone();
+        let n = core.n;
+        let valid = |p: &Inputs, noise_p: &[f64]| p.n > 0 && noise_p.len() == p.n;
+        let scaled: Vec<Option<Vec<f64>>> = sets
+            .iter()
+            .map(|&(p, noise_p)| valid(p, noise_p).then(|| p.scaled(&core.length_scales)))
+            .collect();
+        let total: usize = sets
+            .iter()
+            .zip(&scaled)
+            .filter(|(_, s)| s.is_some())
+            .map(|((p, _), _)| p.n)
+            .sum();
+        let mut ks = vec![0.0; n * total];
+        let mut at = 0;
+        for (&(p, _), ps) in sets.iter().zip(&scaled) {
+            if let Some(ps) = ps {
+                let block = &mut ks[at * n..(at + p.n) * n];
+                kernel::build_cross(core.kernel, &core.xs, n, ps, p.n, core.d, core.s2, block);
+                at += p.n;
+            }
         }
-        let ps = p.scaled(&core.length_scales);
-        let (_, vp) = core.cross_and_whitened(&ps, k);
+        let mut v = vec![0.0; n * total];
+        linalg::lower_matmul(&core.linv, n, &ks, total, &mut v, linalg::par_for(n));
+        let mut at = 0;
+        sets.iter()
+            .zip(&scaled)
+            .map(|(&(p, noise_p), ps)| match ps {
+                Some(ps) => {
+                    let vp = DMatrix::from_column_slice(n, p.n, &v[at * n..(at + p.n) * n]);
+                    at += p.n;
+                    self.after(ps, &vp, noise_p)
+                }
+                None => self.var.clone(),
+            })
+            .collect()
+    }
+
+    /// The variances after one pending set: its points scaled (`ps`, column-major), whitened
+    /// (`vp = L⁻¹ k(X, P)`), and their noise.
+    fn after(&self, ps: &[f64], vp: &DMatrix<f64>, noise_p: &[f64]) -> Vec<f64> {
+        let core = self.core;
+        let (d, k, m) = (core.d, noise_p.len(), self.var.len());
         let mut kpp = vec![0.0; k * k];
-        kernel::build_cross(core.kernel, &ps, k, &ps, k, d, core.s2, &mut kpp);
+        kernel::build_cross(core.kernel, ps, k, ps, k, d, core.s2, &mut kpp);
         let mut kpq = vec![0.0; k * m];
-        kernel::build_cross(core.kernel, &ps, k, &self.qs, m, d, core.s2, &mut kpq);
-        let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(&vp);
+        kernel::build_cross(core.kernel, ps, k, &self.qs, m, d, core.s2, &mut kpq);
+        let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(vp);
         let c = DMatrix::from_vec(k, m, kpq) - vp.tr_mul(&self.vq);
         // The pending points' noise keeps `S` positive definite; repeated pending points
         // without noise need the jitter ladder.
@@ -282,7 +321,7 @@ impl Core {
     }
 
     /// The query points `q` prepared for their latent variances as if the points of any
-    /// number of alternative pending sets had been observed as well ([`Fantasy::variances`]):
+    /// number of alternative pending sets had been observed as well ([`Fantasy::variances_each`]):
     /// `k(X, q)` and `V_q = L⁻¹ k(X, q)`, the `O(n² m)` part of each answer, computed once. A
     /// GP's variance does not depend on the labels, so the answers are exact for any labels
     /// (and the mean is unchanged for labels equal to it — a "fantasised" observation). `None`

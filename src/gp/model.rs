@@ -540,20 +540,48 @@ pub struct FantasyQueries<'a> {
 impl FantasyQueries<'_> {
     /// [`GpModel::predict_fantasised`] of the prepared rows with these `pending` rows.
     pub fn predict(&self, pending: &DMatrix<f64>) -> Prediction {
+        self.predict_each(std::slice::from_ref(pending))
+            .swap_remove(0)
+    }
+
+    /// [`predict`](Self::predict) with each of several alternative `pending` sets, in order;
+    /// their whitening is one product with `L⁻¹` for all of them.
+    pub fn predict_each(&self, pendings: &[DMatrix<f64>]) -> Vec<Prediction> {
         let model = self.model;
         let Some((q, fantasy, noise)) = &self.prepared else {
-            return model.predict(&self.x);
+            return pendings.iter().map(|_| model.predict(&self.x)).collect();
         };
-        if pending.nrows() == 0 || check_query(pending, model.x.d).is_err() {
-            return model.predict(&self.x);
-        }
-        let p = Inputs::from_matrix(pending);
-        let mut prediction = Prediction {
-            mean: fantasy.mean.clone(),
-            latent_variance: fantasy.variances(&p, &model.noise_at(&p)),
-            noise_variance: noise.clone(),
-        };
-        mark_non_finite(q, &mut prediction);
-        prediction
+        // A set that is empty or not a query answers the plain prediction.
+        let sets: Vec<Option<(Inputs, Vec<f64>)>> = pendings
+            .iter()
+            .map(|pending| {
+                let valid = pending.nrows() > 0 && check_query(pending, model.x.d).is_ok();
+                valid.then(|| {
+                    let p = Inputs::from_matrix(pending);
+                    let noise_p = model.noise_at(&p);
+                    (p, noise_p)
+                })
+            })
+            .collect();
+        let valid: Vec<(&Inputs, &[f64])> = sets
+            .iter()
+            .flatten()
+            .map(|(p, noise_p)| (p, noise_p.as_slice()))
+            .collect();
+        let mut variances = fantasy.variances_each(&valid).into_iter();
+        sets.iter()
+            .map(|set| match set {
+                None => model.predict(&self.x),
+                Some(_) => {
+                    let mut prediction = Prediction {
+                        mean: fantasy.mean.clone(),
+                        latent_variance: variances.next().unwrap_or_default(),
+                        noise_variance: noise.clone(),
+                    };
+                    mark_non_finite(q, &mut prediction);
+                    prediction
+                }
+            })
+            .collect()
     }
 }

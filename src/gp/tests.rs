@@ -913,20 +913,41 @@ fn one_preparation_of_the_queries_answers_every_pending_set_as_conditioning_woul
     let prepared = model.fantasy(q.clone());
     let (six, _) = data(6, 2, 22);
     let (three, _) = data(3, 2, 24);
-    // The sets in turn, the first again: each answer is its own conditioning's.
-    for pending in [&six, &three, &six.rows(0, 2).into_owned(), &six] {
+    let sets = [
+        six.clone(),
+        three.clone(),
+        six.rows(0, 2).into_owned(),
+        six.clone(),
+    ];
+    // The sets one per call, the first again, and all in one call: each answer is its own
+    // conditioning's.
+    let together = prepared.predict_each(&sets);
+    assert_eq!(together.len(), sets.len());
+    for (pending, joint) in sets.iter().zip(&together) {
         let answer = prepared.predict(pending);
         let reference = conditioned_on_pending_too(&model, &x, &y, pending).predict(&q);
         for i in 0..15 {
-            assert_relative_eq!(
-                answer.latent_variance[i],
-                reference.latent_variance[i],
-                epsilon = 1e-9,
-                max_relative = 1e-6
-            );
+            for variance in [answer.latent_variance[i], joint.latent_variance[i]] {
+                assert_relative_eq!(
+                    variance,
+                    reference.latent_variance[i],
+                    epsilon = 1e-9,
+                    max_relative = 1e-6
+                );
+            }
         }
+        assert_eq!(answer.mean, joint.mean);
         assert_eq!(answer, model.predict_fantasised(&q, pending));
     }
+    // An empty set among others answers the plain prediction in its place.
+    let mixed = prepared.predict_each(&[three.clone(), DMatrix::zeros(0, 2), six.clone()]);
+    assert_eq!(mixed[1], model.predict(&q));
+    assert_eq!(mixed[0].latent_variance.len(), 15);
+    assert_relative_eq!(
+        mixed[2].latent_variance[7],
+        together[0].latent_variance[7],
+        max_relative = 1e-12
+    );
     // A query row that is not a number answers NaN there, as the plain prediction does.
     let mut bad = q.clone();
     bad[(4, 1)] = f64::NAN;

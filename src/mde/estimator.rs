@@ -92,9 +92,9 @@ impl EstimatorChoice {
     }
 }
 
-/// What [`Regressor::fantasy`] answers: the prediction at its rows given one set of pending
-/// rows.
-pub type PreparedRows<'a> = Box<dyn Fn(&DMatrix<f64>) -> Prediction + 'a>;
+/// What [`Regressor::fantasy`] answers: the prediction at its rows after each of several
+/// alternative sets of pending rows, in order.
+pub type PreparedRows<'a> = Box<dyn Fn(&[DMatrix<f64>]) -> Vec<Prediction> + 'a>;
 
 /// A fitted regressor as the MDE uses it. Inputs are feature rows scaled to the unit box.
 pub trait Regressor: Send + Sync + std::fmt::Debug {
@@ -119,10 +119,16 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     /// keeps the batch from chasing one uncertainty.
     fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction;
     /// [`predict_fantasised`](Self::predict_fantasised) at the rows of `x` for any number of
-    /// alternative pending sets, one per call of the returned function. The exact GP whitens
-    /// `x` once for all of them ([`GpModel::fantasy`]); the default asks anew each time.
+    /// alternative pending sets, asked in as many calls of the returned function as suit the
+    /// caller. The exact GP whitens `x` once for all of them, and the sets of one call
+    /// together ([`GpModel::fantasy`]); the default asks anew for each set.
     fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
-        Box::new(move |pending| self.predict_fantasised(&x, pending))
+        Box::new(move |pendings| {
+            pendings
+                .iter()
+                .map(|pending| self.predict_fantasised(&x, pending))
+                .collect()
+        })
     }
     /// The fitted regressor as plain numbers, for evaluation outside the server
     /// ([`ExportedModel`](super::ExportedModel)).
@@ -305,7 +311,7 @@ impl Regressor for GpModel {
     }
     fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
         let prepared = GpModel::fantasy(self, x);
-        Box::new(move |pending| prepared.predict(pending))
+        Box::new(move |pendings| prepared.predict_each(pendings))
     }
     /// The exact GP is refitted after each batch, not updated: an error.
     fn update(&self, _x: &DMatrix<f64>, _y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {

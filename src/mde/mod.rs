@@ -219,27 +219,29 @@ impl DeviationModel for ServedModel {
     /// A fitted regressor's [`Regressor::predict_fantasised`]; the prior does not fantasise
     /// (its σ is the same everywhere, and stays so).
     fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
-        self.fantasy(features, dim)(pending)
+        self.fantasy(features, dim)(&[pending]).swap_remove(0)
     }
 
     /// The fitted regressor's [`Regressor::fantasy`] of `features`, asked about each pending
     /// set; the prior's plain answer.
     fn fantasy<'a>(&'a self, features: &'a [f64], dim: usize) -> Fantasy<'a> {
+        let plain = move |pendings: &[&[f64]]| vec![self.predict(features, dim); pendings.len()];
         let Estimator::Fitted(gp) = &self.estimator else {
-            return Box::new(move |_| self.predict(features, dim));
+            return Box::new(plain);
         };
         if dim == 0 {
-            return Box::new(move |_| self.predict(features, dim));
+            return Box::new(plain);
         }
-        let n = features.len() / dim;
-        let prepared = gp.fantasy(DMatrix::from_row_slice(n, dim, &features[..n * dim]));
-        Box::new(move |pending| {
-            if pending.len() < dim {
-                return self.predict(features, dim);
-            }
-            let k = pending.len() / dim;
-            let answer = prepared(&DMatrix::from_row_slice(k, dim, &pending[..k * dim]));
-            answer.mean.iter().copied().zip(answer.std()).collect()
+        let rows =
+            move |v: &[f64]| DMatrix::from_row_slice(v.len() / dim, dim, &v[..v.len() / dim * dim]);
+        let prepared = gp.fantasy(rows(features));
+        // A set shorter than one row is nothing pending: zero rows, the plain prediction.
+        Box::new(move |pendings| {
+            let sets: Vec<DMatrix<f64>> = pendings.iter().map(|p| rows(p)).collect();
+            prepared(&sets)
+                .iter()
+                .map(|answer| answer.mean.iter().copied().zip(answer.std()).collect())
+                .collect()
         })
     }
 }

@@ -133,18 +133,23 @@ pub trait DeviationModel: Sync {
     }
 
     /// [`predict_fantasised`](Self::predict_fantasised) at the same `features` for any number
-    /// of alternative pending sets, one per call of the returned function: the `spread`
-    /// acquisition asks it about every candidate of a proposal. A model may prepare
-    /// `features` once for all of them (the exact GP whitens them once); the default asks
-    /// anew each time.
+    /// of alternative pending sets, asked in as many calls of the returned function as suit
+    /// the caller: the `spread` acquisition asks it about every candidate of a proposal. A
+    /// model may prepare `features` once for all of them and share work between the sets of
+    /// one call (the exact GP does both); the default asks anew for each set.
     fn fantasy<'a>(&'a self, features: &'a [f64], dim: usize) -> Fantasy<'a> {
-        Box::new(move |pending| self.predict_fantasised(features, pending, dim))
+        Box::new(move |pendings| {
+            pendings
+                .iter()
+                .map(|pending| self.predict_fantasised(features, pending, dim))
+                .collect()
+        })
     }
 }
 
-/// What [`DeviationModel::fantasy`] answers: `(μ, σ)` at its features given one pending set
-/// (row-major, the features' dimension each).
-pub type Fantasy<'a> = Box<dyn Fn(&[f64]) -> Vec<(f64, f64)> + 'a>;
+/// What [`DeviationModel::fantasy`] answers: `(μ, σ)` at its features after each of several
+/// alternative pending sets (row-major, the features' dimension each), in order.
+pub type Fantasy<'a> = Box<dyn Fn(&[&[f64]]) -> Vec<Vec<(f64, f64)>> + 'a>;
 
 /// Why the planner could not answer.
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]

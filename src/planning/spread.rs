@@ -30,6 +30,10 @@ pub const REFERENCES: usize = 256;
 /// Stream of the proposal seed the reference state-actions are drawn from.
 const REFERENCE_STREAM: u64 = 7;
 
+/// Candidates valued in one call of the model's [`fantasy`](DeviationModel::fantasy): the
+/// exact GP reads its `n × n` factor once per call, and the budget is checked between calls.
+const CANDIDATES_PER_CALL: usize = 5;
+
 /// Each candidate's value `V` (see the module docs), in order; `None` when the budget ends
 /// before every candidate is valued (the choice is then `lcb`'s, as for a model that cannot
 /// fantasise), so that a large model never turns a proposal into a missed deadline.
@@ -51,40 +55,50 @@ pub(crate) fn values(
         references.extend(domain.features(&s, &a));
     }
     let fantasy = model.fantasy(&references, dim);
-    let predict = |pending: &[f64]| {
-        let answers = fantasy(pending);
-        if answers.len() == REFERENCES {
-            Ok(answers)
-        } else {
-            Err(PlanningError::ModelOutput {
+    let predict = |pendings: &[&[f64]]| {
+        let answers = fantasy(pendings);
+        let wrong = (answers.len() != pendings.len())
+            .then_some(answers.len())
+            .or_else(|| answers.iter().map(Vec::len).find(|&n| n != REFERENCES));
+        match wrong {
+            None => Ok(answers),
+            Some(got) => Err(PlanningError::ModelOutput {
                 expected: REFERENCES,
-                got: answers.len(),
-            })
+                got,
+            }),
         }
     };
-    let now = predict(in_flight)?;
+    let now = predict(&[in_flight])?.swap_remove(0);
     let weights: Vec<f64> = now
         .iter()
         .map(|&(mu, sigma)| level_density(mu, sigma, d_max))
         .collect();
     let mut values = Vec::with_capacity(trajectories.len());
-    for t in trajectories {
+    for chunk in trajectories.chunks(CANDIDATES_PER_CALL) {
         if budget.stop().is_some() {
             return Ok(None);
         }
-        let mut pending = in_flight.to_vec();
-        for (s, a) in t.states.iter().zip(&t.actions) {
-            pending.extend(domain.features(s, a));
-        }
-        let after = predict(&pending)?;
-        let value: f64 = weights
+        let pendings: Vec<Vec<f64>> = chunk
             .iter()
-            .zip(&now)
-            .zip(&after)
-            .map(|((w, (_, s0)), (_, s1))| w * (s0 * s0 - s1 * s1).max(0.0))
-            .sum();
-        // A model answer that is not a number values the candidate at nothing.
-        values.push(if value.is_finite() { value } else { 0.0 });
+            .map(|t| {
+                let mut pending = in_flight.to_vec();
+                for (s, a) in t.states.iter().zip(&t.actions) {
+                    pending.extend(domain.features(s, a));
+                }
+                pending
+            })
+            .collect();
+        let sets: Vec<&[f64]> = pendings.iter().map(Vec::as_slice).collect();
+        for after in predict(&sets)? {
+            let value: f64 = weights
+                .iter()
+                .zip(&now)
+                .zip(&after)
+                .map(|((w, (_, s0)), (_, s1))| w * (s0 * s0 - s1 * s1).max(0.0))
+                .sum();
+            // A model answer that is not a number values the candidate at nothing.
+            values.push(if value.is_finite() { value } else { 0.0 });
+        }
     }
     Ok(Some(values))
 }
@@ -201,6 +215,29 @@ mod tests {
             values(task, &Boundary, &[], &walks, 3, &spent).unwrap(),
             None
         );
+        // More candidates than one call values: each still gets its own value, in order.
+        let many: Vec<Trajectory> = (1..=2 * CANDIDATES_PER_CALL + 1)
+            .map(|k| walk(k as f64 / 12.0))
+            .collect();
+        let all = values(task, &Boundary, &[], &many, 3, &Budget::unlimited())
+            .unwrap()
+            .unwrap();
+        let alone: Vec<f64> = many
+            .iter()
+            .map(|t| {
+                values(
+                    task,
+                    &Boundary,
+                    &[],
+                    std::slice::from_ref(t),
+                    3,
+                    &Budget::unlimited(),
+                )
+                .unwrap()
+                .unwrap()[0]
+            })
+            .collect();
+        assert_eq!(all, alone);
     }
 
     #[test]
