@@ -12,6 +12,12 @@
 
 use super::Domain;
 use std::fmt;
+use std::future::Future;
+use std::pin::Pin;
+
+/// What [`DynamicsModel::predict_awaitable`] answers: the predictions, once awaited.
+pub type Awaited<'a> =
+    Pin<Box<dyn Future<Output = Result<Vec<Predicted>, DynamicsError>> + Send + 'a>>;
 
 /// One prediction of the dynamics model.
 #[derive(Debug, Clone, PartialEq)]
@@ -99,9 +105,16 @@ pub trait DynamicsModel: Send + Sync + fmt::Debug {
         self.predict_batch(states, actions)
     }
 
-    /// The model as a [`RemoteModel`](crate::remote_model::RemoteModel) when it is one, for
-    /// callers that can wait for it without holding a thread (an ingest).
-    fn remote(&self) -> Option<&crate::remote_model::RemoteModel> {
+    /// [`DynamicsModel::predict_batch`] as a future, for callers that can wait for the model
+    /// without holding a thread (an ingest): a model behind the network answers one (the
+    /// remote model waits for its permits and its answer as a task); in-process models answer
+    /// `None`, and the caller runs `predict_batch` on a blocking thread.
+    fn predict_awaitable<'a>(
+        &'a self,
+        states: &'a [&'a [f64]],
+        actions: &'a [&'a [f64]],
+    ) -> Option<Awaited<'a>> {
+        let _ = (states, actions);
         None
     }
 

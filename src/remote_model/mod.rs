@@ -26,7 +26,7 @@ pub use calls::{MAX_TIMEOUT_MS, ModelCallLimits, ModelCalls};
 pub use policy::ModelUrlPolicy;
 
 use crate::budget::Budget;
-use crate::domain::{DynamicsError, DynamicsModel, Predicted};
+use crate::domain::{Awaited, DynamicsError, DynamicsModel, Predicted};
 use answer::AnswerSeed;
 use calls::{Permits, block_until, busy, starts_too_late};
 use serde::Serialize;
@@ -359,8 +359,12 @@ impl DynamicsModel for RemoteModel {
         ROUND_SIZE
     }
 
-    fn remote(&self) -> Option<&RemoteModel> {
-        Some(self)
+    fn predict_awaitable<'a>(
+        &'a self,
+        states: &'a [&'a [f64]],
+        actions: &'a [&'a [f64]],
+    ) -> Option<Awaited<'a>> {
+        Some(Box::pin(self.predict_async(states, actions)))
     }
 }
 

@@ -168,12 +168,18 @@ pub async fn label(
             .map(|t| t.s_pred.clone().unwrap_or_default())
             .collect()
     } else {
-        let predicted = if let Some(remote) = live.domain.dynamics().remote() {
-            // A remote model: waited for as a task, the call on a thread of its own, bounded
-            // by the operator's limits; no blocking-pool thread is held.
+        // A remote model: waited for as a task, the call on a thread of its own, bounded by the
+        // operator's limits; no blocking-pool thread is held.
+        let awaited = {
             let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
             let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
-            remote.predict_async(&states, &actions).await
+            match live.domain.dynamics().predict_awaitable(&states, &actions) {
+                Some(answer) => Some(answer.await),
+                None => None,
+            }
+        };
+        let predicted = if let Some(predicted) = awaited {
+            predicted
         } else {
             let domain = live.domain.clone();
             let (moved, predicted) = Service::blocking(move || {
