@@ -125,8 +125,18 @@ impl Fantasy<'_> {
         kernel::build_cross(core.kernel, ps, k, ps, k, d, core.s2, &mut kpp);
         let mut kpq = vec![0.0; k * m];
         kernel::build_cross(core.kernel, ps, k, &self.qs, m, d, core.s2, &mut kpq);
+        let n = core.n;
         let s = DMatrix::from_vec(k, k, kpp) - vp.tr_mul(vp);
-        let c = DMatrix::from_vec(k, m, kpq) - vp.tr_mul(&self.vq);
+        // c = k(P, q) − V_Pᵀ V_q, the one product here of the queries' size: a GEMM.
+        linalg::gemm(
+            &mut kpq,
+            (vp.as_slice(), n, k, true),
+            (self.vq.as_slice(), n, m, false),
+            -1.0,
+            true,
+            Par::Seq,
+        );
+        let c = DMatrix::from_vec(k, m, kpq);
         // The pending points' noise keeps `S` positive definite; repeated pending points
         // without noise need the jitter ladder.
         let mut eps = core.jitter.max(1e-12 * core.s2);
