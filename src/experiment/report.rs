@@ -5,7 +5,7 @@
 //! for the water plant, `maps.json` (the precondition maps behind the map figures).
 
 use super::Results;
-use super::protocol::{IterationRecord, PourType};
+use super::protocol::{IterationRecord, PourType, TestRecord, TrainingRecord};
 use crate::planning::Strategy;
 use anyhow::Context;
 use serde_json::{Map, Value, json};
@@ -49,61 +49,162 @@ pub const METRICS: [&str; 33] = [
     "no_pour_ratio",
 ];
 
-/// The columns of `iterations.csv`.
-pub const ITERATION_COLUMNS: [&str; 52] = [
-    "domain",
-    "layout",
-    "strategy",
-    "seed",
-    "iteration",
-    "beta_train",
-    "train_trajectories",
-    "train_no_plan",
-    "train_skipped",
-    "train_relaxed",
-    "mean_traj_length",
-    "train_goal_reached",
-    "train_high_deviation",
-    "n_train",
-    "model_version",
-    "model_trajectories",
-    "test_problems",
-    "plans_found",
-    "successes",
-    "plan_found_rate",
-    "success_rate",
-    "planned_steps",
-    "unsafe_planned_steps",
-    "unsafe_step_rate",
-    "oracle_solvable",
-    "oracle_rate",
-    "learned_solvable",
-    "learned_rate",
-    "one_move_short",
-    "one_move_short_executed",
-    "closed_loop_successes",
-    "closed_loop_rate",
-    "replans",
-    "oracle_open_successes",
-    "oracle_closed_successes",
-    "baseline_successes",
-    "baseline_rate",
-    "held_out_median_sigma",
-    "test_beta",
-    "held_out",
-    "held_out_low",
-    "held_out_high",
-    "true_positives",
-    "true_negatives",
-    "tpr",
-    "tnr",
-    "no_pour",
-    "below_success",
-    "below_spill",
-    "above_success",
-    "above_spill",
-    "seconds",
+/// A CSV column: its name and its text in a row of `R`.
+type Column<R> = (&'static str, fn(&R) -> String);
+
+/// The columns of `iterations.csv` after `domain` and `layout`: each name beside its value, in
+/// order, so that a column cannot be named in one list and filled from another.
+const RECORD_COLUMNS: [Column<IterationRecord>; 50] = [
+    ("strategy", |r| r.strategy.as_str().to_string()),
+    ("seed", |r| r.seed.to_string()),
+    ("iteration", |r| r.iteration.to_string()),
+    ("beta_train", |r| opt(r.beta_train)),
+    ("train_trajectories", |r| r.train_trajectories.to_string()),
+    ("train_no_plan", |r| r.train_no_plan.to_string()),
+    ("train_skipped", |r| r.train_skipped.to_string()),
+    ("train_relaxed", |r| r.train_relaxed.to_string()),
+    ("mean_traj_length", |r| opt(r.mean_traj_length)),
+    ("train_goal_reached", |r| r.train_goal_reached.to_string()),
+    ("train_high_deviation", |r| {
+        r.train_high_deviation.to_string()
+    }),
+    ("n_train", |r| r.n_train.to_string()),
+    ("model_version", |r| r.model_version.to_string()),
+    ("model_trajectories", |r| r.model_trajectories.to_string()),
+    ("test_problems", |r| r.test_problems.to_string()),
+    ("plans_found", |r| r.plans_found.to_string()),
+    ("successes", |r| r.successes.to_string()),
+    ("plan_found_rate", |r| r.plan_found_rate.to_string()),
+    ("success_rate", |r| r.success_rate.to_string()),
+    ("planned_steps", |r| r.planned_steps.to_string()),
+    ("unsafe_planned_steps", |r| {
+        r.unsafe_planned_steps.to_string()
+    }),
+    ("unsafe_step_rate", |r| opt(r.unsafe_step_rate)),
+    ("oracle_solvable", |r| r.oracle_solvable.to_string()),
+    ("oracle_rate", |r| opt(r.oracle_rate)),
+    ("learned_solvable", |r| r.learned_solvable.to_string()),
+    ("learned_rate", |r| opt(r.learned_rate)),
+    ("one_move_short", |r| r.one_move_short.to_string()),
+    ("one_move_short_executed", |r| {
+        r.one_move_short_executed.to_string()
+    }),
+    ("closed_loop_successes", |r| {
+        r.closed_loop_successes.to_string()
+    }),
+    ("closed_loop_rate", |r| opt(r.closed_loop_rate)),
+    ("replans", |r| r.replans.to_string()),
+    ("oracle_open_successes", |r| {
+        r.oracle_open_successes.to_string()
+    }),
+    ("oracle_closed_successes", |r| {
+        r.oracle_closed_successes.to_string()
+    }),
+    ("baseline_successes", |r| r.baseline_successes.to_string()),
+    ("baseline_rate", |r| opt(r.baseline_rate)),
+    ("held_out_median_sigma", |r| opt(r.held_out_median_sigma)),
+    ("test_beta", |r| opt(r.test_beta)),
+    ("held_out", |r| r.held_out.to_string()),
+    ("held_out_low", |r| r.held_out_low.to_string()),
+    ("held_out_high", |r| r.held_out_high.to_string()),
+    ("true_positives", |r| r.true_positives.to_string()),
+    ("true_negatives", |r| r.true_negatives.to_string()),
+    ("tpr", |r| opt(r.tpr)),
+    ("tnr", |r| opt(r.tnr)),
+    ("no_pour", |r| r.pour_types[0].to_string()),
+    ("below_success", |r| r.pour_types[1].to_string()),
+    ("below_spill", |r| r.pour_types[2].to_string()),
+    ("above_success", |r| r.pour_types[3].to_string()),
+    ("above_spill", |r| r.pour_types[4].to_string()),
+    ("seconds", |r| format!("{:.3}", r.seconds)),
 ];
+
+/// The columns of `iterations.csv`.
+pub const ITERATION_COLUMNS: [&str; 52] = {
+    let mut names = [""; 52];
+    (names[0], names[1]) = ("domain", "layout");
+    let mut i = 0;
+    while i < RECORD_COLUMNS.len() {
+        names[i + 2] = RECORD_COLUMNS[i].0;
+        i += 1;
+    }
+    names
+};
+
+/// The columns of `training.csv` after `domain`.
+const TRAINING_COLUMNS: [Column<TrainingRecord>; 11] = [
+    ("strategy", |t| t.strategy.as_str().to_string()),
+    ("seed", |t| t.seed.to_string()),
+    ("iteration", |t| t.iteration.to_string()),
+    ("slot", |t| t.slot.to_string()),
+    ("no_plan", |t| t.no_plan.to_string()),
+    ("beta", |t| opt(t.beta)),
+    ("executed", |t| t.executed.to_string()),
+    ("length", |t| t.length.to_string()),
+    ("goal_reached", |t| t.goal_reached.to_string()),
+    ("max_deviation", |t| t.max_deviation.to_string()),
+    ("pour_type", |t| t.pour_type.as_str().to_string()),
+];
+
+/// The columns of `tests.csv` after `domain` (vectors as `;`-separated numbers).
+const TEST_COLUMNS: [Column<TestRecord>; 20] = [
+    ("strategy", |t| t.strategy.as_str().to_string()),
+    ("seed", |t| t.seed.to_string()),
+    ("iteration", |t| t.iteration.to_string()),
+    ("problem", |t| t.problem.to_string()),
+    ("start", |t| vector(&t.start)),
+    ("goal", |t| vector(&t.goal)),
+    ("found", |t| t.found.to_string()),
+    ("extensions", |t| t.extensions.to_string()),
+    ("plan_length", |t| t.plan_length.to_string()),
+    ("success", |t| t.success.to_string()),
+    ("oracle", |t| flag(t.oracle)),
+    ("learned", |t| flag(t.learned)),
+    ("blocking_moves", |t| {
+        t.blocking.map_or(String::new(), |b| b.0.to_string())
+    }),
+    ("blocking_executed", |t| {
+        t.blocking.map_or(String::new(), |b| b.1.to_string())
+    }),
+    ("unsafe_steps", |t| t.unsafe_steps.to_string()),
+    ("closed_loop_success", |t| flag(t.closed_loop_success)),
+    ("replans", |t| t.replans.to_string()),
+    ("oracle_open_loop", |t| flag(t.oracle_open_loop)),
+    ("oracle_closed_loop", |t| flag(t.oracle_closed_loop)),
+    ("baseline", |t| flag(t.baseline)),
+];
+
+/// A CSV table: the `fixed` columns (a name and the one value every row has) then `columns`,
+/// a header line and a line per row.
+fn table<'a, R: 'a>(
+    fixed: &[(&str, &str)],
+    columns: &[Column<R>],
+    rows: impl Iterator<Item = &'a R>,
+) -> String {
+    let names = fixed.iter().map(|(name, _)| *name);
+    let mut csv = names
+        .chain(columns.iter().map(|(name, _)| *name))
+        .collect::<Vec<_>>()
+        .join(",");
+    csv.push('\n');
+    for row in rows {
+        let values = fixed.iter().map(|(_, value)| value.to_string());
+        let values: Vec<String> = values
+            .chain(columns.iter().map(|(_, value)| value(row)))
+            .collect();
+        csv += &values.join(",");
+        csv.push('\n');
+    }
+    csv
+}
+
+/// A vector as `;`-separated numbers.
+fn vector(v: &[f64]) -> String {
+    v.iter()
+        .map(|x| format!("{x}"))
+        .collect::<Vec<_>>()
+        .join(";")
+}
 
 fn pour_ratio(r: &IterationRecord, kind: PourType) -> Option<f64> {
     let k = PourType::ALL.iter().position(|p| *p == kind)?;
@@ -227,124 +328,20 @@ fn write(path: &Path, text: &str) -> anyhow::Result<()> {
 pub fn write_all(dir: &Path, results: &Results) -> anyhow::Result<()> {
     let domain = results.config.domain.as_str();
     let layout = results.config.layout_name();
-    let mut csv = ITERATION_COLUMNS.join(",") + "\n";
-    for r in results.runs.iter().flat_map(|run| &run.iterations) {
-        let row: Vec<String> = vec![
-            domain.to_string(),
-            layout.to_string(),
-            r.strategy.as_str().to_string(),
-            r.seed.to_string(),
-            r.iteration.to_string(),
-            opt(r.beta_train),
-            r.train_trajectories.to_string(),
-            r.train_no_plan.to_string(),
-            r.train_skipped.to_string(),
-            r.train_relaxed.to_string(),
-            opt(r.mean_traj_length),
-            r.train_goal_reached.to_string(),
-            r.train_high_deviation.to_string(),
-            r.n_train.to_string(),
-            r.model_version.to_string(),
-            r.model_trajectories.to_string(),
-            r.test_problems.to_string(),
-            r.plans_found.to_string(),
-            r.successes.to_string(),
-            r.plan_found_rate.to_string(),
-            r.success_rate.to_string(),
-            r.planned_steps.to_string(),
-            r.unsafe_planned_steps.to_string(),
-            opt(r.unsafe_step_rate),
-            r.oracle_solvable.to_string(),
-            opt(r.oracle_rate),
-            r.learned_solvable.to_string(),
-            opt(r.learned_rate),
-            r.one_move_short.to_string(),
-            r.one_move_short_executed.to_string(),
-            r.closed_loop_successes.to_string(),
-            opt(r.closed_loop_rate),
-            r.replans.to_string(),
-            r.oracle_open_successes.to_string(),
-            r.oracle_closed_successes.to_string(),
-            r.baseline_successes.to_string(),
-            opt(r.baseline_rate),
-            opt(r.held_out_median_sigma),
-            opt(r.test_beta),
-            r.held_out.to_string(),
-            r.held_out_low.to_string(),
-            r.held_out_high.to_string(),
-            r.true_positives.to_string(),
-            r.true_negatives.to_string(),
-            opt(r.tpr),
-            opt(r.tnr),
-        ]
-        .into_iter()
-        .chain(r.pour_types.iter().map(|c| c.to_string()))
-        .chain([format!("{:.3}", r.seconds)])
-        .collect();
-        csv += &row.join(",");
-        csv.push('\n');
-    }
+    let iterations = results.runs.iter().flat_map(|run| &run.iterations);
+    let csv = table(
+        &[("domain", domain), ("layout", layout)],
+        &RECORD_COLUMNS,
+        iterations,
+    );
     write(&dir.join("iterations.csv"), &csv)?;
 
-    let mut csv = String::from(
-        "domain,strategy,seed,iteration,slot,no_plan,beta,executed,length,goal_reached,max_deviation,pour_type\n",
-    );
-    for t in results.runs.iter().flat_map(|run| &run.training) {
-        let _ = writeln!(
-            csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{}",
-            t.strategy.as_str(),
-            t.seed,
-            t.iteration,
-            t.slot,
-            t.no_plan,
-            opt(t.beta),
-            t.executed,
-            t.length,
-            t.goal_reached,
-            t.max_deviation,
-            t.pour_type.as_str()
-        );
-    }
+    let training = results.runs.iter().flat_map(|run| &run.training);
+    let csv = table(&[("domain", domain)], &TRAINING_COLUMNS, training);
     write(&dir.join("training.csv"), &csv)?;
 
-    let mut csv = String::from(
-        "domain,strategy,seed,iteration,problem,start,goal,found,extensions,plan_length,success,oracle,\
-         learned,blocking_moves,blocking_executed,unsafe_steps,closed_loop_success,replans,oracle_open_loop,\
-         oracle_closed_loop,baseline\n",
-    );
-    let vector = |v: &[f64]| {
-        v.iter()
-            .map(|x| format!("{x}"))
-            .collect::<Vec<_>>()
-            .join(";")
-    };
-    for t in results.runs.iter().flat_map(|run| &run.tests) {
-        let _ = writeln!(
-            csv,
-            "{domain},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}",
-            t.strategy.as_str(),
-            t.seed,
-            t.iteration,
-            t.problem,
-            vector(&t.start),
-            vector(&t.goal),
-            t.found,
-            t.extensions,
-            t.plan_length,
-            t.success,
-            flag(t.oracle),
-            flag(t.learned),
-            t.blocking.map_or(String::new(), |b| b.0.to_string()),
-            t.blocking.map_or(String::new(), |b| b.1.to_string()),
-            t.unsafe_steps,
-            flag(t.closed_loop_success),
-            t.replans,
-            flag(t.oracle_open_loop),
-            flag(t.oracle_closed_loop),
-            flag(t.baseline)
-        );
-    }
+    let tests = results.runs.iter().flat_map(|run| &run.tests);
+    let csv = table(&[("domain", domain)], &TEST_COLUMNS, tests);
     write(&dir.join("tests.csv"), &csv)?;
 
     let summary = summary(results);
