@@ -12,42 +12,95 @@ use serde_json::{Map, Value, json};
 use std::fmt::Write as _;
 use std::path::Path;
 
-/// The metrics of the summary, each a number (or nothing) per iteration record.
-pub const METRICS: [&str; 33] = [
-    "plan_found_rate",
-    "unsafe_step_rate",
-    "success_rate",
-    "oracle_rate",
-    "success_of_oracle",
-    "learned_rate",
-    "learned_of_oracle",
-    "plans_of_learned",
-    "one_move_short_rate",
-    "one_move_short_executed_rate",
-    "closed_loop_rate",
-    "oracle_open_loop_rate",
-    "oracle_closed_loop_rate",
-    "baseline_rate",
-    "plans_of_oracle",
-    "closed_loop_of_oracle",
-    "open_loop_of_oracle_open_loop",
-    "held_out_median_sigma",
-    "test_beta",
-    "replans",
-    "tpr",
-    "tnr",
-    "train_no_plan",
-    "train_skipped",
-    "train_relaxed",
-    "mean_traj_length",
-    "train_goal_rate",
-    "n_train",
-    "model_version",
-    "below_success_ratio",
-    "below_spill_ratio",
-    "above_spill_ratio",
-    "no_pour_ratio",
+/// A summary metric: its name and its value in an iteration record (nothing where the record
+/// does not know it).
+type Metric = (&'static str, fn(&IterationRecord) -> Option<f64>);
+
+/// The metrics of the summary, each named beside its value.
+const METRIC_VALUES: [Metric; 33] = [
+    ("plan_found_rate", |r| Some(r.plan_found_rate)),
+    ("unsafe_step_rate", |r| r.unsafe_step_rate),
+    ("success_rate", |r| Some(r.success_rate)),
+    ("oracle_rate", |r| r.oracle_rate),
+    ("success_of_oracle", |r| {
+        (r.oracle_solvable > 0).then(|| r.successes as f64 / r.oracle_solvable as f64)
+    }),
+    ("learned_rate", |r| r.learned_rate),
+    ("learned_of_oracle", |r| {
+        r.learned_rate
+            .filter(|_| r.oracle_solvable > 0)
+            .map(|_| r.learned_solvable as f64 / r.oracle_solvable as f64)
+    }),
+    ("plans_of_learned", |r| {
+        r.learned_rate
+            .filter(|_| r.learned_solvable > 0)
+            .map(|_| r.plans_found as f64 / r.learned_solvable as f64)
+    }),
+    // Known where the learned search is exhaustive and the oracle known (gridworlds).
+    ("one_move_short_rate", |r| {
+        r.oracle_rate
+            .and(r.learned_rate)
+            .map(|_| r.one_move_short as f64 / r.test_problems.max(1) as f64)
+    }),
+    ("one_move_short_executed_rate", |r| {
+        r.oracle_rate
+            .and(r.learned_rate)
+            .map(|_| r.one_move_short_executed as f64 / r.test_problems.max(1) as f64)
+    }),
+    ("closed_loop_rate", |r| r.closed_loop_rate),
+    ("oracle_open_loop_rate", |r| {
+        r.oracle_rate
+            .map(|_| r.oracle_open_successes as f64 / r.test_problems.max(1) as f64)
+    }),
+    ("oracle_closed_loop_rate", |r| {
+        r.oracle_rate
+            .map(|_| r.oracle_closed_successes as f64 / r.test_problems.max(1) as f64)
+    }),
+    ("baseline_rate", |r| r.baseline_rate),
+    ("plans_of_oracle", |r| {
+        (r.oracle_solvable > 0).then(|| r.plans_found as f64 / r.oracle_solvable as f64)
+    }),
+    ("closed_loop_of_oracle", |r| {
+        r.closed_loop_rate
+            .filter(|_| r.oracle_solvable > 0)
+            .map(|_| r.closed_loop_successes as f64 / r.oracle_solvable as f64)
+    }),
+    ("open_loop_of_oracle_open_loop", |r| {
+        (r.oracle_open_successes > 0).then(|| r.successes as f64 / r.oracle_open_successes as f64)
+    }),
+    ("held_out_median_sigma", |r| r.held_out_median_sigma),
+    ("test_beta", |r| r.test_beta),
+    ("replans", |r| r.closed_loop_rate.map(|_| r.replans as f64)),
+    ("tpr", |r| r.tpr),
+    ("tnr", |r| r.tnr),
+    ("train_no_plan", |r| Some(r.train_no_plan as f64)),
+    ("train_skipped", |r| Some(r.train_skipped as f64)),
+    ("train_relaxed", |r| Some(r.train_relaxed as f64)),
+    ("mean_traj_length", |r| r.mean_traj_length),
+    ("train_goal_rate", |r| {
+        (r.train_trajectories > 0)
+            .then(|| r.train_goal_reached as f64 / r.train_trajectories as f64)
+    }),
+    ("n_train", |r| Some(r.n_train as f64)),
+    ("model_version", |r| Some(r.model_version as f64)),
+    ("below_success_ratio", |r| {
+        pour_ratio(r, PourType::BelowSuccess)
+    }),
+    ("below_spill_ratio", |r| pour_ratio(r, PourType::BelowSpill)),
+    ("above_spill_ratio", |r| pour_ratio(r, PourType::AboveSpill)),
+    ("no_pour_ratio", |r| pour_ratio(r, PourType::NoPour)),
 ];
+
+/// The metrics of the summary, each a number (or nothing) per iteration record.
+pub const METRICS: [&str; 33] = {
+    let mut names = [""; 33];
+    let mut i = 0;
+    while i < METRIC_VALUES.len() {
+        names[i] = METRIC_VALUES[i].0;
+        i += 1;
+    }
+    names
+};
 
 /// A CSV column: its name and its text in a row of `R`.
 type Column<R> = (&'static str, fn(&R) -> String);
@@ -213,68 +266,10 @@ fn pour_ratio(r: &IterationRecord, kind: PourType) -> Option<f64> {
 
 /// The value of `metric` (one of [`METRICS`]) in a record.
 pub fn metric(r: &IterationRecord, metric: &str) -> Option<f64> {
-    match metric {
-        "plan_found_rate" => Some(r.plan_found_rate),
-        "unsafe_step_rate" => r.unsafe_step_rate,
-        "success_rate" => Some(r.success_rate),
-        "oracle_rate" => r.oracle_rate,
-        "success_of_oracle" => {
-            (r.oracle_solvable > 0).then(|| r.successes as f64 / r.oracle_solvable as f64)
-        }
-        "learned_rate" => r.learned_rate,
-        "learned_of_oracle" => r
-            .learned_rate
-            .filter(|_| r.oracle_solvable > 0)
-            .map(|_| r.learned_solvable as f64 / r.oracle_solvable as f64),
-        "plans_of_learned" => r
-            .learned_rate
-            .filter(|_| r.learned_solvable > 0)
-            .map(|_| r.plans_found as f64 / r.learned_solvable as f64),
-        // Known where the learned search is exhaustive and the oracle known (gridworlds).
-        "one_move_short_rate" => r
-            .oracle_rate
-            .and(r.learned_rate)
-            .map(|_| r.one_move_short as f64 / r.test_problems.max(1) as f64),
-        "one_move_short_executed_rate" => r
-            .oracle_rate
-            .and(r.learned_rate)
-            .map(|_| r.one_move_short_executed as f64 / r.test_problems.max(1) as f64),
-        "closed_loop_rate" => r.closed_loop_rate,
-        "oracle_open_loop_rate" => r
-            .oracle_rate
-            .map(|_| r.oracle_open_successes as f64 / r.test_problems.max(1) as f64),
-        "oracle_closed_loop_rate" => r
-            .oracle_rate
-            .map(|_| r.oracle_closed_successes as f64 / r.test_problems.max(1) as f64),
-        "baseline_rate" => r.baseline_rate,
-        "plans_of_oracle" => {
-            (r.oracle_solvable > 0).then(|| r.plans_found as f64 / r.oracle_solvable as f64)
-        }
-        "closed_loop_of_oracle" => r
-            .closed_loop_rate
-            .filter(|_| r.oracle_solvable > 0)
-            .map(|_| r.closed_loop_successes as f64 / r.oracle_solvable as f64),
-        "open_loop_of_oracle_open_loop" => (r.oracle_open_successes > 0)
-            .then(|| r.successes as f64 / r.oracle_open_successes as f64),
-        "held_out_median_sigma" => r.held_out_median_sigma,
-        "test_beta" => r.test_beta,
-        "replans" => r.closed_loop_rate.map(|_| r.replans as f64),
-        "tpr" => r.tpr,
-        "tnr" => r.tnr,
-        "train_no_plan" => Some(r.train_no_plan as f64),
-        "train_skipped" => Some(r.train_skipped as f64),
-        "train_relaxed" => Some(r.train_relaxed as f64),
-        "mean_traj_length" => r.mean_traj_length,
-        "train_goal_rate" => (r.train_trajectories > 0)
-            .then(|| r.train_goal_reached as f64 / r.train_trajectories as f64),
-        "n_train" => Some(r.n_train as f64),
-        "model_version" => Some(r.model_version as f64),
-        "below_success_ratio" => pour_ratio(r, PourType::BelowSuccess),
-        "below_spill_ratio" => pour_ratio(r, PourType::BelowSpill),
-        "above_spill_ratio" => pour_ratio(r, PourType::AboveSpill),
-        "no_pour_ratio" => pour_ratio(r, PourType::NoPour),
-        _ => None,
-    }
+    METRIC_VALUES
+        .iter()
+        .find(|(name, _)| *name == metric)
+        .and_then(|(_, value)| value(r))
 }
 
 /// Mean, standard error of the mean (sample standard deviation / √n; 0 when n = 1) and n of
