@@ -8,6 +8,7 @@ use super::export::{self, GpPredictor};
 use super::kernel::{self, Inputs, Kernel};
 use super::linalg;
 use super::lml::{self, Jitter};
+use super::model::PreparedQueries;
 use super::{GpError, Hyperparameters};
 
 /// A GP prior: kernel, constant mean, ARD length scales and signal variance, what a conditioned
@@ -63,12 +64,16 @@ pub(crate) struct Fantasy<'a> {
     /// `V_q = L⁻¹ k(X, q)` (`n × m`).
     vq: DMatrix<f64>,
     /// The posterior mean at the query points.
-    pub mean: Vec<f64>,
+    mean: Vec<f64>,
     /// The latent posterior variance at the query points, before any pending point.
-    pub var: Vec<f64>,
+    var: Vec<f64>,
 }
 
-impl Fantasy<'_> {
+impl PreparedQueries for Fantasy<'_> {
+    fn mean(&self) -> &[f64] {
+        &self.mean
+    }
+
     /// The latent variances at the query points as if the points `p` of a pending set `(p,
     /// noise_p)` had been observed as well, with noise variances `noise_p`, for each of
     /// several alternative sets: `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
@@ -77,7 +82,7 @@ impl Fantasy<'_> {
     /// set's `V_P` comes from one product with `L⁻¹`, which reads the `n × n` triangle once
     /// for all of them rather than once per set. An empty set (or noise of the wrong
     /// length): the variances now.
-    pub fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>> {
+    fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>> {
         let core = self.core;
         let n = core.n;
         let valid = |p: &Inputs, noise_p: &[f64]| p.n > 0 && noise_p.len() == p.n;
@@ -115,7 +120,9 @@ impl Fantasy<'_> {
             })
             .collect()
     }
+}
 
+impl Fantasy<'_> {
     /// The variances after one pending set: its points scaled (`ps`, column-major), whitened
     /// (`vp = L⁻¹ k(X, P)`), and their noise.
     fn after(&self, ps: &[f64], vp: &DMatrix<f64>, noise_p: &[f64]) -> Vec<f64> {

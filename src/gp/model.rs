@@ -2,7 +2,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::core::{Core, Fantasy, Prior, mean};
+use super::core::{Core, Prior, mean};
 use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
@@ -513,31 +513,71 @@ impl GpModel {
     /// of the `m` rows is done here, once, and each set then costs `O(n² k + n k m)` for its
     /// `k` rows. The `spread` acquisition asks this about every candidate of a proposal.
     pub fn fantasy(&self, x: DMatrix<f64>) -> FantasyQueries<'_> {
-        let prepared = (x.ncols() == self.x.d).then(|| {
+        FantasyQueries::new(self, x, |q| {
+            let prepared: Box<dyn PreparedQueries> = Box::new(self.main.fantasy(q)?);
+            Some(prepared)
+        })
+    }
+}
+
+impl FantasySource for GpModel {
+    fn input_dim(&self) -> usize {
+        self.x.d
+    }
+    fn plain(&self, x: &DMatrix<f64>) -> Prediction {
+        self.predict(x)
+    }
+    fn noise_at(&self, q: &Inputs) -> Vec<f64> {
+        GpModel::noise_at(self, q)
+    }
+}
+
+/// A GP's side of [`FantasyQueries`]: its input dimension, its plain prediction (what an empty
+/// or invalid pending set answers) and its observation noise at pending points.
+pub(crate) trait FantasySource {
+    fn input_dim(&self) -> usize;
+    fn plain(&self, x: &DMatrix<f64>) -> Prediction;
+    fn noise_at(&self, q: &Inputs) -> Vec<f64>;
+}
+
+/// Query points prepared once by a conditioned core (the exact one's [`Fantasy`], the sparse
+/// one's): the posterior mean at them, and their latent variances after each of several
+/// alternative pending sets `(points, noise variances)`.
+pub(crate) trait PreparedQueries {
+    fn mean(&self) -> &[f64];
+    fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>>;
+}
+
+/// Query rows prepared for predictions as if different pending rows had been observed
+/// ([`GpModel::fantasy`], [`SparseGp::fantasy`](super::SparseGp::fantasy)).
+pub struct FantasyQueries<'a> {
+    model: &'a dyn FantasySource,
+    x: DMatrix<f64>,
+    /// The rows as inputs, their preparation and their noise; `None` where the plain
+    /// prediction is every answer (wrong column count, no rows, or no factor to fantasise with).
+    prepared: Option<(Inputs, Box<dyn PreparedQueries + 'a>, Vec<f64>)>,
+}
+
+impl<'a> FantasyQueries<'a> {
+    /// The rows of `x` prepared by `prepare` (given them as inputs) for `model`.
+    pub(crate) fn new(
+        model: &'a dyn FantasySource,
+        x: DMatrix<f64>,
+        prepare: impl FnOnce(&Inputs) -> Option<Box<dyn PreparedQueries + 'a>>,
+    ) -> Self {
+        let prepared = (x.ncols() == model.input_dim()).then(|| {
             let q = Inputs::from_matrix(&x);
-            let fantasy = self.main.fantasy(&q)?;
-            let noise = self.noise_at(&q);
+            let fantasy = prepare(&q)?;
+            let noise = model.noise_at(&q);
             Some((q, fantasy, noise))
         });
         FantasyQueries {
-            model: self,
+            model,
             x,
             prepared: prepared.flatten(),
         }
     }
-}
 
-/// Query rows prepared for predictions as if different pending rows had been observed
-/// ([`GpModel::fantasy`]).
-pub struct FantasyQueries<'a> {
-    model: &'a GpModel,
-    x: DMatrix<f64>,
-    /// The rows as inputs, their whitening and their noise; `None` where the plain prediction
-    /// is every answer (wrong column count, no rows, or no `L⁻¹`).
-    prepared: Option<(Inputs, Fantasy<'a>, Vec<f64>)>,
-}
-
-impl FantasyQueries<'_> {
     /// [`GpModel::predict_fantasised`] of the prepared rows with these `pending` rows.
     pub fn predict(&self, pending: &DMatrix<f64>) -> Prediction {
         self.predict_each(std::slice::from_ref(pending))
@@ -549,13 +589,13 @@ impl FantasyQueries<'_> {
     pub fn predict_each(&self, pendings: &[DMatrix<f64>]) -> Vec<Prediction> {
         let model = self.model;
         let Some((q, fantasy, noise)) = &self.prepared else {
-            return pendings.iter().map(|_| model.predict(&self.x)).collect();
+            return pendings.iter().map(|_| model.plain(&self.x)).collect();
         };
         // A set that is empty or not a query answers the plain prediction.
         let sets: Vec<Option<(Inputs, Vec<f64>)>> = pendings
             .iter()
             .map(|pending| {
-                let valid = pending.nrows() > 0 && check_query(pending, model.x.d).is_ok();
+                let valid = pending.nrows() > 0 && check_query(pending, model.input_dim()).is_ok();
                 valid.then(|| {
                     let p = Inputs::from_matrix(pending);
                     let noise_p = model.noise_at(&p);
@@ -571,10 +611,10 @@ impl FantasyQueries<'_> {
         let mut variances = fantasy.variances_each(&valid).into_iter();
         sets.iter()
             .map(|set| match set {
-                None => model.predict(&self.x),
+                None => model.plain(&self.x),
                 Some(_) => {
                     let mut prediction = Prediction {
-                        mean: fantasy.mean.clone(),
+                        mean: fantasy.mean().to_vec(),
                         latent_variance: variances.next().unwrap_or_default(),
                         noise_variance: noise.clone(),
                     };

@@ -120,8 +120,8 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction;
     /// [`predict_fantasised`](Self::predict_fantasised) at the rows of `x` for any number of
     /// alternative pending sets, asked in as many calls of the returned function as suit the
-    /// caller. The exact GP whitens `x` once for all of them, and the sets of one call
-    /// together ([`GpModel::fantasy`]); the default asks anew for each set.
+    /// caller. Both GPs prepare `x` once for all of them ([`GpModel::fantasy`],
+    /// [`SparseGp::fantasy`]); the default asks anew for each set.
     fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
         Box::new(move |pendings| {
             pendings
@@ -292,6 +292,10 @@ macro_rules! inherent_methods {
         fn predictor(&self) -> Predictor {
             $gp::predictor(self)
         }
+        fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
+            let prepared = $gp::fantasy(self, x);
+            Box::new(move |pendings| prepared.predict_each(pendings))
+        }
     };
 }
 
@@ -308,10 +312,6 @@ impl Regressor for GpModel {
     }
     fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
         GpModel::leave_folds_out(self, folds)
-    }
-    fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
-        let prepared = GpModel::fantasy(self, x);
-        Box::new(move |pendings| prepared.predict_each(pendings))
     }
     /// The exact GP is refitted after each batch, not updated: an error.
     fn update(&self, _x: &DMatrix<f64>, _y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {

@@ -3,11 +3,13 @@
 //! the bound's objective.
 
 use faer::Par;
+use nalgebra::DMatrix;
 
 use super::super::core::Prior;
 use super::super::export::{self, GpPredictor};
 use super::super::kernel::{self, Inputs, Kernel, build_train, cross_seq};
 use super::super::linalg;
+use super::super::model::PreparedQueries;
 use super::super::{GpError, Hyperparameters};
 use super::SparseCoreState;
 
@@ -345,6 +347,98 @@ pub(crate) struct SparseCore {
     pub bound: f64,
 }
 
+/// Query points prepared by [`SparseCore::fantasy`].
+pub(crate) struct SparseFantasy<'a> {
+    core: &'a SparseCore,
+    /// `g = L_B⁻¹ L⁻¹ k(Z, q)`, column-major `m × |q|`.
+    g: Vec<f64>,
+    /// The posterior mean at the query points.
+    mean: Vec<f64>,
+    /// `‖L⁻¹ k(Z, q)‖²` per point.
+    v1: Vec<f64>,
+    /// `‖g‖²` per point.
+    v2: Vec<f64>,
+}
+
+impl PreparedQueries for SparseFantasy<'_> {
+    fn mean(&self) -> &[f64] {
+        &self.mean
+    }
+
+    /// The latent variances after each pending set `(p, λ_p)`: observing `p` turns `B` into
+    /// `B + A_P A_Pᵀ` with `A_P = L⁻¹ k(Z, P) Λ_P^{-1/2}`, so by Woodbury the last norm of the
+    /// variance loses `‖L_C⁻¹ Hᵀ g‖²` with `H = L_B⁻¹ A_P` and `L_C = chol(I + HᵀH)` (`k × k`
+    /// for `k` pending points): `O(m² k + m k |q|)` a set, no copy of the model. An empty set
+    /// (or noise of the wrong length): the variances now.
+    fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>> {
+        let core = self.core;
+        let (m, d, r) = (core.m, core.d, self.mean.len());
+        let now = |lost: &dyn Fn(usize) -> f64| -> Vec<f64> {
+            (0..r)
+                .map(|i| (core.s2 - self.v1[i] + self.v2[i] - lost(i)).clamp(0.0, core.s2))
+                .collect()
+        };
+        sets.iter()
+            .map(|&(p, noise_p)| {
+                let k = p.n;
+                if k == 0 || noise_p.len() != k {
+                    return now(&|_| 0.0);
+                }
+                let ps = scaled(p, &core.length_scales);
+                let mut h = vec![0.0; m * k];
+                cross_seq(
+                    core.kernel,
+                    &core.zs,
+                    m,
+                    &ps,
+                    k,
+                    k,
+                    d,
+                    core.s2,
+                    &mut h,
+                    None,
+                );
+                linalg::solve_lower_in_place(&core.l, m, &mut h, k, Par::Seq);
+                for (col, lambda) in h.chunks_exact_mut(m).zip(noise_p) {
+                    let inv = 1.0 / lambda.sqrt();
+                    col.iter_mut().for_each(|v| *v *= inv);
+                }
+                linalg::solve_lower_in_place(&core.lb, m, &mut h, k, Par::Seq);
+                let mut c = vec![0.0; k * k];
+                linalg::gemm(
+                    &mut c,
+                    (&h, m, k, true),
+                    (&h, m, k, false),
+                    1.0,
+                    false,
+                    Par::Seq,
+                );
+                let mut c = DMatrix::from_vec(k, k, c);
+                for i in 0..k {
+                    c[(i, i)] += 1.0;
+                }
+                let mut hg = vec![0.0; k * r];
+                linalg::gemm(
+                    &mut hg,
+                    (&h, m, k, true),
+                    (&self.g, m, r, false),
+                    1.0,
+                    false,
+                    Par::Seq,
+                );
+                let hg = DMatrix::from_vec(k, r, hg);
+                match c
+                    .cholesky()
+                    .and_then(|ch| ch.l().solve_lower_triangular(&hg))
+                {
+                    Some(t) => now(&|i| t.column(i).norm_squared()),
+                    None => now(&|_| 0.0),
+                }
+            })
+            .collect()
+    }
+}
+
 impl SparseCore {
     /// Conditions `prior` with inducing inputs `z` on `(x, y)` with noise `lambda`.
     pub fn build(
@@ -507,6 +601,43 @@ impl SparseCore {
             v2.extend(c);
         }
         (mean, v1, v2)
+    }
+
+    /// The query points `q` prepared for their latent variances as if the points of any
+    /// number of alternative pending sets had been observed as well (an [`update`](Self::update)
+    /// of a copy; the variance does not depend on the labels): `g = L_B⁻¹ L⁻¹ k(Z, q)` and the
+    /// two norms of [`predict`](Self::predict), `O(m² · |q|)` once.
+    pub fn fantasy(&self, q: &Inputs) -> SparseFantasy<'_> {
+        let (m, d, r) = (self.m, self.d, q.n);
+        let qs = scaled(q, &self.length_scales);
+        let mut g = vec![0.0; m * r];
+        cross_seq(
+            self.kernel,
+            &self.zs,
+            m,
+            &qs,
+            r,
+            r,
+            d,
+            self.s2,
+            &mut g,
+            None,
+        );
+        let mean = g
+            .chunks_exact(m)
+            .map(|col| self.mean + linalg::dot(col, &self.w))
+            .collect();
+        linalg::solve_lower_in_place(&self.l, m, &mut g, r, Par::Seq);
+        let v1 = g.chunks_exact(m).map(|col| linalg::dot(col, col)).collect();
+        linalg::solve_lower_in_place(&self.lb, m, &mut g, r, Par::Seq);
+        let v2 = g.chunks_exact(m).map(|col| linalg::dot(col, col)).collect();
+        SparseFantasy {
+            core: self,
+            g,
+            mean,
+            v1,
+            v2,
+        }
     }
 
     /// Mean and latent variance `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹L⁻¹k*‖²` (clamped to `[0, s²]`).

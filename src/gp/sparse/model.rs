@@ -14,7 +14,10 @@ use super::super::hetero::{
 use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
-use super::super::model::{check_data, check_finite_matrix, check_query, predict_rows};
+use super::super::model::{
+    FantasyQueries, FantasySource, PreparedQueries, check_data, check_finite_matrix, check_query,
+    predict_rows,
+};
 use super::super::{
     Bounds, FitStats, GpError, GpModel, GpParams, Hyperparameters, ModelState, NoiseMode,
     NoiseSummary, Prediction,
@@ -404,6 +407,18 @@ fn full_rank_core(
             max: sp.gp.jitter_max.max(sp.jitter),
         },
     )
+}
+
+impl FantasySource for SparseGp {
+    fn input_dim(&self) -> usize {
+        self.main.d
+    }
+    fn plain(&self, x: &DMatrix<f64>) -> Prediction {
+        self.predict(x)
+    }
+    fn noise_at(&self, q: &Inputs) -> Vec<f64> {
+        SparseGp::noise_at(self, q)
+    }
 }
 
 impl SparseGp {
@@ -860,34 +875,22 @@ impl SparseGp {
 
     /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
     /// this model's hyperparameters, inducing points and noise (a batch executed but not yet
-    /// fitted): the same mean, and the latent variance after an [`update`](Self::update) of a
-    /// copy with labels equal to the mean (the variance does not depend on the labels).
-    /// `O((k + m) m_z²)` for `k` pending and `m` query rows with `m_z` inducing points. A
-    /// `pending` with the wrong column count or a non-finite coordinate, or an update that
-    /// fails, gives the plain prediction.
+    /// fitted): the same mean, and the latent variance an [`update`](Self::update) with them
+    /// would leave (the variance does not depend on the labels; see
+    /// [`fantasy`](Self::fantasy)). A `pending` with the wrong column count or a non-finite
+    /// coordinate gives the plain prediction.
     pub fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
-        if pending.nrows() == 0 || check_query(pending, self.main.d).is_err() {
-            return self.predict(x);
-        }
-        let p = Inputs::from_matrix(pending);
-        let (mean_p, _) = self.main.predict(&p);
-        let lambda = self.noise_at(&p);
-        let l = match self.mode {
-            NoiseMode::Homoscedastic => Lambda::Homo(self.hyper.noise_variance),
-            NoiseMode::Heteroscedastic => Lambda::Per(&lambda),
-        };
-        let mut fantasy = self.main.clone();
-        if fantasy.update(&p, &mean_p, l).is_err() {
-            return self.predict(x);
-        }
-        predict_rows(x, self.main.d, |q| {
-            let (mean, _) = self.main.predict(q);
-            let (_, latent_variance) = fantasy.predict(q);
-            Prediction {
-                mean,
-                latent_variance,
-                noise_variance: self.noise_at(q),
-            }
+        self.fantasy(x.clone()).predict(pending)
+    }
+
+    /// The rows of `x` prepared for [`predict_fantasised`](Self::predict_fantasised) with many
+    /// alternative `pending` sets ([`FantasyQueries::predict_each`]): `O(m_z² · m)` here for `m`
+    /// rows and `m_z` inducing points, then `O(m_z² k + m_z k m)` a set of `k` rows, no copy
+    /// of the model (Woodbury on the update's `B`).
+    pub fn fantasy(&self, x: DMatrix<f64>) -> FantasyQueries<'_> {
+        FantasyQueries::new(self, x, |q| {
+            let prepared: Box<dyn PreparedQueries> = Box::new(self.main.fantasy(q));
+            Some(prepared)
         })
     }
 

@@ -746,6 +746,26 @@ fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
             assert!(fantasy.latent_variance[i] <= plain.latent_variance[i] + 1e-12);
             assert_eq!(fantasy.mean[i], plain.mean[i]);
         }
+        // One preparation of the queries, several pending sets in one call: each answer is
+        // its own update's.
+        let (few, _) = data(4, 3, 34);
+        let sets = [few.clone(), pending.clone(), DMatrix::zeros(0, 3)];
+        let answers = model.fantasy(q.clone()).predict_each(&sets);
+        for (set, answer) in sets.iter().zip(&answers) {
+            let mu = model.predict(set).mean;
+            let k = set.nrows();
+            let xs = DMatrix::from_fn(300 + k, 3, |i, j| {
+                if i < 300 {
+                    x[(i, j)]
+                } else {
+                    set[(i - 300, j)]
+                }
+            });
+            let ys = DVector::from_fn(300 + k, |i, _| if i < 300 { y[i] } else { mu[i - 300] });
+            let reference = model.condition(&xs, &ys).unwrap().predict(&q);
+            assert_predictions_close(answer, &reference, 1e-8);
+        }
+        assert_eq!(answers[2], plain);
         // The model itself is unchanged.
         assert_eq!(model.n_train(), 300);
     }
