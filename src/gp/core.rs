@@ -8,7 +8,6 @@ use super::export::{self, GpPredictor};
 use super::kernel::{self, Inputs, Kernel};
 use super::linalg;
 use super::lml::{self, Jitter};
-use super::model::PreparedQueries;
 use super::{GpError, Hyperparameters};
 
 /// A GP prior: kernel, constant mean, ARD length scales and signal variance, what a conditioned
@@ -55,25 +54,26 @@ impl Prior {
     }
 }
 
-/// Query points prepared for fantasised variances ([`Core::fantasy`]): the posterior at them
-/// now, and `L⁻¹ k(X, q)`, which every pending set's answer reuses.
+/// Query points prepared once by a conditioned core ([`Core::fantasy`], the sparse core's):
+/// their latent variances after each of several alternative pending sets `(points, noise
+/// variances)`.
+pub(crate) trait PreparedQueries {
+    fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>>;
+}
+
+/// Query points prepared for fantasised variances ([`Core::fantasy`]): the latent variance at
+/// them now, and `L⁻¹ k(X, q)`, which every pending set's answer reuses.
 pub(crate) struct Fantasy<'a> {
     core: &'a Core,
     /// The query points, scaled by the length scales (column-major `m × d`).
     qs: Vec<f64>,
     /// `V_q = L⁻¹ k(X, q)` (`n × m`).
     vq: DMatrix<f64>,
-    /// The posterior mean at the query points.
-    mean: Vec<f64>,
     /// The latent posterior variance at the query points, before any pending point.
     var: Vec<f64>,
 }
 
 impl PreparedQueries for Fantasy<'_> {
-    fn mean(&self) -> &[f64] {
-        &self.mean
-    }
-
     /// The latent variances at the query points as if the points `p` of a pending set `(p,
     /// noise_p)` had been observed as well, with noise variances `noise_p`, for each of
     /// several alternative sets: `v(q) − c_qᵀ S⁻¹ c_q` with `V = L⁻¹ k(X, ·)`,
@@ -342,15 +342,16 @@ impl Core {
     /// `k(X, q)` and `V_q = L⁻¹ k(X, q)`, the `O(n² m)` part of each answer, computed once. A
     /// GP's variance does not depend on the labels, so the answers are exact for any labels
     /// (and the mean is unchanged for labels equal to it — a "fantasised" observation). `None`
-    /// without `L⁻¹` (a noise GP) or without query points.
-    pub fn fantasy(&self, q: &Inputs) -> Option<Fantasy<'_>> {
+    /// without `L⁻¹` (a noise GP) or without query points; with it, the posterior mean at
+    /// `q` beside the preparation.
+    pub fn fantasy(&self, q: &Inputs) -> Option<(Vec<f64>, Fantasy<'_>)> {
         let (n, m) = (self.n, q.n);
         if m == 0 || self.linv.len() != n * n {
             return None;
         }
         let qs = q.scaled(&self.length_scales);
         let (kq, vq) = self.cross_and_whitened(&qs, m);
-        let mean = kq
+        let mean: Vec<f64> = kq
             .chunks_exact(n)
             .map(|col| self.mean + col.iter().zip(&self.alpha).map(|(a, b)| a * b).sum::<f64>())
             .collect();
@@ -358,13 +359,15 @@ impl Core {
             .column_iter()
             .map(|col| (self.s2 - col.norm_squared()).max(0.0))
             .collect();
-        Some(Fantasy {
-            core: self,
-            qs,
-            vq,
+        Some((
             mean,
-            var,
-        })
+            Fantasy {
+                core: self,
+                qs,
+                vq,
+                var,
+            },
+        ))
     }
 
     /// `k(X, ·)` and `L⁻¹ k(X, ·)` of the scaled points `pts` (`cnt` of them, column-major).

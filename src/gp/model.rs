@@ -2,7 +2,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::core::{Core, Prior, mean};
+use super::core::{Core, PreparedQueries, Prior, mean};
 use super::export::{NoisePredictor, Predictor};
 use super::fit::{self, Optimum};
 use super::hetero::{self, NoiseModel};
@@ -513,63 +513,69 @@ impl GpModel {
     /// of the `m` rows is done here, once, and each set then costs `O(n² k + n k m)` for its
     /// `k` rows. The `spread` acquisition asks this about every candidate of a proposal.
     pub fn fantasy(&self, x: DMatrix<f64>) -> FantasyQueries<'_> {
-        FantasyQueries::new(self, x, |q| {
-            let prepared: Box<dyn PreparedQueries> = Box::new(self.main.fantasy(q)?);
-            Some(prepared)
+        let of_model = FantasyOf {
+            dim: self.x.d,
+            plain: Box::new(|x| self.predict(x)),
+            noise_at: Box::new(|q| self.noise_at(q)),
+        };
+        FantasyQueries::new(of_model, x, |q| {
+            let (mean, fantasy) = self.main.fantasy(q)?;
+            Some((mean, Box::new(fantasy) as Box<dyn PreparedQueries>))
         })
-    }
-}
-
-impl FantasySource for GpModel {
-    fn input_dim(&self) -> usize {
-        self.x.d
-    }
-    fn plain(&self, x: &DMatrix<f64>) -> Prediction {
-        self.predict(x)
-    }
-    fn noise_at(&self, q: &Inputs) -> Vec<f64> {
-        GpModel::noise_at(self, q)
     }
 }
 
 /// A GP's side of [`FantasyQueries`]: its input dimension, its plain prediction (what an empty
 /// or invalid pending set answers) and its observation noise at pending points.
-pub(crate) trait FantasySource {
-    fn input_dim(&self) -> usize;
-    fn plain(&self, x: &DMatrix<f64>) -> Prediction;
-    fn noise_at(&self, q: &Inputs) -> Vec<f64>;
+pub(crate) struct FantasyOf<'a> {
+    pub dim: usize,
+    pub plain: Box<PlainPrediction<'a>>,
+    pub noise_at: Box<NoiseAt<'a>>,
 }
 
-/// Query points prepared once by a conditioned core (the exact one's [`Fantasy`], the sparse
-/// one's): the posterior mean at them, and their latent variances after each of several
-/// alternative pending sets `(points, noise variances)`.
-pub(crate) trait PreparedQueries {
-    fn mean(&self) -> &[f64];
-    fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>>;
-}
+/// A GP's plain prediction at query rows.
+pub(crate) type PlainPrediction<'a> = dyn Fn(&DMatrix<f64>) -> Prediction + 'a;
+
+/// A GP's observation-noise variances at points.
+pub(crate) type NoiseAt<'a> = dyn Fn(&Inputs) -> Vec<f64> + 'a;
 
 /// Query rows prepared for predictions as if different pending rows had been observed
 /// ([`GpModel::fantasy`], [`SparseGp::fantasy`](super::SparseGp::fantasy)).
 pub struct FantasyQueries<'a> {
-    model: &'a dyn FantasySource,
+    model: FantasyOf<'a>,
     x: DMatrix<f64>,
-    /// The rows as inputs, their preparation and their noise; `None` where the plain
-    /// prediction is every answer (wrong column count, no rows, or no factor to fantasise with).
-    prepared: Option<(Inputs, Box<dyn PreparedQueries + 'a>, Vec<f64>)>,
+    /// The rows as inputs, the posterior mean there, their preparation and their noise; `None`
+    /// where the plain prediction is every answer (wrong column count, no rows, or no factor
+    /// to fantasise with).
+    prepared: Option<Prepared<'a>>,
+}
+
+/// [`FantasyQueries`]' rows once prepared.
+struct Prepared<'a> {
+    q: Inputs,
+    mean: Vec<f64>,
+    variances: Box<dyn PreparedQueries + 'a>,
+    noise: Vec<f64>,
 }
 
 impl<'a> FantasyQueries<'a> {
-    /// The rows of `x` prepared by `prepare` (given them as inputs) for `model`.
+    /// The rows of `x` prepared by `prepare` (given them as inputs; it answers the posterior
+    /// mean there beside the preparation) for the GP `model` describes.
     pub(crate) fn new(
-        model: &'a dyn FantasySource,
+        model: FantasyOf<'a>,
         x: DMatrix<f64>,
-        prepare: impl FnOnce(&Inputs) -> Option<Box<dyn PreparedQueries + 'a>>,
+        prepare: impl FnOnce(&Inputs) -> Option<(Vec<f64>, Box<dyn PreparedQueries + 'a>)>,
     ) -> Self {
-        let prepared = (x.ncols() == model.input_dim()).then(|| {
+        let prepared = (x.ncols() == model.dim).then(|| {
             let q = Inputs::from_matrix(&x);
-            let fantasy = prepare(&q)?;
-            let noise = model.noise_at(&q);
-            Some((q, fantasy, noise))
+            let (mean, variances) = prepare(&q)?;
+            let noise = (model.noise_at)(&q);
+            Some(Prepared {
+                q,
+                mean,
+                variances,
+                noise,
+            })
         });
         FantasyQueries {
             model,
@@ -587,18 +593,18 @@ impl<'a> FantasyQueries<'a> {
     /// [`predict`](Self::predict) with each of several alternative `pending` sets, in order;
     /// their whitening is one product with `L⁻¹` for all of them.
     pub fn predict_each(&self, pendings: &[DMatrix<f64>]) -> Vec<Prediction> {
-        let model = self.model;
-        let Some((q, fantasy, noise)) = &self.prepared else {
-            return pendings.iter().map(|_| model.plain(&self.x)).collect();
+        let model = &self.model;
+        let Some(prepared) = &self.prepared else {
+            return pendings.iter().map(|_| (model.plain)(&self.x)).collect();
         };
         // A set that is empty or not a query answers the plain prediction.
         let sets: Vec<Option<(Inputs, Vec<f64>)>> = pendings
             .iter()
             .map(|pending| {
-                let valid = pending.nrows() > 0 && check_query(pending, model.input_dim()).is_ok();
+                let valid = pending.nrows() > 0 && check_query(pending, model.dim).is_ok();
                 valid.then(|| {
                     let p = Inputs::from_matrix(pending);
-                    let noise_p = model.noise_at(&p);
+                    let noise_p = (model.noise_at)(&p);
                     (p, noise_p)
                 })
             })
@@ -608,17 +614,17 @@ impl<'a> FantasyQueries<'a> {
             .flatten()
             .map(|(p, noise_p)| (p, noise_p.as_slice()))
             .collect();
-        let mut variances = fantasy.variances_each(&valid).into_iter();
+        let mut variances = prepared.variances.variances_each(&valid).into_iter();
         sets.iter()
             .map(|set| match set {
-                None => model.plain(&self.x),
+                None => (model.plain)(&self.x),
                 Some(_) => {
                     let mut prediction = Prediction {
-                        mean: fantasy.mean().to_vec(),
+                        mean: prepared.mean.clone(),
                         latent_variance: variances.next().unwrap_or_default(),
-                        noise_variance: noise.clone(),
+                        noise_variance: prepared.noise.clone(),
                     };
-                    mark_non_finite(q, &mut prediction);
+                    mark_non_finite(&prepared.q, &mut prediction);
                     prediction
                 }
             })

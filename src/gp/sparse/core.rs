@@ -5,11 +5,10 @@
 use faer::Par;
 use nalgebra::DMatrix;
 
-use super::super::core::Prior;
+use super::super::core::{PreparedQueries, Prior};
 use super::super::export::{self, GpPredictor};
 use super::super::kernel::{self, Inputs, Kernel, build_train, cross_seq};
 use super::super::linalg;
-use super::super::model::PreparedQueries;
 use super::super::{GpError, Hyperparameters};
 use super::SparseCoreState;
 
@@ -352,8 +351,6 @@ pub(crate) struct SparseFantasy<'a> {
     core: &'a SparseCore,
     /// `g = L_B⁻¹ L⁻¹ k(Z, q)`, column-major `m × |q|`.
     g: Vec<f64>,
-    /// The posterior mean at the query points.
-    mean: Vec<f64>,
     /// `‖L⁻¹ k(Z, q)‖²` per point.
     v1: Vec<f64>,
     /// `‖g‖²` per point.
@@ -361,10 +358,6 @@ pub(crate) struct SparseFantasy<'a> {
 }
 
 impl PreparedQueries for SparseFantasy<'_> {
-    fn mean(&self) -> &[f64] {
-        &self.mean
-    }
-
     /// The latent variances after each pending set `(p, λ_p)`: observing `p` turns `B` into
     /// `B + A_P A_Pᵀ` with `A_P = L⁻¹ k(Z, P) Λ_P^{-1/2}`, so by Woodbury the last norm of the
     /// variance loses `‖L_C⁻¹ Hᵀ g‖²` with `H = L_B⁻¹ A_P` and `L_C = chol(I + HᵀH)` (`k × k`
@@ -372,7 +365,7 @@ impl PreparedQueries for SparseFantasy<'_> {
     /// (or noise of the wrong length): the variances now.
     fn variances_each(&self, sets: &[(&Inputs, &[f64])]) -> Vec<Vec<f64>> {
         let core = self.core;
-        let (m, d, r) = (core.m, core.d, self.mean.len());
+        let (m, r) = (core.m, self.v1.len());
         let now = |lost: &dyn Fn(usize) -> f64| -> Vec<f64> {
             (0..r)
                 .map(|i| (core.s2 - self.v1[i] + self.v2[i] - lost(i)).clamp(0.0, core.s2))
@@ -384,36 +377,15 @@ impl PreparedQueries for SparseFantasy<'_> {
                 if k == 0 || noise_p.len() != k {
                     return now(&|_| 0.0);
                 }
-                let ps = scaled(p, &core.length_scales);
-                let mut h = vec![0.0; m * k];
-                cross_seq(
-                    core.kernel,
-                    &core.zs,
-                    m,
-                    &ps,
-                    k,
-                    k,
-                    d,
-                    core.s2,
-                    &mut h,
-                    None,
-                );
-                linalg::solve_lower_in_place(&core.l, m, &mut h, k, Par::Seq);
+                // H = L_B⁻¹ A_P, A_P = L⁻¹ k(Z, P) Λ_P^{-1/2}.
+                let mut h = core.projected(p);
                 for (col, lambda) in h.chunks_exact_mut(m).zip(noise_p) {
                     let inv = 1.0 / lambda.sqrt();
                     col.iter_mut().for_each(|v| *v *= inv);
                 }
                 linalg::solve_lower_in_place(&core.lb, m, &mut h, k, Par::Seq);
-                let mut c = vec![0.0; k * k];
-                linalg::gemm(
-                    &mut c,
-                    (&h, m, k, true),
-                    (&h, m, k, false),
-                    1.0,
-                    false,
-                    Par::Seq,
-                );
-                let mut c = DMatrix::from_vec(k, k, c);
+                let hm = DMatrix::from_column_slice(m, k, &h);
+                let mut c = hm.tr_mul(&hm);
                 for i in 0..k {
                     c[(i, i)] += 1.0;
                 }
@@ -500,26 +472,12 @@ impl SparseCore {
     /// Absorbs new points at fixed hyperparameters and inducing points: a rank-`k` update of
     /// `L_B` and sums for the rest. O(k m²).
     pub fn update(&mut self, x: &Inputs, y: &[f64], lambda: Lambda<'_>) -> Result<(), GpError> {
-        let (m, d, k) = (self.m, self.d, x.n);
+        let (m, k) = (self.m, x.n);
         if k == 0 {
             return Ok(());
         }
         let r: Vec<f64> = y.iter().map(|v| v - self.mean).collect();
-        let xs = scaled(x, &self.length_scales);
-        let mut a = vec![0.0; m * k];
-        cross_seq(
-            self.kernel,
-            &self.zs,
-            m,
-            &xs,
-            k,
-            k,
-            d,
-            self.s2,
-            &mut a,
-            None,
-        );
-        linalg::solve_lower_in_place(&self.l, m, &mut a, k, Par::Seq);
+        let mut a = self.projected(x);
         let mut rs = vec![0.0; k];
         let mut st = Stats::of(&r, lambda);
         for j in 0..k {
@@ -603,27 +561,32 @@ impl SparseCore {
         (mean, v1, v2)
     }
 
+    /// `k(Z, x)`, column-major `m × |x|`.
+    fn cross(&self, x: &Inputs) -> Vec<f64> {
+        let (m, k) = (self.m, x.n);
+        let xs = scaled(x, &self.length_scales);
+        let mut a = vec![0.0; m * k];
+        let (kernel, zs, d, s2) = (self.kernel, &self.zs, self.d, self.s2);
+        cross_seq(kernel, zs, m, &xs, k, k, d, s2, &mut a, None);
+        a
+    }
+
+    /// `L⁻¹ k(Z, x)`, column-major `m × |x|`: the points `x` projected on the inducing points.
+    fn projected(&self, x: &Inputs) -> Vec<f64> {
+        let mut a = self.cross(x);
+        linalg::solve_lower_in_place(&self.l, self.m, &mut a, x.n, Par::Seq);
+        a
+    }
+
     /// The query points `q` prepared for their latent variances as if the points of any
     /// number of alternative pending sets had been observed as well (an [`update`](Self::update)
     /// of a copy; the variance does not depend on the labels): `g = L_B⁻¹ L⁻¹ k(Z, q)` and the
-    /// two norms of [`predict`](Self::predict), `O(m² · |q|)` once.
-    pub fn fantasy(&self, q: &Inputs) -> SparseFantasy<'_> {
-        let (m, d, r) = (self.m, self.d, q.n);
-        let qs = scaled(q, &self.length_scales);
-        let mut g = vec![0.0; m * r];
-        cross_seq(
-            self.kernel,
-            &self.zs,
-            m,
-            &qs,
-            r,
-            r,
-            d,
-            self.s2,
-            &mut g,
-            None,
-        );
-        let mean = g
+    /// two norms of [`predict`](Self::predict), `O(m² · |q|)` once; beside it, the posterior
+    /// mean at `q`.
+    pub fn fantasy(&self, q: &Inputs) -> (Vec<f64>, SparseFantasy<'_>) {
+        let (m, r) = (self.m, q.n);
+        let mut g = self.cross(q);
+        let mean: Vec<f64> = g
             .chunks_exact(m)
             .map(|col| self.mean + linalg::dot(col, &self.w))
             .collect();
@@ -631,13 +594,15 @@ impl SparseCore {
         let v1 = g.chunks_exact(m).map(|col| linalg::dot(col, col)).collect();
         linalg::solve_lower_in_place(&self.lb, m, &mut g, r, Par::Seq);
         let v2 = g.chunks_exact(m).map(|col| linalg::dot(col, col)).collect();
-        SparseFantasy {
-            core: self,
-            g,
+        (
             mean,
-            v1,
-            v2,
-        }
+            SparseFantasy {
+                core: self,
+                g,
+                v1,
+                v2,
+            },
+        )
     }
 
     /// Mean and latent variance `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹L⁻¹k*‖²` (clamped to `[0, s²]`).

@@ -5,7 +5,7 @@ use rand::SeedableRng;
 use rand::seq::index::sample;
 use rand_chacha::ChaCha8Rng;
 
-use super::super::core::{Prior, mean};
+use super::super::core::{PreparedQueries, Prior, mean};
 use super::super::export::{NoisePredictor, Predictor};
 use super::super::fit::{self, Optimum, Starts, Warm, default_start, optimise_with};
 use super::super::hetero::{
@@ -15,8 +15,7 @@ use super::super::kernel::{Inputs, Kernel};
 use super::super::lbfgs::{self, Settings};
 use super::super::lml::NoiseSpec;
 use super::super::model::{
-    FantasyQueries, FantasySource, PreparedQueries, check_data, check_finite_matrix, check_query,
-    predict_rows,
+    FantasyOf, FantasyQueries, check_data, check_finite_matrix, check_query, predict_rows,
 };
 use super::super::{
     Bounds, FitStats, GpError, GpModel, GpParams, Hyperparameters, ModelState, NoiseMode,
@@ -407,18 +406,6 @@ fn full_rank_core(
             max: sp.gp.jitter_max.max(sp.jitter),
         },
     )
-}
-
-impl FantasySource for SparseGp {
-    fn input_dim(&self) -> usize {
-        self.main.d
-    }
-    fn plain(&self, x: &DMatrix<f64>) -> Prediction {
-        self.predict(x)
-    }
-    fn noise_at(&self, q: &Inputs) -> Vec<f64> {
-        SparseGp::noise_at(self, q)
-    }
 }
 
 impl SparseGp {
@@ -888,9 +875,14 @@ impl SparseGp {
     /// rows and `m_z` inducing points, then `O(m_z² k + m_z k m)` a set of `k` rows, no copy
     /// of the model (Woodbury on the update's `B`).
     pub fn fantasy(&self, x: DMatrix<f64>) -> FantasyQueries<'_> {
-        FantasyQueries::new(self, x, |q| {
-            let prepared: Box<dyn PreparedQueries> = Box::new(self.main.fantasy(q));
-            Some(prepared)
+        let of_model = FantasyOf {
+            dim: self.main.d,
+            plain: Box::new(|x| self.predict(x)),
+            noise_at: Box::new(|q| self.noise_at(q)),
+        };
+        FantasyQueries::new(of_model, x, |q| {
+            let (mean, fantasy) = self.main.fantasy(q);
+            Some((mean, Box::new(fantasy) as Box<dyn PreparedQueries>))
         })
     }
 
