@@ -312,6 +312,12 @@ pub struct ServeArgs {
     /// it must exist) that several replicas may serve together.
     #[arg(long, env = "PRECOND_DATABASE_URL", default_value = "precond.db")]
     pub database_url: String,
+    /// Milliseconds a request waits for a PostgreSQL connection before it is answered `503
+    /// unavailable` with `Retry-After` (the database down, or every connection busy); also
+    /// readiness's bound (100 ..= 60 000). At start-up the server waits up to 30 s for the
+    /// database to come up.
+    #[arg(long, env = "PRECOND_DATABASE_TIMEOUT_MS", default_value_t = 2000)]
+    pub database_timeout_ms: u64,
     /// Seconds a replica's claim on a fit lasts without a heartbeat: a replica that died
     /// mid-fit has its fit taken over by another after this long (2 ..= 3600).
     #[arg(long, env = "PRECOND_FIT_LEASE_SECS", default_value_t = 15)]
@@ -384,6 +390,15 @@ pub struct ServeArgs {
     /// refused, and `mde.estimator: auto` switches to the sparse GP first.
     #[arg(long, env = "PRECOND_MAX_FIT_MEMORY_MIB")]
     pub max_fit_memory_mib: Option<u64>,
+    /// Seconds one MDE fit may take by its estimate, model selection included (10 ..= 86 400):
+    /// a fit beyond it is not attempted but recorded as refused (`mde.estimator: auto` turns
+    /// to the sparse GP first), so that one experiment's fit cannot hold a fit slot for hours.
+    #[arg(long, env = "PRECOND_MAX_FIT_SECONDS", default_value_t = 900)]
+    pub max_fit_seconds: u64,
+    /// Large answers (model exports, CSV exports of every transition) written at once
+    /// (1 ..= 256); one beyond waits 2 s for a slot, then gets `429`.
+    #[arg(long, env = "PRECOND_MAX_CONCURRENT_EXPORTS", default_value_t = 4)]
+    pub max_concurrent_exports: usize,
     /// Seconds a client has to send a request's headers; also how long a kept-alive connection
     /// may stay idle (1 ..= 600).
     #[arg(long, env = "PRECOND_HEADER_READ_TIMEOUT_SECS", default_value_t = 30)]
@@ -425,6 +440,8 @@ impl ServeArgs {
             max_fit_memory: self
                 .max_fit_memory_mib
                 .map_or(defaults.max_fit_memory, |m| m.saturating_mul(1 << 20)),
+            max_fit_seconds: self.max_fit_seconds,
+            max_concurrent_exports: self.max_concurrent_exports,
         };
         limits.check().map_err(anyhow::Error::msg)?;
         Ok(limits)
@@ -567,7 +584,21 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 Some(t) => tracing::info!(tokens = t.len(), "access tokens required"),
                 None => tracing::info!("no token file: every request is let through"),
             }
-            let store = Store::open(&args.database_url).await?;
+            // One server per SQLite file: held until this process ends.
+            let serving = crate::store::lock_for_serving(&args.database_url)?;
+            if let Some(lock) = &serving {
+                tracing::info!(lock = %lock.path().display(), "holding the database's serving lock");
+            }
+            anyhow::ensure!(
+                (100..=60_000).contains(&args.database_timeout_ms),
+                "--database-timeout-ms must be in 100 ..= 60000 (got {})",
+                args.database_timeout_ms
+            );
+            let store = Store::open_with_timeout(
+                &args.database_url,
+                std::time::Duration::from_millis(args.database_timeout_ms),
+            )
+            .await?;
             tracing::info!(
                 database = %crate::store::redact(&args.database_url),
                 backend = store.backend().as_str(),
@@ -594,7 +625,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                     bound: None,
                 },
             );
-            serve(listener, state, shutdown_signal()).await
+            let served = serve(listener, state, shutdown_signal()).await;
+            drop(serving);
+            served
         }
         Command::Bench(BenchCommand::Gp(args)) if args.child.is_some() => {
             crate::bench::sparse::run_child(args.child.as_deref().unwrap_or_default())

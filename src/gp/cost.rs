@@ -66,6 +66,19 @@ impl FitCost {
             seconds: flops / ASSUMED_FLOPS,
         }
     }
+
+    /// `k` such fits one after the other: the work adds up, the peak does not.
+    pub fn times(self, k: usize) -> Self {
+        Self::new(self.peak_bytes, self.flops * k as f64)
+    }
+
+    /// This fit, then `other`.
+    pub fn then(self, other: Self) -> Self {
+        Self::new(
+            self.peak_bytes.max(other.peak_bytes),
+            self.flops + other.flops,
+        )
+    }
 }
 
 /// Flops of one exact LML-and-gradient evaluation: Cholesky (`n³/3`), triangular inverse

@@ -13,6 +13,11 @@ use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde_json::{Value, json};
 
+/// `Retry-After` of a `507`: space is freed by an operator, not in a second.
+const STORAGE_FULL_RETRY_SECS: u64 = 30;
+/// `Retry-After` of a `503 unavailable`: a database restarting or a connection lost.
+const UNAVAILABLE_RETRY_SECS: u64 = 2;
+
 /// Everything that can go wrong in a request.
 #[derive(Debug, thiserror::Error)]
 pub enum ApiError {
@@ -71,22 +76,7 @@ impl ApiError {
             Self::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
             Self::Unauthorized => StatusCode::UNAUTHORIZED,
             Self::Forbidden(_) => StatusCode::FORBIDDEN,
-            Self::Service(e) => match e {
-                Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
-                Error::NotFound(_) => StatusCode::NOT_FOUND,
-                Error::Conflict(_) | Error::LeaseHeld { .. } => StatusCode::CONFLICT,
-                Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
-                Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
-                Error::Dynamics(DynamicsError::Busy { .. }) => StatusCode::SERVICE_UNAVAILABLE,
-                Error::Dynamics(DynamicsError::NotAllowed { .. }) => StatusCode::CONFLICT,
-                Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
-                Error::Overloaded { .. } => StatusCode::TOO_MANY_REQUESTS,
-                Error::DeadlineExceeded { .. } | Error::Cancelled => {
-                    StatusCode::SERVICE_UNAVAILABLE
-                }
-                Error::LimitReached(_) => StatusCode::CONFLICT,
-                Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
-            },
+            Self::Service(e) => service_status(e),
         }
     }
 
@@ -101,68 +91,14 @@ impl ApiError {
             Self::Unavailable(_) => "unavailable",
             Self::Unauthorized => "unauthorized",
             Self::Forbidden(_) => "forbidden",
-            Self::Service(e) => match e {
-                Error::Validation { .. } | Error::Dynamics(DynamicsError::ClientSide) => {
-                    "validation_failed"
-                }
-                Error::NotFound(_) => "not_found",
-                Error::Conflict(_) | Error::LeaseHeld { .. } => "conflict",
-                Error::NoPlan { .. } => "no_plan",
-                Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
-                Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
-                Error::Dynamics(DynamicsError::Busy { .. }) => "model_busy",
-                Error::Dynamics(DynamicsError::NotAllowed { .. }) => "model_not_allowed",
-                Error::Overloaded { .. } => "overloaded",
-                Error::DeadlineExceeded { .. } => "deadline_exceeded",
-                Error::Cancelled => "cancelled",
-                Error::LimitReached(_) => "limit_reached",
-                Error::Internal(_) => "internal",
-            },
+            Self::Service(e) => service_code(e),
         }
     }
 
     fn details(&self) -> Value {
         match self {
             Self::PayloadTooLarge { limit } => json!({"limit_bytes": limit}),
-            Self::Service(e) => match e {
-                Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
-                Error::LeaseHeld {
-                    proposal_id,
-                    client_id,
-                    start,
-                    goal,
-                } => json!({"proposal_id": proposal_id, "client_id": client_id,
-                            "start": start, "goal": goal}),
-                Error::NoPlan {
-                    extensions,
-                    candidates,
-                } if candidates.is_empty() => json!({"extensions": extensions}),
-                Error::NoPlan {
-                    extensions,
-                    candidates,
-                } => json!({"extensions": extensions, "candidates": candidates}),
-                Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
-                    json!({"model": model, "timeout_ms": timeout_ms})
-                }
-                Error::Dynamics(
-                    DynamicsError::Unavailable { model, reason }
-                    | DynamicsError::Busy { model, reason }
-                    | DynamicsError::NotAllowed { model, reason },
-                ) => json!({"model": model, "reason": reason}),
-                Error::Dynamics(DynamicsError::ClientSide) => {
-                    json!({"field": "domain.model", "reason": e.to_string()})
-                }
-                Error::Overloaded { retry_after_secs } => {
-                    json!({"retry_after_seconds": retry_after_secs})
-                }
-                Error::DeadlineExceeded {
-                    extensions,
-                    timeout_ms,
-                    retry_after_secs,
-                } => json!({"extensions": extensions, "timeout_ms": timeout_ms,
-                            "retry_after_seconds": retry_after_secs}),
-                _ => Value::Null,
-            },
+            Self::Service(e) => service_details(e),
             _ => Value::Null,
         }
     }
@@ -170,11 +106,8 @@ impl ApiError {
     /// Seconds a client should wait before retrying, for the `Retry-After` header.
     pub fn retry_after_secs(&self) -> Option<u64> {
         match self {
-            Self::Service(Error::Overloaded { retry_after_secs })
-            | Self::Service(Error::DeadlineExceeded {
-                retry_after_secs, ..
-            }) => Some(*retry_after_secs),
-            Self::Service(Error::Dynamics(DynamicsError::Busy { .. })) => Some(1),
+            Self::Service(e) => service_retry_after(e),
+            Self::Unavailable(_) => Some(UNAVAILABLE_RETRY_SECS),
             _ => None,
         }
     }
@@ -182,7 +115,7 @@ impl ApiError {
     /// The JSON body of this error.
     pub fn body(&self) -> ErrorBody {
         let message = match self {
-            Self::Service(Error::Internal(_)) => "internal server error".to_string(),
+            Self::Service(e) => service_message(e),
             other => other.to_string(),
         };
         ErrorBody {
@@ -198,12 +131,7 @@ impl ApiError {
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         match &self {
-            Self::Service(Error::Internal(cause)) => {
-                tracing::error!(error = ?cause, "request failed")
-            }
-            Self::Service(Error::Dynamics(e)) => {
-                tracing::warn!(error = %e, "dynamics model failed")
-            }
+            Self::Service(e) => log_service_failure(e.answered()),
             Self::Unavailable(reason) => tracing::warn!(%reason, "dependency unavailable"),
             _ => {}
         }
@@ -225,6 +153,158 @@ impl IntoResponse for ApiError {
                 .insert(header::WWW_AUTHENTICATE, HeaderValue::from_static("Bearer"));
         }
         response
+    }
+}
+
+/// The status of a service answer.
+fn service_status(e: &Error) -> StatusCode {
+    match e {
+        Error::PrefixStored { error, .. } => service_status(error),
+        Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::NotFound(_) => StatusCode::NOT_FOUND,
+        Error::Conflict(_) | Error::LeaseHeld { .. } | Error::KeyReused { .. } => {
+            StatusCode::CONFLICT
+        }
+        Error::Dynamics(DynamicsError::Timeout { .. }) => StatusCode::GATEWAY_TIMEOUT,
+        Error::Dynamics(DynamicsError::Unavailable { .. }) => StatusCode::BAD_GATEWAY,
+        Error::Dynamics(DynamicsError::Busy { .. }) => StatusCode::SERVICE_UNAVAILABLE,
+        Error::Dynamics(DynamicsError::NotAllowed { .. }) => StatusCode::CONFLICT,
+        Error::Dynamics(DynamicsError::ClientSide) => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::Overloaded { .. } | Error::ExportsBusy { .. } => StatusCode::TOO_MANY_REQUESTS,
+        Error::DeadlineExceeded { .. } | Error::Cancelled => StatusCode::SERVICE_UNAVAILABLE,
+        Error::LimitReached(_) => StatusCode::CONFLICT,
+        Error::StorageFull(_) => StatusCode::INSUFFICIENT_STORAGE,
+        Error::DatabaseUnavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+        Error::Internal(_) => StatusCode::INTERNAL_SERVER_ERROR,
+    }
+}
+
+/// The code of a service answer.
+fn service_code(e: &Error) -> &'static str {
+    match e {
+        Error::PrefixStored { error, .. } => service_code(error),
+        Error::Validation { .. } | Error::Dynamics(DynamicsError::ClientSide) => {
+            "validation_failed"
+        }
+        Error::NotFound(_) => "not_found",
+        Error::Conflict(_) | Error::LeaseHeld { .. } | Error::KeyReused { .. } => "conflict",
+        Error::NoPlan { .. } => "no_plan",
+        Error::Dynamics(DynamicsError::Timeout { .. }) => "model_timeout",
+        Error::Dynamics(DynamicsError::Unavailable { .. }) => "model_unavailable",
+        Error::Dynamics(DynamicsError::Busy { .. }) => "model_busy",
+        Error::Dynamics(DynamicsError::NotAllowed { .. }) => "model_not_allowed",
+        Error::Overloaded { .. } | Error::ExportsBusy { .. } => "overloaded",
+        Error::DeadlineExceeded { .. } => "deadline_exceeded",
+        Error::Cancelled => "cancelled",
+        Error::LimitReached(_) => "limit_reached",
+        Error::StorageFull(_) => "insufficient_storage",
+        Error::DatabaseUnavailable(_) => "unavailable",
+        Error::Internal(_) => "internal",
+    }
+}
+
+/// The details of a service answer.
+fn service_details(e: &Error) -> Value {
+    match e {
+        Error::PrefixStored {
+            trajectory_id,
+            error,
+        } => {
+            let mut details = match service_details(error) {
+                Value::Object(map) => map,
+                _ => serde_json::Map::new(),
+            };
+            details.insert("stored_trajectory_id".into(), json!(trajectory_id));
+            Value::Object(details)
+        }
+        Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
+        Error::KeyReused { field, difference } => {
+            json!({"field": field, "reason": difference})
+        }
+        Error::LeaseHeld {
+            proposal_id,
+            client_id,
+            start,
+            goal,
+        } => json!({"proposal_id": proposal_id, "client_id": client_id,
+                    "start": start, "goal": goal}),
+        Error::NoPlan {
+            extensions,
+            candidates,
+        } if candidates.is_empty() => json!({"extensions": extensions}),
+        Error::NoPlan {
+            extensions,
+            candidates,
+        } => json!({"extensions": extensions, "candidates": candidates}),
+        Error::Dynamics(DynamicsError::Timeout { model, timeout_ms }) => {
+            json!({"model": model, "timeout_ms": timeout_ms})
+        }
+        Error::Dynamics(
+            DynamicsError::Unavailable { model, reason }
+            | DynamicsError::Busy { model, reason }
+            | DynamicsError::NotAllowed { model, reason },
+        ) => json!({"model": model, "reason": reason}),
+        Error::Dynamics(DynamicsError::ClientSide) => {
+            json!({"field": "domain.model", "reason": e.to_string()})
+        }
+        Error::Overloaded { retry_after_secs }
+        | Error::ExportsBusy {
+            retry_after_secs, ..
+        } => {
+            json!({"retry_after_seconds": retry_after_secs})
+        }
+        Error::DeadlineExceeded {
+            extensions,
+            timeout_ms,
+            retry_after_secs,
+        } => json!({"extensions": extensions, "timeout_ms": timeout_ms,
+                    "retry_after_seconds": retry_after_secs}),
+        _ => Value::Null,
+    }
+}
+
+/// Logs what the operator should see of a service answer (once, here).
+fn log_service_failure(e: &Error) {
+    match e {
+        Error::Internal(cause) => tracing::error!(error = ?cause, "request failed"),
+        Error::Dynamics(e) => tracing::warn!(error = %e, "dynamics model failed"),
+        Error::DatabaseUnavailable(reason) => tracing::warn!(%reason, "database unavailable"),
+        Error::StorageFull(reason) => {
+            tracing::error!(%reason, "the database's disk is full: writes are refused")
+        }
+        _ => {}
+    }
+}
+
+/// `Retry-After` of a service answer.
+fn service_retry_after(e: &Error) -> Option<u64> {
+    match e.answered() {
+        Error::Overloaded { retry_after_secs }
+        | Error::ExportsBusy {
+            retry_after_secs, ..
+        }
+        | Error::DeadlineExceeded {
+            retry_after_secs, ..
+        } => Some(*retry_after_secs),
+        Error::Dynamics(DynamicsError::Busy { .. }) => Some(1),
+        Error::StorageFull(_) => Some(STORAGE_FULL_RETRY_SECS),
+        Error::DatabaseUnavailable(_) => Some(UNAVAILABLE_RETRY_SECS),
+        _ => None,
+    }
+}
+
+/// The message of a service answer: never an internal failure's cause.
+fn service_message(e: &Error) -> String {
+    match e {
+        Error::Internal(_) => "internal server error".to_string(),
+        Error::PrefixStored {
+            trajectory_id,
+            error,
+        } => format!(
+            "{} (the executed prefix is stored as trajectory {trajectory_id})",
+            service_message(error)
+        ),
+        other => other.to_string(),
     }
 }
 

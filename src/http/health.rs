@@ -13,13 +13,14 @@ pub async fn get_health() -> Json<HealthResponse> {
     })
 }
 
-/// `GET /readyz`: the database answers.
+/// `GET /readyz`: the database answers, within a second, and writes are not failing for lack
+/// of space.
 pub async fn get_readiness(State(state): State<AppState>) -> ApiResult<Json<HealthResponse>> {
     state
         .service
         .ready()
         .await
-        .map_err(|e| ApiError::Unavailable(format!("database not answering: {e}")))?;
+        .map_err(|e| ApiError::Unavailable(e.to_string()))?;
     Ok(Json(HealthResponse {
         status: "ready".into(),
     }))

@@ -17,6 +17,7 @@ mod model;
 mod proposals;
 mod render;
 pub mod server;
+mod stream;
 mod trajectories;
 mod ui;
 

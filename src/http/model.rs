@@ -5,14 +5,15 @@ use super::AppState;
 use super::error::{ApiError, ApiResult};
 use super::extract::{ApiJson, ApiPath, ApiQuery};
 use super::render;
+use super::stream;
 use crate::api::{
-    ExportQuery, ModelExport, ModelResponse, Point, PointQuery, PreconditionRequest,
-    PreconditionResponse,
+    ExportQuery, ModelResponse, Point, PointQuery, PreconditionRequest, PreconditionResponse,
 };
 use crate::service::Error;
 use axum::Json;
 use axum::extract::State;
-use axum::http::StatusCode;
+use axum::http::{StatusCode, header};
+use axum::response::{IntoResponse, Response};
 
 /// `GET /v1/experiments/{id}/model`.
 pub async fn get_model(
@@ -23,13 +24,22 @@ pub async fn get_model(
 }
 
 /// `GET /v1/experiments/{id}/model/export?version=`: a fitted version as a document a
-/// controller evaluates itself; `409` for the prior.
+/// controller evaluates itself; `409` for the prior. Built and written on a blocking thread in
+/// an export slot, a chunk at a time ([`stream`](super::stream)).
 pub async fn export_model(
     State(state): State<AppState>,
     ApiPath(id): ApiPath<i64>,
     ApiQuery(query): ApiQuery<ExportQuery>,
-) -> ApiResult<Json<ModelExport>> {
-    Ok(Json(state.service.export_model(id, query.version).await?))
+) -> ApiResult<Response> {
+    let export = state
+        .service
+        .prepare_model_export(id, query.version)
+        .await?;
+    let body = stream::produced_body(export, "model export", |export, w| {
+        let document = export.build().map_err(std::io::Error::other)?;
+        serde_json::to_writer(w, &document).map_err(std::io::Error::other)
+    });
+    Ok(([(header::CONTENT_TYPE, "application/json")], body).into_response())
 }
 
 /// `POST /v1/experiments/{id}/model/refit`: fit now on every stored transition and answer with

@@ -5,6 +5,7 @@ use super::AppState;
 use super::error::{ApiError, ApiResult};
 use super::extract::{ApiJson, ApiPath, ApiQuery};
 use super::render;
+use super::stream;
 use crate::api::{TrajectoryRequest, TrajectoryResponse, TransitionPage, TransitionsQuery};
 use crate::domain::Domain;
 use crate::limits::{DEFAULT_PAGE, MAX_CSV_ROWS, MAX_PAGE};
@@ -13,6 +14,7 @@ use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderMap, HeaderValue, header};
 use axum::response::{IntoResponse, Response};
+use std::io::Write;
 
 /// `POST /v1/experiments/{id}/trajectories`: validate, label and store one trajectory
 /// atomically; a retry with the same `Idempotency-Key` replays the first answer.
@@ -70,17 +72,33 @@ pub async fn list_transitions(
             format!("must be between 1 and {max}"),
         ));
     }
-    let limit = query.limit.or(if csv { None } else { Some(DEFAULT_PAGE) });
-    let (items, next) = state.service.transitions(id, query.after, limit).await?;
     if !csv {
+        let limit = query.limit.unwrap_or(DEFAULT_PAGE);
+        let (items, next) = state
+            .service
+            .transitions(id, query.after, Some(limit))
+            .await?;
         return Ok(Json(TransitionPage { items, next }).into_response());
     }
-    let domain = state.service.experiment(id).await?.domain;
-    let mut response = (
-        [(header::CONTENT_TYPE, "text/csv; charset=utf-8")],
-        transitions_csv(domain.as_ref(), &items),
-    )
-        .into_response();
+    // Every transition by default: written page by page from the database, never whole.
+    let export = state
+        .service
+        .prepare_transitions_export(id, query.after, query.limit)
+        .await?;
+    let next = export.next;
+    let body = stream::produced_body(export, "transitions CSV", |export, w| {
+        w.write_all(csv_header(export.domain.as_ref()).as_bytes())?;
+        loop {
+            let page = w
+                .block_on(export.next_page())
+                .map_err(std::io::Error::other)?;
+            if page.is_empty() {
+                return Ok(());
+            }
+            w.write_all(csv_rows(&page).as_bytes())?;
+        }
+    });
+    let mut response = ([(header::CONTENT_TYPE, "text/csv; charset=utf-8")], body).into_response();
     if let Some(next) = next {
         response
             .headers_mut()
@@ -89,7 +107,9 @@ pub async fn list_transitions(
     Ok(response)
 }
 
-fn transitions_csv(domain: &dyn Domain, items: &[StoredTransition]) -> String {
+/// The CSV's header line: `id`, `trajectory_id`, `step`, then the state, action, next state
+/// and predicted next state by the domain's names, and `deviation`.
+fn csv_header(domain: &dyn Domain) -> String {
     let state_names = &domain.state_space().names;
     let action_names = &domain.action_space().names;
     let mut header = vec!["id".to_string(), "trajectory_id".into(), "step".into()];
@@ -100,6 +120,12 @@ fn transitions_csv(domain: &dyn Domain, items: &[StoredTransition]) -> String {
     header.push("deviation".into());
     let mut out = header.join(",");
     out.push('\n');
+    out
+}
+
+/// One CSV line per transition.
+fn csv_rows(items: &[StoredTransition]) -> String {
+    let mut out = String::new();
     for t in items {
         let mut row = vec![
             t.id.to_string(),

@@ -363,6 +363,28 @@ pub struct KernelTrial {
     pub held_out_log_score: Option<f64>,
 }
 
+/// What [`fit_choosing_label_cap`] costs on `n` rows of dimension `d`: an exact fit per kernel
+/// (on the first cap's labels) and per further label cap, on all of them (exact), or that
+/// choice on at most [`CAP_CHOICE_SUBSET`] rows and one sparse fit on all of them (sparse).
+pub fn selection_cost(
+    kind: EstimatorKind,
+    n: usize,
+    d: usize,
+    kernels: usize,
+    caps: usize,
+    params: &EstimatorParams,
+) -> crate::gp::FitCost {
+    let choices = kernels.max(1) + caps.max(1) - 1;
+    match kind {
+        EstimatorKind::Exact => params.cost(EstimatorKind::Exact, n, d).times(choices),
+        EstimatorKind::Sparse if choices > 1 => params
+            .cost(EstimatorKind::Exact, n.min(CAP_CHOICE_SUBSET), d)
+            .times(choices)
+            .then(params.cost(EstimatorKind::Sparse, n, d)),
+        EstimatorKind::Sparse => params.cost(EstimatorKind::Sparse, n, d),
+    }
+}
+
 /// Fits one model per candidate label cap (units of `d_max`; 0 = raw labels) and keeps the one
 /// whose held-out predictions best say which side of `d_max` each training state-action's
 /// deviation fell on: the highest mean `log Φ(±(d_max − μ₋ᵢ)/σ₋ᵢ)` (a proper scoring rule of

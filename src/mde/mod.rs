@@ -21,7 +21,7 @@ pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use labels::{
     BetaChoice, CALIBRATED_FALSE_TRUST, CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice,
     HeldOutTrust, KernelTrial, Training, best_kernel, blocks, capped_labels,
-    fit_choosing_label_cap, identical_rows, normal_tail, trajectory_folds,
+    fit_choosing_label_cap, identical_rows, normal_tail, selection_cost, trajectory_folds,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};

@@ -24,6 +24,17 @@ pub enum Error {
     /// a proposal executed twice, a lease held for another problem, nothing to fit).
     #[error("{0}")]
     Conflict(String),
+    /// The idempotency key was used before with another request (`field` the first that
+    /// differs, empty when the bodies cannot be compared); nothing was stored.
+    #[error(
+        "this Idempotency-Key was already used with a different request ({difference}); nothing was stored"
+    )]
+    KeyReused {
+        /// The first differing field, e.g. `transitions[3].a[1]` or `source.dataset`.
+        field: String,
+        /// Both values, as a sentence.
+        difference: String,
+    },
     /// The client holds an open proposal for another problem: it must execute or abandon that
     /// one first.
     #[error(
@@ -57,6 +68,16 @@ pub enum Error {
         /// Seconds to wait before retrying.
         retry_after_secs: u64,
     },
+    /// Every export slot has been busy for a while: retry after `retry_after_secs`.
+    #[error(
+        "{limit} large answers (model exports, CSV exports) are being written, the server's limit; retry in {retry_after_secs} s"
+    )]
+    ExportsBusy {
+        /// `max_concurrent_exports`.
+        limit: usize,
+        /// Seconds to wait before retrying.
+        retry_after_secs: u64,
+    },
     /// The deadline passed: a search (waiting for a slot or searching; nothing was stored) or
     /// a forced refit (which goes on in the background and is swapped in when done).
     #[error(
@@ -79,7 +100,26 @@ pub enum Error {
     /// The experiment's dynamics model could not answer; nothing was stored.
     #[error(transparent)]
     Dynamics(#[from] DynamicsError),
-    /// A bug or a broken dependency (the database): logged with its cause, never shown.
+    /// The database's disk is full: the write was not stored (a `201` is only ever answered
+    /// after the outermost commit). Retry once space is freed.
+    #[error(
+        "the database's disk is full ({0}); nothing of this request was stored: retry once space is freed"
+    )]
+    StorageFull(String),
+    /// The database cannot be reached now (a connection refused or lost, no connection free in
+    /// time, a server restarting): retry shortly.
+    #[error("the database is not answering ({0}); retry shortly")]
+    DatabaseUnavailable(String),
+    /// A `continue` stored its executed prefix as trajectory `trajectory_id`, then could not
+    /// answer a new proposal (`error`): answered as `error`, saying what was stored.
+    #[error("{error} (the executed prefix is stored as trajectory {trajectory_id})")]
+    PrefixStored {
+        /// The stored prefix.
+        trajectory_id: i64,
+        /// Why no proposal followed.
+        error: Box<Error>,
+    },
+    /// A bug or a broken dependency: logged with its cause, never shown.
     #[error(transparent)]
     Internal(#[from] anyhow::Error),
 }
@@ -96,6 +136,15 @@ impl Error {
     /// The answer for an experiment id that names nothing.
     pub fn no_experiment(id: i64) -> Self {
         Self::NotFound(format!("no experiment {id}"))
+    }
+
+    /// The answer itself, looking through [`Error::PrefixStored`] (which says what was stored
+    /// beside it).
+    pub fn answered(&self) -> &Error {
+        match self {
+            Self::PrefixStored { error, .. } => error.answered(),
+            other => other,
+        }
     }
 
     /// A domain check that failed on the value at `field` of the request.
@@ -115,7 +164,13 @@ impl From<InvalidSetting> for Error {
 
 impl From<sqlx::Error> for Error {
     fn from(e: sqlx::Error) -> Self {
-        Self::Internal(anyhow::Error::new(e).context("database"))
+        match crate::store::classify(&e) {
+            crate::store::Failure::Full => Self::StorageFull(e.to_string()),
+            crate::store::Failure::Unreachable => Self::DatabaseUnavailable(e.to_string()),
+            crate::store::Failure::Other => {
+                Self::Internal(anyhow::Error::new(e).context("database"))
+            }
+        }
     }
 }
 

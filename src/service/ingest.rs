@@ -297,20 +297,33 @@ impl Service {
                 );
                 if live.model().kind() == Some(crate::mde::EstimatorKind::Sparse) {
                     let absorbing = live.clone();
-                    Service::blocking(move || absorbing.absorb(&labelled, 1)).await?;
+                    if let Err(e) = Service::blocking(move || absorbing.absorb(&labelled, 1)).await
+                    {
+                        tracing::error!(experiment = id, error = %e, "online update failed; the trajectory is stored");
+                    }
                 }
                 // A batch just completed: the iteration moved on.
+                // The trajectory is committed: what follows must not turn its `201` into an
+                // error (a retry without a key would store it twice). A fit request that fails
+                // is made again by the next batch, or at the next start (batches left unfitted).
                 if live.iteration(record.n_trajectories) > live.iteration(record.n_trajectories - 1)
                 {
-                    self.store.request_fit(id, false).await?;
-                    self.fits.wake();
+                    match self.store.request_fit(id, false).await {
+                        Ok(()) => self.fits.wake(),
+                        Err(e) => tracing::error!(
+                            experiment = id,
+                            error = %e,
+                            "could not request the batch's fit; the trajectory is stored"
+                        ),
+                    }
                 }
                 Ok(answer(record, false))
             }
             IngestOutcome::Replayed(record) => Ok(answer(record, true)),
-            IngestOutcome::KeyReused => Err(Error::Conflict(
-                "this Idempotency-Key was already used with a different request".into(),
-            )),
+            IngestOutcome::KeyReused { stored_request } => {
+                let (field, difference) = describe_difference(&stored_request, &canonical);
+                Err(Error::KeyReused { field, difference })
+            }
             IngestOutcome::ProposalNotFound => Err(Error::validation(
                 "proposal_id",
                 format!("no proposal {} in experiment {id}", proposal()),
@@ -354,5 +367,84 @@ impl Service {
             .ok_or_else(|| {
                 Error::NotFound(format!("no trajectory {trajectory_id} in experiment {id}"))
             })
+    }
+}
+
+/// Where a request differs from the one stored under its idempotency key: the first field
+/// (a path such as `transitions[3].a[1]` or `source.dataset`) whose value differs, and a
+/// sentence with both values (shortened).
+pub fn describe_difference(stored: &str, sent: &str) -> (String, String) {
+    let parse = |t: &str| serde_json::from_str::<serde_json::Value>(t).ok();
+    let (Some(stored), Some(sent)) = (parse(stored), parse(sent)) else {
+        return (String::new(), "the bodies differ".into());
+    };
+    match first_difference(&stored, &sent, String::new()) {
+        None => (String::new(), "the bodies differ".into()),
+        Some((path, a, b)) => {
+            let show = |v: &serde_json::Value| {
+                let t = v.to_string();
+                if t.len() <= 80 {
+                    t
+                } else {
+                    format!("{}…", &t[..t.floor_char_boundary(77)])
+                }
+            };
+            let shown = if path.is_empty() {
+                "the body"
+            } else {
+                path.as_str()
+            };
+            let sentence = format!("{shown} was {} and is now {}", show(&a), show(&b));
+            (path, sentence)
+        }
+    }
+}
+
+/// The first path at which `a` and `b` differ, with the values there.
+fn first_difference(
+    a: &serde_json::Value,
+    b: &serde_json::Value,
+    path: String,
+) -> Option<(String, serde_json::Value, serde_json::Value)> {
+    use serde_json::Value;
+    match (a, b) {
+        (Value::Object(x), Value::Object(y)) => {
+            let mut keys: Vec<&String> = x.keys().chain(y.keys()).collect();
+            keys.sort();
+            keys.dedup();
+            keys.into_iter().find_map(|k| {
+                let at = if path.is_empty() {
+                    k.clone()
+                } else {
+                    format!("{path}.{k}")
+                };
+                match (x.get(k), y.get(k)) {
+                    (Some(u), Some(v)) => first_difference(u, v, at),
+                    (u, v) => Some((
+                        at,
+                        u.cloned().unwrap_or(Value::Null),
+                        v.cloned().unwrap_or(Value::Null),
+                    )),
+                }
+            })
+        }
+        (Value::Array(x), Value::Array(y)) => {
+            let common = x
+                .iter()
+                .zip(y)
+                .enumerate()
+                .find_map(|(i, (u, v))| first_difference(u, v, format!("{path}[{i}]")));
+            common.or_else(|| {
+                (x.len() != y.len()).then(|| {
+                    (
+                        format!("{path} (length)"),
+                        Value::from(x.len()),
+                        Value::from(y.len()),
+                    )
+                })
+            })
+        }
+        (u, v) if u == v => None,
+        (u, v) => Some((path, u.clone(), v.clone())),
     }
 }

@@ -8,7 +8,7 @@ use crate::domain::Space;
 use crate::limits::{
     DEFAULT_MAP_SIDE, MAX_LATER_TRANSITIONS, MAX_MAP_SIDE, MAX_MAP_TRAINING_POINTS,
 };
-use crate::mde::{Estimator, ExportedModel, ServedModel};
+use crate::mde::{Estimator, ServedModel};
 use crate::planning::{Agreement, Precondition};
 use crate::store::StoredTransition;
 use std::sync::Arc;
@@ -224,7 +224,7 @@ impl Service {
     /// a task of its own that holds the slot until it ends, so a client that goes away does not
     /// free the slot of a rebuild still running. The current version and the prior need no
     /// slot.
-    async fn model_version(
+    pub(super) async fn model_version(
         &self,
         live: &Arc<LiveExperiment>,
         version: Option<i64>,
@@ -326,34 +326,6 @@ impl Service {
             training,
             model,
         })
-    }
-
-    /// A fitted version (default: the current one) exported as a self-contained document
-    /// ([`ExportedModel`]); `Conflict` for the prior, which has nothing fitted to export.
-    pub async fn export_model(&self, id: i64, version: Option<i64>) -> Result<ExportedModel> {
-        let arrived = Instant::now();
-        if let Some(v) = version.filter(|v| *v < 0) {
-            return Err(Error::validation(
-                "version",
-                format!("{v} is not a model version (they are numbered from 0, the prior)"),
-            ));
-        }
-        let live = self.live(id).await?;
-        let model = self.model_version(&live, version, arrived).await?;
-        if matches!(model.estimator, Estimator::Prior(_)) {
-            return Err(Error::Conflict(format!(
-                "model version {} is the prior: there is no fitted model to export yet \
-                 (post trajectories or refit first)",
-                model.version
-            )));
-        }
-        let domain = live.domain.clone();
-        let (d_max, test_beta) = (live.settings.d_max, live.test_beta(&model));
-        Self::blocking(move || ExportedModel::of(id, &model, domain.as_ref(), d_max, test_beta))
-            .await?
-            .ok_or_else(|| {
-                Error::Internal(anyhow::anyhow!("a fitted version exported as the prior"))
-            })
     }
 
     /// Leave-one-out predictions of every training label of a fitted version (default: the

@@ -10,8 +10,8 @@ use super::Error;
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
-    Estimator, EstimatorKind, EstimatorParams, FitRecord, ServedModel, Training, capped_labels,
-    fit_choosing_label_cap, gp_params, training_data,
+    Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, ServedModel, Training,
+    capped_labels, fit_choosing_label_cap, gp_params, selection_cost, training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::remote_model::ModelCalls;
@@ -320,18 +320,52 @@ impl LiveExperiment {
         .map_err(|e| Error::Internal(anyhow::anyhow!("estimator parameters: {e}")))?;
         let n = deviations.len();
         let budget = gate.limits().max_fit_memory;
-        let kind = mde.estimator.kind_for(n, dim, &params, budget);
+        let seconds_budget = gate.limits().max_fit_seconds as f64;
+        let caps = self.settings.label_caps();
+        let kernels = mde.kernel.candidates();
+        let cost = |kind| selection_cost(kind, n, dim, kernels.len(), caps.len(), &params);
+        let mut kind = mde.estimator.kind_for(n, dim, &params, budget);
+        if mde.estimator == EstimatorChoice::Auto
+            && kind == EstimatorKind::Exact
+            && cost(kind).seconds > seconds_budget
+        {
+            kind = EstimatorKind::Sparse;
+        }
         let needed = params.cost(kind, n, dim).peak_bytes;
-        if needed > budget as f64 {
-            let refusal = FitRefusal::now(n as i64, n_trajectories, kind, needed, budget as f64);
+        let seconds = cost(kind).seconds;
+        let refusal = if needed > budget as f64 {
+            Some(FitRefusal::now(
+                n as i64,
+                n_trajectories,
+                kind,
+                needed,
+                budget as f64,
+            ))
+        } else if seconds > seconds_budget {
+            Some(FitRefusal::over_time(
+                n as i64,
+                n_trajectories,
+                kind,
+                (needed, budget as f64),
+                (seconds, seconds_budget),
+            ))
+        } else {
+            None
+        };
+        if let Some(refusal) = refusal {
             store.insert_fit_refusal(self.id, &refusal).await?;
             metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => "refused")
                 .increment(1);
             tracing::warn!(experiment = self.id, n_train = n, reason = %refusal.reason, "fit refused");
             return Err(Error::LimitReached(refusal.reason));
         }
-        let caps = self.settings.label_caps();
-        let kernels = mde.kernel.candidates();
+        tracing::info!(
+            experiment = self.id,
+            n_train = n,
+            estimator = kind.as_str(),
+            estimated_seconds = seconds,
+            "fitting"
+        );
         let precondition = self.precondition(self.settings.learning.test_beta)?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {

@@ -17,6 +17,8 @@
 //! - [`activity`](mod@activity): an experiment's runs and learning timeline, for the dashboard.
 //! - [`inspection`](mod@inspection): a model version on a grid (the precondition map) and its
 //!   leave-one-out calibration.
+//! - [`exports`](mod@exports): large answers (a model's export, every transition as CSV)
+//!   prepared in export slots, to be written a chunk at a time.
 //! - [`error`](mod@error): the service's [`Error`].
 //!
 //! CPU-heavy work (large judgements, in-process dynamics models) runs on the blocking pool,
@@ -26,6 +28,7 @@
 pub mod activity;
 pub mod error;
 pub mod experiments;
+pub mod exports;
 pub mod fitting;
 pub mod ingest;
 pub mod inspection;
@@ -37,19 +40,24 @@ pub mod work;
 pub use activity::{LearningTimeline, Runs};
 pub use error::{Error, Result};
 pub use experiments::ExperimentState;
+pub use exports::{ModelExport, TransitionsExport};
 pub use fitting::FitQueue;
 pub use ingest::Ingested;
 pub use inspection::{LooDiagnostics, MapRequest, PreconditionGrid};
 pub use learning::{Judged, ModelView, Planned};
 pub use live::{LiveExperiment, Registry};
 pub use proposals::ProposalRecord;
-pub use work::{Limits, WorkGate};
+pub use work::{ExportSlot, Limits, WorkGate};
 
 use crate::planning::{Budget, PlanningError, Stop};
 use crate::remote_model::{ModelCallLimits, ModelCalls, ModelUrlPolicy};
 use crate::store::Store;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
+
+/// How long readiness waits for the database: within a probe's usual budget (Kubernetes'
+/// default is 1 s), so a database that does not answer is a `503`, not a timed-out probe.
+pub const READINESS_TIMEOUT: Duration = Duration::from_millis(800);
 
 /// What a search is for, for the metrics it counts itself.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -205,9 +213,10 @@ impl Service {
         &self.store
     }
 
-    /// Whether the database answers.
-    pub async fn ready(&self) -> Result<(), sqlx::Error> {
-        self.store.ping().await
+    /// Whether the store can serve now (the database answers within [`READINESS_TIMEOUT`],
+    /// and writes are not failing for lack of space).
+    pub async fn ready(&self) -> Result<(), crate::store::NotReady> {
+        self.store.readiness(READINESS_TIMEOUT).await
     }
 
     /// The live experiment `id` (domain and current model), loading it if needed; `NotFound`

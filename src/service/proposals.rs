@@ -12,6 +12,7 @@
 
 use super::Ingested;
 use super::LiveExperiment;
+use super::ingest::check_idempotency_key;
 use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
 use super::{Error, Result, Service};
 use crate::api::{
@@ -22,7 +23,9 @@ use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::mde::{EstimatorKind, ServedModel};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
-use crate::store::{NewProposal, NewRefusal, ProposalStatus, ProposalTerms, StoredProposal};
+use crate::store::{
+    Inserted, NewProposal, NewRefusal, ProposalStatus, ProposalTerms, StoredProposal,
+};
 use std::time::Instant;
 
 /// At most this many state-actions in flight (executed since the last fit, or planned by
@@ -157,7 +160,18 @@ impl Service {
         id: i64,
         request: ProposalRequest,
     ) -> Result<(ProposalRecord, bool)> {
-        let answer = self.propose_unmetered(id, request).await;
+        self.propose_metered(id, request, None).await
+    }
+
+    /// [`Service::propose`], recording the proposal with the key of the `continue` that asks
+    /// (`continues`), and counting its outcome.
+    async fn propose_metered(
+        &self,
+        id: i64,
+        request: ProposalRequest,
+        continues: Option<&str>,
+    ) -> Result<(ProposalRecord, bool)> {
+        let answer = self.propose_unmetered(id, request, continues).await;
         let outcome = match &answer {
             // Counted where the search stopped.
             Err(Error::Cancelled) => return answer,
@@ -178,6 +192,7 @@ impl Service {
         &self,
         id: i64,
         request: ProposalRequest,
+        continues: Option<&str>,
     ) -> Result<(ProposalRecord, bool)> {
         let arrived = Instant::now();
         let live = self.live(id).await?;
@@ -311,7 +326,7 @@ impl Service {
             content.trajectory.actions.len() as i64,
             content.extensions as i64,
         );
-        let (stored, created) = self
+        let (stored, inserted) = self
             .store
             .insert_proposal(
                 id,
@@ -329,13 +344,14 @@ impl Service {
                     n_actions,
                     extensions,
                     ttl_seconds: live.settings.learning.proposal_ttl_seconds,
+                    continues: continues.map(str::to_string),
                 },
             )
             .await?;
-        if created {
-            Ok((ProposalRecord::from_stored(stored)?, true))
-        } else {
-            Ok((lease_answer(stored, &request)?, false))
+        match inserted {
+            Inserted::Created => Ok((ProposalRecord::from_stored(stored)?, true)),
+            Inserted::Continued => Ok((ProposalRecord::from_stored(stored)?, false)),
+            Inserted::OpenLease => Ok((lease_answer(stored, &request)?, false)),
         }
     }
 
@@ -422,6 +438,7 @@ impl Service {
             .last()
             .map(|t| t.s_next.clone())
             .unwrap_or_default();
+        let key = idempotency_key.map(check_idempotency_key).transpose()?;
         let ingested = self
             .ingest(
                 id,
@@ -431,11 +448,19 @@ impl Service {
                     transitions,
                     source: None,
                 },
-                idempotency_key,
+                key.map(str::as_bytes),
             )
             .await?;
+        let stored_as = ingested.record.trajectory_id;
+        // A replay answers the proposal the first call made, whatever happened to it since.
+        if let Some(key) = key
+            && let Some(made) = self.store.continuation(id, key).await?
+            && let Some(made) = self.store.proposal(id, made).await?
+        {
+            return Ok((ingested, ProposalRecord::from_stored(made)?));
+        }
         let (next, _) = self
-            .propose(
+            .propose_metered(
                 id,
                 ProposalRequest {
                     start: here,
@@ -444,19 +469,23 @@ impl Service {
                     strategy: Some(terms.strategy),
                     candidates,
                 },
+                key,
             )
             .await
-            .map_err(|e| match e {
-                Error::Validation { field, reason } if field.starts_with("start") => {
-                    Error::validation(
-                        format!("transitions[-1].s_next{}", &field["start".len()..]),
-                        format!(
-                            "{reason} (the executed prefix is stored as trajectory {})",
-                            ingested.record.trajectory_id
-                        ),
-                    )
+            .map_err(|e| {
+                let e = match e {
+                    Error::Validation { field, reason } if field.starts_with("start") => {
+                        Error::validation(
+                            format!("transitions[-1].s_next{}", &field["start".len()..]),
+                            reason,
+                        )
+                    }
+                    e => e,
+                };
+                Error::PrefixStored {
+                    trajectory_id: stored_as,
+                    error: Box::new(e),
                 }
-                e => e,
             })?;
         Ok((ingested, next))
     }

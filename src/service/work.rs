@@ -67,7 +67,20 @@ pub struct Limits {
     /// with `mde.estimator: auto` the sparse GP takes over before the exact GP would need it.
     /// `64 MiB ..= 1 TiB`; default a quarter of the machine's memory (4 GiB where unknown).
     pub max_fit_memory: u64,
+    /// Seconds one MDE fit (model selection included) may take by its estimate
+    /// ([`crate::gp::FitCost::seconds`], at the cost model's assumed rate): a fit beyond it is
+    /// not attempted but recorded as refused, and with `mde.estimator: auto` the sparse GP
+    /// takes over first. So one experiment's fit cannot hold a fit slot for hours while every
+    /// other experiment's refits wait. `10 ..= 86 400`; default 900.
+    pub max_fit_seconds: u64,
+    /// Large answers (a model export, a CSV of every transition) being written at once:
+    /// `1 ..= 256`; default 4. Each holds at most a few chunks beyond its source (see
+    /// `http::stream`); one beyond waits [`EXPORT_WAIT`] for a slot, then gets `429`.
+    pub max_concurrent_exports: usize,
 }
+
+/// How long a large answer waits for an export slot before `429 overloaded`.
+pub const EXPORT_WAIT: Duration = Duration::from_secs(2);
 
 /// A quarter of the machine's physical memory (`/proc/meminfo`), or 4 GiB where unknown.
 pub fn default_fit_memory() -> u64 {
@@ -91,6 +104,8 @@ impl Default for Limits {
             max_experiments: 1000,
             max_transitions: MAX_TRANSITIONS,
             max_fit_memory: default_fit_memory(),
+            max_concurrent_exports: 4,
+            max_fit_seconds: 900,
         }
     }
 }
@@ -131,6 +146,18 @@ impl Limits {
         range("max-queued-plans", self.max_queued_plans, 0, 10_000)?;
         range("max-experiments", self.max_experiments, 1, 1_000_000)?;
         range("max-transitions", self.max_transitions, 1, MAX_TRANSITIONS)?;
+        range(
+            "max-concurrent-exports",
+            self.max_concurrent_exports,
+            1,
+            256,
+        )?;
+        if !(10..=86_400).contains(&self.max_fit_seconds) {
+            return Err(format!(
+                "--max-fit-seconds must lie in 10 ..= 86400, got {}",
+                self.max_fit_seconds
+            ));
+        }
         let mib = self.max_fit_memory >> 20;
         if !(64..=(1 << 20)).contains(&mib) {
             return Err(format!(
@@ -193,6 +220,15 @@ pub struct WorkGate {
     evaluations: Arc<tokio::sync::Semaphore>,
     /// Evaluations waiting for a slot now.
     evaluations_waiting: AtomicUsize,
+    /// The export slots ([`WorkGate::export_slot`]): `max_concurrent_exports` permits.
+    exports: Arc<tokio::sync::Semaphore>,
+}
+
+/// An export slot: held while a large answer is written (move it into the writer, so that it
+/// is held until the answer ends or its client leaves).
+#[derive(Debug)]
+pub struct ExportSlot {
+    _permit: tokio::sync::OwnedSemaphorePermit,
 }
 
 /// An evaluation slot: held while a map, diagnostics or a large precondition query is
@@ -354,6 +390,7 @@ impl WorkGate {
         Self {
             evaluations: Arc::new(tokio::sync::Semaphore::new(limits.max_concurrent_plans)),
             evaluations_waiting: AtomicUsize::new(0),
+            exports: Arc::new(tokio::sync::Semaphore::new(limits.max_concurrent_exports)),
             limits,
             state: Arc::new(Mutex::new(State::default())),
         }
@@ -508,6 +545,24 @@ impl WorkGate {
             ))),
             Err(_elapsed) => Err(self.deadline_exceeded(0)),
         }
+    }
+
+    /// A slot to write a large answer in, waiting at most [`EXPORT_WAIT`] for one; `429
+    /// overloaded` when `max_concurrent_exports` answers are being written all that time.
+    pub async fn export_slot(&self) -> Result<ExportSlot> {
+        match tokio::time::timeout(EXPORT_WAIT, self.exports.clone().acquire_owned()).await {
+            Ok(Ok(permit)) => Ok(ExportSlot { _permit: permit }),
+            Ok(Err(_closed)) => Err(Error::Internal(anyhow::anyhow!("the export slots closed"))),
+            Err(_elapsed) => Err(Error::ExportsBusy {
+                limit: self.limits.max_concurrent_exports,
+                retry_after_secs: 5,
+            }),
+        }
+    }
+
+    /// Large answers being written now.
+    pub fn exports_running(&self) -> usize {
+        self.limits.max_concurrent_exports - self.exports.available_permits()
     }
 
     /// Evaluations running now.

@@ -101,35 +101,39 @@ impl Store {
         settings: &ExperimentSettings,
         limit: i64,
     ) -> Result<Option<Experiment>, sqlx::Error> {
-        let json = serde_json::to_string(settings).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
-        let created_at = now();
-        let mut tx = self.write.begin().await?;
-        lock_experiment_list(&mut tx, self.backend).await?;
-        let count: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM experiments")
+        self.noted(async {
+            let json = serde_json::to_string(settings).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
+            let created_at = now();
+            let mut tx = self.begin_write().await?;
+            lock_experiment_list(&mut tx, self.backend).await?;
+            let count: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM experiments")
+                .fetch_one(&mut *tx)
+                .await?;
+            if count >= limit {
+                tx.rollback().await?;
+                return Ok(None);
+            }
+            let id: i64 = sqlx::query_scalar(
+                "INSERT INTO experiments (name, settings, created_at) VALUES ($1, $2, $3) RETURNING id",
+            )
+            .bind(&settings.name)
+            .bind(json)
+            .bind(&created_at)
             .fetch_one(&mut *tx)
             .await?;
-        if count >= limit {
-            return Ok(None);
-        }
-        let id: i64 = sqlx::query_scalar(
-            "INSERT INTO experiments (name, settings, created_at) VALUES ($1, $2, $3) RETURNING id",
-        )
-        .bind(&settings.name)
-        .bind(json)
-        .bind(&created_at)
-        .fetch_one(&mut *tx)
-        .await?;
-        tx.commit().await?;
-        Ok(Some(Experiment {
-            id,
-            settings: settings.clone(),
-            n_trajectories: 0,
-            n_transitions: 0,
-            model_version: 0,
-            n_refused: 0,
-            last_activity: created_at.clone(),
-            created_at,
-        }))
+            tx.commit().await?;
+            Ok(Some(Experiment {
+                id,
+                settings: settings.clone(),
+                n_trajectories: 0,
+                n_transitions: 0,
+                model_version: 0,
+                n_refused: 0,
+                last_activity: created_at.clone(),
+                created_at,
+            }))
+        })
+        .await
     }
 
     /// One experiment, or `None`.

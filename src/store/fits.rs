@@ -62,29 +62,32 @@ impl Store {
     /// Requests a fit of `experiment_id` (`forced`: even if a model covers its latest batch).
     #[tracing::instrument(skip(self))]
     pub async fn request_fit(&self, experiment_id: i64, forced: bool) -> Result<(), sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, experiment_id).await?;
-        let raised = sqlx::query(
-            "UPDATE fit_jobs SET generation = generation + 1, forced = (forced OR $2)
-             WHERE experiment_id = $1",
-        )
-        .bind(experiment_id)
-        .bind(forced)
-        .execute(&mut *tx)
-        .await?
-        .rows_affected();
-        if raised == 0 {
-            sqlx::query(
-                "INSERT INTO fit_jobs (experiment_id, generation, forced, requested_at)
-                 VALUES ($1, 1, $2, $3)",
+        self.noted(async {
+            let mut tx = self.begin_write().await?;
+            lock_experiment(&mut tx, self.backend, experiment_id).await?;
+            let raised = sqlx::query(
+                "UPDATE fit_jobs SET generation = generation + 1, forced = (forced OR $2)
+                 WHERE experiment_id = $1",
             )
             .bind(experiment_id)
             .bind(forced)
-            .bind(now())
             .execute(&mut *tx)
-            .await?;
-        }
-        tx.commit().await
+            .await?
+            .rows_affected();
+            if raised == 0 {
+                sqlx::query(
+                    "INSERT INTO fit_jobs (experiment_id, generation, forced, requested_at)
+                     VALUES ($1, 1, $2, $3)",
+                )
+                .bind(experiment_id)
+                .bind(forced)
+                .bind(now())
+                .execute(&mut *tx)
+                .await?;
+            }
+            tx.commit().await
+        })
+        .await
     }
 
     /// Claims a requested fit for `replica`: one nobody holds, or whose holder's last
@@ -97,61 +100,64 @@ impl Store {
         lease_seconds: f64,
         experiment_id: Option<i64>,
     ) -> Result<Option<FitClaim>, sqlx::Error> {
-        let now = unix_now();
-        // SQLite's one writer makes the claim atomic; PostgreSQL's claimers skip each other's
-        // locked rows.
-        let skip_locked = match self.backend {
-            Backend::Sqlite => "",
-            Backend::Postgres => "FOR UPDATE SKIP LOCKED",
-        };
-        let mut tx = self.write.begin().await?;
-        let row = sqlx::query(&format!(
-            "UPDATE fit_jobs
-             SET claimed_by = $1, claimed_generation = generation, heartbeat_unix = $2
-             WHERE experiment_id = (
-                 SELECT experiment_id FROM fit_jobs
-                 WHERE (claimed_by IS NULL OR heartbeat_unix < $3)
-                   AND ($4 IS NULL OR experiment_id = $4)
-                 ORDER BY requested_at, experiment_id LIMIT 1 {skip_locked})
-             RETURNING experiment_id, generation, forced"
-        ))
-        .bind(replica)
-        .bind(now)
-        .bind(now - lease_seconds)
-        .bind(experiment_id)
-        .fetch_optional(&mut *tx)
-        .await?;
-        let Some(row) = row else {
+        self.noted(async {
+            let now = unix_now();
+            // SQLite's one writer makes the claim atomic; PostgreSQL's claimers skip each other's
+            // locked rows.
+            let skip_locked = match self.backend {
+                Backend::Sqlite => "",
+                Backend::Postgres => "FOR UPDATE SKIP LOCKED",
+            };
+            let mut tx = self.begin_write().await?;
+            let row = sqlx::query(&format!(
+                "UPDATE fit_jobs
+                 SET claimed_by = $1, claimed_generation = generation, heartbeat_unix = $2
+                 WHERE experiment_id = (
+                     SELECT experiment_id FROM fit_jobs
+                     WHERE (claimed_by IS NULL OR heartbeat_unix < $3)
+                       AND ($4 IS NULL OR experiment_id = $4)
+                     ORDER BY requested_at, experiment_id LIMIT 1 {skip_locked})
+                 RETURNING experiment_id, generation, forced"
+            ))
+            .bind(replica)
+            .bind(now)
+            .bind(now - lease_seconds)
+            .bind(experiment_id)
+            .fetch_optional(&mut *tx)
+            .await?;
+            let Some(row) = row else {
+                tx.commit().await?;
+                return Ok(None);
+            };
+            let experiment_id: i64 = row.try_get("experiment_id")?;
+            let generation: i64 = row.try_get("generation")?;
+            let forced = flag(&row, "forced")?;
+            if forced {
+                // Taken: a client asking again during the fit raises it anew.
+                sqlx::query("UPDATE fit_jobs SET forced = FALSE WHERE experiment_id = $1")
+                    .bind(experiment_id)
+                    .execute(&mut *tx)
+                    .await?;
+            }
             tx.commit().await?;
-            return Ok(None);
-        };
-        let experiment_id: i64 = row.try_get("experiment_id")?;
-        let generation: i64 = row.try_get("generation")?;
-        let forced = flag(&row, "forced")?;
-        if forced {
-            // Taken: a client asking again during the fit raises it anew.
-            sqlx::query("UPDATE fit_jobs SET forced = FALSE WHERE experiment_id = $1")
-                .bind(experiment_id)
-                .execute(&mut *tx)
-                .await?;
-        }
-        tx.commit().await?;
-        let (version, covered): (i64, i64) = sqlx::query_as(
-            "SELECT CAST(COALESCE(MAX(version), 0) + 1 AS BIGINT),
-                    CAST(COALESCE(MAX(n_trajectories), 0) AS BIGINT)
-             FROM models WHERE experiment_id = $1",
-        )
-        .bind(experiment_id)
-        .fetch_one(&self.write)
-        .await?;
-        Ok(Some(FitClaim {
-            experiment_id,
-            generation,
-            forced,
-            replica: replica.to_string(),
-            version,
-            covered_trajectories: covered,
-        }))
+            let (version, covered): (i64, i64) = sqlx::query_as(
+                "SELECT CAST(COALESCE(MAX(version), 0) + 1 AS BIGINT),
+                        CAST(COALESCE(MAX(n_trajectories), 0) AS BIGINT)
+                 FROM models WHERE experiment_id = $1",
+            )
+            .bind(experiment_id)
+            .fetch_one(&self.write)
+            .await?;
+            Ok(Some(FitClaim {
+                experiment_id,
+                generation,
+                forced,
+                replica: replica.to_string(),
+                version,
+                covered_trajectories: covered,
+            }))
+        })
+        .await
     }
 
     /// How many requested fits a replica may claim now (nobody holds them, or their holder's
@@ -167,16 +173,19 @@ impl Store {
 
     /// Renews `claim`'s lease; `false` when it is no longer this replica's.
     pub async fn heartbeat_fit(&self, claim: &FitClaim) -> Result<bool, sqlx::Error> {
-        let renewed = sqlx::query(
-            "UPDATE fit_jobs SET heartbeat_unix = $3 WHERE experiment_id = $1 AND claimed_by = $2",
-        )
-        .bind(claim.experiment_id)
-        .bind(&claim.replica)
-        .bind(unix_now())
-        .execute(&self.write)
-        .await?
-        .rows_affected();
-        Ok(renewed == 1)
+        self.noted(async {
+            let renewed = sqlx::query(
+                "UPDATE fit_jobs SET heartbeat_unix = $3 WHERE experiment_id = $1 AND claimed_by = $2",
+            )
+            .bind(claim.experiment_id)
+            .bind(&claim.replica)
+            .bind(unix_now())
+            .execute(&self.write)
+            .await?
+            .rows_affected();
+            Ok(renewed == 1)
+        })
+        .await
     }
 
     /// Ends `claim`: stores `model` (when the fit made one) and deletes the request, or hands
@@ -189,54 +198,63 @@ impl Store {
         claim: &FitClaim,
         model: Option<(&StoredModel, &Hyperparameters)>,
     ) -> Result<FitFinish, sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, claim.experiment_id).await?;
-        let held: Option<(i64, Option<String>)> =
-            sqlx::query_as("SELECT generation, claimed_by FROM fit_jobs WHERE experiment_id = $1")
-                .bind(claim.experiment_id)
-                .fetch_optional(&mut *tx)
-                .await?;
-        let Some((generation, Some(holder))) = held else {
-            return Ok(FitFinish::Lost);
-        };
-        if holder != claim.replica {
-            return Ok(FitFinish::Lost);
-        }
-        if let Some((model, hyperparameters)) = model {
-            insert_model_on(&mut tx, claim.experiment_id, model, hyperparameters).await?;
-        }
-        if generation == claim.generation {
-            sqlx::query("DELETE FROM fit_jobs WHERE experiment_id = $1")
+        self.noted(async {
+            let mut tx = self.begin_write().await?;
+            lock_experiment(&mut tx, self.backend, claim.experiment_id).await?;
+            let held: Option<(i64, Option<String>)> = sqlx::query_as(
+                "SELECT generation, claimed_by FROM fit_jobs WHERE experiment_id = $1",
+            )
+            .bind(claim.experiment_id)
+            .fetch_optional(&mut *tx)
+            .await?;
+            let Some((generation, Some(holder))) = held else {
+                tx.rollback().await?;
+                return Ok(FitFinish::Lost);
+            };
+            if holder != claim.replica {
+                tx.rollback().await?;
+                return Ok(FitFinish::Lost);
+            }
+            if let Some((model, hyperparameters)) = model {
+                insert_model_on(&mut tx, claim.experiment_id, model, hyperparameters).await?;
+            }
+            if generation == claim.generation {
+                sqlx::query("DELETE FROM fit_jobs WHERE experiment_id = $1")
+                    .bind(claim.experiment_id)
+                    .execute(&mut *tx)
+                    .await?;
+            } else {
+                sqlx::query(
+                    "UPDATE fit_jobs
+                     SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
+                     WHERE experiment_id = $1",
+                )
                 .bind(claim.experiment_id)
                 .execute(&mut *tx)
                 .await?;
-        } else {
-            sqlx::query(
-                "UPDATE fit_jobs
-                 SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
-                 WHERE experiment_id = $1",
-            )
-            .bind(claim.experiment_id)
-            .execute(&mut *tx)
-            .await?;
-        }
-        tx.commit().await?;
-        Ok(FitFinish::Done)
+            }
+            tx.commit().await?;
+            Ok(FitFinish::Done)
+        })
+        .await
     }
 
     /// Hands back every claim `replica` holds (it is shutting down), or every claim at all
     /// (`None`: a SQLite file opened by a new process, where no other process can be
     /// fitting). Returns how many.
     pub async fn release_fit_claims(&self, replica: Option<&str>) -> Result<u64, sqlx::Error> {
-        Ok(sqlx::query(
-            "UPDATE fit_jobs
-             SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
-             WHERE claimed_by IS NOT NULL AND ($1 IS NULL OR claimed_by = $1)",
-        )
-        .bind(replica)
-        .execute(&self.write)
-        .await?
-        .rows_affected())
+        self.noted(async {
+            Ok(sqlx::query(
+                "UPDATE fit_jobs
+                 SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
+                 WHERE claimed_by IS NOT NULL AND ($1 IS NULL OR claimed_by = $1)",
+            )
+            .bind(replica)
+            .execute(&self.write)
+            .await?
+            .rows_affected())
+        })
+        .await
     }
 
     /// The requested fits, oldest request first.

@@ -25,30 +25,38 @@
 mod activity;
 mod experiments;
 pub mod fits;
+mod health;
 mod models;
 mod proposals;
 mod refusals;
+mod serving;
 mod trajectories;
+mod transaction;
 
 pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use experiments::{Experiment, ListOrder};
 pub use fits::{FitClaim, FitJob};
+pub use health::{Failure, classify};
 pub use models::{FitRefusal, StoredModel};
 pub use proposals::{
-    NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
+    Inserted, NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
 };
 pub use refusals::NewRefusal;
+pub use serving::{ServingLock, lock_for_serving};
 pub use trajectories::{
     IdempotencyKey, IngestOutcome, IngestRecord, Provenance, StoredTrajectory, StoredTransition,
     TrajectoryMeta,
 };
 
 use anyhow::Context;
+use health::WriteHealth;
 use sqlx::any::{AnyConnectOptions, AnyPoolOptions, AnyRow};
 use sqlx::sqlite::SqliteConnectOptions;
 use sqlx::{AnyConnection, AnyPool, ConnectOptions, Row};
 use std::str::FromStr;
+use std::sync::Arc;
 use std::time::Duration;
+use transaction::WriteTx;
 
 /// The database engine behind a [`Store`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -82,12 +90,21 @@ impl Backend {
 /// Connections a PostgreSQL replica keeps open at most.
 const POSTGRES_CONNECTIONS: u32 = 16;
 
+/// How long `precond serve` waits at start-up for a PostgreSQL database to answer.
+const STARTUP_WAIT: Duration = Duration::from_secs(30);
+
+/// How long a request waits for a PostgreSQL connection by default before it is answered
+/// `503 unavailable` (the database down or every connection busy).
+pub const DEFAULT_DATABASE_TIMEOUT: Duration = Duration::from_secs(2);
+
 /// Handle to the database; cheap to clone.
 #[derive(Debug, Clone)]
 pub struct Store {
     read: AnyPool,
     write: AnyPool,
     backend: Backend,
+    /// Whether writes are failing for lack of space (shared by the clones).
+    health: Arc<WriteHealth>,
 }
 
 /// `url` as a SQLite URL with an absolute path (a relative `sqlite://Name.db` would otherwise
@@ -133,10 +150,16 @@ impl Store {
     /// database for `postgres://…` (it must exist; replicas may open it at the same time), else
     /// a SQLite file (`sqlite://path` or a plain path; created if missing, WAL mode).
     pub async fn open(url: &str) -> anyhow::Result<Self> {
+        Self::open_with_timeout(url, DEFAULT_DATABASE_TIMEOUT).await
+    }
+
+    /// [`Store::open`], a request waiting at most `timeout` for a PostgreSQL connection (a
+    /// database that is down is then a `503` within that time, not a hang).
+    pub async fn open_with_timeout(url: &str, timeout: Duration) -> anyhow::Result<Self> {
         sqlx::any::install_default_drivers();
         match Backend::of_url(url) {
             Backend::Sqlite => Self::open_sqlite(url).await,
-            Backend::Postgres => Self::open_postgres(url).await,
+            Backend::Postgres => Self::open_postgres(url, timeout).await,
         }
     }
 
@@ -157,17 +180,34 @@ impl Store {
             read,
             write,
             backend: Backend::Sqlite,
+            health: Arc::default(),
         })
     }
 
-    async fn open_postgres(url: &str) -> anyhow::Result<Self> {
+    async fn open_postgres(url: &str, timeout: Duration) -> anyhow::Result<Self> {
         let shown = redact(url);
         let pool = AnyPoolOptions::new()
             .max_connections(POSTGRES_CONNECTIONS)
-            .acquire_timeout(Duration::from_secs(10))
-            .connect(url)
-            .await
+            .acquire_timeout(timeout)
+            .connect_lazy(url)
             .with_context(|| format!("connecting to {shown}"))?;
+        // A database starting beside the server (a compose file, a reboot) may take a while:
+        // wait for it, then every request waits at most `timeout`.
+        let started = std::time::Instant::now();
+        loop {
+            match pool.acquire().await {
+                Ok(_) => break,
+                Err(e)
+                    if started.elapsed() < STARTUP_WAIT && classify(&e) == Failure::Unreachable =>
+                {
+                    tracing::warn!(error = %e, database = %shown, "waiting for the database");
+                    tokio::time::sleep(Duration::from_millis(500)).await;
+                }
+                Err(e) => {
+                    return Err(anyhow::Error::new(e).context(format!("connecting to {shown}")));
+                }
+            }
+        }
         // sqlx holds an advisory lock while it migrates: replicas starting together take turns.
         sqlx::migrate!("./migrations/postgres")
             .run(&pool)
@@ -177,6 +217,7 @@ impl Store {
             read: pool.clone(),
             write: pool,
             backend: Backend::Postgres,
+            health: Arc::default(),
         })
     }
 
@@ -191,6 +232,75 @@ impl Store {
             .execute(&self.read)
             .await
             .map(|_| ())
+    }
+
+    /// Whether the store can serve reads and writes now, answered within `timeout`: the
+    /// database answers a trivial query, and writes are not failing for lack of space. While
+    /// they are, a write that allocates pages as an ingest does is probed at most once a
+    /// second, so readiness comes back once space is freed even if no client writes.
+    pub async fn readiness(&self, timeout: Duration) -> Result<(), NotReady> {
+        match tokio::time::timeout(timeout, self.ping()).await {
+            Err(_) => {
+                return Err(NotReady::Unreachable(format!(
+                    "no answer within {} ms",
+                    timeout.as_millis()
+                )));
+            }
+            Ok(Err(e)) => return Err(NotReady::Unreachable(e.to_string())),
+            Ok(Ok(())) => {}
+        }
+        if self.health.full().is_some() && self.health.may_probe() {
+            // Its outcome is noted like any write's; a probe that outlasts the timeout (the
+            // writer busy with a long ingest) leaves the state as it was.
+            let _ = tokio::time::timeout(timeout, self.probe_write()).await;
+        }
+        match self.health.full() {
+            Some((since, error)) => Err(NotReady::Full { since, error }),
+            None => Ok(()),
+        }
+    }
+
+    /// Replaces the write probe's row with 64 KiB of fresh random text in one transaction.
+    async fn probe_write(&self) -> Result<(), sqlx::Error> {
+        use rand::Rng;
+        let padding: String = {
+            let mut rng = rand::rng();
+            (0..65_536)
+                .map(|_| char::from(b'a' + rng.random_range(0..26u8)))
+                .collect()
+        };
+        self.noted(async {
+            let mut tx = self.begin_write().await?;
+            sqlx::query("DELETE FROM write_probe")
+                .execute(&mut *tx)
+                .await?;
+            sqlx::query("INSERT INTO write_probe (written_at, padding) VALUES ($1, $2)")
+                .bind(now())
+                .bind(padding)
+                .execute(&mut *tx)
+                .await?;
+            tx.commit().await
+        })
+        .await
+    }
+
+    /// A write transaction on the writer (see [`transaction`](mod@transaction)); its commit
+    /// ends a lack of space noted before.
+    async fn begin_write(&self) -> Result<WriteTx, sqlx::Error> {
+        WriteTx::begin(&self.write, self.backend, self.health.clone()).await
+    }
+
+    /// Runs a write and notes when it failed for lack of space: every method that writes goes
+    /// through here.
+    async fn noted<T>(
+        &self,
+        write: impl std::future::Future<Output = Result<T, sqlx::Error>>,
+    ) -> Result<T, sqlx::Error> {
+        let outcome = write.await;
+        if let Err(e) = &outcome {
+            self.health.failed(e);
+        }
+        outcome
     }
 
     /// Size of the database in bytes (SQLite: the file's pages, the WAL not included;
@@ -481,6 +591,34 @@ pub async fn backup(source: &str, to: &std::path::Path) -> anyhow::Result<StoreS
         let _ = d.sync_all();
     }
     Ok(size)
+}
+
+/// Why the store cannot serve now ([`Store::readiness`]).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum NotReady {
+    /// The database does not answer (or not in time).
+    Unreachable(String),
+    /// Writes fail for lack of space, for `since`, the last error being `error`.
+    Full {
+        /// How long writes have been failing.
+        since: Duration,
+        /// The last write's error.
+        error: String,
+    },
+}
+
+impl std::fmt::Display for NotReady {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Unreachable(e) => write!(f, "the database is not answering: {e}"),
+            Self::Full { since, error } => write!(
+                f,
+                "the database's disk is full: writes have failed for {} s ({error}); free \
+                 space, then writes and readiness resume without a restart",
+                since.as_secs()
+            ),
+        }
+    }
 }
 
 /// How much a store holds.

@@ -163,22 +163,27 @@ impl Store {
         experiment_id: i64,
         r: &FitRefusal,
     ) -> Result<(), sqlx::Error> {
-        sqlx::query(
-            "INSERT INTO fit_refusals (experiment_id, n_train, n_trajectories, estimator,
-                                       needed_bytes, budget_bytes, reason, refused_at)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
-        )
-        .bind(experiment_id)
-        .bind(r.n_train)
-        .bind(r.n_trajectories)
-        .bind(r.estimator.as_str())
-        .bind(r.needed_bytes)
-        .bind(r.budget_bytes)
-        .bind(&r.reason)
-        .bind(&r.refused_at)
-        .execute(&self.write)
-        .await?;
-        Ok(())
+        self.noted(async {
+            sqlx::query(
+                "INSERT INTO fit_refusals (experiment_id, n_train, n_trajectories, estimator,
+                                           needed_bytes, budget_bytes, reason, refused_at)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+            )
+            .bind(experiment_id)
+            .bind(r.n_train)
+            .bind(r.n_trajectories)
+            .bind(r.estimator.as_str())
+            .bind(r.needed_bytes)
+            .bind(r.budget_bytes)
+            .bind(&r.reason)
+            .bind(&r.refused_at)
+            .bind(r.needed_seconds)
+            .bind(r.budget_seconds)
+            .execute(&self.write)
+            .await?;
+            Ok(())
+        })
+        .await
     }
 
     /// The experiment's latest refused fit, if any.
@@ -219,10 +224,20 @@ impl Store {
         offset: i64,
         limit: i64,
     ) -> Result<Vec<FitRefusal>, sqlx::Error> {
-        type Row = (i64, i64, String, f64, f64, String, String);
+        type Row = (
+            i64,
+            i64,
+            String,
+            f64,
+            f64,
+            String,
+            String,
+            Option<f64>,
+            Option<f64>,
+        );
         let rows = sqlx::query_as::<_, Row>(
             "SELECT n_train, n_trajectories, estimator, needed_bytes, budget_bytes, reason,
-                    refused_at
+                    refused_at, needed_seconds, budget_seconds
              FROM fit_refusals WHERE experiment_id = $1 ORDER BY id LIMIT $2 OFFSET $3",
         )
         .bind(experiment_id)
@@ -232,7 +247,7 @@ impl Store {
         .await?;
         rows.into_iter()
             .map(
-                |(n_train, n_trajectories, estimator, needed, budget, reason, at)| {
+                |(n_train, n_trajectories, estimator, needed, budget, reason, at, secs, limit)| {
                     Ok(FitRefusal {
                         n_train,
                         n_trajectories,
@@ -244,6 +259,8 @@ impl Store {
                         budget_bytes: budget,
                         reason,
                         refused_at: at,
+                        needed_seconds: secs,
+                        budget_seconds: limit,
                     })
                 },
             )
@@ -251,8 +268,8 @@ impl Store {
     }
 }
 
-/// A fit the server did not attempt because its estimated peak memory exceeded the budget; the
-/// version before it kept answering. Shown as stored (`FitRefusal` of the API).
+/// A fit the server did not attempt because its estimated peak memory or time exceeded the
+/// budget; the version before it kept answering. Shown as stored (`FitRefusal` of the API).
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct FitRefusal {
     /// Transitions the fit would have been trained on.
@@ -269,10 +286,42 @@ pub struct FitRefusal {
     pub reason: String,
     /// When (RFC 3339).
     pub refused_at: String,
+    /// For a refusal over time: its estimated seconds (model selection included, at the cost
+    /// model's assumed rate); `null` for one over memory.
+    pub needed_seconds: Option<f64>,
+    /// For a refusal over time: the server's budget (seconds, `--max-fit-seconds`).
+    pub budget_seconds: Option<f64>,
 }
 
 impl FitRefusal {
-    /// A refusal now.
+    /// A refusal now over time: the fit (within the memory budget: `(needed, budget)` bytes)
+    /// would take about `needed_seconds`, beyond `budget_seconds`.
+    pub fn over_time(
+        n_train: i64,
+        n_trajectories: i64,
+        estimator: EstimatorKind,
+        (needed_bytes, budget_bytes): (f64, f64),
+        (needed_seconds, budget_seconds): (f64, f64),
+    ) -> Self {
+        Self {
+            n_train,
+            n_trajectories,
+            estimator,
+            needed_bytes,
+            budget_bytes,
+            reason: format!(
+                "the {} GP's fit on {n_train} transitions would take about {needed_seconds:.0} s \
+                 (model selection included), beyond the server's fit time budget of \
+                 {budget_seconds:.0} s (--max-fit-seconds); the previous version keeps answering",
+                estimator.as_str(),
+            ),
+            refused_at: now(),
+            needed_seconds: Some(needed_seconds),
+            budget_seconds: Some(budget_seconds),
+        }
+    }
+
+    /// A refusal now over memory.
     pub fn now(
         n_train: i64,
         n_trajectories: i64,
@@ -296,6 +345,8 @@ impl FitRefusal {
                 gib(budget_bytes)
             ),
             refused_at: now(),
+            needed_seconds: None,
+            budget_seconds: None,
         }
     }
 }

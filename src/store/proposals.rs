@@ -1,5 +1,6 @@
 //! Proposals and their leases.
 
+use super::transaction::WriteTx;
 use super::{Store, decode_vec, encode_vec, flag, lock_experiment};
 use crate::planning::Strategy;
 use sqlx::any::AnyRow;
@@ -85,6 +86,21 @@ pub struct NewProposal {
     pub extensions: i64,
     /// Lease length in seconds.
     pub ttl_seconds: u32,
+    /// The `Idempotency-Key` of the `continue` that plans it: the proposal is recorded with the
+    /// key, and a replay under the key answers it instead of storing another.
+    pub continues: Option<String>,
+}
+
+/// What [`Store::insert_proposal`] did.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Inserted {
+    /// Stored the new proposal.
+    Created,
+    /// The client's open lease appeared meanwhile: that one is answered.
+    OpenLease,
+    /// The continuation's key already names a proposal (a replay): that one is answered, in
+    /// whatever state it now is.
+    Continued,
 }
 
 /// A stored proposal.
@@ -208,6 +224,21 @@ async fn select_by_id(
     .transpose()
 }
 
+async fn continuation_on(
+    conn: &mut AnyConnection,
+    experiment_id: i64,
+    key: &str,
+) -> Result<Option<i64>, sqlx::Error> {
+    Ok(sqlx::query_scalar(
+        "SELECT continued_proposal_id FROM idempotency_keys WHERE experiment_id = $1 AND key = $2",
+    )
+    .bind(experiment_id)
+    .bind(key)
+    .fetch_optional(conn)
+    .await?
+    .flatten())
+}
+
 async fn open_for_client(
     conn: &mut AnyConnection,
     experiment_id: i64,
@@ -231,11 +262,8 @@ async fn open_for_client(
 impl Store {
     /// A write transaction holding experiment `experiment_id`'s lock, its leases brought up to
     /// date (those past their end marked `expired`).
-    async fn leases_current(
-        &self,
-        experiment_id: i64,
-    ) -> Result<sqlx::Transaction<'static, sqlx::Any>, sqlx::Error> {
-        let mut tx = self.write.begin().await?;
+    async fn leases_current(&self, experiment_id: i64) -> Result<WriteTx, sqlx::Error> {
+        let mut tx = self.begin_write().await?;
         lock_experiment(&mut tx, self.backend, experiment_id).await?;
         expire_leases(&mut tx, experiment_id).await?;
         Ok(tx)
@@ -301,54 +329,86 @@ impl Store {
         open_for_client(&mut conn, experiment_id, client_id).await
     }
 
-    /// Stores a proposal, unless an open one for the same client appeared meanwhile, which is
-    /// returned instead (`(proposal, created)`).
+    /// Stores a proposal, unless an open one for the same client appeared meanwhile, or the
+    /// continuation's key already names one (a concurrent replay), which is returned instead.
     #[tracing::instrument(skip(self, p))]
     pub async fn insert_proposal(
         &self,
         experiment_id: i64,
         p: &NewProposal,
-    ) -> Result<(StoredProposal, bool), sqlx::Error> {
-        let mut tx = self.leases_current(experiment_id).await?;
-        if let Some(client) = &p.terms.client_id
-            && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
-        {
-            tx.commit().await?;
-            return Ok((open, false));
-        }
-        let created = time::OffsetDateTime::now_utc();
-        let expires = created + time::Duration::seconds(i64::from(p.ttl_seconds));
-        let fmt = super::timestamp;
-        let id: i64 = sqlx::query_scalar(
-            "INSERT INTO proposals (experiment_id, client_id, status, iteration, beta, strategy,
-                                    model_version, start, goal, body, created_at, expires_at,
-                                    expires_unix, n_actions, extensions)
-             VALUES ($1, $2, 'open', $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)
-             RETURNING id",
-        )
-        .bind(experiment_id)
-        .bind(&p.terms.client_id)
-        .bind(p.terms.iteration)
-        .bind(p.terms.beta)
-        .bind(p.terms.strategy.as_str())
-        .bind(p.terms.model_version)
-        .bind(encode_vec(&p.terms.start))
-        .bind(encode_vec(&p.terms.goal))
-        .bind(&p.body)
-        .bind(fmt(created))
-        .bind(fmt(expires))
-        .bind(expires.unix_timestamp_nanos() as f64 / 1e9)
-        .bind(p.n_actions)
-        .bind(p.extensions)
-        .fetch_one(&mut *tx)
-        .await?;
-        let stored = sqlx::query(&format!("SELECT {COLUMNS} FROM proposals WHERE id = $1"))
-            .bind(id)
+    ) -> Result<(StoredProposal, Inserted), sqlx::Error> {
+        self.noted(async {
+            let mut tx = self.leases_current(experiment_id).await?;
+            if let Some(key) = &p.continues
+                && let Some(made) = continuation_on(&mut tx, experiment_id, key).await?
+                && let Some(made) = select_by_id(&mut tx, experiment_id, made).await?
+            {
+                tx.commit().await?;
+                return Ok((made, Inserted::Continued));
+            }
+            if let Some(client) = &p.terms.client_id
+                && let Some(open) = open_for_client(&mut tx, experiment_id, client).await?
+            {
+                tx.commit().await?;
+                return Ok((open, Inserted::OpenLease));
+            }
+            let created = time::OffsetDateTime::now_utc();
+            let expires = created + time::Duration::seconds(i64::from(p.ttl_seconds));
+            let fmt = super::timestamp;
+            let id: i64 = sqlx::query_scalar(
+                "INSERT INTO proposals (experiment_id, client_id, status, iteration, beta, strategy,
+                                        model_version, start, goal, body, created_at, expires_at,
+                                        expires_unix, n_actions, extensions)
+                 VALUES ($1, $2, 'open', $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)
+                 RETURNING id",
+            )
+            .bind(experiment_id)
+            .bind(&p.terms.client_id)
+            .bind(p.terms.iteration)
+            .bind(p.terms.beta)
+            .bind(p.terms.strategy.as_str())
+            .bind(p.terms.model_version)
+            .bind(encode_vec(&p.terms.start))
+            .bind(encode_vec(&p.terms.goal))
+            .bind(&p.body)
+            .bind(fmt(created))
+            .bind(fmt(expires))
+            .bind(expires.unix_timestamp_nanos() as f64 / 1e9)
+            .bind(p.n_actions)
+            .bind(p.extensions)
             .fetch_one(&mut *tx)
             .await?;
-        let stored = from_row(&stored)?;
-        tx.commit().await?;
-        Ok((stored, true))
+            let stored = sqlx::query(&format!("SELECT {COLUMNS} FROM proposals WHERE id = $1"))
+                .bind(id)
+                .fetch_one(&mut *tx)
+                .await?;
+            let stored = from_row(&stored)?;
+            if let Some(key) = &p.continues {
+                sqlx::query(
+                    "UPDATE idempotency_keys SET continued_proposal_id = $3
+                     WHERE experiment_id = $1 AND key = $2",
+                )
+                .bind(experiment_id)
+                .bind(key)
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+            }
+            tx.commit().await?;
+            Ok((stored, Inserted::Created))
+        })
+        .await
+    }
+
+    /// The proposal a `continue` under `key` planned, if its first call got that far.
+    #[tracing::instrument(skip(self))]
+    pub async fn continuation(
+        &self,
+        experiment_id: i64,
+        key: &str,
+    ) -> Result<Option<i64>, sqlx::Error> {
+        let mut conn = self.read.acquire().await?;
+        continuation_on(&mut conn, experiment_id, key).await
     }
 
     /// One proposal, with its lease brought up to date.
@@ -358,10 +418,13 @@ impl Store {
         experiment_id: i64,
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
-        let mut tx = self.leases_current(experiment_id).await?;
-        let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
-        tx.commit().await?;
-        Ok(p)
+        self.noted(async {
+            let mut tx = self.leases_current(experiment_id).await?;
+            let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
+            tx.commit().await?;
+            Ok(p)
+        })
+        .await
     }
 
     /// Abandons an open proposal. Returns the proposal as it now is (unchanged if it was not
@@ -372,18 +435,21 @@ impl Store {
         experiment_id: i64,
         proposal_id: i64,
     ) -> Result<Option<StoredProposal>, sqlx::Error> {
-        let mut tx = self.leases_current(experiment_id).await?;
-        sqlx::query(
-            "UPDATE proposals SET status = 'abandoned'
-             WHERE experiment_id = $1 AND id = $2 AND status = 'open'",
-        )
-        .bind(experiment_id)
-        .bind(proposal_id)
-        .execute(&mut *tx)
-        .await?;
-        let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
-        tx.commit().await?;
-        Ok(p)
+        self.noted(async {
+            let mut tx = self.leases_current(experiment_id).await?;
+            sqlx::query(
+                "UPDATE proposals SET status = 'abandoned'
+                 WHERE experiment_id = $1 AND id = $2 AND status = 'open'",
+            )
+            .bind(experiment_id)
+            .bind(proposal_id)
+            .execute(&mut *tx)
+            .await?;
+            let p = select_by_id(&mut tx, experiment_id, proposal_id).await?;
+            tx.commit().await?;
+            Ok(p)
+        })
+        .await
     }
 }
 

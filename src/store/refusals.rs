@@ -36,25 +36,28 @@ impl Store {
         experiment_id: i64,
         r: &NewRefusal,
     ) -> Result<i64, sqlx::Error> {
-        sqlx::query_scalar(
-            "INSERT INTO refusals (experiment_id, client_id, iteration, strategy, model_version,
-                                   start, goal, betas, extensions, candidates, created_at,
-                                   first_beta)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12) RETURNING id",
-        )
-        .bind(experiment_id)
-        .bind(&r.client_id)
-        .bind(r.iteration)
-        .bind(r.strategy.as_str())
-        .bind(r.model_version)
-        .bind(encode_vec(&r.start))
-        .bind(encode_vec(&r.goal))
-        .bind(encode_vec(&r.betas))
-        .bind(r.extensions)
-        .bind(r.candidates)
-        .bind(now())
-        .bind(r.betas.first().copied())
-        .fetch_one(&self.write)
+        self.noted(async {
+            sqlx::query_scalar(
+                "INSERT INTO refusals (experiment_id, client_id, iteration, strategy, model_version,
+                                       start, goal, betas, extensions, candidates, created_at,
+                                       first_beta)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12) RETURNING id",
+            )
+            .bind(experiment_id)
+            .bind(&r.client_id)
+            .bind(r.iteration)
+            .bind(r.strategy.as_str())
+            .bind(r.model_version)
+            .bind(encode_vec(&r.start))
+            .bind(encode_vec(&r.goal))
+            .bind(encode_vec(&r.betas))
+            .bind(r.extensions)
+            .bind(r.candidates)
+            .bind(now())
+            .bind(r.betas.first().copied())
+            .fetch_one(&self.write)
+            .await
+        })
         .await
     }
 }

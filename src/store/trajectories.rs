@@ -117,7 +117,10 @@ pub enum IngestOutcome {
     /// nothing stored.
     Replayed(IngestRecord),
     /// The idempotency key was seen with a different request; nothing stored.
-    KeyReused,
+    KeyReused {
+        /// The request stored under the key (canonical JSON), to say what differs.
+        stored_request: String,
+    },
     /// `proposal_id` names no proposal of this experiment; nothing stored.
     ProposalNotFound,
     /// The proposal's trajectory was already posted; nothing stored.
@@ -183,145 +186,157 @@ impl Store {
         idempotency: Option<IdempotencyKey<'_>>,
         model_version: i64,
     ) -> Result<IngestOutcome, sqlx::Error> {
-        let mut tx = self.write.begin().await?;
-        lock_experiment(&mut tx, self.backend, experiment_id).await?;
-        if let Some(k) = idempotency {
-            let seen = sqlx::query(
-                "SELECT k.request, k.trajectory_id, k.model_version, k.n_trajectories,
-                        k.created_at, t.proposal_id, t.partial, t.deviating, t.source_dataset,
-                        t.source_episode, t.source_first_step, t.source_label
-                 FROM idempotency_keys k JOIN trajectories t ON t.id = k.trajectory_id
-                 WHERE k.experiment_id = $1 AND k.key = $2",
-            )
-            .bind(experiment_id)
-            .bind(k.key)
-            .fetch_optional(&mut *tx)
-            .await?;
-            if let Some(row) = seen {
-                let request: String = row.try_get("request")?;
-                if request != k.request {
-                    return Ok(IngestOutcome::KeyReused);
-                }
-                let trajectory_id: i64 = row.try_get("trajectory_id")?;
-                let deviations: Vec<f64> = sqlx::query_scalar(
-                    "SELECT deviation FROM transitions WHERE trajectory_id = $1 ORDER BY step",
+        self.noted(async {
+            let mut tx = self.begin_write().await?;
+            lock_experiment(&mut tx, self.backend, experiment_id).await?;
+            if let Some(k) = idempotency {
+                let seen = sqlx::query(
+                    "SELECT k.request, k.trajectory_id, k.model_version, k.n_trajectories,
+                            k.created_at, t.proposal_id, t.partial, t.deviating, t.source_dataset,
+                            t.source_episode, t.source_first_step, t.source_label
+                     FROM idempotency_keys k JOIN trajectories t ON t.id = k.trajectory_id
+                     WHERE k.experiment_id = $1 AND k.key = $2",
                 )
-                .bind(trajectory_id)
-                .fetch_all(&mut *tx)
-                .await?;
-                return Ok(IngestOutcome::Replayed(IngestRecord {
-                    trajectory_id,
-                    proposal_id: row.try_get("proposal_id")?,
-                    partial: flag(&row, "partial")?,
-                    deviating: flag(&row, "deviating")?,
-                    source: provenance_from_row(&row)?,
-                    deviations,
-                    model_version: row.try_get("model_version")?,
-                    n_trajectories: row.try_get("n_trajectories")?,
-                    created_at: row.try_get("created_at")?,
-                }));
-            }
-        }
-        if let Some(pid) = meta.proposal_id {
-            match link_trajectory(&mut tx, experiment_id, pid).await? {
-                LinkOutcome::Linked => {}
-                LinkOutcome::NotFound => return Ok(IngestOutcome::ProposalNotFound),
-                LinkOutcome::AlreadyExecuted => return Ok(IngestOutcome::ProposalAlreadyExecuted),
-            }
-        }
-        let created_at = now();
-        let trajectory_id: i64 = sqlx::query_scalar(
-            "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at,
-                                       deviating, source_dataset, source_episode,
-                                       source_first_step, source_label)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) RETURNING id",
-        )
-        .bind(experiment_id)
-        .bind(meta.proposal_id)
-        .bind(meta.partial)
-        .bind(transitions.len() as i64)
-        .bind(&created_at)
-        .bind(meta.deviating)
-        .bind(meta.source.map(|p| p.dataset.as_str()))
-        .bind(meta.source.and_then(|p| p.episode))
-        .bind(meta.source.and_then(|p| p.first_step))
-        .bind(meta.source.and_then(|p| p.label.as_deref()))
-        .fetch_one(&mut *tx)
-        .await?;
-        // Many rows a statement: one round trip per chunk, not per transition (PostgreSQL is
-        // across a network); rows are numbered in the order listed, so ids follow the steps.
-        for (chunk_index, chunk) in transitions.chunks(INSERT_ROWS).enumerate() {
-            let rows: Vec<String> = (0..chunk.len())
-                .map(|r| {
-                    let p = 8 * r;
-                    format!(
-                        "(${}, ${}, ${}, ${}, ${}, ${}, ${}, ${})",
-                        p + 1,
-                        p + 2,
-                        p + 3,
-                        p + 4,
-                        p + 5,
-                        p + 6,
-                        p + 7,
-                        p + 8
-                    )
-                })
-                .collect();
-            let sql = format!(
-                "INSERT INTO transitions
-                   (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
-                 VALUES {}",
-                rows.join(", ")
-            );
-            let mut insert = sqlx::query(&sql);
-            for (k, t) in chunk.iter().enumerate() {
-                let o = &t.observed;
-                insert = insert
-                    .bind(experiment_id)
-                    .bind(trajectory_id)
-                    .bind((chunk_index * INSERT_ROWS + k) as i64)
-                    .bind(encode_vec(&o.s))
-                    .bind(encode_vec(&o.a))
-                    .bind(encode_vec(&o.s_next))
-                    .bind(encode_vec(&t.s_pred))
-                    .bind(t.deviation);
-            }
-            insert.execute(&mut *tx).await?;
-        }
-        let n_trajectories: i64 =
-            sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = $1")
                 .bind(experiment_id)
-                .fetch_one(&mut *tx)
+                .bind(k.key)
+                .fetch_optional(&mut *tx)
                 .await?;
-        if let Some(k) = idempotency {
-            sqlx::query(
-                "INSERT INTO idempotency_keys
-                   (experiment_id, key, request, trajectory_id, model_version, n_trajectories,
-                    created_at)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7)",
+                if let Some(row) = seen {
+                    let request: String = row.try_get("request")?;
+                    if request != k.request {
+                        tx.rollback().await?;
+                        return Ok(IngestOutcome::KeyReused {
+                            stored_request: request,
+                        });
+                    }
+                    let trajectory_id: i64 = row.try_get("trajectory_id")?;
+                    let deviations: Vec<f64> = sqlx::query_scalar(
+                        "SELECT deviation FROM transitions WHERE trajectory_id = $1 ORDER BY step",
+                    )
+                    .bind(trajectory_id)
+                    .fetch_all(&mut *tx)
+                    .await?;
+                    let record = IngestRecord {
+                        trajectory_id,
+                        proposal_id: row.try_get("proposal_id")?,
+                        partial: flag(&row, "partial")?,
+                        deviating: flag(&row, "deviating")?,
+                        source: provenance_from_row(&row)?,
+                        deviations,
+                        model_version: row.try_get("model_version")?,
+                        n_trajectories: row.try_get("n_trajectories")?,
+                        created_at: row.try_get("created_at")?,
+                    };
+                    tx.rollback().await?;
+                    return Ok(IngestOutcome::Replayed(record));
+                }
+            }
+            if let Some(pid) = meta.proposal_id {
+                let refused = match link_trajectory(&mut tx, experiment_id, pid).await? {
+                    LinkOutcome::Linked => None,
+                    LinkOutcome::NotFound => Some(IngestOutcome::ProposalNotFound),
+                    LinkOutcome::AlreadyExecuted => Some(IngestOutcome::ProposalAlreadyExecuted),
+                };
+                if let Some(refused) = refused {
+                    tx.rollback().await?;
+                    return Ok(refused);
+                }
+            }
+            let created_at = now();
+            let trajectory_id: i64 = sqlx::query_scalar(
+                "INSERT INTO trajectories (experiment_id, proposal_id, partial, n_transitions, created_at,
+                                           deviating, source_dataset, source_episode,
+                                           source_first_step, source_label)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10) RETURNING id",
             )
             .bind(experiment_id)
-            .bind(k.key)
-            .bind(k.request)
-            .bind(trajectory_id)
-            .bind(model_version)
-            .bind(n_trajectories)
+            .bind(meta.proposal_id)
+            .bind(meta.partial)
+            .bind(transitions.len() as i64)
             .bind(&created_at)
-            .execute(&mut *tx)
+            .bind(meta.deviating)
+            .bind(meta.source.map(|p| p.dataset.as_str()))
+            .bind(meta.source.and_then(|p| p.episode))
+            .bind(meta.source.and_then(|p| p.first_step))
+            .bind(meta.source.and_then(|p| p.label.as_deref()))
+            .fetch_one(&mut *tx)
             .await?;
-        }
-        tx.commit().await?;
-        Ok(IngestOutcome::Created(IngestRecord {
-            trajectory_id,
-            proposal_id: meta.proposal_id,
-            partial: meta.partial,
-            deviating: meta.deviating,
-            source: meta.source.cloned(),
-            deviations: transitions.iter().map(|t| t.deviation).collect(),
-            model_version,
-            n_trajectories,
-            created_at,
-        }))
+            // Many rows a statement: one round trip per chunk, not per transition (PostgreSQL is
+            // across a network); rows are numbered in the order listed, so ids follow the steps.
+            for (chunk_index, chunk) in transitions.chunks(INSERT_ROWS).enumerate() {
+                let rows: Vec<String> = (0..chunk.len())
+                    .map(|r| {
+                        let p = 8 * r;
+                        format!(
+                            "(${}, ${}, ${}, ${}, ${}, ${}, ${}, ${})",
+                            p + 1,
+                            p + 2,
+                            p + 3,
+                            p + 4,
+                            p + 5,
+                            p + 6,
+                            p + 7,
+                            p + 8
+                        )
+                    })
+                    .collect();
+                let sql = format!(
+                    "INSERT INTO transitions
+                       (experiment_id, trajectory_id, step, s, a, s_next, s_pred, deviation)
+                     VALUES {}",
+                    rows.join(", ")
+                );
+                let mut insert = sqlx::query(&sql);
+                for (k, t) in chunk.iter().enumerate() {
+                    let o = &t.observed;
+                    insert = insert
+                        .bind(experiment_id)
+                        .bind(trajectory_id)
+                        .bind((chunk_index * INSERT_ROWS + k) as i64)
+                        .bind(encode_vec(&o.s))
+                        .bind(encode_vec(&o.a))
+                        .bind(encode_vec(&o.s_next))
+                        .bind(encode_vec(&t.s_pred))
+                        .bind(t.deviation);
+                }
+                insert.execute(&mut *tx).await?;
+            }
+            let n_trajectories: i64 =
+                sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = $1")
+                    .bind(experiment_id)
+                    .fetch_one(&mut *tx)
+                    .await?;
+            if let Some(k) = idempotency {
+                sqlx::query(
+                    "INSERT INTO idempotency_keys
+                       (experiment_id, key, request, trajectory_id, model_version, n_trajectories,
+                        created_at)
+                     VALUES ($1, $2, $3, $4, $5, $6, $7)",
+                )
+                .bind(experiment_id)
+                .bind(k.key)
+                .bind(k.request)
+                .bind(trajectory_id)
+                .bind(model_version)
+                .bind(n_trajectories)
+                .bind(&created_at)
+                .execute(&mut *tx)
+                .await?;
+            }
+            tx.commit().await?;
+            Ok(IngestOutcome::Created(IngestRecord {
+                trajectory_id,
+                proposal_id: meta.proposal_id,
+                partial: meta.partial,
+                deviating: meta.deviating,
+                source: meta.source.cloned(),
+                deviations: transitions.iter().map(|t| t.deviation).collect(),
+                model_version,
+                n_trajectories,
+                created_at,
+            }))
+        })
+        .await
     }
 
     /// One trajectory of an experiment with its transitions, or `None`.
@@ -385,5 +400,64 @@ impl Store {
         .iter()
         .map(transition_from_row)
         .collect()
+    }
+
+    /// Transitions of an experiment with `after < id <= upto`, in id order, at most `limit`.
+    #[tracing::instrument(skip(self))]
+    pub async fn transitions_between(
+        &self,
+        experiment_id: i64,
+        after: i64,
+        upto: i64,
+        limit: i64,
+    ) -> Result<Vec<StoredTransition>, sqlx::Error> {
+        sqlx::query(&format!(
+            "SELECT {TRANSITION_COLUMNS} FROM transitions
+             WHERE experiment_id = $1 AND id > $2 AND id <= $3 ORDER BY id LIMIT $4"
+        ))
+        .bind(experiment_id)
+        .bind(after)
+        .bind(upto)
+        .bind(limit)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(transition_from_row)
+        .collect()
+    }
+
+    /// Where an export of the transitions after `after` ends: the last id it writes (the
+    /// `limit`-th after `after`, or the last stored now), and the cursor of the following page
+    /// when `limit` leaves some out.
+    #[tracing::instrument(skip(self))]
+    pub async fn export_bounds(
+        &self,
+        experiment_id: i64,
+        after: i64,
+        limit: Option<i64>,
+    ) -> Result<(i64, Option<i64>), sqlx::Error> {
+        if let Some(limit) = limit.filter(|l| *l >= 1) {
+            let ids: Vec<i64> = sqlx::query_scalar(
+                "SELECT id FROM transitions WHERE experiment_id = $1 AND id > $2
+                 ORDER BY id LIMIT 2 OFFSET $3",
+            )
+            .bind(experiment_id)
+            .bind(after)
+            .bind(limit - 1)
+            .fetch_all(&self.read)
+            .await?;
+            match ids.as_slice() {
+                [last, _more] => return Ok((*last, Some(*last))),
+                [last] => return Ok((*last, None)),
+                _ => {}
+            }
+        }
+        let last: Option<i64> = sqlx::query_scalar(
+            "SELECT CAST(MAX(id) AS BIGINT) FROM transitions WHERE experiment_id = $1",
+        )
+        .bind(experiment_id)
+        .fetch_one(&self.read)
+        .await?;
+        Ok((last.unwrap_or(after).max(after), None))
     }
 }

@@ -121,6 +121,23 @@ fn one_of_every_error() -> Vec<ApiError> {
             reason: "revoked".into(),
         })),
         ApiError::Service(Error::Dynamics(DynamicsError::ClientSide)),
+        ApiError::Service(Error::KeyReused {
+            field: "transitions[0].a[0]".into(),
+            difference: "transitions[0].a[0] was 1 and is now 2".into(),
+        }),
+        ApiError::Service(Error::ExportsBusy {
+            limit: 4,
+            retry_after_secs: 5,
+        }),
+        ApiError::Service(Error::StorageFull("database or disk is full".into())),
+        ApiError::Service(Error::DatabaseUnavailable("pool timed out".into())),
+        ApiError::Service(Error::PrefixStored {
+            trajectory_id: 7,
+            error: Box::new(Error::NoPlan {
+                extensions: 1,
+                candidates: Vec::new(),
+            }),
+        }),
         ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
     ];
     for e in &errors {
@@ -143,6 +160,11 @@ fn one_of_every_error() -> Vec<ApiError> {
                 | Error::DeadlineExceeded { .. }
                 | Error::Cancelled
                 | Error::LimitReached(_)
+                | Error::KeyReused { .. }
+                | Error::ExportsBusy { .. }
+                | Error::StorageFull(_)
+                | Error::DatabaseUnavailable(_)
+                | Error::PrefixStored { .. }
                 | Error::Internal(_) => {}
                 Error::Dynamics(d) => match d {
                     DynamicsError::Timeout { .. }

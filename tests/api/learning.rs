@@ -448,6 +448,120 @@ async fn continuing_a_proposal_stores_the_prefix_and_replans_from_where_the_robo
 }
 
 #[tokio::test]
+async fn a_replayed_continue_answers_its_first_proposal_and_never_leases_another() {
+    let (_dir, app, id) = fresh_experiment(json!({})).await;
+    let path = format!("/v1/experiments/{id}/proposals");
+    let mut world = IcyGridworld::default_layout().world();
+    // The first step of `proposal`, executed in the true world, as a continue body.
+    let mut first_step = |proposal: &Value| {
+        let s0: Vec<f64> =
+            serde_json::from_value(proposal["trajectory"]["states"][0].clone()).unwrap();
+        let a0: Vec<f64> =
+            serde_json::from_value(proposal["trajectory"]["actions"][0].clone()).unwrap();
+        let s1 = world.step(&s0, &a0);
+        json!({"transitions": [{"s": s0, "a": a0, "s_next": s1}]})
+    };
+    let continue_with = |pid: i64, key: &'static str, body: Value| {
+        app.client
+            .post(app.url(&format!("{path}/{pid}/continue")))
+            .header("Idempotency-Key", key)
+            .json(&body)
+            .send()
+    };
+    // A late replay: the continuation was executed meanwhile.
+    let (_, first) = app
+        .post(
+            &path,
+            &json!({"start": [0, 0], "goal": [0, 4], "client_id": "arm-6"}),
+        )
+        .await;
+    let prefix = first_step(&first);
+    let r = continue_with(first["id"].as_i64().unwrap(), "late", prefix.clone())
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let made: Value = r.json().await.unwrap();
+    let made_id = made["proposal"]["id"].as_i64().unwrap();
+    let executed = first_step(&made["proposal"]);
+    let (status, posted) = app
+        .post(
+            &format!("/v1/experiments/{id}/trajectories"),
+            &json!({"proposal_id": made_id, "transitions": executed["transitions"]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{posted}");
+    let r = continue_with(first["id"].as_i64().unwrap(), "late", prefix)
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    assert_eq!(r.headers()["idempotent-replayed"], "true");
+    let again: Value = r.json().await.unwrap();
+    assert_eq!(again["proposal"]["id"], made_id, "{again}");
+    assert_eq!(again["proposal"]["status"], "executed", "{again}");
+    let (status, lease) = app
+        .post(
+            &path,
+            &json!({"start": [1, 1], "goal": [1, 5], "client_id": "arm-6"}),
+        )
+        .await;
+    assert_eq!(status, 201, "no lease left open by the replay: {lease}");
+    assert_eq!(lease["id"], made_id + 1, "the replay made no proposal");
+    app.post(&format!("{path}/{}/abandon", lease["id"]), &json!({}))
+        .await;
+
+    // Without a client: three calls under one key, one proposal.
+    let (_, anonymous) = app
+        .post(&path, &json!({"start": [2, 0], "goal": [2, 4]}))
+        .await;
+    let prefix = first_step(&anonymous);
+    let mut ids = Vec::new();
+    for _ in 0..3 {
+        let r = continue_with(anonymous["id"].as_i64().unwrap(), "anon", prefix.clone())
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+        let v: Value = r.json().await.unwrap();
+        ids.push(v["proposal"]["id"].as_i64().unwrap());
+    }
+    assert!(ids.iter().all(|i| *i == ids[0]), "{ids:?}");
+
+    // The client holds another lease: the prefix is stored, and the 409 says so in a field.
+    let (_, held) = app
+        .post(
+            &path,
+            &json!({"start": [3, 0], "goal": [3, 4], "client_id": "arm-7"}),
+        )
+        .await;
+    app.post(&format!("{path}/{}/abandon", held["id"]), &json!({}))
+        .await;
+    let (_, other) = app
+        .post(
+            &path,
+            &json!({"start": [5, 0], "goal": [5, 4], "client_id": "arm-7"}),
+        )
+        .await;
+    assert_ne!(other["id"], held["id"]);
+    let r = continue_with(held["id"].as_i64().unwrap(), "held", first_step(&held))
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 409);
+    let err: Value = r.json().await.unwrap();
+    let stored = err["error"]["details"]["stored_trajectory_id"].as_i64();
+    assert!(stored.is_some(), "{err}");
+    assert_eq!(err["error"]["details"]["proposal_id"], other["id"], "{err}");
+    let (status, t) = app
+        .get(&format!(
+            "/v1/experiments/{id}/trajectories/{}",
+            stored.unwrap()
+        ))
+        .await;
+    assert_eq!(
+        (status, t["proposal_id"].clone()),
+        (200, held["id"].clone())
+    );
+}
+
+#[tokio::test]
 async fn no_plan_is_422_with_the_extensions_used() {
     let (_dir, app, id) = fresh_experiment(json!({
         "domain": {"kind": "kinematic", "obstacles": [{"low": [0.45, -1.0], "high": [0.55, 2.0]}]},
