@@ -6,12 +6,14 @@
 //! ([`mapping`]); without a next-state column, a transition's next state is the next row's
 //! state within the episode (LeRobot's frames).
 //!
-//! **Resumable and idempotent.** Each trajectory is posted under the `Idempotency-Key`
-//! `import-<dataset>-<episode>-<part>`, where `<dataset>` is the first 16 hex digits of the
-//! SHA-256 of the file's bytes (or `--dataset-id`): running the same import again — after an
-//! interruption, or twice — stores nothing twice (the service replays what it stored), and the
-//! same episode imported with another mapping or label is refused (`409`) rather than stored a
-//! second time.
+//! **Resumable and idempotent, per episode.** Each trajectory is posted under the
+//! `Idempotency-Key` `import-<dataset>-<episode>-<part>`, where `<dataset>` is the first 16 hex
+//! digits of the SHA-256 of the dataset's name (by default the file's absolute path, so the
+//! working directory does not matter; or `--dataset-id`). The key does not depend on the
+//! file's bytes: running an import again — after an interruption, after the log grew, after a
+//! bad line was fixed — stores only the episodes not stored yet (the service replays the
+//! others), and an episode whose content, mapping or label changed since it was stored is
+//! refused by name (`409`, naming the first field that differs) rather than stored twice.
 //!
 //! **Streaming.** Files are read row by row (CSV) or row group by row group (Parquet, only the
 //! columns the mapping reads) on a blocking thread that hands finished trajectories to the
@@ -78,11 +80,12 @@ pub struct ImportArgs {
     /// A free-form label stored with every trajectory's source.
     #[arg(long)]
     pub label: Option<String>,
-    /// The source's dataset name. Default: the file's path as given.
+    /// The source's dataset name. Default: the file's absolute path (the same from any
+    /// working directory). Name it to import a moved file as the same dataset.
     #[arg(long)]
     pub dataset_name: Option<String>,
     /// The dataset's identity in the idempotency keys (letters, digits, `.`, `_`, `-`; at
-    /// most 64). Default: the first 16 hex digits of the SHA-256 of the file's bytes.
+    /// most 64). Default: the first 16 hex digits of the SHA-256 of the dataset's name.
     #[arg(long)]
     pub dataset_id: Option<String>,
     /// Transitions per posted trajectory: longer episodes are split. Set it to the server's
@@ -149,12 +152,29 @@ enum Message {
     Skipped,
 }
 
-/// The identity of a file for the idempotency keys: the first 16 hex digits of the SHA-256 of
-/// its bytes, and the number of lines (for the progress of a CSV file).
-pub fn file_identity(path: &Path) -> anyhow::Result<(String, u64)> {
+/// The dataset's identity in the idempotency keys: the first 16 hex digits of the SHA-256 of
+/// its name (the Python client's `import_file` computes the same, so either tool recognises
+/// the other's imports).
+pub fn dataset_identity(name: &str) -> String {
+    Sha256::digest(name.as_bytes())[..8]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The default dataset name of a file: its absolute path, links resolved when it exists.
+pub fn default_dataset_name(path: &Path) -> String {
+    std::fs::canonicalize(path)
+        .or_else(|_| std::path::absolute(path))
+        .unwrap_or_else(|_| path.to_path_buf())
+        .display()
+        .to_string()
+}
+
+/// Lines in a file (a CSV file's progress: rows are lines but one).
+fn count_lines(path: &Path) -> anyhow::Result<u64> {
     let mut file =
         std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
-    let mut hash = Sha256::new();
     let mut buf = vec![0u8; 1 << 20];
     let mut lines = 0u64;
     loop {
@@ -162,14 +182,10 @@ pub fn file_identity(path: &Path) -> anyhow::Result<(String, u64)> {
             .read(&mut buf)
             .with_context(|| format!("reading {}", path.display()))?;
         if n == 0 {
-            break;
+            return Ok(lines);
         }
-        hash.update(&buf[..n]);
         lines += buf[..n].iter().filter(|&&b| b == b'\n').count() as u64;
     }
-    let digest = hash.finalize();
-    let hex: String = digest[..8].iter().map(|b| format!("{b:02x}")).collect();
-    Ok((hex, lines))
 }
 
 /// The episode's part of an idempotency key: its value when short and plain, else a hash.
@@ -414,9 +430,13 @@ impl Poster {
                     let err = Self::error(&format!("POST {path}"), r).await;
                     return Err(match status {
                         409 => err.context(format!(
-                            "{} was imported before with another request (another column \
-                             mapping or label?); nothing was stored for it",
-                            part.key
+                            "episode {} (from step {}) of dataset {:?} was imported before and \
+                             differs now (its rows, the column mapping or the label changed); \
+                             nothing was stored for it — import it under another --dataset-name \
+                             to keep both",
+                            part.source.episode.unwrap_or_default(),
+                            part.source.first_step.unwrap_or_default(),
+                            part.source.dataset
                         )),
                         413 => err.context(
                             "lower --max-body-bytes (or --max-transitions) to the server's limit",
@@ -453,18 +473,27 @@ async fn import_file(
     };
     let mapping =
         mapping::resolve(&columns, spaces, &given).with_context(|| path.display().to_string())?;
-    let file = path.to_path_buf();
-    let (identity, lines) = tokio::task::spawn_blocking(move || file_identity(&file))
-        .await
-        .context("hashing the file")??;
+    let dataset = args
+        .dataset_name
+        .clone()
+        .unwrap_or_else(|| default_dataset_name(path));
     let dataset_id = match &args.dataset_id {
         Some(id) if key_part(id) == *id => id.clone(),
         Some(id) => bail!(
             "--dataset-id {id:?}: letters, digits, '.', '_' and '-' only, at most 64 characters"
         ),
-        None => identity,
+        None => dataset_identity(&dataset),
     };
-    let total = n_rows.unwrap_or(lines.saturating_sub(1));
+    let total = match n_rows {
+        Some(n) => n,
+        None => {
+            let file = path.to_path_buf();
+            tokio::task::spawn_blocking(move || count_lines(&file))
+                .await
+                .context("counting the file's lines")??
+                .saturating_sub(1)
+        }
+    };
     progress.set_length(progress.length().unwrap_or(0) + total);
     say(
         progress,
@@ -483,10 +512,7 @@ async fn import_file(
             mapping.clone(),
             columns.clone(),
         );
-        let dataset = args
-            .dataset_name
-            .clone()
-            .unwrap_or_else(|| path.display().to_string());
+        let dataset = dataset.clone();
         let label = args.label.clone();
         let dims = (spaces.state.len(), spaces.action.len());
         let (max_transitions, max_body) = (
@@ -662,6 +688,29 @@ pub async fn run(args: ImportArgs) -> anyhow::Result<ImportReport> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_files_dataset_does_not_depend_on_the_working_directory() {
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("log.csv");
+        std::fs::write(&file, "x\n").unwrap();
+        let sub = dir.path().join("sub");
+        std::fs::create_dir(&sub).unwrap();
+        let roundabout = sub.join("..").join("log.csv");
+        assert_eq!(
+            default_dataset_name(&file),
+            default_dataset_name(&roundabout)
+        );
+        assert_eq!(
+            dataset_identity(&default_dataset_name(&file)),
+            dataset_identity(&default_dataset_name(&roundabout))
+        );
+        // The key is the name's hash, not the content's: a grown file keeps its identity.
+        let before = dataset_identity(&default_dataset_name(&file));
+        std::fs::write(&file, "x\n1\n").unwrap();
+        assert_eq!(before, dataset_identity(&default_dataset_name(&file)));
+        assert_eq!(dataset_identity("logs/run3.csv").len(), 16);
+    }
 
     #[test]
     fn keys_keep_plain_episode_values_and_hash_the_others() {

@@ -92,7 +92,8 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
     write_csv(&csv, &steps);
 
     // An earlier run was interrupted after the first episode: it is recognised, not repeated.
-    let (dataset_id, _) = precond::import::file_identity(&csv).unwrap();
+    let dataset = precond::import::default_dataset_name(&csv);
+    let dataset_id = precond::import::dataset_identity(&dataset);
     let first: Vec<Value> = steps[..4]
         .iter()
         .map(|(_, s, a, n)| json!({"s": s, "a": a, "s_next": n}))
@@ -102,7 +103,7 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
         .post(app.url(&format!("/v1/experiments/{id}/trajectories")))
         .header("idempotency-key", format!("import-{dataset_id}-0-0"))
         .json(&json!({
-            "source": {"dataset": csv.display().to_string(), "episode": 0, "first_step": 0, "label": "bench"},
+            "source": {"dataset": dataset, "episode": 0, "first_step": 0, "label": "bench"},
             "transitions": first
         }))
         .send()
@@ -149,7 +150,7 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
             let s = &r["source"];
             assert_eq!(
                 (s["dataset"].as_str(), s["label"].as_str()),
-                (Some(csv.to_str().unwrap()), Some("bench"))
+                (Some(dataset.as_str()), Some("bench"))
             );
             (
                 s["episode"].as_i64().unwrap(),
@@ -186,11 +187,65 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
     .unwrap_err();
     let text = format!("{err:#}");
     assert!(
-        text.contains("imported before with another request") && text.contains("409"),
+        text.contains("imported before and differs now")
+            && text.contains("409")
+            && text.contains("source.label was \"bench\" and is now \"other\""),
         "{text}"
     );
     let (_, e) = app.get_at(id, "").await;
     assert_eq!(e["n_trajectories"], 5);
+}
+
+#[tokio::test]
+async fn a_grown_or_fixed_file_imports_only_what_is_new_from_any_directory() {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = kinematic(&app).await;
+    let csv = dir.path().join("log.csv");
+    let steps = logged(&[3, 2, 4, 2]);
+    // Two episodes and the first row of a third, then a bad line: the import stops there,
+    // the two complete episodes stored.
+    let mut text = String::from("episode,s_x,s_y,a_dx,a_dy,s_next_x,s_next_y\n");
+    for (e, s, a, n) in &steps[..6] {
+        text += &format!(
+            "{e},{},{},{},{},{},{}\n",
+            s[0], s[1], a[0], a[1], n[0], n[1]
+        );
+    }
+    text += "20,0.1,0.1,oops,0,0.15,0.1\n";
+    std::fs::write(&csv, &text).unwrap();
+    let err = format!("{:#}", import(&app, id, &[], &[&csv]).await.unwrap_err());
+    assert!(err.contains("oops"), "{err}");
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(e["n_trajectories"], 2);
+
+    // The line fixed and the log grown by two more episodes: only what is new is stored.
+    write_csv(&csv, &steps);
+    let report = import(&app, id, &[], &[&csv]).await.unwrap();
+    assert_eq!((report.created, report.replayed), (2, 2), "{report:?}");
+    // From another working directory, by another path to the same file: nothing new.
+    let roundabout = dir.path().join(".").join("log.csv");
+    let again = import(&app, id, &[], &[&roundabout]).await.unwrap();
+    assert_eq!((again.created, again.replayed), (0, 4), "{again:?}");
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(
+        (e["n_trajectories"].as_i64(), e["n_transitions"].as_i64()),
+        (Some(4), Some(11))
+    );
+
+    // An episode whose rows changed since it was stored: refused by name, nothing stored; the
+    // episodes before it are recognised.
+    let mut changed = steps.clone();
+    changed[6].2[0] = 0.04;
+    write_csv(&csv, &changed);
+    let err = format!("{:#}", import(&app, id, &[], &[&csv]).await.unwrap_err());
+    assert!(
+        err.contains("episode 20 (from step 0)")
+            && err.contains("transitions[1].a[0] was 0.05 and is now 0.04"),
+        "{err}"
+    );
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(e["n_trajectories"], 4);
 }
 
 /// A LeRobot-style Parquet file: list columns `observation.state` and `action` (float32),
