@@ -105,8 +105,8 @@ async fn a_trajectory_posted_to_one_replica_is_labelled_once_and_seen_by_the_oth
     )
     .await;
     assert_eq!(status, 201);
-    let on_a = model_at_least(&http, &a.base, id, 1, Duration::from_secs(60)).await;
-    let on_b = model_at_least(&http, &b.base, id, 1, Duration::from_secs(60)).await;
+    let on_a = model_at_least(&http, &a.base, id, 1, Duration::from_secs(600)).await;
+    let on_b = model_at_least(&http, &b.base, id, 1, Duration::from_secs(600)).await;
     assert_eq!(on_a["version"], 1);
     assert_eq!(on_a["n_trajectories"], 2);
     assert_eq!(on_a["hyperparameters"], on_b["hyperparameters"]);
@@ -247,7 +247,7 @@ async fn a_fit_claimed_by_a_killed_replica_is_finished_by_the_other() {
     replicas.remove(0).kill9();
     // Nothing was stored by the dead replica; the survivor takes the fit over after the
     // lease and stores version 1.
-    let model = model_at_least(&http, &survivor.base, id, 1, Duration::from_secs(120)).await;
+    let model = model_at_least(&http, &survivor.base, id, 1, Duration::from_secs(600)).await;
     assert_eq!(model["version"], 1);
     assert_eq!(model["n_trajectories"], 60);
     let left: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM fit_jobs")

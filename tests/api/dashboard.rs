@@ -144,8 +144,7 @@ async fn the_timeline_has_each_iteration_with_its_beta_and_each_model_version() 
     .await;
     let trajectories = gridworld_moves(0..5, 40);
     post_all(&app, id, &trajectories[..5]).await;
-    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
-    assert_eq!(status, 200, "{refit}");
+    let refit = app.refit(id).await;
     let (status, t) = app.get_at(id, "timeline").await;
     assert_eq!(status, 200, "{t}");
     assert_eq!(
@@ -190,9 +189,9 @@ async fn the_precondition_map_evaluates_any_version_on_a_grid() {
     assert!(prior["mu"].as_array().unwrap().iter().all(|m| m == 0.0));
     assert!(prior["sigma"].as_array().unwrap().iter().all(|s| s == 1.0));
     post_all(&app, id, &gridworld_moves(0..3, 40)).await;
-    let (_, v1) = app.post_at(id, "model/refit", &json!({})).await;
+    let v1 = app.refit(id).await;
     post_all(&app, id, &gridworld_moves(3..6, 40)).await;
-    let (_, v2) = app.post_at(id, "model/refit", &json!({})).await;
+    let v2 = app.refit(id).await;
     assert_eq!(
         (v1["version"].as_i64(), v2["version"].as_i64()),
         (Some(1), Some(2))
@@ -268,7 +267,7 @@ async fn diagnostics_check_a_fit_by_leave_one_out() {
         "the prior has no labels: {err}"
     );
     post_all(&app, id, &gridworld_moves(0..4, 40)).await;
-    let (_, model) = app.post_at(id, "model/refit", &json!({})).await;
+    let model = app.refit(id).await;
     let (status, d) = app.get(&format!("{path}?beta=2")).await;
     assert_eq!(status, 200, "{d}");
     assert_eq!(d["method"], "leave_one_out");

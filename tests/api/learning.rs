@@ -144,8 +144,7 @@ async fn the_model_advances_after_each_batch_and_survives_a_restart() {
             );
         }
     }
-    let (status, refit) = app.post_at(id, "model/refit", &json!({})).await;
-    assert_eq!(status, 200, "{refit}");
+    let refit = app.refit(id).await;
     assert_eq!(refit["version"], 2);
     app.stop().await;
 }
@@ -170,8 +169,7 @@ async fn a_test_time_plan_avoids_the_ice_once_the_data_shows_it() {
     for t in gridworld_moves(0..12, 48) {
         app.store_trajectory(id, &t).await;
     }
-    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
-    assert_eq!(status, 200, "{model}");
+    app.refit(id).await;
     let grid = IcyGridworld::default_layout();
     // Problems that must cross or skirt an ice band. (Crossing the wall's two-cell gap is not
     // among them: with these features the fitted x length scale spans most of the grid, so the
@@ -734,8 +732,7 @@ async fn spread_executes_the_candidate_that_settles_the_most_of_the_boundary() {
         app.store_trajectory(id, &json!({"transitions": transitions}))
             .await;
     }
-    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
-    assert_eq!(status, 200, "{model}");
+    app.refit(id).await;
     let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "strategy": "active"});
     let p = app.assert_proposes(id, &ask).await;
     let alphas = floats(&p["candidates"], "alpha");
@@ -787,8 +784,7 @@ async fn two_robots_in_one_batch(diversity: bool) -> (Vec<(Value, Value)>, Vec<(
     for t in gridworld_moves(0..3, 48) {
         app.store_trajectory(id, &t).await;
     }
-    let (status, model) = app.post_at(id, "model/refit", &json!({})).await;
-    assert_eq!(status, 200, "{model}");
+    app.refit(id).await;
     let path = format!("/v1/experiments/{id}/proposals");
     let ask = |client: &str| json!({"start": [1, 2], "goal": [9, 10], "client_id": client});
     let (status, a) = app.post(&path, &ask("robot-a")).await;

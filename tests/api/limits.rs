@@ -150,8 +150,7 @@ async fn older_model_versions_are_rebuilt_through_the_work_gate() {
     for y in 0..2 {
         app.store_trajectory(id, &free_row_trajectory(0, y, 4))
             .await;
-        let (status, body) = app.post_at(id, "model/refit", &json!({})).await;
-        assert_eq!(status, 200, "{body}");
+        app.refit(id).await;
     }
     let walled = app.create_experiment(walled()).await;
     let search = {
