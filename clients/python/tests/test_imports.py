@@ -19,7 +19,8 @@ from precond_client.imports import (
     DatasetError,
     ImportFailed,
     LoggedEpisode,
-    file_identity,
+    dataset_identity,
+    episodes_from_rows,
     import_episodes,
     resolve_columns,
 )
@@ -90,6 +91,24 @@ def test_columns_are_found_by_convention_or_named() -> None:
         resolve_columns(["s_x", "s_y", "a_dx", "a_dy"], set(), names, actions, client_side=True)
 
 
+def test_a_long_episode_is_read_in_pieces_of_at_most_one_part() -> None:
+    rows = [
+        {"episode": 0, "s_x": k, "s_y": 0, "a_dx": 1, "a_dy": 0, "s_next_x": k + 1, "s_next_y": 0}
+        for k in range(25)
+    ]
+    m = resolve_columns(list(rows[0]), set(), ["x", "y"], ["dx", "dy"])
+    pieces = list(episodes_from_rows(rows, m, (2, 2), "rows", chunk=10))
+    assert [(p.first_step, len(p)) for p in pieces] == [(0, 10), (10, 10), (20, 5)]
+    np.testing.assert_array_equal(np.concatenate([p.s for p in pieces])[:, 0], np.arange(25))
+    # Frames (no next-state column): a piece ends where the next begins.
+    frames = [{"episode": 0, "s_x": k, "s_y": 0, "a_dx": 1, "a_dy": 0} for k in range(25)]
+    m = resolve_columns(list(frames[0]), set(), ["x", "y"], ["dx", "dy"])
+    pieces = list(episodes_from_rows(frames, m, (2, 2), "frames", chunk=10))
+    assert [(p.first_step, len(p)) for p in pieces] == [(0, 10), (10, 10), (20, 4)]
+    for p in pieces:
+        np.testing.assert_array_equal(p.s_next[:, 0], p.s[:, 0] + 1)
+
+
 def test_an_episode_from_observations_needs_one_more_observation() -> None:
     ep = LoggedEpisode.from_observations(3, np.zeros((5, 2)), np.ones((4, 1)))
     assert (len(ep), ep.s.shape, ep.s_next.shape, ep.a.shape) == (4, (4, 2), (4, 2), (4, 1))
@@ -132,15 +151,17 @@ def test_a_csv_import_round_trips_and_runs_once(
         assert all(r.status == "unsolicited" and not r.deviating for r in runs)
         traj = client.get_trajectory(runs[0].trajectory_id or 0)
         assert traj.source is not None
-        assert (traj.source.dataset, traj.source.label) == (str(path), "teleop")
+        assert (traj.source.dataset, traj.source.label) == (str(path.resolve()), "teleop")
         np.testing.assert_array_equal(traj.deviations, [x.deviation for x in traj.transitions])
 
         again = client.import_file(path, label="teleop", max_transitions=3, progress=False)
         assert (again.created, again.replayed) == (0, 6)
         assert again.trajectory_ids == report.trajectory_ids
         assert client.get_experiment().n_trajectories == 6
-        with pytest.raises(ImportFailed, match="imported before with another request"):
+        with pytest.raises(ImportFailed, match="imported before and different now") as e:
             client.import_file(path, label="other", max_transitions=3, progress=False)
+        assert e.value.cause.details["field"] == "source.label"
+
         assert client.get_experiment().n_trajectories == 6
 
         # precond import and the client key a file alike: the command line finds it all stored.
@@ -151,6 +172,36 @@ def test_a_csv_import_round_trips_and_runs_once(
             capture_output=True, text=True, check=True, timeout=60,
         )  # fmt: skip
         assert "(0 stored now, 6 already stored)" in out.stdout, out.stdout + out.stderr
+
+
+@pytest.mark.integration
+def test_a_grown_file_imports_only_what_is_new_and_a_changed_episode_is_refused(
+    make_server: MakeServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    server = make_server()
+    rows = logged([4, 3, 5, 2])
+    path = tmp_path / "log.csv"
+    write_csv(path, rows[:7])
+    with Client(server.url) as client:
+        kinematic(client, "grown")
+        first = client.import_file(path, progress=False)
+        assert (first.created, first.replayed) == (2, 0)
+        write_csv(path, rows)
+        # From another working directory: the same dataset.
+        sub = tmp_path / "sub"
+        sub.mkdir()
+        monkeypatch.chdir(sub)
+        grown = client.import_file(Path("..") / "log.csv", progress=False)
+        assert (grown.created, grown.replayed) == (2, 2)
+        assert client.get_experiment().n_trajectories == 4
+        changed = list(rows)
+        e, s, a, n = changed[8]
+        changed[8] = (e, s, [a[0] + 0.01, a[1]], n)
+        write_csv(path, changed)
+        with pytest.raises(ImportFailed, match="episode 20 from step 0") as err:
+            client.import_file(path, progress=False)
+        assert err.value.cause.details["field"] == "transitions[1].a[0]"
+        assert client.get_experiment().n_trajectories == 4
 
 
 @pytest.mark.integration
@@ -199,6 +250,11 @@ def test_parquet_files_round_trip_flat_and_as_lists(
         for t, (fs, fa, fn) in zip(new, expected, strict=True):
             np.testing.assert_array_equal(np.r_[t.s, t.a, t.s_next], np.r_[fs, fa, fn])
         assert client.import_file(tmp_path / "frames.parquet", progress=False).created == 0
+        # A truncated file is named, in the package's own error.
+        data = (tmp_path / "flat.parquet").read_bytes()
+        (tmp_path / "half.parquet").write_bytes(data[: len(data) // 2])
+        with pytest.raises(DatasetError, match=r"half.parquet: not a readable Parquet file"):
+            client.import_file(tmp_path / "half.parquet", progress=False)
 
 
 def write_lerobot(root: Path, episodes: list[np.ndarray]) -> None:
@@ -316,4 +372,4 @@ def test_bad_data_is_named_and_refusals_say_which_episode(
         assert e.value.cause.details["field"] == "transitions[0].s"
         with pytest.raises(ValueError, match="dataset_id"):
             import_episodes(client, outside, dataset="logs", dataset_id="no spaces")
-    assert len(file_identity(bad)) == 16
+    assert len(dataset_identity(str(bad))) == 16

@@ -34,7 +34,8 @@ from . import errors
 from .export import ExportedModel
 from .imports import (
     ImportReport,
-    file_identity,
+    dataset_identity,
+    default_dataset_name,
     import_episodes,
     lerobot_files,
     read_lerobot,
@@ -225,7 +226,8 @@ class Client:
                 continue
             retryable = r.status_code == 429 or r.status_code >= 500
             if not idempotent:
-                retryable = r.status_code in (429, 503)
+                # Answers after which nothing was stored: safe to send again.
+                retryable = r.status_code in (429, 503, 507)
             if retryable and attempt < self.retries:
                 self._sleep(self._delay(attempt, r))
                 attempt += 1
@@ -537,10 +539,14 @@ class Client:
         conventions (``s_*``/``a_*``/``s_next_*``, ``observation.state``/``action``) do not
         find them; without a next state a transition ends at the next row's state.
         ``episode`` names the episode column (``"none"``: the file is one episode).
-        Parquet needs ``pyarrow``. Returns an
+        Parquet needs ``pyarrow``. The dataset's name is ``dataset_name`` or the file's
+        absolute path, its id in the keys the hash of that name (``dataset_id`` to pin it):
+        importing the file again stores only the episodes not stored yet, from any working
+        directory. Memory holds at most ``max_transitions`` transitions at a time. Returns an
         :class:`~precond_client.imports.ImportReport`; bad data raises
         :class:`~precond_client.imports.DatasetError` naming the row and column, a refused
-        trajectory :class:`~precond_client.imports.ImportFailed`."""
+        trajectory (an episode that changed since it was stored, say)
+        :class:`~precond_client.imports.ImportFailed`."""
         exp, client_side = self._import_context()
         mapping, episodes = read_table(
             path,
@@ -548,6 +554,7 @@ class Client:
             exp.action_space.names,
             format=format,
             client_side=client_side,
+            chunk=max(1, max_transitions),
             state=state,
             action=action,
             next_state=next_state,
@@ -556,11 +563,12 @@ class Client:
         )
         p = Path(path)
         log.info("%s: %s", p, mapping.describe())
+        dataset = dataset_name or default_dataset_name(p)
         return import_episodes(
             self,
             episodes,
-            dataset=dataset_name or str(path),
-            dataset_id=dataset_id or file_identity(p),
+            dataset=dataset,
+            dataset_id=dataset_id or dataset_identity(dataset),
             label=label,
             max_transitions=max_transitions,
             max_body_bytes=max_body_bytes,
@@ -584,10 +592,12 @@ class Client:
         ``data/**/*.parquet``) into the current experiment: one trajectory per
         ``episode_index``, each transition from a frame's ``observation.state`` with its
         ``action`` to the next frame's state. Source ``lerobot:<directory name>`` (or
-        ``dataset_name``); the dataset id hashes the data files. Needs ``pyarrow``. The
-        experiment's state and action must be the dataset's (their dimensions are checked)."""
+        ``dataset_name``); the dataset id hashes the directory's absolute path (or
+        ``dataset_name``), so a dataset that grows imports only its new episodes. Needs
+        ``pyarrow``. The experiment's state and action must be the dataset's (their dimensions
+        are checked)."""
         exp, _ = self._import_context()
-        files = lerobot_files(root)
+        lerobot_files(root)
         info = json.loads((Path(root) / "meta" / "info.json").read_text(encoding="utf-8"))
         return import_episodes(
             self,
@@ -597,9 +607,10 @@ class Client:
                 exp.action_space.dim,
                 state=state,
                 action=action,
+                chunk=max(1, max_transitions),
             ),
             dataset=dataset_name or f"lerobot:{Path(root).resolve().name}",
-            dataset_id=dataset_id or file_identity(*files),
+            dataset_id=dataset_id or dataset_identity(dataset_name or str(Path(root).resolve())),
             label=label,
             max_transitions=max_transitions,
             max_body_bytes=max_body_bytes,

@@ -203,6 +203,11 @@ class UnsupportedMediaType(ApiError):
     (the client always sends it)."""
 
 
+class InsufficientStorage(ApiError):
+    """``507 insufficient_storage``: the server's disk is full; nothing of the request was
+    stored. Retried by the client (it honours ``Retry-After``) before it is raised."""
+
+
 class InternalError(ApiError):
     """``500 internal``: a bug in the server (logged there)."""
 
@@ -220,6 +225,7 @@ _BY_CODE: dict[str, type[ApiError]] = {
     "no_plan": NoPlan,
     "overloaded": Overloaded,
     "internal": InternalError,
+    "insufficient_storage": InsufficientStorage,
     "model_unavailable": ModelUnavailable,
     "unavailable": Unavailable,
     "deadline_exceeded": DeadlineExceeded,

@@ -12,16 +12,22 @@ columns, or numbered scalar columns); episodes by the first of ``episode_index``
 ``episode``, ``episode_id``, ``trajectory_id``. Without a next-state column a transition's
 next state is the next row's state in the episode. Any of them can be named instead.
 
-**Idempotent and resumable.** Each trajectory is posted under the ``Idempotency-Key``
-``import-<dataset id>-<episode>-<part>``. The dataset id of a file is the first 16 hex digits
-of the SHA-256 of its bytes — the same key ``precond import`` uses for the same file —, of a
-LeRobot dataset the hash of its data files, of a Minari dataset that of its HDF5 file (loaded by
-id with ``minari``: of its id and size): importing again, after an interruption or twice, stores
-nothing twice.
+**Idempotent and resumable, per episode.** Each trajectory is posted under the
+``Idempotency-Key`` ``import-<dataset id>-<episode>-<part>``. The dataset id is the first 16 hex
+digits of the SHA-256 of the dataset's *name* (:func:`dataset_identity`) — for a file its
+absolute path by default, the same key ``precond import`` uses for the same file; for a LeRobot
+dataset its directory's absolute path; for a Minari dataset its HDF5 file's path or its id —,
+never of its bytes: importing again, after an interruption, after the log grew or after a bad
+row was fixed, stores only the episodes not stored yet, and an episode whose content changed
+since it was stored is refused by name (:class:`ImportFailed`, the server's ``409`` naming the
+first field that differs) rather than stored twice.
 
 **Limits.** An episode longer than ``max_transitions`` (the server's ``--max-transitions``,
 10 000 by default) or whose request would pass ``max_body_bytes`` is posted as several
-trajectories, each with its ``first_step``; the report counts them and a warning says so.
+trajectories, each with its ``first_step``; the report counts them and a warning says so. The
+readers hand over at most ``max_transitions`` transitions of an episode at a time, so memory
+is bounded by one posted part, not by the episode (a CSV or Parquet file; a Minari episode is
+read whole by ``minari`` or ``h5py``).
 
 Parquet and LeRobot need ``pyarrow`` (``pip install precond-client[parquet]``); Minari needs
 ``minari`` or ``h5py`` (``[minari]``); a progress bar needs ``tqdm`` (``[progress]``; else
@@ -78,9 +84,11 @@ class ImportFailed(errors.PrecondError):
     def __init__(self, dataset: str, episode: int, first_step: int, cause: errors.ApiError) -> None:
         hint = ""
         if isinstance(cause, errors.Conflict):
+            field = (cause.details or {}).get("field") if isinstance(cause.details, dict) else None
             hint = (
-                " (imported before with another request: another column mapping, label or "
-                "source? Nothing was stored for it)"
+                " (imported before and different now: its rows, the column mapping or the "
+                f"label changed{f' — first at {field}' if field else ''}; nothing was stored "
+                "for it; import it under another dataset_name to keep both)"
             )
         super().__init__(f"{dataset} episode {episode} from step {first_step}: {cause}{hint}")
         self.dataset = dataset
@@ -105,6 +113,9 @@ class LoggedEpisode:
     """Next states, ``(T, n)``."""
     s_pred: Array | None = None
     """The client's predictions ``(T, n)``, for an experiment whose model is the client's."""
+    first_step: int = 0
+    """The step of the episode its first transition is: a reader hands a long episode over in
+    pieces of consecutive transitions, each starting where the one before ended."""
 
     def __len__(self) -> int:
         return len(self.s)
@@ -149,17 +160,16 @@ class ImportReport:
 # ---------------------------------------------------------------- identity and keys
 
 
-def file_identity(*paths: Path) -> str:
-    """The first 16 hex digits of the SHA-256 of the files' bytes (and, for several, their
-    names): the dataset id in the idempotency keys (``precond import``'s for one file)."""
-    h = hashlib.sha256()
-    for p in paths:
-        if len(paths) > 1:
-            h.update(p.name.encode() + b"\0")
-        with open(p, "rb") as f:
-            while chunk := f.read(1 << 20):
-                h.update(chunk)
-    return h.hexdigest()[:16]
+def dataset_identity(name: str) -> str:
+    """The dataset id in the idempotency keys: the first 16 hex digits of the SHA-256 of the
+    dataset's name (``precond import`` computes the same for the same name)."""
+    return hashlib.sha256(name.encode()).hexdigest()[:16]
+
+
+def default_dataset_name(path: str | Path) -> str:
+    """A file's dataset name by default: its absolute path, links resolved (the same from any
+    working directory, as ``precond import`` names it)."""
+    return str(Path(path).resolve())
 
 
 _PLAIN = re.compile(r"^[A-Za-z0-9._-]{1,64}$")
@@ -397,9 +407,12 @@ def episodes_from_rows(
     mapping: ColumnMapping,
     dims: tuple[int, int],
     where: str,
+    chunk: int | None = None,
 ) -> Iterator[LoggedEpisode]:
-    """Groups consecutive rows by episode into :class:`LoggedEpisode` values, one episode in
-    memory at a time; ``where`` names the data in errors."""
+    """Groups consecutive rows by episode into :class:`LoggedEpisode` values; ``where`` names
+    the data in errors. With ``chunk``, an episode is handed over in pieces of at most
+    ``chunk`` transitions (each with its ``first_step``), so memory holds one piece, not the
+    episode."""
     seen: set[str] = set()
     current: tuple[str, int] | None = None
     s: list[list[float]] = []
@@ -408,33 +421,55 @@ def episodes_from_rows(
     pred: list[list[float]] = []
     frames: list[list[float]] = []
     ordinal = 0
+    first_step = 0
 
-    def finish() -> LoggedEpisode | None:
+    def piece(final: bool) -> LoggedEpisode | None:
+        """What is buffered of the current episode (all of it when ``final``; else every
+        transition whose next state is known), the buffers emptied."""
+        nonlocal s, a, nxt, pred, frames, first_step
         if current is None:
             return None
         if mapping.next_state is None:
-            # Frames: each row's action leads to the next row's state; the last has no next.
+            # Frames: each row's action leads to the next row's state; the last has no next,
+            # and stays buffered for the next piece.
             states, actions = frames, a
             if len(states) < 2:
-                return LoggedEpisode(
-                    current[1], current[0], mat([], dims[0]), mat([], dims[1]), mat([], dims[0])
-                )
-            return LoggedEpisode(
+                if final:
+                    return LoggedEpisode(
+                        current[1],
+                        current[0],
+                        mat([], dims[0]),
+                        mat([], dims[1]),
+                        mat([], dims[0]),
+                        first_step=first_step,
+                    )
+                return None
+            out = LoggedEpisode(
                 current[1],
                 current[0],
                 np.asarray(states[:-1], dtype=np.float64),
                 np.asarray(actions[:-1], dtype=np.float64),
                 np.asarray(states[1:], dtype=np.float64),
                 np.asarray(pred[:-1], dtype=np.float64) if pred else None,
+                first_step=first_step,
             )
-        return LoggedEpisode(
-            current[1],
-            current[0],
-            np.asarray(s, dtype=np.float64),
-            np.asarray(a, dtype=np.float64),
-            np.asarray(nxt, dtype=np.float64),
-            np.asarray(pred, dtype=np.float64) if pred else None,
-        )
+            frames, a, pred = frames[-1:], a[-1:], pred[-1:]
+        else:
+            out = LoggedEpisode(
+                current[1],
+                current[0],
+                np.asarray(s, dtype=np.float64),
+                np.asarray(a, dtype=np.float64),
+                np.asarray(nxt, dtype=np.float64),
+                np.asarray(pred, dtype=np.float64) if pred else None,
+                first_step=first_step,
+            )
+            s, a, nxt, pred = [], [], [], []
+        first_step += len(out)
+        return out
+
+    def finish() -> LoggedEpisode | None:
+        return piece(final=True)
 
     for i, row in enumerate(rows):
         at = f"{where} row {i + 1}"
@@ -455,6 +490,7 @@ def episodes_from_rows(
             ordinal += 1
             current = (text, index)
             s, a, nxt, pred, frames = [], [], [], [], []
+            first_step = 0
         state = _vector(row, mapping.state, dims[0], at)
         action = _vector(row, mapping.action, dims[1], at)
         if mapping.predicted is not None:
@@ -466,6 +502,11 @@ def episodes_from_rows(
             s.append(state)
             a.append(action)
             nxt.append(_vector(row, mapping.next_state, dims[0], at))
+        buffered = len(frames) - 1 if mapping.next_state is None else len(s)
+        if chunk is not None and buffered >= chunk:
+            part = piece(final=False)
+            if part is not None:
+                yield part
     done = finish()
     if done is not None:
         yield done
@@ -494,7 +535,12 @@ def _parquet(path: Path) -> Any:
         raise ImportError(
             "reading Parquet needs pyarrow: pip install 'precond-client[parquet]'"
         ) from e
-    return pq.ParquetFile(path)
+    try:
+        return pq.ParquetFile(path)
+    except FileNotFoundError:
+        raise
+    except Exception as e:  # pyarrow's ArrowInvalid, ArrowIOError, OSError
+        raise DatasetError(f"{path}: not a readable Parquet file ({e})") from e
 
 
 def _parquet_columns(pf: Any) -> tuple[list[str], set[str]]:
@@ -524,11 +570,13 @@ def read_table(
     *,
     format: str | None = None,
     client_side: bool = False,
+    chunk: int | None = None,
     **mapping: Any,
 ) -> tuple[ColumnMapping, Iterator[LoggedEpisode]]:
     """A CSV or Parquet file's mapping and its episodes, streamed (``format``: ``csv`` or
-    ``parquet``; default by extension). ``mapping`` takes ``state``, ``action``,
-    ``next_state``, ``predicted`` and ``episode`` as in :func:`resolve_columns`."""
+    ``parquet``; default by extension), a long episode in pieces of at most ``chunk``
+    transitions. ``mapping`` takes ``state``, ``action``, ``next_state``, ``predicted`` and
+    ``episode`` as in :func:`resolve_columns`."""
     p = Path(path)
     fmt = format or ("parquet" if p.suffix.lower() in (".parquet", ".pq") else "csv")
     if fmt == "parquet":
@@ -546,7 +594,7 @@ def read_table(
         rows = csv_rows
     else:
         raise ValueError(f"format {format!r}: use 'csv' or 'parquet'")
-    return m, episodes_from_rows(rows, m, (len(state_names), len(action_names)), str(p))
+    return m, episodes_from_rows(rows, m, (len(state_names), len(action_names)), str(p), chunk)
 
 
 def lerobot_files(root: str | Path) -> list[Path]:
@@ -572,6 +620,7 @@ def read_lerobot(
     *,
     state: str = "observation.state",
     action: str = "action",
+    chunk: int | None = None,
 ) -> Iterator[LoggedEpisode]:
     """The episodes of a LeRobot v3 dataset: frames of ``data/**/*.parquet`` grouped by
     ``episode_index``; a transition goes from a frame's ``state`` with its ``action`` to the
@@ -590,7 +639,7 @@ def read_lerobot(
         for f in files:
             yield from _parquet_rows(_parquet(f), [state, action, "episode_index"])
 
-    return episodes_from_rows(rows(), mapping, (state_dim, action_dim), str(root))
+    return episodes_from_rows(rows(), mapping, (state_dim, action_dim), str(root), chunk)
 
 
 def _observations(obs: Any, key: str | None, where: str) -> Array:
@@ -653,7 +702,7 @@ def read_minari(
 
         # A dataset is named by its directory, whether given as it or as its file.
         named = h5.parent.parent if (h5.name, h5.parent.name) == ("main_data.hdf5", "data") else h5
-        return f"minari:{named}", file_identity(h5), from_file()
+        return f"minari:{named}", dataset_identity(str(h5.resolve())), from_file()
     try:
         import minari
     except ImportError as e:
@@ -662,9 +711,7 @@ def read_minari(
             "id (pip install 'precond-client[minari]')"
         ) from e
     ds = minari.load_dataset(str(dataset))
-    ident = hashlib.sha256(
-        f"minari:{dataset}:{ds.total_episodes}:{ds.total_steps}".encode()
-    ).hexdigest()[:16]
+    ident = dataset_identity(f"minari:{dataset}")
 
     def from_minari() -> Iterator[LoggedEpisode]:
         for ep in ds.iterate_episodes():
@@ -745,34 +792,63 @@ def import_episodes(
         )
     report = ImportReport()
     bar = _progress(total, dataset, progress)
+    # The episode being posted (pieces of one episode arrive one after the other): its key,
+    # the parts posted so far and its transitions.
+    episode_key: str | None = None
+    parts_posted = 0
+    episode_length = 0
+
+    def end_episode() -> None:
+        if episode_key is None:
+            return
+        if parts_posted > 1:
+            report.split_episodes += 1
+            log.warning(
+                "%s episode %s: %d transitions, posted as %d trajectories (at most %d "
+                "transitions or %d bytes each)",
+                dataset,
+                episode_key,
+                episode_length,
+                parts_posted,
+                max_transitions,
+                max_body_bytes,
+            )
+        report.episodes += 1
+        if bar is not None:
+            bar.update(1)
+            bar.set_postfix(stored=report.created, already=report.replayed)
+        elif report.episodes % 100 == 0:
+            log.info(
+                "%s: %d episodes (%d stored, %d already there)",
+                dataset,
+                report.episodes,
+                report.created,
+                report.replayed,
+            )
+
     try:
         for ep in episodes:
+            if ep.key != episode_key or ep.first_step == 0:
+                end_episode()
+                episode_key, parts_posted, episode_length = None, 0, 0
             if len(ep) == 0:
-                report.skipped_episodes += 1
+                if ep.first_step == 0:
+                    report.skipped_episodes += 1
                 continue
-            parts = list(_parts(ep, max(1, max_transitions), max_body_bytes))
-            if len(parts) > 1:
-                report.split_episodes += 1
-                log.warning(
-                    "%s episode %s: %d transitions, posted as %d trajectories (at most %d "
-                    "transitions or %d bytes each)",
-                    dataset,
-                    ep.key,
-                    len(ep),
-                    len(parts),
-                    max_transitions,
-                    max_body_bytes,
-                )
-            for i, (first, transitions) in enumerate(parts):
-                source = Source(dataset, ep.episode, first, label)
+            episode_key = ep.key
+            episode_length += len(ep)
+            for first, transitions in _parts(ep, max(1, max_transitions), max_body_bytes):
+                step = ep.first_step + first
+                source = Source(dataset, ep.episode, step, label)
                 try:
                     created = client.post_trajectory(
                         transitions,
-                        idempotency_key=f"import-{dataset_id}-{key_part(ep.key)}-{i}",
+                        idempotency_key=f"import-{dataset_id}-{key_part(ep.key)}-{parts_posted}",
                         source=source,
                     )
                 except errors.ApiError as e:
-                    raise ImportFailed(dataset, ep.episode, first, e) from e
+                    raise ImportFailed(dataset, ep.episode, step, e) from e
+                parts_posted += 1
                 report.trajectories += 1
                 report.transitions += created.n_transitions
                 report.trajectory_ids.append(created.id)
@@ -782,18 +858,7 @@ def import_episodes(
                     report.created += 1
                 if on_posted is not None:
                     on_posted(ep, created.id)
-            report.episodes += 1
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(stored=report.created, already=report.replayed)
-            elif report.episodes % 100 == 0:
-                log.info(
-                    "%s: %d episodes (%d stored, %d already there)",
-                    dataset,
-                    report.episodes,
-                    report.created,
-                    report.replayed,
-                )
+        end_episode()
     finally:
         if bar is not None:
             bar.close()

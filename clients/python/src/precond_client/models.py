@@ -593,8 +593,8 @@ class BetaChoice(Wire):
 
 @dataclass(frozen=True)
 class FitRefusal(Wire):
-    """A fit the server did not attempt because its estimated peak memory exceeded the server's
-    budget; the version before it kept answering (schema ``FitRefusal``)."""
+    """A fit the server did not attempt because its estimated peak memory or time exceeded the
+    server's budget; the version before it kept answering (schema ``FitRefusal``)."""
 
     SCHEMA: ClassVar[str] = "FitRefusal"
 
@@ -607,6 +607,10 @@ class FitRefusal(Wire):
     budget_bytes: float
     reason: str
     refused_at: str
+    needed_seconds: float | None
+    """For a refusal over time: its estimated seconds; ``None`` for one over memory."""
+    budget_seconds: float | None
+    """For a refusal over time: the server's ``--max-fit-seconds``."""
 
 
 @dataclass(frozen=True)
