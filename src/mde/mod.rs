@@ -6,19 +6,21 @@
 //!   `mde.estimator` choice ([`EstimatorChoice`]).
 //! - [`export`]: a fitted version as a self-contained document a controller evaluates itself
 //!   ([`ExportedModel`]).
-//! - [`labels`]: how deviations become training labels ([`capped_labels`]), with the cap chosen
-//!   per fit from held-out judgements ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
+//! - [`selection`]: model selection at every fit — the label cap (how deviations become training
+//!   labels, [`capped_labels`]), the kernel and the certified test β, each chosen from held-out
+//!   judgements of the training transitions ([`fit_choosing_label_cap`], [`HeldOutTrust`],
+//!   [`best_kernel`]), and what the choice costs ([`selection_cost`]).
 
 pub mod estimator;
 pub mod export;
-pub mod labels;
+pub mod selection;
 
 pub use estimator::{
     AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorState, Regressor,
     fit,
 };
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
-pub use labels::{
+pub use selection::{
     BetaChoice, CALIBRATED_FALSE_TRUST, CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice,
     HeldOutTrust, KernelTrial, Training, best_kernel, blocks, capped_labels,
     fit_choosing_label_cap, identical_rows, normal_tail, selection_cost, trajectory_folds,

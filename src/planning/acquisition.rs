@@ -19,7 +19,7 @@
 //!   ([`bottleneck`](super::bottleneck)); `lcb` where nothing crosses such a step, and in
 //!   continuous domains.
 
-use super::PlanningError;
+use super::error::PlanningError;
 use super::trajectory::Trajectory;
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};

@@ -22,9 +22,9 @@
 //! Exact on graphs; a continuous domain has no such graph and falls back to `lcb` throughout, as
 //! does a graph larger than [`MAX_STATE_ACTIONS`].
 
-use super::PlanningError;
 use super::acquisition::within_probability;
 use super::cache::ModelCache;
+use super::error::PlanningError;
 use super::precondition::Precondition;
 use super::rrt::{Task, seeded_rng};
 use super::trajectory::Trajectory;

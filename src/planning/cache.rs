@@ -5,7 +5,8 @@
 //! has only cells × 4 distinct ones). [`ModelCache`] sends each distinct feature vector to the
 //! model once per proposal, and sends the misses of one request together.
 
-use super::{DeviationModel, PlanningError};
+use super::error::PlanningError;
+use super::model::DeviationModel;
 use std::collections::HashMap;
 
 /// Memoised predictions of one deviation model for one feature dimension.

@@ -7,10 +7,11 @@
 
 use super::acquisition::AcquisitionSettings;
 use super::cache::ModelCache;
+use super::error::PlanningError;
+use super::model::DeviationModel;
 use super::precondition::Precondition;
 use super::strategy::Strategy;
 use super::trajectory::Trajectory;
-use super::{DeviationModel, PlanningError};
 use crate::domain::Domain;
 
 /// A candidate as posted: its states (starting with the start state) and the actions between

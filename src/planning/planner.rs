@@ -19,12 +19,13 @@
 //! ```
 
 use super::cache::ModelCache;
+use super::error::PlanningError;
 use super::given::{self, Path, Verdict};
+use super::model::DeviationModel;
 use super::precondition::Precondition;
 use super::rrt::{self, RrtOutcome, Task};
 pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
-use super::{DeviationModel, PlanningError};
 use crate::budget::Budget;
 use crate::domain::{Domain, Problem};
 use rand::RngCore;

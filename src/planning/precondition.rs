@@ -1,7 +1,7 @@
 //! The model precondition at one β: the state-actions whose deviation the MDE bounds below the
 //! tolerance, `μ + β σ < d_max` (DESIGN.md §1). The one place this predicate is written.
 
-use super::PlanningError;
+use super::error::PlanningError;
 
 /// `pre(f̂) = {(s, a) : μ(s, a) + β σ(s, a) < d_max}` for one `β` and `d_max`, checked: `β` is
 /// finite and `d_max` a positive finite number, so only a usable precondition exists.

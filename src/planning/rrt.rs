@@ -36,8 +36,8 @@
 //! **Prefetching.** In a discrete action space (the gridworld), when the model must be asked
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
 
-use super::PlanningError;
 use super::cache::ModelCache;
+use super::error::PlanningError;
 use super::precondition::Precondition;
 pub use super::settings::PlannerSettings;
 use super::settings::PlanningSettings;

@@ -1,7 +1,7 @@
 //! The β schedule of active learning: optimistic early (β < 0 widens the precondition, so the
 //! planner tries what the model is unsure of), conservative late (β > 0).
 
-use super::PlanningError;
+use super::error::PlanningError;
 
 /// `β_j = 2 k1 / (1 + exp(−k2 (j − J/2))) − k1`: a logistic curve from about `−k1` (at `j = 0`
 /// for large `k2 J`) through `0` at `j = J/2` to about `k1`.

@@ -2,8 +2,8 @@
 //! checked together with the acquisition's once, the [`PlanningSettings`] a
 //! [`Planner`](super::Planner) plans under.
 
-use super::PlanningError;
 use super::acquisition::AcquisitionSettings;
+use super::error::PlanningError;
 use crate::limits::{MAX_CANDIDATES, MAX_EXTENSIONS};
 
 /// The planner's parameters (experiment settings).

@@ -19,8 +19,10 @@
 //! GP whitens them once).
 //! A model that cannot fantasise values every candidate 0, and the choice is then `lcb`'s.
 
+use super::error::PlanningError;
+use super::model::DeviationModel;
 use super::rrt::Task;
-use super::{DeviationModel, PlanningError, Trajectory};
+use super::trajectory::Trajectory;
 use crate::budget::Budget;
 use crate::planning::rrt::seeded_rng;
 

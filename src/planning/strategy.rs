@@ -36,10 +36,11 @@
 use super::acquisition::AcquisitionKind;
 use super::bottleneck;
 use super::cache::ModelCache;
+use super::error::PlanningError;
+use super::model::DeviationModel;
 use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
 use super::spread;
 use super::trajectory::Trajectory;
-use super::{DeviationModel, PlanningError};
 use crate::budget::Budget;
 use rand::Rng;
 use schemars::JsonSchema;

@@ -1,7 +1,7 @@
 //! Cheap deviation models with known answers, for tests, benchmarks and demos — stand-ins for
 //! the GP where what matters is the planner, not the learning.
 
-use super::DeviationModel;
+use super::model::DeviationModel;
 use crate::domain::IcyGridworld;
 
 /// The same `(μ, σ)` everywhere.

@@ -1156,7 +1156,7 @@ fn the_wire_types_skip_only_absent_options() {
         "src/gp/mod.rs",
         "src/mde/mod.rs",
         "src/mde/estimator.rs",
-        "src/mde/labels.rs",
+        "src/mde/selection.rs",
         "src/domain/mod.rs",
     ] {
         let text = std::fs::read_to_string(format!("{}/{file}", env!("CARGO_MANIFEST_DIR")))

@@ -1,6 +1,8 @@
-//! How deviations become the MDE's training labels: capped at a multiple of `d_max`
-//! ([`capped_labels`]), with the cap chosen per fit by how the fitted model judges its own
-//! training transitions held out ([`fit_choosing_label_cap`], [`HeldOutTrust`]).
+//! Model selection at every fit: how deviations become the MDE's training labels (capped at a
+//! multiple of `d_max`, [`capped_labels`]), the kernel ([`best_kernel`]) and the test β a
+//! version certifies ([`BetaChoice`]), each chosen by how the fitted model judges its own
+//! training transitions held out ([`fit_choosing_label_cap`], [`HeldOutTrust`]); and what the
+//! choice costs before it starts ([`selection_cost`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
 use crate::gp::{Fold, GpError, Kernel};
