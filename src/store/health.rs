@@ -35,24 +35,27 @@ pub fn classify(e: &sqlx::Error) -> Failure {
             let Some(code) = db.code() else {
                 return Failure::Other;
             };
-            // SQLite's codes are numbers (extended: the primary code in the low byte);
-            // PostgreSQL's are five-character SQLSTATEs.
-            if let Ok(n) = code.parse::<i32>() {
-                return match n & 0xff {
-                    SQLITE_FULL => Failure::Full,
-                    SQLITE_BUSY | SQLITE_LOCKED => Failure::Unreachable,
+            // PostgreSQL's codes are five-character SQLSTATEs (some all digits, as 53100);
+            // SQLite's are numbers, extended ones with the primary code in the low byte.
+            if db
+                .try_downcast_ref::<sqlx::postgres::PgDatabaseError>()
+                .is_some()
+            {
+                return match code.as_ref() {
+                    "53100" => Failure::Full,
+                    // insufficient resources, out of memory, too many connections; the
+                    // connection exceptions (class 08); an administrator's shutdown, a crash,
+                    // a server starting; a read-only standby.
+                    "53000" | "53200" | "53300" | "57P01" | "57P02" | "57P03" | "25006" => {
+                        Failure::Unreachable
+                    }
+                    c if c.starts_with("08") => Failure::Unreachable,
                     _ => Failure::Other,
                 };
             }
-            match code.as_ref() {
-                "53100" => Failure::Full,
-                // insufficient resources, out of memory, too many connections; the connection
-                // exceptions (class 08); an administrator's shutdown, a crash, a server
-                // starting; a read-only standby.
-                "53000" | "53200" | "53300" | "57P01" | "57P02" | "57P03" | "25006" => {
-                    Failure::Unreachable
-                }
-                c if c.starts_with("08") => Failure::Unreachable,
+            match code.parse::<i32>().map(|n| n & 0xff) {
+                Ok(SQLITE_FULL) => Failure::Full,
+                Ok(SQLITE_BUSY | SQLITE_LOCKED) => Failure::Unreachable,
                 _ => Failure::Other,
             }
         }
