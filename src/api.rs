@@ -8,7 +8,7 @@
 
 use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
-use crate::mde::{BetaChoice, EstimatorKind, HeldOutTrust, KernelTrial};
+use crate::mde::{BetaChoice, EstimatorKind, HeldOutTrust, KernelTrial, SelectionRecord};
 use crate::planning::Strategy;
 use crate::settings::ExperimentSettings;
 use crate::store::{IterationStats, ListOrder, ModelSummary, ProposalStatus, ProposalTerms};
@@ -515,6 +515,10 @@ pub struct ModelResponse {
     /// The β test plans and the precondition's default judgements use with this version:
     /// `beta_choice.beta` with `learning.calibrate_test_beta`, else `learning.test_beta`.
     pub test_beta: f64,
+    /// How this version's kernel and label cap were chosen — anew, or kept from an earlier
+    /// version by a warm refit (`mde.reselect_every`) — and what its fit spent its time on;
+    /// `null` for the prior and for versions fitted before it was recorded.
+    pub selection: Option<SelectionRecord>,
 }
 
 /// One state-action to judge.

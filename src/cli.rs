@@ -78,6 +78,30 @@ pub enum BenchCommand {
     /// The exported model's evaluator (`GET …/model/export`) against the server's own
     /// prediction: time per point, largest differences of `μ` and `σ`, document size.
     Export(ExportBenchArgs),
+    /// A refit after one more batch, from scratch (model selection over every kernel and label
+    /// cap) and warm (the previous choice, its optimum as the start), on a continuous world's
+    /// data: seconds, phases and held-out TPR, TNR and log score of both.
+    Refit(RefitBenchArgs),
+}
+
+/// Options of `precond bench refit`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct RefitBenchArgs {
+    /// The world: `arm`, `base` or `pusher`.
+    #[arg(long, default_value = "base")]
+    pub world: String,
+    /// Transitions of the version before the refit.
+    #[arg(long, default_value_t = 1000)]
+    pub n: usize,
+    /// Transitions of the batch the refit adds.
+    #[arg(long, default_value_t = 50)]
+    pub batch: usize,
+    /// Held-out state-actions.
+    #[arg(long, default_value_t = 2000)]
+    pub held_out: usize,
+    /// Seed of the data and the fits.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
 }
 
 /// Options of `precond bench export`.
@@ -675,6 +699,24 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(BenchCommand::Planning) => {
             tokio::task::spawn_blocking(crate::bench::planning::run_default).await??;
             crate::bench::remote::run(5).await
+        }
+        Command::Bench(BenchCommand::Refit(args)) => {
+            let world = match args.world.as_str() {
+                "arm" => crate::sim::ContinuousWorld::arm(),
+                "base" => crate::sim::ContinuousWorld::base(),
+                "pusher" => crate::sim::ContinuousWorld::pusher(),
+                other => anyhow::bail!(
+                    "{other:?} is not a world of this benchmark; use arm, base or pusher"
+                ),
+            };
+            let o = crate::bench::refit::RefitBenchOptions {
+                world,
+                n: args.n,
+                batch: args.batch,
+                held_out: args.held_out,
+                seed: args.seed,
+            };
+            tokio::task::spawn_blocking(move || crate::bench::refit::run(&o).map(|_| ())).await?
         }
         Command::Bench(BenchCommand::Mde(args)) => {
             let world = match args.world.as_str() {

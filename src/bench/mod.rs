@@ -5,6 +5,8 @@
 //! state-actions, the oracle and the baseline on random problems); `mde` refits a run's
 //! training data under each MDE setting and judges a continuous world's true deviations;
 //! `export` times the exported model's evaluator against the server's prediction path;
+//! `refit` times a refit after one more batch from scratch and warm, with their held-out
+//! quality ([`refit`]);
 //! `replicas` measures proposals per second with 1, 2, 4 … replicas over one PostgreSQL
 //! database.
 
@@ -12,6 +14,7 @@ pub mod export;
 pub mod gp;
 pub mod mde;
 pub mod planning;
+pub mod refit;
 pub mod remote;
 pub mod replicas;
 pub mod saturation;

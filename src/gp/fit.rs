@@ -245,6 +245,20 @@ pub(crate) fn optimise_homoscedastic(
     r: &[f64],
     p: &GpParams,
 ) -> Result<Optimum, GpError> {
+    let warm = p
+        .warm
+        .as_ref()
+        .and_then(|w| super::WarmStart::within(&w.main, x.d, &p.bounds));
+    let starts = match &warm {
+        Some(theta) => Starts::warm(
+            Warm {
+                theta,
+                memory: Vec::new(),
+            },
+            p.seed,
+        ),
+        None => Starts::new(p.restarts, p.seed),
+    };
     optimise(
         x,
         r,
@@ -252,7 +266,7 @@ pub(crate) fn optimise_homoscedastic(
         &p.bounds,
         p.kernel,
         p,
-        Starts::new(p.restarts, p.seed),
+        starts,
     )
 }
 

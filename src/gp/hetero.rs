@@ -244,7 +244,12 @@ pub(crate) fn fit(
     let mut best: Option<Fitted> = None;
     let mut current_theta = theta_main.to_vec();
     let mut main_memory = Vec::new();
-    let mut noise_theta: Option<Vec<f64>> = None;
+    // A warm refit starts the noise GP where the previous fit's ended.
+    let mut noise_theta: Option<Vec<f64>> = p
+        .warm
+        .as_ref()
+        .and_then(|w| w.noise.as_deref())
+        .and_then(|t| super::WarmStart::within(t, d, &p.noise_model_bounds));
     let mut noise_memory = Vec::new();
     let mut evaluations = 0;
     let mut converged = true;

@@ -55,7 +55,7 @@ pub use error::GpError;
 pub use export::{GpPredictor, NoisePredictor, PointPrediction, Predictor};
 pub use kernel::Kernel;
 pub use model::{Fold, GpModel};
-pub use params::{Bounds, Checked, GpParams, NoiseMode, ValidGpParams};
+pub use params::{Bounds, Checked, GpParams, NoiseMode, ValidGpParams, WarmStart};
 pub use sparse::{
     DEFAULT_FULL_RANK_UP_TO, DEFAULT_INDUCING_POINTS, SparseGp, SparseParams, SparseState,
     ValidSparseParams,

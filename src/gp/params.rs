@@ -2,7 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{GpError, Kernel};
+use super::{GpError, Hyperparameters, Kernel};
 
 /// How the observation noise is modelled.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
@@ -125,6 +125,57 @@ pub struct GpParams {
     /// Below this many training points the heteroscedastic mode falls back to homoscedastic
     /// (a noise model cannot be learnt from a handful of residuals). Default `8`; range `>= 2`.
     pub hetero_min_points: usize,
+    /// Where the optimisation starts when a related fit is known (a refit after one more batch):
+    /// the previous optimum is then the only start — no restarts, no screening — and the
+    /// heteroscedastic noise GP's first round starts from the previous noise GP. Default
+    /// `None`: a new fit from the default start and `restarts` random ones. Not serialised: a
+    /// fit's own business, never a setting.
+    #[serde(skip)]
+    pub warm: Option<WarmStart>,
+}
+
+/// A previous fit's optimum, to start a related fit from ([`GpParams::warm`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct WarmStart {
+    /// The main GP's `[log ℓ.., log s², log σ²]` (homoscedastic form: for a heteroscedastic fit,
+    /// its mean noise variance).
+    pub main: Vec<f64>,
+    /// The noise GP's `[log ℓ.., log s², log σ²]`, for a heteroscedastic fit.
+    pub noise: Option<Vec<f64>>,
+}
+
+impl WarmStart {
+    /// The optimum of a fit with hyperparameters `main` (and the noise GP's `noise`), in the
+    /// optimiser's log form; a zero noise variance is floored at `1e-12`.
+    pub fn of(main: &Hyperparameters, noise: Option<&Hyperparameters>) -> Self {
+        let log = |h: &Hyperparameters| -> Vec<f64> {
+            h.length_scales
+                .iter()
+                .map(|l| l.ln())
+                .chain([h.signal_variance.ln(), h.noise_variance.max(1e-12).ln()])
+                .collect()
+        };
+        Self {
+            main: log(main),
+            noise: noise.map(log),
+        }
+    }
+
+    /// `theta` for `d` inputs clipped into the log-`bounds` (`None` when its length or values
+    /// do not fit `d` inputs, so that a start from another problem is never used).
+    pub(crate) fn within(theta: &[f64], d: usize, bounds: &Bounds) -> Option<Vec<f64>> {
+        if theta.len() != d + 2 || !theta.iter().all(|v| v.is_finite()) {
+            return None;
+        }
+        let (lo, hi) = super::fit::log_bounds(d, bounds, true);
+        Some(
+            theta
+                .iter()
+                .zip(lo.iter().zip(&hi))
+                .map(|(v, (l, h))| v.clamp(*l, *h))
+                .collect(),
+        )
+    }
 }
 
 impl Default for GpParams {
@@ -146,6 +197,7 @@ impl Default for GpParams {
             hetero_rounds: 4,
             hetero_tolerance: 1e-4,
             hetero_min_points: 8,
+            warm: None,
         }
     }
 }

@@ -173,6 +173,7 @@ pub fn model(v: ModelView) -> ModelResponse {
             .unwrap_or_default(),
         beta_choice: m.fit.as_ref().and_then(|f| f.beta_choice),
         test_beta: v.test_beta,
+        selection: m.fit.as_ref().and_then(|f| f.selection.clone()),
     }
 }
 

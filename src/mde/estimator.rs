@@ -16,7 +16,7 @@
 use crate::gp::{
     FitCost, Fold, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
     NoiseSummary, Prediction, Predictor, SparseGp, SparseParams, SparseState, ValidGpParams,
-    ValidSparseParams, exact_fit_cost, sparse_fit_cost,
+    ValidSparseParams, WarmStart, exact_fit_cost, sparse_fit_cost,
 };
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
@@ -239,6 +239,17 @@ impl EstimatorParams {
         Self::new(
             GpParams {
                 kernel,
+                ..self.gp.params().clone()
+            },
+            self.sparse.params().inducing_points,
+        )
+    }
+
+    /// The same parameters starting from `warm` (a warm refit; `None`: a new fit).
+    pub fn with_warm(&self, warm: Option<WarmStart>) -> Result<Self, GpError> {
+        Self::new(
+            GpParams {
+                warm,
                 ..self.gp.params().clone()
             },
             self.sparse.params().inducing_points,

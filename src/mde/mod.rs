@@ -22,8 +22,9 @@ pub use estimator::{
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use selection::{
     BetaChoice, CALIBRATED_FALSE_TRUST, CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice,
-    HeldOutTrust, KernelTrial, Training, best_kernel, blocks, capped_labels,
-    fit_choosing_label_cap, identical_rows, normal_tail, selection_cost, trajectory_folds,
+    Carry, FitPhase, HeldOutTrust, KernelTrial, LIKELIHOOD_DROP, Previous, RefitPlan,
+    SelectionRecord, Training, best_kernel, blocks, capped_labels, fit_choosing_label_cap,
+    identical_rows, normal_tail, refit_plan, refit_warm, selection_cost, trajectory_folds,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
@@ -61,6 +62,24 @@ pub struct FitRecord {
     /// computed, and for versions fitted before it was recorded); used by test plans when
     /// `learning.calibrate_test_beta` is on.
     pub beta_choice: Option<BetaChoice>,
+    /// How its kernel and label cap were chosen (anew, or kept from an earlier version by a
+    /// warm refit) and what the fit spent its time on (`None` for versions fitted before it was
+    /// recorded).
+    pub selection: Option<SelectionRecord>,
+}
+
+impl ServedModel {
+    /// What this version tells the next fit ([`refit_plan`]).
+    pub fn as_previous(&self) -> Previous<'_> {
+        Previous {
+            version: self.version,
+            fitted: match (&self.estimator, &self.fit) {
+                (Estimator::Fitted(gp), Some(fit)) => Some((gp.as_ref(), fit.label_cap)),
+                _ => None,
+            },
+            selection: self.fit.as_ref().and_then(|f| f.selection.as_ref()),
+        }
+    }
 }
 
 /// One version of an experiment's MDE.

@@ -5,10 +5,11 @@
 //! choice costs before it starts ([`selection_cost`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
-use crate::gp::{Fold, GpError, Kernel};
+use crate::gp::{Fold, GpError, Kernel, WarmStart};
 use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
+use std::time::Instant;
 
 /// The labels the MDE is fitted on for a label cap (units of `d_max`; 0 = the raw deviations).
 pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64> {
@@ -348,6 +349,221 @@ pub struct CapChoice {
     /// The test β the chosen model certifies, each executed trajectory left out whole
     /// ([`trajectory_folds`]; `None` when it could not be computed).
     pub beta_choice: Option<BetaChoice>,
+    /// What the fit spent its time on, in order.
+    pub phases: Vec<FitPhase>,
+}
+
+/// One phase of a fit and its wall time.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct FitPhase {
+    /// What it did, e.g. `kernels: 3 fits`, `label caps: 2 more fits`, `warm fit`,
+    /// `certified β`.
+    pub phase: String,
+    /// Seconds it took.
+    pub seconds: f64,
+}
+
+/// Times `phase`, adding it to `phases`.
+fn timed<T>(phases: &mut Vec<FitPhase>, phase: impl Into<String>, f: impl FnOnce() -> T) -> T {
+    let started = Instant::now();
+    let out = f();
+    phases.push(FitPhase {
+        phase: phase.into(),
+        seconds: started.elapsed().as_secs_f64(),
+    });
+    out
+}
+
+/// How a version's kernel and label cap were chosen, and what its fit spent its time on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+pub struct SelectionRecord {
+    /// The version whose fit chose the kernel and the label cap this one answers with (itself
+    /// when it chose them).
+    pub selected_at_version: i64,
+    /// Training transitions of that fit.
+    pub selected_n_train: usize,
+    /// Why this fit chose anew, or kept the choice (a sentence).
+    pub reason: String,
+    /// What this fit spent its time on, in order.
+    pub phases: Vec<FitPhase>,
+}
+
+/// A warm refit whose log marginal likelihood per training transition fell by more than this
+/// many nats from the version before it is fitted again with a new model selection: the new
+/// data no longer fit the kept kernel and cap (a typical batch moves it by hundredths).
+pub const LIKELIHOOD_DROP: f64 = 0.2;
+
+/// How the next fit is made ([`refit_plan`]).
+#[derive(Debug, Clone, PartialEq)]
+pub enum RefitPlan {
+    /// Model selection over every candidate kernel and cap ([`fit_choosing_label_cap`]).
+    Select {
+        /// Why.
+        reason: String,
+    },
+    /// One fit from the previous optimum with its kernel and cap ([`refit_warm`]).
+    Warm {
+        /// What it keeps.
+        carry: Carry,
+        /// The version whose fit made the choice it keeps.
+        selected_at_version: i64,
+        /// That fit's training transitions.
+        selected_n_train: usize,
+        /// The previous version's log marginal likelihood per training transition, against
+        /// which the warm fit's is compared ([`LIKELIHOOD_DROP`]).
+        previous_lml_per_transition: f64,
+        /// Why it keeps the choice.
+        reason: String,
+    },
+}
+
+/// What the previous version tells the next fit.
+#[derive(Debug, Clone, Copy)]
+pub struct Previous<'a> {
+    /// Its version (0: the prior).
+    pub version: i64,
+    /// Its regressor, kernel, cap and optimum (`None` for the prior).
+    pub fitted: Option<(&'a dyn Regressor, f64)>,
+    /// Its selection record (`None` for versions fitted before records were kept).
+    pub selection: Option<&'a SelectionRecord>,
+}
+
+/// Whether the fit of version `version` on `n` transitions with regressor `kind` chooses the
+/// kernel and label cap anew or keeps `previous`'s (every `every`-th fit chooses; so does the
+/// first, one after the data doubled since the last choice, one with another regressor, and
+/// one whose candidates no longer include the kept kernel or cap).
+pub fn refit_plan(
+    previous: Previous<'_>,
+    version: i64,
+    n: usize,
+    kind: EstimatorKind,
+    kernels: &[Kernel],
+    caps: &[f64],
+    every: usize,
+) -> RefitPlan {
+    let select = |reason: String| RefitPlan::Select { reason };
+    let Some((gp, label_cap)) = previous.fitted else {
+        return select("the first fit chooses the kernel and the label cap".into());
+    };
+    if every <= 1 {
+        return select("mde.reselect_every is 1: every fit chooses".into());
+    }
+    let Some(record) = previous.selection else {
+        return select(format!(
+            "version {} recorded no selection to keep",
+            previous.version
+        ));
+    };
+    let since = version - record.selected_at_version;
+    if since >= every as i64 {
+        return select(format!(
+            "every {every}th fit chooses anew (the last choice was version {})",
+            record.selected_at_version
+        ));
+    }
+    if n >= 2 * record.selected_n_train.max(1) {
+        return select(format!(
+            "the data doubled since the last choice ({} → {n} transitions)",
+            record.selected_n_train
+        ));
+    }
+    if gp.kind() != kind {
+        return select(format!(
+            "the regressor changed ({} → {})",
+            gp.kind().as_str(),
+            kind.as_str()
+        ));
+    }
+    let h = gp.hyperparameters();
+    if !kernels.contains(&h.kernel) || !caps.contains(&label_cap) {
+        return select("the kept kernel or label cap is no longer a candidate".into());
+    }
+    let noise = gp.noise_summary().map(|s| s.noise_model);
+    RefitPlan::Warm {
+        carry: Carry {
+            kernel: h.kernel,
+            label_cap,
+            warm: WarmStart::of(h, noise.as_ref()),
+        },
+        selected_at_version: record.selected_at_version,
+        selected_n_train: record.selected_n_train,
+        previous_lml_per_transition: gp.log_marginal_likelihood() / gp.n_train().max(1) as f64,
+        reason: format!(
+            "keeps version {}'s choice (fit {since} of every {every}), from version {}'s optimum",
+            record.selected_at_version, previous.version
+        ),
+    }
+}
+
+/// What a refit takes from the version before it: the kernel and label cap that version's
+/// model selection chose, and its optimum to start from ([`refit_warm`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Carry {
+    /// The kernel kept.
+    pub kernel: Kernel,
+    /// The label cap kept (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// The previous optimum.
+    pub warm: WarmStart,
+}
+
+/// A refit after more data that keeps the previous version's kernel and label cap and starts
+/// the hyperparameter optimisation from its optimum (no restarts, no screening): one fit where
+/// [`fit_choosing_label_cap`] makes one per candidate kernel and cap, each from several starts.
+/// The kept cap's held-out judgement and the certified test β are computed as after a
+/// selection. The caller decides when the data call for a new selection instead.
+pub fn refit_warm(
+    training: Training<'_>,
+    precondition: Precondition,
+    carry: &Carry,
+    kind: EstimatorKind,
+    params: &EstimatorParams,
+) -> Result<CapChoice, GpError> {
+    let (x, deviations) = (training.x, training.deviations);
+    let d_max = precondition.d_max();
+    let params = params
+        .with_kernel(carry.kernel)?
+        .with_warm(Some(carry.warm.clone()))?;
+    let labels = capped_labels(deviations, carry.label_cap, d_max);
+    let mut phases = Vec::new();
+    let gp = timed(&mut phases, "warm fit", || {
+        fit(kind, x, &DVector::from_column_slice(&labels), &params)
+    })?;
+    let (trials, beta_choice) = if kind == EstimatorKind::Exact {
+        timed(&mut phases, "held-out judgements, certified β", || {
+            let groups = identical_rows(x);
+            let trial = HeldOutTrust::of(
+                gp.as_ref(),
+                carry.label_cap,
+                &labels,
+                deviations,
+                &groups,
+                precondition,
+            )
+            .map(|(t, _)| t);
+            let beta_choice = trajectory_folds(x, training.trajectories).and_then(|folds| {
+                BetaChoice::of(
+                    gp.as_ref(),
+                    &labels,
+                    deviations,
+                    &folds,
+                    d_max,
+                    precondition.beta(),
+                )
+            });
+            (trial.into_iter().collect(), beta_choice)
+        })
+    } else {
+        (Vec::new(), None)
+    };
+    Ok(CapChoice {
+        gp,
+        label_cap: carry.label_cap,
+        trials,
+        kernel_trials: Vec::new(),
+        beta_choice,
+        phases,
+    })
 }
 
 /// How one candidate kernel's fit did on the first candidate cap's labels.
@@ -422,6 +638,7 @@ pub fn fit_choosing_label_cap(
         // The kernel, the cap and the test β are chosen by exact GPs on a subset when there
         // is a choice to make; a fixed kernel and cap fit the sparse GP alone (no β is
         // certified then: the sparse GP has no closed-form leave-out).
+        let mut phases = Vec::new();
         let (kernel, label_cap, trials, kernel_trials, beta_choice) =
             if caps.len() > 1 || kernels.len() > 1 {
                 let rows = evenly_spaced(training.x.nrows(), CAP_CHOICE_SUBSET);
@@ -432,6 +649,10 @@ pub fn fit_choosing_label_cap(
                     trajectories: &trajectories,
                 };
                 let c = choose_exact(subset, precondition, kernels, caps, params)?;
+                phases.extend(c.phases.into_iter().map(|p| FitPhase {
+                    phase: format!("on {} transitions: {}", rows.len(), p.phase),
+                    ..p
+                }));
                 (
                     c.gp.hyperparameters().kernel,
                     c.label_cap,
@@ -449,18 +670,17 @@ pub fn fit_choosing_label_cap(
                 )
             };
         let labels = capped_labels(training.deviations, label_cap, precondition.d_max());
-        let gp = fit(
-            kind,
-            training.x,
-            &DVector::from_vec(labels),
-            &params.with_kernel(kernel)?,
-        )?;
+        let params = params.with_kernel(kernel)?;
+        let gp = timed(&mut phases, "sparse fit", || {
+            fit(kind, training.x, &DVector::from_vec(labels), &params)
+        })?;
         return Ok(CapChoice {
             gp,
             label_cap,
             trials,
             kernel_trials,
             beta_choice,
+            phases,
         });
     }
     choose_exact(training, precondition, kernels, caps, params)
@@ -527,6 +747,8 @@ fn choose_exact(
     let mut kernel_trials = Vec::new();
     let mut first_fit = None;
     let groups = identical_rows(x);
+    let mut phases = Vec::new();
+    let started = Instant::now();
     let params = if kernels.len() > 1 {
         let capped = capped_labels(deviations, first_cap, d_max);
         let labels = DVector::from_column_slice(&capped);
@@ -556,6 +778,10 @@ fn choose_exact(
         let best = best.ok_or_else(|| GpError::InvalidState("no kernel to fit".into()))?;
         let (gp, p) = fits.swap_remove(best);
         first_fit = Some(gp);
+        phases.push(FitPhase {
+            phase: format!("kernels: {} fits", kernels.len()),
+            seconds: started.elapsed().as_secs_f64(),
+        });
         p
     } else {
         match kernels.first() {
@@ -564,16 +790,21 @@ fn choose_exact(
         }
     };
     let mut fitted = Vec::with_capacity(caps.len());
+    let started = Instant::now();
+    let mut cap_fits = 0;
     for &cap in caps {
         let labels = capped_labels(deviations, cap, d_max);
         let gp = match first_fit.take().filter(|_| cap == first_cap) {
             Some(gp) => gp,
-            None => fit(
-                EstimatorKind::Exact,
-                x,
-                &DVector::from_column_slice(&labels),
-                &params,
-            )?,
+            None => {
+                cap_fits += 1;
+                fit(
+                    EstimatorKind::Exact,
+                    x,
+                    &DVector::from_column_slice(&labels),
+                    &params,
+                )?
+            }
         };
         let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
         fitted.push((cap, gp, judged));
@@ -601,16 +832,26 @@ fn choose_exact(
         .filter_map(|(_, _, j)| j.as_ref().map(|(t, _)| *t))
         .collect();
     let (label_cap, gp, _) = fitted.swap_remove(best);
+    phases.push(FitPhase {
+        phase: if cap_fits > 0 {
+            format!("label caps: {} candidates, {cap_fits} fits", caps.len())
+        } else {
+            "fit".to_string()
+        },
+        seconds: started.elapsed().as_secs_f64(),
+    });
     // The test β the chosen model certifies, each trajectory left out whole.
-    let beta_choice = trajectory_folds(x, training.trajectories).and_then(|folds| {
-        BetaChoice::of(
-            gp.as_ref(),
-            &capped_labels(deviations, label_cap, d_max),
-            deviations,
-            &folds,
-            d_max,
-            precondition.beta(),
-        )
+    let beta_choice = timed(&mut phases, "certified β", || {
+        trajectory_folds(x, training.trajectories).and_then(|folds| {
+            BetaChoice::of(
+                gp.as_ref(),
+                &capped_labels(deviations, label_cap, d_max),
+                deviations,
+                &folds,
+                d_max,
+                precondition.beta(),
+            )
+        })
     });
     Ok(CapChoice {
         gp,
@@ -618,6 +859,7 @@ fn choose_exact(
         trials,
         kernel_trials,
         beta_choice,
+        phases,
     })
 }
 

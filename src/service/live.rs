@@ -10,8 +10,9 @@ use super::Error;
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
-    Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, ServedModel, Training,
-    capped_labels, fit_choosing_label_cap, gp_params, selection_cost, training_data,
+    Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, LIKELIHOOD_DROP,
+    RefitPlan, SelectionRecord, ServedModel, Training, capped_labels, fit_choosing_label_cap,
+    gp_params, refit_plan, refit_warm, selection_cost, training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::remote_model::ModelCalls;
@@ -331,8 +332,22 @@ impl LiveExperiment {
         {
             kind = EstimatorKind::Sparse;
         }
+        let previous = self.model();
+        let plan = refit_plan(
+            previous.as_previous(),
+            version,
+            n,
+            kind,
+            &kernels,
+            &caps,
+            mde.reselect_every,
+        );
         let needed = params.cost(kind, n, dim).peak_bytes;
-        let seconds = cost(kind).seconds;
+        // A warm refit is one fit; a selection one per candidate (its full cost).
+        let seconds = match &plan {
+            RefitPlan::Warm { .. } => selection_cost(kind, n, dim, 1, 1, &params).seconds,
+            RefitPlan::Select { .. } => cost(kind).seconds,
+        };
         let refusal = if needed > budget as f64 {
             Some(FitRefusal::now(
                 n as i64,
@@ -364,26 +379,82 @@ impl LiveExperiment {
             n_train = n,
             estimator = kind.as_str(),
             estimated_seconds = seconds,
+            warm = matches!(plan, RefitPlan::Warm { .. }),
             "fitting"
         );
+        // A warm refit keeps the selection's trials (what the kept choice rests on).
+        let kept_trials = previous
+            .fit
+            .as_ref()
+            .map(|f| (f.label_cap_trials.clone(), f.kernel_trials.clone()));
         let precondition = self.precondition(self.settings.learning.test_beta)?;
         let started = Instant::now();
         let gp = super::work::run_niced(move || {
             let _slot = slot;
             let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
-            let training = Training {
+            let training = || Training {
                 x: &x,
                 deviations: &deviations,
                 trajectories: &trajectories,
             };
-            fit_choosing_label_cap(training, precondition, &kernels, &caps, kind, &params)
+            let select = |reason: String| {
+                fit_choosing_label_cap(training(), precondition, &kernels, &caps, kind, &params)
+                    .map(|c| {
+                        let record = SelectionRecord {
+                            selected_at_version: version,
+                            selected_n_train: n,
+                            reason,
+                            phases: Vec::new(),
+                        };
+                        (c, record)
+                    })
+            };
+            let (mut choice, mut record) = match plan {
+                RefitPlan::Select { reason } => select(reason)?,
+                RefitPlan::Warm {
+                    carry,
+                    selected_at_version,
+                    selected_n_train,
+                    previous_lml_per_transition,
+                    reason,
+                } => {
+                    let warm = refit_warm(training(), precondition, &carry, kind, &params)?;
+                    let per = warm.gp.log_marginal_likelihood() / n.max(1) as f64;
+                    if per < previous_lml_per_transition - LIKELIHOOD_DROP {
+                        let (mut chosen, record) = select(format!(
+                            "the warm refit's log likelihood per transition fell from \
+                             {previous_lml_per_transition:.3} to {per:.3}: chosen anew"
+                        ))?;
+                        let mut phases = warm.phases;
+                        phases.append(&mut chosen.phases);
+                        chosen.phases = phases;
+                        (chosen, record)
+                    } else {
+                        let mut warm = warm;
+                        if let Some((trials, kernel_trials)) = kept_trials {
+                            warm.trials = trials;
+                            warm.kernel_trials = kernel_trials;
+                        }
+                        let record = SelectionRecord {
+                            selected_at_version,
+                            selected_n_train,
+                            reason,
+                            phases: Vec::new(),
+                        };
+                        (warm, record)
+                    }
+                }
+            };
+            record.phases = std::mem::take(&mut choice.phases);
+            Ok::<_, crate::gp::GpError>((choice, record))
         })
         .await?;
         let result = if gp.is_ok() { "ok" } else { "failed" };
         metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => result)
             .increment(1);
         metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
-        let choice = gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
+        let (choice, selection) =
+            gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
         let gp = choice.gp;
         let fit = FitRecord {
             fit_seconds: started.elapsed().as_secs_f64(),
@@ -394,6 +465,7 @@ impl LiveExperiment {
             online_trajectories: 0,
             kernel_trials: choice.kernel_trials,
             beta_choice: choice.beta_choice,
+            selection: Some(selection),
         };
         let stored = StoredModel {
             version,
@@ -407,6 +479,7 @@ impl LiveExperiment {
             label_cap_trials: fit.label_cap_trials.clone(),
             kernel_trials: fit.kernel_trials.clone(),
             beta_choice: fit.beta_choice,
+            selection: fit.selection.clone(),
         };
         Ok(Some((
             stored,
@@ -509,6 +582,7 @@ impl LiveExperiment {
                 online_trajectories: 0,
                 kernel_trials: stored.kernel_trials,
                 beta_choice: stored.beta_choice,
+                selection: stored.selection,
             }),
         })
     }

@@ -218,6 +218,9 @@ pub struct MdeRequest {
     pub estimator: EstimatorChoice,
     /// [`MdeSettings::inducing_points`]. Default 256.
     pub inducing_points: usize,
+    /// [`MdeSettings::reselect_every`]. Absent: the preset's (`default`: 5, `paper`: 1).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reselect_every: Option<usize>,
 }
 
 impl Default for MdeRequest {
@@ -230,6 +233,7 @@ impl Default for MdeRequest {
             kernel: None,
             estimator: EstimatorChoice::Auto,
             inducing_points: DEFAULT_INDUCING_POINTS,
+            reselect_every: None,
         }
     }
 }
@@ -269,7 +273,16 @@ pub struct MdeSettings {
     /// ([`crate::gp::DEFAULT_FULL_RANK_UP_TO`]) the sparse GP uses every training input
     /// instead, and is then the exact GP's fit in sparse form.
     pub inducing_points: usize,
+    /// How often a refit chooses the kernel and the label cap anew (1 ..= 1000): every
+    /// `reselect_every`-th fit does, and so does a fit after the data doubled since the last
+    /// choice or whose likelihood per transition fell; the fits between keep the last choice
+    /// and start from the previous optimum (a warm refit: one fit instead of one per candidate,
+    /// each from several starts). 1: every fit chooses from scratch, as before warm refits.
+    pub reselect_every: usize,
 }
+
+/// Largest `mde.reselect_every`.
+pub const MAX_RESELECT_EVERY: usize = 1000;
 
 /// A named set of defaults for the settings a preset decides (see [`LearningSettings::preset`]).
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
@@ -292,6 +305,16 @@ impl Preset {
         match self {
             Self::Default => LabelCap::Auto,
             Self::Paper => LabelCap::Fixed(0.0),
+        }
+    }
+
+    /// How often this preset's refits choose the kernel and label cap anew when
+    /// `mde.reselect_every` is absent: `default` every fifth fit (the others warm), `paper`
+    /// every fit (each fit from scratch, as the paper's).
+    pub fn reselect_every(self) -> usize {
+        match self {
+            Self::Default => 5,
+            Self::Paper => 1,
         }
     }
 
@@ -740,7 +763,19 @@ impl ExperimentRequest {
             kernel: m.kernel.unwrap_or_else(|| self.learning.preset.kernel()),
             estimator: m.estimator,
             inducing_points: m.inducing_points,
+            reselect_every: m
+                .reselect_every
+                .unwrap_or_else(|| self.learning.preset.reselect_every()),
         };
+        if !(1..=MAX_RESELECT_EVERY).contains(&mde.reselect_every) {
+            return Err(InvalidSetting::new(
+                "mde.reselect_every",
+                format!(
+                    "must be between 1 and {MAX_RESELECT_EVERY}, got {}",
+                    mde.reselect_every
+                ),
+            ));
+        }
         if !(MIN_INDUCING_POINTS..=MAX_INDUCING_POINTS).contains(&mde.inducing_points) {
             return Err(InvalidSetting::new(
                 "mde.inducing_points",

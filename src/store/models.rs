@@ -2,7 +2,9 @@
 
 use super::{Store, now};
 use crate::gp::Hyperparameters;
-use crate::mde::{BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial};
+use crate::mde::{
+    BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial, SelectionRecord,
+};
 use sqlx::AnyConnection;
 
 /// A stored model version.
@@ -30,6 +32,9 @@ pub struct StoredModel {
     pub kernel_trials: Vec<KernelTrial>,
     /// The test β its held-out judgements certify, when they were made.
     pub beta_choice: Option<BetaChoice>,
+    /// How its kernel and label cap were chosen and what its fit spent time on (`None` for
+    /// versions fitted before it was recorded).
+    pub selection: Option<SelectionRecord>,
 }
 
 fn json_err(e: serde_json::Error) -> sqlx::Error {
@@ -50,11 +55,17 @@ pub(super) async fn insert_model_on(
     let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
     let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
     let beta_choice = serde_json::to_string(&model.beta_choice).map_err(json_err)?;
+    let selection = model
+        .selection
+        .as_ref()
+        .map(serde_json::to_string)
+        .transpose()
+        .map_err(json_err)?;
     sqlx::query(
         "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
                              hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
-                             label_cap, label_cap_trials, kernel_trials, beta_choice)
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14)",
+                             label_cap, label_cap_trials, kernel_trials, beta_choice, selection)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15)",
     )
     .bind(experiment_id)
     .bind(model.version)
@@ -70,6 +81,7 @@ pub(super) async fn insert_model_on(
     .bind(trials)
     .bind(kernel_trials)
     .bind(beta_choice)
+    .bind(selection)
     .execute(conn)
     .await?;
     Ok(())
@@ -105,7 +117,8 @@ impl Store {
     ) -> Result<Option<StoredModel>, sqlx::Error> {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
-                    label_cap_trials, log_marginal_likelihood, kernel_trials, beta_choice
+                    label_cap_trials, log_marginal_likelihood, kernel_trials, beta_choice,
+                    selection
              FROM models WHERE experiment_id = $1 {clause}"
         );
         type Row = (
@@ -120,6 +133,7 @@ impl Store {
             f64,
             String,
             String,
+            Option<String>,
         );
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
         if let Some(v) = version {
@@ -140,6 +154,7 @@ impl Store {
             lml,
             kernel_trials,
             beta_choice,
+            selection,
         ) = row;
         Ok(Some(StoredModel {
             version,
@@ -153,6 +168,11 @@ impl Store {
             label_cap_trials: serde_json::from_str(&trials).map_err(json_err)?,
             kernel_trials: serde_json::from_str(&kernel_trials).map_err(json_err)?,
             beta_choice: serde_json::from_str(&beta_choice).map_err(json_err)?,
+            selection: selection
+                .as_deref()
+                .map(serde_json::from_str)
+                .transpose()
+                .map_err(json_err)?,
         }))
     }
 

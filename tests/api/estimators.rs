@@ -173,3 +173,89 @@ async fn the_sparse_gp_takes_each_trajectory_in_at_once_and_again_after_a_restar
     assert!((sigma(&again) - sigma(&after)).abs() < 1e-9);
     app.stop().await;
 }
+
+/// Posts batches of `pushed_lattice` (80 transitions, then 10 a batch: the data never double
+/// between fits) and returns each fitted version's `selection`.
+async fn selections(body: Value, versions: usize) -> Vec<Value> {
+    let (_dir, app) = fresh_app_with_limits(Limits::default()).await;
+    let id = app.create_experiment(body).await;
+    let mut out = Vec::new();
+    for v in 1..=versions {
+        let (n, offset) = if v == 1 { (80, 0) } else { (10, 80 + 10 * v) };
+        app.store_trajectory(id, &pushed_lattice(n, offset)).await;
+        let model = model_until(&app, id, |m| m["version"].as_i64() >= Some(v as i64)).await;
+        assert_eq!(model["version"], v as i64, "one version per batch");
+        out.push(model["selection"].clone());
+    }
+    out
+}
+
+#[tokio::test]
+async fn refits_keep_the_last_choice_warm_and_choose_anew_every_nth_fit() {
+    let s = selections(
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 1},
+               "mde": {"reselect_every": 3, "noise": "homoscedastic"}}),
+        4,
+    )
+    .await;
+    // Version 1 chooses (the first fit), 2 and 3 keep its choice warm, 4 chooses anew.
+    let chosen_at: Vec<i64> = s
+        .iter()
+        .map(|r| r["selected_at_version"].as_i64().unwrap())
+        .collect();
+    assert_eq!(chosen_at, [1, 1, 1, 4], "{s:?}");
+    assert!(
+        s[0]["reason"].as_str().unwrap().contains("first fit"),
+        "{}",
+        s[0]
+    );
+    assert!(
+        s[1]["reason"].as_str().unwrap().contains("keeps version 1"),
+        "{}",
+        s[1]
+    );
+    assert!(
+        s[3]["reason"].as_str().unwrap().contains("every 3"),
+        "{}",
+        s[3]
+    );
+    let phases = |r: &Value| -> Vec<String> {
+        r["phases"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["phase"].as_str().unwrap().to_string())
+            .collect()
+    };
+    assert_eq!(
+        phases(&s[1]),
+        ["warm fit", "held-out judgements, certified β"]
+    );
+    assert!(
+        phases(&s[0])
+            .iter()
+            .any(|p| p.starts_with("kernels: 3 fits")),
+        "{}",
+        s[0]
+    );
+    assert!(
+        phases(&s[3])
+            .iter()
+            .any(|p| p.starts_with("kernels: 3 fits")),
+        "{}",
+        s[3]
+    );
+
+    // The paper preset fits from scratch every time.
+    let paper = selections(
+        json!({"domain": {"kind": "kinematic"}, "learning": {"batch_size": 1, "preset": "paper"},
+               "mde": {"noise": "homoscedastic"}}),
+        2,
+    )
+    .await;
+    let chosen_at: Vec<i64> = paper
+        .iter()
+        .map(|r| r["selected_at_version"].as_i64().unwrap())
+        .collect();
+    assert_eq!(chosen_at, [1, 2], "{paper:?}");
+}

@@ -623,12 +623,24 @@ impl SparseGp {
             Some(z) => z,
             None => select(&ls0, theta0[d].exp(), 0),
         };
+        // A warm refit starts from its subset optimum alone (itself warm-started).
+        let starts = if p.warm.is_some() {
+            Starts::warm(
+                Warm {
+                    theta: &theta0,
+                    memory: Vec::new(),
+                },
+                p.seed,
+            )
+        } else {
+            Starts::new(p.restarts, p.seed).first(&theta0)
+        };
         let mut opt = optimise_sparse(
             &setup(sp, &z, ladder),
             x,
             &r,
             NoiseSpec::Homoscedastic,
-            Starts::new(p.restarts, p.seed).first(&theta0),
+            starts,
         )?;
         let mut evaluations = opt.evaluations;
         let mut homo = build_homo(x, y, sp, &z, &opt.theta)?;

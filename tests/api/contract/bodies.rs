@@ -250,6 +250,9 @@ const REACHED: &[&str] = &[
     "ActionAndRotationFeatureMap",
     "HomoscedasticNoise",
     "HeteroscedasticNoise",
+    // a model's `selection` (mde::SelectionRecord) and its phases
+    "SelectionRecord",
+    "FitPhase",
 ];
 
 /// Spec schemas no Rust type describes, each with the reason.
@@ -263,6 +266,7 @@ const NOT_TYPED: &[(&str, &str)] = &[
     ("ValidationDetails", "a JSON value"),
     ("PayloadTooLargeDetails", "a JSON value"),
     ("NoPlanDetails", "a JSON value"),
+    ("StoredPrefixDetails", "a JSON value"),
     // `Error` narrowed to one code, for the responses that answer only that code.
     ("ValidationError", "Error with one code"),
     ("NoPlanError", "Error with one code"),

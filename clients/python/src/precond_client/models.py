@@ -592,6 +592,31 @@ class BetaChoice(Wire):
 
 
 @dataclass(frozen=True)
+class FitPhase(Wire):
+    """One phase of a fit and its wall time (schema ``FitPhase``)."""
+
+    SCHEMA: ClassVar[str] = "FitPhase"
+
+    phase: str
+    """What it did, e.g. ``kernels: 3 fits``, ``warm fit``, ``certified β``."""
+    seconds: float
+
+
+@dataclass(frozen=True)
+class SelectionRecord(Wire):
+    """How a version's kernel and label cap were chosen — anew, or kept from an earlier version
+    by a warm refit — and what its fit spent its time on (schema ``SelectionRecord``)."""
+
+    SCHEMA: ClassVar[str] = "SelectionRecord"
+
+    selected_at_version: int
+    """The version whose fit made the choice (this one's own when it chose)."""
+    selected_n_train: int
+    reason: str
+    phases: list[FitPhase]
+
+
+@dataclass(frozen=True)
 class FitRefusal(Wire):
     """A fit the server did not attempt because its estimated peak memory or time exceeded the
     server's budget; the version before it kept answering (schema ``FitRefusal``)."""
@@ -652,6 +677,9 @@ class Model(Wire):
     test_beta: float
     """The β test plans use with this version (``beta_choice.beta`` with
     ``learning.calibrate_test_beta``, else ``learning.test_beta``)."""
+    selection: SelectionRecord | None
+    """How this version's kernel and label cap were chosen, anew or kept by a warm refit, and
+    what the fit spent its time on (``None`` for the prior and older versions)."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
 
