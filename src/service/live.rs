@@ -329,6 +329,7 @@ impl LiveExperiment {
         if mde.estimator == EstimatorChoice::Auto
             && kind == EstimatorKind::Exact
             && cost(kind).seconds > seconds_budget
+            && cost(EstimatorKind::Sparse).seconds < cost(kind).seconds
         {
             kind = EstimatorKind::Sparse;
         }

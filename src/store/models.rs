@@ -186,8 +186,9 @@ impl Store {
         self.noted(async {
             sqlx::query(
                 "INSERT INTO fit_refusals (experiment_id, n_train, n_trajectories, estimator,
-                                           needed_bytes, budget_bytes, reason, refused_at)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8)",
+                                           needed_bytes, budget_bytes, reason, refused_at,
+                                           needed_seconds, budget_seconds)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
             )
             .bind(experiment_id)
             .bind(r.n_train)

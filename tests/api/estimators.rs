@@ -259,3 +259,40 @@ async fn refits_keep_the_last_choice_warm_and_choose_anew_every_nth_fit() {
         .collect();
     assert_eq!(chosen_at, [1, 2], "{paper:?}");
 }
+
+#[tokio::test]
+async fn a_fit_estimated_beyond_the_time_budget_is_refused_and_recorded() {
+    let (_dir, app) = fresh_app_with_limits(Limits {
+        max_fit_seconds: 10,
+        ..Limits::default()
+    })
+    .await;
+    // The exact GP's model selection on 1600 transitions (three kernels, then two more label
+    // caps, each from three starts) is estimated at well over 10 s by the cost model.
+    let exact = app
+        .create_experiment(json!({
+            "domain": {"kind": "kinematic"},
+            "mde": {"estimator": "exact"},
+            "learning": {"batch_size": 2}
+        }))
+        .await;
+    for k in 0..2 {
+        app.store_trajectory(exact, &pushed_lattice(800, 800 * k))
+            .await;
+    }
+    let model = model_until(&app, exact, |m| !m["last_fit_refusal"].is_null()).await;
+    assert_eq!(model["version"], 0, "the prior keeps answering: {model}");
+    let refusal = &model["last_fit_refusal"];
+    assert_eq!(refusal["budget_seconds"], 10.0, "{refusal}");
+    assert!(
+        refusal["needed_seconds"].as_f64().unwrap() > 10.0,
+        "{refusal}"
+    );
+    assert!(
+        refusal["reason"]
+            .as_str()
+            .unwrap()
+            .contains("--max-fit-seconds"),
+        "{refusal}"
+    );
+}
