@@ -85,7 +85,7 @@ pub struct ExperimentResponse {
     pub iteration: i64,
     /// The latest MDE version (0: the prior).
     pub model_version: i64,
-    /// Proposal requests refused with `no_plan` (each is a `refused` run).
+    /// Proposal requests refused (`no_plan`, or past the planning deadline; each is a `refused` run).
     #[serde(default)]
     pub n_refused: i64,
     /// The latest of its creation, its last trajectory, its last proposal and its last refused

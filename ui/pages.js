@@ -329,7 +329,8 @@ export function sourceText(src) {
 function runDetails(r) {
   if (r.status === 'refused') {
     const betas = (r.betas_tried ?? []).map(b => fmt(b)).join(' → ');
-    return h('span', { class: 'muted' }, `no plan at β ${betas} (${fmt(r.extensions)} extensions)`);
+    const why = r.refusal_reason === 'deadline_exceeded' ? 'past the planning deadline' : 'no plan';
+    return h('span', { class: 'muted' }, `${why} at β ${betas} (${fmt(r.extensions)} extensions)`);
   }
   const src = sourceText(r.source);
   return src ? h('span', { class: 'source' }, src) : '';

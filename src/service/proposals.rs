@@ -24,7 +24,7 @@ use crate::mde::{EstimatorKind, ServedModel};
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{
-    Inserted, NewProposal, NewRefusal, ProposalStatus, ProposalTerms, StoredProposal,
+    Inserted, NewProposal, NewRefusal, ProposalStatus, ProposalTerms, RefusalReason, StoredProposal,
 };
 use std::time::Instant;
 
@@ -283,44 +283,44 @@ impl Service {
                 .and_then(|proposal| Ok((content(&proposal, schedule_beta)?, proposal.beta)))
             }
         };
-        let (content, beta) = match answer {
-            Err(Error::NoPlan {
-                extensions,
-                candidates,
-            }) => {
-                let refusal = NewRefusal {
-                    client_id: request.client_id.clone(),
-                    iteration,
-                    strategy,
-                    model_version,
-                    start: request.start.clone(),
-                    goal: request.goal.clone(),
-                    betas,
-                    extensions: extensions as i64,
-                    candidates: n_candidates,
-                };
-                // The answer is the refusal either way; a store that cannot record it is
-                // logged, not turned into another answer.
-                match self.store.insert_refusal(id, &refusal).await {
-                    Ok(refusal_id) => tracing::info!(
-                        experiment = id,
-                        refusal = refusal_id,
-                        extensions,
-                        "proposal refused: no plan"
-                    ),
-                    Err(e) => tracing::error!(
-                        experiment = id,
-                        error = %e,
-                        "could not record a refused proposal"
-                    ),
-                }
-                return Err(Error::NoPlan {
-                    extensions,
-                    candidates,
-                });
+        let refused = match &answer {
+            Err(Error::NoPlan { extensions, .. }) => Some((RefusalReason::NoPlan, *extensions)),
+            Err(Error::DeadlineExceeded { extensions, .. }) => {
+                Some((RefusalReason::DeadlineExceeded, *extensions))
             }
-            answer => answer?,
+            _ => None,
         };
+        if let Some((reason, extensions)) = refused {
+            let refusal = NewRefusal {
+                client_id: request.client_id.clone(),
+                iteration,
+                strategy,
+                model_version,
+                start: request.start.clone(),
+                goal: request.goal.clone(),
+                betas,
+                extensions: extensions as i64,
+                candidates: n_candidates,
+                reason,
+            };
+            // The answer is the refusal either way; a store that cannot record it is logged,
+            // not turned into another answer.
+            match self.store.insert_refusal(id, &refusal).await {
+                Ok(refusal_id) => tracing::info!(
+                    experiment = id,
+                    refusal = refusal_id,
+                    extensions,
+                    reason = reason.as_str(),
+                    "proposal refused"
+                ),
+                Err(e) => tracing::error!(
+                    experiment = id,
+                    error = %e,
+                    "could not record a refused proposal"
+                ),
+            }
+        }
+        let (content, beta) = answer?;
         let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;
         let (n_actions, extensions) = (
             content.trajectory.actions.len() as i64,

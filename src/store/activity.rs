@@ -2,7 +2,7 @@
 //! one list of runs, per-iteration statistics and the list of model versions.
 
 use super::trajectories::provenance_from_row;
-use super::{Backend, Provenance, Store, decode_vec, flag};
+use super::{Backend, Provenance, RefusalReason, Store, decode_vec, flag};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use sqlx::any::AnyRow;
@@ -53,6 +53,10 @@ pub struct Run {
     /// Every β a refused request tried, in order (`null` unless refused).
     #[serde(default)]
     pub betas_tried: Option<Vec<f64>>,
+    /// Why a refused request was refused: `no_plan` or `deadline_exceeded` (`null` unless
+    /// refused).
+    #[serde(default)]
+    pub refusal_reason: Option<RefusalReason>,
     /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
     #[serde(default)]
     pub extensions: Option<i64>,
@@ -94,7 +98,7 @@ pub struct IterationStats {
     /// Share of the transitions with a deviation below `d_max` (the model was right there;
     /// `null` without any).
     pub share_within_d_max: Option<f64>,
-    /// Proposal requests refused with `no_plan` in it.
+    /// Proposal requests refused in it (`no_plan`, or past the planning deadline).
     #[serde(default)]
     pub n_refused: i64,
 }
@@ -134,19 +138,20 @@ const RUNS: &str = "
            COALESCE(t.n_transitions, p.n_actions, 0) AS length,
            COALESCE(t.partial, FALSE) AS partial, COALESCE(t.deviating, FALSE) AS deviating,
            t.source_dataset, t.source_episode, t.source_first_step, t.source_label,
-           p.extensions AS extensions, CAST(NULL AS TEXT) AS betas
+           p.extensions AS extensions, CAST(NULL AS TEXT) AS betas,
+           CAST(NULL AS TEXT) AS refusal_reason
     FROM proposals p LEFT JOIN trajectories t ON t.proposal_id = p.id
     WHERE p.experiment_id = $1
     UNION ALL
     SELECT NULL, t.id, NULL, NULL, NULL, NULL, NULL, NULL, t.created_at, t.n_transitions,
            t.partial, t.deviating, t.source_dataset, t.source_episode, t.source_first_step,
-           t.source_label, NULL, NULL
+           t.source_label, NULL, NULL, NULL
     FROM trajectories t
     WHERE t.experiment_id = $1 AND t.proposal_id IS NULL
     UNION ALL
     SELECT NULL, NULL, r.id, 'refused', r.client_id, r.iteration,
            r.first_beta, r.model_version, r.created_at, 0, FALSE, FALSE,
-           NULL, NULL, NULL, NULL, r.extensions, r.betas
+           NULL, NULL, NULL, NULL, r.extensions, r.betas, r.reason
     FROM refusals r
     WHERE r.experiment_id = $1";
 
@@ -173,6 +178,14 @@ fn run_from_row(row: &AnyRow) -> Result<Run, sqlx::Error> {
         }
     };
     let betas: Option<String> = row.try_get("betas")?;
+    let refusal_reason = match row
+        .try_get::<Option<String>, _>("refusal_reason")?
+        .as_deref()
+    {
+        None => None,
+        Some("deadline_exceeded") => Some(RefusalReason::DeadlineExceeded),
+        Some(_) => Some(RefusalReason::NoPlan),
+    };
     Ok(Run {
         proposal_id,
         trajectory_id: row.try_get("trajectory_id")?,
@@ -182,6 +195,7 @@ fn run_from_row(row: &AnyRow) -> Result<Run, sqlx::Error> {
         iteration: row.try_get("iteration")?,
         beta: row.try_get("beta")?,
         betas_tried: betas.as_deref().map(decode_vec).transpose()?,
+        refusal_reason,
         extensions: row.try_get("extensions")?,
         model_version: row.try_get("model_version")?,
         created_at: row.try_get("created_at")?,

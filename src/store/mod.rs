@@ -41,7 +41,7 @@ pub use models::{FitRefusal, StoredModel};
 pub use proposals::{
     Inserted, NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
 };
-pub use refusals::NewRefusal;
+pub use refusals::{NewRefusal, RefusalReason};
 pub use serving::{ServingLock, lock_for_serving};
 pub use trajectories::{
     IdempotencyKey, IngestOutcome, IngestRecord, Provenance, StoredTrajectory, StoredTransition,

@@ -1,5 +1,5 @@
-//! Refused proposals: a proposal request answered `no_plan` is recorded with its problem and
-//! everything the search tried.
+//! Refused proposals: a proposal request answered `no_plan`, or stopped by its planning
+//! deadline, is recorded with its problem, why, and everything the search tried.
 
 use super::{Store, encode_vec, now};
 use crate::planning::Strategy;
@@ -26,6 +26,30 @@ pub struct NewRefusal {
     pub extensions: i64,
     /// How many of the client's candidates were judged (`None`: the service planned).
     pub candidates: Option<i64>,
+    /// Why it was refused.
+    pub reason: RefusalReason,
+}
+
+/// Why a proposal request was refused.
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
+)]
+#[serde(rename_all = "snake_case")]
+pub enum RefusalReason {
+    /// No trajectory reached the goal inside the precondition, at every β tried.
+    NoPlan,
+    /// The search did not finish within the planning deadline (`--plan-timeout-ms`).
+    DeadlineExceeded,
+}
+
+impl RefusalReason {
+    /// The stored (and shown) name.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Self::NoPlan => "no_plan",
+            Self::DeadlineExceeded => "deadline_exceeded",
+        }
+    }
 }
 
 impl Store {
@@ -40,8 +64,8 @@ impl Store {
             sqlx::query_scalar(
                 "INSERT INTO refusals (experiment_id, client_id, iteration, strategy, model_version,
                                        start, goal, betas, extensions, candidates, created_at,
-                                       first_beta)
-                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12) RETURNING id",
+                                       first_beta, reason)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13) RETURNING id",
             )
             .bind(experiment_id)
             .bind(&r.client_id)
@@ -55,6 +79,7 @@ impl Store {
             .bind(r.candidates)
             .bind(now())
             .bind(r.betas.first().copied())
+            .bind(r.reason.as_str())
             .fetch_one(&self.write)
             .await
         })

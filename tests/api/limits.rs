@@ -49,6 +49,20 @@ async fn a_search_past_its_deadline_is_503_with_retry_after() {
     assert!(body["error"]["details"]["extensions"].as_u64().unwrap() > 0);
     assert_eq!(body["error"]["details"]["timeout_ms"], 300);
     assert!(took < Duration::from_secs(3), "{took:?}");
+    // The refused request is a run, saying why.
+    let (_, runs) = app.get_at(id, "runs").await;
+    let refused = &runs["items"][0];
+    assert_eq!(
+        (
+            refused["status"].as_str(),
+            refused["refusal_reason"].as_str(),
+            refused["client_id"].as_str()
+        ),
+        (Some("refused"), Some("deadline_exceeded"), Some("a")),
+        "{runs}"
+    );
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(e["n_refused"], 1, "{e}");
     // A test-time plan has the same deadline; nothing was stored for either. (At the test β
     // the prior trusts nothing, so the tree cannot grow and the search ends in about the
     // deadline's time; at β = −2, as in the proposal above, it grows a large tree and cannot.)

@@ -354,6 +354,8 @@ class Run(Wire):
     beta: float | None
     betas_tried: Array | None
     """Every β a refused request tried, in order."""
+    refusal_reason: str | None
+    """Why a refused request was refused: ``no_plan`` or ``deadline_exceeded``."""
     extensions: int | None
     model_version: int | None
     created_at: str
