@@ -3,6 +3,8 @@
 - :class:`Client` — experiments, proposals, trajectories (idempotent, retried), the model,
   precondition queries and plans, with numpy arrays in and out.
 - :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
+- :class:`Monitor` — a plan's execution stopped where a step deviates beyond ``d_max``;
+  :class:`Metric`, the experiment's distance and goal test (:mod:`precond_client.execution`).
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
 - :func:`spawn_server` — start a local precond server binary on a free port (examples, scripts).
 - :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
@@ -21,6 +23,7 @@ from .errors import (
     Cancelled,
     Conflict,
     DeadlineExceeded,
+    DeviationExceeded,
     ExperimentMismatch,
     Forbidden,
     InternalError,
@@ -42,6 +45,7 @@ from .errors import (
     UnsupportedMediaType,
     ValidationFailed,
 )
+from .execution import Execution, Metric, Monitor
 from .export import ExportedModel
 from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
@@ -86,7 +90,9 @@ __all__ = [
     "Continued",
     "DatasetError",
     "DeadlineExceeded",
+    "DeviationExceeded",
     "Episode",
+    "Execution",
     "Experiment",
     "ExperimentMismatch",
     "ExportedModel",
@@ -102,12 +108,14 @@ __all__ = [
     "LimitReached",
     "LoggedEpisode",
     "MethodNotAllowed",
+    "Metric",
     "Model",
     "ModelBusy",
     "ModelNotAllowed",
     "ModelServer",
     "ModelTimeout",
     "ModelUnavailable",
+    "Monitor",
     "NoPlan",
     "NoiseSummary",
     "NotFound",
