@@ -1,17 +1,20 @@
-"""Unit tests (scripted transport, no server) of how the client waits: the server's
-``Retry-After`` honoured and logged, a search past the deadline repeated a bounded number of
-times."""
+"""Unit tests (scripted transport, no server) of how the client and its loop wait: the
+server's ``Retry-After`` honoured and logged, a search past the deadline repeated a bounded
+number of times, a problem that keeps failing skipped and counted instead of raised, and the
+loop's progress visible when logging is not configured."""
 
 from __future__ import annotations
 
+import json
 import logging
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
-from test_client import error, make_client, proposal_json, scripted
+from test_client import FakeLoopServer, error, make_client, proposal_json, run_loop, scripted
 
-from precond_client import DeadlineExceeded
+from precond_client import DeadlineExceeded, ModelUnavailable, Skipped, ValidationFailed
 from precond_client.errors import is_transient, retry_after
 
 
@@ -120,3 +123,164 @@ def test_what_is_transient() -> None:
     assert not is_transient(ValueError("x"))
     assert retry_after(ApiError(503, "x", "m", {"retry_after_seconds": 7}), 1.0) == 7.0
     assert retry_after(ApiError(503, "x", "m", None), 1.5) == 1.5
+
+
+class DoomedServer(FakeLoopServer):
+    """The loop's fake server, on which the problems whose goal is in ``doomed`` answer every
+    search with ``answer`` (a deadline, or a model that keeps failing)."""
+
+    def __init__(self, doomed: set[tuple[float, ...]], answer: Any) -> None:
+        super().__init__()
+        self.doomed = doomed
+        self.answer = answer
+        self.searched: dict[tuple[float, ...], int] = {}
+
+    def __call__(self, req: httpx.Request) -> httpx.Response:
+        if req.url.path.endswith("/proposals"):
+            goal = tuple(json.loads(req.content)["goal"])
+            self.searched[goal] = self.searched.get(goal, 0) + 1
+            if goal in self.doomed:
+                response: httpx.Response = self.answer()
+                return response
+        return super().__call__(req)
+
+
+def test_learn_skips_a_problem_whose_searches_keep_passing_the_deadline(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    server = DoomedServer({(9.0, 9.0)}, deadline)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    slept = recording_sleeps(c)
+    problems = [([0.0, 0.0], [1.0, 0.0]), ([0.0, 0.0], [9.0, 9.0]), ([0.0, 0.0], [2.0, 0.0])]
+    seen: list[Any] = []
+    with caplog.at_level(logging.INFO, logger="precond_client"):
+        learner = c.learn(problems, progress=seen.append)
+        assert run_loop(learner) == [1, 2]
+    # Two searches (the default deadline_attempts), one wait of the server's 30 s between.
+    assert server.searched[(9.0, 9.0)] == 2
+    assert slept == [30.0]
+    assert (learner.posted, learner.deadline, learner.failed, learner.no_plan) == (2, 1, 0, 0)
+    (skipped,) = learner.skipped
+    assert (skipped.problem, skipped.reason) == (1, "deadline")
+    assert isinstance(skipped.error, DeadlineExceeded)
+    np.testing.assert_array_equal(skipped.goal, [9.0, 9.0])
+    assert [p.event for p in seen] == ["posted", "deadline", "posted"]
+    assert seen[1].deadline == 1
+    messages = [r.getMessage() for r in caplog.records]
+    assert "problem 1: planning from [0.0, 0.0] to [9.0, 9.0]" in messages
+    assert (
+        "problem 1: planning: the search passed the server's deadline of 30000 ms "
+        "(5123 extensions); search 2/2 in 30 s" in messages
+    )
+    assert (
+        "problem 1: skipped, 2 searches passed the server's deadline of 30000 ms "
+        "(the last after 5123 extensions)" in messages
+    )
+
+
+def test_learn_skips_a_problem_the_server_keeps_failing_and_says_each_wait() -> None:
+    def model_down() -> httpx.Response:
+        return error(502, "model_unavailable", "the model at http://m/ refused")
+
+    server = DoomedServer({(9.0, 9.0)}, model_down)
+    c = make_client(server, experiment_id=1, client_id="r1", retries=2)
+    slept = recording_sleeps(c)
+    problems = [([0.0, 0.0], [9.0, 9.0]), ([0.0, 0.0], [2.0, 0.0])]
+    learner = c.learn(problems, transient_attempts=2)
+    assert run_loop(learner) == [1]
+    # Twice the client's 3 requests; between the two loop attempts the loop's own wait.
+    assert server.searched[(9.0, 9.0)] == 6
+    assert len(slept) == 2 * 2 + 1 and slept[2] == 5.0
+    assert (learner.failed, learner.deadline) == (1, 0)
+    (skipped,) = learner.skipped
+    assert isinstance(skipped, Skipped) and (skipped.problem, skipped.reason) == (0, "failed")
+    assert isinstance(skipped.error, ModelUnavailable)
+
+
+def test_learn_still_raises_what_is_not_transient() -> None:
+    def bad() -> httpx.Response:
+        return error(422, "validation_failed", "goal: outside", {"field": "goal", "reason": "x"})
+
+    server = DoomedServer({(9.0, 9.0)}, bad)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    with pytest.raises(ValidationFailed):
+        run_loop(c.learn([([0.0, 0.0], [9.0, 9.0])]))
+
+
+def test_a_post_that_fails_transiently_is_tried_again_with_the_same_key() -> None:
+    server = FakeLoopServer()
+    keys: list[str] = []
+    down = {"left": 4}
+
+    def flaky(req: httpx.Request) -> httpx.Response:
+        if req.url.path.endswith("/trajectories"):
+            keys.append(req.headers["Idempotency-Key"])
+            if down["left"] > 0:
+                down["left"] -= 1
+                return error(503, "unavailable", "database")
+        return server(req)
+
+    c = make_client(flaky, experiment_id=1, client_id="r1", retries=1)
+    slept = recording_sleeps(c)
+    learner = c.learn([([0.0, 0.0], [1.0, 0.0])])
+    assert run_loop(learner) == [1]
+    assert keys == ["proposal-1"] * 5 and server.posted == [1]
+    # The client's own retry, then the episode's wait (no Retry-After: 30 s), twice.
+    assert len(slept) == 4 and slept[1] == slept[3] == 30.0
+
+
+def test_the_wait_for_a_fit_is_logged_with_what_answers(
+    caplog: pytest.LogCaptureFixture, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    server = FakeLoopServer(batch_size=1, fit_polls=4)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    clock = {"t": 0.0}
+    monkeypatch.setattr("precond_client.client.time.monotonic", lambda: clock["t"])
+
+    def sleep(s: float) -> None:
+        clock["t"] += 20.0  # each poll: 20 s pass
+
+    c._sleep = sleep
+    with caplog.at_level(logging.INFO, logger="precond_client"):
+        run_loop(c.learn([([0.0, 0.0], [1.0, 0.0])]))
+    messages = [r.getMessage() for r in caplog.records]
+    assert "waiting for the model fitted after iteration 1 (1 trajectories; version 0 answers)" in (
+        messages
+    )
+    still = [m for m in messages if "still waiting" in m]
+    assert still and still[0].startswith(
+        "waiting for the fit after iteration 1: still waiting for a model fitted on 1 "
+        "trajectories (40 s so far): version 0 answers, fitted on 0 trajectories"
+    )
+
+
+def test_with_logging_unconfigured_the_loop_shows_its_progress_on_stderr(
+    capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    logger = logging.getLogger("precond_client")
+    server = FakeLoopServer()
+    server.no_plan_goals.add((9.0, 9.0))
+    c = make_client(server, experiment_id=1, client_id="r1")
+    with monkeypatch.context() as m:
+        # As in a script that configured nothing: no handler anywhere.
+        m.setattr(logging.root, "handlers", [])
+        assert not logger.hasHandlers()
+        run_loop(c.learn([([0.0, 0.0], [1.0, 0.0]), ([0.0, 0.0], [9.0, 9.0])]))
+        err = capsys.readouterr().err
+        # Only while the loop runs, and not with verbose=False.
+        assert not logger.handlers and logger.level == logging.NOTSET
+        run_loop(c.learn([([0.0, 0.0], [3.0, 0.0])], verbose=False))
+        assert capsys.readouterr().err == ""
+    assert "precond_client: problem 0: planning from [0.0, 0.0] to [1.0, 0.0]" in err
+    assert "precond_client: episode 1: proposal 1 posted" in err
+    assert "precond_client: problem 1: no trajectory inside the precondition" in err
+
+
+def test_a_progress_bar_shows_the_problems(capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("tqdm")
+    server = FakeLoopServer()
+    c = make_client(server, experiment_id=1, client_id="r1")
+    problems = [([0.0, 0.0], [float(i), 0.0]) for i in range(1, 4)]
+    run_loop(c.learn(problems, progress_bar=True))
+    err = capsys.readouterr().err
+    assert "3/3" in err and "posted=3" in err

@@ -2,7 +2,8 @@
 
 - :class:`Client` — experiments, proposals, trajectories (idempotent, retried), the model,
   precondition queries and plans, with numpy arrays in and out.
-- :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
+- :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts and a
+  busy server (a problem that keeps failing is skipped and counted, never raised).
 - :class:`Monitor` — a plan's execution stopped where a step deviates beyond ``d_max``;
   :class:`Metric`, the experiment's distance and goal test (:mod:`precond_client.execution`).
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
@@ -75,7 +76,7 @@ from .models import (
     Transition,
     transitions_from_states,
 )
-from .robot import Episode, Learner, Progress
+from .robot import Episode, Learner, Progress, Skipped
 from .spawn import spawn_server
 
 __all__ = [
@@ -130,6 +131,7 @@ __all__ = [
     "RejectionCounts",
     "RequestTimeout",
     "Run",
+    "Skipped",
     "Source",
     "Space",
     "StoredTransition",

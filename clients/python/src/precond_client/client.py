@@ -868,6 +868,10 @@ class Client:
         wait_for_model: bool = True,
         model_timeout: float = 300.0,
         progress: ProgressFn | None = None,
+        deadline_attempts: int = 2,
+        transient_attempts: int = 3,
+        progress_bar: bool | None = None,
+        verbose: bool = True,
     ) -> Learner:
         """The active-learning loop over ``problems`` (pairs ``(start, goal)``): an iterator of
         :class:`~precond_client.robot.Episode`, each a proposal to execute and report with
@@ -877,7 +881,16 @@ class Client:
         no plan unless ``skip_no_plan=False``. With ``wait_for_model`` (default) the loop waits
         up to ``model_timeout`` seconds, after each completed batch, for the background refit
         before the next proposal. ``progress`` receives a
-        :class:`~precond_client.robot.Progress` after each event. See
+        :class:`~precond_client.robot.Progress` after each event.
+
+        A busy server does not stop the loop: a problem whose search passes the server's
+        deadline ``deadline_attempts`` times (default 2), or whose proposal fails with another
+        transient answer ``transient_attempts`` times (default 3, each after the client's own
+        retries), is skipped and counted (``learner.deadline``, ``learner.failed``,
+        ``learner.skipped``), waiting the server's ``Retry-After`` between attempts. Every wait
+        is logged at ``INFO``; when logging is not configured, the loop shows its ``INFO``
+        lines on standard error (``verbose=False``: it does not), and a tqdm bar where
+        standard error is a terminal (``progress_bar``: ``True`` always, ``False`` never). See
         :class:`~precond_client.robot.Learner`."""
         return Learner(
             self,
@@ -889,4 +902,9 @@ class Client:
             wait_for_model=wait_for_model,
             model_timeout=model_timeout,
             progress=progress,
+            deadline_attempts=deadline_attempts,
+            transient_attempts=transient_attempts,
+            progress_bar=progress_bar,
+            verbose=verbose,
+            sleep=self._sleep,
         )
