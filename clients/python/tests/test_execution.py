@@ -1,17 +1,34 @@
 """Unit tests of executing plans (no server): the experiment's distance and goal test, the
-monitor that stops an execution where it deviates, and test-time closed loop with a scripted
-planner."""
+monitor that stops an execution where it deviates, test-time closed loop with a scripted
+planner, and a training episode's closed loop against a scripted server."""
 
 from __future__ import annotations
 
+import json
 from collections.abc import Sequence
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
-from test_client import experiment_json
+from test_client import (
+    FakeLoopServer,
+    created_json,
+    error,
+    experiment_json,
+    make_client,
+    proposal_json,
+)
 
-from precond_client import DeviationExceeded, Experiment, Metric, Monitor, Transition
+from precond_client import (
+    DeadlineExceeded,
+    DeviationExceeded,
+    Experiment,
+    Metric,
+    Monitor,
+    NoPlan,
+    Transition,
+)
 from precond_client.execution import execute_plan
 from precond_client.models import Array, Plan, TrajectoryCreated
 
@@ -265,3 +282,106 @@ def test_test_time_closed_loop_reports_why_it_ended() -> None:
     assert stops.status == "stopped" and stops.steps == 0
     there = execute_plan(straight, [0.5, 0], [0.5, 0], stuck, max_steps=9, **common)
     assert there.success and there.steps == 0
+
+
+class ContinuingServer(FakeLoopServer):
+    """The loop's fake server with ``…/continue``: each continuation answers the next of
+    ``answers`` — ``"ok"`` (the prefix stored, a new proposal from where the robot is),
+    ``"no_plan"`` or ``"deadline"`` (the prefix stored, then the error)."""
+
+    def __init__(self, answers: list[str]) -> None:
+        super().__init__()
+        self.answers = answers
+        self.continued: list[tuple[int, str, int]] = []  # (proposal, key, transitions)
+        self.stored = 100
+        self.keys: dict[str, int] = {}
+
+    def __call__(self, req: httpx.Request) -> httpx.Response:
+        path = req.url.path
+        if not path.endswith("/continue"):
+            return super().__call__(req)
+        pid = int(path.split("/")[-2])
+        body = json.loads(req.content)
+        self.continued.append((pid, req.headers["Idempotency-Key"], len(body["transitions"])))
+        self.proposals[pid]["status"] = "executed"
+        key = req.headers["Idempotency-Key"]
+        if key not in self.keys:  # a replay stores nothing again
+            self.stored += 1
+            self.keys[key] = self.stored
+        stored = self.keys[key]
+        answer = self.answers.pop(0) if len(self.answers) > 1 else self.answers[0]
+        if answer == "no_plan":
+            return error(
+                422, "no_plan", "none", {"extensions": 5000, "stored_trajectory_id": stored}
+            )
+        if answer == "deadline":
+            return error(
+                503,
+                "deadline_exceeded",
+                "deadline",
+                {
+                    "extensions": 10,
+                    "timeout_ms": 100,
+                    "retry_after_seconds": 0,
+                    "stored_trajectory_id": stored,
+                },
+            )
+        held = self.proposals[pid]
+        new_id = len(self.proposals) + 1
+        p = proposal_json(new_id, body["transitions"][-1]["s_next"], held["goal"])
+        p["client_id"] = held["client_id"]
+        self.proposals[new_id] = p
+        created = created_json(stored, pid)
+        created["partial"] = True
+        return httpx.Response(201, json={"trajectory": created, "proposal": p})
+
+
+def drift_up(s: Array, a: Array) -> Array:
+    """The robot: 0.2 off in y at every step (d_max is 0.1)."""
+    moved: Array = s + a + np.array([0.0, 0.2])
+    return moved
+
+
+@pytest.mark.parametrize(
+    ("answers", "status", "error"),
+    [(["ok", "no_plan"], "no_plan", NoPlan), (["ok", "deadline"], "failed", DeadlineExceeded)],
+)
+def test_a_closed_loop_episode_ends_when_a_continuation_fails_with_its_prefix_stored(
+    answers: list[str], status: str, error: type
+) -> None:
+    server = ContinuingServer(answers)
+    c = make_client(server, experiment_id=1, client_id="r1")
+    c._sleep = lambda _s: None
+    learner = c.learn([([0.0, 0.0], [1.0, 0.0])])
+    for episode in learner:
+        execution = episode.run_closed_loop(drift_up)
+    assert execution.status == status and isinstance(execution.error, error)
+    # Two continuations, each of the one step of its proposal, under continue-<id>; the
+    # client repeats a search past the deadline once (the same key: nothing stored twice).
+    repeats = 2 if status == "failed" else 1
+    assert server.continued == [(1, "continue-1", 1)] + [(2, "continue-2", 1)] * repeats
+    assert execution.proposal_ids == (1, 2) and execution.replans == 1
+    assert episode.stored_trajectory_ids == [101, 102]
+    assert execution.stored_trajectory_ids == (101, 102)
+    # Nothing posted after the stored prefix, nothing abandoned: the episode counts as posted.
+    assert server.posted == [] and server.abandoned == []
+    assert (learner.posted, learner.abandoned) == (1, 0)
+
+
+def test_a_robot_that_stops_at_once_gives_its_lease_up() -> None:
+    server = ContinuingServer([])
+    c = make_client(server, experiment_id=1, client_id="r1")
+    learner = c.learn([([0.0, 0.0], [1.0, 0.0])])
+    for episode in learner:
+        execution = episode.run_closed_loop(lambda s, a: None)
+    assert execution.status == "stopped" and execution.steps == 0
+    assert server.abandoned == [1] and (learner.posted, learner.abandoned) == (0, 1)
+
+
+def test_an_episode_executed_under_a_monitor_posts_its_prefix_once() -> None:
+    server = ContinuingServer([])
+    c = make_client(server, experiment_id=1, client_id="r1")
+    for episode in c.learn([([0.0, 0.0], [1.0, 0.0])]):
+        execution = episode.execute(drift_up)
+    assert execution.status == "deviated" and execution.steps == 1
+    assert server.posted == [1] and episode.result is not None

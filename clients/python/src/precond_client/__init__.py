@@ -3,9 +3,11 @@
 - :class:`Client` — experiments, proposals, trajectories (idempotent, retried), the model,
   precondition queries and plans, with numpy arrays in and out.
 - :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts and a
-  busy server (a problem that keeps failing is skipped and counted, never raised).
-- :class:`Monitor` — a plan's execution stopped where a step deviates beyond ``d_max``;
-  :class:`Metric`, the experiment's distance and goal test (:mod:`precond_client.execution`).
+  busy server; each :class:`Episode` can drive the robot itself, open loop under a
+  :class:`Monitor` (:meth:`Episode.execute`) or closed loop (:meth:`Episode.run_closed_loop`).
+- :meth:`Client.execute_plan` — a test-time plan executed closed loop; :meth:`Client.monitor`
+  — any plan's execution stopped where it deviates beyond ``d_max``
+  (:mod:`precond_client.execution`).
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
 - :func:`spawn_server` — start a local precond server binary on a free port (examples, scripts).
 - :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —

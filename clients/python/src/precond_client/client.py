@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from . import _status, errors
+from .execution import Execution, Metric, Monitor, StepFn, client_side, execute_plan
 from .export import ExportedModel
 from .imports import (
     ImportReport,
@@ -54,6 +55,7 @@ from .models import (
     Experiment,
     Model,
     Plan,
+    PlannedTrajectory,
     Precondition,
     Proposal,
     Run,
@@ -507,7 +509,8 @@ class Client:
         The prefix is stored before the new proposal is planned: an error answered after that
         (``no_plan`` from where the robot is, a search past the deadline — repeated
         ``deadline_retries`` times, default :attr:`deadline_retries`) carries
-        ``details["stored_trajectory_id"]``.
+        ``details["stored_trajectory_id"]``. :meth:`~precond_client.robot.Episode.run_closed_loop`
+        drives this step by step.
         """
         items = _transitions_json(transitions, "continuing a proposal needs the executed prefix")
         body: dict[str, Any] = {"transitions": items}
@@ -537,7 +540,7 @@ class Client:
         it to tell "no plan inside the precondition" from "none found in time". A search past
         the server's deadline is repeated ``deadline_retries`` times (default
         :attr:`deadline_retries`), then raises :class:`~precond_client.errors.DeadlineExceeded`.
-        """
+        :meth:`execute_plan` executes plans closed loop."""
         body: dict[str, Any] = {"start": as_list(start), "goal": as_list(goal)}
         if beta is not None:
             body["beta"] = float(beta)
@@ -875,7 +878,9 @@ class Client:
     ) -> Learner:
         """The active-learning loop over ``problems`` (pairs ``(start, goal)``): an iterator of
         :class:`~precond_client.robot.Episode`, each a proposal to execute and report with
-        ``episode.post(observed_states)`` (or ``episode.abandon()``).
+        ``episode.post(observed_states)`` (or ``episode.abandon()``), or to let the robot
+        execute with ``episode.execute(step_fn)`` (open loop, stopped at a step beyond
+        ``d_max``) or ``episode.run_closed_loop(step_fn)``.
 
         A problem whose start already satisfies its goal is skipped (logged), as is one with
         no plan unless ``skip_no_plan=False``. With ``wait_for_model`` (default) the loop waits
@@ -907,4 +912,106 @@ class Client:
             progress_bar=progress_bar,
             verbose=verbose,
             sleep=self._sleep,
+        )
+
+    # ------------------------------------------------------------------ executing plans
+
+    def metric(self, experiment_id: int | None = None) -> Metric:
+        """The experiment's distance between states, goal test and ``d_max``, as the server
+        computes them (:class:`~precond_client.execution.Metric`)."""
+        return Metric.of(self.get_experiment(experiment_id))
+
+    def monitor(
+        self,
+        planned: Plan | Proposal | PlannedTrajectory,
+        *,
+        tolerance: float | None = None,
+        post: bool = True,
+        goal: ArrayLike | None = None,
+        predict: Callable[[Any, Any], ArrayLike] | None = None,
+        idempotency_key: str | None = None,
+    ) -> Monitor:
+        """A :class:`~precond_client.execution.Monitor` of the execution of ``planned`` (a
+        test-time :class:`Plan`, a :class:`Proposal`, or a trajectory): report each observed
+        state with ``monitor.observe(state)``; a step further than ``tolerance`` (default the
+        experiment's ``d_max``, in its distance) from its prediction stops it: the run so far
+        is posted as a ``partial`` trajectory (with ``post``; a proposal's as its execution,
+        under ``proposal-<id>``, else under ``idempotency_key`` or a random key) and
+        :class:`~precond_client.errors.DeviationExceeded` is raised. ``monitor.finish()``
+        posts a run that ended otherwise. ``goal`` (a proposal's own by default) tells whether
+        it ended there; ``predict(s, a)``, the robot's model, judges each step from where the
+        robot really was instead of against the plan."""
+        if isinstance(planned, Plan):
+            if planned.trajectory is None:
+                raise ValueError("the plan was not found: nothing to execute")
+            trajectory = planned.trajectory
+        elif isinstance(planned, Proposal):
+            trajectory = planned.trajectory
+        else:
+            trajectory = planned
+        proposal_id = planned.id if isinstance(planned, Proposal) else None
+        if goal is None and isinstance(planned, Proposal):
+            goal = planned.goal
+        experiment = self.get_experiment()
+        metric = Metric.of(experiment)
+        key = idempotency_key
+        if key is None and proposal_id is None:
+            key = f"py-monitor-{uuid.uuid4()}"
+
+        def send(transitions: Sequence[Transition], partial: bool) -> TrajectoryCreated:
+            return self.post_trajectory(
+                transitions, proposal_id=proposal_id, partial=partial, idempotency_key=key
+            )
+
+        return Monitor(
+            trajectory.states[0],
+            trajectory.actions,
+            trajectory.states,
+            tolerance=metric.d_max if tolerance is None else tolerance,
+            metric=metric,
+            post=send if post else None,
+            goal=goal,
+            predict=predict,
+            send_predictions=predict is not None and client_side(experiment),
+            proposal_id=proposal_id,
+        )
+
+    def execute_plan(
+        self,
+        start: ArrayLike,
+        goal: ArrayLike,
+        step_fn: StepFn,
+        *,
+        tolerance: float | None = None,
+        max_steps: int = 1000,
+        max_replans: int = 50,
+        beta: float | None = None,
+        max_extensions: int | None = None,
+    ) -> Execution:
+        """Test time, closed loop: plans from ``start`` to ``goal`` inside the precondition
+        (:meth:`plan`, at ``beta``, default the test β), executes it one action at a time with
+        ``step_fn(state, action) -> observed state`` (``None``: the robot stopped), and plans
+        again from the observed state whenever it is further than ``tolerance`` (default the
+        experiment's ``d_max``, in its distance) from the plan's prediction or the plan is
+        spent short of the goal. Ends at the goal (the experiment's goal test), after
+        ``max_steps`` steps or ``max_replans`` new plans, when no plan is found from where the
+        robot is (``status == "no_plan"``), or when the server keeps failing transiently
+        (``"failed"``, with the error). Nothing is stored. Returns the
+        :class:`~precond_client.execution.Execution` (``success``, ``steps``, ``replans``,
+        ``states``, ``deviations``)."""
+        metric = self.metric()
+
+        def plan(s: Any, g: Any) -> Plan:
+            with _status.activity(f"planning from {np.round(s, 4).tolist()}"):
+                return self.plan(s, g, beta=beta, max_extensions=max_extensions)
+
+        return execute_plan(
+            plan,
+            start,
+            goal,
+            step_fn,
+            metric=metric,
+            tolerance=metric.d_max if tolerance is None else tolerance,
+            max_steps=max_steps,
+            max_replans=max_replans,
         )

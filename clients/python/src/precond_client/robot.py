@@ -6,6 +6,12 @@
         observed = robot.run(episode.start, episode.actions)   # (k + 1, n) states, start first
         episode.post(observed)                                 # partial if k < len(actions)
 
+or, with the robot stepping itself (``step(state, action) -> observed state``)::
+
+    for episode in client.learn(problems):
+        episode.run_closed_loop(robot.step)    # replans from where the robot is when it drifts
+        # episode.execute(robot.step)          # open loop, stopped where a step deviates
+
 The loop survives a restart of either side:
 
 - **The server restarts.** Every request is retried with back-off; a trajectory carries the
@@ -30,9 +36,20 @@ from collections.abc import Callable, Iterable, Iterator, Sequence, Sized
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import numpy as np
 from numpy.typing import ArrayLike
 
 from . import _status, errors
+from .execution import (
+    Execution,
+    Metric,
+    Monitor,
+    PredictFn,
+    StepFn,
+    _Record,
+    client_side,
+    observe,
+)
 from .models import (
     Array,
     Candidate,
@@ -71,21 +88,27 @@ class _Context:
 
 @dataclass
 class Episode:
-    """One proposal to execute; report it once with :meth:`post` (or :meth:`abandon`)."""
+    """One proposal to execute; report it once with :meth:`post` (or :meth:`abandon`), or
+    let :meth:`execute` or :meth:`run_closed_loop` drive the robot and report it."""
 
     proposal: Proposal
-    """The proposal, with the trajectory to execute and the MDE's view of it."""
+    """The proposal, with the trajectory to execute and the MDE's view of it. Closed loop
+    (:meth:`run_closed_loop`) this is the proposal being executed, the last continuation."""
     resumed: bool
     """The lease was held from before (an earlier process of this client asked for it)."""
     _client: LearningClient = field(repr=False)
     result: TrajectoryCreated | None = None
-    """The server's answer once posted."""
+    """The server's answer once posted (closed loop: to the last proposal's post)."""
     abandoned: bool = False
     trajectories: list[TrajectoryCreated] = field(default_factory=list)
-    """Every trajectory posted for this episode, in order."""
+    """Every trajectory posted for this episode, in order (closed loop: one per proposal)."""
     stored_trajectory_ids: list[int] = field(default_factory=list)
-    """The ids of every trajectory stored for this episode."""
+    """The ids of every trajectory stored for this episode (also a prefix stored by a
+    continuation whose new plan then failed)."""
+    execution: Execution | None = None
+    """What :meth:`execute` or :meth:`run_closed_loop` did."""
     _context: _Context | None = field(default=None, repr=False)
+    _stored_elsewhere: bool = field(default=False, repr=False)
 
     @property
     def start(self) -> Array:
@@ -114,13 +137,17 @@ class Episode:
 
     @property
     def reported(self) -> bool:
-        """Something was stored for it."""
-        return bool(self.stored_trajectory_ids)
+        """Something was stored for it (posted, or a prefix stored by a continuation)."""
+        return bool(self.stored_trajectory_ids) or self._stored_elsewhere
 
     def _ctx(self) -> _Context:
         if self._context is None:
             self._context = _Context(self._client.get_experiment)
         return self._context
+
+    def metric(self) -> Metric:
+        """The experiment's distance and goal test (:class:`~precond_client.execution.Metric`)."""
+        return Metric.of(self._ctx().experiment())
 
     def post(
         self,
@@ -191,6 +218,202 @@ class Episode:
             self._client.abandon(self.proposal.id)
             self.abandoned = True
 
+    # ------------------------------------------------------------------ executing
+
+    def monitor(
+        self, *, tolerance: float | None = None, predict: PredictFn | None = None
+    ) -> Monitor:
+        """A :class:`~precond_client.execution.Monitor` of this episode's execution: report
+        each observed state with ``monitor.observe(state)``; a step further than ``tolerance``
+        (default the experiment's ``d_max``, in its distance) from its prediction posts the run
+        so far as this episode's ``partial`` trajectory and raises
+        :class:`~precond_client.errors.DeviationExceeded`; ``monitor.finish()`` posts a run
+        that ended otherwise. With ``predict``, the robot's model, each step is judged from
+        where the robot really was (a ``client``-kind model's predictions are posted too)."""
+        experiment = self._ctx().experiment()
+        metric = Metric.of(experiment)
+        return Monitor(
+            self.start,
+            self.actions,
+            self.predicted_states,
+            tolerance=metric.d_max if tolerance is None else tolerance,
+            metric=metric,
+            post=lambda transitions, partial: self.post_transitions(transitions, partial),
+            goal=self.goal,
+            predict=predict,
+            send_predictions=predict is not None and client_side(experiment),
+            proposal_id=self.proposal.id,
+        )
+
+    def execute(
+        self,
+        step_fn: StepFn,
+        *,
+        tolerance: float | None = None,
+        monitor: bool = True,
+        predict: PredictFn | None = None,
+    ) -> Execution:
+        """Executes the proposal open loop, one action at a time with ``step_fn(state,
+        action) -> observed state`` (``None``: the robot stopped), and posts it. With
+        ``monitor`` (default) the execution stops at the first step further than
+        ``tolerance`` (default ``d_max``) from its prediction — the model was wrong there —
+        and the run so far is posted ``partial`` (``status == "deviated"``; see
+        :meth:`monitor`). Returns the :class:`~precond_client.execution.Execution`."""
+        watch = self.monitor(
+            tolerance=tolerance if monitor else float("inf"),
+            predict=predict,
+        )
+        try:
+            for action in watch.actions:
+                observed = observe(step_fn, watch.state, action)
+                if observed is None:
+                    break
+                watch.observe(observed, action)
+            self.execution = watch.finish()
+        except errors.DeviationExceeded as e:
+            self.execution = e.execution
+        if not self.reported and not self.abandoned:
+            self.abandon()  # the robot executed nothing: give the lease up
+        assert self.execution is not None
+        return self.execution
+
+    def run_closed_loop(
+        self,
+        step_fn: StepFn,
+        *,
+        tolerance: float | None = None,
+        max_steps: int | None = None,
+        max_replans: int = 20,
+    ) -> Execution:
+        """Executes the proposal closed loop, one action at a time with ``step_fn(state,
+        action) -> observed state`` (``None``: the robot stopped).
+
+        After each step: the goal reached (the experiment's goal test) posts the executed
+        prefix and ends. An observed state further than ``tolerance`` (default the
+        experiment's ``d_max``, in its distance) from the plan's prediction, or a plan spent
+        short of the goal, posts the prefix executed since the last plan through
+        :meth:`~precond_client.Client.continue_proposal` (under ``continue-<id>``: a replay
+        stores nothing twice) and goes on with the new proposal, planned from where the robot
+        is to the same goal; :attr:`proposal` follows it. It also ends when the robot stops,
+        after ``max_steps`` steps (default three times the first plan's length, at least 10)
+        or ``max_replans`` continuations (the prefix posted ``partial``), when there is no plan
+        from where the robot is (``no_plan``), or when the server keeps failing (``failed``;
+        transient errors are not raised). Returns the
+        :class:`~precond_client.execution.Execution`; :attr:`stored_trajectory_ids` lists
+        everything stored.
+
+        Not for a ``client``-kind model (its continuations need the client's own candidates
+        and predictions: use :meth:`~precond_client.Client.continue_proposal`)."""
+        if self.done or self.reported:
+            raise RuntimeError(f"episode of proposal {self.proposal.id} was already reported")
+        experiment = self._ctx().experiment()
+        if client_side(experiment):
+            raise ValueError(
+                "run_closed_loop cannot continue a client-kind model's proposal: post "
+                "continue_proposal(..., candidates=...) with your own predictions"
+            )
+        metric = Metric.of(experiment)
+        tol = metric.d_max if tolerance is None else float(tolerance)
+        budget = max(10, 3 * len(self.actions)) if max_steps is None else int(max_steps)
+        rec = _Record(self.start)
+        rec.proposal_ids.append(self.proposal.id)
+        goal = self.goal
+        segment: list[Transition] = []
+        k = 0
+
+        def end(status: str, partial: bool, error: errors.PrecondError | None = None) -> Execution:
+            if segment:
+                created = self.post_transitions(segment, partial)
+                rec.posted(created)
+            elif k == 0 and not self.done:
+                # Nothing executed of the current proposal (the robot stopped at once, or
+                # the budget ended with a continuation): give its lease up.
+                self._abandon_quietly()
+            self.execution = rec.result(status, error)
+            return self.execution
+
+        while True:
+            actions, states = self.proposal.actions, self.proposal.states
+            if k < len(actions):
+                if len(rec.actions) >= budget:
+                    return end("budget", True)
+                action = actions[k]
+                observed = observe(step_fn, rec.state, action)
+                if observed is None:
+                    return end("stopped", True)
+                deviation = metric.distance(states[k + 1], observed)
+                segment.append(Transition(rec.state, action, observed))
+                rec.add(action.copy(), observed, states[k + 1].copy(), deviation)
+                k += 1
+                if metric.at_goal(observed, goal):
+                    return end("goal", k < len(actions))
+                if deviation <= tol and k < len(actions):
+                    continue
+                why = (
+                    f"{deviation:.4g} from the plan's prediction (tolerance {tol:.4g})"
+                    if deviation > tol
+                    else "the plan is spent short of the goal"
+                )
+            elif not segment:
+                # An empty plan (the server thinks the start is at the goal): nothing to do.
+                return end("done", False)
+            else:
+                why = "the plan is spent short of the goal"
+            if len(rec.actions) >= budget:
+                return end("budget", True)
+            if rec.replans >= max_replans:
+                return end("replans", True)
+            pid = self.proposal.id
+            log.info(
+                "proposal %d: step %d %s: continuing from %s",
+                pid,
+                len(rec.actions) - 1,
+                why,
+                np.round(rec.state, 4).tolist(),
+            )
+            try:
+                with _status.activity(f"continuing proposal {pid}"):
+                    continued = self._client.continue_proposal(pid, segment)
+            except errors.PrecondError as e:
+                stored = _stored_id(e)
+                if stored is not None:  # the prefix is stored: nothing more to post
+                    self.stored_trajectory_ids.append(stored)
+                    rec.stored.append(stored)
+                    segment = []
+                if isinstance(e, errors.ValidationFailed) and e.start_satisfies_goal:
+                    return end("goal", True)  # the server's goal test says it arrived
+                if isinstance(e, errors.NoPlan):
+                    log.info(
+                        "proposal %d: no plan from %s: stopping",
+                        pid,
+                        np.round(rec.state, 4).tolist(),
+                    )
+                    return end("no_plan", True, e)
+                if not errors.is_transient(e):
+                    raise
+                log.warning("proposal %d: continuing failed (%s): stopping", pid, e)
+                try:
+                    return end("failed", True, e)
+                except errors.Conflict:
+                    # The continuation stored the prefix but its answer was lost: the
+                    # proposal is executed already.
+                    self._stored_elsewhere = True
+                    return self._ended(rec, "failed", e)
+            self.trajectories.append(continued.trajectory)
+            self.stored_trajectory_ids.append(continued.trajectory.id)
+            rec.posted(continued.trajectory)
+            self.proposal = continued.proposal
+            rec.proposal_ids.append(continued.proposal.id)
+            rec.replans += 1
+            segment = []
+            k = 0
+
+    def _ended(
+        self, rec: _Record, status: str, error: errors.PrecondError | None = None
+    ) -> Execution:
+        self.execution = rec.result(status, error)
+        return self.execution
+
     def _abandon_quietly(self) -> None:
         """Abandons the proposal; a transient failure is logged (the lease expires by
         itself), as is a proposal executed already."""
@@ -204,6 +427,16 @@ class Episode:
             log.warning(
                 "abandoning proposal %d failed (%s): its lease expires", self.proposal.id, e
             )
+
+
+def _stored_id(e: errors.PrecondError) -> int | None:
+    """The trajectory a continuation stored before it failed (``details``)."""
+    details = getattr(e, "details", None)
+    if isinstance(details, dict):
+        stored = details.get("stored_trajectory_id")
+        if isinstance(stored, int) and not isinstance(stored, bool):
+            return stored
+    return None
 
 
 @dataclass(frozen=True)
@@ -413,7 +646,20 @@ class Learner:
                 self.model_version = r.model_version
                 self._posted_iteration = max(self._posted_iteration, r.iteration)
             last = ep.trajectories[-1] if ep.trajectories else None
-            if last is not None:
+            ex = ep.execution
+            if ex is not None and (ex.replans or len(ep.trajectories) != 1):
+                log.info(
+                    "episode %d: %s after %d steps, %d replans (proposals %s), max deviation "
+                    "%.3g; %d trajectories stored",
+                    self.episodes,
+                    "goal reached" if ex.success else ex.status,
+                    ex.steps,
+                    ex.replans,
+                    ", ".join(str(p) for p in ex.proposal_ids),
+                    ex.max_deviation,
+                    len(ep.stored_trajectory_ids),
+                )
+            elif last is not None:
                 log.info(
                     "episode %d: proposal %d posted, %d transitions (max deviation %.3g%s), "
                     "%d trajectories, iteration %d, model version %d",
