@@ -271,6 +271,11 @@ def test_with_logging_unconfigured_the_loop_shows_its_progress_on_stderr(
         assert not logger.handlers and logger.level == logging.NOTSET
         run_loop(c.learn([([0.0, 0.0], [3.0, 0.0])], verbose=False))
         assert capsys.readouterr().err == ""
+        # Above a progress bar, once each.
+        pytest.importorskip("tqdm")
+        run_loop(c.learn([([0.0, 0.0], [4.0, 0.0])], progress_bar=True))
+        bar = capsys.readouterr().err
+        assert bar.count("episode 1: proposal 3 posted") == 1 and "1/1" in bar
     assert "precond_client: problem 0: planning from [0.0, 0.0] to [1.0, 0.0]" in err
     assert "precond_client: episode 1: proposal 1 posted" in err
     assert "precond_client: problem 1: no trajectory inside the precondition" in err

@@ -98,10 +98,24 @@ def _is_terminal() -> bool:
 def around_bar(bar: Any) -> Iterator[None]:
     """While ``bar`` is shown, console log lines (of the root and ``precond_client`` loggers)
     are written above it instead of through it (tqdm's ``logging_redirect_tqdm``)."""
-    if bar is None:
+    loggers = [
+        logger
+        for logger in (logging.root, logging.getLogger(LOGGER))
+        if any(_on_console(h) for h in logger.handlers)
+    ]
+    if bar is None or not loggers:
         yield
         return
     from tqdm.contrib.logging import logging_redirect_tqdm
 
-    with logging_redirect_tqdm(loggers=[logging.root, logging.getLogger(LOGGER)]):
+    # Only loggers that print to the console: tqdm gives every logger it is handed a handler,
+    # and one on a logger without any would print each line twice.
+    with logging_redirect_tqdm(loggers=loggers):
         yield
+
+
+def _on_console(handler: logging.Handler) -> bool:
+    return isinstance(handler, logging.StreamHandler) and handler.stream in (
+        sys.stdout,
+        sys.stderr,
+    )
