@@ -5,8 +5,10 @@ vector wrapper asking once per step."""
 
 from __future__ import annotations
 
+import json
 from typing import Any
 
+import httpx
 import numpy as np
 import pytest
 from conftest import MakeServer
@@ -18,6 +20,7 @@ import gymnasium
 from precond_client import Client
 from precond_client.gymnasium import (
     CollectEpisodes,
+    CollectVectorEpisodes,
     PreconditionVectorWrapper,
     PreconditionWrapper,
     judge,
@@ -192,3 +195,106 @@ def test_a_vector_environment_is_judged_once_per_step(make_server: MakeServer) -
         np.testing.assert_array_equal(p["inside"], direct.inside)
         np.testing.assert_allclose(p["mu"], direct.mu)
         np.testing.assert_array_equal(info["cost"], np.where(direct.inside, 0.0, 1.0))
+
+
+class CountingPoints(httpx.HTTPTransport):
+    """Counts the points of every precondition query."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.queries: list[list[list[float]]] = []
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        if request.method == "POST" and request.url.path.endswith("/precondition"):
+            self.queries.append([p["s"] for p in json.loads(request.content)["points"]])
+        return super().handle_request(request)
+
+
+LENGTHS = (3, 5, 8)
+"""Episode lengths of the three sub-environments: they end at different steps."""
+
+
+def vector_env(mode: str = "NextStep") -> gymnasium.vector.SyncVectorEnv:
+    from functools import partial
+
+    from gymnasium.vector import AutoresetMode
+
+    return gymnasium.vector.SyncVectorEnv(
+        [partial(gymnasium.make, "precond/IcyLine-v0", max_episode_steps=n) for n in LENGTHS],
+        autoreset_mode=AutoresetMode(mode),
+    )
+
+
+def test_a_vector_environment_never_judges_an_autoreset_step(make_server: MakeServer) -> None:
+    server = make_server()
+    transport = CountingPoints()
+    with Client(server.url, transport=transport) as client:
+        experiment(client)
+        wrapped = PreconditionVectorWrapper(vector_env(), client, cost=True)
+        obs, _ = wrapped.reset(seed=[1, 2, 3])
+        rng = np.random.default_rng(0)
+        ended = np.zeros(3, dtype=bool)
+        resets = np.zeros(3, dtype=int)
+        for _ in range(12):
+            transport.queries.clear()
+            actions = rng.uniform(-0.1, 0.1, (3, 1))
+            nxt, _, terminated, truncated, info = wrapped.step(actions)
+            p = info["precondition"]
+            # The step after an episode ended only reset that sub-environment.
+            np.testing.assert_array_equal(p["autoreset"], ended)
+            sent = [s for q in transport.queries for s in q]
+            assert sent == [obs[k].tolist() for k in range(3) if not ended[k]]
+            assert not p["inside"][ended].any() and np.isnan(p["mu"][ended]).all()
+            assert not p["in_domain"][ended].any()
+            np.testing.assert_array_equal(info["cost"][ended], 0.0)
+            assert p["in_domain"][~ended].all() and np.isfinite(p["mu"][~ended]).all()
+            resets += ended
+            obs, ended = nxt, terminated | truncated
+        # Each sub-environment reset itself along the way: every 4, 6 and 9 steps.
+        np.testing.assert_array_equal(resets, [3, 2, 1])
+
+
+@pytest.mark.parametrize("mode", ["NextStep", "SameStep"])
+def test_vector_episodes_are_posted_whole_and_never_across_a_reset(
+    make_server: MakeServer, mode: str
+) -> None:
+    server = make_server()
+    with Client(server.url) as client:
+        experiment(client)
+
+        def collect(run: str) -> CollectVectorEpisodes:
+            env = CollectVectorEpisodes(vector_env(mode), client, label="vec", run=run)
+            env.reset(seed=[1, 2, 3])
+            rng = np.random.default_rng(0)
+            for _ in range(16):
+                env.step(rng.uniform(-0.1, 0.1, (3, 1)))
+            env.close()
+            return env
+
+        env = collect("v1")
+        runs = list(client.runs())
+        # The sub-environments' episodes, whole, each of its own length (an episode still
+        # running is posted by close()). Same-step autoreset: 16 steps hold 5 episodes of 3
+        # steps and one of 1, 3 of 5 and one of 1, 2 of 8. Next-step autoreset spends a step
+        # on each reset, which is not recorded: 4 of 3; 2 of 5 and one of 4; one of 8 and one
+        # of 7.
+        lengths = sorted(r.length for r in runs)
+        if mode == "SameStep":
+            assert lengths == sorted([3] * 5 + [1] + [5] * 3 + [1] + [8] * 2)
+        else:
+            assert lengths == sorted([3] * 4 + [5, 5, 4] + [8, 7])
+        assert env.collected.episodes == len(runs) == env.collected.trajectories
+        for r in runs:
+            t = client.get_trajectory(r.trajectory_id or 0)
+            # One episode: each transition starts where the previous one ended, and each is a
+            # step of the environment (never a reset's jump, never the reset observation).
+            for a, b in zip(t.transitions, t.transitions[1:], strict=False):
+                np.testing.assert_allclose(a.s_next, b.s)
+            for x in t.transitions:
+                gain = 2.5 if ICE[0] <= x.s[0] < ICE[1] else 1.0
+                np.testing.assert_allclose(x.s_next, np.clip(x.s + gain * x.a, 0.0, 1.0))
+            assert r.source is not None and r.source.label == "vec"
+        # Collected again under the same run name and seeds: nothing new is stored.
+        again = collect("v1")
+        assert again.collected.trajectory_ids == env.collected.trajectory_ids
+        assert client.get_experiment().n_trajectories == len(runs)

@@ -2,7 +2,12 @@
 
 - :class:`Client` — experiments, proposals, trajectories (idempotent, retried), the model,
   precondition queries and plans, with numpy arrays in and out.
-- :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts.
+- :meth:`Client.learn` — the robot's loop: propose, execute, post, surviving restarts and a
+  busy server; each :class:`Episode` can drive the robot itself, open loop under a
+  :class:`Monitor` (:meth:`Episode.execute`) or closed loop (:meth:`Episode.run_closed_loop`).
+- :meth:`Client.execute_plan` — a test-time plan executed closed loop; :meth:`Client.monitor`
+  — any plan's execution stopped where it deviates beyond ``d_max``
+  (:mod:`precond_client.execution`).
 - :func:`serve_model` — serve a numpy dynamics model as a custom domain's ``remote`` model.
 - :func:`spawn_server` — start a local precond server binary on a free port (examples, scripts).
 - :meth:`Client.import_file`, :meth:`Client.import_lerobot`, :meth:`Client.import_minari` —
@@ -21,6 +26,7 @@ from .errors import (
     Cancelled,
     Conflict,
     DeadlineExceeded,
+    DeviationExceeded,
     ExperimentMismatch,
     Forbidden,
     InternalError,
@@ -42,6 +48,7 @@ from .errors import (
     UnsupportedMediaType,
     ValidationFailed,
 )
+from .execution import Execution, Metric, Monitor
 from .export import ExportedModel
 from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
 from .model_server import ModelServer, serve_model
@@ -71,7 +78,7 @@ from .models import (
     Transition,
     transitions_from_states,
 )
-from .robot import Episode, Learner, Progress
+from .robot import Episode, Learner, Progress, Skipped
 from .spawn import spawn_server
 
 __all__ = [
@@ -86,7 +93,9 @@ __all__ = [
     "Continued",
     "DatasetError",
     "DeadlineExceeded",
+    "DeviationExceeded",
     "Episode",
+    "Execution",
     "Experiment",
     "ExperimentMismatch",
     "ExportedModel",
@@ -102,12 +111,14 @@ __all__ = [
     "LimitReached",
     "LoggedEpisode",
     "MethodNotAllowed",
+    "Metric",
     "Model",
     "ModelBusy",
     "ModelNotAllowed",
     "ModelServer",
     "ModelTimeout",
     "ModelUnavailable",
+    "Monitor",
     "NoPlan",
     "NoiseSummary",
     "NotFound",
@@ -122,6 +133,7 @@ __all__ = [
     "RejectionCounts",
     "RequestTimeout",
     "Run",
+    "Skipped",
     "Source",
     "Space",
     "StoredTransition",

@@ -11,6 +11,11 @@ for the same ``client_id`` and problem returns the open one), abandons, and traj
 always carry an ``Idempotency-Key`` (a repeat is replayed by the server, never stored twice).
 Creating an experiment is not idempotent on the server, so it is retried only when the request
 surely did not arrive; :meth:`Client.ensure_experiment` makes creation safe to repeat by name.
+An answer with ``Retry-After`` (``429``, ``503``, ``507``) is retried after the seconds it says
+(at most ``max_retry_after``), others after the back-off. A search that ran until the server's
+planning deadline (``503 deadline_exceeded`` with extensions searched) would run as long again,
+so it is repeated only ``deadline_retries`` times (default once), not ``retries`` times. Every
+wait is logged at ``INFO`` on the ``precond_client`` logger, with what it is for.
 """
 
 from __future__ import annotations
@@ -19,6 +24,7 @@ import json
 import logging
 import math
 import random
+import re
 import socket
 import time
 import uuid
@@ -30,7 +36,8 @@ import httpx
 import numpy as np
 from numpy.typing import ArrayLike
 
-from . import errors
+from . import _status, errors
+from .execution import Execution, Metric, Monitor, StepFn, client_side, execute_plan
 from .export import ExportedModel
 from .imports import (
     ImportReport,
@@ -48,6 +55,7 @@ from .models import (
     Experiment,
     Model,
     Plan,
+    PlannedTrajectory,
     Precondition,
     Proposal,
     Run,
@@ -62,6 +70,9 @@ from .models import (
 from .robot import CandidateFn, Learner, Problem, ProgressFn
 
 log = logging.getLogger("precond_client")
+
+_RETRY_IN = re.compile(r"[;,]?\s*retry in \d+ s\s*$")
+"""The end of a server message that says when to retry (the client's log line says it)."""
 
 PRECONDITION_CHUNK = 10_000
 """Points per precondition request (the server accepts up to 100 000, but the request body
@@ -109,6 +120,40 @@ def settings_differences(asked: Any, stored: Any, path: str = "") -> list[tuple[
     return [] if same else [(path, asked, stored)]
 
 
+def _body(r: httpx.Response) -> Any:
+    """An answer's JSON, or its text when it is not JSON (a proxy's page)."""
+    try:
+        return r.json()
+    except ValueError:
+        return r.text
+
+
+def _error(body: Any) -> dict[str, Any]:
+    err = body.get("error") if isinstance(body, dict) else None
+    return err if isinstance(err, dict) else {}
+
+
+def _searched_until_deadline(status: int, body: Any) -> bool:
+    """Whether an answer is a search stopped by the server's deadline after searching (not one
+    that passed its deadline waiting for a planning slot)."""
+    err = _error(body)
+    if status != 503 or err.get("code") != "deadline_exceeded":
+        return False
+    details = err.get("details")
+    extensions = details.get("extensions") if isinstance(details, dict) else None
+    return not (isinstance(extensions, int) and extensions == 0)
+
+
+def _why(status: int, body: Any) -> str:
+    """An error answer in a log line: ``503 deadline_exceeded (the deadline of 30000 ms passed
+    (5123 extensions searched))``."""
+    err = _error(body)
+    if not err:
+        return f"{status}"
+    message = _RETRY_IN.sub("", str(err.get("message", "")))
+    return f"{status} {err.get('code')} ({message})" if message else f"{status} {err.get('code')}"
+
+
 def _transitions_json(
     transitions: Iterable[Transition | Mapping[str, Any]], empty: str
 ) -> list[dict[str, Any]]:
@@ -147,7 +192,16 @@ class Client:
         retries: How many times a failed request is repeated before giving up.
         backoff: The first back-off in seconds; it doubles per retry (with jitter) up to
             ``max_backoff``.
-        max_backoff: The longest back-off in seconds.
+        max_backoff: The longest back-off in seconds (of a retry whose answer did not say
+            when to retry).
+        deadline_retries: How many times a search (a proposal, a continuation, a plan) that
+            ran until the server's planning deadline (``503 deadline_exceeded`` with
+            extensions searched) is repeated before
+            :class:`~precond_client.errors.DeadlineExceeded` is raised: the same search would
+            most likely run as long again. A deadline that passed while the request waited for
+            a planning slot (no extensions searched) is retried like any ``503``.
+        max_retry_after: The longest wait in seconds honoured from an answer's
+            ``Retry-After`` (the server says 30 s after a 30 s deadline, 30 s on a full disk).
         transport: An ``httpx`` transport (tests use ``httpx.MockTransport``).
     """
 
@@ -162,6 +216,8 @@ class Client:
         retries: int = 8,
         backoff: float = 0.1,
         max_backoff: float = 5.0,
+        deadline_retries: int = 1,
+        max_retry_after: float = 120.0,
         transport: httpx.BaseTransport | None = None,
     ) -> None:
         headers = {"Accept": "application/json", "User-Agent": "precond-client/0.1"}
@@ -175,6 +231,8 @@ class Client:
         self.retries = retries
         self.backoff = backoff
         self.max_backoff = max_backoff
+        self.deadline_retries = deadline_retries
+        self.max_retry_after = max_retry_after
         self._sleep: Callable[[float], None] = time.sleep
         self._state_dim: dict[int, int] = {}
 
@@ -191,15 +249,23 @@ class Client:
         self.close()
 
     def _delay(self, attempt: int, response: httpx.Response | None) -> float:
+        """Seconds to wait before retry ``attempt + 1``: what the answer's ``Retry-After``
+        says (up to ``max_retry_after``), else the exponential back-off with jitter."""
         if response is not None:
             ra = response.headers.get("Retry-After")
             if ra is not None:
                 try:
-                    return min(float(ra), self.max_backoff)
+                    return max(0.0, min(float(ra), self.max_retry_after))
                 except ValueError:
                     pass
         base: float = min(self.max_backoff, self.backoff * 2.0**attempt)
         return base * random.uniform(0.5, 1.0)
+
+    def _wait(self, delay: float, why: str, retry: int, of: int, method: str, path: str) -> None:
+        """Logs a wait before a retry (under the current activity's name) and sleeps."""
+        what = _status.current() or f"{method} {path}"
+        log.info("%s: %s; retry %d/%d in %s", what, why, retry, of, _status.seconds(delay))
+        self._sleep(delay)
 
     def _request(
         self,
@@ -210,9 +276,15 @@ class Client:
         params: Mapping[str, Any] | None = None,
         headers: Mapping[str, str] | None = None,
         idempotent: bool = True,
+        deadline_retries: int | None = None,
     ) -> httpx.Response:
-        """Sends a request with retries; returns a 2xx answer or raises."""
+        """Sends a request with retries; returns a 2xx answer or raises.
+
+        ``deadline_retries`` (default :attr:`deadline_retries`) bounds the repeats of a search
+        that ran until the server's deadline (see the class)."""
+        searches = self.deadline_retries if deadline_retries is None else deadline_retries
         attempt = 0
+        deadlines = 0
         while True:
             try:
                 r = self._http.request(method, path, json=json, params=params, headers=headers)
@@ -221,23 +293,34 @@ class Client:
                 unsent = isinstance(e, (httpx.ConnectError, httpx.ConnectTimeout))
                 if attempt >= self.retries or not (idempotent or unsent):
                     raise errors.TransportError(f"{method} {path}: {e!r}") from e
-                self._sleep(self._delay(attempt, None))
+                why = f"the server did not answer ({type(e).__name__}: {e})"
+                self._wait(self._delay(attempt, None), why, attempt + 1, self.retries, method, path)
                 attempt += 1
                 continue
             retryable = r.status_code == 429 or r.status_code >= 500
             if not idempotent:
                 # Answers after which nothing was stored: safe to send again.
                 retryable = r.status_code in (429, 503, 507)
-            if retryable and attempt < self.retries:
-                self._sleep(self._delay(attempt, r))
-                attempt += 1
-                continue
+            if retryable:
+                body = _body(r)
+                if _searched_until_deadline(r.status_code, body):
+                    if deadlines < searches and attempt < self.retries:
+                        why = _why(r.status_code, body)
+                        self._wait(
+                            self._delay(attempt, r), why, deadlines + 1, searches, method, path
+                        )
+                        deadlines += 1
+                        attempt += 1
+                        continue
+                elif attempt < self.retries:
+                    why = _why(r.status_code, body)
+                    self._wait(
+                        self._delay(attempt, r), why, attempt + 1, self.retries, method, path
+                    )
+                    attempt += 1
+                    continue
             if r.is_error:
-                try:
-                    body: Any = r.json()
-                except ValueError:
-                    body = r.text
-                raise errors.from_response(r.status_code, body)
+                raise errors.from_response(r.status_code, _body(r))
             return r
 
     def _exp(self, experiment_id: int | None) -> int:
@@ -252,7 +335,11 @@ class Client:
         return f"/v1/experiments/{self._exp(experiment_id)}{suffix}"
 
     def _post_idempotent(
-        self, suffix: str, body: dict[str, Any], idempotency_key: str
+        self,
+        suffix: str,
+        body: dict[str, Any],
+        idempotency_key: str,
+        deadline_retries: int | None = None,
     ) -> tuple[Any, bool]:
         """POSTs ``body`` to the current experiment's ``suffix`` under ``idempotency_key``;
         returns the answer's JSON and whether the server replayed a stored answer."""
@@ -261,6 +348,7 @@ class Client:
             self._path(suffix),
             json=body,
             headers={"Idempotency-Key": idempotency_key},
+            deadline_retries=deadline_retries,
         )
         return r.json(), r.headers.get("idempotent-replayed", "").lower() == "true"
 
@@ -333,10 +421,12 @@ class Client:
                 return exp
             try:
                 return self.create_experiment(settings, **{**fields, "name": name})
-            except errors.TransportError:
+            except errors.TransportError as e:
                 if attempt >= self.retries:
                     raise
-                self._sleep(self._delay(attempt, None))
+                why = f"creating experiment {name!r} failed ({e})"
+                delay = self._delay(attempt, None)
+                self._wait(delay, why, attempt + 1, self.retries, "POST", "/v1/experiments")
         raise AssertionError("unreachable")
 
     def list_experiments(self) -> list[Experiment]:
@@ -359,6 +449,8 @@ class Client:
         client_id: str | None = None,
         candidates: Sequence[Candidate] | None = None,
         strategy: str | None = None,
+        *,
+        deadline_retries: int | None = None,
     ) -> Proposal:
         """Asks for the trajectory to execute from ``start`` to ``goal``, leased to
         ``client_id`` (default :attr:`client_id`).
@@ -367,7 +459,9 @@ class Client:
         problem raises :class:`~precond_client.errors.Conflict` whose ``lease`` names the
         held proposal. With ``candidates`` (required for a client-side model) the server
         scores them instead of planning. No trajectory inside the precondition raises
-        :class:`~precond_client.errors.NoPlan`.
+        :class:`~precond_client.errors.NoPlan`; a search that keeps running past the server's
+        deadline raises :class:`~precond_client.errors.DeadlineExceeded` after
+        ``deadline_retries`` repeats (default :attr:`deadline_retries`).
         """
         body: dict[str, Any] = {
             "start": as_list(start),
@@ -378,7 +472,9 @@ class Client:
             body["strategy"] = strategy
         if candidates is not None:
             body["candidates"] = [c.to_json() for c in candidates]
-        r = self._request("POST", self._path("/proposals"), json=body)
+        r = self._request(
+            "POST", self._path("/proposals"), json=body, deadline_retries=deadline_retries
+        )
         return Proposal.from_json(r.json())
 
     def get_proposal(self, proposal_id: int) -> Proposal:
@@ -398,6 +494,8 @@ class Client:
         transitions: Iterable[Transition | Mapping[str, Any]],
         candidates: Sequence[Candidate] | None = None,
         idempotency_key: str | None = None,
+        *,
+        deadline_retries: int | None = None,
     ) -> Continued:
         """Closed-loop execution: posts the prefix of proposal ``proposal_id`` the robot has
         executed (stored as a partial trajectory, closing the lease) and returns it with a new
@@ -407,6 +505,12 @@ class Client:
         ``Idempotency-Key`` is ``continue-<id>``: a proposal is continued once, so a retry after
         a lost answer stores nothing twice and returns the same new proposal. With
         ``candidates`` (a client-side model) the server scores them instead of planning.
+
+        The prefix is stored before the new proposal is planned: an error answered after that
+        (``no_plan`` from where the robot is, a search past the deadline — repeated
+        ``deadline_retries`` times, default :attr:`deadline_retries`) carries
+        ``details["stored_trajectory_id"]``. :meth:`~precond_client.robot.Episode.run_closed_loop`
+        drives this step by step.
         """
         items = _transitions_json(transitions, "continuing a proposal needs the executed prefix")
         body: dict[str, Any] = {"transitions": items}
@@ -416,6 +520,7 @@ class Client:
             f"/proposals/{int(proposal_id)}/continue",
             body,
             idempotency_key or f"continue-{int(proposal_id)}",
+            deadline_retries=deadline_retries,
         )
         return Continued.from_json(answer, replayed=replayed)
 
@@ -426,11 +531,16 @@ class Client:
         beta: float | None = None,
         candidates: Sequence[Candidate] | None = None,
         max_extensions: int | None = None,
+        *,
+        deadline_retries: int | None = None,
     ) -> Plan:
         """A test-time plan inside the precondition at ``beta`` (default the experiment's test
         β); ``found`` is false when there is none. Nothing is stored. ``max_extensions``: this
         search's budget (default the experiment's ``learning.max_extensions``), e.g. ten times
-        it to tell "no plan inside the precondition" from "none found in time"."""
+        it to tell "no plan inside the precondition" from "none found in time". A search past
+        the server's deadline is repeated ``deadline_retries`` times (default
+        :attr:`deadline_retries`), then raises :class:`~precond_client.errors.DeadlineExceeded`.
+        :meth:`execute_plan` executes plans closed loop."""
         body: dict[str, Any] = {"start": as_list(start), "goal": as_list(goal)}
         if beta is not None:
             body["beta"] = float(beta)
@@ -438,7 +548,10 @@ class Client:
             body["candidates"] = [c.to_json() for c in candidates]
         if max_extensions is not None:
             body["max_extensions"] = int(max_extensions)
-        return Plan.from_json(self._request("POST", self._path("/plans"), json=body).json())
+        r = self._request(
+            "POST", self._path("/plans"), json=body, deadline_retries=deadline_retries
+        )
+        return Plan.from_json(r.json())
 
     # ------------------------------------------------------------------ trajectories
 
@@ -669,20 +782,41 @@ class Client:
         r = self._request("POST", self._path("/model/refit"), idempotent=False)
         return Model.from_json(r.json())
 
-    def wait_for_model(self, n_trajectories: int, timeout: float = 120.0) -> Model:
+    def wait_for_model(
+        self, n_trajectories: int, timeout: float = 120.0, *, log_every: float = 30.0
+    ) -> Model:
         """Waits until the answering model was fitted on at least ``n_trajectories``
-        trajectories (background refits run after every batch); returns it."""
-        deadline = time.monotonic() + timeout
+        trajectories (background refits run after every batch); returns it. Raises
+        ``TimeoutError`` after ``timeout`` seconds. Every ``log_every`` seconds of waiting it
+        logs (``INFO``) which version answers and what it covers."""
+        t0 = time.monotonic()
+        deadline = t0 + timeout
+        next_log = t0 + log_every
+        poll = 0.1
         while True:
             m = self.model()
             if m.n_trajectories >= n_trajectories:
                 return m
-            if time.monotonic() > deadline:
+            now = time.monotonic()
+            if now > deadline:
                 raise TimeoutError(
                     f"model covers {m.n_trajectories} trajectories, not {n_trajectories}, "
                     f"after {timeout} s"
                 )
-            self._sleep(0.1)
+            if now >= next_log:
+                log.info(
+                    "%s: still waiting for a model fitted on %d trajectories (%s so far): "
+                    "version %d answers, fitted on %d trajectories (n = %d transitions)",
+                    _status.current() or "waiting for the model",
+                    n_trajectories,
+                    _status.seconds(now - t0),
+                    m.version,
+                    m.n_trajectories,
+                    m.n_train,
+                )
+                next_log = now + log_every
+            self._sleep(poll)
+            poll = min(1.0, poll * 1.5)
 
     def precondition(
         self,
@@ -737,16 +871,31 @@ class Client:
         wait_for_model: bool = True,
         model_timeout: float = 300.0,
         progress: ProgressFn | None = None,
+        deadline_attempts: int = 2,
+        transient_attempts: int = 3,
+        progress_bar: bool | None = None,
+        verbose: bool = True,
     ) -> Learner:
         """The active-learning loop over ``problems`` (pairs ``(start, goal)``): an iterator of
         :class:`~precond_client.robot.Episode`, each a proposal to execute and report with
-        ``episode.post(observed_states)`` (or ``episode.abandon()``).
+        ``episode.post(observed_states)`` (or ``episode.abandon()``), or to let the robot
+        execute with ``episode.execute(step_fn)`` (open loop, stopped at a step beyond
+        ``d_max``) or ``episode.run_closed_loop(step_fn)``.
 
         A problem whose start already satisfies its goal is skipped (logged), as is one with
         no plan unless ``skip_no_plan=False``. With ``wait_for_model`` (default) the loop waits
         up to ``model_timeout`` seconds, after each completed batch, for the background refit
         before the next proposal. ``progress`` receives a
-        :class:`~precond_client.robot.Progress` after each event. See
+        :class:`~precond_client.robot.Progress` after each event.
+
+        A busy server does not stop the loop: a problem whose search passes the server's
+        deadline ``deadline_attempts`` times (default 2), or whose proposal fails with another
+        transient answer ``transient_attempts`` times (default 3, each after the client's own
+        retries), is skipped and counted (``learner.deadline``, ``learner.failed``,
+        ``learner.skipped``), waiting the server's ``Retry-After`` between attempts. Every wait
+        is logged at ``INFO``; when logging is not configured, the loop shows its ``INFO``
+        lines on standard error (``verbose=False``: it does not), and a tqdm bar where
+        standard error is a terminal (``progress_bar``: ``True`` always, ``False`` never). See
         :class:`~precond_client.robot.Learner`."""
         return Learner(
             self,
@@ -758,4 +907,111 @@ class Client:
             wait_for_model=wait_for_model,
             model_timeout=model_timeout,
             progress=progress,
+            deadline_attempts=deadline_attempts,
+            transient_attempts=transient_attempts,
+            progress_bar=progress_bar,
+            verbose=verbose,
+            sleep=self._sleep,
+        )
+
+    # ------------------------------------------------------------------ executing plans
+
+    def metric(self, experiment_id: int | None = None) -> Metric:
+        """The experiment's distance between states, goal test and ``d_max``, as the server
+        computes them (:class:`~precond_client.execution.Metric`)."""
+        return Metric.of(self.get_experiment(experiment_id))
+
+    def monitor(
+        self,
+        planned: Plan | Proposal | PlannedTrajectory,
+        *,
+        tolerance: float | None = None,
+        post: bool = True,
+        goal: ArrayLike | None = None,
+        predict: Callable[[Any, Any], ArrayLike] | None = None,
+        idempotency_key: str | None = None,
+    ) -> Monitor:
+        """A :class:`~precond_client.execution.Monitor` of the execution of ``planned`` (a
+        test-time :class:`Plan`, a :class:`Proposal`, or a trajectory): report each observed
+        state with ``monitor.observe(state)``; a step further than ``tolerance`` (default the
+        experiment's ``d_max``, in its distance) from its prediction stops it: the run so far
+        is posted as a ``partial`` trajectory (with ``post``; a proposal's as its execution,
+        under ``proposal-<id>``, else under ``idempotency_key`` or a random key) and
+        :class:`~precond_client.errors.DeviationExceeded` is raised. ``monitor.finish()``
+        posts a run that ended otherwise. ``goal`` (a proposal's own by default) tells whether
+        it ended there; ``predict(s, a)``, the robot's model, judges each step from where the
+        robot really was instead of against the plan."""
+        if isinstance(planned, Plan):
+            if planned.trajectory is None:
+                raise ValueError("the plan was not found: nothing to execute")
+            trajectory = planned.trajectory
+        elif isinstance(planned, Proposal):
+            trajectory = planned.trajectory
+        else:
+            trajectory = planned
+        proposal_id = planned.id if isinstance(planned, Proposal) else None
+        if goal is None and isinstance(planned, Proposal):
+            goal = planned.goal
+        experiment = self.get_experiment()
+        metric = Metric.of(experiment)
+        key = idempotency_key
+        if key is None and proposal_id is None:
+            key = f"py-monitor-{uuid.uuid4()}"
+
+        def send(transitions: Sequence[Transition], partial: bool) -> TrajectoryCreated:
+            return self.post_trajectory(
+                transitions, proposal_id=proposal_id, partial=partial, idempotency_key=key
+            )
+
+        return Monitor(
+            trajectory.states[0],
+            trajectory.actions,
+            trajectory.states,
+            tolerance=metric.d_max if tolerance is None else tolerance,
+            metric=metric,
+            post=send if post else None,
+            goal=goal,
+            predict=predict,
+            send_predictions=predict is not None and client_side(experiment),
+            proposal_id=proposal_id,
+        )
+
+    def execute_plan(
+        self,
+        start: ArrayLike,
+        goal: ArrayLike,
+        step_fn: StepFn,
+        *,
+        tolerance: float | None = None,
+        max_steps: int = 1000,
+        max_replans: int = 50,
+        beta: float | None = None,
+        max_extensions: int | None = None,
+    ) -> Execution:
+        """Test time, closed loop: plans from ``start`` to ``goal`` inside the precondition
+        (:meth:`plan`, at ``beta``, default the test β), executes it one action at a time with
+        ``step_fn(state, action) -> observed state`` (``None``: the robot stopped), and plans
+        again from the observed state whenever it is further than ``tolerance`` (default the
+        experiment's ``d_max``, in its distance) from the plan's prediction or the plan is
+        spent short of the goal. Ends at the goal (the experiment's goal test), after
+        ``max_steps`` steps or ``max_replans`` new plans, when no plan is found from where the
+        robot is (``status == "no_plan"``), or when the server keeps failing transiently
+        (``"failed"``, with the error). Nothing is stored. Returns the
+        :class:`~precond_client.execution.Execution` (``success``, ``steps``, ``replans``,
+        ``states``, ``deviations``)."""
+        metric = self.metric()
+
+        def plan(s: Any, g: Any) -> Plan:
+            with _status.activity(f"planning from {np.round(s, 4).tolist()}"):
+                return self.plan(s, g, beta=beta, max_extensions=max_extensions)
+
+        return execute_plan(
+            plan,
+            start,
+            goal,
+            step_fn,
+            metric=metric,
+            tolerance=metric.d_max if tolerance is None else tolerance,
+            max_steps=max_steps,
+            max_replans=max_replans,
         )

@@ -27,6 +27,44 @@ class TransportError(PrecondError):
     """The server could not be reached (or kept failing) after every retry."""
 
 
+class DeviationExceeded(PrecondError):
+    """An execution was stopped by a :class:`~precond_client.execution.Monitor`: the robot's
+    observed state after step :attr:`step` lies further than :attr:`tolerance` (by default the
+    experiment's ``d_max``, in its distance) from the state predicted for it, so the model was
+    wrong there and the rest of the plan is not worth executing. The run up to and including
+    that step was posted (``partial``) before this was raised.
+
+    Attributes:
+        step: The index of the deviating step (from 0).
+        deviation: The distance between the predicted and the observed state.
+        tolerance: The tolerance it exceeded.
+        observed: The observed state after the step.
+        predicted: The state predicted for it.
+        execution: What was executed up to and including the step, with the posted
+            trajectory (an :class:`~precond_client.execution.Execution`).
+    """
+
+    def __init__(
+        self,
+        step: int,
+        deviation: float,
+        tolerance: float,
+        observed: Any,
+        predicted: Any,
+        execution: Any,
+    ) -> None:
+        super().__init__(
+            f"step {step} deviated from its prediction by {deviation:.4g} > {tolerance:.4g}: "
+            f"execution stopped"
+        )
+        self.step = step
+        self.deviation = deviation
+        self.tolerance = tolerance
+        self.observed = observed
+        self.predicted = predicted
+        self.execution = execution
+
+
 class ExperimentMismatch(PrecondError):
     """:meth:`~precond_client.Client.ensure_experiment` found an experiment by its name whose
     stored settings differ from the ones asked for (creating another with the same name would
@@ -172,8 +210,12 @@ class Unavailable(ApiError):
 class DeadlineExceeded(ApiError):
     """``503 deadline_exceeded``: a proposal or plan did not finish within the server's
     deadline (nothing was stored), or a forced refit did not (it goes on in the background).
-    Retried by the client before it is raised; ``details`` has ``extensions``, ``timeout_ms``
-    and ``retry_after_seconds``."""
+    ``details`` has ``extensions``, ``timeout_ms`` and ``retry_after_seconds``. A search that
+    ran until the deadline (``extensions`` > 0) is repeated only the client's
+    ``deadline_retries`` times before this is raised (it would most likely run as long
+    again); one that passed its deadline waiting for a planning slot is retried like any
+    ``503``. :meth:`~precond_client.Client.learn` skips a problem after ``deadline_attempts``
+    such searches."""
 
 
 class Cancelled(ApiError):
@@ -238,6 +280,33 @@ _BY_CODE: dict[str, type[ApiError]] = {
 }
 """The exception class of each error code the server answers (the spec's
 ``ErrorBody.code`` enum; ``tests/test_wire.py`` checks they are the same list)."""
+
+
+TRANSIENT_STATUSES = frozenset({429, 502, 503, 504, 507})
+"""The statuses of answers that say "not now" rather than "never": overloaded (429), a remote
+model that failed or timed out (502, 504), a deadline passed, a database or model that did not
+answer (503), a full disk (507). Nothing of such a request was stored."""
+
+
+def is_transient(error: BaseException) -> bool:
+    """Whether ``error`` may go away if the same request is made later: a
+    :class:`TransportError` (the server stayed unreachable through every retry) or an
+    :class:`ApiError` whose status is in :data:`TRANSIENT_STATUSES`. Validation errors,
+    conflicts, a missing experiment, ``no_plan`` and the server's own bugs (500) are not."""
+    if isinstance(error, TransportError):
+        return True
+    return isinstance(error, ApiError) and error.status in TRANSIENT_STATUSES
+
+
+def retry_after(error: BaseException, default: float) -> float:
+    """The seconds ``error`` (an :class:`ApiError`) says to wait before trying again
+    (``details.retry_after_seconds``, as the ``Retry-After`` header said), else ``default``."""
+    details = getattr(error, "details", None)
+    if isinstance(details, dict):
+        value = details.get("retry_after_seconds")
+        if isinstance(value, (int, float)) and not isinstance(value, bool) and value >= 0:
+            return float(value)
+    return default
 
 
 def from_response(status: int, body: Any) -> ApiError:

@@ -14,7 +14,16 @@ from typing import Any, Protocol
 
 from numpy.typing import ArrayLike
 
-from .models import Candidate, Experiment, Model, Proposal, Source, TrajectoryCreated, Transition
+from .models import (
+    Candidate,
+    Continued,
+    Experiment,
+    Model,
+    Proposal,
+    Source,
+    TrajectoryCreated,
+    Transition,
+)
 
 
 class TrajectoryPoster(Protocol):
@@ -31,7 +40,8 @@ class TrajectoryPoster(Protocol):
 
 
 class LearningClient(TrajectoryPoster, Protocol):
-    """The calls of the robot's loop: proposals, leases, the model it waits for."""
+    """The calls of the robot's loop: proposals, leases, continuations, the model it waits
+    for."""
 
     def propose(
         self,
@@ -40,7 +50,19 @@ class LearningClient(TrajectoryPoster, Protocol):
         client_id: str | None = None,
         candidates: Sequence[Candidate] | None = None,
         strategy: str | None = None,
+        *,
+        deadline_retries: int | None = None,
     ) -> Proposal: ...
+
+    def continue_proposal(
+        self,
+        proposal_id: int,
+        transitions: Iterable[Transition | Mapping[str, Any]],
+        candidates: Sequence[Candidate] | None = None,
+        idempotency_key: str | None = None,
+        *,
+        deadline_retries: int | None = None,
+    ) -> Continued: ...
 
     def get_proposal(self, proposal_id: int) -> Proposal: ...
 
