@@ -529,6 +529,11 @@ pub struct Point {
     pub s: Vec<f64>,
     /// Action.
     pub a: Vec<f64>,
+    /// The model's prediction `f̂(s, a)`: required only when the experiment's features read
+    /// it and its model is the client's (the service asks any other model itself); refused
+    /// otherwise.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub s_pred: Option<Vec<f64>>,
 }
 
 /// `POST /v1/experiments/{id}/precondition` body.
@@ -551,6 +556,8 @@ pub struct PointQuery {
     pub s: String,
     /// Action, e.g. `a=1,0`.
     pub a: String,
+    /// The client-side model's prediction, e.g. `s_pred=4,2` (see [`Point::s_pred`]).
+    pub s_pred: Option<String>,
     /// β; default the version's test β (`learning.test_beta`, or its certified β).
     pub beta: Option<f64>,
 }

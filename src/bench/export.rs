@@ -64,13 +64,13 @@ pub fn run(exact_sizes: &[usize], sparse_sizes: &[usize], inducing: usize) -> an
         let started = Instant::now();
         let mine: Vec<(f64, f64)> = points
             .iter()
-            .map(|(s, a)| exported.evaluate_with(s, a, &mut scratch))
+            .map(|(s, a)| exported.evaluate_with(s, a, &[], &mut scratch))
             .collect();
         let export_time = started.elapsed().as_secs_f64() / points.len() as f64;
         let started = Instant::now();
         let theirs: Vec<_> = points
             .iter()
-            .map(|(s, a)| served.answer(&domain.features(s, a), dim)[0].clone())
+            .map(|(s, a)| served.answer(&domain.features(s, a, &[]), dim)[0].clone())
             .collect();
         let server_time = started.elapsed().as_secs_f64() / points.len() as f64;
         for ((mu, sigma), want) in mine.iter().zip(&theirs) {
@@ -96,7 +96,7 @@ fn data(domain: &Kinematic, n: usize, rng: &mut ChaCha8Rng) -> (DMatrix<f64>, DV
     for _ in 0..n {
         let s = domain.sample_state(rng);
         let a = domain.sample_action(&s, rng);
-        features.extend(domain.features(&s, &a));
+        features.extend(domain.features(&s, &a, &[]));
         let push = if s[0] > 0.5 { 0.08 } else { 0.0 };
         labels.push(push + 0.01 * rng.random::<f64>());
     }

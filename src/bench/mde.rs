@@ -80,7 +80,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
     let mut features = Vec::with_capacity(transitions.len() * dim);
     let mut deviations = Vec::with_capacity(transitions.len());
     for t in &transitions {
-        features.extend(domain.features(&t.s, &t.a));
+        features.extend(domain.features(&t.s, &t.a, &t.s_pred));
         deviations.push(t.deviation);
     }
     let x = DMatrix::from_row_slice(deviations.len(), dim, &features);
@@ -95,7 +95,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 }
                 let a = domain.sample_action(&s, &mut rng);
                 let d = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a));
-                held.push((domain.features(&s, &a), d));
+                held.push((domain.features(&s, &a, &[]), d));
             }
         }
         None => {
@@ -108,7 +108,7 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                         continue;
                     }
                     let next = sim.step(&s, &m);
-                    held.push((grid.features(&s, &m), grid.distance(&pred, &next)));
+                    held.push((grid.features(&s, &m, &pred), grid.distance(&pred, &next)));
                 }
             }
         }

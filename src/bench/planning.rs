@@ -245,7 +245,7 @@ pub fn time_model(grid: &IcyGridworld, model: &dyn DeviationModel) -> (f64, f64)
         .flat_map(|_| {
             let s = grid.sample_state(&mut rng);
             let a = grid.sample_action(&s, &mut rng);
-            grid.features(&s, &a)
+            grid.features(&s, &a, &[])
         })
         .collect();
     let t0 = Instant::now();
@@ -279,7 +279,7 @@ pub fn fit_mde(
 ) -> Result<ServedModel, crate::gp::GpError> {
     let features: Vec<f64> = data
         .iter()
-        .flat_map(|t| domain.features(&t.observed.s, &t.observed.a))
+        .flat_map(|t| domain.features(&t.observed.s, &t.observed.a, &t.s_pred))
         .collect();
     let labels: Vec<f64> = data.iter().map(|t| t.deviation).collect();
     let (x, y) = training_data(features, labels, domain.feature_dim());

@@ -74,7 +74,7 @@ fn sample(
         }
         let a = domain.sample_action(&s, rng);
         let d = domain.distance(&domain.predict(&s, &a), &world.step(&s, &a));
-        features.extend(domain.features(&s, &a));
+        features.extend(domain.features(&s, &a, &[]));
         deviations.push(d);
     }
     (features, deviations)

@@ -10,8 +10,8 @@
 
 use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
 use super::{
-    FeatureMap, Space, action_length_fraction, check_goal_radius, check_magnitudes, euclidean,
-    segment_clear, uniform_between,
+    FeatureMap, Space, check_goal_radius, check_magnitudes, euclidean, segment_clear,
+    uniform_between,
 };
 use rand::RngCore;
 use rand::seq::IndexedRandom;
@@ -42,9 +42,14 @@ pub struct CustomParams {
     pub feature_state: Vec<usize>,
     /// Action components fed to the MDE, in order.
     pub feature_action: Vec<usize>,
-    /// Whether the length of those action components ([`action_length_fraction`]) follows as
-    /// the last feature.
+    /// Whether the length of those action components ([`action_length_fraction`]) follows.
     pub action_length: bool,
+    /// Components of the model's prediction `ŝ'` fed to the MDE after them, in order.
+    pub feature_prediction: Vec<usize>,
+    /// Whether the length of the predicted move in the domain's distance, over the state box's
+    /// diagonal ([`weighted_move_fraction`](super::features::weighted_move_fraction)), follows
+    /// as the last feature.
+    pub move_length: bool,
     /// Weights `w_i ≥ 0` (not all 0) of `d = sqrt(Σ w_i (ŝ_i − s_i)²)`, one per state component.
     pub weights: Vec<f64>,
     /// State components the goal test compares.
@@ -71,6 +76,8 @@ impl CustomParams {
             feature_state: vec![0, 1],
             feature_action: vec![0, 1],
             action_length: false,
+            feature_prediction: vec![],
+            move_length: false,
             weights: vec![1.0, 1.0],
             goal_components: vec![0, 1],
             goal_radius: 0.05,
@@ -90,6 +97,9 @@ pub const DEFAULT_D_MAX: f64 = 0.1;
 pub struct CustomDomain {
     params: CustomParams,
     model: Arc<dyn DynamicsModel>,
+    /// The features as data, built once: [`Domain::features`] evaluates it, the export carries
+    /// it (one definition of `φ`).
+    features: FeatureMap,
 }
 
 fn check_space(space: &Space, what: &str) -> Result<(), DomainError> {
@@ -174,11 +184,20 @@ impl CustomDomain {
         }
         check_indices(&params.feature_state, n, "features.state")?;
         check_indices(&params.feature_action, m, "features.action")?;
-        if params.feature_state.len() + params.feature_action.len() == 0 {
+        check_indices(&params.feature_prediction, n, "features.prediction")?;
+        if params.feature_state.len()
+            + params.feature_action.len()
+            + params.feature_prediction.len()
+            == 0
+            && !params.move_length
+        {
             return Err(DomainError::at(
                 "features",
-                "at least one state or action component must feed the MDE",
+                "at least one state, action or prediction component must feed the MDE",
             ));
+        }
+        if (params.move_length || !params.feature_prediction.is_empty()) && model.client_side() {
+            // Allowed: the client then posts `s_pred` with its queries too (checked there).
         }
         if params.action_length && params.feature_action.is_empty() {
             return Err(DomainError::at(
@@ -241,7 +260,27 @@ impl CustomDomain {
                 format!("must be between 1 and {MAX_ROLLOUT_LENGTH}"),
             ));
         }
-        Ok(Self { params, model })
+        let features = FeatureMap::UnitBox {
+            state_low: params.state.low.clone(),
+            state_high: params.state.high.clone(),
+            action_low: params.action.low.clone(),
+            action_high: params.action.high.clone(),
+            state_components: params.feature_state.clone(),
+            action_components: params.feature_action.clone(),
+            action_length: params.action_length,
+            prediction_components: params.feature_prediction.clone(),
+            weights: if params.move_length {
+                params.weights.clone()
+            } else {
+                Vec::new()
+            },
+            move_length: params.move_length,
+        };
+        Ok(Self {
+            params,
+            model,
+            features,
+        })
     }
 
     /// The parameters.
@@ -301,48 +340,19 @@ impl Domain for CustomDomain {
     }
 
     fn feature_dim(&self) -> usize {
-        let p = &self.params;
-        p.feature_state.len() + p.feature_action.len() + usize::from(p.action_length)
+        self.features.dim()
     }
 
-    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
-        let unit = |space: &Space, v: &[f64], i: usize| {
-            let w = space.high[i] - space.low[i];
-            if w > 0.0 {
-                (v[i] - space.low[i]) / w
-            } else {
-                0.0
-            }
-        };
-        let p = &self.params;
-        let mut phi: Vec<f64> = p
-            .feature_state
-            .iter()
-            .map(|&i| unit(&p.state, s, i))
-            .chain(p.feature_action.iter().map(|&i| unit(&p.action, a, i)))
-            .collect();
-        if p.action_length {
-            phi.push(action_length_fraction(
-                a,
-                &p.feature_action,
-                &p.action.low,
-                &p.action.high,
-            ));
-        }
-        phi
+    fn features(&self, s: &[f64], a: &[f64], s_pred: &[f64]) -> Vec<f64> {
+        self.features.features(s, a, s_pred)
+    }
+
+    fn features_use_prediction(&self) -> bool {
+        self.features.uses_prediction()
     }
 
     fn feature_map(&self) -> FeatureMap {
-        let p = &self.params;
-        FeatureMap::UnitBox {
-            state_low: p.state.low.clone(),
-            state_high: p.state.high.clone(),
-            action_low: p.action.low.clone(),
-            action_high: p.action.high.clone(),
-            state_components: p.feature_state.clone(),
-            action_components: p.feature_action.clone(),
-            action_length: p.action_length,
-        }
+        self.features.clone()
     }
 
     fn feature_names(&self) -> Vec<String> {
@@ -352,6 +362,12 @@ impl Domain for CustomDomain {
             .map(|&i| p.state.names[i].clone())
             .chain(p.feature_action.iter().map(|&i| p.action.names[i].clone()))
             .chain(p.action_length.then(|| "action_length".to_string()))
+            .chain(
+                p.feature_prediction
+                    .iter()
+                    .map(|&i| format!("predicted {}", p.state.names[i])),
+            )
+            .chain(p.move_length.then(|| "move_length".to_string()))
             .collect()
     }
 
@@ -600,6 +616,8 @@ mod tests {
             feature_state: vec![0, 1],
             feature_action: vec![1],
             action_length: false,
+            feature_prediction: vec![],
+            move_length: false,
             weights: vec![1.0, 4.0, 0.0],
             goal_components: vec![0, 1],
             goal_radius: 0.05,
@@ -632,7 +650,7 @@ mod tests {
                 < 1e-12
         );
         assert_eq!(
-            d.features(&[1.0, 0.5, 0.0], &[0.0, 0.1]),
+            d.features(&[1.0, 0.5, 0.0], &[0.0, 0.1], &[]),
             vec![0.5, 0.5, 1.0]
         );
         assert_eq!(d.feature_names(), vec!["x", "y", "ay"]);
@@ -645,7 +663,7 @@ mod tests {
             Arc::new(linear(&params())),
         )
         .unwrap();
-        let phi = with_length.features(&[1.0, 0.5, 0.0], &[0.1, -0.05]);
+        let phi = with_length.features(&[1.0, 0.5, 0.0], &[0.1, -0.05], &[]);
         assert_eq!(phi.len(), with_length.feature_dim());
         assert!((phi[4] - (0.5f64 * (1.0 + 0.25)).sqrt()).abs() < 1e-12);
         assert_eq!(with_length.feature_names()[4], "action_length");

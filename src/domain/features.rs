@@ -32,9 +32,23 @@ pub enum FeatureMap {
         state_components: Vec<usize>,
         /// The action components that feed the features after them, in order.
         action_components: Vec<usize>,
-        /// Whether the length of the listed action components follows as the last feature.
+        /// Whether the length of the listed action components follows.
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         action_length: bool,
+        /// Components of the model's prediction `ŝ' = f̂(s, a)` that follow, each scaled to the
+        /// unit box by its state bounds (a custom domain's `features.prediction`): where a move
+        /// ends, which decides most of what a model ignores (a contact, a slope, a slippery
+        /// patch). The caller supplies `ŝ'` (the model lives elsewhere).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        prediction_components: Vec<usize>,
+        /// Weights of the domain's distance, for `move_length` (empty without it).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        weights: Vec<f64>,
+        /// Whether the length of the predicted move follows as the last feature:
+        /// `d(ŝ', s) / d(high, low)` in the domain's distance (weights `weights`), in `[0, 1]`
+        /// for predictions within the bounds ([`weighted_move_fraction`]).
+        #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+        move_length: bool,
     },
     /// The kinematic domain's `state_action_prediction` features: the state, then the action,
     /// then the model's prediction `clip(s + a)` (each component clamped to the state bounds),
@@ -100,8 +114,16 @@ impl FeatureMap {
                 state_components,
                 action_components,
                 action_length,
+                prediction_components,
+                move_length,
                 ..
-            } => state_components.len() + action_components.len() + usize::from(*action_length),
+            } => {
+                state_components.len()
+                    + action_components.len()
+                    + usize::from(*action_length)
+                    + prediction_components.len()
+                    + usize::from(*move_length)
+            }
             Self::KinematicPrediction {
                 state_low,
                 move_length,
@@ -110,6 +132,16 @@ impl FeatureMap {
             Self::PerMove { moves, .. } => 3 * moves.len(),
             Self::ActionAndRotation { action_low, .. } => action_low.len() + 1,
         }
+    }
+
+    /// Whether the features read the model's prediction `ŝ'`, which the caller must then
+    /// supply to [`features_into`](Self::features_into).
+    pub fn uses_prediction(&self) -> bool {
+        matches!(
+            self,
+            Self::UnitBox { prediction_components, move_length, .. }
+                if !prediction_components.is_empty() || *move_length
+        )
     }
 
     /// The state dimension the map reads (`None`: it does not fix it).
@@ -177,11 +209,24 @@ impl FeatureMap {
                 state_components,
                 action_components,
                 action_length,
+                prediction_components,
+                weights,
+                move_length,
             } => {
                 bounds("state_low", state_low, state_high, state_dim)?;
                 bounds("action_low", action_low, action_high, action_dim)?;
                 indices("state_components", state_components, state_dim)?;
                 indices("action_components", action_components, action_dim)?;
+                indices("prediction_components", prediction_components, state_dim)?;
+                if *move_length
+                    && (weights.len() != state_dim
+                        || weights.iter().any(|w| !(w.is_finite() && *w >= 0.0)))
+                {
+                    return err(
+                        "weights",
+                        format!("the move's length needs {state_dim} finite weights >= 0"),
+                    );
+                }
                 if self.dim() == 0 {
                     return err("state_components", "no component feeds the features".into());
                 }
@@ -255,9 +300,11 @@ impl FeatureMap {
         Ok(())
     }
 
-    /// `φ(s, a)` into `out` (cleared first). `s` and `a` must have the dimensions the map was
-    /// checked for ([`check`](Self::check)); shorter vectors panic on indexing.
-    pub fn features_into(&self, s: &[f64], a: &[f64], out: &mut Vec<f64>) {
+    /// `φ(s, a)` into `out` (cleared first), `s_pred` the model's prediction `f̂(s, a)` when
+    /// the map [uses it](Self::uses_prediction) (ignored otherwise; a prediction of the wrong
+    /// length gives NaN features, which no model trusts). `s` and `a` must have the dimensions
+    /// the map was checked for ([`check`](Self::check)); shorter vectors panic on indexing.
+    pub fn features_into(&self, s: &[f64], a: &[f64], s_pred: &[f64], out: &mut Vec<f64>) {
         out.clear();
         match self {
             Self::UnitBox {
@@ -268,6 +315,9 @@ impl FeatureMap {
                 state_components,
                 action_components,
                 action_length,
+                prediction_components,
+                weights,
+                move_length,
             } => {
                 out.extend(
                     state_components
@@ -285,6 +335,23 @@ impl FeatureMap {
                         action_components,
                         action_low,
                         action_high,
+                    ));
+                }
+                if prediction_components.is_empty() && !*move_length {
+                    return;
+                }
+                if s_pred.len() != s.len() {
+                    out.resize(self.dim(), f64::NAN);
+                    return;
+                }
+                out.extend(
+                    prediction_components
+                        .iter()
+                        .map(|&i| unit(s_pred[i], state_low[i], state_high[i])),
+                );
+                if *move_length {
+                    out.push(weighted_move_fraction(
+                        s, s_pred, weights, state_low, state_high,
                     ));
                 }
             }
@@ -355,10 +422,37 @@ impl FeatureMap {
     }
 
     /// `φ(s, a)` (see [`features_into`](Self::features_into)).
-    pub fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+    pub fn features(&self, s: &[f64], a: &[f64], s_pred: &[f64]) -> Vec<f64> {
         let mut out = Vec::with_capacity(self.dim());
-        self.features_into(s, a, &mut out);
+        self.features_into(s, a, s_pred, &mut out);
         out
+    }
+}
+
+/// The length of a predicted move `d(ŝ', s)` in a weighted Euclidean distance, as a fraction of
+/// the state box's diagonal in the same distance, `d(high, low)` (0 when that is 0): in
+/// `[0, 1]` for predictions within the bounds. A model's error often grows with how far it says
+/// the robot goes, whatever the command's units; this feature carries it in one input.
+pub fn weighted_move_fraction(
+    s: &[f64],
+    s_pred: &[f64],
+    weights: &[f64],
+    state_low: &[f64],
+    state_high: &[f64],
+) -> f64 {
+    let dist = |x: &[f64], y: &[f64]| -> f64 {
+        weights
+            .iter()
+            .zip(x.iter().zip(y))
+            .map(|(w, (p, q))| w * (p - q) * (p - q))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let diagonal = dist(state_high, state_low);
+    if diagonal > 0.0 {
+        dist(s_pred, s) / diagonal
+    } else {
+        0.0
     }
 }
 
@@ -450,7 +544,7 @@ mod tests {
         for _ in 0..500 {
             let s = d.sample_state(&mut rng);
             let a = d.sample_action(&s, &mut rng);
-            let (want, got) = (d.features(&s, &a), map.features(&s, &a));
+            let (want, got) = (d.features(&s, &a, &[]), map.features(&s, &a, &[]));
             assert_eq!(
                 want.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
                 got.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
@@ -501,6 +595,8 @@ mod tests {
             feature_state: vec![2, 0],
             feature_action: vec![1],
             action_length: true,
+            feature_prediction: vec![],
+            move_length: false,
             weights: vec![1.0; 4],
             goal_components: vec![0],
             goal_radius: 0.1,
@@ -528,7 +624,7 @@ mod tests {
             ..KinematicParams::default()
         })
         .unwrap();
-        let length = |s: &[f64], a: &[f64]| *d.features(s, a).last().unwrap();
+        let length = |s: &[f64], a: &[f64]| *d.features(s, a, &[]).last().unwrap();
         // The longest commandable move is (0.3, 0.2); the feature is its share.
         assert!((length(&[0.5, 0.5], &[0.3, 0.2]) - 1.0).abs() < 1e-12);
         assert!((length(&[0.5, 0.5], &[-0.1, 0.0]) - 0.1 / 0.13f64.sqrt()).abs() < 1e-12);
@@ -560,6 +656,9 @@ mod tests {
             state_components: vec![0],
             action_components: vec![],
             action_length: true,
+            prediction_components: vec![],
+            weights: vec![],
+            move_length: false,
         };
         assert_eq!(map.check(1, 3).unwrap_err().0, "action_length");
     }
@@ -567,8 +666,8 @@ mod tests {
     #[test]
     fn per_move_features_find_a_move_within_the_tolerance() {
         let g = IcyGridworld::default_layout().with_features(GridFeatures::PerMove);
-        let exact = g.features(&[3.0, 4.0], &[-1.0, 0.0]);
-        let near = g.features(&[3.0, 4.0], &[-1.0 + 1e-12, 0.0]);
+        let exact = g.features(&[3.0, 4.0], &[-1.0, 0.0], &[]);
+        let near = g.features(&[3.0, 4.0], &[-1.0 + 1e-12, 0.0], &[]);
         assert_eq!(
             exact, near,
             "a validated action one rounding away is the same move"
@@ -586,6 +685,9 @@ mod tests {
             state_components: vec![0, 2],
             action_components: vec![0],
             action_length: false,
+            prediction_components: vec![],
+            weights: vec![],
+            move_length: false,
         };
         assert_eq!(map.check(2, 1).unwrap_err().0, "state_components[1]");
         assert_eq!(map.check(3, 1).unwrap_err().0, "state_low");

@@ -268,7 +268,7 @@ impl Domain for IcyGridworld {
     /// [`GridFeatures::Scaled`]: `(x, y)` scaled by the grid, then the move scaled from
     /// `[-1, 1]` to `[0, 1]`. [`GridFeatures::PerMove`]: for move `k`, the scaled `(x, y)` at
     /// positions `2k, 2k+1` (zeros elsewhere), then the move one-hot.
-    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+    fn features(&self, s: &[f64], a: &[f64], _s_pred: &[f64]) -> Vec<f64> {
         match self.feature_map {
             GridFeatures::Scaled => self
                 .state_space
@@ -306,6 +306,9 @@ impl Domain for IcyGridworld {
                 state_components: vec![0, 1],
                 action_components: vec![0, 1],
                 action_length: false,
+                prediction_components: vec![],
+                weights: vec![],
+                move_length: false,
             },
             GridFeatures::PerMove => FeatureMap::PerMove {
                 state_low: state.low.clone(),
@@ -460,7 +463,7 @@ mod tests {
     fn per_move_features_give_each_move_its_own_coordinates() {
         let g = IcyGridworld::default_layout().with_features(GridFeatures::PerMove);
         assert_eq!(g.feature_dim(), 12);
-        let f = g.features(&[11.0, 0.0], &[0.0, 1.0]);
+        let f = g.features(&[11.0, 0.0], &[0.0, 1.0], &[]);
         assert_eq!(
             f,
             vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0]
@@ -472,7 +475,7 @@ mod tests {
     #[test]
     fn features_live_in_the_unit_box() {
         let g = IcyGridworld::default_layout();
-        let f = g.features(&[11.0, 0.0], &[-1.0, 0.0]);
+        let f = g.features(&[11.0, 0.0], &[-1.0, 0.0], &[]);
         assert_eq!(f, vec![1.0, 0.0, 0.0, 0.5]);
     }
 

@@ -345,7 +345,7 @@ impl Domain for Kinematic {
         }
     }
 
-    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+    fn features(&self, s: &[f64], a: &[f64], _s_pred: &[f64]) -> Vec<f64> {
         let mut phi: Vec<f64> = self
             .state_space
             .to_unit(s)
@@ -384,6 +384,9 @@ impl Domain for Kinematic {
                 state_components: (0..self.state_space.dim()).collect(),
                 action_components: (0..self.action_space.dim()).collect(),
                 action_length: false,
+                prediction_components: vec![],
+                weights: vec![],
+                move_length: false,
             },
             KinematicFeatures::StateActionPrediction
             | KinematicFeatures::StateActionPredictionLength => FeatureMap::KinematicPrediction {

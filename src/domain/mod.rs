@@ -255,8 +255,18 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     /// Dimension of the MDE feature vector `φ(s, a)`.
     fn feature_dim(&self) -> usize;
 
-    /// The MDE feature vector `φ(s, a)`, every component in `[0, 1]`.
-    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64>;
+    /// The MDE feature vector `φ(s, a)`, every component in `[0, 1]` (for states and
+    /// predictions within the bounds). `s_pred` is the model's prediction `f̂(s, a)`: read only
+    /// by a domain whose features [use it](Self::features_use_prediction) (a custom domain's
+    /// `features.prediction`), which cannot compute it itself (its model may live behind the
+    /// network); others ignore it, and callers may pass `&[]` to them.
+    fn features(&self, s: &[f64], a: &[f64], s_pred: &[f64]) -> Vec<f64>;
+
+    /// Whether [`features`](Self::features) reads the model's prediction: callers without
+    /// one at hand must then ask the model ([`DynamicsModel::predict_batch`]).
+    fn features_use_prediction(&self) -> bool {
+        false
+    }
 
     /// Names of the feature components (for reports and plots).
     fn feature_names(&self) -> Vec<String>;
@@ -346,6 +356,37 @@ pub trait Domain: Send + Sync + std::fmt::Debug {
     fn finite_state_actions(&self) -> Option<Vec<(Vec<f64>, Vec<f64>)>> {
         None
     }
+}
+
+/// The model's predictions `f̂(s, a)` of `pairs` when `domain`'s features read them
+/// ([`Domain::features_use_prediction`]), else empty vectors (what [`Domain::features`] takes
+/// then): for state-actions nobody has predicted yet (a grid, a sample). Blocking: a model
+/// behind the network is called here, in batches of at most 4096 points.
+pub fn predictions_for_features(
+    domain: &dyn Domain,
+    pairs: &[(Vec<f64>, Vec<f64>)],
+) -> Result<Vec<Vec<f64>>, DynamicsError> {
+    if !domain.features_use_prediction() {
+        return Ok(vec![Vec::new(); pairs.len()]);
+    }
+    let mut out = Vec::with_capacity(pairs.len());
+    for chunk in pairs.chunks(4096) {
+        let states: Vec<&[f64]> = chunk.iter().map(|(s, _)| s.as_slice()).collect();
+        let actions: Vec<&[f64]> = chunk.iter().map(|(_, a)| a.as_slice()).collect();
+        let predicted = domain.dynamics().predict_batch(&states, &actions)?;
+        if predicted.len() != chunk.len() {
+            return Err(DynamicsError::Unavailable {
+                model: format!("of the {} domain", domain.kind()),
+                reason: format!(
+                    "answered {} predictions for {} points",
+                    predicted.len(),
+                    chunk.len()
+                ),
+            });
+        }
+        out.extend(predicted.into_iter().map(|p| p.next));
+    }
+    Ok(out)
 }
 
 /// A uniform draw from `[low, high]` that cannot panic: `rand`'s own draw when the width is

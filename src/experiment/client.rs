@@ -291,6 +291,7 @@ impl ApiClient {
                     .map(|(s, a)| Point {
                         s: s.to_vec(),
                         a: a.to_vec(),
+                        s_pred: None,
                     })
                     .collect(),
                 beta: None,

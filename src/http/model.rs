@@ -93,6 +93,11 @@ pub async fn get_precondition(
     let point = Point {
         s: parse_vector("s", &query.s)?,
         a: parse_vector("a", &query.a)?,
+        s_pred: query
+            .s_pred
+            .as_deref()
+            .map(|v| parse_vector("s_pred", v))
+            .transpose()?,
     };
     let judged = state
         .service

@@ -130,29 +130,55 @@ impl ExportedModel {
         self.predictor.check().map_err(|e| format!("predictor.{e}"))
     }
 
-    /// `(μ, σ)` at `(s, a)` with reusable buffers (no allocation after the first call). NaN
-    /// for a state or action of the wrong dimension. Like the server's features, the map does
-    /// not clamp to the spaces' bounds, but unlike the server (which refuses such points) it
-    /// answers outside them too.
-    pub fn evaluate_with(&self, s: &[f64], a: &[f64], scratch: &mut Scratch) -> (f64, f64) {
-        if s.len() != self.state_dim || a.len() != self.action_dim {
+    /// `(μ, σ)` at `(s, a)` with reusable buffers (no allocation after the first call);
+    /// `s_pred` is the model's prediction `f̂(s, a)`, which the caller supplies when the feature
+    /// map reads it ([`uses_prediction`](Self::uses_prediction); ignored otherwise). NaN for a
+    /// state, action or needed prediction of the wrong dimension. Like the server's features,
+    /// the map does not clamp to the spaces' bounds, but unlike the server (which refuses such
+    /// points) it answers outside them too.
+    pub fn evaluate_with(
+        &self,
+        s: &[f64],
+        a: &[f64],
+        s_pred: &[f64],
+        scratch: &mut Scratch,
+    ) -> (f64, f64) {
+        if s.len() != self.state_dim
+            || a.len() != self.action_dim
+            || (self.uses_prediction() && s_pred.len() != self.state_dim)
+        {
             return (f64::NAN, f64::NAN);
         }
-        self.feature_map.features_into(s, a, &mut scratch.features);
+        self.feature_map
+            .features_into(s, a, s_pred, &mut scratch.features);
         let p = self
             .predictor
             .predict_into(&scratch.features, &mut scratch.gp);
         (p.mean, p.std())
     }
 
-    /// `(μ, σ)` at `(s, a)` (see [`evaluate_with`](Self::evaluate_with)).
-    pub fn evaluate(&self, s: &[f64], a: &[f64]) -> (f64, f64) {
-        self.evaluate_with(s, a, &mut Scratch::default())
+    /// Whether the features read the model's prediction `f̂(s, a)` (a custom domain's
+    /// `features.prediction`): the caller then passes it to [`evaluate_with`](Self::evaluate_with)
+    /// or [`evaluate_predicted`](Self::evaluate_predicted), since the model lives with the robot.
+    pub fn uses_prediction(&self) -> bool {
+        self.feature_map.uses_prediction()
     }
 
-    /// Whether `(s, a)` lies in the precondition `μ + βσ < d_max` (false for NaN).
-    pub fn inside(&self, s: &[f64], a: &[f64], beta: f64) -> bool {
-        let (mu, sigma) = self.evaluate(s, a);
+    /// `(μ, σ)` at `(s, a)` for features that do not read the prediction (NaN for those that
+    /// do: see [`evaluate_predicted`](Self::evaluate_predicted)).
+    pub fn evaluate(&self, s: &[f64], a: &[f64]) -> (f64, f64) {
+        self.evaluate_with(s, a, &[], &mut Scratch::default())
+    }
+
+    /// `(μ, σ)` at `(s, a)` whose model prediction is `s_pred`.
+    pub fn evaluate_predicted(&self, s: &[f64], a: &[f64], s_pred: &[f64]) -> (f64, f64) {
+        self.evaluate_with(s, a, s_pred, &mut Scratch::default())
+    }
+
+    /// Whether `(s, a)` (model prediction `s_pred`, when the features read it; else `&[]`)
+    /// lies in the precondition `μ + βσ < d_max` (false for NaN).
+    pub fn inside(&self, s: &[f64], a: &[f64], s_pred: &[f64], beta: f64) -> bool {
+        let (mu, sigma) = self.evaluate_with(s, a, s_pred, &mut Scratch::default());
         mu + beta * sigma < self.d_max
     }
 }

@@ -26,7 +26,7 @@ use super::acquisition::within_probability;
 use super::cache::ModelCache;
 use super::error::PlanningError;
 use super::precondition::Precondition;
-use super::rrt::{Task, seeded_rng};
+use super::rrt::{Task, predictions_for_features, seeded_rng};
 use super::trajectory::Trajectory;
 use crate::budget::Budget;
 use crate::domain::{Domain, Problem};
@@ -186,9 +186,11 @@ pub(crate) fn assess(
         .precondition
         .at_beta(task.settings.acquisition().test_beta)?;
     let dim = domain.feature_dim();
+    let predicted = predictions_for_features(domain, &moves, budget)?;
     let features: Vec<f64> = moves
         .iter()
-        .flat_map(|(s, a)| domain.features(s, a))
+        .zip(&predicted)
+        .flat_map(|((s, a), next)| domain.features(s, a, next))
         .collect();
     // Judged in chunks, so that a large graph on a large model stops within a chunk of the
     // budget's end (the choice is then `lcb`'s) instead of overrunning it.
@@ -340,7 +342,7 @@ mod tests {
         let features: Vec<f64> = states
             .iter()
             .zip(moves)
-            .flat_map(|(s, m)| g.features(s, m))
+            .flat_map(|(s, m)| g.features(s, m, &[]))
             .collect();
         let (mu, sigma) = model.predict(&features, 4).into_iter().unzip();
         Trajectory {
@@ -406,7 +408,7 @@ mod tests {
         assert!(value > 0.0);
         // With that move in flight it is worth nothing until the next fit: the probe turns to
         // another bottleneck, if the sampled problems need one.
-        let in_flight = g.features(&[1.0, 1.0], &r);
+        let in_flight = g.features(&[1.0, 1.0], &r, &[]);
         let spread = assess_all(&mut cache, &[upper], &in_flight);
         assert_eq!(spread.values, vec![0.0], "{:?}", spread.values);
         assert!(

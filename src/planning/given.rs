@@ -60,7 +60,7 @@ pub(crate) fn judge(
             actions
                 .iter()
                 .enumerate()
-                .flat_map(|(t, a)| domain.features(&states[t], a))
+                .flat_map(|(t, a)| domain.features(&states[t], a, &states[t + 1]))
         })
         .collect();
     let mut answers = cache.predict(&features)?.into_iter();

@@ -322,10 +322,10 @@ impl<'a, R: RngCore> Search<'a, R> {
             // Nearest the target first; the first steered on ties.
             allowed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
             if edge.actions.len() == 1
-                && let Some((_, j, _)) = allowed.first()
+                && let Some((_, j, next)) = allowed.first()
             {
                 let action = &edge.actions[*j];
-                let phi = domain.features(s, action);
+                let phi = domain.features(s, action, next);
                 if let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi)) {
                     // A miss in a discrete action space: ask about the node's other moves in
                     // the same call, since the tree is likely to try them later.
@@ -342,8 +342,8 @@ impl<'a, R: RngCore> Search<'a, R> {
                 .into_iter()
                 .map(|(_, j, next)| (edge.actions[j].clone(), next))
                 .collect();
-            for (action, _) in &candidates {
-                self.features.extend(domain.features(s, action));
+            for (action, next) in &candidates {
+                self.features.extend(domain.features(s, action, next));
             }
             self.round.push(Proposed {
                 parent: edge.parent,
@@ -371,7 +371,7 @@ impl<'a, R: RngCore> Search<'a, R> {
             let s = &self.tree.states[i];
             let v = &values[k];
             if n.valid && domain.edge_allowed(s, v, &n.next) && !self.tree.contains(&n.next) {
-                self.features.extend(domain.features(s, v));
+                self.features.extend(domain.features(s, v, &n.next));
             }
         }
     }
@@ -560,4 +560,26 @@ pub(crate) fn predict_pairs(
         })?;
     check_predictions(domain, predicted.len(), states.len())?;
     Ok(predicted)
+}
+
+/// The model's predictions of `pairs` when the domain's features read them
+/// ([`Domain::features_use_prediction`]), else none (empty vectors): what a caller passes to
+/// [`Domain::features`] for state-actions it has no prediction of yet (a sample, a grid).
+pub(crate) fn predictions_for_features(
+    domain: &dyn Domain,
+    pairs: &[(Vec<f64>, Vec<f64>)],
+    budget: &Budget,
+) -> Result<Vec<Vec<f64>>, PlanningError> {
+    if !domain.features_use_prediction() {
+        return Ok(vec![Vec::new(); pairs.len()]);
+    }
+    let states: Vec<&[f64]> = pairs.iter().map(|(s, _)| s.as_slice()).collect();
+    let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| a.as_slice()).collect();
+    let mut calls = 0;
+    Ok(
+        predict_pairs(domain, &states, &actions, &mut calls, budget, 0)?
+            .into_iter()
+            .map(|p| p.next)
+            .collect(),
+    )
 }

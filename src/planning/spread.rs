@@ -24,7 +24,7 @@ use super::model::DeviationModel;
 use super::rrt::Task;
 use super::trajectory::Trajectory;
 use crate::budget::Budget;
-use crate::planning::rrt::seeded_rng;
+use crate::planning::rrt::{predictions_for_features, seeded_rng};
 
 /// State-actions the value is integrated over.
 pub const REFERENCES: usize = 256;
@@ -50,11 +50,17 @@ pub(crate) fn values(
     let (domain, d_max) = (task.domain, task.precondition.d_max());
     let dim = domain.feature_dim();
     let mut rng = seeded_rng(seed, REFERENCE_STREAM);
+    let sampled: Vec<(Vec<f64>, Vec<f64>)> = (0..REFERENCES)
+        .map(|_| {
+            let s = domain.sample_state(&mut rng);
+            let a = domain.sample_action(&s, &mut rng);
+            (s, a)
+        })
+        .collect();
+    let predicted = predictions_for_features(domain, &sampled, budget)?;
     let mut references = Vec::with_capacity(REFERENCES * dim);
-    for _ in 0..REFERENCES {
-        let s = domain.sample_state(&mut rng);
-        let a = domain.sample_action(&s, &mut rng);
-        references.extend(domain.features(&s, &a));
+    for ((s, a), next) in sampled.iter().zip(&predicted) {
+        references.extend(domain.features(s, a, next));
     }
     let fantasy = model.fantasy(&references, dim);
     let predict = |pendings: &[&[f64]]| {
@@ -84,8 +90,8 @@ pub(crate) fn values(
             .iter()
             .map(|t| {
                 let mut pending = in_flight.to_vec();
-                for (s, a) in t.states.iter().zip(&t.actions) {
-                    pending.extend(domain.features(s, a));
+                for (s, a, next) in t.steps() {
+                    pending.extend(domain.features(s, a, next));
                 }
                 pending
             })
@@ -189,8 +195,8 @@ mod tests {
         );
         // Steps already in flight teach nothing new: the same walk then is worth nothing.
         let mut in_flight = Vec::new();
-        for (s, a) in walks[1].states.iter().zip(&walks[1].actions) {
-            in_flight.extend(domain.features(s, a));
+        for (s, a, next) in walks[1].steps() {
+            in_flight.extend(domain.features(s, a, next));
         }
         let again = values(
             task,

@@ -279,8 +279,8 @@ fn fantasised_scores(
     let dim = domain.feature_dim();
     let features: Vec<f64> = trajectories
         .iter()
-        .flat_map(|t| t.states.iter().zip(&t.actions))
-        .flat_map(|(s, a)| domain.features(s, a))
+        .flat_map(|t| t.steps())
+        .flat_map(|(s, a, next)| domain.features(s, a, next))
         .collect();
     let expected = trajectories.iter().map(Trajectory::len).sum::<usize>();
     let answers = model.predict_fantasised(&features, in_flight, dim);
@@ -463,7 +463,7 @@ fn rollout(
             .collect();
         let features: Vec<f64> = allowed
             .iter()
-            .flat_map(|(_, a, _)| domain.features(&s, a))
+            .flat_map(|(_, a, next)| domain.features(&s, a, next))
             .collect();
         let answers = cache.predict(&features)?;
         let chosen = allowed

@@ -221,7 +221,7 @@ fn assert_valid(
             domain.edge_allowed(s, a, next),
             "step {i} breaks a constraint"
         );
-        let (mu, sigma) = mde.predict(&domain.features(s, a), domain.feature_dim())[0];
+        let (mu, sigma) = mde.predict(&domain.features(s, a, next), domain.feature_dim())[0];
         assert_eq!((mu, sigma), (t.mu[i], t.sigma[i]), "step {i}: stored μ, σ");
         assert!(
             mu + beta * sigma < d_max,

@@ -25,4 +25,14 @@ impl Trajectory {
     pub fn is_empty(&self) -> bool {
         self.actions.is_empty()
     }
+
+    /// Each step `(s_t, a_t, s_{t+1})`: a state, its action and the predicted state after it
+    /// (`f̂(s_t, a_t)`, what [`Domain::features`](crate::domain::Domain::features) reads).
+    pub fn steps(&self) -> impl Iterator<Item = (&[f64], &[f64], &[f64])> {
+        self.states
+            .iter()
+            .zip(&self.actions)
+            .zip(self.states.iter().skip(1))
+            .map(|((s, a), next)| (s.as_slice(), a.as_slice(), next.as_slice()))
+    }
 }

@@ -115,7 +115,7 @@ pub fn check_idempotency_key(key: &[u8]) -> Result<&str> {
 /// is labelled.
 pub async fn label(
     live: &Arc<LiveExperiment>,
-    mut transitions: Vec<Transition>,
+    transitions: Vec<Transition>,
     max_transitions: usize,
 ) -> Result<Vec<LabelledTransition>> {
     if transitions.is_empty() {
@@ -168,42 +168,11 @@ pub async fn label(
             .map(|t| t.s_pred.clone().unwrap_or_default())
             .collect()
     } else {
-        // A remote model: waited for as a task, the call on a thread of its own, bounded by the
-        // operator's limits; no blocking-pool thread is held.
-        let awaited = {
-            let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
-            let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
-            match live.domain.dynamics().predict_awaitable(&states, &actions) {
-                Some(answer) => Some(answer.await),
-                None => None,
-            }
-        };
-        let predicted = if let Some(predicted) = awaited {
-            predicted
-        } else {
-            let domain = live.domain.clone();
-            let (moved, predicted) = Service::blocking(move || {
-                let states: Vec<&[f64]> = transitions.iter().map(|t| t.s.as_slice()).collect();
-                let actions: Vec<&[f64]> = transitions.iter().map(|t| t.a.as_slice()).collect();
-                let predicted = domain.dynamics().predict_batch(&states, &actions);
-                (transitions, predicted)
-            })
-            .await?;
-            transitions = moved;
-            predicted
-        };
-        let predicted = predicted?;
-        if predicted.len() != transitions.len() {
-            return Err(Error::Dynamics(DynamicsError::Unavailable {
-                model: format!("of the {} domain", live.domain.kind()),
-                reason: format!(
-                    "answered {} predictions for {} transitions",
-                    predicted.len(),
-                    transitions.len()
-                ),
-            }));
-        }
-        predicted.into_iter().map(|p| p.next).collect()
+        let pairs: Vec<(&[f64], &[f64])> = transitions
+            .iter()
+            .map(|t| (t.s.as_slice(), t.a.as_slice()))
+            .collect();
+        predict_pairs(live, &pairs).await?
     };
     transitions
         .into_iter()
@@ -224,6 +193,49 @@ pub async fn label(
             })
         })
         .collect()
+}
+
+/// The experiment's model's predictions `f̂(s, a)` of `pairs`, in order: a remote model waited
+/// for as a task (the call on a thread of its own, bounded by the operator's limits; no
+/// blocking-pool thread is held), an in-process one on the blocking pool. Not for a client-side
+/// model, which the service never calls.
+pub async fn predict_pairs(
+    live: &Arc<LiveExperiment>,
+    pairs: &[(&[f64], &[f64])],
+) -> Result<Vec<Vec<f64>>> {
+    let states: Vec<&[f64]> = pairs.iter().map(|(s, _)| *s).collect();
+    let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| *a).collect();
+    let awaited = match live.domain.dynamics().predict_awaitable(&states, &actions) {
+        Some(answer) => Some(answer.await),
+        None => None,
+    };
+    let predicted = match awaited {
+        Some(predicted) => predicted,
+        None => {
+            let domain = live.domain.clone();
+            let owned: Vec<(Vec<f64>, Vec<f64>)> = pairs
+                .iter()
+                .map(|(s, a)| (s.to_vec(), a.to_vec()))
+                .collect();
+            Service::blocking(move || {
+                let states: Vec<&[f64]> = owned.iter().map(|(s, _)| s.as_slice()).collect();
+                let actions: Vec<&[f64]> = owned.iter().map(|(_, a)| a.as_slice()).collect();
+                domain.dynamics().predict_batch(&states, &actions)
+            })
+            .await?
+        }
+    }?;
+    if predicted.len() != pairs.len() {
+        return Err(Error::Dynamics(DynamicsError::Unavailable {
+            model: format!("of the {} domain", live.domain.kind()),
+            reason: format!(
+                "answered {} predictions for {} points",
+                predicted.len(),
+                pairs.len()
+            ),
+        }));
+    }
+    Ok(predicted.into_iter().map(|p| p.next).collect())
 }
 
 impl Service {

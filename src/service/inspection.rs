@@ -282,21 +282,26 @@ impl Service {
         let answers = Self::blocking(move || {
             // Held by the evaluation, not the request: freed when the evaluation ends.
             let _slot = slot;
-            let mut features = Vec::with_capacity(nx * ny * dim);
             let (mut ps, mut pa) = (grid_s, grid_a);
             let set = |(is_action, i): (bool, usize), v: f64, ps: &mut [f64], pa: &mut [f64]| {
                 if is_action { pa[i] = v } else { ps[i] = v }
             };
+            let mut points = Vec::with_capacity(nx * ny);
             for &yv in &grid_ys {
                 for &xv in &grid_xs {
                     set(x_axis, xv, &mut ps, &mut pa);
                     set(y_axis, yv, &mut ps, &mut pa);
-                    features.extend(domain.features(&ps, &pa));
+                    points.push((ps.clone(), pa.clone()));
                 }
             }
-            evaluated.answer(&features, dim)
+            let predicted = crate::domain::predictions_for_features(domain.as_ref(), &points)?;
+            let mut features = Vec::with_capacity(nx * ny * dim);
+            for ((s, a), next) in points.iter().zip(&predicted) {
+                features.extend(domain.features(s, a, next));
+            }
+            Ok::<_, Error>(evaluated.answer(&features, dim))
         })
-        .await?;
+        .await??;
         if answers
             .iter()
             .any(|p| !(p.mu.is_finite() && p.sigma.is_finite()))
@@ -356,7 +361,7 @@ impl Service {
         let dim = live.domain.feature_dim();
         let mut features = Vec::with_capacity(later.len() * dim);
         for t in &later {
-            features.extend(live.domain.features(&t.s, &t.a));
+            features.extend(live.domain.features(&t.s, &t.a, &t.s_pred));
         }
         let evaluated = model.clone();
         let slot = self.work.evaluation_slot(arrived).await?;

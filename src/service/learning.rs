@@ -324,10 +324,49 @@ impl Service {
         let precondition = live.precondition_for(&model, beta)?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
-        let mut features = Vec::with_capacity(points.len() * dim);
+        let client_side = domain.dynamics().client_side();
+        let reads_prediction = domain.features_use_prediction();
         for (i, p) in points.iter().enumerate() {
             live.check_step(&format!("points[{i}]"), &p.s, &p.a)?;
-            features.extend(domain.features(&p.s, &p.a));
+            match (&p.s_pred, client_side && reads_prediction) {
+                (Some(s_pred), true) => domain
+                    .validate_observed_state(s_pred)
+                    .map_err(|e| Error::invalid_at(&format!("points[{i}].s_pred"), e))?,
+                (None, true) => {
+                    return Err(Error::validation(
+                        format!("points[{i}].s_pred"),
+                        "the experiment's features read the model's prediction and its model \
+                         is the client's: send it with every point",
+                    ));
+                }
+                (Some(_), false) => {
+                    return Err(Error::validation(
+                        format!("points[{i}].s_pred"),
+                        "only a client-side model whose features read the prediction takes \
+                         one: the service predicts with any other model itself",
+                    ));
+                }
+                (None, false) => {}
+            }
+        }
+        // The prediction the features read: the client's, or the model's, asked in one call.
+        let predicted: Vec<Vec<f64>> = if !reads_prediction {
+            vec![Vec::new(); points.len()]
+        } else if client_side {
+            points
+                .iter()
+                .map(|p| p.s_pred.clone().unwrap_or_default())
+                .collect()
+        } else {
+            let pairs: Vec<(&[f64], &[f64])> = points
+                .iter()
+                .map(|p| (p.s.as_slice(), p.a.as_slice()))
+                .collect();
+            super::ingest::predict_pairs(&live, &pairs).await?
+        };
+        let mut features = Vec::with_capacity(points.len() * dim);
+        for (p, next) in points.iter().zip(&predicted) {
+            features.extend(domain.features(&p.s, &p.a, next));
         }
         let answers = if points.len() > INLINE_POINTS {
             let model = model.clone();

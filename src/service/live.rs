@@ -212,7 +212,7 @@ impl LiveExperiment {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
         let mut deviations = Vec::with_capacity(transitions.len());
         for t in transitions {
-            features.extend(self.domain.features(&t.s, &t.a));
+            features.extend(self.domain.features(&t.s, &t.a, &t.s_pred));
             deviations.push(t.deviation);
         }
         (features, deviations)
@@ -523,7 +523,10 @@ impl LiveExperiment {
         let mut features = Vec::with_capacity(transitions.len() * dim);
         let mut deviations = Vec::with_capacity(transitions.len());
         for t in transitions {
-            features.extend(self.domain.features(&t.observed.s, &t.observed.a));
+            features.extend(
+                self.domain
+                    .features(&t.observed.s, &t.observed.a, &t.s_pred),
+            );
             deviations.push(t.deviation);
         }
         let labels = capped_labels(&deviations, fit.label_cap, self.settings.d_max);

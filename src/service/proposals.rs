@@ -384,13 +384,13 @@ impl Service {
                 .await?;
             let steps = plans
                 .iter()
-                .flat_map(|p| p.states.iter().zip(&p.actions))
-                .filter(|(s, a)| {
+                .flat_map(|p| p.states.iter().zip(&p.actions).zip(p.states.iter().skip(1)))
+                .filter(|((s, a), _)| {
                     live.domain.validate_state(s).is_ok() && live.domain.validate_action(a).is_ok()
                 })
                 .take(room);
-            for (s, a) in steps {
-                features.extend(live.domain.features(s, a));
+            for ((s, a), next) in steps {
+                features.extend(live.domain.features(s, a, next));
             }
         }
         Ok(features)

@@ -59,6 +59,17 @@ pub struct FeaturesSpec {
     /// when `action` lists a component (experiments stored before it existed: `false`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub action_length: Option<bool>,
+    /// Components of the model's prediction `ŝ' = f̂(s, a)` fed to the MDE after them, by index,
+    /// each scaled to the unit box by the state's bounds: where a move ends, which decides most
+    /// of what a model ignores (a contact, a slope, a slippery patch). Default: every state
+    /// component for a remote or linear model, none for a client-side one (whose queries would
+    /// then have to carry `s_pred`); experiments stored before it existed: none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prediction: Option<Vec<usize>>,
+    /// Whether one more feature ends them: the length of the predicted move in the domain's
+    /// distance, over the state box's diagonal (in `[0, 1]`). Defaults as `prediction`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub move_length: Option<bool>,
 }
 
 /// Whether a custom domain's features end with the action's length unless the request says
@@ -270,10 +281,18 @@ impl CustomSpec {
             state: (0..n).collect(),
             action: (0..m).collect(),
             action_length: None,
+            prediction: None,
+            move_length: None,
         });
         features
             .action_length
             .get_or_insert(DEFAULT_ACTION_LENGTH && !features.action.is_empty());
+        // The model's prediction, where the service can ask for it itself.
+        let served = !matches!(self.model, ModelSpec::Client {});
+        features
+            .prediction
+            .get_or_insert_with(|| if served { (0..n).collect() } else { Vec::new() });
+        features.move_length.get_or_insert(served);
         self.distance.get_or_insert_with(|| DistanceSpec {
             weights: vec![1.0; n],
         });
@@ -323,14 +342,18 @@ impl CustomSpec {
             state: (0..n).collect(),
             action: (0..m).collect(),
             action_length: None,
+            prediction: None,
+            move_length: None,
         });
         let params = CustomParams {
             state,
             action,
             feature_state: features.state,
             feature_action: features.action,
-            // Resolved settings always say (stored ones since migration 0017).
+            // Resolved settings always say (stored ones since migrations 0017 and 0024).
             action_length: features.action_length.unwrap_or(false),
+            feature_prediction: features.prediction.unwrap_or_default(),
+            move_length: features.move_length.unwrap_or(false),
             weights: self
                 .distance
                 .as_ref()

@@ -47,12 +47,22 @@ async fn a_remote_model_labels_every_transition_in_one_call_with_the_declared_di
     // The resolved settings say what is used.
     assert_eq!(
         exp["domain"]["features"],
-        json!({"state": [0, 1], "action": [0, 1], "action_length": true})
+        json!({"state": [0, 1], "action": [0, 1], "action_length": true,
+               "prediction": [0, 1], "move_length": true})
     );
     assert_eq!(exp["domain"]["goal"]["components"], json!([0, 1]));
     assert_eq!(
         exp["feature_names"],
-        json!(["x", "y", "dx", "dy", "action_length"])
+        json!([
+            "x",
+            "y",
+            "dx",
+            "dy",
+            "action_length",
+            "predicted x",
+            "predicted y",
+            "move_length"
+        ])
     );
     let id = exp["id"].as_i64().unwrap();
     let transitions = [

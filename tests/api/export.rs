@@ -96,6 +96,18 @@ fn random_points(experiment: &Value, grid: bool, seed: u64) -> Vec<(Vec<f64>, Ve
 /// server's at 200 random points. Returns the export and the largest relative differences of
 /// `μ` and `σ`.
 async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel, f64, f64) {
+    parity_predicted(app, id, grid, seed, |_, _| Vec::new()).await
+}
+
+/// [`parity`] for features that read the model's prediction, `predict(s, a)` being the
+/// experiment's model (which the exported document's reader supplies).
+async fn parity_predicted(
+    app: &TestApp,
+    id: i64,
+    grid: bool,
+    seed: u64,
+    predict: impl Fn(&[f64], &[f64]) -> Vec<f64>,
+) -> (ExportedModel, f64, f64) {
     let (status, doc) = app.get_at(id, "model/export").await;
     assert_eq!(status, 200, "{doc}");
     assert_eq!(doc["format"], "precond-model");
@@ -118,7 +130,8 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
     let (mut worst_mu, mut worst_sigma, mut worst_resolution) = (0.0f64, 0.0f64, 0.0f64);
     let beta = answer["beta"].as_f64().unwrap();
     for ((s, a), want) in points.iter().zip(results) {
-        let (mu, sigma) = model.evaluate(s, a);
+        let s_pred = predict(s, a);
+        let (mu, sigma) = model.evaluate_predicted(s, a, &s_pred);
         let (want_mu, want_sigma) = (
             want["mu"].as_f64().unwrap(),
             want["sigma"].as_f64().unwrap(),
@@ -129,7 +142,7 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
         // Where σ² = s² − ‖F k‖² + … cancels many digits, σ is only defined to the rounding of
         // that sum, whatever the order it is summed in (the server's own σ of a point differs by
         // as much between a query of one point and a batch): allow that, and 1e-9 beyond it.
-        let x = model.feature_map.features(s, a);
+        let x = model.feature_map.features(s, a, &s_pred);
         let resolution =
             variance_rounding(&model.predictor.main, &x) / want_sigma.max(f64::MIN_POSITIVE);
         worst_resolution = worst_resolution.max(resolution);
@@ -142,7 +155,10 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
         let upper = want["upper"].as_f64().unwrap();
         // The verdict agrees wherever rounding cannot decide it.
         if (upper - model.d_max).abs() > 1e-9 {
-            assert_eq!(model.inside(s, a, beta), want["inside"].as_bool().unwrap());
+            assert_eq!(
+                model.inside(s, a, &s_pred, beta),
+                want["inside"].as_bool().unwrap()
+            );
         }
     }
     // Time per point (reported, not asserted: the machine is shared).
@@ -151,7 +167,7 @@ async fn parity(app: &TestApp, id: i64, grid: bool, seed: u64) -> (ExportedModel
     let mut sink = 0.0;
     for _ in 0..25 {
         for (s, a) in &points {
-            sink += model.evaluate_with(s, a, &mut scratch).1;
+            sink += model.evaluate_with(s, a, &predict(s, a), &mut scratch).1;
         }
     }
     let per_point = started.elapsed().as_secs_f64() / (25 * points.len()) as f64;
@@ -251,6 +267,43 @@ async fn an_exported_exact_gp_answers_as_the_server() {
         let (_, mu, sigma) = parity(&app, grid, true, 2).await;
         eprintln!("gridworld {features}, exact, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
     }
+}
+
+#[tokio::test]
+async fn an_export_whose_features_read_the_prediction_answers_as_the_server_given_it() {
+    let (_dir, app) = fresh_app().await;
+    // A custom domain whose model is "the state moves by the action": its default features
+    // read the prediction (where the move ends) and the predicted move's length.
+    let id = app
+        .create_experiment(json!({
+            "domain": {"kind": "custom",
+                       "state": {"low": [0, 0], "high": [1, 1]},
+                       "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+                       "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}},
+            "mde": {"restarts": 0},
+            "learning": {"batch_size": 2}
+        }))
+        .await;
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(e["domain"]["features"]["prediction"], json!([0, 1]), "{e}");
+    assert_eq!(e["domain"]["features"]["move_length"], true);
+    for k in 0..2 {
+        app.store_trajectory(id, &kinematic_trajectory(60, 60 * k, k as u64))
+            .await;
+    }
+    app.wait_for_model(id, 2).await;
+    let clip = |s: &[f64], a: &[f64]| -> Vec<f64> {
+        s.iter()
+            .zip(a)
+            .map(|(x, d)| (x + d).clamp(0.0, 1.0))
+            .collect()
+    };
+    let (model, mu, sigma) = parity_predicted(&app, id, false, 5, clip).await;
+    assert!(model.uses_prediction());
+    assert_eq!(model.predictor.dim(), 2 + 2 + 1 + 2 + 1);
+    // Without the prediction the document answers nothing rather than something wrong.
+    assert!(model.evaluate(&[0.5, 0.5], &[0.05, 0.0]).0.is_nan());
+    eprintln!("custom, prediction features: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
 }
 
 #[tokio::test]

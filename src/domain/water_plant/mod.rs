@@ -365,7 +365,7 @@ impl Domain for WaterPlant {
     }
 
     /// The action `(x, y, θ)` scaled by the action bounds, then `1` for a rotation, `0` otherwise.
-    fn features(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
+    fn features(&self, s: &[f64], a: &[f64], _s_pred: &[f64]) -> Vec<f64> {
         let rotates = matches!(
             self.motion(s, a),
             Motion::Rotate | Motion::TranslateAndRotate
@@ -757,13 +757,13 @@ mod tests {
     fn features_are_the_action_and_a_rotation_flag_in_the_unit_box() {
         let w = plant();
         let s = w.start_state(-0.125, 1.0);
-        let f = w.features(&s, &[-0.125, 1.0, 150f64.to_radians()]);
+        let f = w.features(&s, &[-0.125, 1.0, 150f64.to_radians()], &[]);
         assert_eq!(f.len(), w.feature_dim());
         assert_relative_eq!(f[0], 0.5, epsilon = 1e-12);
         assert_relative_eq!(f[1], 0.5, epsilon = 1e-12);
         assert_relative_eq!(f[2], 1.0, epsilon = 1e-12);
         assert_eq!(f[3], 1.0);
-        let f = w.features(&s, &[0.75, 0.25, 0.0]);
+        let f = w.features(&s, &[0.75, 0.25, 0.0], &[]);
         assert_eq!(f, vec![1.0, 0.0, 0.0, 0.0]);
         assert_eq!(w.feature_names().len(), 4);
     }
