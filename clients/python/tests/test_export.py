@@ -48,7 +48,7 @@ def documents() -> Iterator[dict[str, Any]]:
         "test_beta": 2.0,
         "state_dim": 2,
         "action_dim": 2,
-        "feature_names": ["x", "y", "dx", "dy", "action_length"],
+        "feature_names": ["x", "y", "dx", "dy", "action_length", "x'", "y'", "move_length"],
         "feature_map": {
             "kind": "unit_box",
             "state_low": [0, 0],
@@ -58,9 +58,12 @@ def documents() -> Iterator[dict[str, Any]]:
             "state_components": [0, 1],
             "action_components": [0, 1],
             "action_length": True,
+            "prediction_components": [0, 1],
+            "weights": [1.0, 2.0],
+            "move_length": True,
         },
         "predictor": {
-            "main": gp(3, 5, variance=True),
+            "main": gp(3, 8, variance=True),
             "noise": {"kind": "homoscedastic", "noise_variance": 1e-4},
         },
     }
@@ -68,10 +71,10 @@ def documents() -> Iterator[dict[str, Any]]:
     hetero = copy.deepcopy(base)
     hetero["estimator"] = "sparse"
     hetero["predictor"] = {
-        "main": gp(3, 5, variance=True, correction=True),
+        "main": gp(3, 8, variance=True, correction=True),
         "noise": {
             "kind": "heteroscedastic",
-            "log_noise": gp(2, 5, variance=False),
+            "log_noise": gp(2, 8, variance=False),
             "noise_variance_min": 1e-6,
             "noise_variance_max": 1.0,
         },
@@ -134,9 +137,9 @@ def test_the_documents_read_are_the_specs_model_export() -> None:
             props = schema_properties(schema)
             assert set(part) == props[part.get("kind", "") if len(props) > 1 else ""], schema
         model = ExportedModel.from_json(doc)
-        mu, sigma = model.evaluate(
-            np.full((5, doc["state_dim"]), 0.5), np.zeros((5, 3))[:, : doc["action_dim"]]
-        )
+        states = np.full((5, doc["state_dim"]), 0.5)
+        predicted = states + 0.01 if model.uses_prediction else None
+        mu, sigma = model.evaluate(states, np.zeros((5, 3))[:, : doc["action_dim"]], predicted)
         assert mu.shape == sigma.shape == (5,) and np.all(np.isfinite(sigma))
         # Every property is read: without it the document is refused.
         for _schema, part in keyed_parts(doc):
@@ -220,20 +223,33 @@ def test_an_exported_model_answers_as_the_server(
     assert feature_map["kind"] == (
         "unit_box" if features in ("state_action", "custom") else "kinematic_prediction"
     )
-    assert feature_map.get("move_length", False) == (features == "state_action_prediction_length")
     assert feature_map.get("action_length", False) == (features == "custom")
+    # A custom domain's features read the model's prediction by default (where the move
+    # ends, and its length): the robot passes its own model's f̂(s, a) to the document.
+    assert feature_map.get("prediction_components", []) == ([0, 1] if features == "custom" else [])
+    assert feature_map.get("move_length", False) == (
+        features in ("state_action_prediction_length", "custom")
+    )
+    assert model.uses_prediction == (features == "custom")
     path = tmp_path / "mde.json"
     model.save(path)
     loaded = ExportedModel.load(path)
 
     states = rng.uniform(0, 1, size=(200, 2))
     actions = rng.uniform(-0.1, 0.1, size=(200, 2))
+    # The custom domain's linear model: clip(s + a) to the state's box.
+    predicted = np.clip(states + actions, 0.0, 1.0) if model.uses_prediction else None
+    if model.uses_prediction:
+        with pytest.raises(ValueError, match="predicted"):
+            model.evaluate(states, actions)
     server_answer = client.precondition((states, actions), beta=1.5)
     for m in (model, loaded):
-        mu, sigma = m.evaluate(states, actions)
+        mu, sigma = m.evaluate(states, actions, predicted)
         np.testing.assert_allclose(mu, server_answer.mu, rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(sigma, server_answer.sigma, rtol=1e-9, atol=1e-9)
-        np.testing.assert_array_equal(m.inside(states, actions, beta=1.5), server_answer.inside)
+        np.testing.assert_array_equal(
+            m.inside(states, actions, beta=1.5, predicted=predicted), server_answer.inside
+        )
     worst = max(
         float(np.max(np.abs(mu - server_answer.mu) / (1 + np.abs(server_answer.mu)))),
         float(np.max(np.abs(sigma - server_answer.sigma) / (1 + server_answer.sigma))),
@@ -249,8 +265,9 @@ def test_an_exported_model_answers_as_the_server(
             times.append(time.perf_counter() - started)
         return min(times)
 
-    batch = best(lambda: model.evaluate(states, actions)) / len(states)
-    single = best(lambda: model.evaluate(states[0], actions[0]))
+    batch = best(lambda: model.evaluate(states, actions, predicted)) / len(states)
+    one = None if predicted is None else predicted[0]
+    single = best(lambda: model.evaluate(states[0], actions[0], one))
     print(
         f"{estimator}: worst relative difference {worst:.1e}; "
         f"{batch * 1e6:.1f} µs a point in a batch, {single * 1e6:.0f} µs for one point"

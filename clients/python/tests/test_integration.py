@@ -177,8 +177,11 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
             client.post_trajectory(transitions_from_states(states, actions))
         fitted = client.refit()
         assert fitted.source == "fit" and fitted.n_train == 32 and fitted.version >= 1
-        # One per feature: x, y, dx, dy and the action's length.
-        assert len(fitted.hyperparameters.length_scales) == 5
+        # One per feature: x, y, dx, dy, the action's length, then the remote model's
+        # prediction (x̂, ŷ) and the predicted move's length (on by default for a model
+        # the service asks itself).
+        assert len(fitted.feature_names) == 8, fitted.feature_names
+        assert len(fitted.hyperparameters.length_scales) == 8
         assert fitted.label_cap in (2.0, 5.0, 0.0)  # chosen at the fit ("auto")
         assert len(fitted.raw["label_cap_trials"]) == 3
         # The prior already names the kernel every fit of the experiment uses.

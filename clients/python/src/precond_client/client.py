@@ -822,13 +822,16 @@ class Client:
         self,
         points: ArrayLike | tuple[ArrayLike, ArrayLike],
         beta: float | None = None,
+        predicted: ArrayLike | None = None,
     ) -> Precondition:
         """Judges state-actions: ``μ``, ``σ``, ``μ + βσ`` and whether each is inside the
         precondition, at ``beta`` (default the experiment's test β).
 
         ``points`` is either a pair ``(states, actions)`` of arrays ``(N, n)`` and ``(N, m)``,
-        or one array ``(N, n + m)`` whose first ``n`` columns are the state. Large queries are
-        sent in chunks.
+        or one array ``(N, n + m)`` whose first ``n`` columns are the state. ``predicted``
+        ``(N, n)`` is the model's ``f̂(s, a)`` per point, needed only when the model is the
+        client's and the features read its prediction (``features.prediction``): the service
+        asks every other model itself. Large queries are sent in chunks.
         """
         if isinstance(points, tuple):
             states, actions = mat(points[0]), mat(points[1])
@@ -843,15 +846,20 @@ class Client:
             raise ValueError(f"{len(states)} states for {len(actions)} actions")
         if len(states) == 0:
             raise ValueError("no points to judge")
+        preds = None if predicted is None else mat(predicted)
+        if preds is not None and len(preds) != len(states):
+            raise ValueError(f"{len(preds)} predictions for {len(states)} states")
         parts = []
         for lo in range(0, len(states), PRECONDITION_CHUNK):
             hi = lo + PRECONDITION_CHUNK
-            body: dict[str, Any] = {
-                "points": [
-                    {"s": as_list(s), "a": as_list(a)}
-                    for s, a in zip(states[lo:hi], actions[lo:hi], strict=True)
-                ]
-            }
+            chunk: list[dict[str, Any]] = [
+                {"s": as_list(s), "a": as_list(a)}
+                for s, a in zip(states[lo:hi], actions[lo:hi], strict=True)
+            ]
+            if preds is not None:
+                for point, p in zip(chunk, preds[lo:hi], strict=True):
+                    point["s_pred"] = as_list(p)
+            body: dict[str, Any] = {"points": chunk}
             if beta is not None:
                 body["beta"] = float(beta)
             r = self._request("POST", self._path("/precondition"), json=body)

@@ -10,6 +10,8 @@ feature map ``φ(s, a)``, the fitted GP as plain numbers and ``d_max`` — and a
     model.save("mde.json")                     # later, on the robot: ExportedModel.load(...)
     mu, sigma = model.evaluate(states, actions)
     ok = model.inside(states, actions, beta=2.0)
+    # features that read the model's prediction (custom domains' default): pass f̂(s, a)
+    ok = model.inside(states, actions, predicted=f_hat(states, actions))
 
 It is not a dataclass of :mod:`precond_client.models`, whose wire rules
 (``tests/test_wire.py``) bind a class's fields to a schema's properties one to one: this class
@@ -145,6 +147,11 @@ class _FeatureMap:
             self.action_length = bool(m.get("action_length", False))
             if self.action_length and not self.components[1]:
                 raise ValueError("feature_map.action_length: needs an action component")
+            self.prediction = [int(i) for i in m.get("prediction_components", [])]
+            self.weights = _vec(m.get("weights", []))
+            self.move_length = bool(m.get("move_length", False))
+            if self.move_length and len(self.weights) != state_dim:
+                raise ValueError("feature_map.weights: move_length needs one weight per state")
         elif self.kind == "kinematic_prediction":
             self.low = _vec(m["state_low"]), _vec(m["action_low"])
             self.high = _vec(m["state_high"]), _vec(m["action_high"])
@@ -174,26 +181,49 @@ class _FeatureMap:
     def dim(self) -> int:
         """How many features the map computes."""
         if self.kind == "unit_box":
-            return sum(len(c) for c in self.components) + int(self.action_length)
+            return (
+                sum(len(c) for c in self.components)
+                + int(self.action_length)
+                + len(self.prediction)
+                + int(self.move_length)
+            )
         if self.kind == "kinematic_prediction":
             return 3 * len(self.low[0]) + int(self.move_length)
         if self.kind == "per_move":
             return 3 * len(self.moves)
         return len(self.low[1]) + 1
 
-    def __call__(self, s: Array, a: Array) -> Array:
+    @property
+    def uses_prediction(self) -> bool:
+        """Whether ``φ`` reads the model's prediction ``ŝ' = f̂(s, a)``."""
+        return self.kind == "unit_box" and (bool(self.prediction) or self.move_length)
+
+    def __call__(self, s: Array, a: Array, predicted: Array | None = None) -> Array:
         if self.kind == "unit_box":
-            fs = _unit(s, self.low[0], self.high[0])[:, self.components[0]]
-            fa = _unit(a, self.low[1], self.high[1])[:, self.components[1]]
-            if not self.action_length:
-                return np.hstack([fs, fa])
-            # The listed action components' length, each over its largest magnitude (RMS).
-            comps = self.components[1]
-            reach = np.maximum(np.abs(self.low[1]), np.abs(self.high[1]))[comps]
-            safe = np.where(reach > 0.0, reach, 1.0)
-            share = np.where(reach > 0.0, a[:, comps] / safe, 0.0)
-            length = np.minimum(np.sqrt(np.mean(share**2, axis=1)), 1.0)
-            return np.hstack([fs, fa, length[:, None]])
+            parts = [
+                _unit(s, self.low[0], self.high[0])[:, self.components[0]],
+                _unit(a, self.low[1], self.high[1])[:, self.components[1]],
+            ]
+            if self.action_length:
+                # The listed action components' length, each over its largest magnitude (RMS).
+                comps = self.components[1]
+                reach = np.maximum(np.abs(self.low[1]), np.abs(self.high[1]))[comps]
+                safe = np.where(reach > 0.0, reach, 1.0)
+                share = np.where(reach > 0.0, a[:, comps] / safe, 0.0)
+                length = np.minimum(np.sqrt(np.mean(share**2, axis=1)), 1.0)
+                parts.append(length[:, None])
+            if self.uses_prediction:
+                assert predicted is not None
+                parts.append(_unit(predicted, self.low[0], self.high[0])[:, self.prediction])
+                if self.move_length:
+                    # The predicted move's weighted length over the state box's diagonal.
+                    moved = np.sqrt(np.sum(self.weights * (predicted - s) ** 2, axis=1))
+                    diagonal = math.sqrt(
+                        float(np.sum(self.weights * (self.high[0] - self.low[0]) ** 2))
+                    )
+                    fraction = moved / diagonal if diagonal > 0.0 else np.zeros(len(s))
+                    parts.append(fraction[:, None])
+            return np.hstack(parts)
         if self.kind == "kinematic_prediction":
             predicted = np.clip(s + a, self.low[0], self.high[0])
             parts = [
@@ -293,18 +323,41 @@ class ExportedModel:
         """Reads a document written by :meth:`save` (or saved from the endpoint)."""
         return cls(json.loads(Path(path).read_text(encoding="utf-8")))
 
-    def features(self, states: ArrayLike, actions: ArrayLike) -> Array:
-        """``φ(s, a)`` per row, ``(N, D)``, exactly as the server computes it."""
+    @property
+    def uses_prediction(self) -> bool:
+        """Whether the features read the model's prediction ``ŝ' = f̂(s, a)`` (a custom
+        domain's ``features.prediction`` or ``move_length``): then every call needs
+        ``predicted``, from the robot's own model, since the document does not hold it."""
+        return self._map.uses_prediction
+
+    def features(
+        self, states: ArrayLike, actions: ArrayLike, predicted: ArrayLike | None = None
+    ) -> Array:
+        """``φ(s, a)`` per row, ``(N, D)``, exactly as the server computes it; ``predicted``
+        holds the model's ``f̂(s, a)`` per row when :attr:`uses_prediction`."""
         s = _rows(states, self.state_dim, "states")
         a = _rows(actions, self.action_dim, "actions")
         if len(s) != len(a):
             raise ValueError(f"{len(s)} states for {len(a)} actions")
-        return self._map(s, a)
+        p: Array | None = None
+        if self._map.uses_prediction:
+            if predicted is None:
+                raise ValueError(
+                    "predicted: the features read the model's prediction f̂(s, a); "
+                    "pass one row per state"
+                )
+            p = _rows(predicted, self.state_dim, "predicted")
+            if len(p) != len(s):
+                raise ValueError(f"{len(p)} predictions for {len(s)} states")
+        return self._map(s, a, p)
 
-    def evaluate(self, states: ArrayLike, actions: ArrayLike) -> tuple[Array, Array]:
+    def evaluate(
+        self, states: ArrayLike, actions: ArrayLike, predicted: ArrayLike | None = None
+    ) -> tuple[Array, Array]:
         """``(μ, σ)`` per row of ``states`` ``(N, n)`` and ``actions`` ``(N, m)`` (one row
-        each may be a plain vector); ``σ`` includes the noise, as the server's."""
-        x = self.features(states, actions)
+        each may be a plain vector; ``predicted`` ``(N, n)`` when :attr:`uses_prediction`);
+        ``σ`` includes the noise, as the server's."""
+        x = self.features(states, actions, predicted)
         mu = np.empty(len(x))
         sigma = np.empty(len(x))
         for lo in range(0, len(x), _CHUNK):
@@ -320,18 +373,28 @@ class ExportedModel:
             sigma[lo : lo + len(xc)] = np.sqrt(var + noise)
         return mu, sigma
 
-    def upper(self, states: ArrayLike, actions: ArrayLike, beta: float | None = None) -> Array:
+    def upper(
+        self,
+        states: ArrayLike,
+        actions: ArrayLike,
+        beta: float | None = None,
+        predicted: ArrayLike | None = None,
+    ) -> Array:
         """``μ + βσ`` per row (``beta`` default :attr:`test_beta`)."""
-        mu, sigma = self.evaluate(states, actions)
+        mu, sigma = self.evaluate(states, actions, predicted)
         b = self.test_beta if beta is None else float(beta)
         upper: Array = mu + b * sigma
         return upper
 
     def inside(
-        self, states: ArrayLike, actions: ArrayLike, beta: float | None = None
+        self,
+        states: ArrayLike,
+        actions: ArrayLike,
+        beta: float | None = None,
+        predicted: ArrayLike | None = None,
     ) -> NDArray[np.bool_]:
         """Whether each row lies in the precondition ``μ + βσ < d_max`` (NaN: outside)."""
-        inside: NDArray[np.bool_] = self.upper(states, actions, beta) < self.d_max
+        inside: NDArray[np.bool_] = self.upper(states, actions, beta, predicted) < self.d_max
         return inside
 
     def __repr__(self) -> str:
