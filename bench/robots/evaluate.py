@@ -44,14 +44,15 @@ class Failures:
 
 
 def service_planner(client: Client, failures: Failures, beta: float | None = None,
-                    timings: list[float] | None = None) -> Planner:
+                    timings: list[float] | None = None,
+                    max_extensions: int | None = None) -> Planner:
     """``client.plan`` at ``beta`` (None: the experiment's test β); a refused or failed plan is
     "no plan", counted in ``failures``."""
 
     def plan(start: Array, goal: Array) -> Planned | None:
         t0 = time.monotonic()
         try:
-            p = client.plan(start, goal, beta=beta)
+            p = client.plan(start, goal, beta=beta, max_extensions=max_extensions)
         except errors.ApiError as e:
             failures.add("plan", e)
             return None

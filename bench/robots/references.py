@@ -13,6 +13,8 @@ from __future__ import annotations
 
 from typing import Any
 
+import time
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -28,6 +30,10 @@ class ModelFns:
         self.robot = robot
         self.points = 0
         self.simulated = 0
+        self.deadline: float | None = None
+        """When the current reference plan's search is past the server's deadline, the server
+        has given it up: the rest of its calls are answered without simulating."""
+        self.skipped = 0
 
     def lab(self, states: Array, actions: Array) -> tuple[Array, NDArray[np.bool_]]:
         """What the learned experiment and the baseline are served: ``f̂`` and the lab's check."""
@@ -40,6 +46,9 @@ class ModelFns:
         self.points += len(states)
         nxt = self.robot.f_hat(states, actions)
         valid = self.robot.lab_valid(states, actions)
+        if self.deadline is not None and time.monotonic() > self.deadline:
+            self.skipped += len(states)
+            return nxt, np.zeros(len(states), dtype=bool)
         idx = np.flatnonzero(valid)
         if len(idx):
             true = self.robot.true_steps(states[idx], actions[idx])
@@ -48,4 +57,5 @@ class ModelFns:
         return nxt, valid
 
     def stats(self) -> dict[str, Any]:
-        return {"points": self.points, "simulated": self.simulated}
+        return {"points": self.points, "simulated": self.simulated,
+                "skipped_after_deadline": self.skipped}

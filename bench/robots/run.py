@@ -102,6 +102,23 @@ class Server:
             self.proc.wait()
 
 
+def count_statuses(client: Client) -> None:
+    """Counts every HTTP answer by route and status (``POST proposals 503``), retried ones
+    included: the client retries 5xx answers, so its exceptions alone would hide them."""
+    import re
+    from collections import Counter
+
+    statuses: Counter[str] = Counter()
+    client.statuses = statuses  # type: ignore[attr-defined]
+
+    def hook(response: Any) -> None:
+        path = re.sub(r"/\d+", "", response.request.url.path).replace("/v1/experiments", "")
+        if response.status_code >= 400 or path.endswith(("/plans", "/proposals")):
+            statuses[f"{response.request.method} {path or '/'} {response.status_code}"] += 1
+
+    client._http.event_hooks["response"].append(hook)
+
+
 def learning_settings(args: argparse.Namespace, preset: str) -> dict[str, Any]:
     return {"preset": preset, "batch_size": args.batch, "iterations": args.iterations}
 
@@ -117,13 +134,19 @@ def reference_run(robot: Robot, seed: int, ts: dict[str, Any], args: argparse.Na
     with serve_model(fns.oracle, "127.0.0.1", 0, path="/oracle") as om, \
             serve_model(fns.lab, "127.0.0.1", 0, path="/lab") as lm:
         # The oracle simulates every point the planner asks about: give its searches time.
+        # The oracle simulates every point the planner asks about, so its searches take longer
+        # than the learned column's; they get --reference-plan-seconds each (no retry), and a
+        # search cut by it counts as "no plan" (reported as plan:deadline_exceeded).
+        limit_ms = int(args.reference_plan_seconds * 1000)
         server = Server(args.binary, dbdir / f"{robot.name}-references-{seed}.db",
                         [om.port, lm.port],
-                        ["--plan-timeout-ms", "600000", "--max-model-timeout-ms", "600000"])
+                        ["--plan-timeout-ms", str(limit_ms), "--max-model-timeout-ms", str(limit_ms)])
         try:
-            client = Client(server.url, timeout=900, client_id=f"bench-{robot.name}", retries=1)
+            client = Client(server.url, timeout=args.reference_plan_seconds + 60,
+                            client_id=f"bench-{robot.name}", retries=0)
+            count_statuses(client)
             client.wait_ready(30)
-            for col, model_url, timeout_ms in [("oracle", om.url, 600000), ("baseline", lm.url, None)]:
+            for col, model_url, timeout_ms in [("oracle", om.url, limit_ms), ("baseline", lm.url, None)]:
                 domain = robot.domain(model_url)
                 if timeout_ms is not None:
                     domain["model"]["timeout_ms"] = timeout_ms
@@ -134,12 +157,23 @@ def reference_run(robot: Robot, seed: int, ts: dict[str, Any], args: argparse.Na
                 timings: list[float] = []
                 sim0 = fns.simulated
                 t0 = time.monotonic()
-                planner = ev.service_planner(client, failures, beta=REFERENCE_BETA, timings=timings)
+                inner = ev.service_planner(client, failures, beta=REFERENCE_BETA, timings=timings,
+                                           max_extensions=args.reference_max_extensions)
+
+                def planner(start: Array, goal: Array) -> ev.Planned | None:
+                    fns.deadline = time.monotonic() + args.reference_plan_seconds
+                    try:
+                        return inner(start, goal)
+                    finally:
+                        fns.deadline = None
+
                 res = ev.test_plans(robot, planner, ts["problems"], closed=True)
                 res["failures"] = failures.as_dict()
                 res["plan_seconds"] = timings
                 res["seconds"] = time.monotonic() - t0
                 res["simulated_points"] = fns.simulated - sim0
+                res["http_statuses"] = dict(client.statuses)  # type: ignore[attr-defined]
+                client.statuses.clear()  # type: ignore[attr-defined]
                 out[col] = res
                 log.info("%s seed %d %s: plans %.2f open %.2f closed %.2f (%.0f s)", robot.name,
                          seed, col, res["plans_found"], res["open_loop_success"],
@@ -163,6 +197,7 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
         server = Server(args.binary, dbdir / f"{robot.name}-{preset}-{seed}.db", [model.port], [])
         try:
             client = Client(server.url, timeout=120, client_id=f"bench-{robot.name}", retries=1)
+            count_statuses(client)
             client.wait_ready(30)
             exp = client.create_experiment(
                 name=f"{robot.name} {preset} seed {seed}", d_max=robot.d_max, seed=seed,
@@ -193,7 +228,7 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
             counters = {"no_plan": 0, "at_goal": 0, "abandoned": 0, "deviations_over_dmax": 0,
                         "transitions": 0, "relaxed": 0}
             curve: list[dict[str, Any]] = []
-            max_requests = total * 10
+            max_requests = total * args.max_requests_per_trajectory
             final: dict[str, Any] | None = None
 
             def evaluate(iteration: int) -> dict[str, Any]:
@@ -260,6 +295,7 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
                 "fit_seconds": [r["fit_seconds"] for r in curve if r.get("fit_seconds") is not None],
                 "counters": counters,
                 "refused_on_server": exp_now.n_refused,
+                "http_statuses": dict(client.statuses),  # type: ignore[attr-defined]
                 "curve": curve,
                 "final": final,
             })
@@ -290,6 +326,17 @@ def main() -> None:
     ap.add_argument("--curve-plans", action="store_true",
                     help="also plan the test problems (open loop) at every iteration")
     ap.add_argument("--no-references", action="store_true")
+    ap.add_argument("--reference-plan-seconds", type=float, default=90.0,
+                    help="wall-clock limit of one reference plan (the oracle simulates each point)")
+    ap.add_argument("--max-requests-per-trajectory", type=int, default=4,
+                    help="a learning run stops after this many proposal requests per planned "
+                         "trajectory (no_plan answers repeat on a stuck run)")
+    ap.add_argument("--reference-seeds-early", type=int, default=2,
+                    help="run the references of the first N seeds right after their learning "
+                         "runs, the others after every learning run")
+    ap.add_argument("--reference-max-extensions", type=int, default=None,
+                    help="extension budget of the references' plans (default: the server's, as "
+                         "the learned column's)")
     ap.add_argument("--quick", action="store_true",
                     help="smoke test: 1 seed, 3 iterations, 4 test problems, 100 held out")
     ap.add_argument("--out", type=Path, default=None)
@@ -313,12 +360,15 @@ def main() -> None:
         "iterations": args.iterations, "batch": args.batch, "test_problems": args.test_problems,
         "held_out": args.held_out, "closed_loop_budget": ev.CLOSED_LOOP_BUDGET,
         "reference_beta": REFERENCE_BETA,
+        "reference_max_extensions": args.reference_max_extensions,
+        "reference_plan_seconds": args.reference_plan_seconds,
+        "max_requests_per_trajectory": args.max_requests_per_trajectory,
     }
     (args.out / "meta.json").write_text(json.dumps(meta, indent=1))
     presets = [p for p in args.presets.split(",") if p]
-    t0 = time.monotonic()
+    robots: dict[str, Robot] = {}
     for name in args.robots.split(","):
-        robot = robot_class(name)()
+        robot = robots[name] = robot_class(name)()
         (args.out / f"{name}-robot.json").write_text(json.dumps(jsonable({
             "name": robot.name, "description": robot.description, "state": robot.state_names,
             "state_low": robot.state_low, "state_high": robot.state_high,
@@ -327,35 +377,47 @@ def main() -> None:
             "distance_weights": robot.distance_weights, "goal_components": robot.goal_components,
             "goal_radius": robot.goal_radius, "problem_distance": robot.problem_distance,
             "parameters": robot.parameters()}), indent=1))
-        for seed in range(args.first_seed, args.first_seed + args.seeds):
-            ts = test_set(robot, seed, args.test_problems, args.held_out)
-            truth = {"truly_safe_share": float(np.mean(ts["held_dev"] < robot.d_max)),
-                     "held_out_deviation_quantiles": np.quantile(ts["held_dev"], [0.1, 0.25, 0.5, 0.75, 0.9])}
-            jobs: list[tuple[str, Any]] = []
-            if not args.no_references:
-                jobs.append(("references", None))
-            jobs += [("learning", p) for p in presets]
-            for kind, preset in jobs:
-                tag = f"{name}-{preset or 'references'}-{seed}"
-                path = args.out / f"{tag}.json"
-                if path.exists():
-                    log.info("%s: already measured", tag)
-                    continue
-                t1 = time.monotonic()
-                try:
-                    if kind == "references":
-                        res = reference_run(robot, seed, ts, args, dbdir)
-                    else:
-                        res = learning_run(robot, preset, seed, ts, args, dbdir)
-                except Exception as e:  # record and go on with the next run
-                    log.error("%s failed: %s", tag, e)
-                    res = {"robot": name, "preset": preset, "seed": seed, "kind": kind,
-                           "error": repr(e), "traceback": traceback.format_exc()}
-                res.update(truth)
-                res["wall_seconds"] = time.monotonic() - t1
-                path.write_text(json.dumps(jsonable(res), indent=1))
-                log.info("%s: %.0f s (total %.0f s)", tag, res["wall_seconds"], time.monotonic() - t0)
-    summary.write(args.out)
+    # Seed-major, all learning runs before the references: an interrupted bench has whole
+    # seeds of the learned columns (what the bench is for), and references for the first seeds.
+    t0 = time.monotonic()
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    early = seeds[: args.reference_seeds_early]
+    order: list[tuple[str, list[Any], int]] = []
+    for seed in seeds:
+        order.append(("learning", presets, seed))
+        if seed in early and not args.no_references:
+            order.append(("references", [None], seed))
+    if not args.no_references:
+        order += [("references", [None], seed) for seed in seeds if seed not in early]
+    for kind, variants, seed in order:
+        if True:
+            for name, robot in robots.items():
+                ts = test_set(robot, seed, args.test_problems, args.held_out)
+                truth = {"truly_safe_share": float(np.mean(ts["held_dev"] < robot.d_max)),
+                         "held_out_deviation_quantiles":
+                             np.quantile(ts["held_dev"], [0.1, 0.25, 0.5, 0.75, 0.9])}
+                for preset in variants:
+                    tag = f"{name}-{preset or 'references'}-{seed}"
+                    path = args.out / f"{tag}.json"
+                    if path.exists():
+                        log.info("%s: already measured", tag)
+                        continue
+                    t1 = time.monotonic()
+                    try:
+                        if kind == "references":
+                            res = reference_run(robot, seed, ts, args, dbdir)
+                        else:
+                            res = learning_run(robot, preset, seed, ts, args, dbdir)
+                    except Exception as e:  # record and go on with the next run
+                        log.error("%s failed: %s", tag, e)
+                        res = {"robot": name, "preset": preset, "seed": seed, "kind": kind,
+                               "error": repr(e), "traceback": traceback.format_exc()}
+                    res.update(truth)
+                    res["wall_seconds"] = time.monotonic() - t1
+                    path.write_text(json.dumps(jsonable(res), indent=1))
+                    log.info("%s: %.0f s (total %.0f s)", tag, res["wall_seconds"],
+                             time.monotonic() - t0)
+            summary.write(args.out)
     log.info("done in %.0f s; %s", time.monotonic() - t0, args.out / "summary.md")
 
 
