@@ -46,14 +46,16 @@ class ModelFns:
         self.points += len(states)
         nxt = self.robot.f_hat(states, actions)
         valid = self.robot.lab_valid(states, actions)
-        if self.deadline is not None and time.monotonic() > self.deadline:
-            self.skipped += len(states)
-            return nxt, np.zeros(len(states), dtype=bool)
-        idx = np.flatnonzero(valid)
-        if len(idx):
-            true = self.robot.true_steps(states[idx], actions[idx])
-            self.simulated += len(idx)
-            valid[idx] = self.robot.distance(nxt[idx], true) < self.robot.d_max
+        for chunk in np.array_split(np.flatnonzero(valid), max(1, len(states) // 64)):
+            if len(chunk) == 0:
+                continue
+            if self.deadline is not None and time.monotonic() > self.deadline:
+                self.skipped += len(chunk)
+                valid[chunk] = False
+                continue
+            true = self.robot.true_steps(states[chunk], actions[chunk])
+            self.simulated += len(chunk)
+            valid[chunk] = self.robot.distance(nxt[chunk], true) < self.robot.d_max
         return nxt, valid
 
     def stats(self) -> dict[str, Any]:

@@ -165,7 +165,7 @@ def reference_run(robot: Robot, seed: int, ts: dict[str, Any], args: argparse.Na
                     try:
                         return inner(start, goal)
                     finally:
-                        fns.deadline = None
+                        fns.deadline = time.monotonic()  # what still arrives is stale
 
                 res = ev.test_plans(robot, planner, ts["problems"], closed=True)
                 res["failures"] = failures.as_dict()
@@ -331,9 +331,14 @@ def main() -> None:
     ap.add_argument("--max-requests-per-trajectory", type=int, default=4,
                     help="a learning run stops after this many proposal requests per planned "
                          "trajectory (no_plan answers repeat on a stuck run)")
+    ap.add_argument("--order", choices=["seeds", "first-preset"], default="seeds",
+                    help="seeds: seed by seed, every preset, the references of the first "
+                         "--reference-seeds-early seeds after them and the others at the end; "
+                         "first-preset: the first preset and the references seed by seed, then "
+                         "the other presets (an interrupted bench has whole seeds of them)")
     ap.add_argument("--reference-seeds-early", type=int, default=2,
-                    help="run the references of the first N seeds right after their learning "
-                         "runs, the others after every learning run")
+                    help="with --order seeds: run the references of the first N seeds right "
+                         "after their learning runs, the others after every learning run")
     ap.add_argument("--reference-max-extensions", type=int, default=None,
                     help="extension budget of the references' plans (default: the server's, as "
                          "the learned column's)")
@@ -381,14 +386,23 @@ def main() -> None:
     # seeds of the learned columns (what the bench is for), and references for the first seeds.
     t0 = time.monotonic()
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    early = seeds[: args.reference_seeds_early]
     order: list[tuple[str, list[Any], int]] = []
-    for seed in seeds:
-        order.append(("learning", presets, seed))
-        if seed in early and not args.no_references:
-            order.append(("references", [None], seed))
-    if not args.no_references:
-        order += [("references", [None], seed) for seed in seeds if seed not in early]
+    if args.order == "seeds":
+        # Seed by seed, every preset; the references of the first seeds right after them.
+        early = seeds[: args.reference_seeds_early]
+        for seed in seeds:
+            order.append(("learning", presets, seed))
+            if seed in early and not args.no_references:
+                order.append(("references", [None], seed))
+        if not args.no_references:
+            order += [("references", [None], seed) for seed in seeds if seed not in early]
+    else:
+        # The first preset and the references seed by seed, then the other presets.
+        for seed in seeds:
+            order.append(("learning", presets[:1], seed))
+            if not args.no_references:
+                order.append(("references", [None], seed))
+        order += [("learning", presets[1:], seed) for seed in seeds]
     for kind, variants, seed in order:
         if True:
             for name, robot in robots.items():
