@@ -73,11 +73,14 @@ def open_loop(robot: Robot, start: Array, goal: Array, planned: Planned) -> tupl
 
 
 def closed_loop(robot: Robot, planner: Planner, start: Array, goal: Array,
-                first: Planned) -> dict[str, Any]:
+                first: Planned, seconds: float | None = None) -> dict[str, Any]:
     """Step by step: after each step, re-plan from where the robot is when the observed state is
     farther than ``d_max`` from the plan's prediction, or when the plan ran out short of the goal;
     at most ``CLOSED_LOOP_BUDGET`` × the first plan's length steps. Success: within the goal
-    (checked after every step). A re-plan that finds nothing ends the attempt."""
+    (checked after every step). A re-plan that finds nothing ends the attempt, and so does a
+    re-plan due after ``seconds`` of wall time (outcome ``time``: the references' slow
+    planner)."""
+    t0 = time.monotonic()
     budget = CLOSED_LOOP_BUDGET * len(first[0])
     s = np.asarray(start, dtype=np.float64)
     actions, states = first
@@ -86,6 +89,9 @@ def closed_loop(robot: Robot, planner: Planner, start: Array, goal: Array,
     outcome = "budget"
     while steps < budget:
         if i >= len(actions):
+            if seconds is not None and time.monotonic() - t0 > seconds:
+                outcome = "time"
+                break
             replans += 1
             p = planner(s, goal)
             if p is None:
@@ -108,7 +114,7 @@ def closed_loop(robot: Robot, planner: Planner, start: Array, goal: Array,
 
 
 def test_plans(robot: Robot, planner: Planner, problems: list[tuple[Array, Array]],
-               closed: bool) -> dict[str, Any]:
+               closed: bool, closed_seconds: float | None = None) -> dict[str, Any]:
     """Plans found, open-loop (and closed-loop) success, and the true deviation of every planned
     step (executed from its planned state) over the test problems."""
     found = opened = closed_ok = 0
@@ -129,7 +135,7 @@ def test_plans(robot: Robot, planner: Planner, problems: list[tuple[Array, Array
             planned_steps += len(dev)
             row.update(length=len(actions), open_loop=ok, max_step_deviation=float(dev.max()))
             if closed:
-                c = closed_loop(robot, planner, start, goal, p)
+                c = closed_loop(robot, planner, start, goal, p, closed_seconds)
                 closed_ok += c["success"]
                 row["closed_loop"] = c
         per_problem.append(row)

@@ -167,7 +167,10 @@ def reference_run(robot: Robot, seed: int, ts: dict[str, Any], args: argparse.Na
                     finally:
                         fns.deadline = time.monotonic()  # what still arrives is stale
 
-                res = ev.test_plans(robot, planner, ts["problems"], closed=True)
+                res = ev.test_plans(robot, planner, ts["problems"], closed=True,
+                                    closed_seconds=args.reference_closed_loop_seconds)
+                res["closed_loop_out_of_time"] = sum(
+                    1 for p in res["problems"] if p.get("closed_loop", {}).get("outcome") == "time")
                 res["failures"] = failures.as_dict()
                 res["plan_seconds"] = timings
                 res["seconds"] = time.monotonic() - t0
@@ -328,6 +331,9 @@ def main() -> None:
     ap.add_argument("--no-references", action="store_true")
     ap.add_argument("--reference-plan-seconds", type=float, default=90.0,
                     help="wall-clock limit of one reference plan (the oracle simulates each point)")
+    ap.add_argument("--reference-closed-loop-seconds", type=float, default=150.0,
+                    help="wall-clock budget of one reference closed-loop attempt: no re-plan "
+                         "starts after it (outcome 'time', counted as a failure)")
     ap.add_argument("--max-requests-per-trajectory", type=int, default=4,
                     help="a learning run stops after this many proposal requests per planned "
                          "trajectory (no_plan answers repeat on a stuck run)")
@@ -367,6 +373,7 @@ def main() -> None:
         "reference_beta": REFERENCE_BETA,
         "reference_max_extensions": args.reference_max_extensions,
         "reference_plan_seconds": args.reference_plan_seconds,
+        "reference_closed_loop_seconds": args.reference_closed_loop_seconds,
         "max_requests_per_trajectory": args.max_requests_per_trajectory,
     }
     (args.out / "meta.json").write_text(json.dumps(meta, indent=1))
