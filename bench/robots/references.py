@@ -28,6 +28,10 @@ class ModelFns:
 
     def __init__(self, robot: Robot) -> None:
         self.robot = robot
+        # The oracle simulates in the model server's thread, and a call the service has given up
+        # may still run there while the bench executes plans: a MuJoCo world of its own (one
+        # MjData shared by two threads corrupts both, and crashed the process once).
+        self.sim = type(robot)()
         self.points = 0
         self.simulated = 0
         self.deadline: float | None = None
@@ -53,7 +57,7 @@ class ModelFns:
                 self.skipped += len(chunk)
                 valid[chunk] = False
                 continue
-            true = self.robot.true_steps(states[chunk], actions[chunk])
+            true = self.sim.true_steps(states[chunk], actions[chunk])
             self.simulated += len(chunk)
             valid[chunk] = self.robot.distance(nxt[chunk], true) < self.robot.d_max
         return nxt, valid
