@@ -66,6 +66,7 @@ def collect(out: Path) -> dict[str, Any]:
                 [float(np.mean(r["proposal_seconds"])) for r in ok if r["proposal_seconds"]])
             col["fit_seconds"] = mean_se(
                 [float(np.mean(r["fit_seconds"])) for r in ok if r["fit_seconds"]])
+            col["fit_seconds_last"] = mean_se([r["fit_seconds"][-1] for r in ok if r["fit_seconds"]])
             col["posted"] = mean_se([r["posted"] for r in ok])
             col["no_plan_proposals"] = mean_se([r["counters"]["no_plan"] for r in ok])
             col["relaxed_proposals"] = mean_se([r["counters"]["relaxed"] for r in ok])
@@ -77,6 +78,9 @@ def collect(out: Path) -> dict[str, Any]:
             for r in ok:
                 for k, v in r.get("failures", {}).items():
                     fails[k] += v
+                for k, v in r.get("http_statuses", {}).items():  # retried ones included
+                    if int(k.rsplit(" ", 1)[1]) >= 500:
+                        fails[f"answered {k}"] += v
             col["failures_total"] = dict(fails)
             col["stalled_seeds"] = [r["seed"] for r in ok if r["final"].get("stalled")]
             # The learning curve: per iteration, over seeds.
@@ -121,8 +125,8 @@ def markdown(table: dict[str, Any], meta: dict[str, Any]) -> str:
         "",
         "## Learned precondition at the last iteration",
         "",
-        "| robot | preset | plans | open loop | closed loop | TPR | TNR | median σ | trusted | unsafe steps | s / proposal | s / refit | no_plan proposals | relaxed | failures |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| robot | preset | seeds | plans | open loop | closed loop | TPR | TNR | median σ | trusted | unsafe steps | s / proposal | s / refit (mean, last) | no_plan proposals | relaxed | failures |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for robot, row in table.items():
         for p in presets:
@@ -133,11 +137,11 @@ def markdown(table: dict[str, Any], meta: dict[str, Any]) -> str:
             if c["stalled_seeds"]:
                 fails += f"; stalled seeds {c['stalled_seeds']}"
             lines.append(
-                f"| {robot} | {p} | {fmt(c['plans_found'])} | {fmt(c['open_loop_success'])} | "
+                f"| {robot} | {p} | {c['posted']['n']} | {fmt(c['plans_found'])} | {fmt(c['open_loop_success'])} | "
                 f"{fmt(c['closed_loop_success'])} | {fmt(c['tpr'])} | {fmt(c['tnr'])} | "
                 f"{fmt(c['median_sigma'], 3)} | {fmt(c['trusted_share'])} | "
                 f"{fmt(c['unsafe_step_share'], 0, 100)} % | {fmt(c['proposal_seconds'], 1)} | "
-                f"{fmt(c['fit_seconds'], 2)} | {fmt(c['no_plan_proposals'], 1)} | "
+                f"{fmt(c['fit_seconds'], 1)}, {fmt(c['fit_seconds_last'], 1)} | {fmt(c['no_plan_proposals'], 1)} | "
                 f"{fmt(c['relaxed_proposals'], 1)} | {fails} |")
     lines += ["", "## Learning curves (precondition against the truth, per iteration)", ""]
     for robot, row in table.items():
