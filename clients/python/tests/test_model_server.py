@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+import json
+import socket
+import struct
+import threading
+import time
 from typing import Any
 
 import httpx
@@ -81,3 +86,29 @@ def test_serve_model_answers_over_http_and_reports_failures() -> None:
     with pytest.raises(httpx.TransportError):
         kept.post(server.url, json={"states": [], "actions": []})
     kept.close()
+
+
+def test_a_caller_that_hangs_up_is_not_a_traceback(capfd: pytest.CaptureFixture[str]) -> None:
+    """The service abandons calls past its timeout; the model server carries on quietly."""
+    started = threading.Event()
+
+    def slow(s: Array, a: Array) -> Array:
+        started.set()
+        time.sleep(0.3)
+        return s + a
+
+    with serve_model(slow, "127.0.0.1", 0) as server:
+        body = json.dumps({"states": [[0.0]], "actions": [[1.0]]}).encode()
+        head = f"POST /predict HTTP/1.1\r\nHost: x\r\nContent-Length: {len(body)}\r\n\r\n"
+        sock = socket.create_connection(("127.0.0.1", server.port))
+        sock.sendall(head.encode() + body)
+        assert started.wait(5)
+        # Close with a reset, as a client that timed out does: the answer cannot be written.
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        sock.close()
+        time.sleep(0.6)
+        # Still serving.
+        ok = httpx.post(server.url, json={"states": [[1.0]], "actions": [[1.0]]})
+        assert ok.json() == {"next_states": [[2.0]]}
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "BrokenPipe" not in err and "ConnectionReset" not in err, err

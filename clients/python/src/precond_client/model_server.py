@@ -25,6 +25,7 @@ import contextlib
 import json
 import logging
 import socket
+import sys
 import threading
 from collections.abc import Callable
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -85,6 +86,18 @@ def evaluate(fn: ModelFn, body: Any) -> dict[str, Any]:
     return answer
 
 
+class _QuietServer(ThreadingHTTPServer):
+    """A threading server that does not print a traceback when a caller hangs up mid-request
+    (the service abandons calls past its timeout); other errors are logged."""
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        err = sys.exc_info()[1]
+        if isinstance(err, (BrokenPipeError, ConnectionResetError, ConnectionAbortedError)):
+            log.debug("%s hung up: %s", client_address, err)
+        else:
+            log.exception("serving %s failed", client_address)
+
+
 class ModelServer:
     """A running model server; stop it with :meth:`close` (or use it as a context manager).
 
@@ -123,11 +136,17 @@ class ModelServer:
 
             def _send(self, status: int, body: dict[str, Any]) -> None:
                 data = json.dumps(body).encode()
-                self.send_response(status)
-                self.send_header("Content-Type", "application/json")
-                self.send_header("Content-Length", str(len(data)))
-                self.end_headers()
-                self.wfile.write(data)
+                try:
+                    self.send_response(status)
+                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Length", str(len(data)))
+                    self.end_headers()
+                    self.wfile.write(data)
+                except (BrokenPipeError, ConnectionResetError) as e:
+                    # The service gave up on this call (its timeout, or a search that ended):
+                    # routine, not an error of the model's.
+                    self.close_connection = True
+                    log.debug("the caller left before the answer: %s", e)
 
             def do_POST(self) -> None:
                 length = int(self.headers.get("Content-Length") or 0)
@@ -162,7 +181,7 @@ class ModelServer:
             def do_GET(self) -> None:
                 self._send(405, {"error": f"POST {server.path}"})
 
-        self._httpd = ThreadingHTTPServer((host, port), Handler)
+        self._httpd = _QuietServer((host, port), Handler)
         self._httpd.daemon_threads = True
         self.host = host
         self.port = int(self._httpd.server_address[1])
