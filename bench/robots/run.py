@@ -91,7 +91,10 @@ class Server:
         args: list[str] = []
         for p in ports:
             args += ["--allow-model-url", f"http://127.0.0.1:{p}/"]
-        self.proc, self.url = spawn_server(binary, db, *args, *extra)
+        # The server's own log beside its database: a refused fit or a slow model call.
+        self.proc, self.url = spawn_server(
+            binary, db, *args, *extra, log=db.with_suffix(".log")
+        )
 
     def close(self) -> None:
         self.proc.terminate()
