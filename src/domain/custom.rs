@@ -7,12 +7,18 @@
 //! [`CustomParams::steer_samples`] actions (all values of a discrete action space), predicts them
 //! in one batch and keeps the allowed one whose prediction is nearest the target (distances in
 //! the unit box of the state bounds, so that components in different units compare).
+//!
+//! State components declared periodic (a heading, a continuous joint) are angles of period
+//! `high − low`: the service wraps its model's predictions into the bounds, and distances, the
+//! goal test, steering and obstacle checks take the shorter way round; each feeds the MDE as a
+//! point on the circle (see [`FeatureMap::UnitBox`]'s `periodic`).
 
-use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
+use super::features::periodic_difference;
 use super::{
-    FeatureMap, Space, check_goal_radius, check_magnitudes, euclidean, segment_clear,
+    Awaited, FeatureMap, Space, check_goal_radius, check_magnitudes, euclidean, segment_clear,
     uniform_between,
 };
+use super::{BoxObstacle, Domain, DomainError, DynamicsError, DynamicsModel, Predicted, Problem};
 use rand::RngCore;
 use rand::seq::IndexedRandom;
 use std::sync::Arc;
@@ -36,6 +42,8 @@ pub const FALLBACK_ROLLOUT_LENGTH: usize = 20;
 pub struct CustomParams {
     /// The state space (continuous).
     pub state: Space,
+    /// State components that are angles, their period `high − low` (see the module docs).
+    pub periodic: Vec<usize>,
     /// The action space: continuous bounds, or discrete `values` (bounds spanning them).
     pub action: Space,
     /// State components fed to the MDE, in order.
@@ -72,6 +80,7 @@ impl CustomParams {
     pub fn plane(state: Space, action: Space, rollout_length: Option<usize>) -> CustomParams {
         CustomParams {
             state,
+            periodic: vec![],
             action,
             feature_state: vec![0, 1],
             feature_action: vec![0, 1],
@@ -182,6 +191,7 @@ impl CustomDomain {
                     .map_err(|e| DomainError::at(format!("action.values[{k}]"), e.reason))?;
             }
         }
+        check_indices(&params.periodic, n, "state.periodic")?;
         check_indices(&params.feature_state, n, "features.state")?;
         check_indices(&params.feature_action, m, "features.action")?;
         check_indices(&params.feature_prediction, n, "features.prediction")?;
@@ -275,6 +285,19 @@ impl CustomDomain {
                 Vec::new()
             },
             move_length: params.move_length,
+            periodic: params.periodic.clone(),
+        };
+        let model = if params.periodic.is_empty() || model.client_side() {
+            model
+        } else {
+            Arc::new(Wrapping {
+                inner: model,
+                angles: params
+                    .periodic
+                    .iter()
+                    .map(|&i| (i, params.state.low[i], params.state.high[i]))
+                    .collect(),
+            })
         };
         Ok(Self {
             params,
@@ -289,11 +312,30 @@ impl CustomDomain {
     }
 
     fn in_collision(&self, p: &[f64]) -> bool {
+        let st = &self.params.state;
         self.params.obstacles.iter().any(|o| {
             p.iter()
+                .enumerate()
                 .zip(o.low.iter().zip(&o.high))
-                .all(|(x, (lo, hi))| *x >= *lo && *x <= *hi)
+                .all(|((i, x), (lo, hi))| {
+                    let x = if self.params.periodic.contains(&i) {
+                        wrap(*x, st.low[i], st.high[i])
+                    } else {
+                        *x
+                    };
+                    x >= *lo && x <= *hi
+                })
         })
+    }
+
+    /// `x − y` in component `i`, the shorter way round for a periodic one.
+    fn difference(&self, i: usize, x: f64, y: f64) -> f64 {
+        if self.params.periodic.contains(&i) {
+            let st = &self.params.state;
+            periodic_difference(x, y, st.high[i] - st.low[i])
+        } else {
+            x - y
+        }
     }
 
     fn goal_distance(&self, s: &[f64], goal: &[f64]) -> f64 {
@@ -301,7 +343,7 @@ impl CustomDomain {
             .goal_components
             .iter()
             .zip(goal)
-            .map(|(&i, g)| (s[i] - g) * (s[i] - g))
+            .map(|(&i, g)| self.difference(i, s[i], *g).powi(2))
             .sum::<f64>()
             .sqrt()
     }
@@ -324,13 +366,14 @@ impl Domain for CustomDomain {
         self.model.as_ref()
     }
 
-    /// `sqrt(Σ w_i (ŝ_i − s_i)²)`.
+    /// `sqrt(Σ w_i (ŝ_i − s_i)²)`, a periodic component's difference the shorter way round.
     fn distance(&self, predicted: &[f64], observed: &[f64]) -> f64 {
         self.params
             .weights
             .iter()
             .zip(predicted.iter().zip(observed))
-            .map(|(w, (p, o))| w * (p - o) * (p - o))
+            .enumerate()
+            .map(|(i, (w, (p, o)))| w * self.difference(i, *p, *o).powi(2))
             .sum::<f64>()
             .sqrt()
     }
@@ -357,15 +400,24 @@ impl Domain for CustomDomain {
 
     fn feature_names(&self) -> Vec<String> {
         let p = &self.params;
+        // An angle feeds two features, its cosine and sine.
+        let state_names = |prefix: &str, i: usize| -> Vec<String> {
+            let name = &p.state.names[i];
+            if p.periodic.contains(&i) {
+                vec![format!("{prefix}cos {name}"), format!("{prefix}sin {name}")]
+            } else {
+                vec![format!("{prefix}{name}")]
+            }
+        };
         p.feature_state
             .iter()
-            .map(|&i| p.state.names[i].clone())
+            .flat_map(|&i| state_names("", i))
             .chain(p.feature_action.iter().map(|&i| p.action.names[i].clone()))
             .chain(p.action_length.then(|| "action_length".to_string()))
             .chain(
                 p.feature_prediction
                     .iter()
-                    .map(|&i| format!("predicted {}", p.state.names[i])),
+                    .flat_map(|&i| state_names("predicted ", i)),
             )
             .chain(p.move_length.then(|| "move_length".to_string()))
             .collect()
@@ -415,7 +467,11 @@ impl Domain for CustomDomain {
         if self.params.obstacles.is_empty() {
             return true;
         }
-        segment_clear(s, s_pred, |p| self.in_collision(p))
+        // The segment the shorter way round an angle (the collision test wraps its points).
+        let end: Vec<f64> = (0..s.len())
+            .map(|i| s[i] + self.difference(i, s_pred[i], s[i]))
+            .collect();
+        segment_clear(s, &end, |p| self.in_collision(p))
     }
 
     fn sample_state(&self, rng: &mut dyn RngCore) -> Vec<f64> {
@@ -434,12 +490,20 @@ impl Domain for CustomDomain {
         s
     }
 
-    /// Euclidean distance in the unit box of the state bounds.
+    /// Euclidean distance in the unit box of the state bounds (an angle the shorter way round).
     fn state_metric(&self, a: &[f64], b: &[f64]) -> f64 {
         let st = &self.params.state;
         st.to_unit(a)
             .zip(st.to_unit(b))
-            .map(|(p, q)| (p - q) * (p - q))
+            .enumerate()
+            .map(|(i, (p, q))| {
+                let d = if self.params.periodic.contains(&i) {
+                    periodic_difference(p, q, 1.0)
+                } else {
+                    p - q
+                };
+                d * d
+            })
             .sum::<f64>()
             .sqrt()
     }
@@ -501,6 +565,82 @@ impl Domain for CustomDomain {
     }
 }
 
+/// `x` wrapped into `[low, high)` (period `high − low`); `x` itself when that is not positive.
+pub fn wrap(x: f64, low: f64, high: f64) -> f64 {
+    let period = high - low;
+    if period > 0.0 && x.is_finite() {
+        let w = low + (x - low).rem_euclid(period);
+        // Rounding can land on `high` itself; `low` is the same angle.
+        if w >= high { low } else { w }
+    } else {
+        x
+    }
+}
+
+/// A model whose predictions of the periodic components are wrapped into their bounds (a
+/// robot's model may answer a heading of 3.2 rad where the state says `[−π, π]`).
+#[derive(Debug)]
+struct Wrapping {
+    inner: Arc<dyn DynamicsModel>,
+    /// `(component, low, high)` of every angle.
+    angles: Vec<(usize, f64, f64)>,
+}
+
+impl Wrapping {
+    fn wrap_all(&self, mut out: Vec<Predicted>) -> Vec<Predicted> {
+        for p in &mut out {
+            for &(i, lo, hi) in &self.angles {
+                if let Some(x) = p.next.get_mut(i) {
+                    *x = wrap(*x, lo, hi);
+                }
+            }
+        }
+        out
+    }
+}
+
+impl DynamicsModel for Wrapping {
+    fn predict_batch(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        self.inner
+            .predict_batch(states, actions)
+            .map(|p| self.wrap_all(p))
+    }
+
+    fn predict_batch_within(
+        &self,
+        states: &[&[f64]],
+        actions: &[&[f64]],
+        budget: &crate::budget::Budget,
+    ) -> Result<Vec<Predicted>, DynamicsError> {
+        self.inner
+            .predict_batch_within(states, actions, budget)
+            .map(|p| self.wrap_all(p))
+    }
+
+    fn predict_awaitable<'a>(
+        &'a self,
+        states: &'a [&'a [f64]],
+        actions: &'a [&'a [f64]],
+    ) -> Option<Awaited<'a>> {
+        let inner = self.inner.predict_awaitable(states, actions)?;
+        Some(Box::pin(
+            async move { inner.await.map(|p| self.wrap_all(p)) },
+        ))
+    }
+
+    fn client_side(&self) -> bool {
+        self.inner.client_side()
+    }
+
+    fn round_size(&self) -> usize {
+        self.inner.round_size()
+    }
+}
+
 /// `ŝ' = clip(A s + B a + c)` to the state bounds.
 #[derive(Debug, Clone, PartialEq)]
 pub struct LinearModel {
@@ -508,6 +648,8 @@ pub struct LinearModel {
     b: Vec<Vec<f64>>,
     c: Vec<f64>,
     state: Space,
+    /// Components left unclipped (angles, which the domain wraps instead).
+    periodic: Vec<usize>,
 }
 
 impl LinearModel {
@@ -553,16 +695,30 @@ impl LinearModel {
             b,
             c,
             state: state.clone(),
+            periodic: Vec::new(),
         })
     }
 
-    /// `clip(A s + B a + c)`.
+    /// The same model leaving the `periodic` state components unclipped: they are angles,
+    /// which the domain wraps instead.
+    pub fn with_periodic(mut self, periodic: &[usize]) -> Self {
+        self.periodic = periodic.to_vec();
+        self
+    }
+
+    /// `clip(A s + B a + c)` (a periodic component unclipped).
     pub fn predict(&self, s: &[f64], a: &[f64]) -> Vec<f64> {
         let dot = |row: &[f64], v: &[f64]| row.iter().zip(v).map(|(p, q)| p * q).sum::<f64>();
         let mut next: Vec<f64> = (0..self.c.len())
             .map(|i| dot(&self.a[i], s) + dot(&self.b[i], a) + self.c[i])
             .collect();
+        let raw = next.clone();
         self.state.clamp(&mut next);
+        for &i in &self.periodic {
+            if let (Some(x), Some(r)) = (next.get_mut(i), raw.get(i)) {
+                *x = *r;
+            }
+        }
         next
     }
 }
@@ -612,6 +768,7 @@ mod tests {
     fn params() -> CustomParams {
         CustomParams {
             state: space(&["x", "y", "v"], &[0.0, 0.0, -1.0], &[2.0, 1.0, 1.0]),
+            periodic: vec![],
             action: space(&["ax", "ay"], &[-0.1, -0.1], &[0.1, 0.1]),
             feature_state: vec![0, 1],
             feature_action: vec![1],
@@ -760,6 +917,25 @@ mod tests {
             assert!(d.validate_goal(p.goal()).is_ok());
             assert!(!d.is_goal(p.start(), p.goal()));
         }
+    }
+
+    #[test]
+    fn angles_wrap_into_their_bounds_and_differ_the_short_way() {
+        use std::f64::consts::PI;
+        assert!((wrap(3.3, -PI, PI) - (3.3 - 2.0 * PI)).abs() < 1e-12);
+        assert_eq!(wrap(PI, -PI, PI), -PI);
+        assert_eq!(wrap(-PI, -PI, PI), -PI);
+        assert!((wrap(-7.0, -PI, PI) - (-7.0 + 2.0 * PI)).abs() < 1e-12);
+        assert_eq!(wrap(0.5, 0.0, 0.0), 0.5);
+        let d = periodic_difference(3.1, -3.1, 2.0 * PI);
+        assert!((d - (6.2 - 2.0 * PI)).abs() < 1e-12, "{d}");
+        // A domain with the third component periodic: distance and metric the short way.
+        let mut p = params();
+        p.periodic = vec![2];
+        p.weights = vec![1.0, 4.0, 1.0];
+        let dom = CustomDomain::new(p, Arc::new(ClientModel)).unwrap();
+        assert!((dom.distance(&[0.0, 0.0, 0.95], &[0.0, 0.0, -0.95]) - 0.1).abs() < 1e-12);
+        assert!((dom.state_metric(&[0.0, 0.0, 0.95], &[0.0, 0.0, -0.95]) - 0.05).abs() < 1e-12);
     }
 
     #[test]

@@ -49,6 +49,13 @@ pub enum FeatureMap {
         /// for predictions within the bounds ([`weighted_move_fraction`]).
         #[serde(default, skip_serializing_if = "std::ops::Not::not")]
         move_length: bool,
+        /// State components that are angles (a heading, a continuous joint), their period
+        /// `high − low`: each listed in `state_components` or `prediction_components` feeds two
+        /// features instead of one, `(1 + cos 2πu) / 2` and `(1 + sin 2πu) / 2` with `u` its
+        /// unit-box value (so that both sides of the wrap are near), and the move's length
+        /// takes the shorter way round ([`periodic_difference`]).
+        #[serde(default, skip_serializing_if = "Vec::is_empty")]
+        periodic: Vec<usize>,
     },
     /// The kinematic domain's `state_action_prediction` features: the state, then the action,
     /// then the model's prediction `clip(s + a)` (each component clamped to the state bounds),
@@ -98,6 +105,26 @@ pub enum FeatureMap {
     },
 }
 
+/// `x − y` for a component of period `period`, taken the shorter way round (in
+/// `[−period/2, period/2]`); the plain difference when `period` is not positive.
+#[inline]
+pub fn periodic_difference(x: f64, y: f64, period: f64) -> f64 {
+    let d = x - y;
+    if period > 0.0 {
+        d - period * (d / period).round()
+    } else {
+        d
+    }
+}
+
+/// The unit-box value `u` of an angle as the two features `(1 + cos 2πu) / 2`,
+/// `(1 + sin 2πu) / 2`.
+#[inline]
+fn angle_features(u: f64) -> [f64; 2] {
+    let t = std::f64::consts::TAU * u;
+    [0.5 * (1.0 + t.cos()), 0.5 * (1.0 + t.sin())]
+}
+
 /// `v` scaled to the unit box by `[low, high]` (0 where the bounds coincide), as
 /// [`Space::to_unit`](super::Space::to_unit) computes it.
 #[inline]
@@ -116,13 +143,20 @@ impl FeatureMap {
                 action_length,
                 prediction_components,
                 move_length,
+                periodic,
                 ..
             } => {
+                let angles = state_components
+                    .iter()
+                    .chain(prediction_components)
+                    .filter(|i| periodic.contains(i))
+                    .count();
                 state_components.len()
                     + action_components.len()
                     + usize::from(*action_length)
                     + prediction_components.len()
                     + usize::from(*move_length)
+                    + angles
             }
             Self::KinematicPrediction {
                 state_low,
@@ -212,8 +246,10 @@ impl FeatureMap {
                 prediction_components,
                 weights,
                 move_length,
+                periodic,
             } => {
                 bounds("state_low", state_low, state_high, state_dim)?;
+                indices("periodic", periodic, state_dim)?;
                 bounds("action_low", action_low, action_high, action_dim)?;
                 indices("state_components", state_components, state_dim)?;
                 indices("action_components", action_components, action_dim)?;
@@ -318,12 +354,19 @@ impl FeatureMap {
                 prediction_components,
                 weights,
                 move_length,
+                periodic,
             } => {
-                out.extend(
-                    state_components
-                        .iter()
-                        .map(|&i| unit(s[i], state_low[i], state_high[i])),
-                );
+                let component = |out: &mut Vec<f64>, v: &[f64], i: usize| {
+                    let u = unit(v[i], state_low[i], state_high[i]);
+                    if periodic.contains(&i) {
+                        out.extend(angle_features(u));
+                    } else {
+                        out.push(u);
+                    }
+                };
+                for &i in state_components {
+                    component(out, s, i);
+                }
                 out.extend(
                     action_components
                         .iter()
@@ -344,14 +387,12 @@ impl FeatureMap {
                     out.resize(self.dim(), f64::NAN);
                     return;
                 }
-                out.extend(
-                    prediction_components
-                        .iter()
-                        .map(|&i| unit(s_pred[i], state_low[i], state_high[i])),
-                );
+                for &i in prediction_components {
+                    component(out, s_pred, i);
+                }
                 if *move_length {
                     out.push(weighted_move_fraction(
-                        s, s_pred, weights, state_low, state_high,
+                        s, s_pred, weights, state_low, state_high, periodic,
                     ));
                 }
             }
@@ -432,25 +473,35 @@ impl FeatureMap {
 /// The length of a predicted move `d(ŝ', s)` in a weighted Euclidean distance, as a fraction of
 /// the state box's diagonal in the same distance, `d(high, low)` (0 when that is 0): in
 /// `[0, 1]` for predictions within the bounds. A model's error often grows with how far it says
-/// the robot goes, whatever the command's units; this feature carries it in one input.
+/// the robot goes, whatever the command's units; this feature carries it in one input. The
+/// `periodic` components' differences take the shorter way round ([`periodic_difference`]).
 pub fn weighted_move_fraction(
     s: &[f64],
     s_pred: &[f64],
     weights: &[f64],
     state_low: &[f64],
     state_high: &[f64],
+    periodic: &[usize],
 ) -> f64 {
-    let dist = |x: &[f64], y: &[f64]| -> f64 {
-        weights
-            .iter()
-            .zip(x.iter().zip(y))
-            .map(|(w, (p, q))| w * (p - q) * (p - q))
-            .sum::<f64>()
-            .sqrt()
-    };
-    let diagonal = dist(state_high, state_low);
+    let diagonal = weights
+        .iter()
+        .zip(state_high.iter().zip(state_low))
+        .map(|(w, (p, q))| w * (p - q) * (p - q))
+        .sum::<f64>()
+        .sqrt();
+    let moved = (0..weights.len())
+        .map(|i| {
+            let d = if periodic.contains(&i) {
+                periodic_difference(s_pred[i], s[i], state_high[i] - state_low[i])
+            } else {
+                s_pred[i] - s[i]
+            };
+            weights[i] * d * d
+        })
+        .sum::<f64>()
+        .sqrt();
     if diagonal > 0.0 {
-        dist(s_pred, s) / diagonal
+        moved / diagonal
     } else {
         0.0
     }
@@ -591,6 +642,8 @@ mod tests {
         };
         let params = CustomParams {
             state: space(4, -1.0, 3.0),
+            // An angle among the features: two of them, cos and sin.
+            periodic: vec![2],
             action: space(2, -0.5, 0.5),
             feature_state: vec![2, 0],
             feature_action: vec![1],
@@ -659,6 +712,7 @@ mod tests {
             prediction_components: vec![],
             weights: vec![],
             move_length: false,
+            periodic: vec![],
         };
         assert_eq!(map.check(1, 3).unwrap_err().0, "action_length");
     }
@@ -688,6 +742,7 @@ mod tests {
             prediction_components: vec![],
             weights: vec![],
             move_length: false,
+            periodic: vec![],
         };
         assert_eq!(map.check(2, 1).unwrap_err().0, "state_components[1]");
         assert_eq!(map.check(3, 1).unwrap_err().0, "state_low");

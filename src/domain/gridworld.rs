@@ -309,6 +309,7 @@ impl Domain for IcyGridworld {
                 prediction_components: vec![],
                 weights: vec![],
                 move_length: false,
+                periodic: Vec::new(),
             },
             GridFeatures::PerMove => FeatureMap::PerMove {
                 state_low: state.low.clone(),

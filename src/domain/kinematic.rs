@@ -387,6 +387,7 @@ impl Domain for Kinematic {
                 prediction_components: vec![],
                 weights: vec![],
                 move_length: false,
+                periodic: Vec::new(),
             },
             KinematicFeatures::StateActionPrediction
             | KinematicFeatures::StateActionPredictionLength => FeatureMap::KinematicPrediction {

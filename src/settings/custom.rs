@@ -42,6 +42,12 @@ pub struct SpaceSpec {
     /// The allowed actions of a discrete action space.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub values: Option<Vec<Vec<f64>>>,
+    /// Components that are angles (a heading, a continuous joint), by index, their period
+    /// `high − low` (e.g. bounds `[−π, π]`): distances, the goal test, steering and the MDE's
+    /// features take the shorter way round, and the service wraps its model's predictions into
+    /// the bounds. State components only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub periodic: Option<Vec<usize>>,
 }
 
 /// Which components feed the MDE.
@@ -277,6 +283,21 @@ impl CustomSpec {
         self.state = self.state.resolve("state", "s")?;
         self.action = self.action.resolve("action", "a")?;
         let (n, m) = (self.state.names.len(), self.action.names.len());
+        if self.action.periodic.as_ref().is_some_and(|p| !p.is_empty()) {
+            return Err(bad(
+                "action.periodic",
+                "only state components can be periodic (an action is a command, not a pose)",
+            ));
+        }
+        let periodic = self.state.periodic.as_deref().unwrap_or_default();
+        for (k, i) in periodic.iter().enumerate() {
+            if periodic[..k].contains(i) {
+                return Err(bad(
+                    &format!("state.periodic[{k}]"),
+                    format!("component {i} is listed twice"),
+                ));
+            }
+        }
         let features = self.features.get_or_insert_with(|| FeaturesSpec {
             state: (0..n).collect(),
             action: (0..m).collect(),
@@ -332,7 +353,8 @@ impl CustomSpec {
                 let c = c.clone().unwrap_or_else(|| vec![0.0; state.dim()]);
                 Arc::new(
                     LinearModel::new(a.clone(), b.clone(), c, &state, &action)
-                        .map_err(|e| InvalidSetting::new(e.path_under("domain.model"), e.reason))?,
+                        .map_err(|e| InvalidSetting::new(e.path_under("domain.model"), e.reason))?
+                        .with_periodic(self.state.periodic.as_deref().unwrap_or_default()),
                 )
             }
             ModelSpec::Client {} => Arc::new(ClientModel),
@@ -347,6 +369,7 @@ impl CustomSpec {
         });
         let params = CustomParams {
             state,
+            periodic: self.state.periodic.clone().unwrap_or_default(),
             action,
             feature_state: features.state,
             feature_action: features.action,

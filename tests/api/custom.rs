@@ -524,3 +524,112 @@ async fn learning_with_a_remote_model_ends_with_plans_that_avoid_where_it_is_wro
         "fewer than three quarters of the found plans reach their goal: {runs:?}"
     );
 }
+
+/// A heading `θ ∈ [−π, π]` declared periodic, moved by a linear model (`θ' = θ + ω`).
+fn heading(model: Value) -> Value {
+    let pi = std::f64::consts::PI;
+    json!({
+        "kind": "custom",
+        "state": {"names": ["x", "theta"], "low": [0, -pi], "high": [1, pi], "periodic": [1]},
+        "action": {"names": ["v", "omega"], "low": [-0.1, -0.3], "high": [0.1, 0.3]},
+        "goal": {"components": [1], "radius": 0.05},
+        "model": model,
+    })
+}
+
+#[tokio::test]
+async fn a_periodic_heading_is_judged_and_planned_the_short_way_round() {
+    let identity = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
+    let (_dir, app, id) = fresh_experiment(json!({"domain": heading(identity)})).await;
+    let (_, exp) = app.get_at(id, "").await;
+    assert_eq!(exp["domain"]["state"]["periodic"], json!([1]), "{exp}");
+    // Features: x, cos θ, sin θ, v, ω, the action's length, the prediction (x̂, cos θ̂, sin θ̂)
+    // and the predicted move's length.
+    let (_, model) = app.get_at(id, "model").await;
+    let names: Vec<&str> = model["feature_names"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_str().unwrap())
+        .collect();
+    assert_eq!(
+        names,
+        [
+            "x",
+            "cos theta",
+            "sin theta",
+            "v",
+            "omega",
+            "action_length",
+            "predicted x",
+            "predicted cos theta",
+            "predicted sin theta",
+            "move_length"
+        ],
+        "{model}"
+    );
+    // Turning left past π: the model says 3.3, wrapped to −2.983; the robot is at −2.98.
+    let (status, body) = app
+        .post_at(
+            id,
+            "trajectories",
+            &json!({"transitions": [{"s": [0.5, 3.0], "a": [0.0, 0.3], "s_next": [0.5, -2.98]}]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    let d = body["deviations"][0].as_f64().unwrap();
+    let expected = (3.3 - 2.0 * std::f64::consts::PI) - (-2.98);
+    assert!(
+        (d - expected.abs()).abs() < 1e-9,
+        "deviation {d}, expected {expected}"
+    );
+    // A plan from θ = 3.0 to θ = −3.0 turns through π (0.28 rad), not back round (6 rad,
+    // at least 21 steps of 0.3).
+    let (status, plan) = app
+        .post_at(
+            id,
+            "plans",
+            &json!({"start": [0.5, 3.0], "goal": [-3.0], "beta": -1000.0}),
+        )
+        .await;
+    assert_eq!(status, 200, "{plan}");
+    assert_eq!(plan["found"], true, "{plan}");
+    let states = plan["trajectory"]["states"].as_array().unwrap();
+    assert!(states.len() <= 6, "{} states: {plan}", states.len());
+    for s in states {
+        let theta = s[1].as_f64().unwrap();
+        assert!(theta.abs() <= std::f64::consts::PI, "{s}");
+    }
+    let last = states.last().unwrap()[1].as_f64().unwrap();
+    assert!((last + 3.0).abs() <= 0.05, "ends at θ = {last}");
+}
+
+#[tokio::test]
+async fn only_state_components_can_be_periodic_and_once() {
+    let (_dir, app) = fresh_app().await;
+    let identity = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
+    for (change, field) in [
+        (
+            json!({"action": {"low": [-1, -1], "high": [1, 1], "periodic": [0]}}),
+            "domain.action.periodic",
+        ),
+        (
+            json!({"state": {"low": [0, 0], "high": [1, 1], "periodic": [1, 1]}}),
+            "domain.state.periodic[1]",
+        ),
+        (
+            json!({"state": {"low": [0, 0], "high": [1, 1], "periodic": [2]}}),
+            "domain.state.periodic[0]",
+        ),
+    ] {
+        let mut domain = heading(identity.clone());
+        for (k, v) in change.as_object().unwrap() {
+            domain[k] = v.clone();
+        }
+        let (status, body) = app
+            .post("/v1/experiments", &json!({"domain": domain}))
+            .await;
+        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+    }
+}
