@@ -48,7 +48,19 @@ def documents() -> Iterator[dict[str, Any]]:
         "test_beta": 2.0,
         "state_dim": 2,
         "action_dim": 2,
-        "feature_names": ["x", "y", "dx", "dy", "action_length", "x'", "y'", "move_length"],
+        # y is an angle: its cosine and sine, in the state and in the prediction.
+        "feature_names": [
+            "x",
+            "cos y",
+            "sin y",
+            "dx",
+            "dy",
+            "action_length",
+            "x'",
+            "cos y'",
+            "sin y'",
+            "move_length",
+        ],
         "feature_map": {
             "kind": "unit_box",
             "state_low": [0, 0],
@@ -61,9 +73,10 @@ def documents() -> Iterator[dict[str, Any]]:
             "prediction_components": [0, 1],
             "weights": [1.0, 2.0],
             "move_length": True,
+            "periodic": [1],
         },
         "predictor": {
-            "main": gp(3, 8, variance=True),
+            "main": gp(3, 10, variance=True),
             "noise": {"kind": "homoscedastic", "noise_variance": 1e-4},
         },
     }
@@ -71,10 +84,10 @@ def documents() -> Iterator[dict[str, Any]]:
     hetero = copy.deepcopy(base)
     hetero["estimator"] = "sparse"
     hetero["predictor"] = {
-        "main": gp(3, 8, variance=True, correction=True),
+        "main": gp(3, 10, variance=True, correction=True),
         "noise": {
             "kind": "heteroscedastic",
-            "log_noise": gp(2, 8, variance=False),
+            "log_noise": gp(2, 10, variance=False),
             "noise_variance_min": 1e-6,
             "noise_variance_max": 1.0,
         },
@@ -181,6 +194,12 @@ CUSTOM_DOMAIN: dict[str, Any] = {
     "action": {"low": [-0.1, -0.2], "high": [0.1, 0.2]},
     "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]},
 }
+# The same with its second state component an angle of period 1 (two features, cos and sin,
+# wherever it feeds the MDE; its prediction wrapped rather than clipped).
+CUSTOM_PERIODIC: dict[str, Any] = {
+    **CUSTOM_DOMAIN,
+    "state": {"low": [0, 0], "high": [1, 1], "periodic": [1]},
+}
 
 
 @pytest.mark.integration
@@ -191,6 +210,7 @@ CUSTOM_DOMAIN: dict[str, Any] = {
         ("exact", "state_action_prediction"),
         ("sparse", "state_action"),
         ("exact", "custom"),
+        ("exact", "custom_periodic"),
     ],
 )
 def test_an_exported_model_answers_as_the_server(
@@ -201,10 +221,11 @@ def test_an_exported_model_answers_as_the_server(
     mde: dict[str, Any] = {"restarts": 0, "estimator": estimator}
     if estimator == "sparse":
         mde["inducing_points"] = 24
+    custom = features.startswith("custom")
     client.create_experiment(
-        domain=CUSTOM_DOMAIN
-        if features == "custom"
-        else {"kind": "kinematic", "features": features},
+        domain={"custom": CUSTOM_DOMAIN, "custom_periodic": CUSTOM_PERIODIC}.get(
+            features, {"kind": "kinematic", "features": features}
+        ),
         mde=mde,
         learning={"batch_size": 2},
         d_max=0.05,
@@ -221,16 +242,21 @@ def test_an_exported_model_answers_as_the_server(
     assert model.model_version == fitted.version and model.n_train == 80
     feature_map = model.raw["feature_map"]
     assert feature_map["kind"] == (
-        "unit_box" if features in ("state_action", "custom") else "kinematic_prediction"
+        "unit_box" if features == "state_action" or custom else "kinematic_prediction"
     )
-    assert feature_map.get("action_length", False) == (features == "custom")
+    assert feature_map.get("action_length", False) == custom
+    assert feature_map.get("periodic", []) == ([1] if features == "custom_periodic" else [])
     # A custom domain's features read the model's prediction by default (where the move
     # ends, and its length): the robot passes its own model's f̂(s, a) to the document.
-    assert feature_map.get("prediction_components", []) == ([0, 1] if features == "custom" else [])
+    assert feature_map.get("prediction_components", []) == ([0, 1] if custom else [])
     assert feature_map.get("move_length", False) == (
-        features in ("state_action_prediction_length", "custom")
+        features == "state_action_prediction_length" or custom
     )
-    assert model.uses_prediction == (features == "custom")
+    assert model.uses_prediction == custom
+    # x, y, the action (2), its length, x̂, ŷ, the move's length; an angle y counts twice.
+    assert len(model.feature_names) == {"custom": 8, "custom_periodic": 10}.get(
+        features, len(model.feature_names)
+    )
     path = tmp_path / "mde.json"
     model.save(path)
     loaded = ExportedModel.load(path)
@@ -239,6 +265,8 @@ def test_an_exported_model_answers_as_the_server(
     actions = rng.uniform(-0.1, 0.1, size=(200, 2))
     # The custom domain's linear model: clip(s + a) to the state's box.
     predicted = np.clip(states + actions, 0.0, 1.0) if model.uses_prediction else None
+    if predicted is not None and features == "custom_periodic":
+        predicted[:, 1] = np.mod(states[:, 1] + actions[:, 1], 1.0)  # wrapped, not clipped
     if model.uses_prediction:
         with pytest.raises(ValueError, match="predicted"):
             model.evaluate(states, actions)

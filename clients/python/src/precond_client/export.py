@@ -152,6 +152,10 @@ class _FeatureMap:
             self.move_length = bool(m.get("move_length", False))
             if self.move_length and len(self.weights) != state_dim:
                 raise ValueError("feature_map.weights: move_length needs one weight per state")
+            # Angles: two features each (cos, sin), the move's length the short way round.
+            self.periodic = [int(i) for i in m.get("periodic", [])]
+            if any(not 0 <= i < state_dim for i in self.periodic):
+                raise ValueError("feature_map.periodic: not a state component")
         elif self.kind == "kinematic_prediction":
             self.low = _vec(m["state_low"]), _vec(m["action_low"])
             self.high = _vec(m["state_high"]), _vec(m["action_high"])
@@ -186,6 +190,7 @@ class _FeatureMap:
                 + int(self.action_length)
                 + len(self.prediction)
                 + int(self.move_length)
+                + sum(i in self.periodic for i in [*self.components[0], *self.prediction])
             )
         if self.kind == "kinematic_prediction":
             return 3 * len(self.low[0]) + int(self.move_length)
@@ -198,10 +203,23 @@ class _FeatureMap:
         """Whether ``φ`` reads the model's prediction ``ŝ' = f̂(s, a)``."""
         return self.kind == "unit_box" and (bool(self.prediction) or self.move_length)
 
+    def _state_part(self, s: Array, components: list[int]) -> Array:
+        """The listed state components in the unit box, an angle as ``((1 + cos)/2, (1 + sin)/2)``
+        of ``2π`` times its unit value."""
+        u = _unit(s, self.low[0], self.high[0])
+        cols: list[Array] = []
+        for i in components:
+            if i in self.periodic:
+                t = 2.0 * np.pi * u[:, i]
+                cols += [0.5 * (1.0 + np.cos(t)), 0.5 * (1.0 + np.sin(t))]
+            else:
+                cols.append(u[:, i])
+        return np.stack(cols, axis=1) if cols else np.zeros((len(s), 0))
+
     def __call__(self, s: Array, a: Array, predicted: Array | None = None) -> Array:
         if self.kind == "unit_box":
             parts = [
-                _unit(s, self.low[0], self.high[0])[:, self.components[0]],
+                self._state_part(s, self.components[0]),
                 _unit(a, self.low[1], self.high[1])[:, self.components[1]],
             ]
             if self.action_length:
@@ -214,10 +232,15 @@ class _FeatureMap:
                 parts.append(length[:, None])
             if self.uses_prediction:
                 assert predicted is not None
-                parts.append(_unit(predicted, self.low[0], self.high[0])[:, self.prediction])
+                parts.append(self._state_part(predicted, self.prediction))
                 if self.move_length:
                     # The predicted move's weighted length over the state box's diagonal.
-                    moved = np.sqrt(np.sum(self.weights * (predicted - s) ** 2, axis=1))
+                    diff = predicted - s
+                    for i in self.periodic:
+                        period = self.high[0][i] - self.low[0][i]
+                        if period > 0.0:
+                            diff[:, i] -= period * np.round(diff[:, i] / period)
+                    moved = np.sqrt(np.sum(self.weights * diff**2, axis=1))
                     diagonal = math.sqrt(
                         float(np.sum(self.weights * (self.high[0] - self.low[0]) ** 2))
                     )
