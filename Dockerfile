@@ -14,7 +14,8 @@ FROM debian:bookworm-slim
 RUN apt-get update \
  && apt-get install -y --no-install-recommends ca-certificates curl \
  && rm -rf /var/lib/apt/lists/* \
- && useradd --system --create-home --uid 10001 precond \
+ && groupadd --system --gid 10001 precond \
+ && useradd --system --create-home --uid 10001 --gid 10001 precond \
  && mkdir -p /data && chown precond:precond /data
 COPY --from=build /src/target/release/precond /usr/local/bin/precond
 USER precond
