@@ -5,7 +5,8 @@ The block after the marker ``<!-- robot-loop`` in the root ``README.md`` and in
 makes too, each checked to occur exactly once:
 
 - the server's address ``"http://127.0.0.1:8080"`` becomes the test server's (a free port);
-- the model's port ``9000`` becomes a free port the test server allows;
+- the model's port ``9001`` (the curl section's model server has 9000) becomes a free port
+  the test server allows;
 - ``robot_execute``, whose body in the README is ``...`` ("your robot"), is a simulated robot:
   the README's model ``clip(s + a)`` except on an icy band, where the robot slides further.
 
@@ -64,7 +65,7 @@ class Substitute(ast.NodeTransformer):
     """Points the README's code at the test server and the simulated robot."""
 
     def __init__(self, server_url: str, model_port: int) -> None:
-        self.replace: dict[Any, Any] = {"http://127.0.0.1:8080": server_url, 9000: model_port}
+        self.replace: dict[Any, Any] = {"http://127.0.0.1:8080": server_url, 9001: model_port}
         self.replaced: list[Any] = []
         self.placeholder_removed = False
 
@@ -134,7 +135,7 @@ def test_the_readme_robot_loop_runs_as_written(
     server = make_server([f"http://127.0.0.1:{port}/"])
     sub = Substitute(server.url, port)
     tree = ast.fix_missing_locations(sub.visit(ast.parse(code)))
-    assert sorted(sub.replaced, key=str) == sorted(["http://127.0.0.1:8080", 9000], key=str)
+    assert sorted(sub.replaced, key=str) == sorted(["http://127.0.0.1:8080", 9001], key=str)
     assert sub.placeholder_removed
 
     namespace: dict[str, Any] = {"__name__": "readme", "robot_execute": robot_execute}
