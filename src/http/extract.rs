@@ -114,9 +114,16 @@ pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
     let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
         let path = e.path().to_string();
+        let part = part_at(bytes, e.path());
         let inner = e.into_inner();
         match inner.classify() {
             serde_json::error::Category::Data => {
+                if let Some((field, reason)) = part
+                    .as_ref()
+                    .and_then(|p| crate::settings::locate_in_tagged(&path, p))
+                {
+                    return ApiError::validation(field, strip_position(&reason));
+                }
                 let field = if path == "." {
                     "body".to_string()
                 } else {
@@ -130,6 +137,21 @@ pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, ApiError> {
     de.end()
         .map_err(|e| ApiError::BadRequest(format!("malformed JSON: {e}")))?;
     Ok(value)
+}
+
+/// The JSON value at `path` in `bytes` (`None` when the body does not parse or has no such
+/// part): where a data error stopped, to be read again by the settings' own types.
+fn part_at(bytes: &[u8], path: &serde_path_to_error::Path) -> Option<serde_json::Value> {
+    use serde_path_to_error::Segment;
+    let mut value: serde_json::Value = serde_json::from_slice(bytes).ok()?;
+    for segment in path.iter() {
+        value = match segment {
+            Segment::Map { key } => value.get_mut(key.as_str())?.take(),
+            Segment::Seq { index } => value.get_mut(*index)?.take(),
+            Segment::Enum { .. } | Segment::Unknown => return None,
+        };
+    }
+    Some(value)
 }
 
 /// serde_json appends " at line L column C"; the field path says more, so drop it.

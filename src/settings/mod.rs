@@ -102,6 +102,27 @@ pub enum DomainSpec {
     Custom(Box<CustomSpec>),
 }
 
+/// The field at fault inside a tagged part of a body, and why: serde reads an internally tagged
+/// enum (a `domain` of `kind: custom`) from a buffer, so its error names only the tagged part
+/// (`domain`); reading `part` again as the variant's own type names the field
+/// (`domain.goal.radius`). `path` is the tagged part's path in the body; `None` when `part` is
+/// not one this can read again, or reads without error.
+pub fn locate_in_tagged(path: &str, part: &serde_json::Value) -> Option<(String, String)> {
+    if part.get("kind")?.as_str()? != "custom" {
+        return None;
+    }
+    let mut inner = part.clone();
+    inner.as_object_mut()?.remove("kind");
+    let err = serde_path_to_error::deserialize::<_, CustomSpec>(inner).err()?;
+    let at = err.path().to_string();
+    let field = if at == "." {
+        path.to_string()
+    } else {
+        format!("{path}.{at}")
+    };
+    Some((field, err.into_inner().to_string()))
+}
+
 /// An axis-aligned box.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]

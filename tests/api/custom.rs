@@ -222,16 +222,41 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         );
         assert_eq!(body["error"]["details"]["field"], field, "{body}");
     }
-    // A missing field inside a tagged part is reported under `domain` (serde buffers tagged
-    // enums, so the inner path is lost), with the field in the reason.
-    let mut domain = plane(linear);
-    domain["model"] = json!({"kind": "remote"});
-    let (status, body) = app
-        .post("/v1/experiments", &json!({"domain": domain}))
-        .await;
-    assert_eq!(status, 422, "{body}");
-    assert_eq!(body["error"]["details"]["field"], "domain");
-    assert!(reason(&body).contains("`url`"));
+    // Errors of type and shape inside the tagged `domain` name their field too (serde buffers
+    // a tagged enum, losing the path; the service reads the part again to find it).
+    for (change, field, said) in [
+        (
+            json!({"goal": {"radius": "x"}}),
+            "domain.goal.radius",
+            "expected f64",
+        ),
+        (
+            json!({"goal": {"radus": 1}}),
+            "domain.goal.radus",
+            "unknown field `radus`",
+        ),
+        (
+            json!({"obstacles": [{"low": [0, 0], "high": [1, "a"]}]}),
+            "domain.obstacles[0].high[1]",
+            "expected f64",
+        ),
+        (
+            json!({"model": {"kind": "remote"}}),
+            "domain.model",
+            "`url`",
+        ),
+    ] {
+        let mut domain = plane(linear.clone());
+        for (k, v) in change.as_object().unwrap() {
+            domain[k] = v.clone();
+        }
+        let (status, body) = app
+            .post("/v1/experiments", &json!({"domain": domain}))
+            .await;
+        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+        assert!(reason(&body).contains(said), "{body}");
+    }
     let (_, list) = app.get("/v1/experiments").await;
     assert_eq!(list["items"].as_array().unwrap().len(), 0);
 }
