@@ -1,8 +1,9 @@
 """base: a differential-drive robot in an arena with a mound, an icy patch and a box.
 
-State ``(x, y, cos θ, sin θ)``: the heading is encoded by hand in :func:`encode` /
-:func:`decode` (the only place that knows it), so that it can become a plain ``θ`` declared
-periodic once the API has periodic dimensions. Action ``(v, ω)``: forward speed and turn rate,
+State ``(x, y, cos θ, sin θ)``: the heading is encoded by hand in :meth:`Base.encode` /
+:meth:`Base.decode` (the only place that knows it). ``base_theta`` (:class:`BaseTheta`) is the
+same robot with a plain heading ``θ ∈ [−π, π]`` declared periodic (``state.periodic``), as a lab
+would now declare it; both draw the same poses from the same seed. Action ``(v, ω)``: forward speed and turn rate,
 commanded for 1 s (the wheel speeds ``(v ∓ ω b/2) / r`` to the wheels' velocity servos), then
 zero for 0.3 s to stop; the state is where the robot is then. The lab's model is the unicycle
 ``x' = x + ∫ v cos θ``, ``θ' = θ + ω T`` (exact arcs), clipped to the arena: it ignores the
@@ -103,17 +104,25 @@ class Base(Robot):
         self.ice = (ice.pos[:2] - ice.size[:2], ice.pos[:2] + ice.size[:2])
         self.ice_top = float(ice.pos[2] + ice.size[2])
 
+    @staticmethod
+    def encode(x: Array, y: Array, theta: Array) -> Array:
+        return encode(x, y, theta)
+
+    @staticmethod
+    def decode(states: Array) -> tuple[Array, Array, Array]:
+        return decode(states)
+
     def f_hat(self, states: Array, actions: Array) -> Array:
-        x, y, th = decode(states)
+        x, y, th = self.decode(states)
         x2, y2, th2 = unicycle(x, y, th, actions[:, 0], actions[:, 1], DRIVE_SECONDS)
         x2 = np.clip(x2, *ARENA)
         y2 = np.clip(y2, *ARENA)
-        return encode(x2, y2, th2)
+        return self.encode(x2, y2, th2)
 
     def place(self, s: Array) -> None:
         """Puts the robot at rest at pose ``s`` on the terrain."""
         m, d = self.model, self.data
-        x, y, th = (float(v) for v in decode(s))
+        x, y, th = (float(v) for v in self.decode(s))
         mujoco.mj_resetData(m, d)
         h, n = ground(x, y)
         lo, hi = self.ice
@@ -138,7 +147,7 @@ class Base(Robot):
         mat = np.zeros(9)
         mujoco.mju_quat2Mat(mat, d.qpos[3:7])
         th = np.arctan2(mat[3], mat[0])  # the chassis' x-axis, seen from above
-        return encode(np.clip(d.qpos[0], *ARENA), np.clip(d.qpos[1], *ARENA), th)
+        return self.encode(np.clip(d.qpos[0], *ARENA), np.clip(d.qpos[1], *ARENA), th)
 
     def true_step(self, s: Array, a: Array) -> Array:
         m, d = self.model, self.data
@@ -157,7 +166,9 @@ class Base(Robot):
             lo, hi = self.box
             if np.all((np.array([x, y]) > lo - 0.25) & (np.array([x, y]) < hi + 0.25)):
                 continue
-            return encode(np.float64(x), np.float64(y), np.float64(rng.uniform(-np.pi, np.pi)))
+            return self.encode(
+                np.float64(x), np.float64(y), np.float64(rng.uniform(-np.pi, np.pi))
+            )
 
     def parameters(self) -> dict[str, Any]:
         return {
@@ -169,3 +180,26 @@ class Base(Robot):
             "box": "x 2.15-2.45, y 0.45-0.95, 0.2 m high",
             "step": f"drive {DRIVE_SECONDS} s, stop {STOP_SECONDS} s (after {SETTLE_SECONDS} s settling at rest), timestep 10 ms",
         }
+
+
+class BaseTheta(Base):
+    """The same robot, its heading a plain angle declared periodic: ``(x, y, θ)``. The lab's
+    model answers ``θ + ω T`` unwrapped (the service wraps it into ``[−π, π]``); the distance
+    weighs ``θ`` by 0.04 as ``Base`` weighs ``cos θ`` and ``sin θ`` (1 rad counts 0.2 m)."""
+
+    name = "base_theta"
+    description = "differential drive, mound, icy patch, hidden box; heading declared periodic"
+    state_names = ["x", "y", "theta"]
+    state_low = np.array([ARENA[0], ARENA[0], -np.pi])
+    state_high = np.array([ARENA[1], ARENA[1], np.pi])
+    distance_weights = [1.0, 1.0, 0.04]
+    periodic = [2]
+
+    @staticmethod
+    def encode(x: Array, y: Array, theta: Array) -> Array:
+        return np.stack([x, y, theta], axis=-1)
+
+    @staticmethod
+    def decode(states: Array) -> tuple[Array, Array, Array]:
+        s = np.asarray(states)
+        return s[..., 0], s[..., 1], s[..., 2]

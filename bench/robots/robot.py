@@ -55,6 +55,9 @@ class Robot(ABC):
     """``d = sqrt(Σ w_i (ŝ_i − s_i)²)``; ``None``: all ones."""
     problem_distance: tuple[float, float]
     """Start and goal this far apart (in the goal components, Euclidean)."""
+    periodic: list[int] = []
+    """State components that are angles of period ``high − low``, declared ``state.periodic``:
+    the distance takes them the shorter way round, as the service does."""
 
     # ---------------------------------------------------------------- the lab's side
 
@@ -86,6 +89,8 @@ class Robot(ABC):
         }
         if self.distance_weights is not None:
             d["distance"] = {"weights": list(self.distance_weights)}
+        if self.periodic:
+            d["state"]["periodic"] = list(self.periodic)
         return d
 
     # ---------------------------------------------------------------- the true world
@@ -110,7 +115,11 @@ class Robot(ABC):
     def distance(self, a: Array, b: Array) -> Array:
         """The experiment's distance, row-wise."""
         w = np.ones(a.shape[-1]) if self.distance_weights is None else np.asarray(self.distance_weights)
-        return np.sqrt(np.sum(w * (np.asarray(a) - np.asarray(b)) ** 2, axis=-1))
+        diff = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+        for i in self.periodic:
+            period = self.state_high[i] - self.state_low[i]
+            diff[..., i] -= period * np.round(diff[..., i] / period)
+        return np.sqrt(np.sum(w * diff**2, axis=-1))
 
     def true_deviation(self, states: Array, actions: Array) -> Array:
         """``d(f̂(s, a), s')`` with ``s'`` from MuJoCo."""

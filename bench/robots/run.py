@@ -49,13 +49,16 @@ def robot_class(name: str) -> type[Robot]:
     if name == "base":
         from base import Base
         return Base
+    if name == "base_theta":
+        from base import BaseTheta
+        return BaseTheta
     if name == "pusher":
         from pusher import Pusher
         return Pusher
     if name == "arm7":
         from arm7 import Arm7
         return Arm7
-    raise SystemExit(f"unknown robot {name!r} (arm, base, pusher, arm7)")
+    raise SystemExit(f"unknown robot {name!r} (arm, base, base_theta, pusher, arm7)")
 
 
 # --------------------------------------------------------------------------- the fixed test set
