@@ -57,6 +57,21 @@ def test_the_metric_is_the_experiments_distance_and_goal_test() -> None:
     assert custom.at_goal([0.5, 0.5, 9.0], [0.53, 0.53])  # 0.042 on components 0, 1
     assert not custom.at_goal([0.5, 0.5, 9.0], [0.54, 0.54])
 
+    # A heading in [−π, π] declared periodic: 3.1 and −3.1 are 0.083 apart, not 6.2.
+    heading = Metric.of(
+        experiment(
+            {
+                "kind": "custom",
+                "state": {"low": [0, -np.pi], "high": [1, np.pi], "periodic": [1]},
+                "distance": {"weights": [1.0, 1.0]},
+                "goal": {"components": [1], "radius": 0.1},
+            }
+        )
+    )
+    short = 2 * np.pi - 6.2
+    assert heading.distance([0.5, 3.1], [0.5, -3.1]) == pytest.approx(short)
+    assert heading.at_goal([0.5, 3.1], [-3.1]) and not heading.at_goal([0.5, 2.9], [-3.1])
+
     kinematic = Metric.of(experiment({"kind": "kinematic", "goal_radius": 0.05}))
     assert kinematic.distance([0, 0], [0.3, 0.4]) == pytest.approx(0.5)
     assert kinematic.at_goal([0.5, 0.5], [0.5, 0.54]) and not kinematic.at_goal(

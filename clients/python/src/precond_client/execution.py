@@ -18,7 +18,8 @@ means it stopped and will not go on), and report an :class:`Execution`:
   time with ``client.plan``: nothing is stored.
 
 The experiment's own distance and goal test decide: a custom domain's ``distance.weights``
-(``sqrt(Σ w_i (ŝ_i − s_i)²)``) and ``goal`` (``components`` within ``radius``); Euclidean for
+(``sqrt(Σ w_i (ŝ_i − s_i)²)``, a ``state.periodic`` component's difference the shorter way
+round) and ``goal`` (``components`` within ``radius``); Euclidean for
 the built-in kinds, with ``goal_radius`` on every component for ``kinematic``, the exact cell
 for ``icy_gridworld``, the poured volume for ``water_plant``.
 """
@@ -71,6 +72,9 @@ class Metric:
     """The state components compared with the goal vector (``None``: every one)."""
     goal_radius: float = 0.0
     """The goal's radius (``kinematic``, ``custom``)."""
+    periods: dict[int, float] = field(default_factory=dict)
+    """A custom domain's periodic state components (``state.periodic``) and their periods
+    ``high − low``: differences in them are taken the shorter way round."""
 
     @classmethod
     def of(cls, experiment: Experiment) -> Metric:
@@ -83,12 +87,18 @@ class Metric:
             goal = domain.get("goal") or {}
             weights = distance.get("weights")
             components = goal.get("components")
+            state = domain.get("state") or {}
+            periods = {
+                int(i): float(state["high"][int(i)]) - float(state["low"][int(i)])
+                for i in state.get("periodic") or []
+            }
             return cls(
                 d_max,
                 kind,
                 weights=None if weights is None else vec(weights),
                 goal_components=None if components is None else tuple(int(c) for c in components),
                 goal_radius=float(goal.get("radius", 0.05)),
+                periods=periods,
             )
         if kind == "kinematic":
             return cls(d_max, kind, goal_radius=float(domain.get("goal_radius", 0.05)))
@@ -110,10 +120,21 @@ class Metric:
             src = float(np.hypot(p[0] - o[0], p[1] - o[1]))
             tgt = float(np.hypot(p[4] - o[4], p[5] - o[5]))
             return src + tgt + 0.5 * float(abs(p[3] - o[3]) + abs(p[7] - o[7]))
-        diff = p - o
+        diff = self._wrapped(p - o, range(len(p)))
         if self.weights is None:
             return float(np.sqrt(np.dot(diff, diff)))
         return float(np.sqrt(np.dot(self.weights, diff * diff)))
+
+    def _wrapped(self, diff: Array, components: Sequence[int] | range) -> Array:
+        """``diff`` (over the state ``components``) with every periodic one the short way."""
+        if not self.periods:
+            return diff
+        out = np.array(diff, dtype=np.float64)
+        for k, i in enumerate(components):
+            period = self.periods.get(i, 0.0)
+            if period > 0.0:
+                out[k] -= period * np.round(out[k] / period)
+        return out
 
     def at_goal(self, state: ArrayLike, goal: ArrayLike) -> bool:
         """Whether ``state`` satisfies ``goal`` (the server's goal test)."""
@@ -121,11 +142,12 @@ class Metric:
         if self.kind == "water_plant":
             v = float(g[0])
             return bool(s[7] >= 0.98 * v - 1e-9 and s[8] <= 0.02 * v + 1e-9)
+        components = list(self.goal_components or range(len(s)))
         if self.goal_components is not None:
-            s = s[list(self.goal_components)]
+            s = s[components]
         if s.shape != g.shape:
             raise ValueError(f"a goal of {len(g)} components for {len(s)} state components")
-        d = float(np.linalg.norm(s - g))
+        d = float(np.linalg.norm(self._wrapped(s - g, components)))
         if self.kind == "icy_gridworld":
             return d < 0.5
         return d <= self.goal_radius
