@@ -62,8 +62,9 @@ pub struct CustomParams {
     pub weights: Vec<f64>,
     /// State components the goal test compares.
     pub goal_components: Vec<usize>,
-    /// A state is a goal when those components lie within this Euclidean distance of the goal.
-    pub goal_radius: f64,
+    /// A state is a goal when those components lie within this Euclidean distance of the goal
+    /// (one radius), or within `Σ ((s_i − g_i) / r_i)² ≤ 1` (one radius per goal component).
+    pub goal_radius: Vec<f64>,
     /// Boxes in the state space that planned edges may not pass through.
     pub obstacles: Vec<BoxObstacle>,
     /// Actions sampled per steering step (continuous action spaces).
@@ -89,7 +90,7 @@ impl CustomParams {
             move_length: false,
             weights: vec![1.0, 1.0],
             goal_components: vec![0, 1],
-            goal_radius: 0.05,
+            goal_radius: vec![0.05],
             obstacles: vec![],
             steer_samples: 8,
             rollout_length,
@@ -245,7 +246,24 @@ impl CustomDomain {
             ));
         }
         check_indices(&params.goal_components, n, "goal.components")?;
-        check_goal_radius("goal.radius", params.goal_radius)?;
+        match params.goal_radius.as_slice() {
+            [r] => check_goal_radius("goal.radius", *r)?,
+            radii if radii.len() == params.goal_components.len() => {
+                for (k, r) in radii.iter().enumerate() {
+                    check_goal_radius(&format!("goal.radius[{k}]"), *r)?;
+                }
+            }
+            radii => {
+                return Err(DomainError::at(
+                    "goal.radius",
+                    format!(
+                        "give one radius, or one per goal component ({}), not {}",
+                        params.goal_components.len(),
+                        radii.len()
+                    ),
+                ));
+            }
+        }
         if params.obstacles.len() > MAX_OBSTACLES {
             return Err(DomainError::at(
                 "obstacles",
@@ -338,12 +356,18 @@ impl CustomDomain {
         }
     }
 
+    /// How far `s` is from `goal` in goal radii: at most 1 inside the goal.
     fn goal_distance(&self, s: &[f64], goal: &[f64]) -> f64 {
+        let radii = &self.params.goal_radius;
         self.params
             .goal_components
             .iter()
             .zip(goal)
-            .map(|(&i, g)| self.difference(i, s[i], *g).powi(2))
+            .enumerate()
+            .map(|(k, (&i, g))| {
+                let r = radii.get(k).or(radii.first()).copied().unwrap_or(1.0);
+                (self.difference(i, s[i], *g) / r).powi(2)
+            })
             .sum::<f64>()
             .sqrt()
     }
@@ -451,7 +475,7 @@ impl Domain for CustomDomain {
     }
 
     fn is_goal(&self, s: &[f64], goal: &[f64]) -> bool {
-        self.goal_distance(s, goal) <= self.params.goal_radius
+        self.goal_distance(s, goal) <= 1.0
     }
 
     /// The prediction stays within the state bounds, moves, and its segment from `s` misses
@@ -556,7 +580,7 @@ impl Domain for CustomDomain {
         let goal_of =
             |s: &[f64]| -> Vec<f64> { self.params.goal_components.iter().map(|&i| s[i]).collect() };
         for _ in 0..1000 {
-            if self.goal_distance(&start, &goal_of(&goal_state)) > 2.0 * self.params.goal_radius {
+            if self.goal_distance(&start, &goal_of(&goal_state)) > 2.0 {
                 break;
             }
             goal_state = free(rng);
@@ -777,7 +801,7 @@ mod tests {
             move_length: false,
             weights: vec![1.0, 4.0, 0.0],
             goal_components: vec![0, 1],
-            goal_radius: 0.05,
+            goal_radius: vec![0.05],
             obstacles: vec![],
             steer_samples: 8,
             rollout_length: Some(20),
@@ -876,7 +900,15 @@ mod tests {
                 Box::new(|p| p.goal_components = vec![3]),
                 "goal.components[0]",
             ),
-            (Box::new(|p| p.goal_radius = 0.0), "goal.radius"),
+            (Box::new(|p| p.goal_radius = vec![0.0]), "goal.radius"),
+            (
+                Box::new(|p| p.goal_radius = vec![0.1, -1.0]),
+                "goal.radius[1]",
+            ),
+            (
+                Box::new(|p| p.goal_radius = vec![0.1, 0.1, 0.1]),
+                "goal.radius",
+            ),
             (
                 Box::new(|p| {
                     p.obstacles = vec![BoxObstacle {

@@ -652,7 +652,7 @@ mod tests {
             move_length: false,
             weights: vec![1.0; 4],
             goal_components: vec![0],
-            goal_radius: 0.1,
+            goal_radius: vec![0.1],
             obstacles: Vec::new(),
             steer_samples: 4,
             rollout_length: Some(10),

@@ -97,13 +97,28 @@ pub struct GoalSpec {
     /// State components compared with the goal vector. Default: all.
     #[serde(default)]
     pub components: Option<Vec<usize>>,
-    /// Euclidean radius on those components. Default 0.05.
+    /// A Euclidean radius on those components, or one radius per component (metres and
+    /// radians alike need their own). Default 0.05.
     #[serde(default = "default_goal_radius")]
-    pub radius: f64,
+    pub radius: GoalRadius,
 }
 
-fn default_goal_radius() -> f64 {
-    0.05
+/// A goal's radius: one for every component (a ball), or one per component (an ellipsoid:
+/// `Σ ((s_i − g_i) / r_i)² ≤ 1`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(
+    untagged,
+    expecting = "must be a number, or an array of one number per goal component"
+)]
+pub enum GoalRadius {
+    /// One Euclidean radius.
+    One(f64),
+    /// One radius per goal component, in its units.
+    Each(Vec<f64>),
+}
+
+fn default_goal_radius() -> GoalRadius {
+    GoalRadius::One(0.05)
 }
 
 impl Default for GoalSpec {
@@ -386,7 +401,10 @@ impl CustomSpec {
                 .components
                 .clone()
                 .unwrap_or_else(|| (0..n).collect()),
-            goal_radius: self.goal.radius,
+            goal_radius: match &self.goal.radius {
+                GoalRadius::One(r) => vec![*r],
+                GoalRadius::Each(radii) => radii.clone(),
+            },
             obstacles: self
                 .obstacles
                 .iter()

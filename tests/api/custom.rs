@@ -228,7 +228,7 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         (
             json!({"goal": {"radius": "x"}}),
             "domain.goal.radius",
-            "expected f64",
+            "must be a number, or an array",
         ),
         (
             json!({"goal": {"radus": 1}}),
@@ -630,7 +630,7 @@ async fn a_periodic_heading_is_judged_and_planned_the_short_way_round() {
 }
 
 #[tokio::test]
-async fn only_state_components_can_be_periodic_and_once() {
+async fn periodic_components_and_goal_radii_are_checked_by_field() {
     let (_dir, app) = fresh_app().await;
     let identity = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
     for (change, field) in [
@@ -646,6 +646,14 @@ async fn only_state_components_can_be_periodic_and_once() {
             json!({"state": {"low": [0, 0], "high": [1, 1], "periodic": [2]}}),
             "domain.state.periodic[0]",
         ),
+        (
+            json!({"goal": {"components": [1], "radius": [0.1, 0.2]}}),
+            "domain.goal.radius",
+        ),
+        (
+            json!({"goal": {"components": [0, 1], "radius": [0.1, 0]}}),
+            "domain.goal.radius[1]",
+        ),
     ] {
         let mut domain = heading(identity.clone());
         for (k, v) in change.as_object().unwrap() {
@@ -657,4 +665,38 @@ async fn only_state_components_can_be_periodic_and_once() {
         assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
         assert_eq!(body["error"]["details"]["field"], field, "{body}");
     }
+}
+
+#[tokio::test]
+async fn a_goal_can_have_a_radius_per_component() {
+    let identity = json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]});
+    let mut domain = heading(identity);
+    // Metres and radians: within 5 cm in x and 0.3 rad in heading.
+    domain["goal"] = json!({"components": [0, 1], "radius": [0.05, 0.3]});
+    let (_dir, app, id) = fresh_experiment(json!({"domain": domain})).await;
+    let (_, exp) = app.get_at(id, "").await;
+    assert_eq!(exp["domain"]["goal"]["radius"], json!([0.05, 0.3]), "{exp}");
+    let (status, plan) = app
+        .post_at(
+            id,
+            "plans",
+            &json!({"start": [0.2, 3.0], "goal": [0.4, -3.0], "beta": -1000.0}),
+        )
+        .await;
+    assert_eq!(status, 200, "{plan}");
+    assert_eq!(plan["found"], true, "{plan}");
+    let last = plan["trajectory"]["states"]
+        .as_array()
+        .unwrap()
+        .last()
+        .unwrap()
+        .clone();
+    let (x, theta) = (last[0].as_f64().unwrap(), last[1].as_f64().unwrap());
+    let dtheta = (theta + 3.0 + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+        - std::f64::consts::PI;
+    let inside = ((x - 0.4) / 0.05).powi(2) + (dtheta / 0.3).powi(2);
+    assert!(
+        inside <= 1.0 + 1e-9,
+        "ends at {last}: {inside} radii from the goal"
+    );
 }
