@@ -72,6 +72,19 @@ def test_the_metric_is_the_experiments_distance_and_goal_test() -> None:
     assert heading.distance([0.5, 3.1], [0.5, -3.1]) == pytest.approx(short)
     assert heading.at_goal([0.5, 3.1], [-3.1]) and not heading.at_goal([0.5, 2.9], [-3.1])
 
+    # A radius per goal component: 5 cm in x, 0.3 rad in heading (an ellipse).
+    ellipse = Metric.of(
+        experiment(
+            {
+                "kind": "custom",
+                "state": {"low": [0, -np.pi], "high": [1, np.pi], "periodic": [1]},
+                "goal": {"components": [0, 1], "radius": [0.05, 0.3]},
+            }
+        )
+    )
+    assert ellipse.at_goal([0.5, 3.1], [0.53, -3.1])  # (0.6² + 0.28²) < 1
+    assert not ellipse.at_goal([0.5, 3.1], [0.54, 2.9])  # (0.8² + 0.67²) > 1
+
     kinematic = Metric.of(experiment({"kind": "kinematic", "goal_radius": 0.05}))
     assert kinematic.distance([0, 0], [0.3, 0.4]) == pytest.approx(0.5)
     assert kinematic.at_goal([0.5, 0.5], [0.5, 0.54]) and not kinematic.at_goal(

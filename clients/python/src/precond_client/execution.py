@@ -57,6 +57,14 @@ spent); ``no_plan`` (no plan from where the robot is); ``failed`` (the server ke
 :attr:`Execution.error`)."""
 
 
+def radius(value: float | Sequence[float]) -> float | Array:
+    """A goal's ``radius`` as the server resolves it: a number, or one per goal component."""
+    if isinstance(value, (int, float)):
+        return float(value)
+    radii = vec(value)
+    return float(radii[0]) if len(radii) == 1 else radii
+
+
 @dataclass(frozen=True, eq=False)
 class Metric:
     """An experiment's distance between states and its goal test, as the server computes them
@@ -70,8 +78,9 @@ class Metric:
     """A custom domain's ``distance.weights``; ``None``: Euclidean (or the water plant's)."""
     goal_components: tuple[int, ...] | None = None
     """The state components compared with the goal vector (``None``: every one)."""
-    goal_radius: float = 0.0
-    """The goal's radius (``kinematic``, ``custom``)."""
+    goal_radius: float | Array = 0.0
+    """The goal's radius (``kinematic``, ``custom``), or one per goal component (a custom
+    domain's ``goal.radius`` as a list: ``Σ ((s_i − g_i) / r_i)² ≤ 1``)."""
     periods: dict[int, float] = field(default_factory=dict)
     """A custom domain's periodic state components (``state.periodic``) and their periods
     ``high − low``: differences in them are taken the shorter way round."""
@@ -97,7 +106,7 @@ class Metric:
                 kind,
                 weights=None if weights is None else vec(weights),
                 goal_components=None if components is None else tuple(int(c) for c in components),
-                goal_radius=float(goal.get("radius", 0.05)),
+                goal_radius=radius(goal.get("radius", 0.05)),
                 periods=periods,
             )
         if kind == "kinematic":
@@ -147,10 +156,10 @@ class Metric:
             s = s[components]
         if s.shape != g.shape:
             raise ValueError(f"a goal of {len(g)} components for {len(s)} state components")
-        d = float(np.linalg.norm(self._wrapped(s - g, components)))
+        diff = self._wrapped(s - g, components)
         if self.kind == "icy_gridworld":
-            return d < 0.5
-        return d <= self.goal_radius
+            return float(np.linalg.norm(diff)) < 0.5
+        return float(np.linalg.norm(diff / self.goal_radius)) <= 1.0
 
 
 @dataclass(frozen=True, eq=False)
