@@ -207,9 +207,8 @@ impl CustomDomain {
                 "at least one state, action or prediction component must feed the MDE",
             ));
         }
-        if (params.move_length || !params.feature_prediction.is_empty()) && model.client_side() {
-            // Allowed: the client then posts `s_pred` with its queries too (checked there).
-        }
+        // Prediction features with a client-side model are allowed: the client then posts
+        // `s_pred` with its queries too (checked there).
         if params.action_length && params.feature_action.is_empty() {
             return Err(DomainError::at(
                 "features.action_length",
