@@ -305,6 +305,13 @@ impl CustomSpec {
             ));
         }
         let periodic = self.state.periodic.as_deref().unwrap_or_default();
+        if periodic.len() > n {
+            // Checked first: the test for repeats below is quadratic in the list's length.
+            return Err(bad(
+                "state.periodic",
+                format!("at most {n} components (the state has {n})"),
+            ));
+        }
         for (k, i) in periodic.iter().enumerate() {
             if periodic[..k].contains(i) {
                 return Err(bad(

@@ -647,6 +647,10 @@ async fn periodic_components_and_goal_radii_are_checked_by_field() {
             "domain.state.periodic[0]",
         ),
         (
+            json!({"state": {"low": [0, 0], "high": [1, 1], "periodic": vec![0; 100_000]}}),
+            "domain.state.periodic",
+        ),
+        (
             json!({"goal": {"components": [1], "radius": [0.1, 0.2]}}),
             "domain.goal.radius",
         ),
