@@ -14,13 +14,13 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from robot import Array, Robot, run_until_settled
+from robot import ServoArm
 
 XML = Path(__file__).with_name("arm7.xml")
 STEP_SECONDS = 1.0
 
 
-class Arm7(Robot):
+class Arm7(ServoArm):
     name = "arm7"
     description = "Gymnasium Pusher's 7-joint arm, gravity, saturated servos, table and box"
     state_names = [
@@ -41,30 +41,6 @@ class Arm7(Robot):
         self.state_low = self.model.jnt_range[:, 0].copy()
         self.state_high = self.model.jnt_range[:, 1].copy()
         self.nstep = int(round(STEP_SECONDS / self.model.opt.timestep))
-
-    def f_hat(self, states: Array, actions: Array) -> Array:
-        return np.clip(states + actions, self.state_low, self.state_high)
-
-    def true_step(self, s: Array, a: Array) -> Array:
-        m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
-        d.qpos[:] = s
-        d.ctrl[:] = np.clip(s + a, self.state_low, self.state_high)
-        run_until_settled(m, d, self.nstep, self.nstep // 5)
-        return np.clip(d.qpos.copy(), self.state_low, self.state_high)
-
-    def in_collision(self, s: Array) -> bool:
-        m, d = self.model, self.data
-        mujoco.mj_resetData(m, d)
-        d.qpos[:] = s
-        mujoco.mj_forward(m, d)
-        return any(d.contact[i].dist < 0 for i in range(d.ncon))
-
-    def sample_state(self, rng: np.random.Generator) -> Array:
-        while True:
-            s = rng.uniform(self.state_low, self.state_high)
-            if not self.in_collision(s):
-                return s
 
     def parameters(self) -> dict[str, Any]:
         return {

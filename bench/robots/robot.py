@@ -148,3 +148,38 @@ class Robot(ABC):
     def parameters(self) -> dict[str, Any]:
         """The physical parameters, for the report."""
         return {}
+
+
+class ServoArm(Robot):
+    """An arm whose joints are position servos: the state is the joint angles, an action a
+    displacement of the servos' targets held for ``nstep`` simulation steps from rest, and the
+    lab's model ``clip(s + a)`` (the arm goes where it is told). Subclasses set ``model``,
+    ``data`` and ``nstep`` in ``__init__``."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    nstep: int
+
+    def f_hat(self, states: Array, actions: Array) -> Array:
+        return np.clip(states + actions, self.state_low, self.state_high)
+
+    def true_step(self, s: Array, a: Array) -> Array:
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        d.qpos[:] = s
+        d.ctrl[:] = np.clip(s + a, self.state_low, self.state_high)
+        run_until_settled(m, d, self.nstep, self.nstep // 5)
+        return np.clip(d.qpos.copy(), self.state_low, self.state_high)
+
+    def in_collision(self, s: Array) -> bool:
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        d.qpos[:] = s
+        mujoco.mj_forward(m, d)
+        return any(d.contact[i].dist < 0 for i in range(d.ncon))
+
+    def sample_state(self, rng: np.random.Generator) -> Array:
+        while True:
+            s = rng.uniform(self.state_low, self.state_high)
+            if not self.in_collision(s):
+                return s
