@@ -29,6 +29,25 @@ async fn app_with_models(server: &ModelServer) -> (tempfile::TempDir, TestApp) {
     (dir, app)
 }
 
+/// Creates an experiment on `domain` with `change`'s parts put in place of its own, asserts
+/// the `422` names `field`, and returns the answer.
+async fn refused(app: &TestApp, domain: &Value, change: &Value, field: &str) -> Value {
+    let mut domain = domain.clone();
+    for (k, v) in change.as_object().unwrap() {
+        domain[k] = v.clone();
+    }
+    let (status, body) = app
+        .post("/v1/experiments", &json!({"domain": domain}))
+        .await;
+    assert_eq!(
+        (status, code(&body)),
+        (422, "validation_failed"),
+        "{field}: {body}"
+    );
+    assert_eq!(body["error"]["details"]["field"], field, "{body}");
+    body
+}
+
 fn weighted(p: &[f64], o: &[f64]) -> f64 {
     ((p[0] - o[0]).powi(2) + 4.0 * (p[1] - o[1]).powi(2)).sqrt()
 }
@@ -208,19 +227,7 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
         ),
     ];
     for (change, field) in cases {
-        let mut domain = plane(linear.clone());
-        for (k, v) in change.as_object().unwrap() {
-            domain[k] = v.clone();
-        }
-        let (status, body) = app
-            .post("/v1/experiments", &json!({"domain": domain}))
-            .await;
-        assert_eq!(
-            (status, code(&body)),
-            (422, "validation_failed"),
-            "{field}: {body}"
-        );
-        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+        refused(&app, &plane(linear.clone()), &change, field).await;
     }
     // Errors of type and shape inside the tagged `domain` name their field too (serde buffers
     // a tagged enum, losing the path; the service reads the part again to find it).
@@ -246,15 +253,7 @@ async fn a_bad_custom_domain_is_refused_with_the_field_named() {
             "`url`",
         ),
     ] {
-        let mut domain = plane(linear.clone());
-        for (k, v) in change.as_object().unwrap() {
-            domain[k] = v.clone();
-        }
-        let (status, body) = app
-            .post("/v1/experiments", &json!({"domain": domain}))
-            .await;
-        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
-        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+        let body = refused(&app, &plane(linear.clone()), &change, field).await;
         assert!(reason(&body).contains(said), "{body}");
     }
     let (_, list) = app.get("/v1/experiments").await;
@@ -659,15 +658,7 @@ async fn periodic_components_and_goal_radii_are_checked_by_field() {
             "domain.goal.radius[1]",
         ),
     ] {
-        let mut domain = heading(identity.clone());
-        for (k, v) in change.as_object().unwrap() {
-            domain[k] = v.clone();
-        }
-        let (status, body) = app
-            .post("/v1/experiments", &json!({"domain": domain}))
-            .await;
-        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
-        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+        refused(&app, &heading(identity.clone()), &change, field).await;
     }
 }
 
