@@ -470,8 +470,9 @@ pub struct ModelResponse {
     pub noise: Option<NoiseMode>,
     /// Names of the feature components, in the order of `length_scales`.
     pub feature_names: Vec<String>,
-    /// Hyperparameters (length scales in the unit-box feature space).
-    pub hyperparameters: Hyperparameters,
+    /// Hyperparameters (length scales in the unit-box feature space); `null` for local
+    /// experts, each of which has its own (see the export).
+    pub hyperparameters: Option<Hyperparameters>,
     /// The heteroscedastic noise model's summary, when there is one.
     pub noise_model: Option<NoiseSummary>,
     /// Log marginal likelihood of the fit.

@@ -178,15 +178,10 @@ fn parse_noise_mode(s: &str) -> Result<crate::gp::NoiseMode, String> {
     }
 }
 
-/// `exact` or `sparse`.
+/// `exact`, `sparse` or `local_experts`.
 fn parse_estimator_kind(s: &str) -> Result<crate::mde::EstimatorKind, String> {
-    match s {
-        "exact" => Ok(crate::mde::EstimatorKind::Exact),
-        "sparse" => Ok(crate::mde::EstimatorKind::Sparse),
-        other => Err(format!(
-            "{other:?} is not an estimator; use exact or sparse"
-        )),
-    }
+    crate::mde::EstimatorKind::from_name(s)
+        .ok_or_else(|| format!("{s:?} is not an estimator; use exact, sparse or local_experts"))
 }
 
 /// Options of `precond bench worlds`.

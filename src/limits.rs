@@ -21,6 +21,11 @@ pub const MIN_INDUCING_POINTS: usize = 16;
 
 /// Most inducing points of the sparse GP: its fit costs `O(n m²)` and its memory `O(n m)`.
 pub const MAX_INDUCING_POINTS: usize = 4096;
+/// Fewest transitions per local expert (`mde.expert_size`).
+pub const MIN_EXPERT_SIZE: usize = 50;
+
+/// Most transitions per local expert: an expert is an exact GP, `O(n_e³)` to fit.
+pub const MAX_EXPERT_SIZE: usize = 3000;
 /// Seconds an open proposal stays leased: `1 ..= 604 800` (a week).
 pub const MAX_PROPOSAL_TTL_SECONDS: u32 = 7 * 24 * 3600;
 /// Characters of an experiment's name: `0 ..= 200`.

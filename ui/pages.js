@@ -189,7 +189,8 @@ function settingsCard(e) {
           ? 'label cap chosen at each fit (auto)'
           : m.label_cap
             ? `labels capped at ${fmt(m.label_cap)} d_max`
-            : 'raw labels'),
+            : 'raw labels') +
+        `; ${estimatorText(m)}`,
     ],
     ['state space', space(e.state_space)],
     ['action space', space(e.action_space)],
@@ -314,6 +315,20 @@ function modelTable(t) {
       ),
     ),
   );
+}
+
+/** The MDE settings' regressor in words (`mde.estimator`; absent before it existed: exact). */
+export function estimatorText(m) {
+  switch (m.estimator ?? 'exact') {
+    case 'auto':
+      return 'exact GP up to 3000 transitions, sparse GP beyond (auto)';
+    case 'sparse':
+      return `sparse GP, ${m.inducing_points} inducing points`;
+    case 'local_experts':
+      return `local experts: an exact GP per region of about ${m.expert_size ?? 300} transitions, each with its own hyperparameters`;
+    default:
+      return 'exact GP';
+  }
 }
 
 /** Where a trajectory comes from, in one line: `dataset · episode 3 from step 0 · label`. */

@@ -213,7 +213,9 @@ pub async fn run(o: MdeBenchOptions) -> anyhow::Result<()> {
                 let (tpr_l, tnr_l, med_l) = judge(true);
                 let med_n = median_noise_sd(&p);
                 let test_lp = held_out_log_score(&p, &held, d_max);
-                let h = choice.gp.hyperparameters();
+                let h = choice.gp.hyperparameters().ok_or_else(|| {
+                    anyhow::anyhow!("the bench fits exact GPs, which have hyperparameters")
+                })?;
                 let min_l = h
                     .length_scales
                     .iter()
@@ -304,7 +306,10 @@ async fn calibration(
     let sd = p.std();
     println!(
         "served fit: kernel {}, label cap {}",
-        choice.gp.hyperparameters().kernel.name(),
+        choice
+            .gp
+            .hyperparameters()
+            .map_or("(per expert)", |h| h.kernel.name()),
         choice.label_cap
     );
     println!(

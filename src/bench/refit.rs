@@ -143,7 +143,11 @@ pub fn run(o: &RefitBenchOptions) -> anyhow::Result<(RefitFigures, RefitFigures)
         EstimatorKind::Exact,
         &params,
     )?;
-    let h = first.gp.hyperparameters().clone();
+    let h = first
+        .gp
+        .hyperparameters()
+        .ok_or_else(|| crate::gp::GpError::InvalidState("an exact GP has hyperparameters".into()))?
+        .clone();
     let noise = first.gp.noise_summary().map(|s| s.noise_model);
     let carry = Carry {
         kernel: h.kernel,
@@ -169,7 +173,11 @@ pub fn run(o: &RefitBenchOptions) -> anyhow::Result<(RefitFigures, RefitFigures)
             tpr,
             tnr,
             log_score,
-            kernel: c.gp.hyperparameters().kernel.name().to_string(),
+            kernel: c
+                .gp
+                .hyperparameters()
+                .map_or("(per expert)", |h| h.kernel.name())
+                .to_string(),
             label_cap: c.label_cap,
         }
     };

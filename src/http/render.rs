@@ -151,7 +151,7 @@ pub fn model(v: ModelView) -> ModelResponse {
         n_train: m.n_train(),
         noise: m.noise_mode(),
         feature_names: v.feature_names,
-        hyperparameters: m.hyperparameters().clone(),
+        hyperparameters: m.hyperparameters().cloned(),
         noise_model: m.noise_summary(),
         log_marginal_likelihood: m.log_marginal_likelihood(),
         fit_seconds: m.fit.as_ref().map(|f| f.fit_seconds),

@@ -10,9 +10,21 @@
 //!   [`DEFAULT_FULL_RANK_UP_TO`](crate::gp::DEFAULT_FULL_RANK_UP_TO) transitions every training
 //!   input is an inducing point, and the fit is the exact GP's in sparse form.
 //!
+//! - [`EstimatorKind::LocalExperts`]: exact GPs, one per region of the feature space, each with
+//!   its own hyperparameters ([`LocalExperts`]): for deviations that are flat in one place and
+//!   jump in another; `k · O((n/k)³)` to fit, closed-form leave-out per expert.
+//!
+//! What an estimator can do beyond μ and σ it declares ([`EstimatorKind::judges_held_out`],
+//! [`EstimatorKind::updates_online`], [`Regressor::hyperparameters`]); the service and model
+//! selection ask these, not which estimator it is. A new estimator is a [`Regressor`]
+//! implementation, an [`EstimatorKind`] and [`EstimatorState`] variant, an arm in [`fit`] and
+//! [`EstimatorState::restore`], and its exported form ([`EstimatorPredictor`]).
+//!
 //! [`EstimatorChoice::Auto`] (the default) fits the exact GP up to [`AUTO_EXACT_MAX_N`]
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.
 
+use super::experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, ExpertsState, LocalExperts};
+use crate::gp::export::{PointPrediction, Scratch};
 use crate::gp::{
     FitCost, Fold, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
     NoiseSummary, Prediction, Predictor, SparseGp, SparseParams, SparseState, ValidGpParams,
@@ -32,6 +44,8 @@ pub enum EstimatorKind {
     Exact,
     /// The sparse variational GP.
     Sparse,
+    /// Exact GPs, one per region of the feature space ([`LocalExperts`]).
+    LocalExperts,
 }
 
 impl EstimatorKind {
@@ -40,6 +54,42 @@ impl EstimatorKind {
         match self {
             Self::Exact => "exact",
             Self::Sparse => "sparse",
+            Self::LocalExperts => "local_experts",
+        }
+    }
+
+    /// The kind named `name` ([`as_str`](Self::as_str)).
+    pub fn from_name(name: &str) -> Option<Self> {
+        [Self::Exact, Self::Sparse, Self::LocalExperts]
+            .into_iter()
+            .find(|k| k.as_str() == name)
+    }
+
+    /// Whether its fits judge their own training transitions held out in closed form
+    /// ([`Regressor::leave_folds_out`] answers): model selection (label cap, kernel, certified
+    /// β) then runs on the estimator itself; otherwise on exact GPs over a subset.
+    pub fn judges_held_out(self) -> bool {
+        match self {
+            Self::Exact | Self::LocalExperts => true,
+            Self::Sparse => false,
+        }
+    }
+
+    /// Whether a fitted version takes new trajectories in by an online update at its
+    /// hyperparameters ([`Regressor::update`]) rather than only by a refit.
+    pub fn updates_online(self) -> bool {
+        match self {
+            Self::Sparse => true,
+            Self::Exact | Self::LocalExperts => false,
+        }
+    }
+
+    /// Whether its cost grows like the exact GP's, cubically in the training set: a batch's
+    /// proposals in flight are then limited by the fit they will cause.
+    pub fn fits_cubically(self) -> bool {
+        match self {
+            Self::Exact => true,
+            Self::Sparse | Self::LocalExperts => false,
         }
     }
 }
@@ -57,6 +107,8 @@ pub enum EstimatorChoice {
     Exact,
     /// Always the sparse GP.
     Sparse,
+    /// Always local experts: exact GPs on regions of about `mde.expert_size` transitions each.
+    LocalExperts,
 }
 
 /// [`EstimatorChoice::Auto`] fits the exact GP up to this many training transitions. At
@@ -79,6 +131,7 @@ impl EstimatorChoice {
         match self {
             Self::Exact => EstimatorKind::Exact,
             Self::Sparse => EstimatorKind::Sparse,
+            Self::LocalExperts => EstimatorKind::LocalExperts,
             Self::Auto => {
                 if n <= AUTO_EXACT_MAX_N
                     && params.cost(EstimatorKind::Exact, n, d).peak_bytes <= memory_budget as f64
@@ -102,10 +155,11 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     fn kind(&self) -> EstimatorKind;
     /// Training points it is conditioned on.
     fn n_train(&self) -> usize;
-    /// The hyperparameters.
-    fn hyperparameters(&self) -> &Hyperparameters;
-    /// The fit's objective: the log marginal likelihood (exact) or its variational lower
-    /// bound (sparse).
+    /// The hyperparameters, where one set answers everywhere (`None`: local experts, each
+    /// with its own).
+    fn hyperparameters(&self) -> Option<&Hyperparameters>;
+    /// The fit's objective: the log marginal likelihood (exact; local experts: the sum of
+    /// theirs) or its variational lower bound (sparse).
     fn log_marginal_likelihood(&self) -> f64;
     /// The noise model.
     fn noise_mode(&self) -> NoiseMode;
@@ -132,7 +186,7 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     }
     /// The fitted regressor as plain numbers, for evaluation outside the server
     /// ([`ExportedModel`](super::ExportedModel)).
-    fn predictor(&self) -> Predictor;
+    fn predictor(&self) -> EstimatorPredictor;
     /// `(y_i − μ₋ᵢ, σ₋ᵢ)` of each training point predicted from the others, where the
     /// regressor has it in closed form (`None` otherwise).
     fn leave_one_out(&self) -> Option<Vec<(f64, f64)>>;
@@ -160,6 +214,8 @@ pub enum EstimatorState {
     Exact(ModelState),
     /// The sparse GP's inducing points and factors; restoring needs no training data.
     Sparse(Box<SparseState>),
+    /// The experts' centres and GP states; restoring needs the training data.
+    LocalExperts(ExpertsState),
 }
 
 impl EstimatorState {
@@ -168,27 +224,39 @@ impl EstimatorState {
         match self {
             Self::Exact(_) => EstimatorKind::Exact,
             Self::Sparse(_) => EstimatorKind::Sparse,
+            Self::LocalExperts(_) => EstimatorKind::LocalExperts,
         }
     }
 
     /// Whether [`restore`](Self::restore) needs the training data.
     pub fn needs_training_data(&self) -> bool {
-        matches!(self, Self::Exact(_))
+        matches!(self, Self::Exact(_) | Self::LocalExperts(_))
     }
 
-    /// The hyperparameters of the stored fit.
-    pub fn hyperparameters(&self) -> &Hyperparameters {
+    /// The hyperparameters of the stored fit, where one set answers everywhere.
+    pub fn hyperparameters(&self) -> Option<&Hyperparameters> {
         match self {
-            Self::Exact(s) => &s.hyperparameters,
-            Self::Sparse(s) => &s.main.hyperparameters,
+            Self::Exact(s) => Some(&s.hyperparameters),
+            Self::Sparse(s) => Some(&s.main.hyperparameters),
+            Self::LocalExperts(_) => None,
         }
     }
 
-    /// The noise mode of the stored fit.
+    /// The noise mode of the stored fit (local experts: heteroscedastic if any expert is).
     pub fn noise(&self) -> NoiseMode {
         match self {
             Self::Exact(s) => s.noise,
             Self::Sparse(s) => s.noise,
+            Self::LocalExperts(s) => {
+                if s.experts
+                    .iter()
+                    .all(|e| e.noise == NoiseMode::Homoscedastic)
+                {
+                    NoiseMode::Homoscedastic
+                } else {
+                    NoiseMode::Heteroscedastic
+                }
+            }
         }
     }
 
@@ -203,6 +271,7 @@ impl EstimatorState {
         Ok(match self {
             Self::Exact(s) => Box::new(GpModel::from_state(x, y, s)?),
             Self::Sparse(s) => Box::new(SparseGp::from_state(s)?),
+            Self::LocalExperts(s) => Box::new(LocalExperts::from_state(x, y, s)?),
         })
     }
 }
@@ -212,6 +281,7 @@ impl EstimatorState {
 pub struct EstimatorParams {
     gp: ValidGpParams,
     sparse: ValidSparseParams,
+    expert_size: usize,
 }
 
 impl EstimatorParams {
@@ -226,7 +296,14 @@ impl EstimatorParams {
         Ok(Self {
             gp: gp.check()?,
             sparse,
+            expert_size: DEFAULT_EXPERT_SIZE,
         })
+    }
+
+    /// The same parameters with local experts of about `expert_size` transitions each.
+    pub fn with_expert_size(mut self, expert_size: usize) -> Self {
+        self.expert_size = expert_size.max(1);
+        self
     }
 
     /// The shared GP parameters.
@@ -236,24 +313,26 @@ impl EstimatorParams {
 
     /// The same parameters with `kernel`.
     pub fn with_kernel(&self, kernel: Kernel) -> Result<Self, GpError> {
-        Self::new(
+        Ok(Self::new(
             GpParams {
                 kernel,
                 ..self.gp.params().clone()
             },
             self.sparse.params().inducing_points,
-        )
+        )?
+        .with_expert_size(self.expert_size))
     }
 
     /// The same parameters starting from `warm` (a warm refit; `None`: a new fit).
     pub fn with_warm(&self, warm: Option<WarmStart>) -> Result<Self, GpError> {
-        Self::new(
+        Ok(Self::new(
             GpParams {
                 warm,
                 ..self.gp.params().clone()
             },
             self.sparse.params().inducing_points,
-        )
+        )?
+        .with_expert_size(self.expert_size))
     }
 
     /// The estimated peak memory and work of a fit of `n` points of dimension `d`.
@@ -262,6 +341,20 @@ impl EstimatorParams {
         match kind {
             EstimatorKind::Exact => exact_fit_cost(n, d, g.restarts, g.noise, g.hetero_rounds),
             EstimatorKind::Sparse => sparse_fit_cost(n, d, self.sparse.params()),
+            EstimatorKind::LocalExperts => {
+                // Regions of about `expert_size` rows; the smallest are merged, so at worst
+                // one region holds twice as many.
+                let size = self.expert_size.min(n).max(1);
+                let k = n.div_ceil(size).max(1) as f64;
+                let cost =
+                    |rows: usize| exact_fit_cost(rows, d, g.restarts, g.noise, g.hetero_rounds);
+                let (each, largest) = (cost(size), cost((2 * size).min(n)));
+                FitCost {
+                    peak_bytes: largest.peak_bytes,
+                    flops: (each.flops * k).max(largest.flops),
+                    seconds: (each.seconds * k).max(largest.seconds),
+                }
+            }
         }
     }
 }
@@ -276,7 +369,61 @@ pub fn fit(
     Ok(match kind {
         EstimatorKind::Exact => Box::new(GpModel::fit(x, y, &params.gp)?),
         EstimatorKind::Sparse => Box::new(SparseGp::fit(x, y, &params.sparse)?),
+        EstimatorKind::LocalExperts => {
+            Box::new(LocalExperts::fit(x, y, &params.gp, params.expert_size)?)
+        }
     })
+}
+
+/// A fitted estimator as plain numbers, for evaluation outside the server (the exported
+/// model's `predictor`): one GP (the exact and the sparse GP), or local experts. Serialised
+/// untagged, so a GP's document is the same as before local experts existed.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(untagged)]
+pub enum EstimatorPredictor {
+    /// One GP.
+    Gp(Box<Predictor>),
+    /// Local experts: the expert of the nearest centre answers.
+    Experts(ExpertsPredictor),
+}
+
+impl EstimatorPredictor {
+    /// Input dimension.
+    pub fn dim(&self) -> usize {
+        match self {
+            Self::Gp(p) => p.dim(),
+            Self::Experts(p) => p.dim(),
+        }
+    }
+
+    /// Checks that the numbers fit together; the error names the field.
+    pub fn check(&self) -> Result<(), String> {
+        match self {
+            Self::Gp(p) => p.check(),
+            Self::Experts(p) => p.check(),
+        }
+    }
+
+    /// The GP answering at features `x` (the one GP, or the expert of the nearest centre).
+    pub fn answering(&self, x: &[f64]) -> &Predictor {
+        match self {
+            Self::Gp(p) => p,
+            Self::Experts(p) => p.expert_at(x),
+        }
+    }
+
+    /// The points the GPs' kernels are evaluated against, over all of them.
+    pub fn points(&self) -> usize {
+        match self {
+            Self::Gp(p) => p.main.points.len(),
+            Self::Experts(p) => p.experts.iter().map(|e| e.main.points.len()).sum(),
+        }
+    }
+
+    /// The prediction at features `x` with reusable buffers.
+    pub fn predict_into(&self, x: &[f64], scratch: &mut Scratch) -> PointPrediction {
+        self.answering(x).predict_into(x, scratch)
+    }
 }
 
 /// The [`Regressor`] methods both GPs answer with their inherent method of the same name.
@@ -285,8 +432,8 @@ macro_rules! inherent_methods {
         fn n_train(&self) -> usize {
             $gp::n_train(self)
         }
-        fn hyperparameters(&self) -> &Hyperparameters {
-            $gp::hyperparameters(self)
+        fn hyperparameters(&self) -> Option<&Hyperparameters> {
+            Some($gp::hyperparameters(self))
         }
         fn noise_mode(&self) -> NoiseMode {
             $gp::noise_mode(self)
@@ -300,8 +447,8 @@ macro_rules! inherent_methods {
         fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
             $gp::predict_fantasised(self, x, pending)
         }
-        fn predictor(&self) -> Predictor {
-            $gp::predictor(self)
+        fn predictor(&self) -> EstimatorPredictor {
+            EstimatorPredictor::Gp(Box::new($gp::predictor(self)))
         }
         fn fantasy(&self, x: DMatrix<f64>) -> PreparedRows<'_> {
             let prepared = $gp::fantasy(self, x);
@@ -364,5 +511,54 @@ impl Regressor for SparseGp {
     fn floats(&self) -> usize {
         let m = self.n_inducing();
         m * m + m * SparseGp::input_dim(self)
+    }
+}
+
+impl Regressor for LocalExperts {
+    fn kind(&self) -> EstimatorKind {
+        EstimatorKind::LocalExperts
+    }
+    fn n_train(&self) -> usize {
+        LocalExperts::n_train(self)
+    }
+    /// Each expert has its own.
+    fn hyperparameters(&self) -> Option<&Hyperparameters> {
+        None
+    }
+    fn log_marginal_likelihood(&self) -> f64 {
+        LocalExperts::log_marginal_likelihood(self)
+    }
+    fn noise_mode(&self) -> NoiseMode {
+        LocalExperts::noise_mode(self)
+    }
+    fn noise_summary(&self) -> Option<NoiseSummary> {
+        None
+    }
+    fn predict(&self, x: &DMatrix<f64>) -> Prediction {
+        LocalExperts::predict(self, x)
+    }
+    fn predict_fantasised(&self, x: &DMatrix<f64>, pending: &DMatrix<f64>) -> Prediction {
+        LocalExperts::predict_fantasised(self, x, pending)
+    }
+    fn predictor(&self) -> EstimatorPredictor {
+        EstimatorPredictor::Experts(LocalExperts::predictor(self))
+    }
+    fn leave_one_out(&self) -> Option<Vec<(f64, f64)>> {
+        LocalExperts::leave_one_out(self)
+    }
+    fn leave_folds_out(&self, folds: &[Fold]) -> Option<Vec<(f64, f64)>> {
+        LocalExperts::leave_folds_out(self, folds)
+    }
+    /// Local experts take new data by a refit: an error.
+    fn update(&self, _x: &DMatrix<f64>, _y: &DVector<f64>) -> Result<Box<dyn Regressor>, GpError> {
+        Err(GpError::InvalidState(
+            "local experts take new data by a refit, not an online update".into(),
+        ))
+    }
+    fn state(&self) -> EstimatorState {
+        EstimatorState::LocalExperts(LocalExperts::state(self))
+    }
+    fn floats(&self) -> usize {
+        LocalExperts::floats(self)
     }
 }

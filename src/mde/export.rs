@@ -10,16 +10,19 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Estimator, EstimatorKind, ServedModel};
+use super::{Estimator, EstimatorKind, EstimatorPredictor, ServedModel};
 use crate::domain::{Domain, FeatureMap};
-use crate::gp::Predictor;
 use crate::gp::export::Scratch as GpScratch;
 
 /// The document's `format`.
 pub const EXPORT_FORMAT: &str = "precond-model";
 
-/// The document's `format_version`: 1.
+/// The document's `format_version` for a GP (`predictor` holds one GP): 1.
 pub const EXPORT_FORMAT_VERSION: u32 = 1;
+
+/// The `format_version` of a document whose `predictor` holds local experts: 2 (a reader of
+/// version 1 refuses it rather than misread it).
+pub const EXPORT_FORMAT_VERSION_EXPERTS: u32 = 2;
 
 /// One fitted MDE version, exported: everything `μ(s, a)`, `σ(s, a)` and the precondition
 /// `μ + βσ < d_max` need.
@@ -27,7 +30,8 @@ pub const EXPORT_FORMAT_VERSION: u32 = 1;
 pub struct ExportedModel {
     /// Always `precond-model`.
     pub format: String,
-    /// The format's version ([`EXPORT_FORMAT_VERSION`]); a reader refuses one it does not know.
+    /// The format's version ([`EXPORT_FORMAT_VERSION`], or [`EXPORT_FORMAT_VERSION_EXPERTS`] for
+    /// local experts); a reader refuses one it does not know.
     pub format_version: u32,
     /// The experiment the model belongs to.
     pub experiment_id: i64,
@@ -50,8 +54,10 @@ pub struct ExportedModel {
     pub feature_names: Vec<String>,
     /// How a state-action becomes the features the GP reads.
     pub feature_map: FeatureMap,
-    /// The GP on deviations and its noise, as plain numbers.
-    pub predictor: Predictor,
+    /// The estimator on deviations and its noise, as plain numbers: one GP (`main`, `noise`),
+    /// or local experts (`centres`, `experts`: each a GP; the expert of the nearest centre
+    /// answers).
+    pub predictor: EstimatorPredictor,
 }
 
 /// Reusable buffers for [`ExportedModel::evaluate_with`].
@@ -74,9 +80,10 @@ impl ExportedModel {
         let Estimator::Fitted(gp) = &model.estimator else {
             return None;
         };
+        let predictor = gp.predictor();
         Some(Self {
             format: EXPORT_FORMAT.to_string(),
-            format_version: EXPORT_FORMAT_VERSION,
+            format_version: format_version(&predictor),
             experiment_id,
             model_version: model.version,
             estimator: gp.kind(),
@@ -87,7 +94,7 @@ impl ExportedModel {
             action_dim: domain.action_space().dim(),
             feature_names: domain.feature_names(),
             feature_map: domain.feature_map(),
-            predictor: gp.predictor(),
+            predictor,
         })
     }
 
@@ -108,9 +115,10 @@ impl ExportedModel {
                 self.format
             ));
         }
-        if self.format_version != EXPORT_FORMAT_VERSION {
+        if self.format_version != format_version(&self.predictor) {
             return Err(format!(
-                "format_version: {} is not supported (this reader knows {EXPORT_FORMAT_VERSION})",
+                "format_version: {} is not supported for this predictor (this reader knows \
+                 {EXPORT_FORMAT_VERSION} for one GP, {EXPORT_FORMAT_VERSION_EXPERTS} for local experts)",
                 self.format_version
             ));
         }
@@ -180,5 +188,13 @@ impl ExportedModel {
     pub fn inside(&self, s: &[f64], a: &[f64], s_pred: &[f64], beta: f64) -> bool {
         let (mu, sigma) = self.evaluate_with(s, a, s_pred, &mut Scratch::default());
         mu + beta * sigma < self.d_max
+    }
+}
+
+/// The `format_version` a document with `predictor` carries.
+fn format_version(predictor: &EstimatorPredictor) -> u32 {
+    match predictor {
+        EstimatorPredictor::Gp(_) => EXPORT_FORMAT_VERSION,
+        EstimatorPredictor::Experts(_) => EXPORT_FORMAT_VERSION_EXPERTS,
     }
 }

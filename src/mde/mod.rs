@@ -4,6 +4,8 @@
 //! - [`estimator`]: the seam — the [`Regressor`] trait every fitted estimator answers through
 //!   (the exact GP, the sparse GP), [`fit`], the stored [`EstimatorState`], and the
 //!   `mde.estimator` choice ([`EstimatorChoice`]).
+//! - [`experts`]: the local experts estimator ([`LocalExperts`]), exact GPs on regions of the
+//!   feature space.
 //! - [`export`]: a fitted version as a self-contained document a controller evaluates itself
 //!   ([`ExportedModel`]).
 //! - [`selection`]: model selection at every fit — the label cap (how deviations become training
@@ -12,13 +14,15 @@
 //!   [`best_kernel`]), and what the choice costs ([`selection_cost`]).
 
 pub mod estimator;
+pub mod experts;
 pub mod export;
 pub mod selection;
 
 pub use estimator::{
-    AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorState, Regressor,
-    fit,
+    AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorPredictor,
+    EstimatorState, Regressor, fit,
 };
+pub use experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, LocalExperts};
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use selection::{
     BetaChoice, CALIBRATED_FALSE_TRUST, CAP_CHOICE_SUBSET, CAP_GAIN_STANDARD_ERRORS, CapChoice,
@@ -168,10 +172,11 @@ impl ServedModel {
         }
     }
 
-    /// The hyperparameters answering queries.
-    pub fn hyperparameters(&self) -> &Hyperparameters {
+    /// The hyperparameters answering queries, where one set answers everywhere (the prior's;
+    /// a fitted GP's; `None` for local experts).
+    pub fn hyperparameters(&self) -> Option<&Hyperparameters> {
         match &self.estimator {
-            Estimator::Prior(h) => h,
+            Estimator::Prior(h) => Some(h),
             Estimator::Fitted(gp) => gp.hyperparameters(),
         }
     }

@@ -474,7 +474,12 @@ pub fn refit_plan(
             kind.as_str()
         ));
     }
-    let h = gp.hyperparameters();
+    let Some(h) = gp.hyperparameters() else {
+        return select(format!(
+            "the {} estimator keeps no single optimum to start from",
+            gp.kind().as_str()
+        ));
+    };
     if !kernels.contains(&h.kernel) || !caps.contains(&label_cap) {
         return select("the kept kernel or label cap is no longer a candidate".into());
     }
@@ -529,7 +534,7 @@ pub fn refit_warm(
     let gp = timed(&mut phases, "warm fit", || {
         fit(kind, x, &DVector::from_column_slice(&labels), &params)
     })?;
-    let (trials, beta_choice) = if kind == EstimatorKind::Exact {
+    let (trials, beta_choice) = if kind.judges_held_out() {
         timed(&mut phases, "held-out judgements, certified β", || {
             let groups = identical_rows(x);
             let trial = HeldOutTrust::of(
@@ -593,13 +598,15 @@ pub fn selection_cost(
     params: &EstimatorParams,
 ) -> crate::gp::FitCost {
     let choices = kernels.max(1) + caps.max(1) - 1;
-    match kind {
-        EstimatorKind::Exact => params.cost(EstimatorKind::Exact, n, d).times(choices),
-        EstimatorKind::Sparse if choices > 1 => params
+    if kind.judges_held_out() {
+        params.cost(kind, n, d).times(choices)
+    } else if choices > 1 {
+        params
             .cost(EstimatorKind::Exact, n.min(CAP_CHOICE_SUBSET), d)
             .times(choices)
-            .then(params.cost(EstimatorKind::Sparse, n, d)),
-        EstimatorKind::Sparse => params.cost(EstimatorKind::Sparse, n, d),
+            .then(params.cost(kind, n, d))
+    } else {
+        params.cost(kind, n, d)
     }
 }
 
@@ -622,7 +629,9 @@ pub fn selection_cost(
 /// another kernel judges the training state-actions clearly better held out (the caps then
 /// compete with that kernel).
 ///
-/// The regressor is `kind`. The sparse GP has no closed-form leave-out, so with it the kernel
+/// The regressor is `kind`. An estimator that judges held out in closed form
+/// ([`EstimatorKind::judges_held_out`]: the exact GP, local experts) is fitted per candidate
+/// itself. The sparse GP has no closed-form leave-out, so with it the kernel
 /// and the cap are chosen the same way by exact GPs on an evenly spaced subset of at most
 /// [`CAP_CHOICE_SUBSET`] transitions, and the sparse GP is then fitted on all of them with
 /// them.
@@ -634,7 +643,7 @@ pub fn fit_choosing_label_cap(
     kind: EstimatorKind,
     params: &EstimatorParams,
 ) -> Result<CapChoice, GpError> {
-    if kind == EstimatorKind::Sparse {
+    if !kind.judges_held_out() {
         // The kernel, the cap and the test β are chosen by exact GPs on a subset when there
         // is a choice to make; a fixed kernel and cap fit the sparse GP alone (no β is
         // certified then: the sparse GP has no closed-form leave-out).
@@ -648,13 +657,21 @@ pub fn fit_choosing_label_cap(
                     deviations: &deviations,
                     trajectories: &trajectories,
                 };
-                let c = choose_exact(subset, precondition, kernels, caps, params)?;
+                let c = choose_closed_form(
+                    EstimatorKind::Exact,
+                    subset,
+                    precondition,
+                    kernels,
+                    caps,
+                    params,
+                )?;
                 phases.extend(c.phases.into_iter().map(|p| FitPhase {
                     phase: format!("on {} transitions: {}", rows.len(), p.phase),
                     ..p
                 }));
                 (
-                    c.gp.hyperparameters().kernel,
+                    c.gp.hyperparameters()
+                        .map_or(params.gp().kernel, |h| h.kernel),
                     c.label_cap,
                     c.trials,
                     c.kernel_trials,
@@ -683,7 +700,7 @@ pub fn fit_choosing_label_cap(
             phases,
         });
     }
-    choose_exact(training, precondition, kernels, caps, params)
+    choose_closed_form(kind, training, precondition, kernels, caps, params)
 }
 
 /// The kernel to keep among `trials`, given each trial's held-out log probabilities per
@@ -733,8 +750,9 @@ fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
     (0..k).map(|i| i * n / k).collect()
 }
 
-/// [`fit_choosing_label_cap`] with exact GPs.
-fn choose_exact(
+/// [`fit_choosing_label_cap`] with an estimator `kind` that judges held out in closed form.
+fn choose_closed_form(
+    kind: EstimatorKind,
     training: Training<'_>,
     precondition: Precondition,
     kernels: &[Kernel],
@@ -756,7 +774,7 @@ fn choose_exact(
         let mut held_out = Vec::new();
         for &kernel in kernels {
             let p = params.with_kernel(kernel)?;
-            let gp = fit(EstimatorKind::Exact, x, &labels, &p)?;
+            let gp = fit(kind, x, &labels, &p)?;
             let judged = HeldOutTrust::of(
                 gp.as_ref(),
                 first_cap,
@@ -798,12 +816,7 @@ fn choose_exact(
             Some(gp) => gp,
             None => {
                 cap_fits += 1;
-                fit(
-                    EstimatorKind::Exact,
-                    x,
-                    &DVector::from_column_slice(&labels),
-                    &params,
-                )?
+                fit(kind, x, &DVector::from_column_slice(&labels), &params)?
             }
         };
         let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
@@ -1317,7 +1330,7 @@ mod tests {
                         .total_cmp(&b.log_marginal_likelihood)
                 })
                 .unwrap();
-            let kept = c.gp.hyperparameters().kernel;
+            let kept = c.gp.hyperparameters().unwrap().kernel;
             let kept_trial = c.kernel_trials.iter().find(|t| t.kernel == kept).unwrap();
             assert!(
                 kept == by_evidence.kernel

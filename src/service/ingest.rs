@@ -307,7 +307,11 @@ impl Service {
                     deviating,
                     "trajectory stored"
                 );
-                if live.model().kind() == Some(crate::mde::EstimatorKind::Sparse) {
+                if live
+                    .model()
+                    .kind()
+                    .is_some_and(crate::mde::EstimatorKind::updates_online)
+                {
                     let absorbing = live.clone();
                     if let Err(e) = Service::blocking(move || absorbing.absorb(&labelled, 1)).await
                     {

@@ -248,10 +248,7 @@ impl LiveExperiment {
             }
         };
         let trigger = if claim.forced { "forced" } else { "batch" };
-        match store
-            .finish_fit(&claim, Some((&stored, served.hyperparameters())))
-            .await?
-        {
+        match store.finish_fit(&claim, Some(&stored)).await? {
             FitFinish::Done => {}
             FitFinish::Lost => {
                 metrics::counter!("precond_fits_total", "trigger" => trigger, "result" => "lost")
@@ -318,7 +315,8 @@ impl LiveExperiment {
             ),
             mde.inducing_points,
         )
-        .map_err(|e| Error::Internal(anyhow::anyhow!("estimator parameters: {e}")))?;
+        .map_err(|e| Error::Internal(anyhow::anyhow!("estimator parameters: {e}")))?
+        .with_expert_size(mde.expert_size);
         let n = deviations.len();
         let budget = gate.limits().max_fit_memory;
         let seconds_budget = gate.limits().max_fit_seconds as f64;
@@ -516,7 +514,7 @@ impl LiveExperiment {
         let (Estimator::Fitted(gp), Some(fit)) = (&current.estimator, &current.fit) else {
             return;
         };
-        if gp.kind() != EstimatorKind::Sparse || transitions.is_empty() {
+        if !gp.kind().updates_online() || transitions.is_empty() {
             return;
         }
         let dim = self.domain.feature_dim();
@@ -652,7 +650,9 @@ impl Registry {
             covered = model.n_trajectories;
             let n_train = model.n_train;
             let served = live.restore(store, model).await?;
-            if served.kind() == Some(EstimatorKind::Sparse) && stored.n_trajectories > covered {
+            if served.kind().is_some_and(EstimatorKind::updates_online)
+                && stored.n_trajectories > covered
+            {
                 online_from = Some(n_train);
             }
             live.swap_model(Arc::new(served));

@@ -20,7 +20,7 @@ use crate::api::{
     TrajectoryRequest,
 };
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
-use crate::mde::{EstimatorKind, ServedModel};
+use crate::mde::ServedModel;
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{
@@ -39,15 +39,13 @@ pub const MAX_IN_FLIGHT: usize = 256;
 /// prediction of those steps. The sparse GP's cost, `k m²`, is small at any `k`.
 pub const IN_FLIGHT_WORK: usize = 2_500_000_000;
 
-/// How many state-actions in flight a proposal fantasises with `model`.
+/// How many state-actions in flight a proposal fantasises with `model`: a fantasised row costs
+/// about as many multiply-adds as the version keeps floats (`n²` for the exact GP, `Σ n_e²` for
+/// local experts, `m² + m d` for the sparse GP).
 fn in_flight_limit(model: &ServedModel) -> usize {
     match model.kind() {
         None => 0,
-        Some(EstimatorKind::Sparse) => MAX_IN_FLIGHT,
-        Some(EstimatorKind::Exact) => {
-            let n = model.n_train().max(1);
-            (IN_FLIGHT_WORK / n.saturating_mul(n)).min(MAX_IN_FLIGHT)
-        }
+        Some(_) => (IN_FLIGHT_WORK / model.floats().max(1)).min(MAX_IN_FLIGHT),
     }
 }
 

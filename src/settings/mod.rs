@@ -15,11 +15,11 @@ use crate::domain::{
 };
 use crate::gp::{DEFAULT_INDUCING_POINTS, Kernel, NoiseMode};
 use crate::limits::{
-    MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXTENSIONS, MAX_INDUCING_POINTS, MAX_ITERATIONS,
-    MAX_LEARNING_SCALE, MAX_NAME_LEN, MAX_PRIOR_MEAN, MAX_PROPOSAL_TTL_SECONDS, MAX_RESTARTS,
-    MIN_INDUCING_POINTS,
+    MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXPERT_SIZE, MAX_EXTENSIONS, MAX_INDUCING_POINTS,
+    MAX_ITERATIONS, MAX_LEARNING_SCALE, MAX_NAME_LEN, MAX_PRIOR_MEAN, MAX_PROPOSAL_TTL_SECONDS,
+    MAX_RESTARTS, MIN_EXPERT_SIZE, MIN_INDUCING_POINTS,
 };
-use crate::mde::EstimatorChoice;
+use crate::mde::{DEFAULT_EXPERT_SIZE, EstimatorChoice};
 use crate::planning::{
     AcquisitionKind, AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings,
     PlanningError, PlanningSettings, Strategy,
@@ -239,6 +239,8 @@ pub struct MdeRequest {
     pub estimator: EstimatorChoice,
     /// [`MdeSettings::inducing_points`]. Default 256.
     pub inducing_points: usize,
+    /// [`MdeSettings::expert_size`]. Default 300.
+    pub expert_size: usize,
     /// [`MdeSettings::reselect_every`]. Absent: the preset's (`default`: 5, `paper`: 1).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reselect_every: Option<usize>,
@@ -254,6 +256,7 @@ impl Default for MdeRequest {
             kernel: None,
             estimator: EstimatorChoice::Auto,
             inducing_points: DEFAULT_INDUCING_POINTS,
+            expert_size: DEFAULT_EXPERT_SIZE,
             reselect_every: None,
         }
     }
@@ -287,19 +290,29 @@ pub struct MdeSettings {
     /// out (see [`KernelChoice`]).
     pub kernel: KernelChoice,
     /// The regressor fits use: `auto` (the exact GP up to 3000 transitions while its fit fits
-    /// the server's memory budget, the sparse GP beyond), `exact` or `sparse` (see
-    /// [`EstimatorChoice`]).
+    /// the server's memory budget, the sparse GP beyond), `exact`, `sparse` or `local_experts`
+    /// (exact GPs on regions of the feature space, each with its own hyperparameters, see
+    /// [`crate::mde::LocalExperts`]).
     pub estimator: EstimatorChoice,
     /// Inducing points of the sparse GP; 16 to 4096. With at most 1024 training transitions
     /// ([`crate::gp::DEFAULT_FULL_RANK_UP_TO`]) the sparse GP uses every training input
     /// instead, and is then the exact GP's fit in sparse form.
     pub inducing_points: usize,
+    /// Transitions per expert the regions of `local_experts` aim at
+    /// (`⌈n / expert_size⌉` regions); 50 to 3000. Unused by the other estimators.
+    #[serde(default = "default_expert_size")]
+    pub expert_size: usize,
     /// How often a refit chooses the kernel and the label cap anew (1 ..= 1000): every
     /// `reselect_every`-th fit does, and so does a fit after the data doubled since the last
     /// choice or whose likelihood per transition fell; the fits between keep the last choice
     /// and start from the previous optimum (a warm refit: one fit instead of one per candidate,
     /// each from several starts). 1: every fit chooses from scratch, as before warm refits.
     pub reselect_every: usize,
+}
+
+/// `mde.expert_size` when a stored experiment's settings predate it.
+fn default_expert_size() -> usize {
+    DEFAULT_EXPERT_SIZE
 }
 
 /// Largest `mde.reselect_every`.
@@ -784,6 +797,7 @@ impl ExperimentRequest {
             kernel: m.kernel.unwrap_or_else(|| self.learning.preset.kernel()),
             estimator: m.estimator,
             inducing_points: m.inducing_points,
+            expert_size: m.expert_size,
             reselect_every: m
                 .reselect_every
                 .unwrap_or_else(|| self.learning.preset.reselect_every()),
@@ -803,6 +817,15 @@ impl ExperimentRequest {
                 format!(
                     "must be between {MIN_INDUCING_POINTS} and {MAX_INDUCING_POINTS}, got {}",
                     mde.inducing_points
+                ),
+            ));
+        }
+        if !(MIN_EXPERT_SIZE..=MAX_EXPERT_SIZE).contains(&mde.expert_size) {
+            return Err(InvalidSetting::new(
+                "mde.expert_size",
+                format!(
+                    "must be between {MIN_EXPERT_SIZE} and {MAX_EXPERT_SIZE}, got {}",
+                    mde.expert_size
                 ),
             ));
         }

@@ -14,7 +14,6 @@
 
 use super::models::insert_model_on;
 use super::{Backend, Store, StoredModel, flag, lock_experiment, now};
-use crate::gp::Hyperparameters;
 use sqlx::Row;
 
 /// A requested fit, as claimed.
@@ -196,7 +195,7 @@ impl Store {
     pub async fn finish_fit(
         &self,
         claim: &FitClaim,
-        model: Option<(&StoredModel, &Hyperparameters)>,
+        model: Option<&StoredModel>,
     ) -> Result<FitFinish, sqlx::Error> {
         self.noted(async {
             let mut tx = self.begin_write().await?;
@@ -215,8 +214,8 @@ impl Store {
                 tx.rollback().await?;
                 return Ok(FitFinish::Lost);
             }
-            if let Some((model, hyperparameters)) = model {
-                insert_model_on(&mut tx, claim.experiment_id, model, hyperparameters).await?;
+            if let Some(model) = model {
+                insert_model_on(&mut tx, claim.experiment_id, model).await?;
             }
             if generation == claim.generation {
                 sqlx::query("DELETE FROM fit_jobs WHERE experiment_id = $1")

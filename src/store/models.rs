@@ -1,7 +1,6 @@
 //! Fitted model versions.
 
 use super::{Store, now};
-use crate::gp::Hyperparameters;
 use crate::mde::{
     BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial, SelectionRecord,
 };
@@ -47,10 +46,10 @@ pub(super) async fn insert_model_on(
     conn: &mut AnyConnection,
     experiment_id: i64,
     model: &StoredModel,
-    hyperparameters: &Hyperparameters,
 ) -> Result<(), sqlx::Error> {
     let state = serde_json::to_string(&model.state).map_err(json_err)?;
-    let hyper = serde_json::to_string(hyperparameters).map_err(json_err)?;
+    // `null` for an estimator without one set of hyperparameters (local experts).
+    let hyper = serde_json::to_string(&model.state.hyperparameters()).map_err(json_err)?;
     let noise = serde_json::to_value(model.state.noise()).map_err(json_err)?;
     let trials = serde_json::to_string(&model.label_cap_trials).map_err(json_err)?;
     let kernel_trials = serde_json::to_string(&model.kernel_trials).map_err(json_err)?;
@@ -272,10 +271,8 @@ impl Store {
                     Ok(FitRefusal {
                         n_train,
                         n_trajectories,
-                        estimator: match estimator.as_str() {
-                            "sparse" => EstimatorKind::Sparse,
-                            _ => EstimatorKind::Exact,
-                        },
+                        estimator: EstimatorKind::from_name(&estimator)
+                            .unwrap_or(EstimatorKind::Exact),
                         needed_bytes: needed,
                         budget_bytes: budget,
                         reason,

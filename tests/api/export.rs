@@ -111,7 +111,12 @@ async fn parity_predicted(
     let (status, doc) = app.get_at(id, "model/export").await;
     assert_eq!(status, 200, "{doc}");
     assert_eq!(doc["format"], "precond-model");
-    assert_eq!(doc["format_version"], 1);
+    let version = if doc["estimator"] == "local_experts" {
+        2
+    } else {
+        1
+    };
+    assert_eq!(doc["format_version"], version);
     let model = ExportedModel::from_json(&doc.to_string()).expect("the document checks");
     let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(doc["model_version"], experiment["model_version"]);
@@ -143,8 +148,8 @@ async fn parity_predicted(
         // that sum, whatever the order it is summed in (the server's own σ of a point differs by
         // as much between a query of one point and a batch): allow that, and 1e-9 beyond it.
         let x = model.feature_map.features(s, a, &s_pred);
-        let resolution =
-            variance_rounding(&model.predictor.main, &x) / want_sigma.max(f64::MIN_POSITIVE);
+        let resolution = variance_rounding(&model.predictor.answering(&x).main, &x)
+            / want_sigma.max(f64::MIN_POSITIVE);
         worst_resolution = worst_resolution.max(resolution);
         assert!(
             rel(mu, want_mu) <= TOL
@@ -175,7 +180,7 @@ async fn parity_predicted(
         "{} {} (n = {} points): {:.2} µs per evaluation ({sink:.1})",
         doc["estimator"],
         doc["predictor"]["noise"]["kind"],
-        model.predictor.main.points.len(),
+        model.predictor.points(),
         per_point * 1e6
     );
     if worst_resolution > TOL {
@@ -317,7 +322,7 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         let (model, mu, sigma) = parity(&app, id, false, 3).await;
         // 300 transitions are within the full-rank size: every distinct input is an inducing
         // point, whatever `inducing_points` says (the low-rank export is a unit test's).
-        let points = model.predictor.main.points.len();
+        let points = model.predictor.points();
         assert!((33..=300).contains(&points), "{points} inducing points");
         eprintln!("kinematic, sparse, {noise}: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
         // One more trajectory is taken in online (no refit): the export follows it.
@@ -329,6 +334,39 @@ async fn an_exported_sparse_gp_answers_as_the_server_also_after_online_updates()
         assert_eq!(model.n_train, 380);
         eprintln!("kinematic, sparse, {noise}, updated: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
     }
+}
+
+#[tokio::test]
+async fn exported_local_experts_answer_as_the_server_also_after_a_restart() {
+    let (_dir, app) = fresh_app().await;
+    let mde = json!({"estimator": "local_experts", "expert_size": 60, "restarts": 0});
+    let (id, fitted) = fitted_kinematic(&app, mde, 120).await;
+    assert_eq!(fitted["estimator"], "local_experts", "{fitted}");
+    // Each expert has its own hyperparameters, so the model has none of its own; model
+    // selection ran on the experts' own held-out judgements (a label cap per candidate).
+    assert!(fitted["hyperparameters"].is_null(), "{fitted}");
+    assert!(
+        !fitted["label_cap_trials"].as_array().unwrap().is_empty(),
+        "{fitted}"
+    );
+    let (model, mu, sigma) = parity(&app, id, false, 5).await;
+    assert_eq!(model.format_version, 2);
+    let precond::mde::EstimatorPredictor::Experts(experts) = &model.predictor else {
+        panic!("not experts: {:?}", model.estimator);
+    };
+    // 240 transitions at about 60 each.
+    assert!(
+        (2..=4).contains(&experts.experts.len()),
+        "{}",
+        experts.experts.len()
+    );
+    eprintln!("kinematic, local experts: worst |Δμ| {mu:e}, |Δσ| {sigma:e}");
+    // Restored from the store (each expert refactorised on its own rows): the same answers.
+    let app = app.restart().await;
+    let (_, again) = app.get_at(id, "model").await;
+    assert_eq!(again["version"], fitted["version"], "{again}");
+    let (restored, ..) = parity(&app, id, false, 5).await;
+    assert_eq!(restored.predictor, model.predictor);
 }
 
 #[tokio::test]

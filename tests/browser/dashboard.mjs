@@ -178,6 +178,15 @@ test('the precondition map draws one grid per move and slides over model version
   await page.waitForSelector('body[data-map-ready="1"]');
 });
 
+test('the kinematic experiment says which estimator fits it', async () => {
+  await open(`/ui/experiments/${kin}`);
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.match(
+    await page.locator('#settings').innerText(),
+    /local experts: an exact GP per region of about 50 transitions, each with its own hyperparameters/,
+  );
+});
+
 test('the kinematic map has two continuous axes and sliders for the rest', async () => {
   await open(`/ui/experiments/${kin}/map`);
   await page.waitForSelector('body[data-map-ready]');

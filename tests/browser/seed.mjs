@@ -176,7 +176,7 @@ export async function seedKinematic(base, { name = 'kinematic arm', seed = 3 } =
     name,
     seed,
     domain: unitSquare(0.1),
-    mde: { restarts: 0, noise: 'homoscedastic' },
+    mde: { restarts: 0, noise: 'homoscedastic', estimator: 'local_experts', expert_size: 50 },
     learning: { batch_size: 100 },
   });
   for (let k = 0; k < 4; k++) {

@@ -117,6 +117,14 @@ def documents() -> Iterator[dict[str, Any]]:
         "tolerance": 1e-6,
     }
     yield water
+    experts = copy.deepcopy(base)
+    experts["estimator"] = "local_experts"
+    experts["format_version"] = 2
+    experts["predictor"] = {
+        "centres": [[0.2] * 10, [0.8] * 10],
+        "experts": [base["predictor"], hetero["predictor"]],
+    }
+    yield experts
 
 
 def schema_properties(name: str) -> dict[str, set[str]]:
@@ -136,12 +144,17 @@ def keyed_parts(doc: dict[str, Any]) -> Iterator[tuple[str, dict[str, Any]]]:
     """Every object of a document with the schema it is an instance of."""
     yield "ModelExport", doc
     yield "FeatureMap", doc["feature_map"]
-    yield "Predictor", doc["predictor"]
-    yield "GpPredictor", doc["predictor"]["main"]
-    noise = doc["predictor"]["noise"]
-    yield "NoisePredictor", noise
-    if "log_noise" in noise:
-        yield "GpPredictor", noise["log_noise"]
+    predictors = [doc["predictor"]]
+    if "experts" in doc["predictor"]:
+        yield "ExpertsPredictor", doc["predictor"]
+        predictors = doc["predictor"]["experts"]
+    for predictor in predictors:
+        yield "Predictor", predictor
+        yield "GpPredictor", predictor["main"]
+        noise = predictor["noise"]
+        yield "NoisePredictor", noise
+        if "log_noise" in noise:
+            yield "GpPredictor", noise["log_noise"]
 
 
 def test_the_documents_read_are_the_specs_model_export() -> None:
@@ -169,6 +182,9 @@ def test_an_unknown_format_or_version_is_refused() -> None:
     doc = next(documents())
     with pytest.raises(ValueError, match="format_version"):
         ExportedModel.from_json({**doc, "format_version": 2})
+    experts = list(documents())[-1]
+    with pytest.raises(ValueError, match="format_version"):
+        ExportedModel.from_json({**experts, "format_version": 1})
     with pytest.raises(ValueError, match="precond-model"):
         ExportedModel.from_json({**doc, "format": "other"})
 
@@ -211,6 +227,7 @@ CUSTOM_PERIODIC: dict[str, Any] = {
         ("sparse", "state_action"),
         ("exact", "custom"),
         ("exact", "custom_periodic"),
+        ("local_experts", "state_action"),
     ],
 )
 def test_an_exported_model_answers_as_the_server(
@@ -221,6 +238,8 @@ def test_an_exported_model_answers_as_the_server(
     mde: dict[str, Any] = {"restarts": 0, "estimator": estimator}
     if estimator == "sparse":
         mde["inducing_points"] = 24
+    if estimator == "local_experts":
+        mde["expert_size"] = 50  # 80 transitions: two regions
     custom = features.startswith("custom")
     client.create_experiment(
         domain={"custom": CUSTOM_DOMAIN, "custom_periodic": CUSTOM_PERIODIC}.get(
@@ -240,6 +259,10 @@ def test_an_exported_model_answers_as_the_server(
 
     model = client.export_model()
     assert model.model_version == fitted.version and model.n_train == 80
+    if estimator == "local_experts":
+        assert model.raw["format_version"] == 2
+        assert len(model.raw["predictor"]["experts"]) == 2
+        assert fitted.hyperparameters is None  # each expert has its own
     feature_map = model.raw["feature_map"]
     assert feature_map["kind"] == (
         "unit_box" if features == "state_action" or custom else "kinematic_prediction"

@@ -168,6 +168,7 @@ const ENTRIES: &[Entry] = &[
     entry::<api::ModelExport>("ModelExport", Response),
     entry::<precond::domain::FeatureMap>("FeatureMap", Response),
     entry::<precond::gp::Predictor>("Predictor", Response),
+    entry::<precond::mde::ExpertsPredictor>("ExpertsPredictor", Response),
     entry::<precond::gp::GpPredictor>("GpPredictor", Response),
     entry::<precond::gp::NoisePredictor>("NoisePredictor", Response),
     entry::<api::RejectionCounts>("RejectionCounts", Response),
@@ -909,6 +910,23 @@ impl Compare {
                 for (value, r) in rv {
                     if let Some(s) = sv.get(value) {
                         self.obj(&format!("{path}<{rt}={value}>"), r, s);
+                    }
+                }
+            }
+            // Untagged alternatives (serde's `untagged`, the spec's `anyOf`): paired by the
+            // properties each holds, which must tell them apart.
+            (Objects::Untagged(rv), Objects::Untagged(sv)) if rv.len() == sv.len() => {
+                let keys = |o: &Obj| o.props.keys().cloned().collect::<BTreeSet<String>>();
+                for (i, r) in rv.iter().enumerate() {
+                    match sv.iter().find(|s| keys(s) == keys(r)) {
+                        Some(s) => self.obj(&format!("{path}<shape {i}>"), r, s),
+                        None => self.problem(
+                            path,
+                            format!(
+                                "the server's shape with properties {:?} is not among the spec's",
+                                keys(r)
+                            ),
+                        ),
                     }
                 }
             }

@@ -1,8 +1,9 @@
 """An exported model (``GET /v1/experiments/{id}/model/export``), evaluated with numpy alone:
 the precondition inside a robot's control loop, without a round trip to the server.
 
-:class:`ExportedModel` reads the ``precond-model`` document (format version 1) — the domain's
-feature map ``φ(s, a)``, the fitted GP as plain numbers and ``d_max`` — and answers ``μ`` and
+:class:`ExportedModel` reads the ``precond-model`` document (format version 1 for one GP, 2
+for local experts) — the domain's feature map ``φ(s, a)``, the fitted GP (or each expert's GP
+and the experts' centres) as plain numbers and ``d_max`` — and answers ``μ`` and
 ``σ`` as ``POST /precondition`` does (to about 1e-12 relative; see the server's
 ``GpPredictor`` schema for the formulas), batched::
 
@@ -37,7 +38,10 @@ Array = NDArray[np.float64]
 FORMAT = "precond-model"
 """The document's ``format``."""
 FORMAT_VERSION = 1
-"""The ``format_version`` this reader knows."""
+"""The ``format_version`` of a document whose predictor is one GP."""
+FORMAT_VERSION_EXPERTS = 2
+"""The ``format_version`` of a document whose predictor is local experts (``centres``,
+``experts``): a point is answered by the expert of the nearest centre."""
 
 _FAR_R2 = 9.0e4
 """Squared scaled distance beyond which the server's kernels are exactly 0 (``r = 300``)."""
@@ -128,6 +132,43 @@ class _Gp:
             c = k @ self.correction.T
             var = var + np.einsum("ji,ji->j", c, c)
         return mean, np.clip(var, 0.0, self.s2)
+
+
+class _Predictor:
+    """One GP on deviations and its noise (the server's ``Predictor``)."""
+
+    def __init__(self, predictor: Mapping[str, Any], what: str) -> None:
+        self.main = _Gp(predictor["main"])
+        noise = predictor["noise"]
+        self.noise_kind = str(noise["kind"])
+        self._log_noise: _Gp | None = None
+        if self.noise_kind == "homoscedastic":
+            self._noise_variance = float(noise["noise_variance"])
+        elif self.noise_kind == "heteroscedastic":
+            self._log_noise = _Gp(noise["log_noise"])
+            self._noise_clip = (
+                float(noise["noise_variance_min"]),
+                float(noise["noise_variance_max"]),
+            )
+        else:
+            raise ValueError(f"{what}.noise: unknown noise kind {self.noise_kind!r}")
+        if self.main.factor is None:
+            raise ValueError(f"{what}.main.factor: the main GP needs its variance factor")
+
+    @property
+    def dim(self) -> int:
+        return self.main.dim
+
+    def evaluate(self, x: Array) -> tuple[Array, Array]:
+        """``(μ, σ)`` at feature rows ``x``."""
+        mean, var = self.main.mean_and_variance(x)
+        assert var is not None
+        if self._log_noise is None:
+            noise = np.full(len(x), self._noise_variance)
+        else:
+            z, _ = self._log_noise.mean_and_variance(x, want_var=False)
+            noise = np.clip(np.exp(z), *self._noise_clip)
+        return mean, np.sqrt(var + noise)
 
 
 class _FeatureMap:
@@ -287,17 +328,20 @@ class ExportedModel:
             raise ValueError(f"not a model but the server's error: {error}")
         if d.get("format") != FORMAT:
             raise ValueError(f"not a {FORMAT} document (format {d.get('format')!r})")
-        if d.get("format_version") != FORMAT_VERSION:
+        predictor = d.get("predictor") or {}
+        expected = FORMAT_VERSION_EXPERTS if "experts" in predictor else FORMAT_VERSION
+        if d.get("format_version") != expected:
             raise ValueError(
-                f"format_version {d.get('format_version')!r} is not supported "
-                f"(this client reads {FORMAT_VERSION}); upgrade precond-client"
+                f"format_version {d.get('format_version')!r} is not supported for this "
+                f"predictor (this client reads {FORMAT_VERSION} for one GP, "
+                f"{FORMAT_VERSION_EXPERTS} for local experts); upgrade precond-client"
             )
         self.raw: dict[str, Any] = dict(d)
         """The document as read (what :meth:`save` writes)."""
         self.experiment_id = int(d["experiment_id"])
         self.model_version = int(d["model_version"])
         self.estimator = str(d["estimator"])
-        """``exact`` or ``sparse``."""
+        """``exact``, ``sparse`` or ``local_experts``."""
         self.n_train = int(d["n_train"])
         self.d_max = float(d["d_max"])
         self.test_beta = float(d["test_beta"])
@@ -306,31 +350,26 @@ class ExportedModel:
         self.action_dim = int(d["action_dim"])
         self.feature_names = [str(n) for n in d["feature_names"]]
         self._map = _FeatureMap(d["feature_map"], self.state_dim, self.action_dim)
-        predictor = d["predictor"]
-        self._main = _Gp(predictor["main"])
-        noise = predictor["noise"]
-        self._noise_kind = str(noise["kind"])
-        if self._noise_kind == "homoscedastic":
-            self._noise_variance = float(noise["noise_variance"])
-            self._log_noise: _Gp | None = None
-        elif self._noise_kind == "heteroscedastic":
-            self._log_noise = _Gp(noise["log_noise"])
-            self._noise_clip = (
-                float(noise["noise_variance_min"]),
-                float(noise["noise_variance_max"]),
+        if "experts" in predictor:
+            self._experts = [
+                _Predictor(e, f"predictor.experts[{i}]")
+                for i, e in enumerate(predictor["experts"])
+            ]
+            self._centres = np.array(predictor["centres"], dtype=np.float64).reshape(
+                len(predictor["centres"]), -1
             )
+            if not self._experts or len(self._centres) != len(self._experts):
+                raise ValueError("predictor.experts: one per centre and at least one")
         else:
-            raise ValueError(f"unknown noise kind {self._noise_kind!r}")
-        if self._main.factor is None:
-            raise ValueError("predictor.main.factor: the main GP needs its variance factor")
-        if len(self.feature_names) != self._main.dim:
-            raise ValueError(
-                f"{len(self.feature_names)} feature names for {self._main.dim} features"
-            )
-        if self._map.dim != self._main.dim:
-            raise ValueError(
-                f"feature_map: computes {self._map.dim} features, the GP reads {self._main.dim}"
-            )
+            self._experts = [_Predictor(predictor, "predictor")]
+            self._centres = np.zeros((1, self._experts[0].dim))
+        dim = self._experts[0].dim
+        if any(e.dim != dim for e in self._experts) or self._centres.shape[1] != dim:
+            raise ValueError(f"predictor: every expert and centre reads {dim} features")
+        if len(self.feature_names) != dim:
+            raise ValueError(f"{len(self.feature_names)} feature names for {dim} features")
+        if self._map.dim != dim:
+            raise ValueError(f"feature_map: computes {self._map.dim} features, the GP reads {dim}")
 
     @classmethod
     def from_json(cls, document: Mapping[str, Any]) -> ExportedModel:
@@ -385,15 +424,18 @@ class ExportedModel:
         sigma = np.empty(len(x))
         for lo in range(0, len(x), _CHUNK):
             xc = x[lo : lo + _CHUNK]
-            mean, var = self._main.mean_and_variance(xc)
-            assert var is not None
-            if self._log_noise is None:
-                noise = np.full(len(xc), self._noise_variance)
+            if len(self._experts) == 1:
+                owner = np.zeros(len(xc), dtype=np.int64)
             else:
-                z, _ = self._log_noise.mean_and_variance(xc, want_var=False)
-                noise = np.clip(np.exp(z), *self._noise_clip)
-            mu[lo : lo + len(xc)] = mean
-            sigma[lo : lo + len(xc)] = np.sqrt(var + noise)
+                d2 = ((xc[:, None, :] - self._centres[None, :, :]) ** 2).sum(axis=2)
+                owner = np.argmin(d2, axis=1)  # ties to the first centre, as the server
+            for e, expert in enumerate(self._experts):
+                rows = np.nonzero(owner == e)[0]
+                if len(rows) == 0:
+                    continue
+                m, s = expert.evaluate(xc[rows])
+                mu[lo + rows] = m
+                sigma[lo + rows] = s
         return mu, sigma
 
     def upper(
@@ -423,6 +465,6 @@ class ExportedModel:
     def __repr__(self) -> str:
         return (
             f"ExportedModel(experiment {self.experiment_id}, version {self.model_version}, "
-            f"{self.estimator}, {self._main.points.shape[0]} points, "
-            f"{self._noise_kind} noise, d_max={self.d_max})"
+            f"{self.estimator}, {len(self._experts)} GP(s), "
+            f"{sum(e.main.points.shape[0] for e in self._experts)} points, d_max={self.d_max})"
         )

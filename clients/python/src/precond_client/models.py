@@ -653,7 +653,8 @@ class Model(Wire):
     n_train: int
     noise: str | None
     feature_names: list[str]
-    hyperparameters: Hyperparameters
+    hyperparameters: Hyperparameters | None
+    """``None`` for local experts, each of which has its own (see the export)."""
     noise_model: NoiseSummary | None
     """The heteroscedastic noise model; ``None`` for the prior and homoscedastic fits."""
     log_marginal_likelihood: float | None
@@ -666,7 +667,7 @@ class Model(Wire):
     label_cap_trials: list[HeldOutTrust]
     """Each candidate cap's held-out judgement (empty for the prior)."""
     estimator: str | None
-    """``exact`` or ``sparse`` (``None`` for the prior)."""
+    """``exact``, ``sparse`` or ``local_experts`` (``None`` for the prior)."""
     online_trajectories: int
     """Trajectories taken in by online updates since the fit (sparse GP)."""
     last_fit_refusal: FitRefusal | None
