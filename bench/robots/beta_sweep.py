@@ -12,6 +12,11 @@ is refitted: every β sees the same model, so the columns differ only by the mar
 
 Each ``DB`` is a bench database named ``<robot>-<preset>-<seed>.db`` (the bench keeps them in
 the temporary directory it logs). One JSON line per run.
+
+``--mde KEY=VALUE`` (repeatable) changes the copy's MDE settings and ``--refit`` fits the last
+model again on the same transitions before measuring: two estimators compared on the very data
+one learning run gathered (e.g. ``--mde estimator=local_experts --refit`` against ``--refit``
+alone, which refits with the run's own settings).
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import shutil
 import sqlite3
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -59,6 +65,9 @@ def sweep(binary: str, db: Path, plan_betas: list[str], args: argparse.Namespace
     shutil.copy(db, work)
     with sqlite3.connect(work) as conn:
         settings = json.loads(conn.execute("select settings from experiments").fetchone()[0])
+        for key, value in args.mde:
+            settings["mde"][key] = value
+        conn.execute("update experiments set settings = ?", (json.dumps(settings),))
     port = urlparse(settings["domain"]["model"]["url"]).port
     assert port is not None
     out: dict[str, Any] = {"run": db.stem, "robot": name, "preset": preset, "seed": seed}
@@ -66,8 +75,16 @@ def sweep(binary: str, db: Path, plan_betas: list[str], args: argparse.Namespace
         proc, url = spawn_server(binary, work, "--allow-model-url", f"http://127.0.0.1:{port}/",
                                  log=work.with_suffix(".log"))
         try:
-            client = Client(url, timeout=120, experiment_id=1, retries=1)
+            client = Client(url, timeout=600, experiment_id=1, retries=1)
             model = client.model()
+            if args.refit:
+                before = model.version
+                model = client.refit()
+                while model.version == before:  # answered 202: the fit goes on
+                    time.sleep(2)
+                    model = client.model()
+            out.update(mde={k: settings["mde"].get(k) for k in ("estimator", "expert_size")},
+                       refit_seconds=model.fit_seconds if args.refit else None)
             safe = ts["held_dev"] < robot.d_max
             choice = model.raw.get("beta_choice") or {}
             out.update(n_train=model.n_train, model_version=model.version,
@@ -102,6 +119,14 @@ def sweep(binary: str, db: Path, plan_betas: list[str], args: argparse.Namespace
     return out
 
 
+def mde_setting(text: str) -> tuple[str, Any]:
+    key, _, value = text.partition("=")
+    try:
+        return key, json.loads(value)
+    except json.JSONDecodeError:
+        return key, value
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--binary", required=True)
@@ -110,11 +135,16 @@ def main() -> None:
     ap.add_argument("--test-problems", type=int, default=10)
     ap.add_argument("--held-out", type=int, default=400)
     ap.add_argument("--closed-loop-seconds", type=float, default=90.0)
+    ap.add_argument("--mde", action="append", default=[], type=mde_setting, metavar="KEY=VALUE",
+                    help="an MDE setting of the copy (a JSON value, or a bare string)")
+    ap.add_argument("--refit", action="store_true",
+                    help="fit the last model again before measuring (POST …/model/refit)")
     ap.add_argument("dbs", nargs="+", type=Path)
     args = ap.parse_args()
     logging.basicConfig(level=logging.WARNING)
+    plan_betas = [b for b in args.plan_betas.split(",") if b]  # "": judge only, plan nothing
     for db in args.dbs:
-        print(json.dumps(sweep(args.binary, db, args.plan_betas.split(","), args)), flush=True)
+        print(json.dumps(sweep(args.binary, db, plan_betas, args)), flush=True)
 
 
 if __name__ == "__main__":
