@@ -729,6 +729,13 @@ pub struct ProposalContent {
     /// precondition at it and the proposal's `beta` is a lower one (`learning.relax_beta`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub relaxed_from_beta: Option<f64>,
+    /// The acquisition whose `α` the candidates were compared by — the service's own candidates
+    /// and a client's alike: the experiment's `learning.acquisition`, or `lcb` where a
+    /// value-based one (`bottleneck`, `spread`) valued no candidate above 0 (no graph to
+    /// value on, the budget spent, nothing to gain) or the strategy is not `active`. Absent for
+    /// proposals stored before it was recorded.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub valued_by: Option<crate::planning::AcquisitionKind>,
 }
 
 /// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`): its lease,

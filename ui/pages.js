@@ -510,7 +510,7 @@ export async function trajectoryPage(root, params, id, tid) {
         ? [
             'Executed proposal ',
             h('b', {}, `#${proposal.id}`),
-            ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}, client ${proposal.client_id ?? '–'}); `,
+            ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}${proposal.valued_by ? ` by ${proposal.valued_by}` : ''}, client ${proposal.client_id ?? '–'}); `,
             `μ ± σ "at the time" are the proposal's, from model version ${proposal.model_version}; "now" from version ${now.model_version}.`,
           ]
         : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`,

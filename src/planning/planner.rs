@@ -18,6 +18,7 @@
 //! assert!(grid.is_goal(proposal.trajectory.states.last().unwrap(), problem.goal()));
 //! ```
 
+use super::acquisition::AcquisitionKind;
 use super::cache::ModelCache;
 use super::error::PlanningError;
 use super::given::{self, Path, Verdict};
@@ -26,6 +27,7 @@ use super::precondition::Precondition;
 use super::rrt::{self, RrtOutcome, Task};
 pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
+use super::trajectory::Trajectory;
 use crate::budget::Budget;
 use crate::domain::{Domain, Problem};
 use rand::RngCore;
@@ -171,6 +173,49 @@ impl<'a> Planner<'a> {
             }
         }
         Err(PlanningError::NoPlan { extensions: spent })
+    }
+
+    /// [`judge`](Self::judge), then the eligible candidates valued as `strategy` compares them
+    /// — by the experiment's acquisition, as the planner's own candidates are
+    /// ([`strategy::value_candidates`]; `bottleneck` adds no probe to a client's candidates) —
+    /// within the planner's budget and with its state-actions in flight. Each eligible
+    /// verdict's `alpha` (and `alpha_step`) is then the value compared; the answer says which
+    /// rule that was.
+    pub fn judge_valued(
+        &self,
+        problem: &Problem,
+        candidates: Vec<Path>,
+        precondition: Precondition,
+        strategy: Strategy,
+        seed: u64,
+    ) -> Result<(Vec<Verdict>, AcquisitionKind), PlanningError> {
+        let mut verdicts = self.judge(problem.goal(), candidates, precondition)?;
+        let eligible: Vec<usize> = (0..verdicts.len())
+            .filter(|&i| verdicts[i].eligible())
+            .collect();
+        let mut trajectories: Vec<Trajectory> = eligible
+            .iter()
+            .map(|&i| verdicts[i].trajectory.clone())
+            .collect();
+        let mut cache = ModelCache::new(self.model, self.domain.feature_dim());
+        let valuation = strategy::value_candidates(
+            self.task(problem, precondition),
+            &mut cache,
+            self.model,
+            self.in_flight,
+            &mut trajectories,
+            strategy,
+            seed,
+            &self.budget,
+            strategy::Probe::Refused,
+        )?;
+        for ((&i, (alpha_step, _)), alpha) in
+            eligible.iter().zip(valuation.scored).zip(valuation.alphas)
+        {
+            verdicts[i].alpha_step = alpha_step;
+            verdicts[i].alpha = alpha;
+        }
+        Ok((verdicts, valuation.valued_by))
     }
 
     /// Scores every step of every candidate given by the client inside `precondition`, and

@@ -112,6 +112,8 @@ pub struct Proposal {
     pub candidates: Vec<CandidateScore>,
     /// Index of the chosen trajectory in `candidates`.
     pub chosen_index: usize,
+    /// The rule whose `α` the candidates were compared by ([`Valuation::valued_by`]).
+    pub valued_by: AcquisitionKind,
     /// Extensions spent, over all runs (for `random`, actions tried).
     pub extensions: usize,
     /// RRT runs made (for `random`, 1).
@@ -176,6 +178,10 @@ pub(crate) fn propose(
             alpha_step,
             alpha,
             chosen_index: 0,
+            valued_by: match acquisition.kind {
+                AcquisitionKind::Bottleneck | AcquisitionKind::Spread => AcquisitionKind::Lcb,
+                kind => kind,
+            },
             extensions,
             runs,
             model_points: cache.points(),
@@ -190,49 +196,21 @@ pub(crate) fn propose(
         ));
     }
     let mut found = candidates(task, &mut cache, seed, budget)?;
-    // The value-based acquisitions' value of each candidate (`None`: `lcb`'s α chooses).
-    let values = match (strategy, acquisition.kind) {
-        (Strategy::Active, AcquisitionKind::Bottleneck) => bottleneck::assess(
-            task,
-            &mut cache,
-            &found.trajectories,
-            in_flight,
-            seed,
-            budget,
-        )?
-        .map(|assessment| {
-            let mut values = assessment.values;
-            if let Some((probe, value)) = assessment.probe
-                && value > 0.0
-            {
-                found.trajectories.push(probe);
-                values.push(value);
-            }
-            values
-        }),
-        (Strategy::Active, AcquisitionKind::Spread) => {
-            spread::values(task, model, in_flight, &found.trajectories, seed, budget)?
-        }
-        _ => None,
-    };
-    let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
-        fantasised_scores(task, model, in_flight, &found.trajectories)?
-    } else {
-        found
-            .trajectories
-            .iter()
-            .map(|t| acquisition.score(t, precondition.d_max()))
-            .collect()
-    };
-    let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
-    if let Some(values) = values
-        && values.iter().any(|v| *v > 0.0)
-    {
-        // The most valuable candidate; `lcb` only breaks exact ties.
-        for (alpha, v) in alphas.iter_mut().zip(&values) {
-            *alpha = -v + 1e-9 * alpha.tanh();
-        }
-    }
+    let Valuation {
+        scored,
+        alphas,
+        valued_by,
+    } = value_candidates(
+        task,
+        &mut cache,
+        model,
+        in_flight,
+        &mut found.trajectories,
+        strategy,
+        seed,
+        budget,
+        Probe::Allowed,
+    )?;
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
     let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
     let candidates = found
@@ -257,11 +235,107 @@ pub(crate) fn propose(
         alpha,
         candidates,
         chosen_index,
+        valued_by,
         extensions: found.extensions,
         runs: found.runs,
         model_points: cache.points(),
         model_calls: cache.calls(),
         dynamics_calls: found.dynamics_calls,
+    })
+}
+
+/// How a set of candidates was valued, whoever found them ([`value_candidates`]).
+pub(crate) struct Valuation {
+    /// Each candidate's `α_step` per step and `α` by the acquisition's score (`lcb`, or
+    /// `level_set`; σ fantasised with the state-actions in flight under `active`).
+    pub scored: Vec<(Vec<f64>, f64)>,
+    /// Each candidate's `α` as the strategy compares them (smallest chosen): the score's, or
+    /// for a value-based acquisition that valued any candidate above 0, the value negated
+    /// (the score then only breaks exact ties).
+    pub alphas: Vec<f64>,
+    /// The rule that decided the comparison: the experiment's acquisition, or `lcb` where a
+    /// value-based one could not value these candidates (no graph, an exhausted budget, no
+    /// value above 0) or the strategy is not `active`.
+    pub valued_by: AcquisitionKind,
+}
+
+/// Whether [`value_candidates`] may add `bottleneck`'s probe (a trajectory towards the most
+/// valuable step) to the candidates: yes for the planner's own, no for a client's, which it
+/// must choose among as posted.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Probe {
+    /// The probe may join the candidates.
+    Allowed,
+    /// The candidates stay as given.
+    Refused,
+}
+
+/// The one valuation of a proposal's candidates, the planner's RRT candidates and a client's
+/// posted ones alike: `active` with `bottleneck` or `spread` values each candidate
+/// ([`bottleneck::assess`], [`spread::values`]) and compares by value where any is above 0;
+/// every other case compares the acquisition's score (with σ fantasised over `in_flight` under
+/// `active`).
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn value_candidates(
+    task: Task<'_>,
+    cache: &mut ModelCache<'_>,
+    model: &dyn DeviationModel,
+    in_flight: &[f64],
+    trajectories: &mut Vec<Trajectory>,
+    strategy: Strategy,
+    seed: u64,
+    budget: &Budget,
+    probe: Probe,
+) -> Result<Valuation, PlanningError> {
+    let acquisition = task.settings.acquisition();
+    let values = match (strategy, acquisition.kind) {
+        (Strategy::Active, AcquisitionKind::Bottleneck) => {
+            bottleneck::assess(task, cache, trajectories, in_flight, seed, budget)?.map(
+                |assessment| {
+                    let mut values = assessment.values;
+                    if let Some((found, value)) = assessment.probe
+                        && value > 0.0
+                        && probe == Probe::Allowed
+                    {
+                        trajectories.push(found);
+                        values.push(value);
+                    }
+                    values
+                },
+            )
+        }
+        (Strategy::Active, AcquisitionKind::Spread) => {
+            spread::values(task, model, in_flight, trajectories, seed, budget)?
+        }
+        _ => None,
+    };
+    let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
+        fantasised_scores(task, model, in_flight, trajectories)?
+    } else {
+        trajectories
+            .iter()
+            .map(|t| acquisition.score(t, task.precondition.d_max()))
+            .collect()
+    };
+    let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
+    // `bottleneck` and `spread` score (and break ties) by `lcb`.
+    let mut valued_by = match acquisition.kind {
+        AcquisitionKind::Bottleneck | AcquisitionKind::Spread => AcquisitionKind::Lcb,
+        kind => kind,
+    };
+    if let Some(values) = values
+        && values.iter().any(|v| *v > 0.0)
+    {
+        // The most valuable candidate; the score only breaks exact ties.
+        for (alpha, v) in alphas.iter_mut().zip(&values) {
+            *alpha = -v + 1e-9 * alpha.tanh();
+        }
+        valued_by = acquisition.kind;
+    }
+    Ok(Valuation {
+        scored,
+        alphas,
+        valued_by,
     })
 }
 

@@ -13,7 +13,7 @@
 use super::Ingested;
 use super::LiveExperiment;
 use super::ingest::check_idempotency_key;
-use super::learning::{check_candidates, check_finite, judge_given, needs_candidates};
+use super::learning::{check_candidates, check_finite, needs_candidates};
 use super::{Error, Result, Service};
 use crate::api::{
     CandidateView, ContinueRequest, PlannedTrajectory, ProposalContent, ProposalRequest,
@@ -21,6 +21,7 @@ use crate::api::{
 };
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::mde::ServedModel;
+use crate::planning::AcquisitionKind;
 use crate::planning::{self, Proposal, Strategy, Verdict};
 use crate::seed;
 use crate::store::{
@@ -93,6 +94,7 @@ fn content(p: &Proposal, schedule_beta: f64) -> Result<ProposalContent> {
         chosen_index: p.chosen_index,
         extensions: p.extensions,
         relaxed_from_beta: relaxed_from(p.beta, schedule_beta),
+        valued_by: Some(p.valued_by),
     })
 }
 
@@ -106,7 +108,7 @@ fn relaxed_from(beta: f64, schedule_beta: f64) -> Option<f64> {
 /// to choose.
 fn given_content(
     strategy: Strategy,
-    verdicts: &[Verdict],
+    (verdicts, valued_by): &(Vec<Verdict>, AcquisitionKind),
     seed: u64,
     beta: f64,
     schedule_beta: f64,
@@ -129,6 +131,7 @@ fn given_content(
         chosen_index: chosen,
         extensions: 0,
         relaxed_from_beta: relaxed_from(beta, schedule_beta),
+        valued_by: Some(*valued_by),
     })
 }
 
@@ -239,19 +242,38 @@ impl Service {
         let answer = match request.candidates.clone() {
             Some(candidates) => {
                 let checked = check_candidates(&live, problem.start(), candidates)?;
+                let in_flight =
+                    if strategy == Strategy::Active && live.settings.learning.batch_diversity {
+                        self.in_flight(&live, &model, request.client_id.as_deref())
+                            .await?
+                    } else {
+                        Vec::new()
+                    };
                 let mut answer = Err(Error::NoPlan {
                     extensions: 0,
                     candidates: Vec::new(),
                 });
                 for &precondition in &ladder {
-                    let verdicts = judge_given(
-                        &live,
+                    // Judged, then valued by the experiment's acquisition within the planning
+                    // deadline, as the service's own candidates are.
+                    let (live, model, problem, checked, in_flight) = (
+                        live.clone(),
                         model.clone(),
-                        problem.goal().to_vec(),
+                        problem.clone(),
                         checked.clone(),
-                        precondition,
-                    )
-                    .await?;
+                        in_flight.clone(),
+                    );
+                    let verdicts = self
+                        .search(id, arrived, super::SearchKind::Proposal, move |budget| {
+                            live.planner(&model)
+                                .with_in_flight(&in_flight)
+                                .within(budget.clone())
+                                .judge_valued(&problem, checked, precondition, strategy, seed)
+                        })
+                        .await?;
+                    for v in &verdicts.0 {
+                        check_finite(&v.trajectory)?;
+                    }
                     let beta = precondition.beta();
                     answer = given_content(strategy, &verdicts, seed, beta, schedule_beta)
                         .map(|c| (c, beta));

@@ -748,6 +748,29 @@ async fn spread_executes_the_candidate_that_settles_the_most_of_the_boundary() {
         alphas.iter().any(|a| *a > best * 0.99),
         "candidates differ in what they settle: {alphas:?}"
     );
+    assert_eq!(p["valued_by"], "spread", "{p}");
+
+    // The same trajectory posted as a client's candidate is valued the same way, not by `lcb`:
+    // the same α, by the same rule.
+    let pid = p["id"].as_i64().unwrap();
+    let (status, _) = app
+        .post(
+            &format!("/v1/experiments/{id}/proposals/{pid}/abandon"),
+            &json!({}),
+        )
+        .await;
+    assert_eq!(status, 200);
+    let own = json!({"states": p["trajectory"]["states"], "actions": p["trajectory"]["actions"]});
+    let ask = json!({"start": [0.1, 0.1], "goal": [0.9, 0.9], "strategy": "active",
+                     "candidates": [own]});
+    let given = app.assert_proposes(id, &ask).await;
+    assert_eq!(given["valued_by"], "spread", "{given}");
+    let alpha = given["candidates"][0]["alpha"].as_f64().unwrap();
+    assert!(
+        (alpha - alphas[chosen]).abs() <= 1e-12,
+        "posted {alpha}, planned {}",
+        alphas[chosen]
+    );
 }
 
 #[tokio::test]

@@ -443,6 +443,10 @@ class Proposal(Wire):
     relaxed_from_beta: float | None = None
     """The iteration's ``β_j`` when no trajectory reached the goal inside the precondition at
     it and the proposal was planned at the lower :attr:`beta` (``learning.relax_beta``)."""
+    valued_by: str | None = None
+    """The acquisition the candidates were compared by (the service's and a client's alike):
+    the experiment's ``learning.acquisition``, or ``lcb`` where a value-based one valued no
+    candidate above 0 (``None`` for proposals stored before it was recorded)."""
 
     @property
     def actions(self) -> Array:
