@@ -1,0 +1,150 @@
+#!/usr/bin/env python3
+"""A fit on many transitions and a batched precondition query, through the API with default
+settings: what a lab that imports a large log sees.
+
+Starts BINARY on a fresh database, creates a kinematic experiment (default settings), posts N
+transitions of a robot whose pushes go 80 % of the way in parts of 10,000, forces a refit and
+waits for the version (the refit answers 202 after the planning deadline and goes on), then asks
+the precondition of Q points in one POST, REPEAT times. Prints the fit's wall time, its phases
+(the model's `selection`) and the query's points per second.
+
+usage: scripts/api_fit_at_scale.py BINARY [N] [Q] [REPEAT]
+
+After the first fit it posts one more trajectory of 1,000 transitions and refits again (a warm
+refit: the kernel and label cap kept). Q points go in one POST (the default 4 MiB body limit
+holds about 60,000 of them).
+"""
+
+import json
+import random
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def call(base: str, method: str, path: str, body=None, timeout=600):
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(base + path, data=data, method=method)
+    if data is not None:
+        req.add_header("Content-Type", "application/json")
+    try:
+        with urllib.request.urlopen(req, timeout=timeout) as r:
+            return r.status, json.loads(r.read())
+    except urllib.error.HTTPError as e:
+        return e.code, json.loads(e.read() or b"null")
+
+
+def main() -> None:
+    binary = sys.argv[1]
+    n = int(sys.argv[2]) if len(sys.argv) > 2 else 100_000
+    q = int(sys.argv[3]) if len(sys.argv) > 3 else 100_000
+    repeat = int(sys.argv[4]) if len(sys.argv) > 4 else 3
+    port = free_port()
+    db = tempfile.mkdtemp() + "/scale.db"
+    server = subprocess.Popen(
+        [binary, "serve", "--addr", f"127.0.0.1:{port}", "--database-url", db],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    base = f"http://127.0.0.1:{port}"
+    try:
+        for _ in range(100):
+            try:
+                if call(base, "GET", "/readyz")[0] == 200:
+                    break
+            except OSError:
+                time.sleep(0.1)
+        status, exp = call(
+            base, "POST", "/v1/experiments",
+            {"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}},
+        )
+        eid = exp["id"]
+        rng = random.Random(0)
+        t0 = time.monotonic()
+        for part in range(0, n, 10_000):
+            ts = []
+            for _ in range(min(10_000, n - part)):
+                s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
+                a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
+                gain = 0.8 if s[0] > 0.5 else 1.0
+                ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
+            st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
+            assert st == 201, body
+        posted = time.monotonic() - t0
+        t0 = time.monotonic()
+        st, body = call(base, "POST", f"/v1/experiments/{eid}/model/refit", {})
+        assert st in (200, 202), body
+        while True:
+            st, model = call(base, "GET", f"/v1/experiments/{eid}/model")
+            if model["version"] >= 1:
+                break
+            time.sleep(0.5)
+        fit_wall = time.monotonic() - t0
+        print(json.dumps({"fit_wall_s": round(fit_wall, 1), "posting_s": round(posted, 1),
+                          "estimator": model["estimator"], "fit_seconds": model["fit_seconds"],
+                          "selection": model.get("selection")}, indent=1), flush=True)
+        # One more batch and a refit: a warm one (the kept kernel and cap, no selection).
+        ts = []
+        for _ in range(1000):
+            s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
+            a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
+            gain = 0.8 if s[0] > 0.5 else 1.0
+            ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
+        st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
+        assert st == 201, body
+        t0 = time.monotonic()
+        st, body = call(base, "POST", f"/v1/experiments/{eid}/model/refit", {})
+        assert st in (200, 202), body
+        while True:
+            st, again = call(base, "GET", f"/v1/experiments/{eid}/model")
+            if again["version"] >= 2:
+                break
+            time.sleep(0.5)
+        print(json.dumps({"warm_refit_wall_s": round(time.monotonic() - t0, 1),
+                          "fit_seconds": again["fit_seconds"],
+                          "reason": again["selection"]["reason"],
+                          "phases": again["selection"]["phases"]}, indent=1), flush=True)
+        points = []
+        for _ in range(q):
+            s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
+            points.append({"s": s, "a": [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]})
+        rates = []
+        for _ in range(repeat):
+            t0 = time.monotonic()
+            st, ans = call(
+                base, "POST", f"/v1/experiments/{eid}/precondition", {"points": points}
+            )
+            dt = time.monotonic() - t0
+            assert st == 200 and len(ans["results"]) == q, st
+            rates.append(q / dt)
+        print(
+            json.dumps(
+                {
+                    "transitions": n,
+                    "posting_s": round(posted, 1),
+                    "fit_wall_s": round(fit_wall, 1),
+                    "estimator": model["estimator"],
+                    "fit_seconds": model["fit_seconds"],
+                    "selection": model.get("selection"),
+                    "query_points": q,
+                    "points_per_s": [round(r) for r in rates],
+                },
+                indent=1,
+            )
+        )
+    finally:
+        server.terminate()
+        server.wait()
+
+
+if __name__ == "__main__":
+    main()
