@@ -317,6 +317,14 @@ function modelTable(t) {
   );
 }
 
+/** The median of `values` (NaN for none). */
+function median(values) {
+  const v = [...values].sort((a, b) => a - b);
+  if (!v.length) return NaN;
+  const k = Math.floor(v.length / 2);
+  return v.length % 2 ? v[k] : (v[k - 1] + v[k]) / 2;
+}
+
 /** The MDE settings' regressor in words (`mde.estimator`; absent before it existed: exact). */
 export function estimatorText(m) {
   switch (m.estimator ?? 'exact') {
@@ -577,6 +585,8 @@ export async function mapPage(root, params, id) {
     A = e.action_space;
   const discrete = Array.isArray(A.values) && A.values.length > 0;
   const grid = e.domain.kind === 'icy_gridworld';
+  // A custom domain's periodic state components (angles) are labelled in degrees.
+  const periodic = new Set(e.domain.state?.periodic ?? []);
   const comps = S.names
     .map((n, i) => ({ name: `s.${n}`, low: S.low[i], high: S.high[i], action: false, i }))
     .concat(
@@ -587,6 +597,9 @@ export async function mapPage(root, params, id) {
     y: params.get('y') ?? comps[1]?.name ?? comps[0].name,
     s: S.low.map((l, i) => (grid ? Math.round((l + S.high[i]) / 2) : (l + S.high[i]) / 2)),
     a: discrete ? A.values[0] : A.low.map((l, i) => (l + A.high[i]) / 2),
+    // Until the user moves a slider or picks a point, the fixed action is a typical move of the
+    // training data (each component's median), not the middle of the bounds — often no move.
+    typical: !discrete && !params.get('a'),
     beta: e.learning.test_beta,
     version: e.model_version,
     res: 41,
@@ -672,6 +685,7 @@ export async function mapPage(root, params, id) {
           step,
           value: vecRef[c.i],
           oninput: ev => {
+            state.typical = false;
             vecRef[c.i] = +ev.target.value;
             out.textContent = fmt(vecRef[c.i]);
             clearTimeout(timer);
@@ -682,6 +696,38 @@ export async function mapPage(root, params, id) {
       );
     }
     fixed.replaceChildren(...rows);
+  }
+
+  /** A component's value in its units: degrees for an angle (a periodic state component). */
+  function inUnits(name, v) {
+    const c = comps.find(k => k.name === name);
+    return c && !c.action && periodic.has(c.i) ? `${fmt((v * 180) / Math.PI)}°` : fmt(v);
+  }
+
+  /** The canvas between its axes: the grid's ends and middle in the components' units. */
+  function mapAxes(m, canvas) {
+    const ticks = (axis, cls) => {
+      const v = axis.values,
+        mid = v[Math.floor((v.length - 1) / 2)];
+      return h(
+        'div',
+        { class: `map-ticks ${cls}`, 'data-axis': axis.name },
+        ...[v[0], mid, v[v.length - 1]].map(t => h('span', {}, inUnits(axis.name, t))),
+      );
+    };
+    return h(
+      'div',
+      { class: 'map-axes' },
+      h('div', { class: 'map-name y' }, m.y.name),
+      ticks(m.y, 'y'),
+      canvas,
+      h('div', {}),
+      h('div', {}),
+      ticks(m.x, 'x'),
+      h('div', {}),
+      h('div', {}),
+      h('div', { class: 'map-name x' }, m.x.name),
+    );
   }
 
   function paint() {
@@ -716,6 +762,7 @@ export async function mapPage(root, params, id) {
         span: state.span,
         size: grid ? 300 : 380,
         onPick: pt => {
+          state.typical = false;
           state.s = [...pt.t.s];
           if (!discrete) state.a = [...pt.t.a];
           fixedControls();
@@ -734,6 +781,8 @@ export async function mapPage(root, params, id) {
       return grid && !c.action ? c.high - c.low + 1 : state.res;
     };
     status.textContent = 'loading…';
+    // Ready again only when this load has drawn (a test waits for it; so may a user's script).
+    delete document.body.dataset.mapReady;
     const query = a =>
       new URLSearchParams({
         x: state.x,
@@ -762,12 +811,21 @@ export async function mapPage(root, params, id) {
               ? `action ${A.names.map((n, i) => `${n}=${fmt(p.a[i])}`).join(', ')}`
               : `${p.m.y.name} against ${p.m.x.name}`,
           ),
-          p.canvas,
+          mapAxes(p.m, p.canvas),
           p.caption,
         ),
       ),
     );
     const m0 = maps[0];
+    if (state.typical) {
+      state.typical = false;
+      const moves = m0.training.map(t => t.a);
+      if (moves.length) {
+        state.a = A.low.map((_, i) => median(moves.map(a => a[i])));
+        fixedControls();
+        return load();
+      }
+    }
     status.textContent = `model version ${m0.model_version} (${m0.source}, ${m0.n_train} training transitions)`;
     state.span = null;
     paint();

@@ -192,6 +192,23 @@ test('the kinematic map has two continuous axes and sliders for the rest', async
   await page.waitForSelector('body[data-map-ready]');
   assert.equal(await page.locator('#map-panels canvas').count(), 1);
   assert.equal(await page.locator('.controls input[type=range]').count(), 2 + 2, 'β, version and two fixed components');
+  // Axes in the state's units: each end and the middle of the grid (the unit square).
+  await page.screenshot({ path: `${out}/map-kinematic.png`, fullPage: true });
+  assert.deepEqual(await page.locator('.map-ticks.x span').allInnerTexts(), ['0', '0.5', '1']);
+  assert.deepEqual(await page.locator('.map-ticks.y span').allInnerTexts(), ['0', '0.5', '1']);
+  // The fixed action is a typical move of the training data (each component's median), not
+  // the middle of the bounds.
+  const m = await call(base, 'GET', `/v1/experiments/${kin}/precondition/map?x=s.x0&y=s.x1&nx=3&ny=3`);
+  const median = v => {
+    const w = [...v].sort((a, b) => a - b),
+      k = Math.floor(w.length / 2);
+    return w.length % 2 ? w[k] : (w[k - 1] + w[k]) / 2;
+  };
+  const want = [0, 1].map(i => median(m.training.map(t => t.a[i])));
+  const slider = name => page.locator(`.controls label:text-is("${name}") + input`);
+  const got = [+(await slider('a.dx0').inputValue()), +(await slider('a.dx1').inputValue())];
+  for (let i = 0; i < 2; i++)
+    assert.ok(Math.abs(got[i] - want[i]) <= 0.002 + 1e-9, `a[${i}]: ${got[i]} against ${want[i]}`);
 });
 
 test('diagnostics show leave-one-out calibration and the precondition rates', async () => {
