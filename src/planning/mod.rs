@@ -110,7 +110,7 @@ pub use cache::ModelCache;
 pub use error::PlanningError;
 pub use given::{Path, Verdict, choose};
 pub use model::{DeviationModel, Fantasy};
-pub use planner::Planner;
+pub use planner::{GivenChoice, Planner};
 pub use precondition::{Agreement, Precondition};
 pub use rrt::{Rejections, RrtOutcome};
 pub use schedule::{BetaSchedule, MAX_RELAXATION_STEPS, beta_schedule, relaxation_ladder};

@@ -218,6 +218,39 @@ impl<'a> Planner<'a> {
         Ok((verdicts, valuation.valued_by))
     }
 
+    /// [`judge_valued`](Self::judge_valued) inside each precondition of `ladder` in turn
+    /// until `strategy` has a candidate to choose ([`given::choose`]) — the β relaxation of
+    /// [`propose_relaxing`](Self::propose_relaxing) for a client's candidates, within the
+    /// planner's one budget. Answers the verdicts of the precondition it stopped at (the last
+    /// one when none had a choice), the rule that valued them, that precondition and the
+    /// chosen index (`None`: no plan at any β).
+    pub fn judge_relaxing(
+        &self,
+        problem: &Problem,
+        candidates: Vec<Path>,
+        ladder: &[Precondition],
+        strategy: Strategy,
+        seed: u64,
+    ) -> Result<GivenChoice, PlanningError> {
+        let mut last = None;
+        for &precondition in ladder {
+            let (verdicts, valued_by) =
+                self.judge_valued(problem, candidates.clone(), precondition, strategy, seed)?;
+            let chosen = given::choose(strategy, &verdicts, seed);
+            let answer = GivenChoice {
+                verdicts,
+                valued_by,
+                precondition,
+                chosen,
+            };
+            if chosen.is_some() {
+                return Ok(answer);
+            }
+            last = Some(answer);
+        }
+        last.ok_or_else(|| PlanningError::input("ladder", "no precondition to judge inside"))
+    }
+
     /// Scores every step of every candidate given by the client inside `precondition`, and
     /// judges each against the precondition and `goal` (see [`given`](mod@super::given)).
     /// The candidates are assumed validated against the domain.
@@ -236,4 +269,17 @@ impl<'a> Planner<'a> {
             precondition,
         )
     }
+}
+
+/// A client's candidates judged and valued inside a precondition ([`Planner::judge_relaxing`]).
+#[derive(Debug, Clone)]
+pub struct GivenChoice {
+    /// Each candidate's verdict, in the order posted.
+    pub verdicts: Vec<Verdict>,
+    /// The rule whose `α` the eligible ones were compared by.
+    pub valued_by: AcquisitionKind,
+    /// The precondition they were judged inside.
+    pub precondition: Precondition,
+    /// The candidate the strategy chose (`None`: none it may take).
+    pub chosen: Option<usize>,
 }

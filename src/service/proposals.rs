@@ -19,14 +19,15 @@ use crate::api::{
     CandidateView, ContinueRequest, PlannedTrajectory, ProposalContent, ProposalRequest,
     TrajectoryRequest,
 };
+use crate::domain::Problem;
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::mde::ServedModel;
-use crate::planning::AcquisitionKind;
-use crate::planning::{self, Proposal, Strategy, Verdict};
+use crate::planning::{GivenChoice, Precondition, Proposal, Strategy};
 use crate::seed;
 use crate::store::{
     Inserted, NewProposal, NewRefusal, ProposalStatus, ProposalTerms, RefusalReason, StoredProposal,
 };
+use std::sync::Arc;
 use std::time::Instant;
 
 /// At most this many state-actions in flight (executed since the last fit, or planned by
@@ -106,21 +107,15 @@ fn relaxed_from(beta: f64, schedule_beta: f64) -> Option<f64> {
 /// What a strategy chose among the client's judged candidates (judged at `beta`; the iteration's
 /// is `schedule_beta`), as stored and shown; `no_plan` with every verdict when there is nothing
 /// to choose.
-fn given_content(
-    strategy: Strategy,
-    (verdicts, valued_by): &(Vec<Verdict>, AcquisitionKind),
-    seed: u64,
-    beta: f64,
-    schedule_beta: f64,
-) -> Result<ProposalContent> {
-    let candidates: Vec<CandidateView> = verdicts.iter().map(CandidateView::judged).collect();
-    let Some(chosen) = planning::choose(strategy, verdicts, seed) else {
+fn given_content(given: &GivenChoice, beta: f64, schedule_beta: f64) -> Result<ProposalContent> {
+    let candidates: Vec<CandidateView> = given.verdicts.iter().map(CandidateView::judged).collect();
+    let Some(chosen) = given.chosen else {
         return Err(Error::NoPlan {
             extensions: 0,
             candidates,
         });
     };
-    let v = &verdicts[chosen];
+    let v = &given.verdicts[chosen];
     Ok(ProposalContent {
         trajectory: PlannedTrajectory {
             alpha_step: Some(v.alpha_step.clone()),
@@ -131,8 +126,19 @@ fn given_content(
         chosen_index: chosen,
         extensions: 0,
         relaxed_from_beta: relaxed_from(beta, schedule_beta),
-        valued_by: Some(*valued_by),
+        valued_by: Some(given.valued_by),
     })
+}
+
+/// What a proposal is planned under: the learning iteration, its β ladder (the schedule's `β_j`
+/// first, then the relaxed ones), the strategy answering, the model version and the seed.
+struct Schedule {
+    iteration: i64,
+    schedule_beta: f64,
+    ladder: Vec<Precondition>,
+    strategy: Strategy,
+    model: Arc<ServedModel>,
+    seed: u64,
 }
 
 /// The open lease answered again for the same problem, or a conflict for another one.
@@ -189,6 +195,10 @@ impl Service {
         answer
     }
 
+    /// A proposal in three steps: what it is planned under ([`schedule`](Self::schedule)), the
+    /// planner's candidates or the client's judged and valued inside it
+    /// ([`plan_or_judge`](Self::plan_or_judge)), and what is stored — the proposal, or the
+    /// refusal of one ([`record_refusal`](Self::record_refusal)).
     async fn propose_unmetered(
         &self,
         id: i64,
@@ -198,148 +208,14 @@ impl Service {
         let arrived = Instant::now();
         let live = self.live(id).await?;
         let problem = live.problem(request.start.clone(), request.goal.clone())?;
-        if let Some(client) = &request.client_id {
-            if client.is_empty() || client.chars().count() > MAX_CLIENT_ID_LEN {
-                return Err(Error::validation(
-                    "client_id",
-                    format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
-                ));
-            }
-            if let Some(why) = text_problem(client) {
-                return Err(Error::validation("client_id", why));
-            }
-            if let Some(open) = self.store.open_proposal(id, client).await? {
-                return Ok((lease_answer(open, &request)?, false));
-            }
+        if let Some(open) = self.open_lease(id, request.client_id.as_deref()).await? {
+            return Ok((lease_answer(open, &request)?, false));
         }
-        let n_trajectories = self
-            .store
-            .experiment(id)
-            .await?
-            .map_or(0, |e| e.n_trajectories);
-        let iteration = live.iteration(n_trajectories);
-        let schedule_beta = live.settings.learning.training_beta(iteration);
-        let ladder = live
-            .settings
-            .learning
-            .training_betas(schedule_beta)
-            .into_iter()
-            .map(|beta| live.precondition(beta))
-            .collect::<Result<Vec<_>>>()?;
-        let strategy = live
-            .settings
-            .learning
-            .answering_strategy(request.strategy, iteration);
-        let model = live.model();
-        let model_version = model.version;
-        let seed = seed::mix_values(
-            live.settings.seed,
-            n_trajectories,
-            request.start.iter().chain(&request.goal).copied(),
-        );
-        let betas: Vec<f64> = ladder.iter().map(|p| p.beta()).collect();
-        let n_candidates = request.candidates.as_ref().map(|c| c.len() as i64);
-        let answer = match request.candidates.clone() {
-            Some(candidates) => {
-                let checked = check_candidates(&live, problem.start(), candidates)?;
-                let in_flight =
-                    if strategy == Strategy::Active && live.settings.learning.batch_diversity {
-                        self.in_flight(&live, &model, request.client_id.as_deref())
-                            .await?
-                    } else {
-                        Vec::new()
-                    };
-                let mut answer = Err(Error::NoPlan {
-                    extensions: 0,
-                    candidates: Vec::new(),
-                });
-                for &precondition in &ladder {
-                    // Judged, then valued by the experiment's acquisition within the planning
-                    // deadline, as the service's own candidates are.
-                    let (live, model, problem, checked, in_flight) = (
-                        live.clone(),
-                        model.clone(),
-                        problem.clone(),
-                        checked.clone(),
-                        in_flight.clone(),
-                    );
-                    let verdicts = self
-                        .search(id, arrived, super::SearchKind::Proposal, move |budget| {
-                            live.planner(&model)
-                                .with_in_flight(&in_flight)
-                                .within(budget.clone())
-                                .judge_valued(&problem, checked, precondition, strategy, seed)
-                        })
-                        .await?;
-                    for v in &verdicts.0 {
-                        check_finite(&v.trajectory)?;
-                    }
-                    let beta = precondition.beta();
-                    answer = given_content(strategy, &verdicts, seed, beta, schedule_beta)
-                        .map(|c| (c, beta));
-                    if !matches!(answer, Err(Error::NoPlan { .. })) {
-                        break;
-                    }
-                }
-                answer
-            }
-            None => {
-                needs_candidates(&live)?;
-                let in_flight =
-                    if strategy == Strategy::Active && live.settings.learning.batch_diversity {
-                        self.in_flight(&live, &model, request.client_id.as_deref())
-                            .await?
-                    } else {
-                        Vec::new()
-                    };
-                let live = live.clone();
-                self.search(id, arrived, super::SearchKind::Proposal, move |budget| {
-                    live.planner(&model)
-                        .with_in_flight(&in_flight)
-                        .within(budget.clone())
-                        .propose_relaxing(strategy, &problem, &ladder, seed)
-                })
-                .await
-                .and_then(|proposal| Ok((content(&proposal, schedule_beta)?, proposal.beta)))
-            }
-        };
-        let refused = match &answer {
-            Err(Error::NoPlan { extensions, .. }) => Some((RefusalReason::NoPlan, *extensions)),
-            Err(Error::DeadlineExceeded { extensions, .. }) => {
-                Some((RefusalReason::DeadlineExceeded, *extensions))
-            }
-            _ => None,
-        };
-        if let Some((reason, extensions)) = refused {
-            let refusal = NewRefusal {
-                client_id: request.client_id.clone(),
-                iteration,
-                strategy,
-                model_version,
-                start: request.start.clone(),
-                goal: request.goal.clone(),
-                betas,
-                extensions: extensions as i64,
-                candidates: n_candidates,
-                reason,
-            };
-            // The answer is the refusal either way; a store that cannot record it is logged,
-            // not turned into another answer.
-            match self.store.insert_refusal(id, &refusal).await {
-                Ok(refusal_id) => tracing::info!(
-                    experiment = id,
-                    refusal = refusal_id,
-                    extensions,
-                    reason = reason.as_str(),
-                    "proposal refused"
-                ),
-                Err(e) => tracing::error!(
-                    experiment = id,
-                    error = %e,
-                    "could not record a refused proposal"
-                ),
-            }
-        }
+        let schedule = self.schedule(id, &live, &request).await?;
+        let answer = self
+            .plan_or_judge(id, arrived, &live, &schedule, problem, &request)
+            .await;
+        self.record_refusal(id, &schedule, &request, &answer).await;
         let (content, beta) = answer?;
         let body = serde_json::to_string(&content).map_err(anyhow::Error::from)?;
         let (n_actions, extensions) = (
@@ -353,10 +229,10 @@ impl Service {
                 &NewProposal {
                     terms: ProposalTerms {
                         client_id: request.client_id.clone(),
-                        iteration,
+                        iteration: schedule.iteration,
                         beta,
-                        strategy,
-                        model_version,
+                        strategy: schedule.strategy,
+                        model_version: schedule.model.version,
                         start: request.start.clone(),
                         goal: request.goal.clone(),
                     },
@@ -372,6 +248,171 @@ impl Service {
             Inserted::Created => Ok((ProposalRecord::from_stored(stored)?, true)),
             Inserted::Continued => Ok((ProposalRecord::from_stored(stored)?, false)),
             Inserted::OpenLease => Ok((lease_answer(stored, &request)?, false)),
+        }
+    }
+
+    /// The open proposal leased to `client` (checked: 1 to [`MAX_CLIENT_ID_LEN`] printable
+    /// characters), if any: a client asks again and gets its lease back.
+    async fn open_lease(&self, id: i64, client: Option<&str>) -> Result<Option<StoredProposal>> {
+        let Some(client) = client else {
+            return Ok(None);
+        };
+        if client.is_empty() || client.chars().count() > MAX_CLIENT_ID_LEN {
+            return Err(Error::validation(
+                "client_id",
+                format!("must be 1 to {MAX_CLIENT_ID_LEN} characters"),
+            ));
+        }
+        if let Some(why) = text_problem(client) {
+            return Err(Error::validation("client_id", why));
+        }
+        Ok(self.store.open_proposal(id, client).await?)
+    }
+
+    /// What a proposal for `request` is planned under now.
+    async fn schedule(
+        &self,
+        id: i64,
+        live: &LiveExperiment,
+        request: &ProposalRequest,
+    ) -> Result<Schedule> {
+        let n_trajectories = self
+            .store
+            .experiment(id)
+            .await?
+            .map_or(0, |e| e.n_trajectories);
+        let learning = &live.settings.learning;
+        let iteration = live.iteration(n_trajectories);
+        let schedule_beta = learning.training_beta(iteration);
+        let ladder = learning
+            .training_betas(schedule_beta)
+            .into_iter()
+            .map(|beta| live.precondition(beta))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Schedule {
+            iteration,
+            schedule_beta,
+            ladder,
+            strategy: learning.answering_strategy(request.strategy, iteration),
+            model: live.model(),
+            seed: seed::mix_values(
+                live.settings.seed,
+                n_trajectories,
+                request.start.iter().chain(&request.goal).copied(),
+            ),
+        })
+    }
+
+    /// The proposal's content and the β it was made at: the planner's RRT candidates, or the
+    /// client's posted ones judged and valued — either way compared by the experiment's
+    /// acquisition, with the state-actions in flight, down the β ladder within one planning
+    /// deadline.
+    async fn plan_or_judge(
+        &self,
+        id: i64,
+        arrived: Instant,
+        live: &Arc<LiveExperiment>,
+        schedule: &Schedule,
+        problem: Problem,
+        request: &ProposalRequest,
+    ) -> Result<(ProposalContent, f64)> {
+        let checked = match request.candidates.clone() {
+            Some(candidates) => Some(check_candidates(live, problem.start(), candidates)?),
+            None => {
+                needs_candidates(live)?;
+                None
+            }
+        };
+        let Schedule {
+            strategy,
+            seed,
+            schedule_beta,
+            ..
+        } = *schedule;
+        let in_flight = if strategy == Strategy::Active && live.settings.learning.batch_diversity {
+            self.in_flight(live, &schedule.model, request.client_id.as_deref())
+                .await?
+        } else {
+            Vec::new()
+        };
+        let (live, model, ladder) = (
+            live.clone(),
+            schedule.model.clone(),
+            schedule.ladder.clone(),
+        );
+        let kind = super::SearchKind::Proposal;
+        match checked {
+            Some(candidates) => {
+                let given = self
+                    .search(id, arrived, kind, move |budget| {
+                        live.planner(&model)
+                            .with_in_flight(&in_flight)
+                            .within(budget.clone())
+                            .judge_relaxing(&problem, candidates, &ladder, strategy, seed)
+                    })
+                    .await?;
+                for v in &given.verdicts {
+                    check_finite(&v.trajectory)?;
+                }
+                let beta = given.precondition.beta();
+                Ok((given_content(&given, beta, schedule_beta)?, beta))
+            }
+            None => {
+                let proposal = self
+                    .search(id, arrived, kind, move |budget| {
+                        live.planner(&model)
+                            .with_in_flight(&in_flight)
+                            .within(budget.clone())
+                            .propose_relaxing(strategy, &problem, &ladder, seed)
+                    })
+                    .await?;
+                Ok((content(&proposal, schedule_beta)?, proposal.beta))
+            }
+        }
+    }
+
+    /// Records a proposal answered `no_plan` or past its deadline as a refused run (the
+    /// dashboard counts them). The answer is the refusal either way: a store that cannot
+    /// record it is logged, not turned into another answer.
+    async fn record_refusal<T>(
+        &self,
+        id: i64,
+        schedule: &Schedule,
+        request: &ProposalRequest,
+        answer: &Result<T>,
+    ) {
+        let (reason, extensions) = match answer {
+            Err(Error::NoPlan { extensions, .. }) => (RefusalReason::NoPlan, *extensions),
+            Err(Error::DeadlineExceeded { extensions, .. }) => {
+                (RefusalReason::DeadlineExceeded, *extensions)
+            }
+            _ => return,
+        };
+        let refusal = NewRefusal {
+            client_id: request.client_id.clone(),
+            iteration: schedule.iteration,
+            strategy: schedule.strategy,
+            model_version: schedule.model.version,
+            start: request.start.clone(),
+            goal: request.goal.clone(),
+            betas: schedule.ladder.iter().map(|p| p.beta()).collect(),
+            extensions: extensions as i64,
+            candidates: request.candidates.as_ref().map(|c| c.len() as i64),
+            reason,
+        };
+        match self.store.insert_refusal(id, &refusal).await {
+            Ok(refusal_id) => tracing::info!(
+                experiment = id,
+                refusal = refusal_id,
+                extensions,
+                reason = reason.as_str(),
+                "proposal refused"
+            ),
+            Err(e) => tracing::error!(
+                experiment = id,
+                error = %e,
+                "could not record a refused proposal"
+            ),
         }
     }
 
