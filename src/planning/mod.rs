@@ -29,9 +29,12 @@
 //!   candidates.
 //! - [`given`]: candidates posted by the client, judged step by step and chosen by the same
 //!   strategies.
+//! - `valuation`: how a proposal's candidates are compared, the planner's and a client's
+//!   alike — the score, and under `active` the value an `Acquisition` (`bottleneck`,
+//!   `spread`) puts on executing each.
 //! - [`synthetic`]: cheap deviation models with known answers, for tests, benchmarks and demos.
 //!
-//! The imports run one way: [`planner`] uses [`given`], [`strategy`] and [`rrt`](mod@rrt),
+//! The imports run one way: [`planner`] uses [`given`], [`strategy`], `valuation` and [`rrt`](mod@rrt),
 //! which are handed values (the settings, the problem, the model, the budget) and never the
 //! [`Planner`].
 //!
@@ -98,6 +101,7 @@ pub mod spread;
 pub mod strategy;
 pub mod synthetic;
 pub mod trajectory;
+pub(crate) mod valuation;
 
 #[cfg(test)]
 mod tests;

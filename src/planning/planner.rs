@@ -28,6 +28,7 @@ use super::rrt::{self, RrtOutcome, Task};
 pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
 use super::trajectory::Trajectory;
+use super::valuation;
 use crate::budget::Budget;
 use crate::domain::{Domain, Problem};
 use rand::RngCore;
@@ -177,7 +178,7 @@ impl<'a> Planner<'a> {
 
     /// [`judge`](Self::judge), then the eligible candidates valued as `strategy` compares them
     /// — by the experiment's acquisition, as the planner's own candidates are
-    /// ([`strategy::value_candidates`]; `bottleneck` adds no probe to a client's candidates) —
+    /// ([`valuation::value_candidates`]; `bottleneck` adds no probe to a client's candidates) —
     /// within the planner's budget and with its state-actions in flight. Each eligible
     /// verdict's `alpha` (and `alpha_step`) is then the value compared; the answer says which
     /// rule that was.
@@ -198,7 +199,7 @@ impl<'a> Planner<'a> {
             .map(|&i| verdicts[i].trajectory.clone())
             .collect();
         let mut cache = ModelCache::new(self.model, self.domain.feature_dim());
-        let valuation = strategy::value_candidates(
+        let valuation = valuation::value_candidates(
             self.task(problem, precondition),
             &mut cache,
             self.model,
@@ -207,7 +208,7 @@ impl<'a> Planner<'a> {
             strategy,
             seed,
             &self.budget,
-            strategy::Probe::Refused,
+            valuation::Probe::Refused,
         )?;
         for ((&i, (alpha_step, _)), alpha) in
             eligible.iter().zip(valuation.scored).zip(valuation.alphas)

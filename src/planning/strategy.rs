@@ -34,13 +34,12 @@
 //!   `NoPlan` only when not even the first step is possible.
 
 use super::acquisition::AcquisitionKind;
-use super::bottleneck;
 use super::cache::ModelCache;
 use super::error::PlanningError;
 use super::model::DeviationModel;
 use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
-use super::spread;
 use super::trajectory::Trajectory;
+use super::valuation;
 use crate::budget::Budget;
 use rand::Rng;
 use schemars::JsonSchema;
@@ -112,7 +111,8 @@ pub struct Proposal {
     pub candidates: Vec<CandidateScore>,
     /// Index of the chosen trajectory in `candidates`.
     pub chosen_index: usize,
-    /// The rule whose `α` the candidates were compared by ([`Valuation::valued_by`]).
+    /// The rule whose `α` the candidates were compared by
+    /// ([`Valuation::valued_by`](super::valuation::Valuation::valued_by)).
     pub valued_by: AcquisitionKind,
     /// Extensions spent, over all runs (for `random`, actions tried).
     pub extensions: usize,
@@ -196,11 +196,11 @@ pub(crate) fn propose(
         ));
     }
     let mut found = candidates(task, &mut cache, seed, budget)?;
-    let Valuation {
+    let valuation::Valuation {
         scored,
         alphas,
         valued_by,
-    } = value_candidates(
+    } = valuation::value_candidates(
         task,
         &mut cache,
         model,
@@ -209,7 +209,7 @@ pub(crate) fn propose(
         strategy,
         seed,
         budget,
-        Probe::Allowed,
+        valuation::Probe::Allowed,
     )?;
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
     let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
@@ -242,139 +242,6 @@ pub(crate) fn propose(
         model_calls: cache.calls(),
         dynamics_calls: found.dynamics_calls,
     })
-}
-
-/// How a set of candidates was valued, whoever found them ([`value_candidates`]).
-pub(crate) struct Valuation {
-    /// Each candidate's `α_step` per step and `α` by the acquisition's score (`lcb`, or
-    /// `level_set`; σ fantasised with the state-actions in flight under `active`).
-    pub scored: Vec<(Vec<f64>, f64)>,
-    /// Each candidate's `α` as the strategy compares them (smallest chosen): the score's, or
-    /// for a value-based acquisition that valued any candidate above 0, the value negated
-    /// (the score then only breaks exact ties).
-    pub alphas: Vec<f64>,
-    /// The rule that decided the comparison: the experiment's acquisition, or `lcb` where a
-    /// value-based one could not value these candidates (no graph, an exhausted budget, no
-    /// value above 0) or the strategy is not `active`.
-    pub valued_by: AcquisitionKind,
-}
-
-/// Whether [`value_candidates`] may add `bottleneck`'s probe (a trajectory towards the most
-/// valuable step) to the candidates: yes for the planner's own, no for a client's, which it
-/// must choose among as posted.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Probe {
-    /// The probe may join the candidates.
-    Allowed,
-    /// The candidates stay as given.
-    Refused,
-}
-
-/// The one valuation of a proposal's candidates, the planner's RRT candidates and a client's
-/// posted ones alike: `active` with `bottleneck` or `spread` values each candidate
-/// ([`bottleneck::assess`], [`spread::values`]) and compares by value where any is above 0;
-/// every other case compares the acquisition's score (with σ fantasised over `in_flight` under
-/// `active`).
-#[allow(clippy::too_many_arguments)]
-pub(crate) fn value_candidates(
-    task: Task<'_>,
-    cache: &mut ModelCache<'_>,
-    model: &dyn DeviationModel,
-    in_flight: &[f64],
-    trajectories: &mut Vec<Trajectory>,
-    strategy: Strategy,
-    seed: u64,
-    budget: &Budget,
-    probe: Probe,
-) -> Result<Valuation, PlanningError> {
-    let acquisition = task.settings.acquisition();
-    let values = match (strategy, acquisition.kind) {
-        (Strategy::Active, AcquisitionKind::Bottleneck) => {
-            bottleneck::assess(task, cache, trajectories, in_flight, seed, budget)?.map(
-                |assessment| {
-                    let mut values = assessment.values;
-                    if let Some((found, value)) = assessment.probe
-                        && value > 0.0
-                        && probe == Probe::Allowed
-                    {
-                        trajectories.push(found);
-                        values.push(value);
-                    }
-                    values
-                },
-            )
-        }
-        (Strategy::Active, AcquisitionKind::Spread) => {
-            spread::values(task, model, in_flight, trajectories, seed, budget)?
-        }
-        _ => None,
-    };
-    let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
-        fantasised_scores(task, model, in_flight, trajectories)?
-    } else {
-        trajectories
-            .iter()
-            .map(|t| acquisition.score(t, task.precondition.d_max()))
-            .collect()
-    };
-    let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
-    // `bottleneck` and `spread` score (and break ties) by `lcb`.
-    let mut valued_by = match acquisition.kind {
-        AcquisitionKind::Bottleneck | AcquisitionKind::Spread => AcquisitionKind::Lcb,
-        kind => kind,
-    };
-    if let Some(values) = values
-        && values.iter().any(|v| *v > 0.0)
-    {
-        // The most valuable candidate; the score only breaks exact ties.
-        for (alpha, v) in alphas.iter_mut().zip(&values) {
-            *alpha = -v + 1e-9 * alpha.tanh();
-        }
-        valued_by = acquisition.kind;
-    }
-    Ok(Valuation {
-        scored,
-        alphas,
-        valued_by,
-    })
-}
-
-/// The acquisition of each candidate (`α_step` per step and `α`) with each step's σ as if the
-/// state-actions `in_flight` were labelled already ([`DeviationModel::predict_fantasised`];
-/// μ as planned): a step near what the batch has already executed or chosen promises less. One
-/// call to the model for every step of every candidate.
-fn fantasised_scores(
-    task: Task<'_>,
-    model: &dyn DeviationModel,
-    in_flight: &[f64],
-    trajectories: &[Trajectory],
-) -> Result<Vec<(Vec<f64>, f64)>, PlanningError> {
-    let (domain, d_max) = (task.domain, task.precondition.d_max());
-    let dim = domain.feature_dim();
-    let features: Vec<f64> = trajectories
-        .iter()
-        .flat_map(|t| t.steps())
-        .flat_map(|(s, a, next)| domain.features(s, a, next))
-        .collect();
-    let expected = trajectories.iter().map(Trajectory::len).sum::<usize>();
-    let answers = model.predict_fantasised(&features, in_flight, dim);
-    if answers.len() != expected {
-        return Err(PlanningError::ModelOutput {
-            expected,
-            got: answers.len(),
-        });
-    }
-    let mut answers = answers.into_iter();
-    Ok(trajectories
-        .iter()
-        .map(|t| {
-            let fantasy = Trajectory {
-                sigma: answers.by_ref().take(t.len()).map(|(_, s)| s).collect(),
-                ..t.clone()
-            };
-            task.settings.acquisition().score(&fantasy, d_max)
-        })
-        .collect())
 }
 
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.
