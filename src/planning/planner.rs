@@ -200,14 +200,16 @@ impl<'a> Planner<'a> {
             .collect();
         let mut cache = ModelCache::new(self.model, self.domain.feature_dim());
         let valuation = valuation::value_candidates(
-            self.task(problem, precondition),
+            valuation::Context {
+                task: self.task(problem, precondition),
+                model: self.model,
+                in_flight: self.in_flight,
+                seed,
+                budget: &self.budget,
+            },
             &mut cache,
-            self.model,
-            self.in_flight,
             &mut trajectories,
-            strategy,
-            seed,
-            &self.budget,
+            strategy == Strategy::Active,
             valuation::Probe::Refused,
         )?;
         for ((&i, (alpha_step, _)), alpha) in

@@ -201,14 +201,16 @@ pub(crate) fn propose(
         alphas,
         valued_by,
     } = valuation::value_candidates(
-        task,
+        valuation::Context {
+            task,
+            model,
+            in_flight,
+            seed,
+            budget,
+        },
         &mut cache,
-        model,
-        in_flight,
         &mut found.trajectories,
-        strategy,
-        seed,
-        budget,
+        strategy == Strategy::Active,
         valuation::Probe::Allowed,
     )?;
     // `candidates` answers NoPlan rather than an empty set, so there is one to choose.

@@ -15,7 +15,6 @@ use super::error::PlanningError;
 use super::model::DeviationModel;
 use super::rrt::Task;
 use super::spread;
-use super::strategy::Strategy;
 use super::trajectory::Trajectory;
 use crate::budget::Budget;
 
@@ -163,36 +162,28 @@ pub(crate) enum Probe {
 /// posted ones alike: under `active` the experiment's [`Acquisition`] values each candidate
 /// (`bottleneck`, `spread`) and compares by value where any is above 0; every other case
 /// compares the acquisition's score (with σ fantasised over `in_flight` under `active`).
-#[allow(clippy::too_many_arguments)]
+/// `active`: whether the strategy compares by the acquisition (`goal_conditioned` and `random`
+/// choose at random among the eligible; their candidates carry the score alone).
 pub(crate) fn value_candidates(
-    task: Task<'_>,
+    context: Context<'_>,
     cache: &mut ModelCache<'_>,
-    model: &dyn DeviationModel,
-    in_flight: &[f64],
     trajectories: &mut Vec<Trajectory>,
-    strategy: Strategy,
-    seed: u64,
-    budget: &Budget,
+    active: bool,
     probe: Probe,
 ) -> Result<Valuation, PlanningError> {
+    let Context {
+        task,
+        model,
+        in_flight,
+        ..
+    } = context;
     let acquisition = task.settings.acquisition();
-    let values = if strategy == Strategy::Active {
-        of_kind(acquisition.kind).values(
-            Context {
-                task,
-                model,
-                in_flight,
-                seed,
-                budget,
-            },
-            cache,
-            trajectories,
-            probe,
-        )?
+    let values = if active {
+        of_kind(acquisition.kind).values(context, cache, trajectories, probe)?
     } else {
         None
     };
-    let scored: Vec<(Vec<f64>, f64)> = if strategy == Strategy::Active && !in_flight.is_empty() {
+    let scored: Vec<(Vec<f64>, f64)> = if active && !in_flight.is_empty() {
         fantasised_scores(task, model, in_flight, trajectories)?
     } else {
         trajectories
