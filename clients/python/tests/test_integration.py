@@ -181,6 +181,8 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         # prediction (x̂, ŷ) and the predicted move's length (on by default for a model
         # the service asks itself).
         assert len(fitted.feature_names) == 8, fitted.feature_names
+        # The exact GP (the default at this size) has one set of hyperparameters.
+        assert fitted.hyperparameters is not None and prior.hyperparameters is not None
         assert len(fitted.hyperparameters.length_scales) == 8
         assert fitted.label_cap in (2.0, 5.0, 0.0)  # chosen at the fit ("auto")
         assert len(fitted.raw["label_cap_trials"]) == 3

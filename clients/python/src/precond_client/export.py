@@ -352,8 +352,7 @@ class ExportedModel:
         self._map = _FeatureMap(d["feature_map"], self.state_dim, self.action_dim)
         if "experts" in predictor:
             self._experts = [
-                _Predictor(e, f"predictor.experts[{i}]")
-                for i, e in enumerate(predictor["experts"])
+                _Predictor(e, f"predictor.experts[{i}]") for i, e in enumerate(predictor["experts"])
             ]
             self._centres = np.array(predictor["centres"], dtype=np.float64).reshape(
                 len(predictor["centres"]), -1
