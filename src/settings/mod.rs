@@ -802,33 +802,24 @@ impl ExperimentRequest {
                 .reselect_every
                 .unwrap_or_else(|| self.learning.preset.reselect_every()),
         };
-        if !(1..=MAX_RESELECT_EVERY).contains(&mde.reselect_every) {
-            return Err(InvalidSetting::new(
-                "mde.reselect_every",
-                format!(
-                    "must be between 1 and {MAX_RESELECT_EVERY}, got {}",
-                    mde.reselect_every
-                ),
-            ));
-        }
-        if !(MIN_INDUCING_POINTS..=MAX_INDUCING_POINTS).contains(&mde.inducing_points) {
-            return Err(InvalidSetting::new(
-                "mde.inducing_points",
-                format!(
-                    "must be between {MIN_INDUCING_POINTS} and {MAX_INDUCING_POINTS}, got {}",
-                    mde.inducing_points
-                ),
-            ));
-        }
-        if !(MIN_EXPERT_SIZE..=MAX_EXPERT_SIZE).contains(&mde.expert_size) {
-            return Err(InvalidSetting::new(
-                "mde.expert_size",
-                format!(
-                    "must be between {MIN_EXPERT_SIZE} and {MAX_EXPERT_SIZE}, got {}",
-                    mde.expert_size
-                ),
-            ));
-        }
+        in_range(
+            "mde.reselect_every",
+            mde.reselect_every,
+            1,
+            MAX_RESELECT_EVERY,
+        )?;
+        in_range(
+            "mde.inducing_points",
+            mde.inducing_points,
+            MIN_INDUCING_POINTS,
+            MAX_INDUCING_POINTS,
+        )?;
+        in_range(
+            "mde.expert_size",
+            mde.expert_size,
+            MIN_EXPERT_SIZE,
+            MAX_EXPERT_SIZE,
+        )?;
         let l = self.learning;
         in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;
         in_range("learning.iterations", l.iterations, 1, MAX_ITERATIONS)?;
@@ -944,7 +935,12 @@ fn positive(field: &str, v: f64) -> Result<(), InvalidSetting> {
     }
 }
 
-fn in_range(field: &str, v: u32, lo: u32, hi: u32) -> Result<(), InvalidSetting> {
+fn in_range<T: PartialOrd + Copy + std::fmt::Display>(
+    field: &str,
+    v: T,
+    lo: T,
+    hi: T,
+) -> Result<(), InvalidSetting> {
     if (lo..=hi).contains(&v) {
         Ok(())
     } else {
