@@ -43,6 +43,31 @@ def call(base: str, method: str, path: str, body=None, timeout=600):
         return e.code, json.loads(e.read() or b"null")
 
 
+def post_transitions(base: str, eid: int, rng: random.Random, k: int) -> None:
+    """Posts one trajectory of `k` transitions of the robot whose pushes go 80 % of the way
+    right of x = 0.5."""
+    ts = []
+    for _ in range(k):
+        s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
+        a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
+        gain = 0.8 if s[0] > 0.5 else 1.0
+        ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
+    st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
+    assert st == 201, body
+
+
+def refit_until(base: str, eid: int, version: int) -> dict:
+    """Forces a refit (answered 202 past the planning deadline; it goes on) and waits until
+    the answering model is `version`; returns it."""
+    st, body = call(base, "POST", f"/v1/experiments/{eid}/model/refit", {})
+    assert st in (200, 202), body
+    while True:
+        st, model = call(base, "GET", f"/v1/experiments/{eid}/model")
+        if model["version"] >= version:
+            return model
+        time.sleep(0.5)
+
+
 def main() -> None:
     binary = sys.argv[1]
     n = int(sys.argv[2]) if len(sys.argv) > 2 else 100_000
@@ -71,44 +96,18 @@ def main() -> None:
         rng = random.Random(0)
         t0 = time.monotonic()
         for part in range(0, n, 10_000):
-            ts = []
-            for _ in range(min(10_000, n - part)):
-                s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
-                a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
-                gain = 0.8 if s[0] > 0.5 else 1.0
-                ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
-            st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
-            assert st == 201, body
+            post_transitions(base, eid, rng, min(10_000, n - part))
         posted = time.monotonic() - t0
         t0 = time.monotonic()
-        st, body = call(base, "POST", f"/v1/experiments/{eid}/model/refit", {})
-        assert st in (200, 202), body
-        while True:
-            st, model = call(base, "GET", f"/v1/experiments/{eid}/model")
-            if model["version"] >= 1:
-                break
-            time.sleep(0.5)
+        model = refit_until(base, eid, 1)
         fit_wall = time.monotonic() - t0
         print(json.dumps({"fit_wall_s": round(fit_wall, 1), "posting_s": round(posted, 1),
                           "estimator": model["estimator"], "fit_seconds": model["fit_seconds"],
                           "selection": model.get("selection")}, indent=1), flush=True)
         # One more batch and a refit: a warm one (the kept kernel and cap, no selection).
-        ts = []
-        for _ in range(1000):
-            s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
-            a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
-            gain = 0.8 if s[0] > 0.5 else 1.0
-            ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
-        st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
-        assert st == 201, body
+        post_transitions(base, eid, rng, 1000)
         t0 = time.monotonic()
-        st, body = call(base, "POST", f"/v1/experiments/{eid}/model/refit", {})
-        assert st in (200, 202), body
-        while True:
-            st, again = call(base, "GET", f"/v1/experiments/{eid}/model")
-            if again["version"] >= 2:
-                break
-            time.sleep(0.5)
+        again = refit_until(base, eid, 2)
         print(json.dumps({"warm_refit_wall_s": round(time.monotonic() - t0, 1),
                           "fit_seconds": again["fit_seconds"],
                           "reason": again["selection"]["reason"],
