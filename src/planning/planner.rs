@@ -156,24 +156,18 @@ impl<'a> Planner<'a> {
         ladder: &[Precondition],
         seed: u64,
     ) -> Result<Proposal, PlanningError> {
-        let mut spent = 0;
-        for &precondition in ladder {
-            match self.propose(strategy, problem, precondition, seed) {
-                Ok(mut p) => {
-                    p.extensions += spent;
-                    return Ok(p);
-                }
-                Err(PlanningError::NoPlan { extensions }) => spent += extensions,
-                Err(PlanningError::Stopped { reason, extensions }) => {
-                    return Err(PlanningError::Stopped {
-                        reason,
-                        extensions: spent + extensions,
-                    });
-                }
-                Err(e) => return Err(e),
-            }
-        }
-        Err(PlanningError::NoPlan { extensions: spent })
+        relax(
+            ladder,
+            |p: &mut Proposal, spent| p.extensions += spent,
+            |precondition| match self.propose(strategy, problem, precondition, seed) {
+                Ok(p) => Ok(Rung::Taken(p)),
+                Err(PlanningError::NoPlan { extensions }) => Ok(Rung::Passed {
+                    extensions,
+                    answer: None,
+                }),
+                Err(e) => Err(e),
+            },
+        )
     }
 
     /// [`judge`](Self::judge), then the eligible candidates valued as `strategy` compares them
@@ -235,23 +229,34 @@ impl<'a> Planner<'a> {
         strategy: Strategy,
         seed: u64,
     ) -> Result<GivenChoice, PlanningError> {
-        let mut last = None;
-        for &precondition in ladder {
-            let (verdicts, valued_by) =
-                self.judge_valued(problem, candidates.clone(), precondition, strategy, seed)?;
-            let chosen = given::choose(strategy, &verdicts, seed);
-            let answer = GivenChoice {
-                verdicts,
-                valued_by,
-                precondition,
-                chosen,
-            };
-            if chosen.is_some() {
-                return Ok(answer);
-            }
-            last = Some(answer);
+        if ladder.is_empty() {
+            return Err(PlanningError::input(
+                "ladder",
+                "no precondition to judge inside",
+            ));
         }
-        last.ok_or_else(|| PlanningError::input("ladder", "no precondition to judge inside"))
+        relax(
+            ladder,
+            |_, _| {},
+            |precondition| {
+                let (verdicts, valued_by) =
+                    self.judge_valued(problem, candidates.clone(), precondition, strategy, seed)?;
+                let chosen = given::choose(strategy, &verdicts, seed);
+                let answer = GivenChoice {
+                    verdicts,
+                    valued_by,
+                    precondition,
+                    chosen,
+                };
+                Ok(match chosen {
+                    Some(_) => Rung::Taken(answer),
+                    None => Rung::Passed {
+                        extensions: 0,
+                        answer: Some(answer),
+                    },
+                })
+            },
+        )
     }
 
     /// Scores every step of every candidate given by the client inside `precondition`, and
@@ -271,6 +276,59 @@ impl<'a> Planner<'a> {
             candidates,
             precondition,
         )
+    }
+}
+
+/// What one rung of a β relaxation gave ([`relax`]).
+enum Rung<T> {
+    /// Something to take: the relaxation stops at this rung.
+    Taken(T),
+    /// Nothing to take, found out in `extensions` RRT extensions; `answer` (if any) is
+    /// answered should no later rung take one.
+    Passed {
+        extensions: usize,
+        answer: Option<T>,
+    },
+}
+
+/// The β relaxation, written once for the planner's proposals and a client's candidates:
+/// `rung` tries each precondition of `ladder` in turn until one is [`Rung::Taken`]. The
+/// extensions spent on the rungs passed are `credit`ed to what is answered, or added to the
+/// [`PlanningError::Stopped`] that ends the search; when no rung takes, the last rung's
+/// `answer`, else [`PlanningError::NoPlan`] with every rung's extensions. Any other error
+/// ends the search at once.
+fn relax<T>(
+    ladder: &[Precondition],
+    credit: impl Fn(&mut T, usize),
+    mut rung: impl FnMut(Precondition) -> Result<Rung<T>, PlanningError>,
+) -> Result<T, PlanningError> {
+    let mut spent = 0;
+    let mut last = None;
+    for &precondition in ladder {
+        match rung(precondition) {
+            Ok(Rung::Taken(mut taken)) => {
+                credit(&mut taken, spent);
+                return Ok(taken);
+            }
+            Ok(Rung::Passed { extensions, answer }) => {
+                spent += extensions;
+                last = answer.or(last);
+            }
+            Err(PlanningError::Stopped { reason, extensions }) => {
+                return Err(PlanningError::Stopped {
+                    reason,
+                    extensions: spent + extensions,
+                });
+            }
+            Err(e) => return Err(e),
+        }
+    }
+    match last {
+        Some(mut answer) => {
+            credit(&mut answer, spent);
+            Ok(answer)
+        }
+        None => Err(PlanningError::NoPlan { extensions: spent }),
     }
 }
 
