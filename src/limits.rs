@@ -26,6 +26,14 @@ pub const MIN_EXPERT_SIZE: usize = 50;
 
 /// Most transitions per local expert: an expert is an exact GP, `O(n_e³)` to fit.
 pub const MAX_EXPERT_SIZE: usize = 3000;
+/// Fewest transitions the sparse GP's kernel and label cap are chosen on
+/// (`mde.selection_subset`).
+pub const MIN_SELECTION_SUBSET: usize = 200;
+
+/// Most transitions the sparse GP's kernel and label cap are chosen on: the choice fits exact
+/// GPs, `O(n³)` each, and the exact GP itself is used up to as many
+/// ([`crate::mde::AUTO_EXACT_MAX_N`]).
+pub const MAX_SELECTION_SUBSET: usize = 3000;
 /// Seconds an open proposal stays leased: `1 ..= 604 800` (a week).
 pub const MAX_PROPOSAL_TTL_SECONDS: u32 = 7 * 24 * 3600;
 /// Characters of an experiment's name: `0 ..= 200`.

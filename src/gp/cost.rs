@@ -72,6 +72,12 @@ impl FitCost {
         Self::new(self.peak_bytes, self.flops * k as f64)
     }
 
+    /// The same work with `k` fits held in memory at once (run concurrently): the peak is
+    /// `k` times one fit's.
+    pub fn alongside(self, k: usize) -> Self {
+        Self::new(self.peak_bytes * k.max(1) as f64, self.flops)
+    }
+
     /// This fit, then `other`.
     pub fn then(self, other: Self) -> Self {
         Self::new(

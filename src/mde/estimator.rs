@@ -24,6 +24,7 @@
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.
 
 use super::experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, ExpertsState, LocalExperts};
+use super::selection::DEFAULT_SELECTION_SUBSET;
 use crate::gp::export::{PointPrediction, Scratch};
 use crate::gp::{
     FitCost, Fold, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
@@ -282,6 +283,7 @@ pub struct EstimatorParams {
     gp: ValidGpParams,
     sparse: ValidSparseParams,
     expert_size: usize,
+    selection_subset: usize,
 }
 
 impl EstimatorParams {
@@ -297,6 +299,7 @@ impl EstimatorParams {
             gp: gp.check()?,
             sparse,
             expert_size: DEFAULT_EXPERT_SIZE,
+            selection_subset: DEFAULT_SELECTION_SUBSET,
         })
     }
 
@@ -304,6 +307,18 @@ impl EstimatorParams {
     pub fn with_expert_size(mut self, expert_size: usize) -> Self {
         self.expert_size = expert_size.max(1);
         self
+    }
+
+    /// The same parameters choosing the sparse GP's kernel and label cap on at most
+    /// `selection_subset` transitions ([`super::fit_choosing_label_cap`]).
+    pub fn with_selection_subset(mut self, selection_subset: usize) -> Self {
+        self.selection_subset = selection_subset.max(1);
+        self
+    }
+
+    /// How many transitions, at most, the sparse GP's kernel and label cap are chosen on.
+    pub fn selection_subset(&self) -> usize {
+        self.selection_subset
     }
 
     /// The shared GP parameters.
@@ -320,7 +335,8 @@ impl EstimatorParams {
             },
             self.sparse.params().inducing_points,
         )?
-        .with_expert_size(self.expert_size))
+        .with_expert_size(self.expert_size)
+        .with_selection_subset(self.selection_subset))
     }
 
     /// The same parameters starting from `warm` (a warm refit; `None`: a new fit).
@@ -332,7 +348,8 @@ impl EstimatorParams {
             },
             self.sparse.params().inducing_points,
         )?
-        .with_expert_size(self.expert_size))
+        .with_expert_size(self.expert_size)
+        .with_selection_subset(self.selection_subset))
     }
 
     /// The estimated peak memory and work of a fit of `n` points of dimension `d`.

@@ -588,7 +588,8 @@ pub struct KernelTrial {
 
 /// What [`fit_choosing_label_cap`] costs on `n` rows of dimension `d`: an exact fit per kernel
 /// (on the first cap's labels) and per further label cap, on all of them (exact), or that
-/// choice on at most [`CAP_CHOICE_SUBSET`] rows and one sparse fit on all of them (sparse).
+/// choice on at most [`EstimatorParams::selection_subset`] rows and one sparse fit on all of
+/// them (sparse).
 pub fn selection_cost(
     kind: EstimatorKind,
     n: usize,
@@ -598,12 +599,15 @@ pub fn selection_cost(
     params: &EstimatorParams,
 ) -> crate::gp::FitCost {
     let choices = kernels.max(1) + caps.max(1) - 1;
+    // The kernels' fits run at once, then the further caps' ([`concurrently`]).
+    let at_once = selection_threads(kernels.max(caps.max(1) - 1));
     if kind.judges_held_out() {
-        params.cost(kind, n, d).times(choices)
+        params.cost(kind, n, d).times(choices).alongside(at_once)
     } else if choices > 1 {
         params
-            .cost(EstimatorKind::Exact, n.min(CAP_CHOICE_SUBSET), d)
+            .cost(EstimatorKind::Exact, n.min(params.selection_subset()), d)
             .times(choices)
+            .alongside(at_once)
             .then(params.cost(kind, n, d))
     } else {
         params.cost(kind, n, d)
@@ -633,7 +637,8 @@ pub fn selection_cost(
 /// ([`EstimatorKind::judges_held_out`]: the exact GP, local experts) is fitted per candidate
 /// itself. The sparse GP has no closed-form leave-out, so with it the kernel
 /// and the cap are chosen the same way by exact GPs on an evenly spaced subset of at most
-/// [`CAP_CHOICE_SUBSET`] transitions, and the sparse GP is then fitted on all of them with
+/// [`EstimatorParams::selection_subset`] transitions, and the sparse GP is then fitted on all
+/// of them with
 /// them.
 pub fn fit_choosing_label_cap(
     training: Training<'_>,
@@ -650,7 +655,7 @@ pub fn fit_choosing_label_cap(
         let mut phases = Vec::new();
         let (kernel, label_cap, trials, kernel_trials, beta_choice) =
             if caps.len() > 1 || kernels.len() > 1 {
-                let rows = evenly_spaced(training.x.nrows(), CAP_CHOICE_SUBSET);
+                let rows = evenly_spaced(training.x.nrows(), params.selection_subset());
                 let (x, deviations, trajectories) = training.select(&rows);
                 let subset = Training {
                     x: &x,
@@ -739,8 +744,55 @@ pub fn best_kernel(trials: &[KernelTrial], held_out: &[Option<Vec<f64>>]) -> Opt
     Some(challenger.unwrap_or(by_evidence))
 }
 
-/// With the sparse GP, the label cap is chosen on at most this many transitions.
-pub const CAP_CHOICE_SUBSET: usize = 2000;
+/// With the sparse GP, the kernel and the label cap are chosen on at most this many
+/// transitions by default (`mde.selection_subset`). At 2,000 the choice (five exact fits of
+/// three starts each) took 88–127 s of a 114–157 s first fit on 100,000 transitions through
+/// the API; at 1,000 it costs about an eighth of that, and the choice it makes and the held-out
+/// judgement of the fitted model are measured in `docs/measurements/performance.md`.
+pub const DEFAULT_SELECTION_SUBSET: usize = 1000;
+
+/// How many of `choices` independent fits of a model selection run at once: one per core, at
+/// most one per choice ([`concurrently`]). Their peak memory adds up
+/// ([`selection_cost`](crate::gp::FitCost::alongside)).
+pub fn selection_threads(choices: usize) -> usize {
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    choices.clamp(1, cores.max(1))
+}
+
+/// `f` of every item, in order, run on up to [`selection_threads`] scoped threads: the fits of
+/// a model selection's candidates are independent and each is seeded, so the answers are the
+/// ones a loop would give, sooner (an exact fit of up to ~1,200 rows runs its linear algebra on
+/// one core). The threads inherit the caller's scheduling priority (the service fits at nice
+/// +10). A panic in `f` is re-raised here.
+fn concurrently<T: Sync, R: Send>(items: &[T], f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = selection_threads(items.len());
+    if threads <= 1 {
+        return items.iter().map(f).collect();
+    }
+    let next = std::sync::atomic::AtomicUsize::new(0);
+    let mut done: Vec<(usize, R)> = std::thread::scope(|scope| {
+        let workers: Vec<_> = (0..threads)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut mine = Vec::new();
+                    loop {
+                        let i = next.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+                        let Some(item) = items.get(i) else {
+                            return mine;
+                        };
+                        mine.push((i, f(item)));
+                    }
+                })
+            })
+            .collect();
+        workers
+            .into_iter()
+            .flat_map(|w| w.join().unwrap_or_else(|e| std::panic::resume_unwind(e)))
+            .collect()
+    });
+    done.sort_by_key(|(i, _)| *i);
+    done.into_iter().map(|(_, r)| r).collect()
+}
 
 /// `k` indices evenly spaced over `0..n` (all of them when `n ≤ k`).
 fn evenly_spaced(n: usize, k: usize) -> Vec<usize> {
@@ -772,7 +824,7 @@ fn choose_closed_form(
         let labels = DVector::from_column_slice(&capped);
         let mut fits: Vec<(Box<dyn Regressor>, EstimatorParams)> = Vec::new();
         let mut held_out = Vec::new();
-        for &kernel in kernels {
+        let tried = concurrently(kernels, |&kernel| {
             let p = params.with_kernel(kernel)?;
             let gp = fit(kind, x, &labels, &p)?;
             let judged = HeldOutTrust::of(
@@ -784,6 +836,10 @@ fn choose_closed_form(
                 precondition,
             )
             .filter(|(t, _)| t.log_score.is_finite());
+            Ok::<_, GpError>((gp, p, judged))
+        });
+        for (&kernel, tried) in kernels.iter().zip(tried) {
+            let (gp, p, judged) = tried?;
             kernel_trials.push(KernelTrial {
                 kernel,
                 log_marginal_likelihood: gp.log_marginal_likelihood(),
@@ -809,17 +865,42 @@ fn choose_closed_form(
     };
     let mut fitted = Vec::with_capacity(caps.len());
     let started = Instant::now();
-    let mut cap_fits = 0;
-    for &cap in caps {
-        let labels = capped_labels(deviations, cap, d_max);
-        let gp = match first_fit.take().filter(|_| cap == first_cap) {
-            Some(gp) => gp,
-            None => {
-                cap_fits += 1;
-                fit(kind, x, &DVector::from_column_slice(&labels), &params)?
+    // The first cap's model is the kernel choice's fit when there was one; the other caps are
+    // fitted (and judged) concurrently.
+    let reuse_first = first_fit.is_some();
+    let cap_fits = caps.len() - usize::from(reuse_first && !caps.is_empty());
+    let indices: Vec<usize> = (0..caps.len()).collect();
+    let tried = concurrently(&indices, |&i| {
+        let labels = capped_labels(deviations, caps[i], d_max);
+        let gp = if reuse_first && i == 0 {
+            None
+        } else {
+            Some(fit(kind, x, &DVector::from_column_slice(&labels), &params)?)
+        };
+        let judged = gp.as_ref().map(|gp| {
+            HeldOutTrust::of(
+                gp.as_ref(),
+                caps[i],
+                &labels,
+                deviations,
+                &groups,
+                precondition,
+            )
+        });
+        Ok::<_, GpError>((labels, gp, judged))
+    });
+    for (&cap, tried) in caps.iter().zip(tried) {
+        let (gp, judged) = match tried? {
+            (_, Some(gp), Some(judged)) => (gp, judged),
+            (labels, _, _) => {
+                let gp = first_fit
+                    .take()
+                    .ok_or_else(|| GpError::InvalidState("no first fit to reuse".into()))?;
+                let judged =
+                    HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
+                (gp, judged)
             }
         };
-        let judged = HeldOutTrust::of(gp.as_ref(), cap, &labels, deviations, &groups, precondition);
         fitted.push((cap, gp, judged));
     }
     let size = |cap: f64| if cap > 0.0 { cap } else { f64::INFINITY };
@@ -1289,6 +1370,43 @@ mod tests {
             "without held-out judgements, the likelihood"
         );
         assert_eq!(best_kernel(&[], &[]), None);
+    }
+
+    #[test]
+    fn the_sparse_gp_chooses_on_at_most_selection_subset_transitions_and_fits_on_all() {
+        let (x, deviations) = dense_world(60, |a, _| if a < 0.5 { 0.0 } else { 0.3 });
+        let trajectories = own_trajectories(&x);
+        for subset in [200, 250] {
+            let c = fit_choosing_label_cap(
+                Training {
+                    x: &x,
+                    deviations: &deviations,
+                    trajectories: &trajectories,
+                },
+                at_beta_2(),
+                &[Kernel::Matern52],
+                &[2.0, 0.0],
+                EstimatorKind::Sparse,
+                &params().with_selection_subset(subset),
+            )
+            .expect("fits");
+            // The caps were judged on `subset` of the 300 transitions, the model fitted on all.
+            let judged = c.trials.iter().map(|t| t.safe + t.unsafe_transitions);
+            assert_eq!(
+                judged.collect::<Vec<_>>(),
+                vec![subset; 2],
+                "{:?}",
+                c.trials
+            );
+            assert!(
+                c.phases[0]
+                    .phase
+                    .starts_with(&format!("on {subset} transitions")),
+                "{:?}",
+                c.phases
+            );
+            assert_eq!((c.gp.kind(), c.gp.n_train()), (EstimatorKind::Sparse, 300));
+        }
     }
 
     #[test]

@@ -316,7 +316,8 @@ impl LiveExperiment {
             mde.inducing_points,
         )
         .map_err(|e| Error::Internal(anyhow::anyhow!("estimator parameters: {e}")))?
-        .with_expert_size(mde.expert_size);
+        .with_expert_size(mde.expert_size)
+        .with_selection_subset(mde.selection_subset);
         let n = deviations.len();
         let budget = gate.limits().max_fit_memory;
         let seconds_budget = gate.limits().max_fit_seconds as f64;
@@ -341,11 +342,14 @@ impl LiveExperiment {
             &caps,
             mde.reselect_every,
         );
-        let needed = params.cost(kind, n, dim).peak_bytes;
-        // A warm refit is one fit; a selection one per candidate (its full cost).
-        let seconds = match &plan {
-            RefitPlan::Warm { .. } => selection_cost(kind, n, dim, 1, 1, &params).seconds,
-            RefitPlan::Select { .. } => cost(kind).seconds,
+        // A warm refit is one fit; a selection one per candidate (its full cost, the
+        // candidates fitted at once held in memory together).
+        let (needed, seconds) = match &plan {
+            RefitPlan::Warm { .. } => {
+                let one = selection_cost(kind, n, dim, 1, 1, &params);
+                (one.peak_bytes, one.seconds)
+            }
+            RefitPlan::Select { .. } => (cost(kind).peak_bytes, cost(kind).seconds),
         };
         let refusal = if needed > budget as f64 {
             Some(FitRefusal::now(

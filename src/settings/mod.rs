@@ -17,9 +17,9 @@ use crate::gp::{DEFAULT_INDUCING_POINTS, Kernel, NoiseMode};
 use crate::limits::{
     MAX_BATCH_SIZE, MAX_CANDIDATES, MAX_EXPERT_SIZE, MAX_EXTENSIONS, MAX_INDUCING_POINTS,
     MAX_ITERATIONS, MAX_LEARNING_SCALE, MAX_NAME_LEN, MAX_PRIOR_MEAN, MAX_PROPOSAL_TTL_SECONDS,
-    MAX_RESTARTS, MIN_EXPERT_SIZE, MIN_INDUCING_POINTS,
+    MAX_RESTARTS, MAX_SELECTION_SUBSET, MIN_EXPERT_SIZE, MIN_INDUCING_POINTS, MIN_SELECTION_SUBSET,
 };
-use crate::mde::{DEFAULT_EXPERT_SIZE, EstimatorChoice};
+use crate::mde::{DEFAULT_EXPERT_SIZE, DEFAULT_SELECTION_SUBSET, EstimatorChoice};
 use crate::planning::{
     AcquisitionKind, AcquisitionSettings, Aggregation, BetaSchedule, PlannerSettings,
     PlanningError, PlanningSettings, Strategy,
@@ -241,6 +241,8 @@ pub struct MdeRequest {
     pub inducing_points: usize,
     /// [`MdeSettings::expert_size`]. Default 300.
     pub expert_size: usize,
+    /// [`MdeSettings::selection_subset`]. Default 1000.
+    pub selection_subset: usize,
     /// [`MdeSettings::reselect_every`]. Absent: the preset's (`default`: 5, `paper`: 1).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub reselect_every: Option<usize>,
@@ -257,6 +259,7 @@ impl Default for MdeRequest {
             estimator: EstimatorChoice::Auto,
             inducing_points: DEFAULT_INDUCING_POINTS,
             expert_size: DEFAULT_EXPERT_SIZE,
+            selection_subset: DEFAULT_SELECTION_SUBSET,
             reselect_every: None,
         }
     }
@@ -302,6 +305,12 @@ pub struct MdeSettings {
     /// (`⌈n / expert_size⌉` regions); 50 to 3000. Unused by the other estimators.
     #[serde(default = "default_expert_size")]
     pub expert_size: usize,
+    /// With the sparse GP, the kernel and the label cap are chosen by exact GPs on at most this
+    /// many of the training transitions, evenly spaced (see
+    /// [`crate::mde::fit_choosing_label_cap`]); 200 to 3000. Unused by the other estimators,
+    /// which choose on every transition.
+    #[serde(default = "default_selection_subset")]
+    pub selection_subset: usize,
     /// How often a refit chooses the kernel and the label cap anew (1 ..= 1000): every
     /// `reselect_every`-th fit does, and so does a fit after the data doubled since the last
     /// choice or whose likelihood per transition fell; the fits between keep the last choice
@@ -313,6 +322,12 @@ pub struct MdeSettings {
 /// `mde.expert_size` when a stored experiment's settings predate it.
 fn default_expert_size() -> usize {
     DEFAULT_EXPERT_SIZE
+}
+
+/// `mde.selection_subset` when a stored experiment's settings predate it: the default, which
+/// its next fit at scale then uses (the fixed 2,000 of before cost most of a fit on 100,000).
+fn default_selection_subset() -> usize {
+    DEFAULT_SELECTION_SUBSET
 }
 
 /// Largest `mde.reselect_every`.
@@ -798,6 +813,7 @@ impl ExperimentRequest {
             estimator: m.estimator,
             inducing_points: m.inducing_points,
             expert_size: m.expert_size,
+            selection_subset: m.selection_subset,
             reselect_every: m
                 .reselect_every
                 .unwrap_or_else(|| self.learning.preset.reselect_every()),
@@ -819,6 +835,12 @@ impl ExperimentRequest {
             mde.expert_size,
             MIN_EXPERT_SIZE,
             MAX_EXPERT_SIZE,
+        )?;
+        in_range(
+            "mde.selection_subset",
+            mde.selection_subset,
+            MIN_SELECTION_SUBSET,
+            MAX_SELECTION_SUBSET,
         )?;
         let l = self.learning;
         in_range("learning.batch_size", l.batch_size, 1, MAX_BATCH_SIZE)?;

@@ -186,6 +186,10 @@ async fn bad_settings_name_the_field() {
         (json!({"mde": {"label_cap": -1}}), "mde.label_cap"),
         (json!({"mde": {"label_cap": "max"}}), "mde.label_cap"),
         (json!({"mde": {"kernel": "rbf"}}), "mde.kernel"),
+        (
+            json!({"mde": {"selection_subset": 100}}),
+            "mde.selection_subset",
+        ),
         (json!({"learning": {"preset": "cmax"}}), "learning.preset"),
         (json!({"learning": {"bogus": 1}}), "learning.bogus"),
         (
