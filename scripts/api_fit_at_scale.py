@@ -8,14 +8,21 @@ waits for the version (the refit answers 202 after the planning deadline and goe
 the precondition of Q points in one POST, REPEAT times. Prints the fit's wall time, its phases
 (the model's `selection`) and the query's points per second.
 
-usage: scripts/api_fit_at_scale.py BINARY [N] [Q] [REPEAT]
+usage: scripts/api_fit_at_scale.py BINARY [N] [Q] [REPEAT] [--mde KEY=VALUE ...]
+
+The robot's tolerance is d_max = 0.01, so its precondition is a real region: every push is
+trusted left of x = 0.5, only the short ones (|a| < 0.05) right of it. The query's points are
+fresh ones, so the answer is also a held-out judgement: the script prints the true-positive
+rate (trusted among the truly safe) and the false trust (trusted among the unsafe).
 
 After the first fit it posts one more trajectory of 1,000 transitions and refits again (a warm
 refit: the kernel and label cap kept). Q points go in one POST (the default 4 MiB body limit
 holds about 60,000 of them).
 """
 
+import argparse
 import json
+import math
 import random
 import socket
 import subprocess
@@ -23,6 +30,16 @@ import sys
 import tempfile
 import time
 import urllib.request
+
+
+GAIN = 0.8
+D_MAX = 0.01
+
+
+def true_deviation(s: list, a: list) -> float:
+    """How far the kinematic prediction s + a misses the robot's move."""
+    gain = GAIN if s[0] > 0.5 else 1.0
+    return (1.0 - gain) * math.hypot(a[0], a[1])
 
 
 def free_port() -> int:
@@ -50,7 +67,7 @@ def post_transitions(base: str, eid: int, rng: random.Random, k: int) -> None:
     for _ in range(k):
         s = [rng.uniform(0.1, 0.9), rng.uniform(0.1, 0.9)]
         a = [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1)]
-        gain = 0.8 if s[0] > 0.5 else 1.0
+        gain = GAIN if s[0] > 0.5 else 1.0
         ts.append({"s": s, "a": a, "s_next": [s[0] + gain * a[0], s[1] + gain * a[1]]})
     st, body = call(base, "POST", f"/v1/experiments/{eid}/trajectories", {"transitions": ts})
     assert st == 201, body
@@ -69,10 +86,22 @@ def refit_until(base: str, eid: int, version: int) -> dict:
 
 
 def main() -> None:
-    binary = sys.argv[1]
-    n = int(sys.argv[2]) if len(sys.argv) > 2 else 100_000
-    q = int(sys.argv[3]) if len(sys.argv) > 3 else 100_000
-    repeat = int(sys.argv[4]) if len(sys.argv) > 4 else 3
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("binary")
+    ap.add_argument("n", type=int, nargs="?", default=100_000)
+    ap.add_argument("q", type=int, nargs="?", default=40_000)
+    ap.add_argument("repeat", type=int, nargs="?", default=3)
+    ap.add_argument("--mde", action="append", default=[], metavar="KEY=VALUE",
+                    help="an mde setting (a JSON value), e.g. --mde selection_subset=2000")
+    args = ap.parse_args()
+    binary, n, q, repeat = args.binary, args.n, args.q, args.repeat
+    mde = {}
+    for kv in args.mde:
+        key, value = kv.split("=", 1)
+        try:
+            mde[key] = json.loads(value)
+        except json.JSONDecodeError:
+            mde[key] = value
     port = free_port()
     db = tempfile.mkdtemp() + "/scale.db"
     server = subprocess.Popen(
@@ -90,8 +119,10 @@ def main() -> None:
                 time.sleep(0.1)
         status, exp = call(
             base, "POST", "/v1/experiments",
-            {"domain": {"kind": "kinematic"}, "learning": {"batch_size": 10000}},
+            {"domain": {"kind": "kinematic"}, "d_max": D_MAX, "mde": mde,
+             "learning": {"batch_size": 10000}},
         )
+        assert status == 201, exp
         eid = exp["id"]
         rng = random.Random(0)
         t0 = time.monotonic()
@@ -125,6 +156,11 @@ def main() -> None:
             dt = time.monotonic() - t0
             assert st == 200 and len(ans["results"]) == q, st
             rates.append(q / dt)
+        safe = [true_deviation(p["s"], p["a"]) < D_MAX for p in points]
+        inside = [r["inside"] for r in ans["results"]]
+        n_safe = sum(safe)
+        tpr = sum(i and t for i, t in zip(inside, safe)) / max(n_safe, 1)
+        false_trust = sum(i and not t for i, t in zip(inside, safe)) / max(q - n_safe, 1)
         print(
             json.dumps(
                 {
@@ -134,8 +170,14 @@ def main() -> None:
                     "estimator": model["estimator"],
                     "fit_seconds": model["fit_seconds"],
                     "selection": model.get("selection"),
+                    "kernel": (model.get("hyperparameters") or {}).get("kernel"),
+                    "label_cap": model.get("label_cap"),
+                    "test_beta": model.get("test_beta"),
                     "query_points": q,
                     "points_per_s": [round(r) for r in rates],
+                    "held_out": {"tpr": round(tpr, 4), "false_trust": round(false_trust, 4),
+                                 "safe": n_safe, "unsafe": q - n_safe},
+                    "mde": mde,
                 },
                 indent=1,
             )
