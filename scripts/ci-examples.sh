@@ -1,0 +1,31 @@
+#!/usr/bin/env bash
+# The examples' figures: install their dependencies into a venv under target/, run the MuJoCo
+# pusher and the Gymnasium cart-pole on seed 0 against ${PRECOND_BIN:-target/debug/precond}
+# (built here if missing), and fail when a figure their READMEs quote has drifted from the
+# committed summary (scripts/check_example_figures.py).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+started=$SECONDS
+
+target="${CARGO_TARGET_DIR:-target}"
+export PRECOND_BIN="${PRECOND_BIN:-$target/debug/precond}"
+if [ ! -x "$PRECOND_BIN" ]; then
+    echo "== cargo build --locked (no server binary at $PRECOND_BIN)"
+    cargo build --locked
+fi
+PRECOND_BIN="$(cd "$(dirname "$PRECOND_BIN")" && pwd)/$(basename "$PRECOND_BIN")"
+
+venv=target/venv-examples
+if [ ! -x "$venv/bin/python" ]; then
+    echo "== python3 -m venv $venv"
+    python3 -m venv "$venv"
+fi
+echo "== pip install clients/python[gymnasium,mujoco] -r examples/mujoco_pusher/requirements.txt"
+"$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
+    "./clients/python[gymnasium,mujoco]" -r examples/mujoco_pusher/requirements.txt
+
+echo "== scripts/check_example_figures.py $PRECOND_BIN"
+MPLBACKEND=Agg "$venv/bin/python" scripts/check_example_figures.py "$PRECOND_BIN" \
+    --python "$venv/bin/python"
+
+echo "== examples: done in $((SECONDS - started)) s"
