@@ -24,7 +24,6 @@
 //! transitions, and while its fit stays within the memory budget, and the sparse GP beyond.
 
 use super::experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, ExpertsState, LocalExperts};
-use super::selection::DEFAULT_SELECTION_SUBSET;
 use crate::gp::export::{PointPrediction, Scratch};
 use crate::gp::{
     FitCost, Fold, GpError, GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode,
@@ -276,6 +275,14 @@ impl EstimatorState {
         })
     }
 }
+
+/// With the sparse GP, the kernel and the label cap are chosen on at most this many
+/// transitions by default (`mde.selection_subset`, see
+/// [`fit_choosing_label_cap`](super::fit_choosing_label_cap)). On 100,000 transitions through
+/// the API the choice on 2,000 (five exact fits) took 131 s of a 162 s first fit, on 1,000 it
+/// took 44 s of 74 s, with the same kernel, cap and held-out judgement of the fitted model
+/// (`docs/measurements/performance.md`, "Through the API").
+pub const DEFAULT_SELECTION_SUBSET: usize = 1000;
 
 /// Checked parameters of a fit, for either regressor.
 #[derive(Debug, Clone)]

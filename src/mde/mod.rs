@@ -19,17 +19,16 @@ pub mod export;
 pub mod selection;
 
 pub use estimator::{
-    AUTO_EXACT_MAX_N, EstimatorChoice, EstimatorKind, EstimatorParams, EstimatorPredictor,
-    EstimatorState, Regressor, fit,
+    AUTO_EXACT_MAX_N, DEFAULT_SELECTION_SUBSET, EstimatorChoice, EstimatorKind, EstimatorParams,
+    EstimatorPredictor, EstimatorState, Regressor, fit,
 };
 pub use experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, LocalExperts};
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
 pub use selection::{
-    BetaChoice, CALIBRATED_FALSE_TRUST, CAP_GAIN_STANDARD_ERRORS, CapChoice, Carry,
-    DEFAULT_SELECTION_SUBSET, FitPhase, HeldOutTrust, KernelTrial, LIKELIHOOD_DROP, Previous,
-    RefitPlan, SelectionRecord, Training, best_kernel, blocks, capped_labels,
-    fit_choosing_label_cap, identical_rows, normal_tail, refit_plan, refit_warm, selection_cost,
-    trajectory_folds,
+    BetaChoice, CALIBRATED_FALSE_TRUST, CAP_GAIN_STANDARD_ERRORS, CapChoice, Carry, FitPhase,
+    HeldOutTrust, KernelTrial, LIKELIHOOD_DROP, Previous, RefitPlan, SelectionRecord, Training,
+    best_kernel, blocks, capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
+    refit_plan, refit_warm, selection_cost, trajectory_folds,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};

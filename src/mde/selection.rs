@@ -744,13 +744,6 @@ pub fn best_kernel(trials: &[KernelTrial], held_out: &[Option<Vec<f64>>]) -> Opt
     Some(challenger.unwrap_or(by_evidence))
 }
 
-/// With the sparse GP, the kernel and the label cap are chosen on at most this many
-/// transitions by default (`mde.selection_subset`). At 2,000 the choice (five exact fits of
-/// three starts each) took 88–127 s of a 114–157 s first fit on 100,000 transitions through
-/// the API; at 1,000 it costs about an eighth of that, and the choice it makes and the held-out
-/// judgement of the fitted model are measured in `docs/measurements/performance.md`.
-pub const DEFAULT_SELECTION_SUBSET: usize = 1000;
-
 /// How many of `choices` independent fits of a model selection run at once: one per core, at
 /// most one per choice ([`concurrently`]). Their peak memory adds up
 /// ([`selection_cost`](crate::gp::FitCost::alongside)).
