@@ -223,12 +223,17 @@ impl Store {
                     .execute(&mut *tx)
                     .await?;
             } else {
+                // Requested again while it ran: the new request waits behind those made
+                // meanwhile (keeping the first request's time, an experiment whose fits are
+                // asked for without pause would claim every fit slot before the others).
                 sqlx::query(
                     "UPDATE fit_jobs
-                     SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL
+                     SET claimed_by = NULL, claimed_generation = NULL, heartbeat_unix = NULL,
+                         requested_at = $2
                      WHERE experiment_id = $1",
                 )
                 .bind(claim.experiment_id)
+                .bind(now())
                 .execute(&mut *tx)
                 .await?;
             }
@@ -282,5 +287,41 @@ impl Store {
         )
         .fetch_all(&self.read)
         .await
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::remote_model::ModelCalls;
+    use crate::settings::ExperimentRequest;
+    use std::sync::Arc;
+
+    #[tokio::test]
+    async fn an_experiment_asked_to_fit_again_while_it_fits_waits_behind_the_others() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
+            .await
+            .unwrap();
+        let (settings, _) = ExperimentRequest::default()
+            .resolve(&Arc::new(ModelCalls::default()))
+            .unwrap();
+        let mut ids = Vec::new();
+        for _ in 0..2 {
+            let e = store.insert_experiment(&settings, 10).await.unwrap();
+            ids.push(e.unwrap().id);
+        }
+        let (busy, waiting) = (ids[0], ids[1]);
+        store.request_fit(busy, false).await.unwrap();
+        store.request_fit(waiting, false).await.unwrap();
+        let first = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(first.experiment_id, busy, "the oldest request first");
+        // Asked again while it fits; when it finishes, the other's request is older.
+        store.request_fit(busy, true).await.unwrap();
+        store.finish_fit(&first, None).await.unwrap();
+        let next = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(next.experiment_id, waiting);
+        let after = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(after.experiment_id, busy, "its request is kept, behind");
     }
 }
