@@ -36,6 +36,22 @@ pub struct FitQueue {
     /// versions other replicas fitted.
     poll: Duration,
     wake: Notify,
+    /// Experiments with a forced fit waiting for a fit slot or fitting
+    /// ([`start_forcing`](Self::start_forcing)).
+    forcing: std::sync::Mutex<std::collections::HashSet<i64>>,
+}
+
+/// Experiment `id`'s forced fit, from [`FitQueue::start_forcing`] until dropped.
+#[derive(Debug)]
+pub(crate) struct Forcing {
+    queue: Arc<FitQueue>,
+    id: i64,
+}
+
+impl Drop for Forcing {
+    fn drop(&mut self) {
+        self.queue.forcing_set().remove(&self.id);
+    }
 }
 
 /// The default lease of a fit claim.
@@ -62,7 +78,23 @@ impl FitQueue {
             lease,
             poll,
             wake: Notify::new(),
+            forcing: Default::default(),
         }
+    }
+
+    /// Marks a forced fit of experiment `id` as waiting (until the returned value is dropped),
+    /// or `None` when one already waits or runs: a refit asked for again meanwhile waits for
+    /// what that one (or the worker after it) stores, instead of queueing a fit of its own.
+    pub(crate) fn start_forcing(queue: &Arc<Self>, id: i64) -> Option<Forcing> {
+        queue.forcing_set().insert(id).then(|| Forcing {
+            queue: queue.clone(),
+            id,
+        })
+    }
+
+    fn forcing_set(&self) -> std::sync::MutexGuard<'_, std::collections::HashSet<i64>> {
+        // A panic while holding it cannot leave the set inconsistent (one insert or remove).
+        self.forcing.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// This replica's name.
@@ -235,5 +267,28 @@ impl FitQueue {
                 }
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn one_forced_fit_per_experiment_waits_at_a_time() {
+        let queue = Arc::new(FitQueue::default());
+        let first = FitQueue::start_forcing(&queue, 1).expect("none waits yet");
+        assert!(
+            FitQueue::start_forcing(&queue, 1).is_none(),
+            "one waits already"
+        );
+        let other = FitQueue::start_forcing(&queue, 2).expect("another experiment's own");
+        drop(first);
+        assert!(
+            FitQueue::start_forcing(&queue, 1).is_some(),
+            "free once it ended"
+        );
+        drop(other);
+        assert!(queue.forcing_set().is_empty());
     }
 }

@@ -1,6 +1,7 @@
 //! The model deviation estimator as a service: the version answering, refits, precondition
 //! judgements ("is this state-action trusted?") and test-time plans.
 
+use super::fitting::FitQueue;
 use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{CandidateTrajectory, Point};
@@ -218,7 +219,11 @@ impl Service {
         }
         let refused_before = self.store.fit_refusal_count(id).await?;
         self.store.request_fit(id, true).await?;
-        let fit = {
+        // One forced fit per experiment waits for a fit slot at a time: a request while one
+        // waits or runs is answered by what that one (or the worker after it) stores. Without
+        // it, a client asking for refits in a loop queued a task per request, each holding a
+        // place in the fit line ahead of every other experiment's background fit.
+        let fit = FitQueue::start_forcing(&self.fits, id).map(|forcing| {
             let (live, store, work, fits) = (
                 live.clone(),
                 self.store.clone(),
@@ -226,17 +231,21 @@ impl Service {
                 self.fits.clone(),
             );
             tokio::spawn(async move {
+                let _forcing = forcing;
                 let slot = work.fit_slot().await?;
                 match fits.claim(&store, id).await? {
                     Some(claim) => fits.fit(&live, &store, &work, claim, slot).await.map(Some),
                     None => Ok(None),
                 }
             })
-        };
+        });
         let covering = async {
-            let fitted = fit
-                .await
-                .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??;
+            let fitted = match fit {
+                Some(task) => task
+                    .await
+                    .map_err(|e| Error::Internal(anyhow::Error::new(e).context("refit task")))??,
+                None => None,
+            };
             if let Some(model) = fitted {
                 return Ok::<_, Error>(model);
             }
