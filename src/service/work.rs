@@ -2,7 +2,7 @@
 //! passes through.
 //!
 //! - At most [`Limits::max_concurrent_plans`] searches and fits run at once (one per core by
-//!   default), so the async workers that answer health checks and cheap reads always find a
+//!   default; with one slot, a search beside a fit — see below), so the async workers that answer health checks and cheap reads always find a
 //!   core.
 //! - A request waits for a slot at most until its deadline ([`Limits::plan_timeout`], counted
 //!   from its arrival); the search itself stops at the same deadline. Either way the client
@@ -20,7 +20,10 @@
 //! - Fits (background or forced) take a slot too, taking turns with the experiments (all fits
 //!   as one), but have no deadline: a fit is one optimisation that cannot stop halfway, and its
 //!   worst case is bounded by the training-set size and `restarts`. So that long fits cannot
-//!   starve searches, fits hold at most all slots but one ([`fit_cap`]).
+//!   starve searches, fits hold at most all slots but one ([`fit_cap`]), and running fits
+//!   never keep a search from its last slot: on a server with one slot a search runs beside
+//!   a fit (both on threads at nice +10), so fits queued without pause cannot leave every
+//!   search to its deadline. A fit itself starts only within the slots.
 //! - Evaluations of a model on many points — a precondition map, diagnostics, a precondition
 //!   query of more than a few hundred points — take an evaluation slot
 //!   ([`WorkGate::evaluation_slot`]): as many as planning slots, but slots of their own, so
@@ -47,7 +50,8 @@ pub const MAX_PLAN_TIMEOUT: Duration = Duration::from_secs(600);
 /// The operator's limits (command-line options of `precond serve`).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Limits {
-    /// Searches and fits running at once: `1 ..= 256`; default the number of cores.
+    /// Searches and fits running at once: `1 ..= 256`; default the number of cores. With one
+    /// slot, a search may run beside a fit (fits never take a search's last slot).
     pub max_concurrent_plans: usize,
     /// Searches (and model rebuilds) of one experiment running at once: `1 ..= 256` (at most
     /// `max_concurrent_plans` take effect); default half the slots, at least 1.
@@ -277,13 +281,18 @@ fn lock(state: &Mutex<State>) -> std::sync::MutexGuard<'_, State> {
     state.lock().unwrap_or_else(|p| p.into_inner())
 }
 
-/// Whether `key` may start one more: an experiment below its cap; fits while they hold fewer
-/// than [`fit_cap`] slots.
+/// Whether `key` may start one more. Fits: while fewer than `slots` run in all and the fits
+/// hold fewer than [`fit_cap`]. An experiment: below its cap, and while the searches hold
+/// fewer than the slots the fits leave — at least one, so that a fit never takes the last
+/// slot a search could use (with one slot, a search runs beside a fit).
 fn may_start(state: &State, key: Key, slots: usize, per_experiment: usize) -> bool {
     let running = state.running_by_key.get(&key).copied().unwrap_or(0);
+    let fits = state.running_by_key.get(&Key::Fits).copied().unwrap_or(0);
     match key {
-        Key::Fits => running < fit_cap(slots),
-        Key::Experiment(_) => running < per_experiment,
+        Key::Fits => state.running < slots && running < fit_cap(slots),
+        Key::Experiment(_) => {
+            running < per_experiment && state.running - fits < slots.saturating_sub(fits).max(1)
+        }
     }
 }
 
@@ -304,7 +313,7 @@ fn dispatch(
     let (slots, per_experiment) = **limits;
     let mut refused = Vec::new();
     let mut skipped = 0;
-    while state.running < slots && skipped < state.turn.len() {
+    while skipped < state.turn.len() {
         let Some(key) = state.turn.pop_front() else {
             break;
         };
@@ -429,8 +438,7 @@ impl WorkGate {
         let limits = self.shared_limits();
         let mut state = lock(&self.state);
         let queued_for_key = state.queues.get(&key).map_or(0, VecDeque::len);
-        if state.running < self.limits.max_concurrent_plans
-            && queued_for_key == 0
+        if queued_for_key == 0
             && may_start(
                 &state,
                 key,
@@ -845,6 +853,36 @@ mod tests {
         );
         drop(fit);
         assert!(second_fit.await.unwrap());
+        assert_eq!((gate.running(), gate.queue_depth()), (0, 0));
+    }
+
+    #[tokio::test]
+    async fn with_one_slot_a_search_runs_beside_a_fit_and_fits_wait_for_the_searches() {
+        let gate = Arc::new(WorkGate::new(limits(1, 8, 5000)));
+        let fit = gate.fit_slot().await.unwrap();
+        // The fit holds the one slot; a search still starts at once ...
+        let (search, _) = gate.plan_slot(1, Instant::now()).await.unwrap();
+        assert_eq!((gate.running(), gate.queue_depth()), (2, 0));
+        // ... but only one: a second search (another experiment) waits for it.
+        let order = Arc::new(Mutex::new(Vec::new()));
+        let second = ask(&gate, 2, 0, &order);
+        until_waiting(&gate, 1).await;
+        assert_eq!(gate.running(), 2);
+        // A fit waits while a search holds the slot, even when no fit runs.
+        drop(fit);
+        let next_fit = {
+            let gate = gate.clone();
+            tokio::spawn(async move { gate.fit_slot().await.map(drop).is_ok() })
+        };
+        until_waiting(&gate, 2).await;
+        assert_eq!(
+            gate.running(),
+            1,
+            "the search runs; the second search and the fit wait"
+        );
+        drop(search);
+        assert!(second.await.unwrap());
+        assert!(next_fit.await.unwrap());
         assert_eq!((gate.running(), gate.queue_depth()), (0, 0));
     }
 
