@@ -7,19 +7,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 started=$SECONDS
 
-target="${CARGO_TARGET_DIR:-target}"
-export PRECOND_BIN="${PRECOND_BIN:-$target/debug/precond}"
-if [ ! -x "$PRECOND_BIN" ]; then
-    echo "== cargo build --locked (no server binary at $PRECOND_BIN)"
-    cargo build --locked
-fi
-PRECOND_BIN="$(cd "$(dirname "$PRECOND_BIN")" && pwd)/$(basename "$PRECOND_BIN")"
+# shellcheck source=scripts/common.sh
+source scripts/common.sh
+server_binary
 
 venv=target/venv-examples
-if [ ! -x "$venv/bin/python" ]; then
-    echo "== python3 -m venv $venv"
-    python3 -m venv "$venv"
-fi
+ensure_venv "$venv"
 echo "== pip install clients/python[gymnasium,mujoco] -r examples/mujoco_pusher/requirements.txt"
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
     "./clients/python[gymnasium,mujoco]" -r examples/mujoco_pusher/requirements.txt

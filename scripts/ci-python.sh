@@ -6,19 +6,12 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 started=$SECONDS
 
-target="${CARGO_TARGET_DIR:-target}"
-export PRECOND_BIN="${PRECOND_BIN:-$target/debug/precond}"
-if [ ! -x "$PRECOND_BIN" ]; then
-    echo "== cargo build --locked (no server binary at $PRECOND_BIN)"
-    cargo build --locked
-fi
-export PRECOND_BIN="$(cd "$(dirname "$PRECOND_BIN")" && pwd)/$(basename "$PRECOND_BIN")"
+# shellcheck source=scripts/common.sh
+source scripts/common.sh
+server_binary
 
 venv=target/venv-python-client
-if [ ! -x "$venv/bin/python" ]; then
-    echo "== python3 -m venv $venv"
-    python3 -m venv "$venv"
-fi
+ensure_venv "$venv"
 echo "== pip install -e clients/python[dev]"
 "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -e "clients/python[dev]"
 
