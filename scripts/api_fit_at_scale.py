@@ -27,10 +27,11 @@ import math
 import random
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 import urllib.request
+
+from jsonhttp import call
 
 
 GAIN = 0.8
@@ -47,18 +48,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def call(base: str, method: str, path: str, body=None, timeout=600):
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(base + path, data=data, method=method)
-    if data is not None:
-        req.add_header("Content-Type", "application/json")
-    try:
-        with urllib.request.urlopen(req, timeout=timeout) as r:
-            return r.status, json.loads(r.read())
-    except urllib.error.HTTPError as e:
-        return e.code, json.loads(e.read() or b"null")
 
 
 def post_transitions(base: str, eid: int, rng: random.Random, k: int) -> None:

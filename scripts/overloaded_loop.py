@@ -30,11 +30,10 @@ import sys
 import tempfile
 import threading
 import time
-import urllib.error
-import urllib.request
 from pathlib import Path
 
 import numpy as np
+from jsonhttp import call
 from precond_client import Client, serve_model, spawn_server
 
 D_MAX = 0.02
@@ -80,35 +79,25 @@ def raw(base: str, method: str, path: str, body: object = None,
         timeout: float = 120) -> tuple[int, dict]:
     """One request, no retries: the status (0 when the server could not be reached) and the
     JSON answer ({} when there is none)."""
-    data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(base + path, data=data, method=method)
-    if data is not None:
-        req.add_header("Content-Type", "application/json")
     try:
-        with urllib.request.urlopen(req, timeout=timeout) as r:
-            text = r.read()
-            return r.status, (json.loads(text) if text else {})
-    except urllib.error.HTTPError as e:
-        e.read()
-        return e.code, {}
+        status, answer = call(base, method, path, body, timeout)
     except OSError:
         return 0, {}
+    return status, answer if isinstance(answer, dict) else {}
 
 
 def fleet_member(base: str, model_url: str, k: int, stop: threading.Event,
                  tally: collections.Counter, lock: threading.Lock) -> None:
     """Keeps the server busy on an experiment of its own until `stop`."""
     rnd = random.Random(1000 + k)
-    req = urllib.request.Request(
-        base + "/v1/experiments",
-        data=json.dumps({"name": f"fleet {k}", "d_max": D_MAX, "domain": domain(model_url),
-                         "learning": {"batch_size": 3, "max_extensions": 20000,
-                                      "n_candidates": 20}}).encode(),
-        method="POST",
+    status, created = call(
+        base, "POST", "/v1/experiments",
+        {"name": f"fleet {k}", "d_max": D_MAX, "domain": domain(model_url),
+         "learning": {"batch_size": 3, "max_extensions": 20000, "n_candidates": 20}},
+        timeout=60,
     )
-    req.add_header("Content-Type", "application/json")
-    with urllib.request.urlopen(req, timeout=60) as r:
-        eid = json.loads(r.read())["id"]
+    assert status == 201, (status, created)
+    eid = created["id"]
     points = [{"s": [rnd.random(), rnd.random()], "a": [rnd.uniform(-0.1, 0.1), 0.0]}
               for _ in range(20000)]
 
@@ -179,7 +168,7 @@ def main() -> int:
         try:
             client = Client(url, timeout=120, client_id="robot-1")
             client.wait_ready(30)
-            exp = client.create_experiment(
+            client.create_experiment(
                 name="overloaded loop", d_max=D_MAX, seed=args.seed,
                 domain=domain(model.url),
                 learning={"batch_size": 5, "iterations": 100_000, "n_candidates": 5,

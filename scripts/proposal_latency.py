@@ -9,7 +9,6 @@ usage: scripts/proposal_latency.py BINARY PORT ACQUISITION [ESTIMATOR] [TRAJECTO
 (e.g. lcb, spread; exact, sparse or auto, default auto; 200 five-step trajectories by default)
 """
 
-import json
 import os
 import random
 import statistics
@@ -17,7 +16,8 @@ import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
+
+import jsonhttp
 
 binary, port, acquisition = sys.argv[1], int(sys.argv[2]), sys.argv[3]
 estimator = sys.argv[4] if len(sys.argv) > 4 else "auto"
@@ -32,11 +32,10 @@ base = f"http://127.0.0.1:{port}"
 
 
 def call(method, path, body=None):
-    data = json.dumps(body).encode() if body is not None else None
-    headers = {"Content-Type": "application/json"}
-    req = urllib.request.Request(base + path, data=data, method=method, headers=headers)
-    with urllib.request.urlopen(req, timeout=120) as r:
-        return json.loads(r.read() or b"null")
+    status, answer = jsonhttp.call(base, method, path, body)
+    if status >= 400:
+        raise RuntimeError(f"{method} {path}: {status} {answer}")
+    return answer
 
 
 try:
