@@ -6,6 +6,7 @@
 
 use serde::de::{DeserializeSeed, Error as _, IgnoredAny, MapAccess, SeqAccess, Visitor};
 use std::fmt;
+use std::io::Read as _;
 
 /// What a model answered for `n` points, checked.
 #[derive(Debug, Clone, PartialEq)]
@@ -213,10 +214,118 @@ pub fn parse(reader: impl std::io::Read, seed: AnswerSeed) -> Result<Answer, ser
     Ok(answer)
 }
 
+/// Why a binary answer was refused.
+#[derive(Debug)]
+pub enum BinaryError {
+    /// The stream failed (a timeout, a body past the limit).
+    Read(std::io::Error),
+    /// The bytes are not `n × dim` finite little-endian `f64`s, optionally followed by `n`
+    /// flags of 0 or 1.
+    Shape(String),
+}
+
+/// Parses a binary answer ([`F64LE_CONTENT_TYPE`](super::F64LE_CONTENT_TYPE)) for `n` points
+/// of dimension `dim`: `n × dim` little-endian `f64`s, row-major, finite, optionally followed
+/// by one byte (0 or 1) of validity per point. Reads at most one byte past the longest
+/// well-formed answer, so a model cannot make the server hold more than that.
+pub fn parse_f64le(
+    reader: impl std::io::Read,
+    n: usize,
+    dim: usize,
+) -> Result<Answer, BinaryError> {
+    let numbers = n * dim;
+    let (short, long) = (8 * numbers, 8 * numbers + n);
+    let mut body = Vec::with_capacity(long);
+    reader
+        .take(long as u64 + 1)
+        .read_to_end(&mut body)
+        .map_err(BinaryError::Read)?;
+    if body.len() != short && body.len() != long {
+        return Err(BinaryError::Shape(format!(
+            "answered {}{} bytes of f64le; {n} next states of {dim} numbers are {short} bytes \
+             ({long} with a validity byte per point)",
+            body.len().min(long),
+            if body.len() > long { "+" } else { "" },
+        )));
+    }
+    let values: Vec<f64> = body[..short]
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().expect("8 bytes")))
+        .collect();
+    if let Some(i) = values.iter().position(|v| !v.is_finite()) {
+        return Err(BinaryError::Shape(format!(
+            "answered a non-finite number at point {}, component {}",
+            i / dim.max(1),
+            i % dim.max(1)
+        )));
+    }
+    let valid = if body.len() == long {
+        let flags = &body[short..];
+        if let Some(i) = flags.iter().position(|&f| f > 1) {
+            return Err(BinaryError::Shape(format!(
+                "answered validity byte {} at point {i}; flags are 0 or 1",
+                flags[i]
+            )));
+        }
+        Some(flags.iter().map(|&f| f == 1).collect())
+    } else {
+        None
+    };
+    let next_states = if dim == 0 {
+        vec![Vec::new(); n]
+    } else {
+        values.chunks_exact(dim).map(<[f64]>::to_vec).collect()
+    };
+    Ok(Answer { next_states, valid })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use std::io::Read;
+
+    fn f64le(values: &[f64], flags: &[u8]) -> Vec<u8> {
+        let mut out: Vec<u8> = values.iter().flat_map(|v| v.to_le_bytes()).collect();
+        out.extend_from_slice(flags);
+        out
+    }
+
+    #[test]
+    fn a_binary_answer_parses_with_or_without_flags_and_is_checked() {
+        let a = parse_f64le(&f64le(&[0.5, 1.0, 2.0, 3e-3], &[])[..], 2, 2).unwrap();
+        assert_eq!(a.next_states, vec![vec![0.5, 1.0], vec![2.0, 3e-3]]);
+        assert_eq!(a.valid, None);
+        let a = parse_f64le(&f64le(&[0.5, 1.0, 2.0, 3e-3], &[1, 0])[..], 2, 2).unwrap();
+        assert_eq!(a.valid, Some(vec![true, false]));
+        let shape = |r: Result<Answer, BinaryError>| match r {
+            Err(BinaryError::Shape(reason)) => reason,
+            other => panic!("{other:?}"),
+        };
+        // One number short, one byte too many, a flag of 2, a NaN.
+        let r = shape(parse_f64le(&f64le(&[0.5, 1.0, 2.0], &[])[..], 2, 2));
+        assert!(
+            r.contains("answered 24 bytes") && r.contains("32 bytes"),
+            "{r}"
+        );
+        let r = shape(parse_f64le(
+            &f64le(&[0.5, 1.0, 2.0, 3.0], &[1, 1, 1])[..],
+            2,
+            2,
+        ));
+        assert!(r.contains("answered 34+ bytes"), "{r}");
+        let r = shape(parse_f64le(
+            &f64le(&[0.5, 1.0, 2.0, 3.0], &[1, 2])[..],
+            2,
+            2,
+        ));
+        assert!(r.contains("validity byte 2 at point 1"), "{r}");
+        let r = shape(parse_f64le(
+            &f64le(&[0.5, 1.0, f64::NAN, 3.0], &[])[..],
+            2,
+            2,
+        ));
+        assert!(r.contains("point 1, component 0"), "{r}");
+    }
 
     fn seed(n: usize, dim: usize) -> AnswerSeed {
         AnswerSeed { n, dim }

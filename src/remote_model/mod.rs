@@ -8,6 +8,16 @@
 //! the wrong shape or non-finite numbers is a [`DynamicsError`] naming its URL; the caller
 //! stores nothing.
 //!
+//! **Binary arrays, by handshake.** Before its first call the service asks `GET <url>`; a model
+//! that answers `{"precond_model": 1, "encodings": ["f64le", ...], "state_dim"?: n,
+//! "action_dim"?: m}` is called with raw little-endian arrays instead of JSON
+//! ([`F64LE_CONTENT_TYPE`]): the states then the actions, row-major, with the header
+//! `x-precond-shape: points,n,m`; it answers the next states the same way, optionally followed
+//! by one byte (0 or 1) of validity per point. Declared dimensions are checked against the
+//! domain's (a mismatch is an error naming both). Any other answer to the `GET` (`404`, `405`,
+//! another body) means JSON, which stays the protocol of every model that does not ask for
+//! more; an unreachable model is asked again at its next call.
+//!
 //! - [`policy`]: which URLs may be called ([`ModelUrlPolicy`]), checked at creation and again
 //!   at every call, in the one normalised form that is also what the client requests.
 //! - [`calls`]: how many calls run at once, how long one may take, and the threads they run on
@@ -29,10 +39,10 @@ use crate::budget::Budget;
 use crate::domain::{Awaited, DynamicsError, DynamicsModel, Predicted};
 use answer::AnswerSeed;
 use calls::{Permits, block_until, busy, starts_too_late};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::io::Read;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 /// Most points sent in one call; larger batches are split.
@@ -45,6 +55,35 @@ const ERROR_SNIPPET_BYTES: u64 = 4096;
 const ROUND_SIZE: usize = 64;
 /// Stack of a call thread: the parse is iterative and its nesting bounded by serde_json.
 const CALL_THREAD_STACK: usize = 512 * 1024;
+/// Content type of the binary encoding: raw little-endian `f64` arrays (see the module docs).
+pub const F64LE_CONTENT_TYPE: &str = "application/x-precond-f64le";
+/// Longest wait for a model's answer to the handshake (within the call's own deadline).
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(2);
+/// Largest handshake answer read.
+const MAX_HANDSHAKE_BYTES: u64 = 64 * 1024;
+
+/// How the service and a model exchange arrays, as their handshake settled it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Encoding {
+    /// `{"states", "actions"}` → `{"next_states", "valid"?}`: every model's.
+    Json,
+    /// Raw little-endian `f64` arrays ([`F64LE_CONTENT_TYPE`]).
+    F64Le,
+}
+
+/// What a model says of itself at `GET <url>`.
+#[derive(Debug, Deserialize)]
+struct Handshake {
+    /// The protocol's version: 1.
+    precond_model: u32,
+    /// Encodings it reads and answers in, e.g. `["f64le", "json"]`.
+    #[serde(default)]
+    encodings: Vec<String>,
+    /// The state's dimension, when it says.
+    state_dim: Option<usize>,
+    /// The action's dimension, when it says.
+    action_dim: Option<usize>,
+}
 
 /// The body the service sends.
 #[derive(Debug, Serialize)]
@@ -64,6 +103,8 @@ struct Inner {
     agent: ureq::Agent,
     calls: AtomicU64,
     gate: Arc<ModelCalls>,
+    /// The encoding the handshake settled, once it has.
+    encoding: OnceLock<Encoding>,
 }
 
 /// A dynamics model behind `POST url` (see the module docs).
@@ -72,10 +113,12 @@ pub struct RemoteModel {
     inner: Arc<Inner>,
 }
 
-/// One call, ready to be made: its URL (normalised), body, points and deadline.
+/// One call, ready to be made: its URL (normalised), points (row-major) and deadline.
 struct Call {
     url: String,
-    body: Vec<u8>,
+    states: Vec<f64>,
+    actions: Vec<f64>,
+    action_dim: usize,
     n: usize,
     deadline: Instant,
     timeout_ms: u64,
@@ -102,6 +145,7 @@ impl RemoteModel {
                 agent,
                 calls: AtomicU64::new(0),
                 gate,
+                encoding: OnceLock::new(),
             }),
         }
     }
@@ -135,24 +179,33 @@ impl RemoteModel {
                 reason,
             })?;
         let timeout = self.timeout();
-        states
+        let action_dim = actions.first().map_or(0, |a| a.len());
+        if let Some(a) = actions.iter().find(|a| a.len() != action_dim) {
+            return Err(inner.unavailable(format!(
+                "actions of {} and {action_dim} numbers in one call",
+                a.len()
+            )));
+        }
+        if let Some(s) = states.iter().find(|s| s.len() != inner.state_dim) {
+            return Err(inner.unavailable(format!(
+                "a state of {} numbers for a model of {}",
+                s.len(),
+                inner.state_dim
+            )));
+        }
+        Ok(states
             .chunks(MAX_POINTS_PER_CALL)
             .zip(actions.chunks(MAX_POINTS_PER_CALL))
-            .map(|(s, a)| {
-                let body = serde_json::to_vec(&PredictRequest {
-                    states: s,
-                    actions: a,
-                })
-                .map_err(|e| inner.unavailable(format!("could not encode the request: {e}")))?;
-                Ok(Call {
-                    url: url.clone(),
-                    body,
-                    n: s.len(),
-                    deadline: Instant::now() + timeout,
-                    timeout_ms: timeout.as_millis() as u64,
-                })
+            .map(|(s, a)| Call {
+                url: url.clone(),
+                states: s.concat(),
+                actions: a.concat(),
+                action_dim,
+                n: s.len(),
+                deadline: Instant::now() + timeout,
+                timeout_ms: timeout.as_millis() as u64,
             })
-            .collect()
+            .collect())
     }
 
     /// Predicts from an async task (an ingest): waits for permits and the answer without
@@ -224,9 +277,76 @@ impl Inner {
         }
     }
 
+    /// The encoding to call this model in: the handshake's, asked for now (within
+    /// [`HANDSHAKE_TIMEOUT`] and the call's deadline) if no answer settled it yet. A model that
+    /// could not be reached is asked again next time; this call then goes as JSON (and will
+    /// most likely fail the same way, naming the model).
+    fn encoding(&self, call: &Call) -> Result<Encoding, DynamicsError> {
+        if let Some(e) = self.encoding.get() {
+            return Ok(*e);
+        }
+        let left = call.deadline.saturating_duration_since(Instant::now());
+        let asked = self
+            .agent
+            .get(&call.url)
+            .config()
+            .timeout_global(Some(left.min(HANDSHAKE_TIMEOUT)))
+            .build()
+            .header("accept", "application/json")
+            .call();
+        let Ok(response) = asked else {
+            return Ok(Encoding::Json);
+        };
+        let settled = if response.status().as_u16() != 200 {
+            Encoding::Json
+        } else {
+            let mut body = Vec::new();
+            let read = response
+                .into_body()
+                .into_reader()
+                .take(MAX_HANDSHAKE_BYTES)
+                .read_to_end(&mut body);
+            match read
+                .ok()
+                .and_then(|_| serde_json::from_slice::<Handshake>(&body).ok())
+            {
+                Some(h) if h.precond_model == 1 => {
+                    self.check_declared(&h, call.action_dim)?;
+                    if h.encodings.iter().any(|e| e == "f64le") {
+                        Encoding::F64Le
+                    } else {
+                        Encoding::Json
+                    }
+                }
+                _ => Encoding::Json,
+            }
+        };
+        Ok(*self.encoding.get_or_init(|| settled))
+    }
+
+    /// A model that declares dimensions other than the domain's is refused, naming both.
+    fn check_declared(&self, h: &Handshake, action_dim: usize) -> Result<(), DynamicsError> {
+        if let Some(n) = h.state_dim.filter(|&n| n != self.state_dim) {
+            return Err(self.unavailable(format!(
+                "declares states of {n} numbers; the domain's state has {}",
+                self.state_dim
+            )));
+        }
+        if let Some(m) = h.action_dim.filter(|&m| m != action_dim) {
+            return Err(self.unavailable(format!(
+                "declares actions of {m} numbers; the domain's action has {action_dim}"
+            )));
+        }
+        Ok(())
+    }
+
     /// One HTTP exchange, on a call thread, ending by `call.deadline`.
     fn call(&self, call: Call) -> Result<Vec<Predicted>, DynamicsError> {
         self.calls.fetch_add(1, Ordering::Relaxed);
+        if call.deadline <= Instant::now() {
+            return Err(self.timed_out());
+        }
+        let encoding = self.encoding(&call)?;
         let left = call.deadline.saturating_duration_since(Instant::now());
         if left.is_zero() {
             return Err(self.timed_out());
@@ -235,20 +355,46 @@ impl Inner {
             model: self.url.clone(),
             timeout_ms: call.timeout_ms,
         };
-        let sent = self
+        let request = self
             .agent
             .post(&call.url)
             .config()
             .timeout_global(Some(left))
-            .build()
-            .header("content-type", "application/json")
-            .send(&call.body[..]);
+            .build();
+        let sent = match encoding {
+            Encoding::Json => {
+                let body = serde_json::to_vec(&PredictRequest {
+                    states: &rows(&call.states, call.n, self.state_dim),
+                    actions: &rows(&call.actions, call.n, call.action_dim),
+                })
+                .map_err(|e| self.unavailable(format!("could not encode the request: {e}")))?;
+                request
+                    .header("content-type", "application/json")
+                    .send(&body[..])
+            }
+            Encoding::F64Le => {
+                let mut body = Vec::with_capacity(8 * (call.states.len() + call.actions.len()));
+                for v in call.states.iter().chain(&call.actions) {
+                    body.extend_from_slice(&v.to_le_bytes());
+                }
+                let shape = format!("{},{},{}", call.n, self.state_dim, call.action_dim);
+                request
+                    .header("content-type", F64LE_CONTENT_TYPE)
+                    .header("x-precond-shape", &shape)
+                    .send(&body[..])
+            }
+        };
         let response = match sent {
             Ok(r) => r,
             Err(ureq::Error::Timeout(_)) => return Err(timeout()),
             Err(e) => return Err(self.unavailable(format!("could not be called: {e}"))),
         };
         let status = response.status().as_u16();
+        let binary = response
+            .headers()
+            .get("content-type")
+            .and_then(|v| v.to_str().ok())
+            .is_some_and(|v| v.starts_with(F64LE_CONTENT_TYPE));
         let mut reader = response.into_body().into_reader();
         if !(200..300).contains(&status) {
             let mut body = Vec::new();
@@ -263,24 +409,36 @@ impl Inner {
             inner: reader,
             left: MAX_RESPONSE_BYTES,
         };
-        let seed = AnswerSeed {
-            n: call.n,
-            dim: self.state_dim,
-        };
-        let answer = answer::parse(std::io::BufReader::new(counted), seed).map_err(|e| match e
-            .io_error_kind()
-        {
-            Some(std::io::ErrorKind::TimedOut) => timeout(),
-            Some(std::io::ErrorKind::FileTooLarge) => {
+        let read_error = |e: std::io::Error| match e.kind() {
+            std::io::ErrorKind::TimedOut => timeout(),
+            std::io::ErrorKind::FileTooLarge => {
                 self.unavailable(format!("answered more than {MAX_RESPONSE_BYTES} bytes"))
             }
-            Some(_) => self.unavailable(format!("answer could not be read: {e}")),
-            None => self.unavailable(format!(
-                "answered something other than {{\"next_states\": [[...] × {}], \
-                     \"valid\"?: [...]}} with finite numbers: {e}",
-                call.n
-            )),
-        })?;
+            _ => self.unavailable(format!("answer could not be read: {e}")),
+        };
+        let answer = if binary {
+            answer::parse_f64le(counted, call.n, self.state_dim).map_err(|e| match e {
+                answer::BinaryError::Read(e) => read_error(e),
+                answer::BinaryError::Shape(reason) => self.unavailable(reason),
+            })?
+        } else {
+            let seed = AnswerSeed {
+                n: call.n,
+                dim: self.state_dim,
+            };
+            answer::parse(std::io::BufReader::new(counted), seed).map_err(|e| {
+                match e.io_error_kind() {
+                    Some(std::io::ErrorKind::TimedOut) => timeout(),
+                    Some(kind @ std::io::ErrorKind::FileTooLarge) => read_error(kind.into()),
+                    Some(_) => self.unavailable(format!("answer could not be read: {e}")),
+                    None => self.unavailable(format!(
+                        "answered something other than {{\"next_states\": [[...] × {}], \
+                         \"valid\"?: [...]}} with finite numbers: {e}",
+                        call.n
+                    )),
+                }
+            })?
+        };
         let valid = answer.valid.unwrap_or_else(|| vec![true; call.n]);
         Ok(answer
             .next_states
@@ -289,6 +447,11 @@ impl Inner {
             .map(|(next, valid)| Predicted { next, valid })
             .collect())
     }
+}
+
+/// `n` rows of `dim` numbers each of the row-major `flat`.
+fn rows(flat: &[f64], n: usize, dim: usize) -> Vec<&[f64]> {
+    (0..n).map(|i| &flat[i * dim..(i + 1) * dim]).collect()
 }
 
 /// A reader that fails with `FileTooLarge` past `left` bytes.

@@ -7,7 +7,7 @@ use axum::Router;
 use axum::extract::State;
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
-use axum::routing::post;
+use axum::routing::{get, post};
 use serde::Deserialize;
 use serde_json::json;
 use std::net::SocketAddr;
@@ -41,6 +41,8 @@ pub struct Counts {
     pub most_hanging: AtomicUsize,
     /// Calls to `/hang`.
     pub hang_calls: AtomicUsize,
+    /// Calls to `/binary` in raw little-endian arrays.
+    pub binary_calls: AtomicUsize,
 }
 
 /// The running model server.
@@ -53,7 +55,7 @@ pub struct ModelServer {
 
 impl ModelServer {
     /// The URL of one of its endpoints (`predict`, `slow`, `error`, `short`, `nan`,
-    /// `valid`, `hang`, `amplify`, `wide`).
+    /// `valid`, `hang`, `amplify`, `wide`, `binary`, `declares3`).
     pub fn url(&self, endpoint: &str) -> String {
         format!("http://{}/{endpoint}", self.addr)
     }
@@ -140,6 +142,56 @@ async fn nan(Json(b): Json<Batch>) -> Response {
         .into_response()
 }
 
+/// The handshake of a model that reads and answers raw little-endian arrays, declaring a
+/// 2-D state and action.
+async fn binary_hello() -> Response {
+    Json(json!({"precond_model": 1, "encodings": ["f64le", "json"],
+                "state_dim": 2, "action_dim": 2}))
+    .into_response()
+}
+
+/// The handshake of a model that declares a 3-D state.
+async fn declares3_hello() -> Response {
+    Json(json!({"precond_model": 1, "encodings": ["f64le"], "state_dim": 3})).into_response()
+}
+
+/// `ŝ' = s + a` in raw little-endian arrays: `points × n` states then `points × m` actions
+/// (shape in `x-precond-shape`), answering the next states the same way.
+async fn binary(
+    State(counts): State<Arc<Counts>>,
+    headers: axum::http::HeaderMap,
+    body: axum::body::Bytes,
+) -> Response {
+    let shape: Vec<usize> = headers
+        .get("x-precond-shape")
+        .and_then(|v| v.to_str().ok())
+        .map(|v| v.split(',').filter_map(|x| x.parse().ok()).collect())
+        .unwrap_or_default();
+    let content_type = headers.get("content-type").and_then(|v| v.to_str().ok());
+    let [points, n, m] = shape[..] else {
+        return (StatusCode::BAD_REQUEST, "no x-precond-shape").into_response();
+    };
+    if content_type != Some(F64LE) || n != m || body.len() != 8 * points * (n + m) {
+        return (StatusCode::BAD_REQUEST, "not the arrays announced").into_response();
+    }
+    counts.binary_calls.fetch_add(1, Ordering::Relaxed);
+    counts.points.fetch_add(points, Ordering::Relaxed);
+    let values: Vec<f64> = body
+        .chunks_exact(8)
+        .map(|b| f64::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    let (states, actions) = values.split_at(points * n);
+    let out: Vec<u8> = states
+        .iter()
+        .zip(actions)
+        .flat_map(|(s, a)| (s + a).to_le_bytes())
+        .collect();
+    ([("content-type", F64LE)], out).into_response()
+}
+
+/// Content type of the binary encoding.
+const F64LE: &str = "application/x-precond-f64le";
+
 /// Starts the model server on `127.0.0.1:0` for the rest of the test's runtime.
 pub async fn start() -> ModelServer {
     let counts = Arc::new(Counts::default());
@@ -153,6 +205,8 @@ pub async fn start() -> ModelServer {
         .route("/hang", post(hang))
         .route("/amplify", post(amplify))
         .route("/wide", post(wide))
+        .route("/binary", get(binary_hello).post(binary))
+        .route("/declares3", get(declares3_hello).post(binary))
         .with_state(counts.clone());
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();

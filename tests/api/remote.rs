@@ -58,6 +58,49 @@ async fn an_answer_longer_or_wider_than_asked_is_refused_while_it_is_parsed() {
     }
 }
 
+/// A model whose handshake offers raw little-endian arrays is called in them, on ingest and
+/// in planning, and its predictions arrive bit for bit; one that declares another state
+/// dimension than the domain's is refused, naming both.
+#[tokio::test]
+async fn a_model_that_offers_binary_arrays_is_called_in_them() {
+    let server = model_server::start().await;
+    let (_dir, app) = app(&server, limits(2, 30_000), ModelCallLimits::default()).await;
+    let id = app
+        .create_experiment(plane(&server.url("binary"), 5000))
+        .await;
+    let odd = json!({"transitions": [{"s": [0.1, 1e-300], "a": [0.1, 0], "s_next": [0.3, 0.2]}]});
+    let (status, body) = app.post_at(id, "trajectories", &odd).await;
+    assert_eq!(status, 201, "{body}");
+    let (_, page) = app.get(&format!("/v1/experiments/{id}/transitions")).await;
+    let s_pred = &page["items"][0]["s_pred"];
+    assert_eq!(s_pred, &json!([0.1 + 0.1, 1e-300]), "{page}");
+    let (status, body) = app
+        .post_at(
+            id,
+            "proposals",
+            &json!({"start": [0.2, 0.2], "goal": [0.5, 0.2]}),
+        )
+        .await;
+    assert_eq!(status, 201, "{body}");
+    assert!(server.counts.binary_calls.load(Ordering::Relaxed) >= 2);
+    assert_eq!(
+        server.counts.calls.load(Ordering::Relaxed),
+        0,
+        "no JSON call"
+    );
+
+    let id = app
+        .create_experiment(plane(&server.url("declares3"), 5000))
+        .await;
+    let (status, body) = app.post_at(id, "trajectories", &step()).await;
+    assert_eq!((status, code(&body)), (502, "model_unavailable"), "{body}");
+    let reason = reason(&body);
+    assert!(
+        reason.contains("declares states of 3 numbers; the domain's state has 2"),
+        "{reason}"
+    );
+}
+
 /// Two experiments: one whose remote model hangs (declaring a 10-minute timeout) and a local
 /// kinematic one.
 async fn hung_and_local(app: &TestApp, server: &ModelServer) -> (i64, i64) {

@@ -120,6 +120,8 @@ def test_a_loop_survives_server_and_robot_restarts_without_duplicates_or_losses(
         assert learner.episodes >= 4, "the loop must reach both restarts"
         assert server.starts == 3
         assert served.calls > 0  # the server planned and labelled with the Python model
+        # ... in raw little-endian arrays: the handshake settled the binary encoding.
+        assert served.binary_calls == served.calls
 
         # The robot's process dies holding a lease for one problem ...
         held = client.propose([0.1, 0.2], [0.35, 0.2])

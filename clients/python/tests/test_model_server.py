@@ -15,7 +15,7 @@ import pytest
 from numpy.typing import NDArray
 
 from precond_client import serve_model
-from precond_client.model_server import ModelError, ModelFn, evaluate
+from precond_client.model_server import F64LE, ModelError, ModelFn, evaluate
 from precond_client.models import Array
 
 
@@ -86,6 +86,42 @@ def test_serve_model_answers_over_http_and_reports_failures() -> None:
     with pytest.raises(httpx.TransportError):
         kept.post(server.url, json={"states": [], "actions": []})
     kept.close()
+
+
+def test_the_handshake_offers_binary_arrays_and_they_round_trip() -> None:
+    def model(s: Array, a: Array) -> tuple[Array, NDArray[np.bool_]]:
+        return s + a, a[:, 0] >= 0
+
+    with (
+        serve_model(model, "127.0.0.1", 0, state_dim=2, action_dim=1) as server,
+        httpx.Client() as http,
+    ):
+        hello = http.get(server.url)
+        assert hello.status_code == 200
+        assert hello.json() == {
+            "precond_model": 1,
+            "encodings": ["f64le", "json"],
+            "state_dim": 2,
+            "action_dim": 1,
+        }
+        assert http.get(server.url.replace("/predict", "/other")).status_code == 404
+        states = np.array([[1.0, 2.0], [0.1, 1e-300]])
+        actions = np.array([[0.5], [-0.25]])
+        body = states.astype("<f8").tobytes() + actions.astype("<f8").tobytes()
+        headers = {"Content-Type": F64LE, "x-precond-shape": "2,2,1"}
+        # A model of (N, 2) states and (N, 1) actions: numpy broadcasts s + a.
+        ok = http.post(server.url, content=body, headers=headers)
+        assert ok.status_code == 200 and ok.headers["content-type"] == F64LE
+        nxt = np.frombuffer(ok.content[: 8 * 4], dtype="<f8").reshape(2, 2)
+        np.testing.assert_array_equal(nxt, states + actions)  # bit for bit
+        assert list(ok.content[8 * 4 :]) == [1, 0]
+        short = http.post(server.url, content=body[:-8], headers=headers)
+        assert short.status_code == 500 and "must hold 48 bytes" in short.json()["error"]
+        bad = http.post(server.url, content=body, headers={"Content-Type": F64LE})
+        assert bad.status_code == 500 and "x-precond-shape" in bad.json()["error"]
+        assert server.calls == 1 and server.binary_calls == 1 and server.points == 2
+    with serve_model(shift, "127.0.0.1", 0, binary=False) as server:
+        assert httpx.get(server.url).json() == {"precond_model": 1, "encodings": ["json"]}
 
 
 def test_a_caller_that_hangs_up_is_not_a_traceback(capfd: pytest.CaptureFixture[str]) -> None:

@@ -17,6 +17,12 @@ shapes, non-finite numbers and exceptions in ``fn`` are answered with ``500`` an
 (the precond server reports them as ``502 model_unavailable`` naming the URL) and logged here.
 The server runs on the standard library's threading HTTP server, keep-alive, in a background
 thread; calls to ``fn`` are serialised unless ``threadsafe=True``.
+
+It answers the service's handshake (``GET <url>``: ``{"precond_model": 1, "encodings":
+["f64le", "json"], "state_dim"?, "action_dim"?}``), so the service sends its points as raw
+little-endian arrays (``application/x-precond-f64le``, shape in ``x-precond-shape:
+points,n,m``) rather than JSON lists of floats; ``binary=False`` keeps JSON. Declare
+``state_dim`` and ``action_dim`` and the service checks them against the experiment's domain.
 """
 
 from __future__ import annotations
@@ -43,6 +49,8 @@ ModelFn = Callable[[Array, Array], "ArrayLike | tuple[ArrayLike, ArrayLike]"]
 ``(next_states, valid)``."""
 
 MAX_BODY_BYTES = 64 * 1024 * 1024
+F64LE = "application/x-precond-f64le"
+"""Content type of the binary encoding: raw little-endian float64 arrays."""
 
 
 class ModelError(ValueError):
@@ -59,9 +67,21 @@ def evaluate(fn: ModelFn, body: Any) -> dict[str, Any]:
         actions = np.asarray(body["actions"], dtype=np.float64)
     except (TypeError, ValueError) as e:
         raise ModelError(f"states and actions must be arrays of numbers: {e}") from e
-    n = len(states)
-    if n == 0:
+    if len(states) == 0:
         return {"next_states": [], "valid": []}
+    nxt, valid = evaluate_arrays(fn, states, actions)
+    answer: dict[str, Any] = {"next_states": nxt.tolist()}
+    if valid is not None:
+        answer["valid"] = valid.tolist()
+    return answer
+
+
+def evaluate_arrays(
+    fn: ModelFn, states: NDArray[np.float64], actions: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.bool_] | None]:
+    """``fn`` on ``states`` (N, n) and ``actions`` (N, m), checked: the next states (N, n),
+    finite, and the validity flags when ``fn`` returned some; raises :class:`ModelError`."""
+    n = len(states)
     if states.ndim != 2 or actions.ndim != 2 or len(actions) != n:
         raise ModelError(
             f"states {states.shape} and actions {actions.shape} must be 2-D with equal rows"
@@ -80,10 +100,34 @@ def evaluate(fn: ModelFn, body: Any) -> dict[str, Any]:
         raise ModelError(f"the model returned next states {nxt.shape} for states {states.shape}")
     if not np.all(np.isfinite(nxt)):
         raise ModelError("the model returned a non-finite next state")
-    answer: dict[str, Any] = {"next_states": nxt.tolist()}
+    return nxt, valid
+
+
+def decode_f64le(body: bytes, shape: str | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The states and actions of a binary request: ``body`` holds ``points × n`` then
+    ``points × m`` little-endian float64s, ``shape`` is ``"points,n,m"``."""
+    try:
+        points, n, m = (int(v) for v in (shape or "").split(","))
+    except ValueError as e:
+        raise ModelError(f'x-precond-shape must be "points,n,m", got {shape!r}') from e
+    if min(points, n, m) < 0 or len(body) != 8 * points * (n + m):
+        raise ModelError(
+            f"a binary request of shape {shape} must hold {8 * points * (n + m)} bytes, "
+            f"got {len(body)}"
+        )
+    values = np.frombuffer(body, dtype="<f8")
+    states = values[: points * n].reshape(points, n)
+    actions = values[points * n :].reshape(points, m)
+    return states.astype(np.float64), actions.astype(np.float64)
+
+
+def encode_f64le(nxt: NDArray[np.float64], valid: NDArray[np.bool_] | None) -> bytes:
+    """A binary answer: the next states as little-endian float64s, row-major, then one byte
+    (0 or 1) of validity per point when there are flags."""
+    data = np.ascontiguousarray(nxt, dtype="<f8").tobytes()
     if valid is not None:
-        answer["valid"] = valid.tolist()
-    return answer
+        data += valid.astype(np.uint8).tobytes()
+    return data
 
 
 class _QuietServer(ThreadingHTTPServer):
@@ -106,11 +150,31 @@ class ModelServer:
         calls: Requests answered so far.
     """
 
-    def __init__(self, fn: ModelFn, host: str, port: int, path: str, threadsafe: bool) -> None:
+    def __init__(
+        self,
+        fn: ModelFn,
+        host: str,
+        port: int,
+        path: str,
+        threadsafe: bool,
+        *,
+        binary: bool = True,
+        state_dim: int | None = None,
+        action_dim: int | None = None,
+    ) -> None:
         self.fn = fn
         self.path = path if path.startswith("/") else "/" + path
         self.calls = 0
         self.points = 0
+        self.binary_calls = 0
+        handshake: dict[str, Any] = {
+            "precond_model": 1,
+            "encodings": ["f64le", "json"] if binary else ["json"],
+        }
+        if state_dim is not None:
+            handshake["state_dim"] = state_dim
+        if action_dim is not None:
+            handshake["action_dim"] = action_dim
         lock = threading.Lock()
         server = self
         self._connections: set[socket.socket] = set()
@@ -134,11 +198,12 @@ class ModelServer:
             def log_message(self, format: str, *args: Any) -> None:
                 log.debug("%s " + format, self.address_string(), *args)
 
-            def _send(self, status: int, body: dict[str, Any]) -> None:
-                data = json.dumps(body).encode()
+            def _send(self, status: int, body: dict[str, Any] | bytes) -> None:
+                binary_answer = isinstance(body, bytes)
+                data = body if isinstance(body, bytes) else json.dumps(body).encode()
                 try:
                     self.send_response(status)
-                    self.send_header("Content-Type", "application/json")
+                    self.send_header("Content-Type", F64LE if binary_answer else "application/json")
                     self.send_header("Content-Length", str(len(data)))
                     self.end_headers()
                     self.wfile.write(data)
@@ -158,13 +223,19 @@ class ModelServer:
                 if self.path.split("?")[0] != server.path:
                     self._send(404, {"error": f"the model is served at {server.path}"})
                     return
+                binary_request = (self.headers.get("Content-Type") or "").startswith(F64LE)
+                answer: dict[str, Any] | bytes
                 try:
-                    body = json.loads(raw)
-                    if threadsafe:
-                        answer = evaluate(server.fn, body)
+                    if binary_request and binary:
+                        states, actions = decode_f64le(raw, self.headers.get("x-precond-shape"))
+                        with contextlib.nullcontext() if threadsafe else lock:
+                            nxt, valid = evaluate_arrays(server.fn, states, actions)
+                        answer, points = encode_f64le(nxt, valid), len(nxt)
                     else:
-                        with lock:
+                        body = json.loads(raw)
+                        with contextlib.nullcontext() if threadsafe else lock:
                             answer = evaluate(server.fn, body)
+                        points = len(answer["next_states"])
                 except (ModelError, json.JSONDecodeError) as e:
                     log.error("model request refused: %s", e)
                     self._send(500, {"error": str(e)})
@@ -175,11 +246,16 @@ class ModelServer:
                     return
                 with lock:
                     server.calls += 1
-                    server.points += len(answer["next_states"])
+                    server.points += points
+                    server.binary_calls += isinstance(answer, bytes)
                 self._send(200, answer)
 
             def do_GET(self) -> None:
-                self._send(405, {"error": f"POST {server.path}"})
+                # The service's handshake: what this model reads and answers in.
+                if self.path.split("?")[0] != server.path:
+                    self._send(404, {"error": f"the model is served at {server.path}"})
+                    return
+                self._send(200, handshake)
 
         self._httpd = _QuietServer((host, port), Handler)
         self._httpd.daemon_threads = True
@@ -232,12 +308,28 @@ def serve_model(
     path: str = "/predict",
     threadsafe: bool = False,
     block: bool = False,
+    binary: bool = True,
+    state_dim: int | None = None,
+    action_dim: int | None = None,
 ) -> ModelServer:
     """Serves ``fn`` as a remote model at ``http://host:port/path`` (port 0 picks a free one;
     the server's ``url`` says which). Runs in a background thread and returns the server, or
     with ``block=True`` serves in this thread until interrupted. Start precond with
-    ``--allow-model-url http://host:port/`` so that experiments may use it."""
-    server = ModelServer(fn, host, port, path, threadsafe)
+    ``--allow-model-url http://host:port/`` so that experiments may use it.
+
+    The service then exchanges raw little-endian arrays with it (negotiated by a handshake;
+    ``binary=False`` keeps JSON). ``state_dim`` and ``action_dim``, when given, are declared
+    in the handshake and checked by the service against the experiment's domain."""
+    server = ModelServer(
+        fn,
+        host,
+        port,
+        path,
+        threadsafe,
+        binary=binary,
+        state_dim=state_dim,
+        action_dim=action_dim,
+    )
     if block:
         log.info("serving the model at %s", server.url)
         server.serve_forever()
