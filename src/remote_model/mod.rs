@@ -347,14 +347,35 @@ impl Inner {
             return Err(self.timed_out());
         }
         let encoding = self.encoding(&call)?;
+        let response = self.send(&call, encoding)?;
+        let answer = self.read(response, &call)?;
+        let valid = answer.valid.unwrap_or_else(|| vec![true; call.n]);
+        Ok(answer
+            .next_states
+            .into_iter()
+            .zip(valid)
+            .map(|(next, valid)| Predicted { next, valid })
+            .collect())
+    }
+
+    /// The timeout of `call`, as an error.
+    fn call_timed_out(&self, call: &Call) -> DynamicsError {
+        DynamicsError::Timeout {
+            model: self.url.clone(),
+            timeout_ms: call.timeout_ms,
+        }
+    }
+
+    /// Sends `call`'s points in `encoding` and waits for the answer's head, until its deadline.
+    fn send(
+        &self,
+        call: &Call,
+        encoding: Encoding,
+    ) -> Result<ureq::http::Response<ureq::Body>, DynamicsError> {
         let left = call.deadline.saturating_duration_since(Instant::now());
         if left.is_zero() {
             return Err(self.timed_out());
         }
-        let timeout = || DynamicsError::Timeout {
-            model: self.url.clone(),
-            timeout_ms: call.timeout_ms,
-        };
         let request = self
             .agent
             .post(&call.url)
@@ -384,11 +405,21 @@ impl Inner {
                     .send(&body[..])
             }
         };
-        let response = match sent {
-            Ok(r) => r,
-            Err(ureq::Error::Timeout(_)) => return Err(timeout()),
-            Err(e) => return Err(self.unavailable(format!("could not be called: {e}"))),
-        };
+        match sent {
+            Ok(r) => Ok(r),
+            Err(ureq::Error::Timeout(_)) => Err(self.call_timed_out(call)),
+            Err(e) => Err(self.unavailable(format!("could not be called: {e}"))),
+        }
+    }
+
+    /// The answer to `call`, read within [`MAX_RESPONSE_BYTES`] and checked: binary when the
+    /// model says so in its content type, JSON otherwise; another status than 2xx is an error
+    /// showing the start of its body.
+    fn read(
+        &self,
+        response: ureq::http::Response<ureq::Body>,
+        call: &Call,
+    ) -> Result<answer::Answer, DynamicsError> {
         let status = response.status().as_u16();
         let binary = response
             .headers()
@@ -409,43 +440,32 @@ impl Inner {
             inner: reader,
             left: MAX_RESPONSE_BYTES,
         };
-        let read_error = |e: std::io::Error| match e.kind() {
-            std::io::ErrorKind::TimedOut => timeout(),
-            std::io::ErrorKind::FileTooLarge => {
-                self.unavailable(format!("answered more than {MAX_RESPONSE_BYTES} bytes"))
-            }
-            _ => self.unavailable(format!("answer could not be read: {e}")),
-        };
-        let answer = if binary {
-            answer::parse_f64le(counted, call.n, self.state_dim).map_err(|e| match e {
-                answer::BinaryError::Read(e) => read_error(e),
+        let too_large =
+            || self.unavailable(format!("answered more than {MAX_RESPONSE_BYTES} bytes"));
+        if binary {
+            return answer::parse_f64le(counted, call.n, self.state_dim).map_err(|e| match e {
+                answer::BinaryError::Read(e) => match e.kind() {
+                    std::io::ErrorKind::TimedOut => self.call_timed_out(call),
+                    std::io::ErrorKind::FileTooLarge => too_large(),
+                    _ => self.unavailable(format!("answer could not be read: {e}")),
+                },
                 answer::BinaryError::Shape(reason) => self.unavailable(reason),
-            })?
-        } else {
-            let seed = AnswerSeed {
-                n: call.n,
-                dim: self.state_dim,
-            };
-            answer::parse(std::io::BufReader::new(counted), seed).map_err(|e| {
-                match e.io_error_kind() {
-                    Some(std::io::ErrorKind::TimedOut) => timeout(),
-                    Some(kind @ std::io::ErrorKind::FileTooLarge) => read_error(kind.into()),
-                    Some(_) => self.unavailable(format!("answer could not be read: {e}")),
-                    None => self.unavailable(format!(
-                        "answered something other than {{\"next_states\": [[...] × {}], \
-                         \"valid\"?: [...]}} with finite numbers: {e}",
-                        call.n
-                    )),
-                }
-            })?
+            });
+        }
+        let seed = AnswerSeed {
+            n: call.n,
+            dim: self.state_dim,
         };
-        let valid = answer.valid.unwrap_or_else(|| vec![true; call.n]);
-        Ok(answer
-            .next_states
-            .into_iter()
-            .zip(valid)
-            .map(|(next, valid)| Predicted { next, valid })
-            .collect())
+        answer::parse(std::io::BufReader::new(counted), seed).map_err(|e| match e.io_error_kind() {
+            Some(std::io::ErrorKind::TimedOut) => self.call_timed_out(call),
+            Some(std::io::ErrorKind::FileTooLarge) => too_large(),
+            Some(_) => self.unavailable(format!("answer could not be read: {e}")),
+            None => self.unavailable(format!(
+                "answered something other than {{\"next_states\": [[...] × {}], \
+                 \"valid\"?: [...]}} with finite numbers: {e}",
+                call.n
+            )),
+        })
     }
 }
 
