@@ -148,6 +148,8 @@ class ModelServer:
     Attributes:
         url: What to put in the experiment's ``domain.model.url``.
         calls: Requests answered so far.
+        points: Points predicted so far.
+        binary_calls: Requests answered in raw little-endian arrays (the handshake's encoding).
     """
 
     def __init__(
