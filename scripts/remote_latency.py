@@ -34,26 +34,8 @@ from pathlib import Path
 
 import numpy as np
 from jsonhttp import call
+from overloaded_loop import D_MAX, domain, f_hat, true_step
 from precond_client import serve_model, spawn_server
-
-D_MAX = 0.02
-BOX = (np.array([0.25, 0.15]), np.array([0.4, 0.35]))
-
-
-def f_hat(states: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """The robot's model: the puck moves by the action and stays on the table."""
-    return np.clip(states + actions, 0.0, 1.0)
-
-
-def true_step(s: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """The world: pushes right of x = 0.5 go 70 % of the way; the box stops the puck."""
-    gain = 0.7 if s[0] > 0.5 else 1.0
-    nxt = np.clip(s + gain * a, 0.0, 1.0)
-    lo, hi = BOX
-    if np.all((nxt > lo) & (nxt < hi)):
-        return s.copy()
-    return nxt
-
 
 class Timed:
     """The model function, counting its calls, their sizes and the seconds inside it."""
@@ -125,16 +107,9 @@ def main() -> int:
 
 def measure(args: argparse.Namespace, url: str, model_url: str, model: Timed,
             sizes: list[int], rng: np.random.Generator) -> int:
-    domain = {
-        "kind": "custom",
-        "state": {"names": ["x", "y"], "low": [0, 0], "high": [1, 1]},
-        "action": {"names": ["dx", "dy"], "low": [-0.1, -0.1], "high": [0.1, 0.1]},
-        "goal": {"radius": 0.05},
-        "model": {"kind": "remote", "url": model_url},
-    }
     status, exp = call(url, "POST", "/v1/experiments",
                        {"name": "remote latency", "d_max": D_MAX, "seed": args.seed,
-                        "domain": domain, "learning": {"batch_size": 5}})
+                        "domain": domain(model_url), "learning": {"batch_size": 5}})
     assert status == 201, exp
     eid = exp["id"]
     stored = 0
