@@ -14,7 +14,7 @@
 
 use super::models::insert_model_on;
 use super::{Backend, Store, StoredModel, flag, lock_experiment, now};
-use sqlx::Row;
+use sqlx::{AnyConnection, Row};
 
 /// A requested fit, as claimed.
 #[derive(Debug, Clone, PartialEq)]
@@ -57,6 +57,37 @@ fn unix_now() -> f64 {
     time::OffsetDateTime::now_utc().unix_timestamp_nanos() as f64 / 1e9
 }
 
+/// Requests a fit of `experiment_id` inside the caller's transaction (which holds the
+/// experiment's lock): what [`Store::request_fit`] does, for a change that must not be stored
+/// without its fit being requested (an exclusion, a restore).
+pub(super) async fn raise_fit(
+    conn: &mut AnyConnection,
+    experiment_id: i64,
+    forced: bool,
+) -> Result<(), sqlx::Error> {
+    let raised = sqlx::query(
+        "UPDATE fit_jobs SET generation = generation + 1, forced = (forced OR $2)
+         WHERE experiment_id = $1",
+    )
+    .bind(experiment_id)
+    .bind(forced)
+    .execute(&mut *conn)
+    .await?
+    .rows_affected();
+    if raised == 0 {
+        sqlx::query(
+            "INSERT INTO fit_jobs (experiment_id, generation, forced, requested_at)
+             VALUES ($1, 1, $2, $3)",
+        )
+        .bind(experiment_id)
+        .bind(forced)
+        .bind(now())
+        .execute(&mut *conn)
+        .await?;
+    }
+    Ok(())
+}
+
 impl Store {
     /// Requests a fit of `experiment_id` (`forced`: even if a model covers its latest batch).
     #[tracing::instrument(skip(self))]
@@ -64,26 +95,7 @@ impl Store {
         self.noted(async {
             let mut tx = self.begin_write().await?;
             lock_experiment(&mut tx, self.backend, experiment_id).await?;
-            let raised = sqlx::query(
-                "UPDATE fit_jobs SET generation = generation + 1, forced = (forced OR $2)
-                 WHERE experiment_id = $1",
-            )
-            .bind(experiment_id)
-            .bind(forced)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
-            if raised == 0 {
-                sqlx::query(
-                    "INSERT INTO fit_jobs (experiment_id, generation, forced, requested_at)
-                     VALUES ($1, 1, $2, $3)",
-                )
-                .bind(experiment_id)
-                .bind(forced)
-                .bind(now())
-                .execute(&mut *tx)
-                .await?;
-            }
+            raise_fit(&mut tx, experiment_id, forced).await?;
             tx.commit().await
         })
         .await
