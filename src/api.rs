@@ -520,6 +520,85 @@ pub struct ModelResponse {
     /// version by a warm refit (`mde.reselect_every`) — and what its fit spent its time on;
     /// `null` for the prior and for versions fitted before it was recorded.
     pub selection: Option<SelectionRecord>,
+    /// The exclusions in effect when this version was fitted (ids, ascending; see
+    /// `…/exclusions`): it was fitted on the first `n_train` transitions outside the
+    /// trajectories they cover. Empty for the prior and a version fitted without any.
+    pub exclusions: Vec<i64>,
+}
+
+/// `POST /v1/experiments/{id}/exclusions`: leave one trajectory, or every trajectory stored in a
+/// time range, out of the experiment's model. Give `trajectory_id`, or `from` and `to`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ExclusionRequest {
+    /// The trajectory to leave out.
+    #[serde(default)]
+    pub trajectory_id: Option<i64>,
+    /// The first ingest time the range covers (RFC 3339, inclusive).
+    #[serde(default)]
+    pub from: Option<String>,
+    /// The end of the range (RFC 3339, exclusive). A range covers the trajectories stored
+    /// when the exclusion is made, never one stored later.
+    #[serde(default)]
+    pub to: Option<String>,
+    /// Why (1 to 1000 characters), kept with the exclusion and shown with it.
+    pub reason: String,
+}
+
+/// Whether an exclusion keeps its trajectories out of the model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ExclusionStatus {
+    /// Made and not restored: the next fit (and every one after) leaves its trajectories out.
+    InEffect,
+    /// Restored: the next fit takes its trajectories in again.
+    Restored,
+}
+
+/// An exclusion: what it covers, why, who made it and when, and whether it was restored.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ExclusionView {
+    /// Identifier (ascending in the order exclusions were made).
+    pub id: i64,
+    /// Its experiment.
+    pub experiment_id: i64,
+    /// In effect or restored.
+    pub status: ExclusionStatus,
+    /// The trajectory it names (`null` for a time range).
+    pub trajectory_id: Option<i64>,
+    /// The range's first instant (`null` for one trajectory).
+    pub from: Option<String>,
+    /// The range's end, exclusive (`null` for one trajectory).
+    pub to: Option<String>,
+    /// Why it was made.
+    pub reason: String,
+    /// The trajectories it covers, ascending (resolved when it was made).
+    pub trajectory_ids: Vec<i64>,
+    /// Their transitions.
+    pub n_transitions: i64,
+    /// When it was made (RFC 3339).
+    pub created_at: String,
+    /// Who made it: the first 12 hex digits of the SHA-256 of the caller's access token
+    /// (`printf %s "$TOKEN" | sha256sum | cut -c1-12`); `null` on a server without tokens.
+    pub created_by: Option<String>,
+    /// When it was restored (`null` while in effect).
+    pub restored_at: Option<String>,
+    /// Who restored it, as `created_by`.
+    pub restored_by: Option<String>,
+    /// Whether the model answering now was fitted under this exclusion as it stands: `false`
+    /// until the refit its making (or restoring) requested is swapped in.
+    pub applied: bool,
+}
+
+/// `GET /v1/experiments/{id}/exclusions`: an experiment's exclusions, newest first.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ExclusionPage {
+    /// The page's exclusions.
+    pub items: Vec<ExclusionView>,
+    /// Exclusions in all.
+    pub total: i64,
+    /// The `offset` of the next page, or `null` on the last.
+    pub next: Option<i64>,
 }
 
 /// One state-action to judge.

@@ -13,9 +13,10 @@
 //!
 //! Roles are cumulative: `read` calls the GET routes, precondition queries and test-time plans;
 //! `write` also everything else that changes an experiment (trajectories, proposals); `admin`
-//! also creates experiments and forces refits. The scope (default `*`) lists the experiments a
-//! token may reach; a scoped token cannot create experiments or read `/metrics` (every
-//! experiment's totals), and lists only its own experiments.
+//! also creates experiments, forces refits and excludes (and restores) trajectories. The scope
+//! (default `*`) lists the experiments a token may reach; a scoped token cannot create
+//! experiments or read `/metrics` (every experiment's totals), and lists only its own
+//! experiments.
 //!
 //! Requests carry `Authorization: Bearer <token>`: none or an unknown token is `401`, a known
 //! token without the role or the experiment is `403`. Tokens are compared in constant time
@@ -43,7 +44,7 @@ pub enum Role {
     Read,
     /// Everything else on an experiment: trajectories, proposals, abandoning.
     Write,
-    /// Creating experiments, forcing refits.
+    /// Creating experiments, forcing refits, excluding trajectories from a model.
     Admin,
 }
 
@@ -93,6 +94,25 @@ pub struct Caller {
     pub role: Role,
     /// The token's scope.
     pub scope: Scope,
+}
+
+/// Who called, for audit records (an exclusion's `created_by`): the first 12 hex digits of
+/// the SHA-256 of the caller's token, which an operator computes from the token file
+/// (`printf %s "$TOKEN" | sha256sum | cut -c1-12`) and which says nothing usable of the token.
+/// Put in the request's extensions beside [`Caller`]; absent on a server without tokens.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Fingerprint(pub String);
+
+impl Fingerprint {
+    /// The fingerprint of `token`.
+    pub fn of(token: &[u8]) -> Self {
+        Self(
+            digest(token)[..6]
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect(),
+        )
+    }
 }
 
 /// The tokens of a token file.
@@ -240,13 +260,16 @@ pub fn is_open(path: &str) -> bool {
 
 /// The requirement of a request for `method` on the route `template` (axum syntax) at `path`.
 ///
-/// Reads (GET, HEAD), precondition queries and plans need `read`; creating experiments and
-/// refits need `admin`; every other method needs `write`. Routes under
-/// `/v1/experiments/{id}` touch experiment `id`.
+/// Reads (GET, HEAD), precondition queries and plans need `read`; creating experiments,
+/// refits and exclusions (making and restoring) need `admin`; every other method needs
+/// `write`. Routes under `/v1/experiments/{id}` touch experiment `id`.
 pub fn requirement(method: &Method, template: &str, path: &str) -> Requirement {
     let role = if method == Method::GET || method == Method::HEAD {
         Role::Read
-    } else if template == "/v1/experiments" || template.ends_with("/model/refit") {
+    } else if template == "/v1/experiments"
+        || template.ends_with("/model/refit")
+        || template.contains("/exclusions")
+    {
         Role::Admin
     } else if template.ends_with("/precondition") || template.ends_with("/plans") {
         Role::Read
@@ -309,7 +332,9 @@ pub async fn authorize(tokens: Option<Arc<TokenTable>>, mut req: Request, next: 
     if is_open(&path) {
         return next.run(req).await;
     }
-    let Some(caller) = bearer(&req).and_then(|t| tokens.caller(t)) else {
+    let Some((caller, fingerprint)) =
+        bearer(&req).and_then(|t| Some((tokens.caller(t)?, Fingerprint::of(t))))
+    else {
         return ApiError::Unauthorized.into_response();
     };
     let template = req
@@ -320,6 +345,7 @@ pub async fn authorize(tokens: Option<Arc<TokenTable>>, mut req: Request, next: 
         return e.into_response();
     }
     req.extensions_mut().insert(caller);
+    req.extensions_mut().insert(fingerprint);
     next.run(req).await
 }
 

@@ -7,6 +7,7 @@
 mod activity;
 pub mod auth;
 pub mod error;
+mod exclusions;
 mod experiments;
 pub mod extract;
 pub mod guard;
@@ -200,6 +201,21 @@ pub fn routes() -> Vec<Route> {
             M::GET,
             "/v1/experiments/{id}/timeline",
             get(activity::get_timeline),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/exclusions",
+            post(exclusions::create_exclusion),
+        ),
+        route(
+            M::GET,
+            "/v1/experiments/{id}/exclusions",
+            get(exclusions::list_exclusions),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/exclusions/{eid}/restore",
+            post(exclusions::restore_exclusion),
         ),
         route(M::GET, "/v1/experiments/{id}/model", get(model::get_model)),
         route(

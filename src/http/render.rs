@@ -2,17 +2,18 @@
 //! computes anything the service should have.
 
 use crate::api::{
-    CandidateView, Diagnostics, ExperimentResponse, LaterRates, MapAxis, MapPoint, ModelResponse,
-    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
-    RejectionCounts, RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated,
-    TrajectoryHeader, TrajectoryResponse,
+    CandidateView, Diagnostics, ExclusionPage, ExclusionStatus, ExclusionView, ExperimentResponse,
+    LaterRates, MapAxis, MapPoint, ModelResponse, ModelSource, PlanResponse, PreconditionMap,
+    PreconditionResponse, ProposalResponse, RejectionCounts, RunPage, Timeline, TimelineIteration,
+    TimelineModel, TrajectoryCreated, TrajectoryHeader, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
+use crate::service::exclusions::{ExclusionRecord, Exclusions};
 use crate::service::{
     ExperimentState, Ingested, Judged, LearningTimeline, LooDiagnostics, ModelView, Planned,
     PreconditionGrid, ProposalRecord, Runs,
 };
-use crate::store::{StoredProposal, StoredTrajectory};
+use crate::store::{ExclusionScope, StoredProposal, StoredTrajectory};
 
 /// Whether a version is the prior or a fit.
 pub fn source(m: &ServedModel) -> ModelSource {
@@ -174,6 +175,11 @@ pub fn model(v: ModelView) -> ModelResponse {
         beta_choice: m.fit.as_ref().and_then(|f| f.beta_choice),
         test_beta: v.test_beta,
         selection: m.fit.as_ref().and_then(|f| f.selection.clone()),
+        exclusions: m
+            .fit
+            .as_ref()
+            .map(|f| f.exclusions.clone())
+            .unwrap_or_default(),
     }
 }
 
@@ -265,4 +271,46 @@ pub fn created<T: serde::Serialize>(body: T, replayed: bool) -> axum::response::
         );
     }
     answer
+}
+
+/// An exclusion and whether the model answering agrees with it.
+pub fn exclusion(experiment_id: i64, r: ExclusionRecord) -> ExclusionView {
+    let e = r.exclusion;
+    let (trajectory_id, from, to) = match e.scope {
+        ExclusionScope::Trajectory(t) => (Some(t), None, None),
+        ExclusionScope::TimeRange { from, to } => (None, Some(from), Some(to)),
+    };
+    ExclusionView {
+        id: e.id,
+        experiment_id,
+        status: if e.restored_at.is_some() {
+            ExclusionStatus::Restored
+        } else {
+            ExclusionStatus::InEffect
+        },
+        trajectory_id,
+        from,
+        to,
+        reason: e.reason,
+        trajectory_ids: e.trajectory_ids,
+        n_transitions: e.n_transitions,
+        created_at: e.created_at,
+        created_by: e.created_by,
+        restored_at: e.restored_at,
+        restored_by: e.restored_by,
+        applied: r.applied,
+    }
+}
+
+/// A page of exclusions.
+pub fn exclusions(experiment_id: i64, page: Exclusions) -> ExclusionPage {
+    ExclusionPage {
+        items: page
+            .items
+            .into_iter()
+            .map(|r| exclusion(experiment_id, r))
+            .collect(),
+        total: page.total,
+        next: page.next,
+    }
 }

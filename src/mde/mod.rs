@@ -70,6 +70,10 @@ pub struct FitRecord {
     /// warm refit) and what the fit spent its time on (`None` for versions fitted before it was
     /// recorded).
     pub selection: Option<SelectionRecord>,
+    /// The exclusions (ids of the service's records) in effect when the fit read its
+    /// training set: it was fitted on the first `n_train` transitions outside the trajectories
+    /// they cover.
+    pub exclusions: Vec<i64>,
 }
 
 impl ServedModel {

@@ -313,7 +313,14 @@ impl Service {
         let n_train = model.n_train() as i64;
         let training = if n_train > 0 {
             thin(
-                self.store.transitions(id, 0, Some(n_train)).await?,
+                self.store
+                    .transitions_outside(
+                        id,
+                        &LiveExperiment::trained_outside(&model),
+                        0,
+                        Some(n_train),
+                    )
+                    .await?,
                 MAX_MAP_TRAINING_POINTS,
             )
         } else {
@@ -353,10 +360,14 @@ impl Service {
                 model.version
             )));
         };
-        let labels = self.store.first_deviations(id, gp.n_train() as i64).await?;
+        let outside = LiveExperiment::trained_outside(&model);
+        let labels = self
+            .store
+            .first_deviations(id, &outside, gp.n_train() as i64)
+            .await?;
         let later = self
             .store
-            .transitions_after_first(id, labels.len() as i64, MAX_LATER_TRANSITIONS)
+            .transitions_after_first(id, &outside, labels.len() as i64, MAX_LATER_TRANSITIONS)
             .await?;
         let dim = live.domain.feature_dim();
         let mut features = Vec::with_capacity(later.len() * dim);

@@ -19,7 +19,7 @@ use crate::remote_model::ModelCalls;
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
 use crate::store::fits::FitFinish;
-use crate::store::{FitClaim, FitRefusal, Store, StoredModel, StoredTransition};
+use crate::store::{ExclusionSet, FitClaim, FitRefusal, Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
@@ -207,6 +207,17 @@ impl LiveExperiment {
         self.settings.learning.iteration(n_trajectories)
     }
 
+    /// The exclusions `model` was fitted under (none for the prior).
+    pub(super) fn trained_outside(model: &ServedModel) -> ExclusionSet {
+        ExclusionSet::new(
+            model
+                .fit
+                .as_ref()
+                .map(|f| f.exclusions.clone())
+                .unwrap_or_default(),
+        )
+    }
+
     /// Row-major features and deviations of `transitions`.
     pub(super) fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
@@ -294,11 +305,16 @@ impl LiveExperiment {
         {
             return Ok(None);
         }
-        let transitions = store.transitions(self.id, 0, None).await?;
+        let exclusions = store.active_exclusions(self.id).await?;
+        let transitions = store
+            .transitions_outside(self.id, &exclusions, 0, None)
+            .await?;
         if transitions.is_empty() {
-            return Err(Error::Conflict(
-                "nothing to fit: the experiment has no transitions yet".into(),
-            ));
+            return Err(Error::Conflict(if exclusions.is_empty() {
+                "nothing to fit: the experiment has no transitions yet".into()
+            } else {
+                "nothing to fit: every stored transition is excluded".into()
+            }));
         }
         let version = claim.version;
         let (features, deviations) = self.training_set(&transitions);
@@ -469,10 +485,12 @@ impl LiveExperiment {
             kernel_trials: choice.kernel_trials,
             beta_choice: choice.beta_choice,
             selection: Some(selection),
+            exclusions: exclusions.ids().to_vec(),
         };
         let stored = StoredModel {
             version,
             n_train: gp.n_train() as i64,
+            exclusions,
             n_trajectories,
             state: gp.state(),
             log_marginal_likelihood: gp.log_marginal_likelihood(),
@@ -552,7 +570,9 @@ impl LiveExperiment {
     async fn restore(&self, store: &Store, stored: StoredModel) -> Result<ServedModel, Error> {
         let dim = self.domain.feature_dim();
         let (features, labels) = if stored.state.needs_training_data() {
-            let transitions = store.transitions(self.id, 0, Some(stored.n_train)).await?;
+            let transitions = store
+                .transitions_outside(self.id, &stored.exclusions, 0, Some(stored.n_train))
+                .await?;
             if transitions.len() as i64 != stored.n_train {
                 return Err(Error::Internal(anyhow::anyhow!(
                     "model {} of experiment {} was fitted on {} transitions but {} are stored",
@@ -589,6 +609,7 @@ impl LiveExperiment {
                 kernel_trials: stored.kernel_trials,
                 beta_choice: stored.beta_choice,
                 selection: stored.selection,
+                exclusions: stored.exclusions.ids().to_vec(),
             }),
         })
     }
@@ -652,20 +673,20 @@ impl Registry {
         let mut online_from = None;
         if let Some(model) = store.latest_model(id).await? {
             covered = model.n_trajectories;
-            let n_train = model.n_train;
+            let (n_train, exclusions) = (model.n_train, model.exclusions.clone());
             let served = live.restore(store, model).await?;
             if served.kind().is_some_and(EstimatorKind::updates_online)
                 && stored.n_trajectories > covered
             {
-                online_from = Some(n_train);
+                online_from = Some((n_train, exclusions));
             }
             live.swap_model(Arc::new(served));
         }
         let live = self.insert(live);
-        if let Some(n_train) = online_from {
+        if let Some((n_train, exclusions)) = online_from {
             // What was taken in online before the restart is taken in again.
             let later: Vec<LabelledTransition> = store
-                .transitions_after_first(id, n_train, i64::MAX)
+                .transitions_after_first(id, &exclusions, n_train, i64::MAX)
                 .await?
                 .into_iter()
                 .map(|t| LabelledTransition {

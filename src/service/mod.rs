@@ -19,6 +19,8 @@
 //!   leave-one-out calibration.
 //! - [`exports`](mod@exports): large answers (a model's export, every transition as CSV)
 //!   prepared in export slots, to be written a chunk at a time.
+//! - [`exclusions`](mod@exclusions): trajectories left out of an experiment's model, and
+//!   restored.
 //! - [`error`](mod@error): the service's [`Error`].
 //!
 //! CPU-heavy work (large judgements, in-process dynamics models) runs on the blocking pool,
@@ -27,6 +29,7 @@
 
 pub mod activity;
 pub mod error;
+pub mod exclusions;
 pub mod experiments;
 pub mod exports;
 pub mod fitting;

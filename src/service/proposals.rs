@@ -434,7 +434,12 @@ impl Service {
         }
         let executed = self
             .store
-            .transitions_after_first(live.id, model.n_train() as i64, limit as i64)
+            .transitions_after_first(
+                live.id,
+                &LiveExperiment::trained_outside(model),
+                model.n_train() as i64,
+                limit as i64,
+            )
             .await?;
         let (mut features, _) = live.training_set(&executed);
         let room = limit - executed.len().min(limit);

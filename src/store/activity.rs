@@ -2,7 +2,7 @@
 //! one list of runs, per-iteration statistics and the list of model versions.
 
 use super::trajectories::provenance_from_row;
-use super::{Backend, Provenance, RefusalReason, Store, decode_vec, flag};
+use super::{Backend, ExclusionSet, Provenance, RefusalReason, Store, decode_vec, flag};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use sqlx::any::AnyRow;
@@ -78,6 +78,10 @@ pub struct Run {
     pub source: Option<Provenance>,
     /// The largest deviation label of the executed trajectory (`null` before one was posted).
     pub max_deviation: Option<f64>,
+    /// The exclusion (the oldest in effect) that keeps the posted trajectory out of the
+    /// experiment's model (`null` when none does).
+    #[serde(default)]
+    pub excluded_by: Option<i64>,
 }
 
 /// Executed trajectories and transitions of one learning iteration, and its refused proposal
@@ -204,6 +208,7 @@ fn run_from_row(row: &AnyRow) -> Result<Run, sqlx::Error> {
         deviating: flag(row, "deviating")?,
         source: provenance_from_row(row)?,
         max_deviation: row.try_get("max_deviation")?,
+        excluded_by: row.try_get("excluded_by")?,
     })
 }
 
@@ -226,7 +231,11 @@ impl Store {
         };
         sqlx::query(&format!(
             "SELECT r.*, (SELECT MAX(x.deviation) FROM transitions x
-                          WHERE x.trajectory_id = r.trajectory_id) AS max_deviation
+                          WHERE x.trajectory_id = r.trajectory_id) AS max_deviation,
+                         (SELECT MIN(e.exclusion_id) FROM excluded_trajectories e
+                          JOIN exclusions z ON z.id = e.exclusion_id
+                          WHERE e.trajectory_id = r.trajectory_id AND z.restored_at IS NULL)
+                          AS excluded_by
              FROM ({RUNS}) r
              ORDER BY {instant} r.created_at DESC, r.proposal_id DESC,
                       r.trajectory_id DESC, r.refusal_id DESC
@@ -323,41 +332,49 @@ impl Store {
         .await
     }
 
-    /// The first `n` deviation labels of an experiment, in id order (a model version's training
-    /// labels).
+    /// The first `n` deviation labels of an experiment outside the trajectories `outside`
+    /// covers, in id order (a model version's training labels).
     #[tracing::instrument(skip(self))]
     pub async fn first_deviations(
         &self,
         experiment_id: i64,
+        outside: &ExclusionSet,
         n: i64,
     ) -> Result<Vec<f64>, sqlx::Error> {
-        sqlx::query_scalar(
-            "SELECT deviation FROM transitions WHERE experiment_id = $1 ORDER BY id LIMIT $2",
-        )
+        sqlx::query_scalar(&format!(
+            "SELECT deviation FROM transitions WHERE experiment_id = $1{} ORDER BY id LIMIT $2",
+            outside.sql("trajectory_id")
+        ))
         .bind(experiment_id)
         .bind(n)
         .fetch_all(&self.read)
         .await
     }
 
-    /// Transitions of an experiment after its first `skip` in id order (those a model version
-    /// fitted on the first `skip` never saw), at most `limit`.
+    /// Transitions of an experiment outside the trajectories `outside` covers, after the
+    /// first `skip` of them in id order (those a model version fitted on the first `skip`
+    /// under those exclusions never saw), at most `limit`.
     #[tracing::instrument(skip(self))]
     pub async fn transitions_after_first(
         &self,
         experiment_id: i64,
+        outside: &ExclusionSet,
         skip: i64,
         limit: i64,
     ) -> Result<Vec<super::StoredTransition>, sqlx::Error> {
-        let first_unseen: Option<i64> = sqlx::query_scalar(
-            "SELECT id FROM transitions WHERE experiment_id = $1 ORDER BY id LIMIT 1 OFFSET $2",
-        )
+        let first_unseen: Option<i64> = sqlx::query_scalar(&format!(
+            "SELECT id FROM transitions WHERE experiment_id = $1{} ORDER BY id LIMIT 1 OFFSET $2",
+            outside.sql("trajectory_id")
+        ))
         .bind(experiment_id)
         .bind(skip)
         .fetch_optional(&self.read)
         .await?;
         match first_unseen {
-            Some(id) => self.transitions(experiment_id, id - 1, Some(limit)).await,
+            Some(id) => {
+                self.transitions_outside(experiment_id, outside, id - 1, Some(limit))
+                    .await
+            }
             None => Ok(Vec::new()),
         }
     }

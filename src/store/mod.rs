@@ -23,6 +23,7 @@
 //! one process; several replicas need PostgreSQL.
 
 mod activity;
+mod exclusions;
 mod experiments;
 pub mod fits;
 mod health;
@@ -34,6 +35,7 @@ mod trajectories;
 mod transaction;
 
 pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
+pub use exclusions::{Exclusion, ExclusionOutcome, ExclusionScope, ExclusionSet, RestoreOutcome};
 pub use experiments::{Experiment, ListOrder};
 pub use fits::{FitClaim, FitJob};
 pub use health::{Failure, classify};

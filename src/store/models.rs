@@ -1,6 +1,6 @@
 //! Fitted model versions.
 
-use super::{Store, now};
+use super::{ExclusionSet, Store, now};
 use crate::mde::{
     BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial, SelectionRecord,
 };
@@ -11,8 +11,11 @@ use sqlx::AnyConnection;
 pub struct StoredModel {
     /// Version (1, 2, …).
     pub version: i64,
-    /// Training transitions: the experiment's first `n_train` in id order.
+    /// Training transitions: the experiment's first `n_train` in id order outside the
+    /// trajectories `exclusions` cover.
     pub n_train: i64,
+    /// The exclusions in effect when the fit read its training set.
+    pub exclusions: ExclusionSet,
     /// Trajectories stored when the fit started.
     pub n_trajectories: i64,
     /// Everything needed to rebuild the model (with its training data, for the exact GP).
@@ -63,8 +66,9 @@ pub(super) async fn insert_model_on(
     sqlx::query(
         "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
                              hyperparameters, log_marginal_likelihood, fit_seconds, fitted_at,
-                             label_cap, label_cap_trials, kernel_trials, beta_choice, selection)
-         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15)",
+                             label_cap, label_cap_trials, kernel_trials, beta_choice, selection,
+                             exclusions)
+         VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16)",
     )
     .bind(experiment_id)
     .bind(model.version)
@@ -81,6 +85,7 @@ pub(super) async fn insert_model_on(
     .bind(kernel_trials)
     .bind(beta_choice)
     .bind(selection)
+    .bind(model.exclusions.encode())
     .execute(conn)
     .await?;
     Ok(())
@@ -117,7 +122,7 @@ impl Store {
         let sql = format!(
             "SELECT version, n_train, n_trajectories, state, fit_seconds, fitted_at, label_cap,
                     label_cap_trials, log_marginal_likelihood, kernel_trials, beta_choice,
-                    selection
+                    selection, exclusions
              FROM models WHERE experiment_id = $1 {clause}"
         );
         type Row = (
@@ -132,6 +137,7 @@ impl Store {
             f64,
             String,
             String,
+            Option<String>,
             Option<String>,
         );
         let mut query = sqlx::query_as::<_, Row>(&sql).bind(experiment_id);
@@ -154,10 +160,12 @@ impl Store {
             kernel_trials,
             beta_choice,
             selection,
+            exclusions,
         ) = row;
         Ok(Some(StoredModel {
             version,
             n_train,
+            exclusions: ExclusionSet::decode(exclusions.as_deref())?,
             n_trajectories,
             state: serde_json::from_str(&state).map_err(json_err)?,
             log_marginal_likelihood: lml,

@@ -1,7 +1,7 @@
 //! Trajectories and their transitions; atomic, idempotent ingest.
 
 use super::proposals::{LinkOutcome, link_trajectory};
-use super::{Store, decode_vec, encode_vec, flag, lock_experiment, now};
+use super::{ExclusionSet, Store, decode_vec, encode_vec, flag, lock_experiment, now};
 use crate::domain::LabelledTransition;
 use sqlx::Row;
 use sqlx::any::AnyRow;
@@ -388,9 +388,24 @@ impl Store {
         after: i64,
         limit: Option<i64>,
     ) -> Result<Vec<StoredTransition>, sqlx::Error> {
+        self.transitions_outside(experiment_id, &ExclusionSet::default(), after, limit)
+            .await
+    }
+
+    /// [`Store::transitions`] outside the trajectories `outside` covers: a model version's
+    /// training transitions, or those it has not seen, under the exclusions it was fitted with.
+    #[tracing::instrument(skip(self))]
+    pub async fn transitions_outside(
+        &self,
+        experiment_id: i64,
+        outside: &ExclusionSet,
+        after: i64,
+        limit: Option<i64>,
+    ) -> Result<Vec<StoredTransition>, sqlx::Error> {
         sqlx::query(&format!(
             "SELECT {TRANSITION_COLUMNS} FROM transitions
-             WHERE experiment_id = $1 AND id > $2 ORDER BY id LIMIT $3"
+             WHERE experiment_id = $1 AND id > $2{} ORDER BY id LIMIT $3",
+            outside.sql("trajectory_id")
         ))
         .bind(experiment_id)
         .bind(after)

@@ -4,6 +4,7 @@ use crate::helpers::*;
 use precond::http::HttpConfig;
 use precond::http::auth::TokenTable;
 use serde_json::{Value, json};
+use sha2::{Digest, Sha256};
 use std::sync::Arc;
 
 const ADMIN: &str = "admin-token-0123456789";
@@ -129,6 +130,33 @@ async fn each_role_reaches_its_routes_and_no_further() {
     assert_eq!(call(&app, "POST", &path, Some(WRITER), None).await.0, 403);
     let (status, body) = call(&app, "POST", &path, Some(ADMIN), None).await;
     assert_eq!(status, 200, "{body}");
+    // Exclusions: admin, recorded with the caller's token fingerprint (a second trajectory:
+    // excluding the only one would leave nothing to fit).
+    let more = free_row_trajectory(0, 1, 2);
+    let path = format!("/v1/experiments/{id}/trajectories");
+    let (status, body) = call(&app, "POST", &path, Some(WRITER), Some(more)).await;
+    assert_eq!(status, 201, "{body}");
+    let path = format!("/v1/experiments/{id}/exclusions");
+    let exclude = json!({"trajectory_id": 1, "reason": "a bad run"});
+    let (status, _) = call(&app, "POST", &path, Some(WRITER), Some(exclude.clone())).await;
+    assert_eq!(status, 403);
+    let (status, body) = call(&app, "POST", &path, Some(ADMIN), Some(exclude)).await;
+    assert_eq!(status, 201, "{body}");
+    let fingerprint: String = Sha256::digest(ADMIN.as_bytes())[..6]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect();
+    assert_eq!(body["created_by"], json!(fingerprint));
+    let (status, _) = call(&app, "GET", &path, Some(READER), None).await;
+    assert_eq!(status, 200);
+    let restore = format!("{path}/1/restore");
+    assert_eq!(
+        call(&app, "POST", &restore, Some(WRITER), None).await.0,
+        403
+    );
+    let (status, body) = call(&app, "POST", &restore, Some(ADMIN), None).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["restored_by"], json!(fingerprint));
 }
 
 #[tokio::test]

@@ -8,6 +8,7 @@ mod contract;
 mod custom;
 mod dashboard;
 mod estimators;
+mod exclusions;
 mod executions;
 mod experiments;
 mod export;

@@ -147,6 +147,9 @@ const ENTRIES: &[Entry] = &[
     entry::<api::TransitionPage>("TransitionPage", Response),
     // dashboard reads
     entry::<api::RunView>("Run", Response),
+    entry::<api::ExclusionRequest>("ExclusionRequest", Request),
+    entry::<api::ExclusionView>("Exclusion", Response),
+    entry::<api::ExclusionPage>("ExclusionPage", Response),
     entry::<api::RunPage>("RunPage", Response),
     entry::<api::TimelineIteration>("TimelineIteration", Response),
     entry::<api::TimelineModel>("TimelineModel", Response),
@@ -297,6 +300,7 @@ const QUERIES: &[Query] = &[
     query::<api::ExperimentsQuery>("get", "/v1/experiments"),
     query::<api::TransitionsQuery>("get", "/v1/experiments/{id}/transitions"),
     query::<api::PageQuery>("get", "/v1/experiments/{id}/runs"),
+    query::<api::PageQuery>("get", "/v1/experiments/{id}/exclusions"),
     query::<api::DiagnosticsQuery>("get", "/v1/experiments/{id}/model/diagnostics"),
     query::<api::ExportQuery>("get", "/v1/experiments/{id}/model/export"),
     query::<api::PointQuery>("get", "/v1/experiments/{id}/precondition"),
