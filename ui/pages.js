@@ -380,6 +380,18 @@ function runsTable(e, page, offset) {
           r.deviating
             ? h('span', { class: 'badge deviating', title: 'not the proposal as planned' }, 'deviating')
             : null,
+          r.excluded_by != null ? ' ' : null,
+          r.excluded_by != null
+            ? h(
+                'a',
+                {
+                  class: 'badge excluded',
+                  href: `#exclusion-${r.excluded_by}`,
+                  title: `left out of the model by exclusion #${r.excluded_by}`,
+                },
+                'excluded',
+              )
+            : null,
         ),
       ),
       td(r.client_id ?? '–'),
@@ -414,12 +426,63 @@ function runsTable(e, page, offset) {
   ];
 }
 
+/** What an exclusion covers, in a few words. */
+function exclusionScope(x) {
+  const n = x.trajectory_ids.length;
+  const what = x.trajectory_id != null ? `trajectory #${x.trajectory_id}` : `stored ${x.since} to ${x.until}`;
+  return `${what} (${n} ${n === 1 ? 'trajectory' : 'trajectories'}, ${x.n_transitions} transitions)`;
+}
+
+/** The exclusions: what was left out of the model, why, by whom, and whether the model agrees yet. */
+function exclusionsTable(page) {
+  if (page.total === 0) return [];
+  const who = by => (by ? h('code', { title: 'SHA-256 of the token, first 12 hex digits' }, by) : '–');
+  const rows = page.items.map(x =>
+    h(
+      'tr',
+      { id: `exclusion-${x.id}`, class: x.status === 'restored' ? 'restored' : null },
+      td(`#${x.id}`, true),
+      td(exclusionScope(x)),
+      td(x.reason),
+      td(h('span', {}, ago(x.created_at), ' by ', who(x.created_by))),
+      td(
+        x.status === 'restored'
+          ? h(
+              'span',
+              {},
+              h('span', { class: 'badge restored' }, 'restored'),
+              ' ',
+              ago(x.restored_at),
+              ' by ',
+              who(x.restored_by),
+            )
+          : h('span', { class: 'badge excluded' }, 'in effect'),
+      ),
+      td(
+        x.applied
+          ? h('span', { class: 'ok' }, 'yes')
+          : h('span', { class: 'muted', title: 'the refit it requested has not been swapped in yet' }, 'refit pending'),
+      ),
+    ),
+  );
+  const more =
+    page.next != null ? [h('p', { class: 'muted' }, `the newest ${page.items.length} of ${page.total}`)] : [];
+  return [
+    h('h2', { id: 'exclusions-title' }, 'Left out of the model'),
+    table([['exclusion', 1], ['what'], ['reason'], ['made'], ['status'], ['in the model answering']], rows, {
+      id: 'exclusions',
+    }),
+    ...more,
+  ];
+}
+
 export async function experimentPage(root, params, id) {
   const offset = Math.max(0, parseInt(params.get('offset') ?? '0', 10) || 0);
-  const [e, t, runs] = await Promise.all([
+  const [e, t, runs, exclusions] = await Promise.all([
     api(`/v1/experiments/${id}`),
     api(`/v1/experiments/${id}/timeline`),
     api(`/v1/experiments/${id}/runs?offset=${offset}&limit=${PAGE}`),
+    api(`/v1/experiments/${id}/exclusions?limit=${PAGE}`),
   ]);
   const name = e.name || `experiment ${id}`;
   crumbs([['Experiments', '/ui/experiments'], [name]]);
@@ -440,6 +503,7 @@ export async function experimentPage(root, params, id) {
     modelTable(t),
     h('h2', { id: 'runs-title' }, 'Proposals, trajectories and refusals'),
     ...runsTable(e, runs, offset),
+    ...exclusionsTable(exclusions),
   );
 }
 

@@ -142,6 +142,21 @@ test('the runs table shows refused and deviating runs, and a logged run its sour
   await open(`/ui/experiments/${grid}`);
 });
 
+test('an excluded run is marked in the runs and listed with its reason', async () => {
+  const listed = await call(base, 'GET', `/v1/experiments/${grid}/exclusions`);
+  assert.equal(listed.total, 1);
+  const x = listed.items[0];
+  assert.ok(x.applied, 'the seed refit after the exclusion');
+  const row = page.locator('#runs tbody tr').filter({ has: page.locator('.badge.excluded') });
+  assert.equal(await row.count(), 1);
+  assert.match(await row.innerText(), new RegExp(`#${x.trajectory_ids[0]} steps`));
+  const text = await page.locator(`#exclusion-${x.id}`).innerText();
+  assert.match(text, new RegExp(`trajectory #${x.trajectory_ids[0]} \\(1 trajectory, 1 transitions\\)`));
+  assert.match(text, /the robot was bumped by a person[\s\S]*in effect[\s\S]*yes/);
+  const model = await call(base, 'GET', `/v1/experiments/${grid}/model`);
+  assert.deepEqual(model.exclusions, [x.id]);
+});
+
 test('a trajectory shows its steps with μ ± σ at the time and now', async () => {
   const runs = await call(base, 'GET', `/v1/experiments/${grid}/runs?limit=100`);
   const executed = runs.items.find(r => r.status === 'executed');

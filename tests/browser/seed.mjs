@@ -154,9 +154,14 @@ export async function seedGridworld(base, { name = 'icy gridworld', n = 12, seed
       if (!String(err).includes('no_plan')) throw err;
     },
   );
-  await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, {
+  const bumped = await call(base, 'POST', `/v1/experiments/${e.id}/trajectories`, {
     partial: true,
     transitions: [{ s: [0, 0], a: [1, 0], s_next: [1, 0] }],
+  });
+  // The operator left this run out of the model (the refit below is fitted without it).
+  await call(base, 'POST', `/v1/experiments/${e.id}/exclusions`, {
+    trajectory_id: bumped.id,
+    reason: 'the robot was bumped by a person',
   });
   const quit = await call(base, 'POST', `/v1/experiments/${e.id}/proposals`, {
     start: [0, 0],
