@@ -536,11 +536,11 @@ pub struct ExclusionRequest {
     pub trajectory_id: Option<i64>,
     /// The first ingest time the range covers (RFC 3339, inclusive).
     #[serde(default)]
-    pub from: Option<String>,
+    pub since: Option<String>,
     /// The end of the range (RFC 3339, exclusive). A range covers the trajectories stored
     /// when the exclusion is made, never one stored later.
     #[serde(default)]
-    pub to: Option<String>,
+    pub until: Option<String>,
     /// Why (1 to 1000 characters), kept with the exclusion and shown with it.
     pub reason: String,
 }
@@ -567,9 +567,9 @@ pub struct ExclusionView {
     /// The trajectory it names (`null` for a time range).
     pub trajectory_id: Option<i64>,
     /// The range's first instant (`null` for one trajectory).
-    pub from: Option<String>,
+    pub since: Option<String>,
     /// The range's end, exclusive (`null` for one trajectory).
-    pub to: Option<String>,
+    pub until: Option<String>,
     /// Why it was made.
     pub reason: String,
     /// The trajectories it covers, ascending (resolved when it was made).

@@ -276,7 +276,7 @@ pub fn created<T: serde::Serialize>(body: T, replayed: bool) -> axum::response::
 /// An exclusion and whether the model answering agrees with it.
 pub fn exclusion(experiment_id: i64, r: ExclusionRecord) -> ExclusionView {
     let e = r.exclusion;
-    let (trajectory_id, from, to) = match e.scope {
+    let (trajectory_id, since, until) = match e.scope {
         ExclusionScope::Trajectory(t) => (Some(t), None, None),
         ExclusionScope::TimeRange { from, to } => (None, Some(from), Some(to)),
     };
@@ -289,8 +289,8 @@ pub fn exclusion(experiment_id: i64, r: ExclusionRecord) -> ExclusionView {
             ExclusionStatus::InEffect
         },
         trajectory_id,
-        from,
-        to,
+        since,
+        until,
         reason: e.reason,
         trajectory_ids: e.trajectory_ids,
         n_transitions: e.n_transitions,

@@ -71,7 +71,7 @@ fn scope_of(request: &ExclusionRequest) -> Result<ExclusionScope> {
     if let Some(problem) = text_problem(reason) {
         return Err(Error::validation("reason", problem));
     }
-    match (request.trajectory_id, &request.from, &request.to) {
+    match (request.trajectory_id, &request.since, &request.until) {
         (Some(t), None, None) => {
             if t < 1 {
                 return Err(Error::validation(
@@ -82,31 +82,31 @@ fn scope_of(request: &ExclusionRequest) -> Result<ExclusionScope> {
             Ok(ExclusionScope::Trajectory(t))
         }
         (None, Some(from), Some(to)) => {
-            let (from_t, from) = instant("from", from)?;
-            let (to_t, to) = instant("to", to)?;
+            let (from_t, from) = instant("since", from)?;
+            let (to_t, to) = instant("until", to)?;
             if to_t <= from_t {
                 return Err(Error::validation(
-                    "to",
-                    format!("must be after `from` ({from}), got {to}"),
+                    "until",
+                    format!("must be after `since` ({from}), got {to}"),
                 ));
             }
             Ok(ExclusionScope::TimeRange { from, to })
         }
         (Some(_), _, _) => Err(Error::validation(
             "trajectory_id",
-            "give `trajectory_id` or a time range (`from` and `to`), not both",
+            "give `trajectory_id` or a time range (`since` and `until`), not both",
         )),
         (None, Some(_), None) => Err(Error::validation(
-            "to",
-            "a time range needs `to` (exclusive) beside `from`",
+            "until",
+            "a time range needs `until` (exclusive) beside `since`",
         )),
         (None, None, Some(_)) => Err(Error::validation(
-            "from",
-            "a time range needs `from` (inclusive) beside `to`",
+            "since",
+            "a time range needs `since` (inclusive) beside `until`",
         )),
         (None, None, None) => Err(Error::validation(
             "trajectory_id",
-            "give the trajectory to leave out, or a time range (`from` and `to`)",
+            "give the trajectory to leave out, or a time range (`since` and `until`)",
         )),
     }
 }
@@ -146,7 +146,7 @@ impl Service {
                 ),
             )),
             ExclusionOutcome::CoversNothing => Err(Error::validation(
-                "from",
+                "since",
                 format!("no trajectory of experiment {id} was stored in this time range"),
             )),
             ExclusionOutcome::LeavesNothing { n_transitions } => Err(Error::Conflict(format!(

@@ -159,7 +159,7 @@ async fn a_time_range_covers_the_trajectories_stored_in_it_and_bad_requests_stor
         .post_at(
             id,
             "exclusions",
-            &json!({"from": from, "to": to, "reason": "calibration day"}),
+            &json!({"since": from, "until": to, "reason": "calibration day"}),
         )
         .await;
     assert_eq!(status, 201, "{made}");
@@ -181,21 +181,21 @@ async fn a_time_range_covers_the_trajectories_stored_in_it_and_bad_requests_stor
     let bad: [(Value, &str); 9] = [
         (json!({"reason": "x"}), "trajectory_id"),
         (
-            json!({"trajectory_id": 1, "from": from, "to": to, "reason": "x"}),
+            json!({"trajectory_id": 1, "since": from, "until": to, "reason": "x"}),
             "trajectory_id",
         ),
-        (json!({"from": from, "reason": "x"}), "to"),
-        (json!({"to": to, "reason": "x"}), "from"),
+        (json!({"since": from, "reason": "x"}), "until"),
+        (json!({"until": to, "reason": "x"}), "since"),
         (
-            json!({"from": "yesterday", "to": to, "reason": "x"}),
-            "from",
+            json!({"since": "yesterday", "until": to, "reason": "x"}),
+            "since",
         ),
-        (json!({"from": to, "to": from, "reason": "x"}), "to"),
+        (json!({"since": to, "until": from, "reason": "x"}), "until"),
         (json!({"trajectory_id": 99, "reason": "x"}), "trajectory_id"),
         (json!({"trajectory_id": 1, "reason": ""}), "reason"),
         (
-            json!({"from": "2999-01-01T00:00:00Z", "to": "2999-01-02T00:00:00Z", "reason": "x"}),
-            "from",
+            json!({"since": "2999-01-01T00:00:00Z", "until": "2999-01-02T00:00:00Z", "reason": "x"}),
+            "since",
         ),
     ];
     for (body, field) in bad {
@@ -220,7 +220,7 @@ async fn a_time_range_covers_the_trajectories_stored_in_it_and_bad_requests_stor
         .post_at(
             id,
             "exclusions",
-            &json!({"from": "2000-01-01T00:00:00Z", "to": to, "reason": "everything"}),
+            &json!({"since": "2000-01-01T00:00:00Z", "until": to, "reason": "everything"}),
         )
         .await;
     assert_eq!(status, 409, "{answer}");

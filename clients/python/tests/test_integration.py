@@ -3,6 +3,7 @@ remote model served by ``serve_model`` and a server restart in the middle of the
 
 from __future__ import annotations
 
+import datetime
 import threading
 import time
 from pathlib import Path
@@ -209,6 +210,54 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         # Nothing is trusted at β = 1000, so a search spends the whole budget it asks for.
         short = client.plan([0.1, 0.2], [0.9, 0.8], beta=1000.0, max_extensions=7)
         assert not short.found and short.extensions == 7
+
+
+def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60)
+        client.create_experiment(settings(served.url, "hygiene"))
+        rng = np.random.default_rng(2)
+        posted = []
+        for _ in range(3):
+            start = rng.uniform(0.1, 0.9, size=2)
+            actions = rng.uniform(-0.1, 0.1, size=(6, 2))
+            states = execute(start, actions)
+            posted.append(client.post_trajectory(transitions_from_states(states, actions)))
+        fitted = client.refit()
+        assert fitted.n_train == 18 and fitted.exclusions == []
+
+        made = client.exclude_trajectory(posted[1].id, "the arm hit the table")
+        assert made.status == "in_effect" and made.trajectory_ids == [posted[1].id]
+        assert made.n_transitions == 6 and made.reason == "the arm hit the table"
+        deadline = time.monotonic() + 120
+        while (without := client.model()).version == fitted.version:
+            assert time.monotonic() < deadline, "the refit the exclusion requested ran"
+            time.sleep(0.05)
+        assert without.n_train == 12 and without.exclusions == [made.id]
+        [listed] = list(client.exclusions())
+        assert listed.id == made.id and listed.applied
+        excluded = {r.trajectory_id: r.excluded_by for r in client.runs()}
+        assert excluded == {posted[0].id: None, posted[1].id: made.id, posted[2].id: None}
+
+        restored = client.restore_exclusion(made.id)
+        assert restored.status == "restored" and restored.restored_at is not None
+        while (back := client.model()).version == without.version:
+            assert time.monotonic() < deadline, "the refit the restore requested ran"
+            time.sleep(0.05)
+        assert back.n_train == 18 and back.exclusions == []
+
+        day = client.exclude_time_range(
+            posted[2].created_at,
+            datetime.datetime(2999, 1, 1, tzinfo=datetime.timezone.utc),
+            "a bad day",
+        )
+        assert day.trajectory_ids == [posted[2].id] and day.since is not None
+        with pytest.raises(ValueError, match="time zone"):
+            client.exclude_time_range(datetime.datetime(2026, 1, 1), "2999-01-01T00:00:00Z", "x")
+        with pytest.raises(ValidationFailed) as refused:
+            client.exclude_trajectory(999, "no such run")
+        assert refused.value.field == "trajectory_id"
 
 
 def test_a_proposal_continues_from_where_the_robot_is(make_server: MakeServer) -> None:

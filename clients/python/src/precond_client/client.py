@@ -20,6 +20,7 @@ wait is logged at ``INFO`` on the ``precond_client`` logger, with what it is for
 
 from __future__ import annotations
 
+import datetime
 import json
 import logging
 import math
@@ -52,6 +53,7 @@ from .imports import (
 from .models import (
     Candidate,
     Continued,
+    Exclusion,
     Experiment,
     Model,
     Plan,
@@ -163,6 +165,15 @@ def _transitions_json(
     if not items:
         raise ValueError(empty)
     return items
+
+
+def _rfc3339(t: datetime.datetime | str) -> str:
+    """``t`` as RFC 3339; a naive datetime is refused (its time zone would be a guess)."""
+    if isinstance(t, str):
+        return t
+    if t.tzinfo is None or t.utcoffset() is None:
+        raise ValueError(f"{t!r} has no time zone: give e.g. datetime.now(timezone.utc)")
+    return t.isoformat()
 
 
 class Client:
@@ -758,6 +769,42 @@ class Client:
             max_body_bytes=max_body_bytes,
             progress=progress,
         )
+
+    # ------------------------------------------------------------------ the model
+
+    # ------------------------------------------------------------------ data hygiene
+
+    def exclude_trajectory(self, trajectory_id: int, reason: str) -> Exclusion:
+        """Leaves one stored trajectory (a bad run) out of the experiment's model, saying why.
+        The exclusion and a refit are stored together; the refit runs in the background, and
+        the next model version (its ``exclusions``) is fitted without it. Needs an ``admin``
+        token. The trajectory stays stored; :meth:`restore_exclusion` brings it back."""
+        body = {"trajectory_id": int(trajectory_id), "reason": reason}
+        r = self._request("POST", self._path("/exclusions"), json=body, idempotent=False)
+        return Exclusion.from_json(r.json())
+
+    def exclude_time_range(
+        self, since: datetime.datetime | str, until: datetime.datetime | str, reason: str
+    ) -> Exclusion:
+        """Leaves every trajectory stored from ``since`` (inclusive) to ``until`` (exclusive)
+        out of the model — a day a sensor was miscalibrated. Times are RFC 3339 strings or
+        timezone-aware datetimes; the range covers what is stored now, never a trajectory
+        stored later. As :meth:`exclude_trajectory` otherwise."""
+        body = {"since": _rfc3339(since), "until": _rfc3339(until), "reason": reason}
+        r = self._request("POST", self._path("/exclusions"), json=body, idempotent=False)
+        return Exclusion.from_json(r.json())
+
+    def restore_exclusion(self, exclusion_id: int) -> Exclusion:
+        """Takes an exclusion's trajectories back into the model (the next fit, requested
+        now); restoring twice is harmless."""
+        r = self._request("POST", self._path(f"/exclusions/{int(exclusion_id)}/restore"))
+        return Exclusion.from_json(r.json())
+
+    def exclusions(self, page_size: int = 100) -> Iterator[Exclusion]:
+        """Every exclusion of the experiment, in effect or restored, newest first: what was
+        left out of the model, why, by whom and when."""
+        for item in self._pages("/exclusions", "offset", 0, page_size):
+            yield Exclusion.from_json(item)
 
     # ------------------------------------------------------------------ the model
 

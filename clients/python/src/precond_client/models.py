@@ -364,6 +364,38 @@ class Run(Wire):
     deviating: bool
     source: Source | None
     max_deviation: float | None
+    excluded_by: int | None
+    """The exclusion (the oldest in effect) keeping the posted trajectory out of the model."""
+
+
+@dataclass(frozen=True)
+class Exclusion(Wire):
+    """Trajectories left out of the experiment's model (schema ``Exclusion``): one trajectory
+    or those stored in a time range, why, who made it (their token's fingerprint) and when,
+    whether it was restored, and whether the model answering agrees with it yet."""
+
+    SCHEMA: ClassVar[str] = "Exclusion"
+
+    id: int
+    experiment_id: int
+    status: str
+    """``in_effect`` or ``restored``."""
+    trajectory_id: int | None
+    since: str | None
+    """The first ingest time of a time range (``None`` for one trajectory)."""
+    until: str | None
+    """The end of a time range, exclusive."""
+    reason: str
+    trajectory_ids: list[int]
+    n_transitions: int
+    created_at: str
+    created_by: str | None
+    """The first 12 hex digits of the SHA-256 of the caller's token (``None`` without tokens)."""
+    restored_at: str | None
+    restored_by: str | None
+    applied: bool
+    """Whether the answering version was fitted under the exclusion as it stands: ``False``
+    until the refit its making (or restoring) requested is swapped in."""
 
 
 @dataclass(frozen=True)
@@ -687,6 +719,8 @@ class Model(Wire):
     selection: SelectionRecord | None
     """How this version's kernel and label cap were chosen, anew or kept by a warm refit, and
     what the fit spent its time on (``None`` for the prior and older versions)."""
+    exclusions: list[int]
+    """The exclusions in effect when this version was fitted (see :meth:`Client.exclusions`)."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
 
 
