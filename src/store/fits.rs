@@ -88,6 +88,18 @@ pub(super) async fn raise_fit(
     Ok(())
 }
 
+/// The seconds a requested fit of `fit_jobs j` is expected to take: the longest of its
+/// experiment's last five fits (a warm refit's cost, or the model selection one in five
+/// re-runs), 0 before its first. Fits are claimed in the order they would finish if each
+/// started when it was requested: a robot's fit of a few hundred transitions (seconds) goes
+/// before a fleet's refit of thousands (minutes) requested a little earlier, and a large fit
+/// waits at most about its own length for the small ones requested after it.
+const EXPECTED_FINISH: &str = "COALESCE((
+    SELECT MAX(m.fit_seconds) FROM models m
+    WHERE m.experiment_id = j.experiment_id
+      AND m.version > (SELECT MAX(v.version) FROM models v
+                       WHERE v.experiment_id = j.experiment_id) - 5), 0)";
+
 impl Store {
     /// Requests a fit of `experiment_id` (`forced`: even if a model covers its latest batch).
     #[tracing::instrument(skip(self))]
@@ -102,8 +114,9 @@ impl Store {
     }
 
     /// Claims a requested fit for `replica`: one nobody holds, or whose holder's last
-    /// heartbeat is older than `lease_seconds`; the oldest request first; only
-    /// `experiment_id`'s when given. `None` when there is none to claim.
+    /// heartbeat is older than `lease_seconds`; the one expected to finish first if each
+    /// started when it was requested ([`EXPECTED_FINISH`]); only `experiment_id`'s when given.
+    /// `None` when there is none to claim.
     #[tracing::instrument(skip(self))]
     pub async fn claim_fit(
         &self,
@@ -115,19 +128,24 @@ impl Store {
             let now = unix_now();
             // SQLite's one writer makes the claim atomic; PostgreSQL's claimers skip each other's
             // locked rows.
-            let skip_locked = match self.backend {
-                Backend::Sqlite => "",
-                Backend::Postgres => "FOR UPDATE SKIP LOCKED",
+            let (skip_locked, requested_unix) = match self.backend {
+                Backend::Sqlite => ("", "(julianday(j.requested_at) - 2440587.5) * 86400.0"),
+                Backend::Postgres => (
+                    "FOR UPDATE SKIP LOCKED",
+                    "CAST(EXTRACT(EPOCH FROM CAST(j.requested_at AS TIMESTAMPTZ))
+                          AS DOUBLE PRECISION)",
+                ),
             };
             let mut tx = self.begin_write().await?;
             let row = sqlx::query(&format!(
                 "UPDATE fit_jobs
                  SET claimed_by = $1, claimed_generation = generation, heartbeat_unix = $2
                  WHERE experiment_id = (
-                     SELECT experiment_id FROM fit_jobs
-                     WHERE (claimed_by IS NULL OR heartbeat_unix < $3)
-                       AND ($4 IS NULL OR experiment_id = $4)
-                     ORDER BY requested_at, experiment_id LIMIT 1 {skip_locked})
+                     SELECT j.experiment_id FROM fit_jobs j
+                     WHERE (j.claimed_by IS NULL OR j.heartbeat_unix < $3)
+                       AND ($4 IS NULL OR j.experiment_id = $4)
+                     ORDER BY {requested_unix} + {EXPECTED_FINISH}, j.experiment_id
+                     LIMIT 1 {skip_locked})
                  RETURNING experiment_id, generation, forced"
             ))
             .bind(replica)
@@ -325,6 +343,7 @@ mod tests {
         }
         let (busy, waiting) = (ids[0], ids[1]);
         store.request_fit(busy, false).await.unwrap();
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
         store.request_fit(waiting, false).await.unwrap();
         let first = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
         assert_eq!(first.experiment_id, busy, "the oldest request first");
@@ -335,5 +354,63 @@ mod tests {
         assert_eq!(next.experiment_id, waiting);
         let after = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
         assert_eq!(after.experiment_id, busy, "its request is kept, behind");
+    }
+
+    /// A model version of `experiment` whose fit took `seconds` (only the columns a claim
+    /// reads mean anything).
+    async fn fitted(store: &Store, experiment: i64, version: i64, seconds: f64) {
+        sqlx::query(
+            "INSERT INTO models (experiment_id, version, n_train, n_trajectories, noise, state,
+                                 hyperparameters, log_marginal_likelihood, fit_seconds,
+                                 fitted_at, label_cap, label_cap_trials)
+             VALUES ($1, $2, 1, 1, 'homoscedastic', '{}', 'null', 0, $3, $4, 0, '[]')",
+        )
+        .bind(experiment)
+        .bind(version)
+        .bind(seconds)
+        .bind(now())
+        .execute(&store.write)
+        .await
+        .unwrap();
+    }
+
+    #[tokio::test]
+    async fn a_quick_fit_goes_before_a_long_one_requested_a_little_earlier_but_not_forever() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
+            .await
+            .unwrap();
+        let (settings, _) = ExperimentRequest::default()
+            .resolve(&Arc::new(ModelCalls::default()))
+            .unwrap();
+        let mut ids = Vec::new();
+        for _ in 0..2 {
+            let e = store.insert_experiment(&settings, 10).await.unwrap();
+            ids.push(e.unwrap().id);
+        }
+        let (fleet, robot) = (ids[0], ids[1]);
+        // The fleet's refits take minutes (the longest of the last five counts), the robot's
+        // a second.
+        fitted(&store, fleet, 1, 300.0).await;
+        fitted(&store, fleet, 2, 2.0).await;
+        fitted(&store, robot, 1, 0.5).await;
+        store.request_fit(fleet, true).await.unwrap();
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+        store.request_fit(robot, false).await.unwrap();
+        let first = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(first.experiment_id, robot, "the quick fit first");
+        store.finish_fit(&first, None).await.unwrap();
+        // Requested long enough ago, the long fit goes before a quick one asked for now.
+        sqlx::query("UPDATE fit_jobs SET requested_at = $2 WHERE experiment_id = $1")
+            .bind(fleet)
+            .bind(super::super::timestamp(
+                time::OffsetDateTime::now_utc() - time::Duration::seconds(600),
+            ))
+            .execute(&store.write)
+            .await
+            .unwrap();
+        store.request_fit(robot, false).await.unwrap();
+        let next = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(next.experiment_id, fleet, "it waited longer than it takes");
     }
 }
