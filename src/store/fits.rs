@@ -90,15 +90,25 @@ pub(super) async fn raise_fit(
 
 /// The seconds a requested fit of `fit_jobs j` is expected to take: the longest of its
 /// experiment's last five fits (a warm refit's cost, or the model selection one in five
-/// re-runs), 0 before its first. Fits are claimed in the order they would finish if each
-/// started when it was requested: a robot's fit of a few hundred transitions (seconds) goes
-/// before a fleet's refit of thousands (minutes) requested a little earlier, and a large fit
-/// waits at most about its own length for the small ones requested after it.
-const EXPECTED_FINISH: &str = "COALESCE((
-    SELECT MAX(m.fit_seconds) FROM models m
-    WHERE m.experiment_id = j.experiment_id
-      AND m.version > (SELECT MAX(v.version) FROM models v
-                       WHERE v.experiment_id = j.experiment_id) - 5), 0)";
+/// re-runs), scaled by the cube of how much its data grew since (an exact GP's cost; a fleet's
+/// experiment that tripled since its last fit takes 27 times as long); 0 before its first fit.
+/// Fits are claimed in the order they would finish if each started when it was requested: a
+/// robot's fit of a few hundred transitions (seconds) goes before a fleet's refit of thousands
+/// (minutes) requested a little earlier, and a large fit waits at most about its own length for
+/// the small ones requested after it.
+fn expected_seconds() -> String {
+    let growth = "((SELECT CAST(COUNT(*) AS DOUBLE PRECISION) FROM transitions t
+                    WHERE t.experiment_id = j.experiment_id)
+                   / (SELECT CAST(MAX(v.n_train) AS DOUBLE PRECISION) FROM models v
+                      WHERE v.experiment_id = j.experiment_id))";
+    format!(
+        "COALESCE((SELECT MAX(m.fit_seconds) FROM models m
+                   WHERE m.experiment_id = j.experiment_id
+                     AND m.version > (SELECT MAX(v.version) FROM models v
+                                      WHERE v.experiment_id = j.experiment_id) - 5)
+                  * {growth} * {growth} * {growth}, 0)"
+    )
+}
 
 impl Store {
     /// Requests a fit of `experiment_id` (`forced`: even if a model covers its latest batch).
@@ -115,7 +125,7 @@ impl Store {
 
     /// Claims a requested fit for `replica`: one nobody holds, or whose holder's last
     /// heartbeat is older than `lease_seconds`; the one expected to finish first if each
-    /// started when it was requested ([`EXPECTED_FINISH`]); only `experiment_id`'s when given.
+    /// started when it was requested ([`expected_seconds`]); only `experiment_id`'s when given.
     /// `None` when there is none to claim.
     #[tracing::instrument(skip(self))]
     pub async fn claim_fit(
@@ -136,6 +146,7 @@ impl Store {
                           AS DOUBLE PRECISION)",
                 ),
             };
+            let expected = expected_seconds();
             let mut tx = self.begin_write().await?;
             let row = sqlx::query(&format!(
                 "UPDATE fit_jobs
@@ -144,7 +155,7 @@ impl Store {
                      SELECT j.experiment_id FROM fit_jobs j
                      WHERE (j.claimed_by IS NULL OR j.heartbeat_unix < $3)
                        AND ($4 IS NULL OR j.experiment_id = $4)
-                     ORDER BY {requested_unix} + {EXPECTED_FINISH}, j.experiment_id
+                     ORDER BY {requested_unix} + {expected}, j.experiment_id
                      LIMIT 1 {skip_locked})
                  RETURNING experiment_id, generation, forced"
             ))
@@ -323,8 +334,10 @@ impl Store {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::domain::{LabelledTransition, Transition};
     use crate::remote_model::ModelCalls;
     use crate::settings::ExperimentRequest;
+    use crate::store::TrajectoryMeta;
     use std::sync::Arc;
 
     #[tokio::test]
@@ -374,6 +387,27 @@ mod tests {
         .unwrap();
     }
 
+    /// Stores a trajectory of `n` transitions in `experiment`.
+    async fn stored(store: &Store, experiment: i64, n: usize) {
+        let row: Vec<LabelledTransition> = (0..n)
+            .map(|_| LabelledTransition {
+                observed: Transition::new(vec![0.0, 0.0], vec![1.0, 0.0], vec![1.0, 0.0]),
+                s_pred: vec![1.0, 0.0],
+                deviation: 0.0,
+            })
+            .collect();
+        let meta = TrajectoryMeta {
+            proposal_id: None,
+            partial: false,
+            deviating: false,
+            source: None,
+        };
+        store
+            .ingest_trajectory(experiment, meta, &row, None, 1)
+            .await
+            .unwrap();
+    }
+
     #[tokio::test]
     async fn a_quick_fit_goes_before_a_long_one_requested_a_little_earlier_but_not_forever() {
         let dir = tempfile::tempdir().unwrap();
@@ -394,6 +428,9 @@ mod tests {
         fitted(&store, fleet, 1, 300.0).await;
         fitted(&store, fleet, 2, 2.0).await;
         fitted(&store, robot, 1, 0.5).await;
+        // Neither grew since (one transition each, as fitted).
+        stored(&store, fleet, 1).await;
+        stored(&store, robot, 1).await;
         store.request_fit(fleet, true).await.unwrap();
         tokio::time::sleep(std::time::Duration::from_millis(5)).await;
         store.request_fit(robot, false).await.unwrap();
@@ -412,5 +449,38 @@ mod tests {
         store.request_fit(robot, false).await.unwrap();
         let next = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
         assert_eq!(next.experiment_id, fleet, "it waited longer than it takes");
+        store.finish_fit(&next, None).await.unwrap();
+        store.finish_fit(&first, None).await.unwrap();
+    }
+
+    #[tokio::test]
+    async fn an_experiment_whose_data_grew_since_its_last_fit_is_expected_to_take_longer() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
+            .await
+            .unwrap();
+        let (settings, _) = ExperimentRequest::default()
+            .resolve(&Arc::new(ModelCalls::default()))
+            .unwrap();
+        let mut ids = Vec::new();
+        for _ in 0..2 {
+            let e = store.insert_experiment(&settings, 10).await.unwrap();
+            ids.push(e.unwrap().id);
+        }
+        let (grown, steady) = (ids[0], ids[1]);
+        // Both last fitted in 10 s on one transition (`fitted`); the first has 8 since, so its
+        // next fit is expected to take 512 × as long.
+        fitted(&store, grown, 1, 10.0).await;
+        fitted(&store, steady, 1, 10.0).await;
+        stored(&store, grown, 8).await;
+        stored(&store, steady, 1).await;
+        store.request_fit(grown, false).await.unwrap();
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+        store.request_fit(steady, false).await.unwrap();
+        let first = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(
+            first.experiment_id, steady,
+            "the grown one is expected to take 85 min"
+        );
     }
 }
