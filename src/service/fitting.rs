@@ -112,11 +112,33 @@ impl FitQueue {
         self.wake.notify_one();
     }
 
-    /// Claims experiment `id`'s requested fit for this replica, if nobody holds it.
-    pub(crate) async fn claim(&self, store: &Store, id: i64) -> Result<Option<FitClaim>, Error> {
+    /// Claims the requested fit that would finish first (see
+    /// [`Store::claim_fit`](crate::store::Store::claim_fit)), of any experiment.
+    pub(crate) async fn claim_next(&self, store: &Store) -> Result<Option<FitClaim>, Error> {
         Ok(store
-            .claim_fit(&self.replica, self.lease.as_secs_f64(), Some(id))
+            .claim_fit(&self.replica, self.lease.as_secs_f64(), None)
             .await?)
+    }
+
+    /// Fits the experiment `claim` names on `slot`, loading it if needed; a claim whose
+    /// experiment no longer loads (its remote model is no longer allowed, say) is ended rather
+    /// than retried forever.
+    pub(crate) async fn fit_claim(
+        &self,
+        service: &Service,
+        claim: FitClaim,
+        slot: Slot,
+    ) -> Result<Arc<ServedModel>, Error> {
+        match service.live(claim.experiment_id).await {
+            Ok(live) => {
+                self.fit(&live, service.store(), service.work(), claim, slot)
+                    .await
+            }
+            Err(e) => {
+                let _ = service.store().finish_fit(&claim, None).await;
+                Err(e)
+            }
+        }
     }
 
     /// Fits `live` under `claim` on `slot` (see [`LiveExperiment::fit_under`]), heartbeating
@@ -181,11 +203,7 @@ impl FitQueue {
                     continue;
                 }
             };
-            let claim = match service
-                .store()
-                .claim_fit(&self.replica, self.lease.as_secs_f64(), None)
-                .await
-            {
+            let claim = match self.claim_next(service.store()).await {
                 Ok(Some(claim)) => claim,
                 Ok(None) => continue,
                 Err(e) => {
@@ -197,18 +215,7 @@ impl FitQueue {
             let (service, queue) = (service.clone(), self.clone());
             tokio::spawn(async move {
                 let id = claim.experiment_id;
-                let fitted = match service.live(id).await {
-                    Ok(live) => queue
-                        .fit(&live, service.store(), service.work(), claim, slot)
-                        .await
-                        .map(|_| ()),
-                    Err(e) => {
-                        // The experiment does not load (its remote model is no longer
-                        // allowed, say): end the request rather than retry it forever.
-                        let _ = service.store().finish_fit(&claim, None).await;
-                        Err(e)
-                    }
-                };
+                let fitted = queue.fit_claim(&service, claim, slot).await.map(|_| ());
                 match fitted {
                     Ok(()) => {}
                     // Nothing to fit, or the claim went to another replica: not a failure.

@@ -223,20 +223,26 @@ impl Service {
         // waits or runs is answered by what that one (or the worker after it) stores. Without
         // it, a client asking for refits in a loop queued a task per request, each holding a
         // place in the fit line ahead of every other experiment's background fit.
+        // The slot it gets goes to the fit that would finish first (see `Store::claim_fit`),
+        // this experiment's or another's: a client forcing refits in a loop does not jump the
+        // line of every other experiment's background fit, and its own fit, if another went
+        // first, is claimed by the next slot (the answer is then `202`, the fit goes on).
         let fit = FitQueue::start_forcing(&self.fits, id).map(|forcing| {
-            let (live, store, work, fits) = (
-                live.clone(),
-                self.store.clone(),
-                self.work.clone(),
-                self.fits.clone(),
-            );
+            let service = self.clone();
             tokio::spawn(async move {
                 let _forcing = forcing;
-                let slot = work.fit_slot().await?;
-                match fits.claim(&store, id).await? {
-                    Some(claim) => fits.fit(&live, &store, &work, claim, slot).await.map(Some),
-                    None => Ok(None),
+                let slot = service.work.fit_slot().await?;
+                let Some(claim) = service.fits.claim_next(&service.store).await? else {
+                    return Ok(None);
+                };
+                let other = claim.experiment_id;
+                if other == id {
+                    return service.fits.fit_claim(&service, claim, slot).await.map(Some);
                 }
+                if let Err(e) = service.fits.fit_claim(&service, claim, slot).await {
+                    tracing::warn!(experiment = other, error = %e, "fit (in a refit's slot) not made");
+                }
+                Ok(None)
             })
         });
         let covering = async {
