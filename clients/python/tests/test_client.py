@@ -416,6 +416,7 @@ def model_json(version: int, n_trajectories: int) -> dict[str, Any]:
         "kernel_trials": [],
         "beta_choice": None,
         "test_beta": 2.0,
+        "exclusions": [],
     }
 
 
