@@ -340,8 +340,8 @@ mod tests {
     use crate::store::TrajectoryMeta;
     use std::sync::Arc;
 
-    #[tokio::test]
-    async fn an_experiment_asked_to_fit_again_while_it_fits_waits_behind_the_others() {
+    /// A new store with two default experiments.
+    async fn two_experiments() -> (tempfile::TempDir, Store, i64, i64) {
         let dir = tempfile::tempdir().unwrap();
         let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
             .await
@@ -354,7 +354,12 @@ mod tests {
             let e = store.insert_experiment(&settings, 10).await.unwrap();
             ids.push(e.unwrap().id);
         }
-        let (busy, waiting) = (ids[0], ids[1]);
+        (dir, store, ids[0], ids[1])
+    }
+
+    #[tokio::test]
+    async fn an_experiment_asked_to_fit_again_while_it_fits_waits_behind_the_others() {
+        let (_dir, store, busy, waiting) = two_experiments().await;
         store.request_fit(busy, false).await.unwrap();
         tokio::time::sleep(std::time::Duration::from_millis(5)).await;
         store.request_fit(waiting, false).await.unwrap();
@@ -410,19 +415,7 @@ mod tests {
 
     #[tokio::test]
     async fn a_quick_fit_goes_before_a_long_one_requested_a_little_earlier_but_not_forever() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
-            .await
-            .unwrap();
-        let (settings, _) = ExperimentRequest::default()
-            .resolve(&Arc::new(ModelCalls::default()))
-            .unwrap();
-        let mut ids = Vec::new();
-        for _ in 0..2 {
-            let e = store.insert_experiment(&settings, 10).await.unwrap();
-            ids.push(e.unwrap().id);
-        }
-        let (fleet, robot) = (ids[0], ids[1]);
+        let (_dir, store, fleet, robot) = two_experiments().await;
         // The fleet's refits take minutes (the longest of the last five counts), the robot's
         // a second.
         fitted(&store, fleet, 1, 300.0).await;
@@ -455,19 +448,7 @@ mod tests {
 
     #[tokio::test]
     async fn an_experiment_whose_data_grew_since_its_last_fit_is_expected_to_take_longer() {
-        let dir = tempfile::tempdir().unwrap();
-        let store = Store::open(dir.path().join("fits.db").to_str().unwrap())
-            .await
-            .unwrap();
-        let (settings, _) = ExperimentRequest::default()
-            .resolve(&Arc::new(ModelCalls::default()))
-            .unwrap();
-        let mut ids = Vec::new();
-        for _ in 0..2 {
-            let e = store.insert_experiment(&settings, 10).await.unwrap();
-            ids.push(e.unwrap().id);
-        }
-        let (grown, steady) = (ids[0], ids[1]);
+        let (_dir, store, grown, steady) = two_experiments().await;
         // Both last fitted in 10 s on one transition (`fitted`); the first has 8 since, so its
         // next fit is expected to take 512 × as long.
         fitted(&store, grown, 1, 10.0).await;
