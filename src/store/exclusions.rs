@@ -387,18 +387,41 @@ impl Store {
                 .bind(experiment_id)
                 .fetch_one(&mut *conn)
                 .await?;
-        let ids: Vec<i64> = sqlx::query_scalar(
-            "SELECT id FROM exclusions WHERE experiment_id = $1 ORDER BY id DESC
-             LIMIT $2 OFFSET $3",
-        )
+        // The page's rows, then their trajectories in one query.
+        let rows = sqlx::query(&format!(
+            "SELECT {COLUMNS} FROM exclusions WHERE experiment_id = $1 ORDER BY id DESC
+             LIMIT $2 OFFSET $3"
+        ))
         .bind(experiment_id)
         .bind(limit)
         .bind(offset)
         .fetch_all(&mut *conn)
         .await?;
-        let mut items = Vec::with_capacity(ids.len());
-        for id in ids {
-            items.push(self.exclusion_on(&mut conn, id).await?);
+        let mut items = Vec::with_capacity(rows.len());
+        if let (Some(newest), Some(oldest)) = (rows.first(), rows.last()) {
+            let (newest, oldest): (i64, i64) = (newest.try_get("id")?, oldest.try_get("id")?);
+            let covered: Vec<(i64, i64)> = sqlx::query_as(
+                "SELECT e.exclusion_id, e.trajectory_id FROM excluded_trajectories e
+                 JOIN exclusions x ON x.id = e.exclusion_id
+                 WHERE x.experiment_id = $1 AND e.exclusion_id BETWEEN $2 AND $3
+                 ORDER BY e.exclusion_id, e.trajectory_id",
+            )
+            .bind(experiment_id)
+            .bind(oldest)
+            .bind(newest)
+            .fetch_all(&mut *conn)
+            .await?;
+            let mut by_exclusion: std::collections::HashMap<i64, Vec<i64>> = Default::default();
+            for (exclusion, trajectory) in covered {
+                by_exclusion.entry(exclusion).or_default().push(trajectory);
+            }
+            for row in &rows {
+                let id: i64 = row.try_get("id")?;
+                items.push(exclusion_from_row(
+                    row,
+                    by_exclusion.remove(&id).unwrap_or_default(),
+                )?);
+            }
         }
         Ok((items, total))
     }
