@@ -8,6 +8,8 @@
 //!   feature space.
 //! - [`export`]: a fitted version as a self-contained document a controller evaluates itself
 //!   ([`ExportedModel`]).
+//! - [`margin`]: the locally calibrated trust margin ([`LocalMargin`]), the β each state-action
+//!   is judged at from the held-out judgements of the training transitions near it.
 //! - [`selection`]: model selection at every fit — the label cap (how deviations become training
 //!   labels, [`capped_labels`]), the kernel and the certified test β, each chosen from held-out
 //!   judgements of the training transitions ([`fit_choosing_label_cap`], [`HeldOutTrust`],
@@ -16,6 +18,7 @@
 pub mod estimator;
 pub mod experts;
 pub mod export;
+pub mod margin;
 pub mod selection;
 
 pub use estimator::{
@@ -24,11 +27,12 @@ pub use estimator::{
 };
 pub use experts::{DEFAULT_EXPERT_SIZE, ExpertsPredictor, LocalExperts};
 pub use export::{EXPORT_FORMAT, EXPORT_FORMAT_VERSION, ExportedModel};
+pub use margin::{LocalMargin, Margined};
 pub use selection::{
     BetaChoice, CALIBRATED_FALSE_TRUST, CAP_GAIN_STANDARD_ERRORS, CapChoice, Carry, FitPhase,
     HeldOutTrust, KernelTrial, LIKELIHOOD_DROP, Previous, RefitPlan, SelectionRecord, Training,
-    best_kernel, blocks, capped_labels, fit_choosing_label_cap, identical_rows, normal_tail,
-    refit_plan, refit_warm, selection_cost, trajectory_folds,
+    best_kernel, blocks, capped_labels, fit_choosing_label_cap, held_out_margins, identical_rows,
+    normal_tail, refit_plan, refit_warm, selection_cost, trajectory_folds,
 };
 
 use crate::gp::{GpParams, Hyperparameters, Kernel, NoiseMode, NoiseSummary};
@@ -70,6 +74,10 @@ pub struct FitRecord {
     /// warm refit) and what the fit spent its time on (`None` for versions fitted before it was
     /// recorded).
     pub selection: Option<SelectionRecord>,
+    /// The locally calibrated margin of this version's held-out judgements (`None` where they
+    /// could not be computed); used by test plans and default judgements when
+    /// `learning.local_test_margin` is on. Not stored: rebuilt with the version.
+    pub local_margin: Option<std::sync::Arc<LocalMargin>>,
     /// The exclusions (ids of the service's records) in effect when the fit read its
     /// training set: it was fitted on the first `n_train` transitions outside the trajectories
     /// they cover.

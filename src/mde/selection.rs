@@ -5,6 +5,7 @@
 //! choice costs before it starts ([`selection_cost`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
+use super::margin::LocalMargin;
 use crate::gp::{Fold, GpError, Kernel, WarmStart};
 use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
@@ -349,8 +350,45 @@ pub struct CapChoice {
     /// The test β the chosen model certifies, each executed trajectory left out whole
     /// ([`trajectory_folds`]; `None` when it could not be computed).
     pub beta_choice: Option<BetaChoice>,
+    /// The locally calibrated margin of the same held-out judgements ([`LocalMargin`];
+    /// `None` when they could not be computed).
+    pub local_margin: Option<LocalMargin>,
     /// What the fit spent its time on, in order.
     pub phases: Vec<FitPhase>,
+}
+
+/// The test β `gp` certifies ([`BetaChoice`]) and its locally calibrated margin
+/// ([`LocalMargin`]), both from one leave-out of each executed trajectory whole
+/// ([`trajectory_folds`]), `gp` fitted on `labels` (the training deviations capped), for β up
+/// to `max_beta`. `None` for both where the folds or the leave-out cannot be computed.
+pub fn held_out_margins(
+    gp: &dyn Regressor,
+    training: Training<'_>,
+    labels: &[f64],
+    d_max: f64,
+    max_beta: f64,
+) -> (Option<BetaChoice>, Option<LocalMargin>) {
+    let Some(held_out) = trajectory_folds(training.x, training.trajectories)
+        .and_then(|folds| gp.leave_folds_out(&folds))
+    else {
+        return (None, None);
+    };
+    let choice = BetaChoice::from_held_out(&held_out, labels, training.deviations, d_max, max_beta);
+    let x = training.x;
+    let rows: Vec<f64> = x
+        .row_iter()
+        .flat_map(|r| r.iter().copied().collect::<Vec<_>>())
+        .collect();
+    let margin = LocalMargin::from_held_out(
+        &rows,
+        x.ncols(),
+        &held_out,
+        labels,
+        training.deviations,
+        d_max,
+        max_beta,
+    );
+    (Some(choice), margin)
 }
 
 /// One phase of a fit and its wall time.
@@ -534,7 +572,7 @@ pub fn refit_warm(
     let gp = timed(&mut phases, "warm fit", || {
         fit(kind, x, &DVector::from_column_slice(&labels), &params)
     })?;
-    let (trials, beta_choice) = if kind.judges_held_out() {
+    let (trials, (beta_choice, local_margin)) = if kind.judges_held_out() {
         timed(&mut phases, "held-out judgements, certified β", || {
             let groups = identical_rows(x);
             let trial = HeldOutTrust::of(
@@ -546,20 +584,12 @@ pub fn refit_warm(
                 precondition,
             )
             .map(|(t, _)| t);
-            let beta_choice = trajectory_folds(x, training.trajectories).and_then(|folds| {
-                BetaChoice::of(
-                    gp.as_ref(),
-                    &labels,
-                    deviations,
-                    &folds,
-                    d_max,
-                    precondition.beta(),
-                )
-            });
-            (trial.into_iter().collect(), beta_choice)
+            let margins =
+                held_out_margins(gp.as_ref(), training, &labels, d_max, precondition.beta());
+            (trial.into_iter().collect(), margins)
         })
     } else {
-        (Vec::new(), None)
+        (Vec::new(), (None, None))
     };
     Ok(CapChoice {
         gp,
@@ -567,6 +597,7 @@ pub fn refit_warm(
         trials,
         kernel_trials: Vec::new(),
         beta_choice,
+        local_margin,
         phases,
     })
 }
@@ -702,6 +733,7 @@ pub fn fit_choosing_label_cap(
             trials,
             kernel_trials,
             beta_choice,
+            local_margin: None,
             phases,
         });
     }
@@ -927,18 +959,16 @@ fn choose_closed_form(
         },
         seconds: started.elapsed().as_secs_f64(),
     });
-    // The test β the chosen model certifies, each trajectory left out whole.
-    let beta_choice = timed(&mut phases, "certified β", || {
-        trajectory_folds(x, training.trajectories).and_then(|folds| {
-            BetaChoice::of(
-                gp.as_ref(),
-                &capped_labels(deviations, label_cap, d_max),
-                deviations,
-                &folds,
-                d_max,
-                precondition.beta(),
-            )
-        })
+    // The test β the chosen model certifies, and its local margin, each trajectory left out
+    // whole.
+    let (beta_choice, local_margin) = timed(&mut phases, "certified β", || {
+        held_out_margins(
+            gp.as_ref(),
+            training,
+            &capped_labels(deviations, label_cap, d_max),
+            d_max,
+            precondition.beta(),
+        )
     });
     Ok(CapChoice {
         gp,
@@ -946,6 +976,7 @@ fn choose_closed_form(
         trials,
         kernel_trials,
         beta_choice,
+        local_margin,
         phases,
     })
 }
