@@ -241,6 +241,10 @@ pub struct ExperimentArgs {
     /// (`learning.calibrate_test_beta`: `true` or `false`). Default: the preset's.
     #[arg(long)]
     pub calibrate_test_beta: Option<bool>,
+    /// Whether test plans and held-out judgements judge each state-action at its locally
+    /// calibrated β (`learning.local_test_margin`: `true` or `false`). Default: the preset's.
+    #[arg(long)]
+    pub local_test_margin: Option<bool>,
     /// The β schedule's amplitude `k1` (`learning.k1`): training β runs from about `−k1` to
     /// about `k1`. Default: the service's (2).
     #[arg(long)]
@@ -321,6 +325,8 @@ pub struct Config {
     pub test_beta: Option<f64>,
     /// Whether test plans use the certified β (`None`: the preset's).
     pub calibrate_test_beta: Option<bool>,
+    /// Whether test plans use the local margin (`None`: the preset's).
+    pub local_test_margin: Option<bool>,
     /// The β schedule's `k1` (`None`: the service's).
     pub k1: Option<f64>,
     /// The β schedule's `k2` (`None`: the service's).
@@ -402,6 +408,7 @@ impl Config {
             batch_diversity: args.batch_diversity,
             test_beta: args.test_beta,
             calibrate_test_beta: args.calibrate_test_beta,
+            local_test_margin: args.local_test_margin,
             k1: args.k1,
             k2: args.k2,
             schedule_iterations: args.schedule_iterations,

@@ -465,6 +465,7 @@ fn experiment_body(
             batch_diversity: cfg.batch_diversity,
             test_beta: cfg.test_beta.unwrap_or(learning.test_beta),
             calibrate_test_beta: cfg.calibrate_test_beta,
+            local_test_margin: cfg.local_test_margin,
             k1: cfg.k1.unwrap_or(learning.k1),
             k2: cfg.k2.unwrap_or(learning.k2),
             warmup_iterations: cfg.warmup_iterations,

@@ -6,7 +6,7 @@ use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{CandidateTrajectory, Point};
 use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
-use crate::mde::{Judgement, ServedModel};
+use crate::mde::{Judgement, Margined, ServedModel};
 use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
 use crate::store::{FitRefusal, ListOrder};
@@ -383,21 +383,35 @@ impl Service {
         for (p, next) in points.iter().zip(&predicted) {
             features.extend(domain.features(&p.s, &p.a, next));
         }
-        let answers = if points.len() > INLINE_POINTS {
+        // Without a β of the request's own, each point at its local margin where the
+        // experiment calibrates one.
+        let margin = beta.is_none().then(|| live.local_margin(&model)).flatten();
+        let evaluate = {
             let model = model.clone();
+            move || {
+                let betas = margin.map(|(m, prior)| m.betas(&features, prior));
+                (model.answer(&features, dim), betas)
+            }
+        };
+        let (answers, betas) = if points.len() > INLINE_POINTS {
             let slot = self.work.evaluation_slot(arrived).await?;
             Self::blocking(move || {
                 let _slot = slot;
-                model.answer(&features, dim)
+                evaluate()
             })
             .await?
         } else {
-            model.answer(&features, dim)
+            evaluate()
         };
         let judgements = answers
             .iter()
-            .map(|a| {
-                Judgement::of(a, precondition).ok_or_else(|| {
+            .enumerate()
+            .map(|(i, a)| {
+                let at = match &betas {
+                    Some(b) => precondition.at_beta(b[i])?,
+                    None => precondition,
+                };
+                Judgement::of(a, at).ok_or_else(|| {
                     Error::Internal(anyhow::anyhow!(
                         "the model answered a non-finite deviation (μ = {}, σ = {})",
                         a.mu,
@@ -445,6 +459,7 @@ impl Service {
         let problem = live.problem(start, goal)?;
         let model = live.model();
         let precondition = live.precondition_for(&model, beta)?;
+        let own_beta = beta.is_some();
         let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model_version = model.version;
         if let Some(candidates) = candidates {
@@ -467,26 +482,45 @@ impl Service {
             });
         }
         needs_candidates(&live)?;
+        // Without a β of the request's own, each step judged at its local margin where the
+        // experiment calibrates one ([`Margined`]).
+        let margin = (!own_beta).then(|| live.local_margin(&model)).flatten();
+        let margined = margin.is_some();
         let seed = seed::mix_values(
             live.settings.seed,
             model.version,
             problem.start().iter().chain(problem.goal()).copied(),
         );
-        let outcome = self
+        let searched = (live.clone(), model.clone());
+        let mut outcome = self
             .search(id, arrived, super::SearchKind::Plan, move |budget| {
-                // The experiment's planner, unless this plan asked for its own budget.
+                let (live, model) = searched;
+                // The experiment's planner settings, unless this plan asked for its own budget.
                 let asked = max_extensions.map(|n| live.planning.with_max_extensions(n as usize));
-                let planner = match &asked {
-                    Some(settings) => {
-                        planning::Planner::new(live.domain.as_ref(), model.as_ref(), settings)
-                    }
-                    None => live.planner(&model),
+                let settings = asked.as_ref().unwrap_or(&live.planning);
+                let judged = margin
+                    .as_ref()
+                    .and_then(|(m, prior)| Margined::new(model.as_ref(), m, *prior));
+                let deviation: &dyn planning::DeviationModel = match &judged {
+                    Some(margined) => margined,
+                    None => model.as_ref(),
                 };
-                planner
+                planning::Planner::new(live.domain.as_ref(), deviation, settings)
                     .within(budget.clone())
                     .plan(&problem, precondition, seed)
             })
             .await?;
+        if let (Some(t), true) = (&mut outcome.trajectory, margined) {
+            // The plan reports the model's own μ and σ, not the search's scaled σ.
+            let dim = live.domain.feature_dim();
+            let mut features = Vec::with_capacity(t.len() * dim);
+            for (k, a) in t.actions.iter().enumerate() {
+                features.extend(live.domain.features(&t.states[k], a, &t.states[k + 1]));
+            }
+            let answers = model.answer(&features, dim);
+            t.mu = answers.iter().map(|a| a.mu).collect();
+            t.sigma = answers.iter().map(|a| a.sigma).collect();
+        }
         if let Some(t) = &outcome.trajectory {
             check_finite(t)?;
         }

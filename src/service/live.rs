@@ -11,8 +11,9 @@ use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, Problem, Transition};
 use crate::mde::{
     Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, LIKELIHOOD_DROP,
-    RefitPlan, SelectionRecord, ServedModel, Training, capped_labels, fit_choosing_label_cap,
-    gp_params, refit_plan, refit_warm, selection_cost, training_data,
+    LocalMargin, RefitPlan, SelectionRecord, ServedModel, Training, capped_labels,
+    fit_choosing_label_cap, gp_params, held_out_margins, refit_plan, refit_warm, selection_cost,
+    training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
 use crate::remote_model::ModelCalls;
@@ -168,6 +169,19 @@ impl LiveExperiment {
             .as_ref()
             .and_then(|f| f.beta_choice)
             .map_or(l.test_beta, |c| c.beta.min(l.test_beta))
+    }
+
+    /// The locally calibrated margin test plans and default judgements use with `model`, with
+    /// the test β it never exceeds ([`LiveExperiment::test_beta`]): with
+    /// `learning.local_test_margin`, a version that has one, and a positive test β; else
+    /// `None` (every state-action judged at the test β).
+    pub fn local_margin(&self, model: &ServedModel) -> Option<(Arc<LocalMargin>, f64)> {
+        if !self.settings.learning.local_test_margin {
+            return None;
+        }
+        let beta = self.test_beta(model);
+        let margin = model.fit.as_ref()?.local_margin.clone()?;
+        (beta > 0.0 && margin.dim() == self.domain.feature_dim()).then_some((margin, beta))
     }
 
     /// The precondition at a request's `beta`, or at `model`'s test β
@@ -485,6 +499,7 @@ impl LiveExperiment {
             kernel_trials: choice.kernel_trials,
             beta_choice: choice.beta_choice,
             selection: Some(selection),
+            local_margin: choice.local_margin.map(Arc::new),
             exclusions: exclusions.ids().to_vec(),
         };
         let stored = StoredModel {
@@ -569,7 +584,7 @@ impl LiveExperiment {
     /// and training data, the sparse GP from its stored factors.
     async fn restore(&self, store: &Store, stored: StoredModel) -> Result<ServedModel, Error> {
         let dim = self.domain.feature_dim();
-        let (features, labels) = if stored.state.needs_training_data() {
+        let (features, labels, deviations, trajectories) = if stored.state.needs_training_data() {
             let transitions = store
                 .transitions_outside(self.id, &stored.exclusions, 0, Some(stored.n_train))
                 .await?;
@@ -584,14 +599,34 @@ impl LiveExperiment {
             }
             let (features, deviations) = self.training_set(&transitions);
             let labels = capped_labels(&deviations, stored.label_cap, self.settings.d_max);
-            (features, labels)
+            let trajectories = transitions.iter().map(|t| t.trajectory_id).collect();
+            (features, labels, deviations, trajectories)
         } else {
-            (Vec::new(), Vec::new())
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new())
         };
         let state = stored.state.clone();
-        let gp = tokio::task::spawn_blocking(move || {
-            let (x, y) = training_data(features, labels, dim);
-            state.restore(&x, &y)
+        // The local margin is not stored: rebuilt from the same held-out judgements the fit
+        // made, where test plans use it.
+        let margin_up_to = self
+            .settings
+            .learning
+            .local_test_margin
+            .then_some(self.settings.learning.test_beta);
+        let d_max = self.settings.d_max;
+        let (gp, local_margin) = tokio::task::spawn_blocking(move || {
+            let (x, y) = training_data(features, labels.clone(), dim);
+            let gp = state.restore(&x, &y)?;
+            let margin = margin_up_to
+                .filter(|_| !deviations.is_empty())
+                .and_then(|max_beta| {
+                    let training = Training {
+                        x: &x,
+                        deviations: &deviations,
+                        trajectories: &trajectories,
+                    };
+                    held_out_margins(gp.as_ref(), training, &labels, d_max, max_beta).1
+                });
+            Ok::<_, crate::gp::GpError>((gp, margin))
         })
         .await
         .context("restore task")?
@@ -609,6 +644,7 @@ impl LiveExperiment {
                 kernel_trials: stored.kernel_trials,
                 beta_choice: stored.beta_choice,
                 selection: stored.selection,
+                local_margin: local_margin.map(Arc::new),
                 exclusions: stored.exclusions.ids().to_vec(),
             }),
         })

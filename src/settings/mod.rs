@@ -411,6 +411,12 @@ impl Preset {
         false
     }
 
+    /// Whether this preset's test plans and default judgements judge each state-action at its
+    /// locally calibrated β (see [`LearningSettings::local_test_margin`]): neither's.
+    pub fn local_test_margin(self) -> bool {
+        false
+    }
+
     /// Whether this preset's `active` proposals score candidates with the σ of state-actions
     /// in flight fantasised as labelled (see [`LearningSettings::batch_diversity`]): neither's.
     /// The paper chose each trajectory of a batch from the model alone; `default` does too,
@@ -629,6 +635,9 @@ pub struct LearningRequest {
     /// [`LearningSettings::calibrate_test_beta`]. Absent: the preset's.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub calibrate_test_beta: Option<bool>,
+    /// [`LearningSettings::local_test_margin`]. Absent: the preset's.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub local_test_margin: Option<bool>,
     /// [`LearningSettings::warmup_iterations`]. Absent: the preset's (0 in both).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub warmup_iterations: Option<u32>,
@@ -654,6 +663,7 @@ impl Default for LearningRequest {
             relax_beta: None,
             batch_diversity: None,
             calibrate_test_beta: None,
+            local_test_margin: None,
             warmup_iterations: None,
         }
     }
@@ -718,6 +728,14 @@ pub struct LearningSettings {
     /// of `test_beta` itself. `test_beta` stays the bound, and the β until a version certifies
     /// one.
     pub calibrate_test_beta: bool,
+    /// Test plans, and the precondition's default judgements, judge each state-action at its
+    /// own β, calibrated locally ([`crate::mde::LocalMargin`]): the smallest β at which, among
+    /// the training transitions near it that the current version trusts with their trajectory
+    /// held out by less than half a σ's worth of β, at most 2 % are unsafe — or the test β
+    /// (`test_beta`, or the certified one) where too few are near. Never above the test β.
+    /// Experiments created before the setting have it off.
+    #[serde(default)]
+    pub local_test_margin: bool,
     /// During the first this many iterations an `active` proposal is a random rollout (what
     /// `random` answers: uniformly drawn actions inside the iteration's precondition) — an
     /// initial design spread over the space before the acquisition has a model worth
@@ -897,6 +915,9 @@ impl ExperimentRequest {
             calibrate_test_beta: l
                 .calibrate_test_beta
                 .unwrap_or_else(|| l.preset.calibrate_test_beta()),
+            local_test_margin: l
+                .local_test_margin
+                .unwrap_or_else(|| l.preset.local_test_margin()),
             warmup_iterations: l
                 .warmup_iterations
                 .unwrap_or_else(|| l.preset.warmup_iterations()),

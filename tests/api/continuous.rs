@@ -2,7 +2,7 @@
 //! spreads between what it executed, and executing closed loop (planning again from where the
 //! robot is) reaches goals that open-loop execution misses.
 
-use super::helpers::{count_true, fresh_experiment, pushed_lattice};
+use super::helpers::{TestApp, count_true, fresh_experiment, pushed_lattice};
 use precond::domain::{Kinematic, KinematicParams, Problem};
 use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
@@ -313,4 +313,121 @@ async fn a_calibrated_test_beta_is_the_one_the_version_certifies_and_survives_a_
         "{model}"
     );
     assert_eq!(model["test_beta"].as_f64(), Some(certified), "{model}");
+}
+
+/// `learning.local_test_margin`: default judgements and test plans judge each state-action at
+/// its locally calibrated β — never above the test β, so whatever β 2 trusts stays trusted,
+/// and below it where the held-out training transitions nearby show it safe; the plan reports
+/// the model's own μ and σ; the margin is rebuilt the same after a restart; a request's own β
+/// is used as asked.
+#[tokio::test]
+async fn a_local_margin_trusts_at_least_what_the_test_beta_does_and_survives_a_restart() {
+    let body = json!({
+        "domain": {"kind": "kinematic"},
+        "d_max": 0.05,
+        "mde": {"kernel": "matern52", "label_cap": 0, "restarts": 0},
+        "learning": {"batch_size": 3, "local_test_margin": true}
+    });
+    let (_dir, app, id) = fresh_experiment(body).await;
+    let (_, e) = app.get_at(id, "").await;
+    assert_eq!(e["learning"]["local_test_margin"], true, "{e}");
+    // The pushed lattice with scatter: safe moves deviate by up to 0.048 (below d_max, but
+    // σ then keeps `μ + 2σ` above it), pushed ones by 0.1 and more.
+    for k in 0..3 {
+        let mut t = pushed_lattice(150, 150 * k);
+        for (j, step) in t["transitions"]
+            .as_array_mut()
+            .unwrap()
+            .iter_mut()
+            .enumerate()
+        {
+            let scatter = 0.048 * ((150 * k + j) as f64 * 0.618_034).fract();
+            let y = step["s_next"][1].as_f64().unwrap();
+            step["s_next"][1] = json!(y + scatter);
+        }
+        app.store_trajectory(id, &t).await;
+    }
+    app.wait_for_model(id, 3).await;
+    // A line across the lattice, through the safe half (x < 0.5) into the pushed one.
+    let points: Vec<Value> = (0..60)
+        .map(|k| json!({"s": [k as f64 / 60.0, 0.3 + (k % 7) as f64 / 40.0], "a": [0.05, 0.0]}))
+        .collect();
+    let local = judge(&app, id, &points, None).await;
+    let at_two = judge(&app, id, &points, Some(2.0)).await;
+    assert_eq!(at_two["beta"].as_f64(), Some(2.0));
+    let (mut gained, mut unsafe_trusted) = (0, 0);
+    for (k, (l, g)) in local["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .zip(at_two["results"].as_array().unwrap())
+        .enumerate()
+    {
+        let (mu, sigma) = (l["mu"].as_f64().unwrap(), l["sigma"].as_f64().unwrap());
+        let upper = l["upper"].as_f64().unwrap();
+        assert_eq!(g["mu"].as_f64(), Some(mu));
+        assert!(
+            upper <= mu + 2.0 * sigma + 1e-12,
+            "point {k}: {l} above β 2"
+        );
+        assert!(upper >= mu - 1e-12, "point {k}: {l} below β 0");
+        assert_eq!(l["inside"].as_bool(), Some(upper < 0.05), "point {k}: {l}");
+        if g["inside"] == true {
+            assert_eq!(
+                l["inside"], true,
+                "point {k}: trusted at β 2, not locally: {l}"
+            );
+        } else if l["inside"] == true {
+            gained += 1;
+        }
+        // The truth: a move from x > 0.5 is pushed (deviation 0.1).
+        let x = k as f64 / 60.0;
+        unsafe_trusted += usize::from(x > 0.5 && l["inside"] == true);
+    }
+    assert!(
+        gained > 0,
+        "the local margin trusts nothing β 2 does not: {local}"
+    );
+    assert_eq!(unsafe_trusted, 0, "{local}");
+    // A test plan reports the model's own μ and σ for its steps.
+    let (_, plan) = app
+        .post_at(
+            id,
+            "plans",
+            &json!({"start": [0.05, 0.3], "goal": [0.4, 0.3]}),
+        )
+        .await;
+    assert_eq!(plan["found"], true, "{plan}");
+    let t = trajectory_of(&plan["trajectory"]);
+    let steps: Vec<Value> = t
+        .states
+        .iter()
+        .zip(&t.actions)
+        .map(|(s, a)| json!({"s": s, "a": a}))
+        .collect();
+    let (_, own) = app
+        .post_at(id, "precondition", &json!({"points": steps, "beta": 2.0}))
+        .await;
+    for (k, j) in own["results"].as_array().unwrap().iter().enumerate() {
+        assert!((j["mu"].as_f64().unwrap() - t.mu[k]).abs() < 1e-9, "{plan}");
+        assert!(
+            (j["sigma"].as_f64().unwrap() - t.sigma[k]).abs() < 1e-9,
+            "{plan}"
+        );
+    }
+    // Rebuilt on restore: the same judgements.
+    let app = app.restart().await;
+    let again = judge(&app, id, &points, None).await;
+    assert_eq!(again["results"], local["results"]);
+}
+
+/// `POST …/precondition` on `points`, at `beta` or the experiment's default.
+async fn judge(app: &TestApp, id: i64, points: &[Value], beta: Option<f64>) -> Value {
+    let mut body = json!({ "points": points });
+    if let Some(b) = beta {
+        body["beta"] = json!(b);
+    }
+    let (status, j) = app.post_at(id, "precondition", &body).await;
+    assert_eq!(status, 200, "{j}");
+    j
 }
