@@ -67,6 +67,8 @@ def sweep(binary: str, db: Path, plan_betas: list[str], args: argparse.Namespace
         settings = json.loads(conn.execute("select settings from experiments").fetchone()[0])
         for key, value in args.mde:
             settings["mde"][key] = value
+        for key, value in args.learning:
+            settings["learning"][key] = value
         conn.execute("update experiments set settings = ?", (json.dumps(settings),))
     port = urlparse(settings["domain"]["model"]["url"]).port
     assert port is not None
@@ -95,15 +97,21 @@ def sweep(binary: str, db: Path, plan_betas: list[str], args: argparse.Namespace
                 pre = client.precondition((ts["held_s"], ts["held_a"]), beta=beta)
                 judged[f"{beta:g}"] = {"tpr": float(np.mean(pre.inside[safe])),
                                        "tnr": float(np.mean(~pre.inside[~safe]))}
+            pre = client.precondition((ts["held_s"], ts["held_a"]))  # the experiment's own way
+            judged["default"] = {"tpr": float(np.mean(pre.inside[safe])),
+                                 "tnr": float(np.mean(~pre.inside[~safe]))}
             out["judged"] = judged
             pre = client.precondition((ts["held_s"], ts["held_a"]), beta=0.0)
             out["auc_mu"] = auc(pre.mu, safe)
             out["auc_mu_plus_2sigma"] = auc(pre.mu + 2.0 * pre.sigma, safe)
             planned = {}
             for label in plan_betas:
-                beta = choice.get("beta") if label == "certified" else float(label)
-                if beta is None:
-                    continue
+                if label == "default":  # no β: the experiment's test-time judgement
+                    beta = None
+                else:
+                    beta = choice.get("beta") if label == "certified" else float(label)
+                    if beta is None:
+                        continue
                 failures = ev.Failures()
                 planner = ev.service_planner(client, failures, beta=beta)
                 res = ev.test_plans(robot, planner, ts["problems"], closed=True,
@@ -131,12 +139,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--binary", required=True)
     ap.add_argument("--plan-betas", default="2.0,certified,0.5",
-                    help="β to plan the test problems at (numbers, or `certified`)")
+                    help="β to plan the test problems at (numbers, `certified`, or `default`: "
+                         "no β, as the experiment's settings judge)")
     ap.add_argument("--test-problems", type=int, default=10)
     ap.add_argument("--held-out", type=int, default=400)
     ap.add_argument("--closed-loop-seconds", type=float, default=90.0)
     ap.add_argument("--mde", action="append", default=[], type=mde_setting, metavar="KEY=VALUE",
                     help="an MDE setting of the copy (a JSON value, or a bare string)")
+    ap.add_argument("--learning", action="append", default=[], type=mde_setting,
+                    metavar="KEY=VALUE",
+                    help="a learning setting of the copy (e.g. local_test_margin=true)")
     ap.add_argument("--refit", action="store_true",
                     help="fit the last model again before measuring (POST …/model/refit)")
     ap.add_argument("dbs", nargs="+", type=Path)
