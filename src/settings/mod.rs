@@ -733,8 +733,7 @@ pub struct LearningSettings {
     /// the training transitions near it that the current version trusts with their trajectory
     /// held out by less than half a σ's worth of β, at most 2 % are unsafe — or the test β
     /// (`test_beta`, or the certified one) where too few are near. Never above the test β.
-    /// Experiments created before the setting have it off.
-    #[serde(default)]
+    /// Experiments created before the setting have it off (migration 0026).
     pub local_test_margin: bool,
     /// During the first this many iterations an `active` proposal is a random rollout (what
     /// `random` answers: uniformly drawn actions inside the iteration's precondition) — an

@@ -57,7 +57,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     let mut conn = migrated_up_to(&db, 5).await;
 
     // An experiment of that time: no kernel, no label cap, no relax_beta, acquisition,
-    // batch_diversity or warmup_iterations in its settings.
+    // batch_diversity, warmup_iterations or local_test_margin in its settings.
     let (settings, _) = ExperimentRequest::default()
         .resolve(&Default::default())
         .unwrap();
@@ -69,6 +69,7 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
         "learning.acquisition",
         "learning.batch_diversity",
         "learning.warmup_iterations",
+        "learning.local_test_margin",
     ] {
         strip(&mut stored, path);
     }
@@ -201,6 +202,8 @@ async fn a_database_from_before_the_records_were_complete_serves_what_it_served(
     assert_eq!(experiment["learning"]["batch_diversity"], false);
     // Every `active` trajectory was the acquisition's.
     assert_eq!(experiment["learning"]["warmup_iterations"], 0);
+    // Every state-action was judged at the test β.
+    assert_eq!(experiment["learning"]["local_test_margin"], false);
     assert_eq!(experiment["model_version"], 1);
     // The kinematic one keeps the features its models were fitted on.
     let (status, old) = app.get("/v1/experiments/2").await;
