@@ -179,6 +179,9 @@ function settingsCard(e) {
       'β schedule',
       `k1 = ${fmt(l.k1)}, k2 = ${fmt(l.k2)}; test β = ${fmt(l.test_beta)}` +
         (l.calibrate_test_beta ? ' at most (each model version certifies its own β: GET …/model, test_beta)' : '') +
+        (l.local_test_margin
+          ? '; test plans and judgements at each state-action’s locally calibrated β, at most the test β'
+          : '') +
         (l.relax_beta ? '; a training problem with no plan at β_j is planned at lower β' : ''),
     ],
     ['preset', l.preset ?? 'paper (before presets)'],
