@@ -52,7 +52,8 @@ pub struct LocalMargin {
     dim: usize,
     /// The training features, row-major.
     x: Vec<f64>,
-    /// Per training row, how many β of the grid (from 0) it was trusted at, held out.
+    /// Per training row, how many β of the grid (from 0, up to `BAND_STEPS` above its top)
+    /// it was trusted at, held out.
     trusted_steps: Vec<u32>,
     /// Per training row, whether its deviation reached `d_max`.
     unsafe_rows: Vec<bool>,
@@ -90,7 +91,9 @@ impl LocalMargin {
             .zip(labels)
             .map(|(&(residual, sd), &label)| {
                 let mu = label - residual;
-                (0..steps)
+                // Counted up to a band above the grid, so that at its top a transition
+                // trusted far beyond `max_beta` is not taken for one trusted by a little.
+                (0..steps + BAND_STEPS)
                     .take_while(|&g| mu + g as f64 * GRID_STEP * sd < d_max)
                     .count() as u32
             })
@@ -126,8 +129,9 @@ impl LocalMargin {
         }
         // Trusted mass by how many grid steps a row was trusted at; suffix sums give the mass
         // trusted at each β.
-        let mut trusted = vec![0.0; self.steps + 1];
-        let mut unsafe_trusted = vec![0.0; self.steps + 1];
+        let top = self.steps + BAND_STEPS;
+        let mut trusted = vec![0.0; top + 1];
+        let mut unsafe_trusted = vec![0.0; top + 1];
         for (i, xi) in self.x.chunks_exact(self.dim).enumerate() {
             let d2: f64 = xi.iter().zip(row).map(|(a, b)| (a - b) * (a - b)).sum();
             let w = (-d2 * self.inverse_width).exp();
@@ -138,14 +142,14 @@ impl LocalMargin {
             }
         }
         let (mut mass, mut unsafe_mass) = (0.0, 0.0);
-        let mut at = vec![(0.0, 0.0); self.steps];
+        let mut at = vec![(0.0, 0.0); top];
         // Rows with k > g are trusted at step g.
-        for g in (0..self.steps).rev() {
+        for g in (0..top).rev() {
             mass += trusted[g + 1];
             unsafe_mass += unsafe_trusted[g + 1];
             at[g] = (mass, unsafe_mass);
         }
-        for (g, &(mass, unsafe_mass)) in at.iter().enumerate() {
+        for (g, &(mass, unsafe_mass)) in at.iter().enumerate().take(self.steps) {
             let beta = g as f64 * GRID_STEP;
             if beta >= prior {
                 break;
@@ -262,6 +266,15 @@ mod tests {
         // Never above the test β, and a test β of 0 or less is kept as it is.
         assert_eq!(m.beta_at(&[0.5], 1.0), 1.0);
         assert_eq!(m.beta_at(&[0.5], -0.5), -0.5);
+    }
+
+    #[test]
+    fn transitions_trusted_far_beyond_the_test_beta_are_not_at_the_edge() {
+        // μ 0, σ 0.01: trusted held out up to β 9.9, far above the band at any β below 2 —
+        // no evidence about the edge of trust, so the test β stands (β 2 trusts a
+        // state-action like them anyway: 0.02 < 0.1).
+        let m = margin(&[(40, 0.2, 0.0, 0.01, 0.0)]);
+        assert_eq!(m.beta_at(&[0.2], 2.0), 2.0);
     }
 
     #[test]
