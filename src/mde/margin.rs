@@ -19,8 +19,9 @@
 //! Why the band: a plan's steps sit at the edge of what is trusted (the search takes any
 //! trusted step that gets it closer), so their risk is that of transitions trusted by a
 //! little, not of all trusted ones — most of which lie deep inside. Counting all trusted ones
-//! (the first form measured) planned 6–7 % unsafe steps on the robot bench's base, pusher and
-//! 7-joint arm; counting the band, 1.5–3.6 % (`bench/robots/README.md`). It is a local form of
+//! (the first form measured) planned 5.6–7.8 % unsafe steps on the robot bench's base, pusher
+//! and 7-joint arm (`bench/robots/README.md`, which also says how little the band changes
+//! there: it lowers β only where held-out transitions sit at the edge nearby). It is a local form of
 //! conformal calibration (as LUCCa calibrates a dynamics model's prediction regions locally)
 //! of the decision the planner makes rather than a coverage of the deviation, which measured
 //! worse: a deviation far above `d_max` says no more than "unsafe", yet it widens a coverage
