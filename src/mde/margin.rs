@@ -10,7 +10,7 @@
 //! state-action `x` and β: of the training transitions near `x` that the model, with their
 //! whole trajectory held out, trusted at β *by less than [`BAND_STEPS`] grid steps* (trusted at
 //! β, not at β + 0.5), how many were unsafe? It takes the smallest β at which that share —
-//! weighted by closeness to `x` — is at most [`CALIBRATED_FALSE_TRUST`], counting one
+//! weighted by closeness to `x` — is at most the certified β's false-trust rate (2 %), counting one
 //! pessimistic pseudo-transition of weight [`PRIOR_WEIGHT`] that is unsafe whenever β is below
 //! the experiment's test β. Far from every training transition the pseudo-transition decides
 //! and the answer is the test β itself. So the margin never trusts less than the test β
@@ -27,12 +27,12 @@
 //! worse: a deviation far above `d_max` says no more than "unsafe", yet it widens a coverage
 //! quantile for every state-action near it.
 
-use super::selection::CALIBRATED_FALSE_TRUST;
 use crate::planning::DeviationModel;
 
 /// The weight of the pessimistic pseudo-transition: the closeness-weighted trusted mass the
 /// training transitions near a state-action must reach, all of them safe, before it is judged
-/// below the test β (`PRIOR_WEIGHT / CALIBRATED_FALSE_TRUST` = 5 transitions at distance 0).
+/// below the test β (`PRIOR_WEIGHT` over the false-trust rate: 5 transitions at distance 0
+/// for 2 %).
 pub const PRIOR_WEIGHT: f64 = 0.1;
 
 /// The closeness kernel's bandwidth per feature, in the unit box the features live in: a
@@ -62,22 +62,40 @@ pub struct LocalMargin {
     steps: usize,
     /// `1 / (2 h²)` with `h = BANDWIDTH · √dim`.
     inverse_width: f64,
+    /// The share of unsafe transitions at the edge of trust it accepts.
+    false_trust: f64,
+}
+
+/// What a [`LocalMargin`] is calibrated against: the tolerance, the test β it never exceeds,
+/// and the share of unsafe transitions at the edge of trust it accepts (the certified β's, 2 %).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Calibration {
+    /// `d_max`: a transition deviating by this much or more is unsafe.
+    pub d_max: f64,
+    /// The largest β the margin takes (the experiment's test β).
+    pub max_beta: f64,
+    /// The accepted false-trust rate.
+    pub false_trust: f64,
 }
 
 impl LocalMargin {
     /// The margin from training features `x` (row-major, `dim` each), their deviations, and
     /// their held-out predictions `(label − μ₋ᵢ, σ₋ᵢ)` of `labels` (each trajectory left out
     /// whole, [`trajectory_folds`](super::trajectory_folds)), for β on the grid below
-    /// `max_beta`. `None` when the lengths disagree or `dim` is 0.
+    /// `calibration.max_beta`. `None` when the lengths disagree or `dim` is 0.
     pub fn from_held_out(
         x: &[f64],
         dim: usize,
         held_out: &[(f64, f64)],
         labels: &[f64],
         deviations: &[f64],
-        d_max: f64,
-        max_beta: f64,
+        calibration: Calibration,
     ) -> Option<Self> {
+        let Calibration {
+            d_max,
+            max_beta,
+            false_trust,
+        } = calibration;
         let n = deviations.len();
         if dim == 0 || x.len() != n * dim || held_out.len() != n || labels.len() != n {
             return None;
@@ -107,6 +125,7 @@ impl LocalMargin {
             unsafe_rows: deviations.iter().map(|&d| d >= d_max).collect(),
             steps,
             inverse_width: 1.0 / (2.0 * h * h),
+            false_trust,
         })
     }
 
@@ -123,7 +142,7 @@ impl LocalMargin {
     /// The β to judge the state-action with features `row` at: the smallest β on the grid
     /// below `prior` at which the closeness-weighted share of unsafe transitions among those
     /// trusted held out at β, with the pessimistic pseudo-transition, is at most
-    /// [`CALIBRATED_FALSE_TRUST`]; `prior` when there is none (and whenever `prior` ≤ 0).
+    /// its false-trust rate; `prior` when there is none (and whenever `prior` ≤ 0).
     pub fn beta_at(&self, row: &[f64], prior: f64) -> f64 {
         if prior <= 0.0 || row.len() != self.dim {
             return prior;
@@ -159,7 +178,7 @@ impl LocalMargin {
             // edge of what is trusted, and its risk is theirs, not that of the ones deep inside.
             let (above, unsafe_above) = at.get(g + BAND_STEPS).copied().unwrap_or((0.0, 0.0));
             let (band, unsafe_band) = (mass - above, unsafe_mass - unsafe_above);
-            if (unsafe_band + PRIOR_WEIGHT) / (band + PRIOR_WEIGHT) <= CALIBRATED_FALSE_TRUST {
+            if (unsafe_band + PRIOR_WEIGHT) / (band + PRIOR_WEIGHT) <= self.false_trust {
                 return beta;
             }
         }
@@ -215,7 +234,12 @@ impl DeviationModel for Margined<'_> {
 mod tests {
     use super::*;
 
-    const D_MAX: f64 = 0.1;
+    /// `d_max` 0.1, the test β 2, 2 % false trust.
+    const AT: Calibration = Calibration {
+        d_max: 0.1,
+        max_beta: 2.0,
+        false_trust: 0.02,
+    };
 
     fn margin(parts: &[(usize, f64, f64, f64, f64)]) -> LocalMargin {
         let (mut x, mut held, mut labels, mut dev) = (vec![], vec![], vec![], vec![]);
@@ -227,7 +251,7 @@ mod tests {
             labels.extend(std::iter::repeat_n(mu, n));
             dev.extend(std::iter::repeat_n(d, n));
         }
-        LocalMargin::from_held_out(&x, 1, &held, &labels, &dev, D_MAX, 2.0).unwrap()
+        LocalMargin::from_held_out(&x, 1, &held, &labels, &dev, AT).unwrap()
     }
 
     #[test]
@@ -281,9 +305,8 @@ mod tests {
     #[test]
     fn mismatched_inputs_are_refused() {
         assert!(
-            LocalMargin::from_held_out(&[0.1, 0.2], 1, &[(0.0, 0.1)], &[0.0], &[0.0], D_MAX, 2.0)
-                .is_none()
+            LocalMargin::from_held_out(&[0.1, 0.2], 1, &[(0.0, 0.1)], &[0.0], &[0.0], AT).is_none()
         );
-        assert!(LocalMargin::from_held_out(&[], 0, &[], &[], &[], D_MAX, 2.0).is_none());
+        assert!(LocalMargin::from_held_out(&[], 0, &[], &[], &[], AT).is_none());
     }
 }

@@ -5,7 +5,7 @@
 //! choice costs before it starts ([`selection_cost`]).
 
 use super::estimator::{EstimatorKind, EstimatorParams, Regressor, fit};
-use super::margin::LocalMargin;
+use super::margin::{Calibration, LocalMargin};
 use crate::gp::{Fold, GpError, Kernel, WarmStart};
 use crate::planning::Precondition;
 use nalgebra::{DMatrix, DVector};
@@ -385,8 +385,11 @@ pub fn held_out_margins(
         &held_out,
         labels,
         training.deviations,
-        d_max,
-        max_beta,
+        Calibration {
+            d_max,
+            max_beta,
+            false_trust: CALIBRATED_FALSE_TRUST,
+        },
     );
     (Some(choice), margin)
 }
