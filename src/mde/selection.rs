@@ -375,12 +375,10 @@ pub fn held_out_margins(
     };
     let choice = BetaChoice::from_held_out(&held_out, labels, training.deviations, d_max, max_beta);
     let x = training.x;
-    let rows: Vec<f64> = x
-        .row_iter()
-        .flat_map(|r| r.iter().copied().collect::<Vec<_>>())
-        .collect();
+    // Row-major: the column-major storage of the transpose.
+    let rows = x.transpose();
     let margin = LocalMargin::from_held_out(
-        &rows,
+        rows.as_slice(),
         x.ncols(),
         &held_out,
         labels,
