@@ -2,6 +2,8 @@
 //! `A Λ^{-1/2} r` and the scalar statistics), and the chunked passes over the data shared with
 //! the bound's objective.
 
+use std::sync::OnceLock;
+
 use faer::Par;
 use nalgebra::DMatrix;
 
@@ -344,6 +346,58 @@ pub(crate) struct SparseCore {
     w: Vec<f64>,
     /// The collapsed bound.
     pub bound: f64,
+    /// [`variance_factor`], computed by the first prediction after a (re)conditioning; `None`
+    /// inside when it could not be formed (predictions then take the two solves).
+    var_factor: OnceLock<Option<Vec<f64>>>,
+}
+
+/// `H`, lower triangular (`m × m`, column-major), with `HᵀH = L⁻ᵀ (I − B⁻¹) L⁻¹`, so that the
+/// latent variance `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹L⁻¹k*‖²` is `s² − ‖H k*‖²`: one triangular product
+/// per batch of query points instead of two triangular solves, half the multiply-adds and none
+/// of a solve's row-by-row dependencies (at m = 256 on the reference machine, 1.3 against 3.1 ms
+/// per 512 points). `O(m³)` once per conditioning, `m²` numbers.
+///
+/// `I − B⁻¹` has its eigenvalues `λ/(1 + λ)` in `[0, 1)` (`λ` those of `AAᵀ`), so it is
+/// factorised well: as `UᵀU` with `U` lower triangular, by a Cholesky factorisation of the
+/// matrix with its rows and columns reversed (`J E J = R Rᵀ` gives `U = J Rᵀ J`), and then
+/// `H = U L⁻¹`. A jitter of up to 1e-10 on `E`'s diagonal (a variance change of at most
+/// 1e-10 · s²) covers directions no data reach. `None` when even that fails or the factor is not
+/// finite.
+fn variance_factor(l: &[f64], lb: &[f64], m: usize) -> Option<Vec<f64>> {
+    let mut lbinv = vec![0.0; m * m];
+    linalg::invert_lower(lb, m, &mut lbinv);
+    let mut binv = vec![0.0; m * m];
+    linalg::inverse_from_inverse_factor(&lbinv, m, &mut binv);
+    drop(lbinv);
+    let mut e = vec![0.0; m * m];
+    for jitter in [0.0, 1e-14, 1e-12, 1e-10] {
+        // `e`'s lower triangle: `(J E J)[i, j] = E[m−1−i, m−1−j] = E[m−1−j, m−1−i]`, with
+        // `E = I − B⁻¹` read from `B⁻¹`'s lower triangle.
+        for j in 0..m {
+            for i in j..m {
+                let v = -binv[(m - 1 - i) * m + (m - 1 - j)];
+                e[j * m + i] = if i == j { 1.0 + v + jitter } else { v };
+            }
+        }
+        if !linalg::cholesky_in_place(&mut e, m) {
+            continue;
+        }
+        // `U[i, j] = R[m−1−j, m−1−i]`, lower triangular.
+        let mut u = vec![0.0; m * m];
+        for j in 0..m {
+            for i in j..m {
+                u[j * m + i] = e[(m - 1 - i) * m + (m - 1 - j)];
+            }
+        }
+        let mut linv = vec![0.0; m * m];
+        linalg::invert_lower(l, m, &mut linv);
+        for j in 1..m {
+            linv[j * m..j * m + j].iter_mut().for_each(|v| *v = 0.0);
+        }
+        linalg::lower_times_lower(&u, &linv, m, &mut e);
+        return e.iter().all(|v| v.is_finite()).then_some(e);
+    }
+    None
 }
 
 /// Query points prepared by [`SparseCore::fantasy`].
@@ -446,6 +500,7 @@ impl SparseCore {
             stats,
             w: Vec::new(),
             bound: 0.0,
+            var_factor: OnceLock::new(),
         };
         core.finish()?;
         Ok(core)
@@ -466,6 +521,7 @@ impl SparseCore {
             ));
         }
         self.w = w;
+        self.var_factor = OnceLock::new();
         Ok(())
     }
 
@@ -515,50 +571,72 @@ impl SparseCore {
         Ok(())
     }
 
-    /// Mean, `‖L⁻¹k*‖²` and `‖L_B⁻¹L⁻¹k*‖²` at query points (the last two only `if want_var`).
-    pub fn predict_parts(&self, q: &Inputs, want_var: bool) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+    /// `f(kc, scratch, out)` on consecutive chunks of the query points `q`, split between
+    /// threads: `kc` holds `k(Z, q_j)` for the chunk's points (column-major `m × c`), `scratch`
+    /// is a buffer of the chunk's size, and `f` pushes one value per point onto `out`; the values
+    /// come back in the points' order. `work` is the per-point cost that decides the threads.
+    fn over_chunks<T: Send>(
+        &self,
+        q: &Inputs,
+        work: usize,
+        f: impl Fn(&mut [f64], &mut [f64], &mut Vec<T>) + Sync,
+    ) -> Vec<T> {
         let (m, d, n) = (self.m, self.d, q.n);
         let qs = scaled(q, &self.length_scales);
-        let work = if want_var {
-            m * (m + d + 8)
-        } else {
-            m * (d + 8)
-        };
         let parts = over_groups(n, m, work, |p0, p1| {
             let chunk = chunk_len(m);
-            let mut mean = Vec::with_capacity(p1 - p0);
-            let mut v1 = Vec::with_capacity(if want_var { p1 - p0 } else { 0 });
-            let mut v2 = Vec::with_capacity(v1.capacity());
+            let mut out = Vec::with_capacity(p1 - p0);
             let mut qc = Vec::new();
             let mut kbuf = vec![0.0; m * chunk.min(p1 - p0)];
+            let mut scratch = vec![0.0; kbuf.len()];
             let mut c0 = p0;
             while c0 < p1 {
                 let c = chunk.min(p1 - c0);
                 copy_points(&qs, n, d, c0, c0 + c, &mut qc);
                 let kc = &mut kbuf[..m * c];
                 cross_seq(self.kernel, &self.zs, m, &qc, c, c, d, self.s2, kc, None);
-                for col in kc.chunks_exact(m) {
-                    mean.push(self.mean + linalg::dot(col, &self.w));
-                }
-                if want_var {
-                    linalg::solve_lower_in_place(&self.l, m, kc, c, Par::Seq);
-                    v1.extend(kc.chunks_exact(m).map(|col| linalg::dot(col, col)));
-                    linalg::solve_lower_in_place(&self.lb, m, kc, c, Par::Seq);
-                    v2.extend(kc.chunks_exact(m).map(|col| linalg::dot(col, col)));
-                }
+                f(kc, &mut scratch[..m * c], &mut out);
                 c0 += c;
             }
-            (mean, v1, v2)
+            out
         });
-        let mut mean = Vec::with_capacity(n);
-        let mut v1 = Vec::with_capacity(if want_var { n } else { 0 });
-        let mut v2 = Vec::with_capacity(v1.capacity());
-        for (a, b, c) in parts {
-            mean.extend(a);
-            v1.extend(b);
-            v2.extend(c);
+        parts.into_iter().flatten().collect()
+    }
+
+    /// Mean, `‖L⁻¹k*‖²` and `‖L_B⁻¹L⁻¹k*‖²` at query points (the last two only `if want_var`).
+    pub fn predict_parts(&self, q: &Inputs, want_var: bool) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        let m = self.m;
+        let work = if want_var {
+            m * (m + self.d + 8)
+        } else {
+            m * (self.d + 8)
+        };
+        let parts = self.over_chunks(q, work, |kc, _, out| {
+            let c = kc.len() / m;
+            let start = out.len();
+            for col in kc.chunks_exact(m) {
+                out.push((self.mean + linalg::dot(col, &self.w), 0.0, 0.0));
+            }
+            if want_var {
+                linalg::solve_lower_in_place(&self.l, m, kc, c, Par::Seq);
+                for (o, col) in out[start..].iter_mut().zip(kc.chunks_exact(m)) {
+                    o.1 = linalg::dot(col, col);
+                }
+                linalg::solve_lower_in_place(&self.lb, m, kc, c, Par::Seq);
+                for (o, col) in out[start..].iter_mut().zip(kc.chunks_exact(m)) {
+                    o.2 = linalg::dot(col, col);
+                }
+            }
+        });
+        let mean = parts.iter().map(|p| p.0).collect();
+        if !want_var {
+            return (mean, Vec::new(), Vec::new());
         }
-        (mean, v1, v2)
+        (
+            mean,
+            parts.iter().map(|p| p.1).collect(),
+            parts.iter().map(|p| p.2).collect(),
+        )
     }
 
     /// `k(Z, x)`, column-major `m × |x|`.
@@ -605,15 +683,36 @@ impl SparseCore {
         )
     }
 
-    /// Mean and latent variance `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹L⁻¹k*‖²` (clamped to `[0, s²]`).
+    /// The [`variance_factor`] of this conditioning, formed on the first call.
+    pub fn variance_factor(&self) -> Option<&[f64]> {
+        self.var_factor
+            .get_or_init(|| variance_factor(&self.l, &self.lb, self.m))
+            .as_deref()
+    }
+
+    /// Mean and latent variance `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹L⁻¹k*‖²` (clamped to `[0, s²]`),
+    /// computed as `s² − ‖H k*‖²` with the [`variance_factor`] `H` (formed on the first call
+    /// after a conditioning), or by the two solves where it could not be formed.
     pub fn predict(&self, q: &Inputs) -> (Vec<f64>, Vec<f64>) {
-        let (mean, v1, v2) = self.predict_parts(q, true);
-        let var = v1
-            .iter()
-            .zip(&v2)
-            .map(|(a, b)| (self.s2 - a + b).clamp(0.0, self.s2))
-            .collect();
-        (mean, var)
+        let m = self.m;
+        let Some(h) = self.variance_factor() else {
+            let (mean, v1, v2) = self.predict_parts(q, true);
+            let var = v1
+                .iter()
+                .zip(&v2)
+                .map(|(a, b)| (self.s2 - a + b).clamp(0.0, self.s2))
+                .collect();
+            return (mean, var);
+        };
+        let parts = self.over_chunks(q, m * (m / 2 + self.d + 8), |kc, hk, out| {
+            let c = kc.len() / m;
+            linalg::lower_times(h, m, kc, c, hk, Par::Seq);
+            for (col, hcol) in kc.chunks_exact(m).zip(hk.chunks_exact(m)) {
+                let var = (self.s2 - linalg::dot(hcol, hcol)).clamp(0.0, self.s2);
+                out.push((self.mean + linalg::dot(col, &self.w), var));
+            }
+        });
+        parts.into_iter().unzip()
     }
 
     /// This GP as plain numbers: the inducing inputs, `w` as the weights and, `with_variance`,
@@ -785,6 +884,7 @@ impl SparseCore {
             },
             w: Vec::new(),
             bound: 0.0,
+            var_factor: OnceLock::new(),
         };
         core.finish()?;
         Ok(core)

@@ -23,7 +23,9 @@
 //! where `C = L⁻ᵀ H L⁻¹`, `H = ½(I − B⁻¹ − γγᵀ)`, `γ = L_B⁻ᵀ c`, `β = L⁻ᵀ γ` (see `bound`).
 //!
 //! Prediction at `x*` with `k* = K(Z, x*)`: mean `m + k*ᵀ w` (`w = L⁻ᵀ L_B⁻ᵀ c`), latent variance
-//! `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹ L⁻¹ k*‖²` — O(m²) per point, two triangular solves.
+//! `s² − ‖L⁻¹k*‖² + ‖L_B⁻¹ L⁻¹ k*‖²` — O(m²) per point. It is computed as `s² − ‖H k*‖²` with
+//! one lower-triangular `H` (`HᵀH = L⁻ᵀ (I − B⁻¹) L⁻¹`), formed once per conditioning: one
+//! triangular product per batch instead of two triangular solves (see `core`).
 //!
 //! New data at fixed hyperparameters and inducing points update `L_B` by a rank-k Cholesky update
 //! and `A Λ^{-1/2} r` by a sum ([`SparseGp::update`]): the result equals conditioning on all the

@@ -872,6 +872,24 @@ impl SparseGp {
         Ok(self.predict(x))
     }
 
+    /// Whether [`predict`](Self::predict) computes the latent variance by one triangular
+    /// product (tests).
+    #[cfg(test)]
+    pub(crate) fn has_variance_factor(&self) -> bool {
+        self.main.variance_factor().is_some()
+    }
+
+    /// The latent variances at the rows of `x` by the two triangular solves (tests).
+    #[cfg(test)]
+    pub(crate) fn latent_variance_by_solves(&self, x: &DMatrix<f64>) -> Vec<f64> {
+        let (_, v1, v2) = self.main.predict_parts(&Inputs::from_matrix(x), true);
+        let s2 = self.main.s2;
+        v1.iter()
+            .zip(&v2)
+            .map(|(a, b)| (s2 - a + b).clamp(0.0, s2))
+            .collect()
+    }
+
     /// Like [`predict`](Self::predict), as if the rows of `pending` had been observed too at
     /// this model's hyperparameters, inducing points and noise (a batch executed but not yet
     /// fitted): the same mean, and the latent variance an [`update`](Self::update) with them

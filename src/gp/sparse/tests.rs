@@ -770,3 +770,75 @@ fn fantasised_variances_equal_conditioning_on_the_pending_points_too() {
         assert_eq!(model.n_train(), 300);
     }
 }
+
+/// The latent variance by one triangular product with the precomputed factor equals the two
+/// triangular solves' to rounding, relative to the signal variance — on a low-rank fit, a
+/// heteroscedastic one, and a full-rank fit of nearly noise-free data (`K_mm` ill-conditioned,
+/// the variance near the training points a small difference of large terms); at fresh points
+/// and at the training points themselves.
+#[test]
+fn the_variance_by_one_product_equals_the_two_solves() {
+    let (x, y) = data(600, 2, 21);
+    let (xn, yn) = nearly_noise_free(700, 22);
+    let full_rank = SparseParams {
+        gp: gp_params(NoiseMode::Homoscedastic, 0, 3),
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    // A rough function of all six inputs, so that all 128 inducing points are kept.
+    let mut rng = ChaCha8Rng::seed_from_u64(24);
+    let x6 = DMatrix::from_fn(2000, 6, |_, _| rng.random::<f64>());
+    let y6 = DVector::from_fn(2000, |i, _| {
+        (0..6).map(|k| (9.0 * x6[(i, k)]).sin()).sum::<f64>() + 0.01 * rng.random::<f64>()
+    });
+    let m128 = SparseParams {
+        gp: gp_params(NoiseMode::Homoscedastic, 0, 3),
+        inducing_points: 128,
+        inducing_rounds: 1,
+        full_rank_up_to: 0,
+        ..SparseParams::default()
+    }
+    .check()
+    .unwrap();
+    let fits = [
+        (
+            "128 of 2000 in 6 dimensions",
+            SparseGp::fit(&x6, &y6, &m128).unwrap(),
+            &x6,
+        ),
+        (
+            "low rank",
+            SparseGp::fit(&x, &y, &low_rank_40(NoiseMode::Homoscedastic)).unwrap(),
+            &x,
+        ),
+        (
+            "heteroscedastic",
+            SparseGp::fit(&x, &y, &low_rank_40(NoiseMode::Heteroscedastic)).unwrap(),
+            &x,
+        ),
+        (
+            "full rank, nearly noise-free",
+            SparseGp::fit(&xn, &yn, &full_rank).unwrap(),
+            &xn,
+        ),
+    ];
+    for (what, gp, train) in &fits {
+        assert!(gp.has_variance_factor(), "{what}: no factor");
+        let s2 = gp.hyperparameters().signal_variance;
+        let (fresh, _) = data(2000, train.ncols(), 23);
+        let mut worst: f64 = 0.0;
+        for q in [&fresh, *train] {
+            let by_product = gp.predict(q).latent_variance;
+            let by_solves = gp.latent_variance_by_solves(q);
+            for (a, b) in by_product.iter().zip(&by_solves) {
+                worst = worst.max((a - b).abs() / s2);
+            }
+        }
+        eprintln!(
+            "{what}: n_inducing {}, worst |Δvar| / s² = {worst:e}",
+            gp.n_inducing()
+        );
+        assert!(worst <= 1e-9, "{what}: |Δvar| / s² up to {worst:e}");
+    }
+}
