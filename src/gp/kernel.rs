@@ -347,37 +347,10 @@ fn build_train_with<K: Form>(
         Some(g) => split_columns(g, n, &bounds).into_iter().map(Some).collect(),
         None => (0..bounds.len() - 1).map(|_| None).collect(),
     };
-    let work = |c0: usize, a_part: &mut [f64], mut g_part: Option<&mut [f64]>| {
-        let mut r2 = vec![0.0; n];
-        let ncols = a_part.len() / n;
-        for jc in 0..ncols {
-            let c = c0 + jc;
-            let r2 = &mut r2[c..n];
-            r2.iter_mut().for_each(|v| *v = 0.0);
-            for k in 0..d {
-                let col = &xs[k * n + c..(k + 1) * n];
-                let xc = col[0];
-                for (acc, &v) in r2.iter_mut().zip(col) {
-                    let t = v - xc;
-                    *acc += t * t;
-                }
-            }
-            let acol = &mut a_part[jc * n + c..(jc + 1) * n];
-            match g_part.as_deref_mut() {
-                Some(gp) => {
-                    let gcol = &mut gp[jc * n + c..(jc + 1) * n];
-                    for ((av, gv), &q) in acol.iter_mut().zip(gcol.iter_mut()).zip(r2.iter()) {
-                        (*av, *gv) = K::kg(q, s2);
-                    }
-                }
-                None => {
-                    for (av, &q) in acol.iter_mut().zip(r2.iter()) {
-                        *av = K::k(q, s2);
-                    }
-                }
-            }
-            acol[0] = s2 + diag_add[c];
-        }
+    // Element-wise loops, dispatched to the CPU's vector width as in `cross_seq_with`.
+    let work = |c0: usize, a_part: &mut [f64], g_part: Option<&mut [f64]>| {
+        pulp::Arch::new()
+            .dispatch(|| train_columns::<K>(xs, n, d, s2, diag_add, c0, a_part, g_part))
     };
     if bounds.len() == 2 {
         let a0 = a_parts.into_iter().next().unwrap_or_default();
@@ -391,6 +364,52 @@ fn build_train_with<K: Form>(
             scope.spawn(move || work(c0, a_part, g_part));
         }
     });
+}
+
+/// Columns `c0 ..` of the training covariance (and `G`) for [`build_train_with`]: one
+/// thread's share, the element-wise loops inlined into the dispatched caller.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn train_columns<K: Form>(
+    xs: &[f64],
+    n: usize,
+    d: usize,
+    s2: f64,
+    diag_add: &[f64],
+    c0: usize,
+    a_part: &mut [f64],
+    mut g_part: Option<&mut [f64]>,
+) {
+    let mut r2 = vec![0.0; n];
+    let ncols = a_part.len() / n;
+    for jc in 0..ncols {
+        let c = c0 + jc;
+        let r2 = &mut r2[c..n];
+        r2.iter_mut().for_each(|v| *v = 0.0);
+        for k in 0..d {
+            let col = &xs[k * n + c..(k + 1) * n];
+            let xc = col[0];
+            for (acc, &v) in r2.iter_mut().zip(col) {
+                let t = v - xc;
+                *acc += t * t;
+            }
+        }
+        let acol = &mut a_part[jc * n + c..(jc + 1) * n];
+        match g_part.as_deref_mut() {
+            Some(gp) => {
+                let gcol = &mut gp[jc * n + c..(jc + 1) * n];
+                for ((av, gv), &q) in acol.iter_mut().zip(gcol.iter_mut()).zip(r2.iter()) {
+                    (*av, *gv) = K::kg(q, s2);
+                }
+            }
+            None => {
+                for (av, &q) in acol.iter_mut().zip(r2.iter()) {
+                    *av = K::k(q, s2);
+                }
+            }
+        }
+        acol[0] = s2 + diag_add[c];
+    }
 }
 
 /// Cross covariance `K*` between training inputs `xs` (`n × d`, scaled) and query inputs `qs`
@@ -602,10 +621,10 @@ pub(crate) fn length_scale_gradient(
 mod tests {
     use super::*;
 
-    /// The dispatched kernel block (AVX2 or AVX-512 where the CPU has them) equals the portable
-    /// build's bit for bit, covariances and `G` alike, for every kernel, and far points are 0.
+    /// The dispatched kernel blocks (AVX2 or AVX-512 where the CPU has them), cross and training
+    /// covariances, equal the portable build's bit for bit, `G` too, for every kernel.
     #[test]
-    fn the_dispatched_cross_covariance_is_the_portable_one_bit_for_bit() {
+    fn the_dispatched_kernel_blocks_are_the_portable_ones_bit_for_bit() {
         let (m, c, d) = (37, 23, 3);
         let zs: Vec<f64> = (0..m * d)
             .map(|i| ((i * 37) % 101) as f64 / 40.0 - 1.2)
@@ -638,6 +657,19 @@ mod tests {
             assert_eq!(differ(&k1, &k2), 0, "{kernel}: covariances without G");
             assert!(k1[..m].iter().all(|&v| v == 0.0), "{kernel}: a far point");
             assert!(k1.iter().any(|&v| v > 0.1), "{kernel}: some near points");
+            // The training covariance, on enough points for several threads.
+            let n = 300;
+            let xs: Vec<f64> = (0..n * d).map(|i| ((i * 53) % 211) as f64 / 70.0).collect();
+            let diag: Vec<f64> = (0..n).map(|i| 1e-3 * (i % 5) as f64).collect();
+            let (mut a1, mut g1) = (vec![0.0; n * n], vec![0.0; n * n]);
+            let (mut a2, mut g2) = (vec![0.0; n * n], vec![0.0; n * n]);
+            build_train(kernel, &xs, n, d, 0.7, &diag, &mut a1, Some(&mut g1));
+            with_form!(
+                kernel,
+                train_columns(&xs, n, d, 0.7, &diag, 0, &mut a2, Some(&mut g2))
+            );
+            assert_eq!(differ(&a1, &a2), 0, "{kernel}: training covariance");
+            assert_eq!(differ(&g1, &g2), 0, "{kernel}: training G");
         }
     }
 
