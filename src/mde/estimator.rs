@@ -204,6 +204,10 @@ pub trait Regressor: Send + Sync + std::fmt::Debug {
     fn state(&self) -> EstimatorState;
     /// Floats it keeps in memory (for the cache of older versions).
     fn floats(&self) -> usize;
+    /// Forms what its predictions would otherwise form lazily on the first call (the sparse
+    /// GP's variance factor), so the caller pays for it on a thread meant for long work rather
+    /// than in the first query. Nothing to do by default.
+    fn prepare(&self) {}
 }
 
 /// A fitted regressor's stored form, tagged `"estimator"`.
@@ -533,8 +537,10 @@ impl Regressor for SparseGp {
         EstimatorState::Sparse(Box::new(SparseGp::state(self)))
     }
     fn floats(&self) -> usize {
-        let m = self.n_inducing();
-        m * m + m * SparseGp::input_dim(self)
+        SparseGp::floats(self)
+    }
+    fn prepare(&self) {
+        SparseGp::prepare(self)
     }
 }
 

@@ -479,6 +479,8 @@ impl LiveExperiment {
                 }
             };
             record.phases = std::mem::take(&mut choice.phases);
+            // Here, not in the first query: a small query is answered on an async worker.
+            choice.gp.prepare();
             Ok::<_, crate::gp::GpError>((choice, record))
         })
         .await?;
@@ -568,6 +570,8 @@ impl LiveExperiment {
         let (x, y) = training_data(features, labels, dim);
         match gp.update(&x, &y) {
             Ok(updated) => {
+                // Absorbing runs on a blocking thread; the queries after it need not form this.
+                updated.prepare();
                 let mut fit = fit.clone();
                 fit.online_trajectories += trajectories;
                 self.swap_model(Arc::new(ServedModel {
@@ -616,6 +620,7 @@ impl LiveExperiment {
         let (gp, local_margin) = tokio::task::spawn_blocking(move || {
             let (x, y) = training_data(features, labels.clone(), dim);
             let gp = state.restore(&x, &y)?;
+            gp.prepare();
             let margin = margin_up_to
                 .filter(|_| !deviations.is_empty())
                 .and_then(|max_beta| {

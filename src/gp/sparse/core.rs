@@ -686,6 +686,26 @@ impl SparseCore {
         )
     }
 
+    /// Floats this conditioning keeps: the inducing inputs twice, the two triangles, the
+    /// vectors, and the [`variance_factor`]'s `m²` whether formed yet or not (the first
+    /// prediction forms it; `None` inside is counted too, conservatively).
+    pub fn floats(&self) -> usize {
+        self.z.cols.len()
+            + self.zs.len()
+            + self.l.len()
+            + self.lb.len()
+            + self.ar.len()
+            + self.w.len()
+            + self.m * self.m
+    }
+
+    /// Whether the [`variance_factor`] has been formed (or found impossible) for this
+    /// conditioning, without forming it (tests).
+    #[cfg(test)]
+    pub fn variance_factor_formed(&self) -> bool {
+        self.var_factor.get().is_some()
+    }
+
     /// The [`variance_factor`] of this conditioning, formed on the first call.
     pub fn variance_factor(&self) -> Option<&[f64]> {
         self.var_factor

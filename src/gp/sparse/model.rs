@@ -872,11 +872,32 @@ impl SparseGp {
         Ok(self.predict(x))
     }
 
+    /// Forms what [`predict`](Self::predict) would otherwise form on its first call after a
+    /// fit, a restore or an update (the variance factor, `O(m³)`: about a second at the cap of
+    /// 4096 inducing points), so that a caller can pay for it where long work belongs — the
+    /// service does so on its blocking threads before a version answers, and a small query
+    /// answered on an async worker then costs only its products.
+    pub fn prepare(&self) {
+        let _ = self.main.variance_factor();
+    }
+
+    /// Floats this model keeps in memory: the main conditioning's (its variance factor
+    /// included) and the noise model's.
+    pub fn floats(&self) -> usize {
+        self.main.floats() + self.noise_model.as_ref().map_or(0, |nm| nm.core.floats())
+    }
+
     /// Whether [`predict`](Self::predict) computes the latent variance by one triangular
     /// product (tests).
     #[cfg(test)]
     pub(crate) fn has_variance_factor(&self) -> bool {
         self.main.variance_factor().is_some()
+    }
+
+    /// Whether the variance factor is formed already, without forming it (tests).
+    #[cfg(test)]
+    pub(crate) fn variance_factor_formed(&self) -> bool {
+        self.main.variance_factor_formed()
     }
 
     /// The latent variances at the rows of `x` by the two triangular solves (tests).

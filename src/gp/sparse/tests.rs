@@ -842,3 +842,41 @@ fn the_variance_by_one_product_equals_the_two_solves() {
         assert!(worst <= 1e-9, "{what}: |Δvar| / s² up to {worst:e}");
     }
 }
+
+/// The variance factor is formed by `prepare` (where the service pays for it: on a blocking
+/// thread after a fit, a restore or an online update), not left to the first query; an update
+/// drops the old conditioning's factor and a clone keeps a formed one. The version cache
+/// counts it: the floats cover both triangles and the factor of the main conditioning.
+#[test]
+fn prepare_forms_the_variance_factor_before_any_query() {
+    let (x, y) = data(600, 2, 31);
+    let gp = SparseGp::fit(&x, &y, &low_rank_40(NoiseMode::Heteroscedastic)).unwrap();
+    assert!(!gp.variance_factor_formed(), "a fit forms it eagerly");
+    let m = gp.n_inducing();
+    assert!(
+        gp.floats() >= 3 * m * m + 2 * m * x.ncols(),
+        "{} floats for m = {m}",
+        gp.floats()
+    );
+    gp.prepare();
+    assert!(gp.variance_factor_formed());
+    let kept = gp.clone();
+    assert!(kept.variance_factor_formed(), "a clone dropped the factor");
+    let mut updated = gp.clone();
+    let (xn, yn) = data(50, 2, 32);
+    updated.update(&xn, &yn).unwrap();
+    assert!(
+        !updated.variance_factor_formed(),
+        "an update kept a stale factor"
+    );
+    updated.prepare();
+    assert!(updated.variance_factor_formed());
+    let restored = SparseGp::from_state(&updated.state()).unwrap();
+    assert!(!restored.variance_factor_formed());
+    restored.prepare();
+    let (q, _) = data(300, 2, 33);
+    assert_eq!(
+        restored.predict(&q).latent_variance,
+        updated.predict(&q).latent_variance
+    );
+}
