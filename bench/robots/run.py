@@ -240,7 +240,7 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
             max_requests = total * args.max_requests_per_trajectory
             final: dict[str, Any] | None = None
 
-            def evaluate(iteration: int) -> dict[str, Any]:
+            def evaluate(iteration: int, last: bool = False) -> dict[str, Any]:
                 m = client.wait_for_model(iteration * args.batch, timeout=600)
                 row: dict[str, Any] = {"iteration": iteration, "n_trajectories": m.n_trajectories,
                                        "model_version": m.version, "fit_seconds": m.fit_seconds,
@@ -248,7 +248,7 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
                                        "label_cap": m.label_cap, "estimator": m.estimator}
                 row.update(ev.precondition_quality(client, ts["held_s"], ts["held_a"],
                                                    ts["held_dev"], robot.d_max))
-                last = iteration == args.iterations
+                last = last or iteration == args.iterations
                 if last or args.curve_plans:
                     t0 = time.monotonic()
                     res = ev.test_plans(robot, ev.service_planner(client, failures),
@@ -293,7 +293,8 @@ def learning_run(robot: Robot, preset: str, seed: int, ts: dict[str, Any],
                 final = curve[-1]
             elif posted:
                 # The loop stalled: judge what was learnt as the last iteration would be.
-                final = evaluate(args.iterations if posted >= total else max(1, posted // args.batch))
+                final = evaluate(args.iterations if posted >= total else max(1, posted // args.batch),
+                                 last=True)
                 final["stalled"] = True
                 curve.append(final)
             exp_now = client.get_experiment()
