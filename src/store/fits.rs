@@ -137,7 +137,9 @@ impl Store {
         self.noted(async {
             let now = unix_now();
             // SQLite's one writer makes the claim atomic; PostgreSQL's claimers skip each other's
-            // locked rows.
+            // locked rows. SQLite's `julianday` rounds to whole milliseconds: on a tie, the
+            // stored time's nanoseconds (text that sorts in time) keep requests made within one
+            // millisecond in the order they were made.
             let (skip_locked, requested_unix) = match self.backend {
                 Backend::Sqlite => ("", "(julianday(j.requested_at) - 2440587.5) * 86400.0"),
                 Backend::Postgres => (
@@ -155,7 +157,7 @@ impl Store {
                      SELECT j.experiment_id FROM fit_jobs j
                      WHERE (j.claimed_by IS NULL OR j.heartbeat_unix < $3)
                        AND ($4 IS NULL OR j.experiment_id = $4)
-                     ORDER BY {requested_unix} + {expected}, j.experiment_id
+                     ORDER BY {requested_unix} + {expected}, j.requested_at, j.experiment_id
                      LIMIT 1 {skip_locked})
                  RETURNING experiment_id, generation, forced"
             ))
@@ -444,6 +446,32 @@ mod tests {
         assert_eq!(next.experiment_id, fleet, "it waited longer than it takes");
         store.finish_fit(&next, None).await.unwrap();
         store.finish_fit(&first, None).await.unwrap();
+    }
+
+    /// Two requests within one millisecond (SQLite's date functions round to milliseconds):
+    /// the earlier is claimed first, whichever experiment id is lower. The same order was left
+    /// to the ids before, so a re-request finishing within a millisecond of another's request
+    /// could jump ahead of it (a CI run of the test above failed so).
+    #[tokio::test]
+    async fn requests_within_one_millisecond_are_claimed_in_the_order_they_were_made() {
+        let (_dir, store, low_id, high_id) = two_experiments().await;
+        store.request_fit(low_id, false).await.unwrap();
+        store.request_fit(high_id, false).await.unwrap();
+        let second = time::OffsetDateTime::now_utc()
+            .replace_nanosecond(0)
+            .unwrap();
+        let at = |nanos: i64| super::super::timestamp(second + time::Duration::nanoseconds(nanos));
+        let (earlier, later) = (at(100_000), at(400_000));
+        for (id, when) in [(high_id, &earlier), (low_id, &later)] {
+            sqlx::query("UPDATE fit_jobs SET requested_at = $2 WHERE experiment_id = $1")
+                .bind(id)
+                .bind(when)
+                .execute(&store.write)
+                .await
+                .unwrap();
+        }
+        let first = store.claim_fit("r", 60.0, None).await.unwrap().unwrap();
+        assert_eq!(first.experiment_id, high_id, "{earlier} before {later}");
     }
 
     #[tokio::test]
