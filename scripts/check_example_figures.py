@@ -34,7 +34,10 @@ EXAMPLES = [
         "docs/mujoco_pusher/mujoco_pusher_summary.json",
         ["--model-port", "0"],
         [
-            ("curve[-1].tpr", 0.05),
+            # Measured between machines, same commit (60438e0), seed 0: 0.7897 where the
+            # figures were committed, 0.7276 on an AVX-512 VM (2026-11-29) — faer's kernels
+            # round differently per SIMD width, and ten iterations of learning carry it on.
+            ("curve[-1].tpr", 0.07),
             ("curve[-1].tnr", 0.05),
             ("curve[-1].plan_found", 0.1),
             ("curve[-1].success", 0.1),
