@@ -46,14 +46,6 @@ from run import robot_class  # noqa: E402
 BETAS = (1.0, 2.0)
 
 
-def wrapped(diff: Array, robot: Robot) -> Array:
-    diff = diff.copy()
-    for i in robot.periodic:
-        period = robot.state_high[i] - robot.state_low[i]
-        diff[:, i] -= period * np.round(diff[:, i] / period)
-    return diff
-
-
 def rollouts(robot: Robot, rng: np.random.Generator, n: int, length: int) -> tuple[Array, Array]:
     states, actions = [], []
     for _ in range(n):
@@ -92,13 +84,13 @@ def measure(name: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
     rng = np.random.default_rng([seed, 47])
     s, a = rollouts(robot, rng, args.trajectories, args.length)
     p = robot.f_hat(s, a)
-    r = wrapped(robot.true_steps(s, a) - p, robot)
+    r = robot.difference(robot.true_steps(s, a), p)
     w = np.ones(s.shape[1]) if robot.distance_weights is None else np.asarray(robot.distance_weights)
     d = np.sqrt((w * r**2).sum(1))
     hs = np.array([robot.sample_state(rng) for _ in range(args.held_out)])
     ha = np.array([robot.sample_action(rng) for _ in range(args.held_out)])
     hp = robot.f_hat(hs, ha)
-    hd = np.sqrt((w * wrapped(robot.true_steps(hs, ha) - hp, robot) ** 2).sum(1))
+    hd = robot.distance(hp, robot.true_steps(hs, ha))
     safe = hd < robot.d_max
 
     lo_s, hi_s, lo_a, hi_a = robot.state_low, robot.state_high, robot.action_low, robot.action_high
@@ -108,7 +100,7 @@ def measure(name: str, seed: int, args: argparse.Namespace) -> dict[str, Any]:
 
     def move(st: Array, pr: Array) -> Array:
         diag = np.sqrt((w * (hi_s - lo_s) ** 2).sum())
-        return np.sqrt((w * wrapped(pr - st, robot) ** 2).sum(1, keepdims=True)) / diag
+        return np.sqrt((w * robot.difference(pr, st) ** 2).sum(1, keepdims=True)) / diag
 
     feature_sets: dict[str, Callable[[Array, Array, Array], Array]] = {
         "s,a,p": lambda st, ac, pr: np.hstack([unit(st, lo_s, hi_s), unit(ac, lo_a, hi_a), unit(pr, lo_s, hi_s)]),

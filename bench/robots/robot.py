@@ -112,14 +112,18 @@ class Robot(ABC):
 
     # ---------------------------------------------------------------- shared helpers
 
-    def distance(self, a: Array, b: Array) -> Array:
-        """The experiment's distance, row-wise."""
-        w = np.ones(a.shape[-1]) if self.distance_weights is None else np.asarray(self.distance_weights)
+    def difference(self, a: Array, b: Array) -> Array:
+        """``a − b`` row-wise, periodic components the shorter way round."""
         diff = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
         for i in self.periodic:
             period = self.state_high[i] - self.state_low[i]
             diff[..., i] -= period * np.round(diff[..., i] / period)
-        return np.sqrt(np.sum(w * diff**2, axis=-1))
+        return diff
+
+    def distance(self, a: Array, b: Array) -> Array:
+        """The experiment's distance, row-wise."""
+        w = np.ones(a.shape[-1]) if self.distance_weights is None else np.asarray(self.distance_weights)
+        return np.sqrt(np.sum(w * self.difference(a, b) ** 2, axis=-1))
 
     def true_deviation(self, states: Array, actions: Array) -> Array:
         """``d(f̂(s, a), s')`` with ``s'`` from MuJoCo."""
