@@ -165,6 +165,69 @@ fn default_timeout_ms() -> u64 {
     2000
 }
 
+impl ModelSpec {
+    /// Fills in the defaults of a model of an `n`-dimensional state (a linear model's `c`)
+    /// and checks a remote model's time limit and URL against `policy`, storing the URL in
+    /// the normalised form that was checked and will be called. Errors name the field under
+    /// `at` (e.g. `domain.model`).
+    pub fn resolve(
+        &mut self,
+        n: usize,
+        policy: &ModelUrlPolicy,
+        at: &str,
+    ) -> Result<(), InvalidSetting> {
+        match self {
+            ModelSpec::Remote { url, timeout_ms } => {
+                if !(1..=MAX_TIMEOUT_MS).contains(timeout_ms) {
+                    return Err(InvalidSetting::new(
+                        format!("{at}.timeout_ms"),
+                        format!("must be between 1 and {MAX_TIMEOUT_MS}"),
+                    ));
+                }
+                *url = policy
+                    .normalise(url)
+                    .map_err(|reason| InvalidSetting::new(format!("{at}.url"), reason))?;
+            }
+            ModelSpec::Linear { c, .. } => {
+                c.get_or_insert_with(|| vec![0.0; n]);
+            }
+            ModelSpec::Client {} => {}
+        }
+        Ok(())
+    }
+
+    /// Builds the model over the spaces `state` and `action` (no network: a remote model is
+    /// first called when used, under `calls`' policy and limits); `periodic` are the state's
+    /// angle components, into whose bounds a linear model wraps its predictions. Errors name
+    /// the field under `at`.
+    pub fn build(
+        &self,
+        state: &Space,
+        action: &Space,
+        periodic: &[usize],
+        calls: &Arc<ModelCalls>,
+        at: &str,
+    ) -> Result<Arc<dyn DynamicsModel>, InvalidSetting> {
+        Ok(match self {
+            ModelSpec::Remote { url, timeout_ms } => Arc::new(RemoteModel::new(
+                url,
+                *timeout_ms,
+                state.dim(),
+                calls.clone(),
+            )),
+            ModelSpec::Linear { a, b, c } => {
+                let c = c.clone().unwrap_or_else(|| vec![0.0; state.dim()]);
+                Arc::new(
+                    LinearModel::new(a.clone(), b.clone(), c, state, action)
+                        .map_err(|e| InvalidSetting::new(e.path_under(at), e.reason))?
+                        .with_periodic(periodic),
+                )
+            }
+            ModelSpec::Client {} => Arc::new(ClientModel),
+        })
+    }
+}
+
 /// A client-declared domain as posted (see the module docs).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(deny_unknown_fields)]
@@ -340,23 +403,7 @@ impl CustomSpec {
             weights: vec![1.0; n],
         });
         self.goal.components.get_or_insert_with(|| (0..n).collect());
-        match &mut self.model {
-            ModelSpec::Remote { url, timeout_ms } => {
-                if !(1..=MAX_TIMEOUT_MS).contains(timeout_ms) {
-                    return Err(bad(
-                        "model.timeout_ms",
-                        format!("must be between 1 and {MAX_TIMEOUT_MS}"),
-                    ));
-                }
-                *url = policy
-                    .normalise(url)
-                    .map_err(|reason| bad("model.url", reason))?;
-            }
-            ModelSpec::Linear { c, .. } => {
-                c.get_or_insert_with(|| vec![0.0; n]);
-            }
-            ModelSpec::Client {} => {}
-        }
+        self.model.resolve(n, policy, "domain.model")?;
         Ok(self)
     }
 
@@ -364,23 +411,10 @@ impl CustomSpec {
     /// used, under `calls`' policy and limits). Errors name the parameter under `domain`.
     pub fn build(&self, calls: &Arc<ModelCalls>) -> Result<CustomDomain, InvalidSetting> {
         let (state, action) = (self.state.space(), self.action.space());
-        let model: Arc<dyn DynamicsModel> = match &self.model {
-            ModelSpec::Remote { url, timeout_ms } => Arc::new(RemoteModel::new(
-                url,
-                *timeout_ms,
-                state.dim(),
-                calls.clone(),
-            )),
-            ModelSpec::Linear { a, b, c } => {
-                let c = c.clone().unwrap_or_else(|| vec![0.0; state.dim()]);
-                Arc::new(
-                    LinearModel::new(a.clone(), b.clone(), c, &state, &action)
-                        .map_err(|e| InvalidSetting::new(e.path_under("domain.model"), e.reason))?
-                        .with_periodic(self.state.periodic.as_deref().unwrap_or_default()),
-                )
-            }
-            ModelSpec::Client {} => Arc::new(ClientModel),
-        };
+        let periodic = self.state.periodic.as_deref().unwrap_or_default();
+        let model = self
+            .model
+            .build(&state, &action, periodic, calls, "domain.model")?;
         let (n, m) = (state.dim(), action.dim());
         let features = self.features.clone().unwrap_or(FeaturesSpec {
             state: (0..n).collect(),
