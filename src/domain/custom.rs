@@ -304,18 +304,7 @@ impl CustomDomain {
             move_length: params.move_length,
             periodic: params.periodic.clone(),
         };
-        let model = if params.periodic.is_empty() || model.client_side() {
-            model
-        } else {
-            Arc::new(Wrapping {
-                inner: model,
-                angles: params
-                    .periodic
-                    .iter()
-                    .map(|&i| (i, params.state.low[i], params.state.high[i]))
-                    .collect(),
-            })
-        };
+        let model = wrapping_angles(model, &params.state, &params.periodic);
         Ok(Self {
             params,
             model,
@@ -600,8 +589,29 @@ pub fn wrap(x: f64, low: f64, high: f64) -> f64 {
     }
 }
 
-/// A model whose predictions of the periodic components are wrapped into their bounds (a
-/// robot's model may answer a heading of 3.2 rad where the state says `[−π, π]`).
+/// `model` with its predictions of the `periodic` components of `state` wrapped into their
+/// bounds (a robot's model may answer a heading of 3.2 rad where the state says `[−π, π]`);
+/// `model` itself when there are none, or when it is the client's. The caller has checked
+/// `periodic` against `state`.
+pub fn wrapping_angles(
+    model: Arc<dyn DynamicsModel>,
+    state: &Space,
+    periodic: &[usize],
+) -> Arc<dyn DynamicsModel> {
+    if periodic.is_empty() || model.client_side() {
+        model
+    } else {
+        Arc::new(Wrapping {
+            inner: model,
+            angles: periodic
+                .iter()
+                .map(|&i| (i, state.low[i], state.high[i]))
+                .collect(),
+        })
+    }
+}
+
+/// A model whose predictions of the periodic components are wrapped into their bounds.
 #[derive(Debug)]
 struct Wrapping {
     inner: Arc<dyn DynamicsModel>,
