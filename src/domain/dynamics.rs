@@ -143,6 +143,18 @@ pub trait DynamicsModel: Send + Sync + fmt::Debug {
     }
 }
 
+/// One of an experiment's further models of its robot (beside the domain's own): its name,
+/// what one call costs in calls of the domain's model, and the model.
+#[derive(Debug, Clone)]
+pub struct NamedModel {
+    /// The model's name, unique in its experiment.
+    pub name: String,
+    /// Cost of one call, in calls of the domain's own model.
+    pub cost: f64,
+    /// The model.
+    pub model: std::sync::Arc<dyn DynamicsModel>,
+}
+
 /// A domain whose model runs in-process, cheaply and without failing: the built-in worlds.
 ///
 /// Implementing it makes the domain a [`DynamicsModel`] (one point at a time); its

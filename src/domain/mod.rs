@@ -16,7 +16,7 @@ mod kinematic;
 pub mod water_plant;
 
 pub use custom::{ClientModel, CustomDomain, CustomParams, LinearModel};
-pub use dynamics::{Awaited, DynamicsError, DynamicsModel, LocalModel, Predicted};
+pub use dynamics::{Awaited, DynamicsError, DynamicsModel, LocalModel, NamedModel, Predicted};
 pub use features::{FeatureMap, action_length_fraction, predicted_move_fraction};
 pub use gridworld::{Cell, DEFAULT_MAP, GridFeatures, IcyGridworld, MOVES};
 pub use kinematic::{BoxObstacle, Kinematic, KinematicFeatures, KinematicParams};

@@ -444,6 +444,7 @@ fn experiment_body(
         domain,
         d_max,
         seed,
+        models: None,
         mde: MdeRequest {
             noise: cfg.noise.unwrap_or(MdeRequest::default().noise),
             label_cap: cfg.label_cap,

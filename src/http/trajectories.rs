@@ -87,7 +87,7 @@ pub async fn list_transitions(
         .await?;
     let next = export.next;
     let body = stream::produced_body(export, "transitions CSV", |export, w| {
-        w.write_all(csv_header(export.domain.as_ref()).as_bytes())?;
+        w.write_all(csv_header(export.domain.as_ref(), &export.models).as_bytes())?;
         loop {
             let page = w
                 .block_on(export.next_page())
@@ -95,7 +95,7 @@ pub async fn list_transitions(
             if page.is_empty() {
                 return Ok(());
             }
-            w.write_all(csv_rows(&page).as_bytes())?;
+            w.write_all(csv_rows(&page, &export.models).as_bytes())?;
         }
     });
     let mut response = ([(header::CONTENT_TYPE, "text/csv; charset=utf-8")], body).into_response();
@@ -108,8 +108,9 @@ pub async fn list_transitions(
 }
 
 /// The CSV's header line: `id`, `trajectory_id`, `step`, then the state, action, next state
-/// and predicted next state by the domain's names, and `deviation`.
-fn csv_header(domain: &dyn Domain) -> String {
+/// and predicted next state by the domain's names, `deviation`, then each further model's
+/// deviation (`deviation.<model>`, empty where its label is missing).
+fn csv_header(domain: &dyn Domain, models: &[String]) -> String {
     let state_names = &domain.state_space().names;
     let action_names = &domain.action_space().names;
     let mut header = vec!["id".to_string(), "trajectory_id".into(), "step".into()];
@@ -118,13 +119,14 @@ fn csv_header(domain: &dyn Domain) -> String {
     header.extend(state_names.iter().map(|n| format!("s_next.{n}")));
     header.extend(state_names.iter().map(|n| format!("s_pred.{n}")));
     header.push("deviation".into());
+    header.extend(models.iter().map(|m| format!("deviation.{m}")));
     let mut out = header.join(",");
     out.push('\n');
     out
 }
 
 /// One CSV line per transition.
-fn csv_rows(items: &[StoredTransition]) -> String {
+fn csv_rows(items: &[StoredTransition], models: &[String]) -> String {
     let mut out = String::new();
     for t in items {
         let mut row = vec![
@@ -136,6 +138,15 @@ fn csv_rows(items: &[StoredTransition]) -> String {
             row.extend(v.iter().map(|x| x.to_string()));
         }
         row.push(t.deviation.to_string());
+        for m in models {
+            let label = t.labels.iter().flatten().find(|l| l.model == *m);
+            row.push(
+                label
+                    .and_then(|l| l.deviation)
+                    .map(|d| d.to_string())
+                    .unwrap_or_default(),
+            );
+        }
         out.push_str(&row.join(","));
         out.push('\n');
     }

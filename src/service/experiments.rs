@@ -37,11 +37,13 @@ impl Service {
                 "this server holds its limit of {max} experiments (--max-experiments)"
             )));
         };
-        // Resolved settings make valid planning settings (`resolve` checked them).
+        // Resolved settings make valid planning settings and models (`resolve` checked them).
+        let models = settings.build_models(&*domain, &self.model_calls)?;
         self.live.insert(LiveExperiment::new(
             experiment.id,
             settings,
             domain.clone(),
+            models,
         )?);
         tracing::info!(
             experiment = experiment.id,

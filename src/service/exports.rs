@@ -63,6 +63,8 @@ pub struct TransitionsExport {
     id: i64,
     /// The domain, for the columns' names.
     pub domain: Arc<dyn Domain>,
+    /// The experiment's further models, whose deviations follow the domain model's.
+    pub models: Vec<String>,
     /// The last transition id written so far.
     cursor: i64,
     /// The last transition id to write (fixed when the export starts: transitions posted
@@ -78,10 +80,11 @@ impl TransitionsExport {
         if self.cursor >= self.upto {
             return Ok(Vec::new());
         }
-        let page = self
+        let mut page = self
             .store
             .transitions_between(self.id, self.cursor, self.upto, EXPORT_PAGE)
             .await?;
+        super::ingest::attach_labels(&self.store, self.id, &self.models, &mut page).await?;
         if let Some(last) = page.last() {
             self.cursor = last.id;
         } else {
@@ -138,6 +141,13 @@ impl Service {
             store: self.store.clone(),
             id,
             domain: experiment.domain,
+            models: experiment
+                .experiment
+                .settings
+                .further_models()
+                .iter()
+                .map(|m| m.name.clone())
+                .collect(),
             cursor: after,
             upto,
             next,

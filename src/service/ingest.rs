@@ -1,6 +1,8 @@
 //! Ingest: validate executed transitions against the domain, label each with the experiment's
-//! own model (`d(f̂(s, a), s_next)`, one batched model call per trajectory), and store the
-//! trajectory in one transaction, idempotently. A batch that completes schedules a refit.
+//! own model (`d(f̂(s, a), s_next)`, one batched model call per trajectory) and with each of its
+//! further models ([`label_by_models`]; a model that fails leaves its label missing, never the
+//! transition), and store the trajectory in one transaction, idempotently. A batch that
+//! completes schedules a refit.
 //!
 //! A trajectory posted for a proposal is compared with it ([`deviates`]): one that is not the
 //! proposal's actions from the proposal's start (or a prefix of them) is stored all the same
@@ -10,11 +12,11 @@
 use super::live::LiveExperiment;
 use super::{Error, Result, Service};
 use crate::api::{TrajectoryRequest, TrajectorySource};
-use crate::domain::{DynamicsError, LabelledTransition, Transition};
+use crate::domain::{DynamicsError, DynamicsModel, LabelledTransition, Predicted, Transition};
 use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_SOURCE_TEXT_LEN, MAX_TRANSITIONS};
 use crate::store::{
-    IdempotencyKey, IngestOutcome, IngestRecord, ProposalPlan, Provenance, StoredTrajectory,
-    StoredTransition, TrajectoryMeta,
+    IdempotencyKey, IngestOutcome, IngestRecord, ModelLabel, ProposalPlan, Provenance,
+    StoredTrajectory, StoredTransition, TrajectoryMeta,
 };
 use std::sync::Arc;
 
@@ -203,16 +205,36 @@ pub async fn predict_pairs(
     live: &Arc<LiveExperiment>,
     pairs: &[(&[f64], &[f64])],
 ) -> Result<Vec<Vec<f64>>> {
+    let domain = live.domain.clone();
+    predict_through(
+        live.domain.dynamics(),
+        &format!("of the {} domain", live.domain.kind()),
+        pairs,
+        move |states, actions| domain.dynamics().predict_batch(states, actions),
+    )
+    .await
+}
+
+/// `model`'s predictions of `pairs` (see [`predict_pairs`]); `blocking` is the same model's
+/// batch call, run on the blocking pool when the model has no awaitable answer. `name` names
+/// the model in an error.
+async fn predict_through(
+    model: &dyn DynamicsModel,
+    name: &str,
+    pairs: &[(&[f64], &[f64])],
+    blocking: impl FnOnce(&[&[f64]], &[&[f64]]) -> std::result::Result<Vec<Predicted>, DynamicsError>
+    + Send
+    + 'static,
+) -> Result<Vec<Vec<f64>>> {
     let states: Vec<&[f64]> = pairs.iter().map(|(s, _)| *s).collect();
     let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| *a).collect();
-    let awaited = match live.domain.dynamics().predict_awaitable(&states, &actions) {
+    let awaited = match model.predict_awaitable(&states, &actions) {
         Some(answer) => Some(answer.await),
         None => None,
     };
     let predicted = match awaited {
         Some(predicted) => predicted,
         None => {
-            let domain = live.domain.clone();
             let owned: Vec<(Vec<f64>, Vec<f64>)> = pairs
                 .iter()
                 .map(|(s, a)| (s.to_vec(), a.to_vec()))
@@ -220,14 +242,14 @@ pub async fn predict_pairs(
             Service::blocking(move || {
                 let states: Vec<&[f64]> = owned.iter().map(|(s, _)| s.as_slice()).collect();
                 let actions: Vec<&[f64]> = owned.iter().map(|(_, a)| a.as_slice()).collect();
-                domain.dynamics().predict_batch(&states, &actions)
+                blocking(&states, &actions)
             })
             .await?
         }
     }?;
     if predicted.len() != pairs.len() {
         return Err(Error::Dynamics(DynamicsError::Unavailable {
-            model: format!("of the {} domain", live.domain.kind()),
+            model: name.to_string(),
             reason: format!(
                 "answered {} predictions for {} points",
                 predicted.len(),
@@ -236,6 +258,74 @@ pub async fn predict_pairs(
         }));
     }
     Ok(predicted.into_iter().map(|p| p.next).collect())
+}
+
+/// The labels of `transitions` by each of the experiment's further models, one list per
+/// transition in the models' order (empty lists when there are none). The models are asked
+/// at once, each with one batched call; a model that fails, or whose prediction is not a
+/// state of the domain or gives no finite deviation, leaves its label of that transition
+/// missing with the reason — the transitions are stored all the same.
+pub async fn label_by_models(
+    live: &Arc<LiveExperiment>,
+    transitions: &[LabelledTransition],
+) -> Vec<Vec<ModelLabel>> {
+    let pairs: Vec<(&[f64], &[f64])> = transitions
+        .iter()
+        .map(|t| (t.observed.s.as_slice(), t.observed.a.as_slice()))
+        .collect();
+    let answers = futures_util::future::join_all(live.models.iter().map(|named| {
+        let model = named.model.clone();
+        predict_through(
+            named.model.as_ref(),
+            &named.name,
+            &pairs,
+            move |states, actions| model.predict_batch(states, actions),
+        )
+    }))
+    .await;
+    let mut labels: Vec<Vec<ModelLabel>> = transitions
+        .iter()
+        .map(|_| Vec::with_capacity(live.models.len()))
+        .collect();
+    for (named, answer) in live.models.iter().zip(answers) {
+        let name = named.name.as_str();
+        match answer {
+            Ok(predicted) => {
+                for ((of, t), s_pred) in labels.iter_mut().zip(transitions).zip(predicted) {
+                    of.push(model_label(live, name, t, s_pred));
+                }
+            }
+            Err(e) => {
+                tracing::warn!(experiment = live.id, model = name, error = %e, "a further model left its labels missing");
+                let why = e.to_string();
+                for of in &mut labels {
+                    of.push(ModelLabel::missing(name, why.clone()));
+                }
+            }
+        }
+    }
+    labels
+}
+
+/// `model`'s label of `t` from its prediction `s_pred`, or why there is none.
+fn model_label(
+    live: &LiveExperiment,
+    model: &str,
+    t: &LabelledTransition,
+    s_pred: Vec<f64>,
+) -> ModelLabel {
+    if let Err(e) = live.domain.validate_observed_state(&s_pred) {
+        return ModelLabel::missing(model, format!("its prediction is not a state: {e}"));
+    }
+    let deviation = live.domain.distance(&s_pred, &t.observed.s_next);
+    if deviation.is_finite() {
+        ModelLabel::labelled(model, s_pred, deviation)
+    } else {
+        ModelLabel::missing(
+            model,
+            "the deviation from its prediction is not a finite number",
+        )
+    }
 }
 
 impl Service {
@@ -259,6 +349,7 @@ impl Service {
         } = request;
         let source = source.map(check_source).transpose()?;
         let labelled = label(&live, transitions, self.work.limits().max_transitions).await?;
+        let labels = label_by_models(&live, &labelled).await;
         // A proposal's content never changes once made: compared outside the ingest
         // transaction, which checks again that the proposal exists.
         let deviating = match proposal_id {
@@ -285,6 +376,7 @@ impl Service {
                     source: source.as_ref(),
                 },
                 &labelled,
+                &labels,
                 idempotency_key.map(|key| IdempotencyKey {
                     key,
                     request: &canonical,
@@ -371,19 +463,66 @@ impl Service {
             }
             _ => None,
         };
+        self.attach_labels(id, &mut items).await?;
         Ok((items, next))
     }
 
     /// One stored trajectory with its transitions.
     pub async fn trajectory(&self, id: i64, trajectory_id: i64) -> Result<StoredTrajectory> {
         self.experiment(id).await?;
-        self.store
+        let mut trajectory = self
+            .store
             .trajectory(id, trajectory_id)
             .await?
             .ok_or_else(|| {
                 Error::NotFound(format!("no trajectory {trajectory_id} in experiment {id}"))
-            })
+            })?;
+        self.attach_labels(id, &mut trajectory.transitions).await?;
+        Ok(trajectory)
     }
+
+    /// Fills in the further models' labels of `items` (see [`attach_labels`]).
+    async fn attach_labels(&self, id: i64, items: &mut [StoredTransition]) -> Result<()> {
+        if items.is_empty() {
+            return Ok(());
+        }
+        let experiment = self.experiment(id).await?.experiment;
+        let models: Vec<String> = experiment
+            .settings
+            .further_models()
+            .iter()
+            .map(|m| m.name.clone())
+            .collect();
+        attach_labels(&self.store, id, &models, items).await
+    }
+}
+
+/// Fills in the labels of `items` (in id order) by the experiment's further models `models`,
+/// each transition's in that order; nothing to do when there are none.
+pub(crate) async fn attach_labels(
+    store: &crate::store::Store,
+    id: i64,
+    models: &[String],
+    items: &mut [StoredTransition],
+) -> Result<()> {
+    let (Some(first), Some(last)) = (items.first(), items.last()) else {
+        return Ok(());
+    };
+    if models.is_empty() {
+        return Ok(());
+    }
+    let mut by_transition: std::collections::HashMap<i64, Vec<ModelLabel>> =
+        std::collections::HashMap::new();
+    for (transition, label) in store.model_labels(id, first.id, last.id).await? {
+        by_transition.entry(transition).or_default().push(label);
+    }
+    let order = |label: &ModelLabel| models.iter().position(|m| *m == label.model);
+    for t in items.iter_mut() {
+        let mut labels = by_transition.remove(&t.id).unwrap_or_default();
+        labels.sort_by_key(order);
+        t.labels = Some(labels);
+    }
+    Ok(())
 }
 
 /// Where a request differs from the one stored under its idempotency key: the first field

@@ -8,7 +8,7 @@
 
 use super::Error;
 use super::work::{Slot, WorkGate};
-use crate::domain::{Domain, LabelledTransition, Problem, Transition};
+use crate::domain::{Domain, LabelledTransition, NamedModel, Problem, Transition};
 use crate::mde::{
     Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, LIKELIHOOD_DROP,
     LocalMargin, RefitPlan, SelectionRecord, ServedModel, Training, capped_labels,
@@ -36,6 +36,9 @@ pub struct LiveExperiment {
     pub settings: ExperimentSettings,
     /// The domain built from `settings.domain`.
     pub domain: Arc<dyn Domain>,
+    /// The further models built from `settings.models`, in their order: each labels every
+    /// posted transition.
+    pub models: Vec<NamedModel>,
     /// The planner's and acquisition's settings, checked once from `settings.learning`.
     pub planning: PlanningSettings,
     model: RwLock<Arc<ServedModel>>,
@@ -59,6 +62,7 @@ impl LiveExperiment {
         id: i64,
         settings: ExperimentSettings,
         domain: Arc<dyn Domain>,
+        models: Vec<NamedModel>,
     ) -> Result<Self, InvalidSetting> {
         let prior = ServedModel::prior(
             domain.feature_dim(),
@@ -70,6 +74,7 @@ impl LiveExperiment {
             planning: settings.learning.planning()?,
             settings,
             domain,
+            models,
             model: RwLock::new(Arc::new(prior)),
             fit_lock: tokio::sync::Mutex::new(()),
             older: std::sync::Mutex::new(Vec::new()),
@@ -705,7 +710,15 @@ impl Registry {
             .await?
             .ok_or_else(|| Error::no_experiment(id))?;
         let domain = build_stored_domain(id, &stored.settings, model_calls)?;
-        let live = LiveExperiment::new(id, stored.settings, domain).map_err(|e| {
+        let models = stored
+            .settings
+            .build_models(&*domain, model_calls)
+            .map_err(|e| {
+                Error::Internal(anyhow::anyhow!(
+                    "the further models of stored experiment {id} no longer build: {e}"
+                ))
+            })?;
+        let live = LiveExperiment::new(id, stored.settings, domain, models).map_err(|e| {
             Error::Internal(anyhow::anyhow!(
                 "stored experiment {id} no longer has valid settings: {e}"
             ))

@@ -161,7 +161,7 @@ pub enum ModelSpec {
     Client {},
 }
 
-fn default_timeout_ms() -> u64 {
+pub(super) fn default_timeout_ms() -> u64 {
     2000
 }
 

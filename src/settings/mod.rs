@@ -6,8 +6,10 @@
 //! plain domain values built from them.
 
 pub mod custom;
+pub mod models;
 
 pub use custom::{CustomSpec, DistanceSpec, FeaturesSpec, GoalSpec, ModelSpec, SpaceSpec};
+pub use models::{DOMAIN_MODEL, NamedModelSpec};
 
 use crate::domain::{
     BoxObstacle, DEFAULT_MAP, Domain, DomainError, GridFeatures, IcyGridworld, Kinematic,
@@ -205,6 +207,15 @@ impl DomainSpec {
             Self::WaterPlant {} => Arc::new(WaterPlant::default()),
             Self::Custom(spec) => Arc::new(spec.build(calls)?),
         })
+    }
+
+    /// The state components that are angles (a custom domain's `state.periodic`; none for the
+    /// built-in worlds).
+    pub fn periodic(&self) -> Vec<usize> {
+        match self {
+            Self::Custom(spec) => spec.state.periodic.clone().unwrap_or_default(),
+            _ => Vec::new(),
+        }
     }
 
     /// The spec with every default filled in, checked against the operator's model URL
@@ -765,6 +776,10 @@ pub struct ExperimentRequest {
     /// Learning settings.
     #[serde(default)]
     pub learning: LearningRequest,
+    /// Further models of the robot besides the domain's own (see [`models`]): each labels
+    /// every posted transition with its own deviation. Default none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub models: Option<Vec<NamedModelSpec>>,
 }
 
 /// An experiment's fully resolved, validated settings.
@@ -782,6 +797,33 @@ pub struct ExperimentSettings {
     pub mde: MdeSettings,
     /// Learning settings.
     pub learning: LearningSettings,
+    /// Further models of the robot besides the domain's own; left out when there are none,
+    /// so that a single-model experiment's stored settings are as before they existed (never
+    /// an empty list).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub models: Option<Vec<NamedModelSpec>>,
+}
+
+impl ExperimentSettings {
+    /// The further models, in their order (none for a single-model experiment).
+    pub fn further_models(&self) -> &[NamedModelSpec] {
+        self.models.as_deref().unwrap_or_default()
+    }
+
+    /// Builds the further models over `domain` (no network: a remote model is first called
+    /// when used, under `calls`' policy and limits).
+    pub fn build_models(
+        &self,
+        domain: &dyn Domain,
+        calls: &Arc<ModelCalls>,
+    ) -> Result<Vec<crate::domain::NamedModel>, InvalidSetting> {
+        models::build(
+            self.further_models(),
+            domain,
+            &self.domain.periodic(),
+            calls,
+        )
+    }
 }
 
 impl ExperimentRequest {
@@ -793,6 +835,14 @@ impl ExperimentRequest {
     ) -> Result<(ExperimentSettings, Arc<dyn Domain>), InvalidSetting> {
         self.domain = self.domain.resolve(calls.policy())?;
         let domain = self.domain.build(calls)?;
+        let models = models::resolve(
+            self.models.take().unwrap_or_default(),
+            &*domain,
+            &self.domain.periodic(),
+            calls,
+            calls.policy(),
+        )?;
+        let models = (!models.is_empty()).then_some(models);
         if self.name.chars().count() > MAX_NAME_LEN {
             return Err(InvalidSetting::new(
                 "name",
@@ -936,6 +986,7 @@ impl ExperimentRequest {
                 seed: self.seed,
                 mde,
                 learning,
+                models,
             },
             domain,
         ))

@@ -410,7 +410,7 @@ mod tests {
             source: None,
         };
         store
-            .ingest_trajectory(experiment, meta, &row, None, 1)
+            .ingest_trajectory(experiment, meta, &row, &[], None, 1)
             .await
             .unwrap();
     }

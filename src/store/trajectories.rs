@@ -25,6 +25,46 @@ pub struct StoredTransition {
     pub s_pred: Vec<f64>,
     /// Deviation label.
     pub deviation: f64,
+    /// The further models' labels (`settings.models`), in their order; left out when the
+    /// experiment has none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labels: Option<Vec<ModelLabel>>,
+}
+
+/// One further model's label of an executed transition: its prediction `f̂_m(s, a)` and
+/// deviation `d(f̂_m(s, a), s_next)`, or — when the model could not answer — neither, and why.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+pub struct ModelLabel {
+    /// The model's name.
+    pub model: String,
+    /// Its prediction; `null` when missing.
+    pub s_pred: Option<Vec<f64>>,
+    /// Its deviation label; `null` when missing.
+    pub deviation: Option<f64>,
+    /// Why the label is missing (the model's error); `null` when labelled.
+    pub missing: Option<String>,
+}
+
+impl ModelLabel {
+    /// `model`'s label: its prediction and deviation.
+    pub fn labelled(model: &str, s_pred: Vec<f64>, deviation: f64) -> Self {
+        Self {
+            model: model.to_string(),
+            s_pred: Some(s_pred),
+            deviation: Some(deviation),
+            missing: None,
+        }
+    }
+
+    /// `model` left the transition unlabelled because of `why`.
+    pub fn missing(model: &str, why: impl Into<String>) -> Self {
+        Self {
+            model: model.to_string(),
+            s_pred: None,
+            deviation: None,
+            missing: Some(why.into()),
+        }
+    }
 }
 
 /// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
@@ -146,7 +186,21 @@ fn transition_from_row(row: &AnyRow) -> Result<StoredTransition, sqlx::Error> {
         s_next: decode_vec(row.try_get("s_next")?)?,
         s_pred: decode_vec(row.try_get("s_pred")?)?,
         deviation: row.try_get("deviation")?,
+        labels: None,
     })
+}
+
+fn label_from_row(row: &AnyRow) -> Result<(i64, ModelLabel), sqlx::Error> {
+    let s_pred: Option<String> = row.try_get("s_pred")?;
+    Ok((
+        row.try_get("transition_id")?,
+        ModelLabel {
+            model: row.try_get("model")?,
+            s_pred: s_pred.as_deref().map(decode_vec).transpose()?,
+            deviation: row.try_get("deviation")?,
+            missing: row.try_get("missing")?,
+        },
+    ))
 }
 
 /// The provenance of a row with the `source_*` columns (`None` without a dataset).
@@ -171,7 +225,8 @@ const INSERT_ROWS: usize = 256;
 const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
 
 impl Store {
-    /// Stores one trajectory and all its transitions in one transaction, or nothing;
+    /// Stores one trajectory and all its transitions in one transaction, or nothing — with
+    /// `labels[i]`, the further models' labels of transition `i` (empty: none);
     /// `model_version` is the version answering now, recorded with it.
     ///
     /// With an idempotency key, a retry of the same request learns what the first one did and
@@ -183,6 +238,7 @@ impl Store {
         experiment_id: i64,
         meta: TrajectoryMeta<'_>,
         transitions: &[LabelledTransition],
+        labels: &[Vec<ModelLabel>],
         idempotency: Option<IdempotencyKey<'_>>,
         model_version: i64,
     ) -> Result<IngestOutcome, sqlx::Error> {
@@ -301,6 +357,52 @@ impl Store {
                 }
                 insert.execute(&mut *tx).await?;
             }
+            if labels.iter().any(|l| !l.is_empty()) {
+                let ids: Vec<i64> = sqlx::query_scalar(
+                    "SELECT id FROM transitions WHERE trajectory_id = $1 ORDER BY step",
+                )
+                .bind(trajectory_id)
+                .fetch_all(&mut *tx)
+                .await?;
+                let rows: Vec<(i64, &ModelLabel)> = ids
+                    .iter()
+                    .zip(labels)
+                    .flat_map(|(&id, of)| of.iter().map(move |l| (id, l)))
+                    .collect();
+                for chunk in rows.chunks(INSERT_ROWS) {
+                    let values: Vec<String> = (0..chunk.len())
+                        .map(|r| {
+                            let p = 6 * r;
+                            format!(
+                                "(${}, ${}, ${}, ${}, ${}, ${})",
+                                p + 1,
+                                p + 2,
+                                p + 3,
+                                p + 4,
+                                p + 5,
+                                p + 6
+                            )
+                        })
+                        .collect();
+                    let sql = format!(
+                        "INSERT INTO model_labels
+                           (experiment_id, transition_id, model, s_pred, deviation, missing)
+                         VALUES {}",
+                        values.join(", ")
+                    );
+                    let mut insert = sqlx::query(&sql);
+                    for (id, l) in chunk {
+                        insert = insert
+                            .bind(experiment_id)
+                            .bind(*id)
+                            .bind(l.model.as_str())
+                            .bind(l.s_pred.as_deref().map(encode_vec))
+                            .bind(l.deviation)
+                            .bind(l.missing.as_deref());
+                    }
+                    insert.execute(&mut *tx).await?;
+                }
+            }
             let n_trajectories: i64 =
                 sqlx::query_scalar("SELECT COUNT(*) FROM trajectories WHERE experiment_id = $1")
                     .bind(experiment_id)
@@ -390,6 +492,31 @@ impl Store {
     ) -> Result<Vec<StoredTransition>, sqlx::Error> {
         self.transitions_outside(experiment_id, &ExclusionSet::default(), after, limit)
             .await
+    }
+
+    /// The further models' labels of the experiment's transitions with `first <= id <= last`,
+    /// in transition id order (each transition's in model-name order): what
+    /// [`StoredTransition::labels`] shows.
+    #[tracing::instrument(skip(self))]
+    pub async fn model_labels(
+        &self,
+        experiment_id: i64,
+        first: i64,
+        last: i64,
+    ) -> Result<Vec<(i64, ModelLabel)>, sqlx::Error> {
+        sqlx::query(
+            "SELECT transition_id, model, s_pred, deviation, missing FROM model_labels
+             WHERE experiment_id = $1 AND transition_id >= $2 AND transition_id <= $3
+             ORDER BY transition_id, model",
+        )
+        .bind(experiment_id)
+        .bind(first)
+        .bind(last)
+        .fetch_all(&self.read)
+        .await?
+        .iter()
+        .map(label_from_row)
+        .collect()
     }
 
     /// [`Store::transitions`] outside the trajectories `outside` covers: a model version's

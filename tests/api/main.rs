@@ -18,6 +18,7 @@ mod import;
 mod learning;
 mod limits;
 mod model_server;
+mod models;
 mod posture;
 mod remote;
 mod trajectories;

@@ -247,6 +247,11 @@ const REACHED: &[&str] = &[
     "ClientModelSpec",
     "ResolvedRemoteModelSpec",
     "ResolvedLinearModelSpec",
+    // an experiment's further models (settings::NamedModelSpec) and their labels of a
+    // transition (store::ModelLabel)
+    "NamedModelSpec",
+    "ResolvedNamedModelSpec",
+    "ModelLabel",
     // the variants of FeatureMap and NoisePredictor (a model export's)
     "UnitBoxFeatureMap",
     "KinematicPredictionFeatureMap",

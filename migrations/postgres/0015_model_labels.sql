@@ -1,0 +1,17 @@
+-- An experiment's further models (`settings.models`) each label every posted transition: one
+-- row per (transition, model), written in the transaction that stores the transition. A model
+-- that could not answer leaves its label missing (`s_pred` and `deviation` NULL) and says why
+-- (`missing`) — the transition is stored all the same. The transitions table, and so every
+-- single-model experiment's rows, is unchanged.
+CREATE TABLE model_labels (
+    experiment_id  BIGINT NOT NULL REFERENCES experiments (id),
+    transition_id  BIGINT NOT NULL REFERENCES transitions (id),
+    model          TEXT   NOT NULL,
+    s_pred         TEXT,
+    deviation      DOUBLE PRECISION,
+    missing        TEXT,
+    PRIMARY KEY (transition_id, model),
+    CHECK ((s_pred IS NULL) = (deviation IS NULL)),
+    CHECK ((deviation IS NULL) = (missing IS NOT NULL))
+);
+CREATE INDEX model_labels_by_experiment ON model_labels (experiment_id, transition_id);

@@ -1,0 +1,314 @@
+//! Several models of one robot in one experiment (`models`): every posted transition is
+//! labelled by each, a model that fails leaves only its own label missing, the labels are
+//! shown with the transitions (JSON and CSV) and survive a restart; an experiment with no
+//! further models is stored and answered as before they existed.
+
+use crate::helpers::*;
+use crate::model_server;
+use serde_json::{Value, json};
+
+/// A point in the unit square moved by its action; the domain's own model is `s + a`.
+fn plane(models: Value) -> Value {
+    json!({"d_max": 0.05, "learning": {"batch_size": 1000},
+           "domain": {"kind": "custom",
+                      "state": {"low": [0, 0], "high": [1, 1]},
+                      "action": {"low": [-0.1, -0.1], "high": [0.1, 0.1]},
+                      "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}},
+           "models": models})
+}
+
+/// A model that ignores the action: `ŝ' = s`.
+fn still() -> Value {
+    json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[0, 0], [0, 0]]})
+}
+
+/// Two transitions; the robot moves as `s + a` on the first, slides by 0.03 more on the second.
+fn two_steps() -> Value {
+    json!({"transitions": [
+        {"s": [0.2, 0.2], "a": [0.1, 0], "s_next": [0.3, 0.2]},
+        {"s": [0.3, 0.2], "a": [0.1, 0], "s_next": [0.43, 0.2]}]})
+}
+
+fn close(a: &Value, b: f64) -> bool {
+    a.as_f64().is_some_and(|a| (a - b).abs() < 1e-9)
+}
+
+#[tokio::test]
+async fn every_posted_transition_is_labelled_by_every_further_model() {
+    let server = model_server::start().await;
+    let (_dir, db) = temp_db();
+    let app = spawn_app_allowing_models(&db, &[server.prefix()]).await;
+    let id = app
+        .create_experiment(plane(json!([
+            {"name": "still", "cost": 0.1, "model": still()},
+            {"name": "sim", "cost": 20,
+             "model": {"kind": "remote", "url": server.url("predict")}}])))
+        .await;
+    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    let models = &experiment["models"];
+    assert_eq!(models[0]["name"], "still", "{experiment}");
+    assert_eq!(models[1]["cost"], 20.0, "{experiment}");
+    assert_eq!(
+        models[1]["model"]["timeout_ms"], 2000,
+        "defaults filled in: {experiment}"
+    );
+
+    let (status, body) = app.post_at(id, "trajectories", &two_steps()).await;
+    assert_eq!(status, 201, "{body}");
+    let items = app.all_transitions(id).await;
+    assert_eq!(items.len(), 2);
+    // The domain's model and the remote `s + a` agree; `still` misses the whole move.
+    for (t, moved) in items.iter().zip([0.0, 0.03]) {
+        assert!(close(&t["deviation"], moved), "{t}");
+        let labels = t["labels"].as_array().expect("labels");
+        let names: Vec<&str> = labels
+            .iter()
+            .map(|l| l["model"].as_str().unwrap())
+            .collect();
+        assert_eq!(names, ["still", "sim"], "in the settings' order: {t}");
+        assert!(close(&labels[0]["deviation"], 0.1 + moved), "{t}");
+        assert_eq!(labels[0]["s_pred"], t["s"], "{t}");
+        assert!(close(&labels[1]["deviation"], moved), "{t}");
+        assert!(labels.iter().all(|l| l["missing"].is_null()), "{t}");
+    }
+    let trajectory_id = body["id"].as_i64().unwrap();
+    let (_, trajectory) = app
+        .get(&format!(
+            "/v1/experiments/{id}/trajectories/{trajectory_id}"
+        ))
+        .await;
+    assert_eq!(trajectory["transitions"][1]["labels"], items[1]["labels"]);
+
+    let text = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .header("accept", "text/csv")
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let lines: Vec<&str> = text.lines().collect();
+    assert!(
+        lines[0].ends_with(",deviation,deviation.still,deviation.sim"),
+        "{}",
+        lines[0]
+    );
+    let last: Vec<f64> = lines[2]
+        .rsplit(',')
+        .take(3)
+        .map(|x| x.parse().unwrap())
+        .collect();
+    assert!(
+        (last[0] - 0.03).abs() < 1e-9 && (last[1] - 0.13).abs() < 1e-9,
+        "{}",
+        lines[2]
+    );
+}
+
+#[tokio::test]
+async fn a_further_model_that_fails_leaves_its_label_missing_never_the_transition() {
+    let server = model_server::start().await;
+    let (_dir, db) = temp_db();
+    let app = spawn_app_allowing_models(&db, &[server.prefix()]).await;
+    let id = app
+        .create_experiment(plane(json!([
+            {"name": "broken", "model": {"kind": "remote", "url": server.url("error")}},
+            {"name": "nan", "model": {"kind": "remote", "url": server.url("nan")}},
+            {"name": "still", "model": still()}])))
+        .await;
+    let (status, body) = app.post_at(id, "trajectories", &two_steps()).await;
+    assert_eq!(status, 201, "{body}");
+    let items = app.all_transitions(id).await;
+    assert_eq!(items.len(), 2, "both transitions stored");
+    for t in &items {
+        let labels = t["labels"].as_array().unwrap();
+        assert_eq!(labels.len(), 3, "{t}");
+        for missing in &labels[..2] {
+            assert!(
+                missing["deviation"].is_null() && missing["s_pred"].is_null(),
+                "{t}"
+            );
+            assert!(!missing["missing"].as_str().unwrap().is_empty(), "{t}");
+        }
+        assert!(labels[2]["deviation"].as_f64().is_some(), "{t}");
+    }
+    let broken = items[0]["labels"][0]["missing"].as_str().unwrap();
+    assert!(broken.contains("unavailable"), "{broken}");
+    let text = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .header("accept", "text/csv")
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let row: Vec<&str> = text.lines().nth(1).unwrap().rsplit(',').take(3).collect();
+    assert_eq!(
+        row[1..],
+        ["", ""],
+        "missing labels are empty cells: {row:?}"
+    );
+    assert!(
+        (row[0].parse::<f64>().unwrap() - 0.1).abs() < 1e-9,
+        "{row:?}"
+    );
+}
+
+#[tokio::test]
+async fn further_models_are_checked_field_by_field() {
+    let (_dir, app) = fresh_app().await;
+    let too_many: Vec<Value> = (0..5)
+        .map(|i| json!({"name": format!("m{i}"), "model": still()}))
+        .collect();
+    for (models, field, why) in [
+        (
+            json!([{"name": "", "model": still()}]),
+            "models[0].name",
+            "1 to 32",
+        ),
+        (
+            json!([{"name": "a b", "model": still()}]),
+            "models[0].name",
+            "letters",
+        ),
+        (
+            json!([{"name": "domain", "model": still()}]),
+            "models[0].name",
+            "domain's own",
+        ),
+        (
+            json!([{"name": "x", "model": still()}, {"name": "x", "model": still()}]),
+            "models[1].name",
+            "earlier model",
+        ),
+        (
+            json!([{"name": "x", "cost": 0, "model": still()}]),
+            "models[0].cost",
+            "positive",
+        ),
+        (
+            json!([{"name": "x", "cost": 1e7, "model": still()}]),
+            "models[0].cost",
+            "at most",
+        ),
+        (
+            json!([{"name": "x", "model": {"kind": "client"}}]),
+            "models[0].model",
+            "unknown variant `client`",
+        ),
+        (
+            json!([{"name": "x", "model": {"kind": "linear", "A": [[1, 0]], "B": [[1, 0], [0, 1]]}}]),
+            "models[0].model.A",
+            "",
+        ),
+        (
+            json!([{"name": "x", "model": {"kind": "remote", "url": "http://nowhere.example/p"}}]),
+            "models[0].model.url",
+            "",
+        ),
+        (Value::Array(too_many), "models", "at most 4"),
+    ] {
+        let (status, body) = app.post("/v1/experiments", &plane(models.clone())).await;
+        assert_eq!(status, 422, "{models}: {body}");
+        let details = &body["error"]["details"];
+        assert!(
+            details["field"].as_str().unwrap().starts_with(field),
+            "{models}: {body}"
+        );
+        assert!(
+            details["reason"].as_str().unwrap().contains(why),
+            "{models}: {body}"
+        );
+    }
+    let (_, list) = app.get("/v1/experiments").await;
+    assert_eq!(list["total"], 0, "nothing stored: {list}");
+}
+
+#[tokio::test]
+async fn a_single_model_experiment_is_stored_and_answered_as_before() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let mut body = plane(json!([]));
+    body.as_object_mut().unwrap().remove("models");
+    let id = app.create_experiment(body).await;
+    let (status, answer) = app.post_at(id, "trajectories", &two_steps()).await;
+    assert_eq!(status, 201, "{answer}");
+    let (_, experiment) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(
+        experiment["d_max"], 0.05,
+        "the settings at the top: {experiment}"
+    );
+    assert!(experiment.get("models").is_none(), "{experiment}");
+    for t in app.all_transitions(id).await {
+        assert!(t.get("labels").is_none(), "{t}");
+    }
+    app.stop().await;
+    if sqlite_only("a_single_model_experiment_is_stored_and_answered_as_before") {
+        return;
+    }
+    let pool = sqlx::SqlitePool::connect(&format!("sqlite:{}", db.display()))
+        .await
+        .unwrap();
+    let settings: String = sqlx::query_scalar("SELECT settings FROM experiments WHERE id = ?")
+        .bind(id)
+        .fetch_one(&pool)
+        .await
+        .unwrap();
+    assert!(!settings.contains("\"models\""), "{settings}");
+    let labels: i64 = sqlx::query_scalar("SELECT COUNT(*) FROM model_labels")
+        .fetch_one(&pool)
+        .await
+        .unwrap();
+    assert_eq!(labels, 0);
+}
+
+#[tokio::test]
+async fn labels_survive_a_restart_and_the_models_label_again_after_it() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(plane(json!([{"name": "still", "model": still()}])))
+        .await;
+    app.post_at(id, "trajectories", &two_steps()).await;
+    let before = app.all_transitions(id).await;
+    let app = app.restart().await;
+    assert_eq!(app.all_transitions(id).await, before);
+    let (status, body) = app.post_at(id, "trajectories", &two_steps()).await;
+    assert_eq!(status, 201, "{body}");
+    let after = app.all_transitions(id).await;
+    assert_eq!(after.len(), 4);
+    assert_eq!(
+        after[3]["labels"], before[1]["labels"],
+        "the rebuilt model labels alike"
+    );
+}
+
+/// A retried post (same `Idempotency-Key` and body) stores nothing: no second set of labels.
+#[tokio::test]
+async fn a_replayed_post_stores_no_second_set_of_labels() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(plane(json!([{"name": "still", "model": still()}])))
+        .await;
+    for expected in [201, 201] {
+        let r = app
+            .client
+            .post(app.url(&format!("/v1/experiments/{id}/trajectories")))
+            .header("idempotency-key", "one")
+            .json(&two_steps())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), expected);
+    }
+    let items = app.all_transitions(id).await;
+    assert_eq!(items.len(), 2);
+    assert!(
+        items
+            .iter()
+            .all(|t| t["labels"].as_array().unwrap().len() == 1)
+    );
+}
