@@ -212,6 +212,45 @@ def test_model_precondition_refit_and_plan_through_the_client(make_server: MakeS
         assert not short.found and short.extensions == 7
 
 
+def test_every_further_model_labels_every_posted_transition(make_server: MakeServer) -> None:
+    """Two models of one robot: the domain's (served, ``s + a``) and a coarse one that ignores
+    the action, declared as a further model; each labels every transition, and a further model
+    that cannot answer leaves only its own label missing."""
+    with serve_model(model, "127.0.0.1", 0) as served:
+        server = make_server([f"http://127.0.0.1:{served.port}/"])
+        client = Client(server.url, timeout=60)
+        still = {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[0, 0], [0, 0]]}
+        gone = {"kind": "remote", "url": f"http://127.0.0.1:{served.port}/nothing-here"}
+        exp = client.create_experiment(
+            settings(served.url, "two models"),
+            models=[
+                {"name": "still", "cost": 0.01, "model": still},
+                {"name": "gone", "model": gone},
+            ],
+        )
+        assert exp.models is not None
+        assert [m["name"] for m in exp.models] == ["still", "gone"]
+        assert exp.models[0]["cost"] == 0.01 and exp.models[1]["cost"] == 1.0
+
+        start = np.array([0.3, 0.5])
+        actions = np.array([[0.1, 0.0], [0.1, 0.0], [0.1, 0.05]])
+        states = execute(start, actions)
+        client.post_trajectory(transitions_from_states(states, actions))
+        stored = list(client.transitions())
+        assert len(stored) == 3
+        for t in stored:
+            assert t.labels is not None and [x.model for x in t.labels] == ["still", "gone"]
+            still_label, gone_label = t.labels
+            assert still_label.s_pred is not None
+            np.testing.assert_allclose(still_label.s_pred, t.s)
+            moved = float(np.linalg.norm(t.s_next - t.s))
+            assert t.deviation_of("still") == pytest.approx(moved, abs=1e-9)
+            assert t.deviation_of("domain") == t.deviation
+            assert gone_label.deviation is None and gone_label.missing
+        with pytest.raises(KeyError):
+            stored[0].deviation_of("sim")
+
+
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:
     with serve_model(model, "127.0.0.1", 0) as served:
         server = make_server([f"http://127.0.0.1:{served.port}/"])

@@ -184,6 +184,9 @@ class Experiment(Wire):
     """The latest of its creation, its last posted trajectory, its last proposal and its last
     refused proposal request."""
     raw: dict[str, Any] = field(repr=False, compare=False, metadata=CLIENT_ONLY)
+    models: list[dict[str, Any]] | None = None
+    """Its further models of the robot (``name``, ``cost``, ``model``), each labelling every
+    posted transition; ``None`` when it has none."""
 
 
 @dataclass(frozen=True)
@@ -231,6 +234,19 @@ def transitions_from_states(
 
 
 @dataclass(frozen=True)
+class ModelLabel(Wire):
+    """A further model's label of a transition (schema ``ModelLabel``): its prediction and
+    deviation, or — when the model could not answer — ``None`` for both and ``missing``, why."""
+
+    SCHEMA: ClassVar[str] = "ModelLabel"
+
+    model: str
+    s_pred: Array | None
+    deviation: float | None
+    missing: str | None
+
+
+@dataclass(frozen=True)
 class StoredTransition(Wire):
     """A stored, labelled transition (schema ``Transition``)."""
 
@@ -244,6 +260,20 @@ class StoredTransition(Wire):
     s_next: Array
     s_pred: Array
     deviation: float
+    labels: list[ModelLabel] | None = None
+    """The experiment's further models' labels, in the order of its ``models``; ``None`` when
+    it has none."""
+
+    def deviation_of(self, model: str) -> float | None:
+        """The deviation ``model`` labelled this transition with (``"domain"``: the domain's own
+        model's); ``None`` when its label is missing. ``KeyError`` for a model the experiment
+        does not have."""
+        if model == "domain":
+            return self.deviation
+        for label in self.labels or []:
+            if label.model == model:
+                return label.deviation
+        raise KeyError(f"the experiment has no model named {model!r}")
 
 
 @dataclass(frozen=True)
