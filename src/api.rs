@@ -166,6 +166,40 @@ pub struct TimelineModel {
     pub model: ModelSummary,
 }
 
+/// `GET /v1/experiments/{id}/labels`: each of the experiment's models of its robot with what
+/// its labels of the executed transitions say — where each model was right, from the same
+/// executions.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ModelLabels {
+    /// The experiment.
+    pub experiment_id: i64,
+    /// The experiment's tolerance.
+    pub d_max: f64,
+    /// The domain's own model (`domain`) first, then the further models in their order.
+    pub items: Vec<ModelLabelStats>,
+}
+
+/// One model's labels of an experiment's executed transitions, summed up.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ModelLabelStats {
+    /// The model's name; `domain` for the domain's own.
+    pub model: String,
+    /// Its cost per call, in calls of the domain's model (1 for the domain's).
+    pub cost: f64,
+    /// Where it lives: `remote`, `linear`, `client` or `built_in`.
+    pub kind: String,
+    /// Transitions it labelled.
+    pub n_labelled: i64,
+    /// Transitions whose label it left missing (it could not answer).
+    pub n_missing: i64,
+    /// Mean deviation label (`null` without labels).
+    pub mean_deviation: Option<f64>,
+    /// Largest deviation label (`null` without labels).
+    pub max_deviation: Option<f64>,
+    /// Share of its labels below `d_max`: how often it was right (`null` without labels).
+    pub share_within_d_max: Option<f64>,
+}
+
 /// `GET /v1/experiments/{id}/timeline`: how learning went, iteration by iteration.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct Timeline {

@@ -1,10 +1,10 @@
-//! `/v1/experiments/{id}/runs` and `/timeline`: an experiment's history, read-only.
+//! `/v1/experiments/{id}/runs`, `/timeline` and `/labels`: an experiment's history, read-only.
 
 use super::AppState;
 use super::error::ApiResult;
 use super::extract::{ApiPath, ApiQuery};
 use super::render;
-use crate::api::{PageQuery, RunPage, Timeline};
+use crate::api::{ModelLabels, PageQuery, RunPage, Timeline};
 use axum::Json;
 use axum::extract::State;
 
@@ -27,4 +27,14 @@ pub async fn get_timeline(
 ) -> ApiResult<Json<Timeline>> {
     let timeline = state.service.timeline(id).await?;
     Ok(Json(render::timeline(id, timeline)))
+}
+
+/// `GET /v1/experiments/{id}/labels`: each of the experiment's models of its robot with what
+/// its labels of the executed transitions say.
+pub async fn get_labels(
+    State(state): State<AppState>,
+    ApiPath(id): ApiPath<i64>,
+) -> ApiResult<Json<ModelLabels>> {
+    let (d_max, reports) = state.service.model_labels(id).await?;
+    Ok(Json(render::model_labels(id, d_max, reports)))
 }

@@ -203,6 +203,11 @@ pub fn routes() -> Vec<Route> {
             get(activity::get_timeline),
         ),
         route(
+            M::GET,
+            "/v1/experiments/{id}/labels",
+            get(activity::get_labels),
+        ),
+        route(
             M::POST,
             "/v1/experiments/{id}/exclusions",
             post(exclusions::create_exclusion),

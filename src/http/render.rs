@@ -3,9 +3,10 @@
 
 use crate::api::{
     CandidateView, Diagnostics, ExclusionPage, ExclusionStatus, ExclusionView, ExperimentResponse,
-    LaterRates, MapAxis, MapPoint, ModelResponse, ModelSource, PlanResponse, PreconditionMap,
-    PreconditionResponse, ProposalResponse, RejectionCounts, RunPage, Timeline, TimelineIteration,
-    TimelineModel, TrajectoryCreated, TrajectoryHeader, TrajectoryResponse,
+    LaterRates, MapAxis, MapPoint, ModelLabelStats, ModelLabels, ModelResponse, ModelSource,
+    PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RejectionCounts,
+    RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated, TrajectoryHeader,
+    TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::exclusions::{ExclusionRecord, Exclusions};
@@ -50,6 +51,31 @@ pub fn runs(r: Runs) -> RunPage {
         items: r.items,
         total: r.total,
         next: r.next,
+    }
+}
+
+/// Each model's labels, summed up.
+pub fn model_labels(
+    experiment_id: i64,
+    d_max: f64,
+    reports: Vec<crate::service::activity::ModelLabelReport>,
+) -> ModelLabels {
+    ModelLabels {
+        experiment_id,
+        d_max,
+        items: reports
+            .into_iter()
+            .map(|r| ModelLabelStats {
+                model: r.stats.model,
+                cost: r.cost,
+                kind: r.kind.to_string(),
+                n_labelled: r.stats.n_labelled,
+                n_missing: r.stats.n_missing,
+                mean_deviation: r.stats.mean_deviation,
+                max_deviation: r.stats.max_deviation,
+                share_within_d_max: r.stats.share_within_d_max,
+            })
+            .collect(),
     }
 }
 

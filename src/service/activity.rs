@@ -4,7 +4,20 @@
 use super::experiments::{check_page, next_offset};
 use super::{Result, Service};
 use crate::limits::{DEFAULT_PAGE, MAX_TIMELINE_ROWS};
-use crate::store::{FitRefusal, IterationStats, ModelSummary, Run};
+use crate::settings::DOMAIN_MODEL;
+use crate::store::{FitRefusal, IterationStats, LabelStats, ModelSummary, Run};
+
+/// One of an experiment's models of its robot (the domain's own, or a further one) with what
+/// its labels of the executed transitions say.
+#[derive(Debug, Clone)]
+pub struct ModelLabelReport {
+    /// Its cost per call, in calls of the domain's model.
+    pub cost: f64,
+    /// Its kind (`remote`, `linear`, `client`, `built_in`).
+    pub kind: &'static str,
+    /// What its labels say (its name in `stats.model`).
+    pub stats: LabelStats,
+}
 
 /// A page of runs with the total count and the next page's offset.
 #[derive(Debug, Clone)]
@@ -68,5 +81,38 @@ impl Service {
                 .collect(),
             fit_refusals,
         })
+    }
+
+    /// Each of the experiment's models of its robot — the domain's own first, then the further
+    /// ones in their order — with what its labels of every stored transition say (excluded
+    /// trajectories too: a label is data, not a fit).
+    pub async fn model_labels(&self, id: i64) -> Result<(f64, Vec<ModelLabelReport>)> {
+        let e = self.experiment(id).await?.experiment;
+        let d_max = e.settings.d_max;
+        let mut stats = self.store.label_stats(id, d_max).await?;
+        let mut take = |name: &str| match stats.iter().position(|s| s.model == name) {
+            Some(i) => stats.swap_remove(i),
+            None => LabelStats {
+                model: name.to_string(),
+                n_labelled: 0,
+                n_missing: 0,
+                mean_deviation: None,
+                max_deviation: None,
+                share_within_d_max: None,
+            },
+        };
+        let mut reports = vec![ModelLabelReport {
+            cost: 1.0,
+            kind: e.settings.domain.model_kind(),
+            stats: take(DOMAIN_MODEL),
+        }];
+        for m in e.settings.further_models() {
+            reports.push(ModelLabelReport {
+                cost: m.cost,
+                kind: m.model.kind(),
+                stats: take(&m.name),
+            });
+        }
+        Ok((d_max, reports))
     }
 }

@@ -209,6 +209,19 @@ impl DomainSpec {
         })
     }
 
+    /// The kind of the domain's own model: a custom domain's `model.kind` (`remote`,
+    /// `linear`, `client`), `built_in` for the built-in worlds'.
+    pub fn model_kind(&self) -> &'static str {
+        match self {
+            Self::Custom(spec) => match spec.model {
+                ModelSpec::Remote { .. } => "remote",
+                ModelSpec::Linear { .. } => "linear",
+                ModelSpec::Client {} => "client",
+            },
+            _ => "built_in",
+        }
+    }
+
     /// The state components that are angles (a custom domain's `state.periodic`; none for the
     /// built-in worlds).
     pub fn periodic(&self) -> Vec<usize> {

@@ -87,6 +87,14 @@ impl From<FurtherModelSpec> for ModelSpec {
 }
 
 impl FurtherModelSpec {
+    /// The kind's name as posted (`remote`, `linear`).
+    pub fn kind(&self) -> &'static str {
+        match self {
+            Self::Remote { .. } => "remote",
+            Self::Linear { .. } => "linear",
+        }
+    }
+
     /// The same model as a [`ModelSpec`] (which resolves and builds it).
     fn spec(&self) -> ModelSpec {
         self.clone().into()

@@ -46,8 +46,8 @@ pub use proposals::{
 pub use refusals::{NewRefusal, RefusalReason};
 pub use serving::{ServingLock, lock_for_serving};
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, IngestRecord, ModelLabel, Provenance, StoredTrajectory,
-    StoredTransition, TrajectoryMeta,
+    IdempotencyKey, IngestOutcome, IngestRecord, LabelStats, ModelLabel, Provenance,
+    StoredTrajectory, StoredTransition, TrajectoryMeta,
 };
 
 use anyhow::Context;

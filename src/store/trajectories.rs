@@ -31,6 +31,23 @@ pub struct StoredTransition {
     pub labels: Option<Vec<ModelLabel>>,
 }
 
+/// What one model's labels of an experiment's executed transitions say.
+#[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
+pub struct LabelStats {
+    /// The model's name (`domain` for the domain's own).
+    pub model: String,
+    /// Transitions it labelled.
+    pub n_labelled: i64,
+    /// Transitions whose label it left missing.
+    pub n_missing: i64,
+    /// Mean deviation label (`None` without labels).
+    pub mean_deviation: Option<f64>,
+    /// Largest deviation label (`None` without labels).
+    pub max_deviation: Option<f64>,
+    /// Share of its labels below `d_max` (`None` without labels).
+    pub share_within_d_max: Option<f64>,
+}
+
 /// One further model's label of an executed transition: its prediction `f̂_m(s, a)` and
 /// deviation `d(f̂_m(s, a), s_next)`, or — when the model could not answer — neither, and why.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
@@ -517,6 +534,41 @@ impl Store {
         .iter()
         .map(label_from_row)
         .collect()
+    }
+
+    /// What the domain's model's labels (as `domain`) and each further model's say of the
+    /// experiment's transitions: the domain's first, then the further models' by name; a
+    /// further model without a stored label is not listed.
+    #[tracing::instrument(skip(self))]
+    pub async fn label_stats(
+        &self,
+        experiment_id: i64,
+        d_max: f64,
+    ) -> Result<Vec<LabelStats>, sqlx::Error> {
+        let domain: LabelStats = sqlx::query_as(
+            "SELECT 'domain' AS model, COUNT(*) AS n_labelled, CAST(0 AS BIGINT) AS n_missing,
+                    AVG(deviation) AS mean_deviation, MAX(deviation) AS max_deviation,
+                    CAST(AVG(CASE WHEN deviation < $2 THEN 1.0 ELSE 0.0 END)
+                         AS DOUBLE PRECISION) AS share_within_d_max
+             FROM transitions WHERE experiment_id = $1",
+        )
+        .bind(experiment_id)
+        .bind(d_max)
+        .fetch_one(&self.read)
+        .await?;
+        let further: Vec<LabelStats> = sqlx::query_as(
+            "SELECT model, COUNT(deviation) AS n_labelled, COUNT(missing) AS n_missing,
+                    AVG(deviation) AS mean_deviation, MAX(deviation) AS max_deviation,
+                    CAST(AVG(CASE WHEN deviation IS NULL THEN NULL
+                                  WHEN deviation < $2 THEN 1.0 ELSE 0.0 END)
+                         AS DOUBLE PRECISION) AS share_within_d_max
+             FROM model_labels WHERE experiment_id = $1 GROUP BY model ORDER BY model",
+        )
+        .bind(experiment_id)
+        .bind(d_max)
+        .fetch_all(&self.read)
+        .await?;
+        Ok(std::iter::once(domain).chain(further).collect())
     }
 
     /// [`Store::transitions`] outside the trajectories `outside` covers: a model version's

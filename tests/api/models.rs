@@ -312,3 +312,49 @@ async fn a_replayed_post_stores_no_second_set_of_labels() {
             .all(|t| t["labels"].as_array().unwrap().len() == 1)
     );
 }
+
+/// `GET …/labels` sums up each model's labels: how often each was right where the robot went,
+/// from the same executions; a model that could not answer counts its missing labels.
+#[tokio::test]
+async fn the_labels_summary_says_how_often_each_model_was_right() {
+    let server = model_server::start().await;
+    let (_dir, db) = temp_db();
+    let app = spawn_app_allowing_models(&db, &[server.prefix()]).await;
+    let id = app
+        .create_experiment(plane(json!([
+            {"name": "still", "cost": 0.1, "model": still()},
+            {"name": "broken", "model": {"kind": "remote", "url": server.url("error")}}])))
+        .await;
+    let (status, empty) = app.get_at(id, "labels").await;
+    assert_eq!(status, 200, "{empty}");
+    assert_eq!(empty["items"][0]["n_labelled"], 0, "{empty}");
+    assert!(empty["items"][1]["share_within_d_max"].is_null(), "{empty}");
+
+    app.post_at(id, "trajectories", &two_steps()).await;
+    let (_, summary) = app.get_at(id, "labels").await;
+    let items = summary["items"].as_array().unwrap();
+    let names: Vec<&str> = items.iter().map(|m| m["model"].as_str().unwrap()).collect();
+    assert_eq!(names, ["domain", "still", "broken"], "{summary}");
+    let domain = &items[0];
+    assert_eq!(
+        (&domain["kind"], &domain["cost"], &domain["n_labelled"]),
+        (&json!("linear"), &json!(1.0), &json!(2)),
+        "{summary}"
+    );
+    // The domain's model: 0 and 0.03 (d_max 0.05): right on both; `still`: 0.1 and 0.13.
+    assert_eq!(domain["share_within_d_max"], 1.0, "{summary}");
+    assert!(close(&domain["max_deviation"], 0.03), "{summary}");
+    let still = &items[1];
+    assert_eq!(still["share_within_d_max"], 0.0, "{summary}");
+    assert!(close(&still["mean_deviation"], 0.115), "{summary}");
+    assert_eq!(still["cost"], 0.1, "{summary}");
+    let broken = &items[2];
+    assert_eq!(
+        (&broken["n_labelled"], &broken["n_missing"]),
+        (&json!(0), &json!(2))
+    );
+    assert!(broken["mean_deviation"].is_null(), "{summary}");
+
+    let (status, _) = app.get("/v1/experiments/999/labels").await;
+    assert_eq!(status, 404);
+}

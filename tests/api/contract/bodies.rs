@@ -154,6 +154,7 @@ const ENTRIES: &[Entry] = &[
     entry::<api::TimelineIteration>("TimelineIteration", Response),
     entry::<api::TimelineModel>("TimelineModel", Response),
     entry::<api::Timeline>("Timeline", Response),
+    entry::<api::ModelLabels>("ModelLabels", Response),
     entry::<api::MapAxis>("MapAxis", Response),
     entry::<api::MapPoint>("MapPoint", Response),
     entry::<api::PreconditionMap>("PreconditionMap", Response),
@@ -252,6 +253,8 @@ const REACHED: &[&str] = &[
     "NamedModelSpec",
     "ResolvedNamedModelSpec",
     "ModelLabel",
+    // a model's labels summed up (api::ModelLabelStats, in ModelLabels)
+    "ModelLabelStats",
     // the variants of FeatureMap and NoisePredictor (a model export's)
     "UnitBoxFeatureMap",
     "KinematicPredictionFeatureMap",
