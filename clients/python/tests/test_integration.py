@@ -249,6 +249,17 @@ def test_every_further_model_labels_every_posted_transition(make_server: MakeSer
             assert gone_label.deviation is None and gone_label.missing
         with pytest.raises(KeyError):
             stored[0].deviation_of("sim")
+        summary = client.labels()
+        assert [m.model for m in summary.items] == ["domain", "still", "gone"]
+        assert summary.of("domain").kind == "remote" and summary.of("domain").n_labelled == 3
+        # What the stored labels say, summed up: the last step slid on the ice; `still` misses
+        # every 0.1 move (d_max 0.05).
+        right = [t.deviation < 0.05 for t in stored]
+        assert right == [True, True, False]
+        assert summary.of("domain").share_within_d_max == pytest.approx(2 / 3)
+        assert summary.of("domain").max_deviation == pytest.approx(max(t.deviation for t in stored))
+        assert summary.of("still").share_within_d_max == 0.0
+        assert summary.of("gone").n_missing == 3 and summary.of("gone").mean_deviation is None
 
 
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:

@@ -56,6 +56,7 @@ from .models import (
     Exclusion,
     Experiment,
     Model,
+    ModelLabels,
     Plan,
     PlannedTrajectory,
     Precondition,
@@ -603,6 +604,13 @@ class Client:
         proposal and where it comes from."""
         r = self._request("GET", self._path(f"/trajectories/{trajectory_id}"))
         return Trajectory.from_json(r.json())
+
+    def labels(self) -> ModelLabels:
+        """What each of the experiment's models of its robot labelled — the domain's own
+        (``"domain"``) first, then the further models of its ``models``: how many transitions,
+        how many missing, the mean and largest deviation and how often below ``d_max``."""
+        r = self._request("GET", self._path("/labels"))
+        return ModelLabels.from_json(r.json())
 
     def runs(self, page_size: int = 100) -> Iterator[Run]:
         """Every run of the experiment, newest first: proposals with the trajectories that

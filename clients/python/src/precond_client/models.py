@@ -247,6 +247,44 @@ class ModelLabel(Wire):
 
 
 @dataclass(frozen=True)
+class ModelLabelStats(Wire):
+    """One model's labels of an experiment's executed transitions, summed up (schema
+    ``ModelLabelStats``)."""
+
+    SCHEMA: ClassVar[str] = "ModelLabelStats"
+
+    model: str
+    """The model's name; ``"domain"`` for the domain's own."""
+    cost: float
+    kind: str
+    n_labelled: int
+    n_missing: int
+    mean_deviation: float | None
+    max_deviation: float | None
+    share_within_d_max: float | None
+    """How often the model was right where the robot went (``None`` without labels)."""
+
+
+@dataclass(frozen=True)
+class ModelLabels(Wire):
+    """Each of an experiment's models of its robot with what its labels say (schema
+    ``ModelLabels``): the domain's own first, then the further models in their order."""
+
+    SCHEMA: ClassVar[str] = "ModelLabels"
+
+    experiment_id: int
+    d_max: float
+    items: list[ModelLabelStats]
+
+    def of(self, model: str) -> ModelLabelStats:
+        """The summary of ``model`` (``KeyError`` when the experiment has none by that name)."""
+        for m in self.items:
+            if m.model == model:
+                return m
+        raise KeyError(f"the experiment has no model named {model!r}")
+
+
+@dataclass(frozen=True)
 class StoredTransition(Wire):
     """A stored, labelled transition (schema ``Transition``)."""
 
