@@ -657,9 +657,13 @@ pub struct PreconditionRequest {
     /// The state-actions to judge.
     pub points: Vec<Point>,
     /// Confidence multiplier β; default: the version's test β (`learning.test_beta`, or its
-    /// certified β).
+    /// certified β; for a further model, `learning.test_beta`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub beta: Option<f64>,
+    /// Whose precondition: one of the experiment's further models by name, or `domain` (the
+    /// default) for the domain's own model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
 }
 
 /// Query of `GET /v1/experiments/{id}/precondition`: one point, comma-separated.
@@ -674,6 +678,8 @@ pub struct PointQuery {
     pub s_pred: Option<String>,
     /// β; default the version's test β (`learning.test_beta`, or its certified β).
     pub beta: Option<f64>,
+    /// Whose precondition (see [`PreconditionRequest::model`]).
+    pub model: Option<String>,
 }
 
 /// The answer to a precondition query.
@@ -689,6 +695,9 @@ pub struct PreconditionResponse {
     pub d_max: f64,
     /// One judgement per point, in order.
     pub results: Vec<Judgement>,
+    /// The further model whose precondition this is; absent for the domain's own model's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
     /// The state of a `GET` query.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub s: Option<Vec<f64>>,

@@ -46,6 +46,7 @@ pub fn run(exact_sizes: &[usize], sparse_sizes: &[usize], inducing: usize) -> an
             version: 1,
             estimator: Estimator::Fitted(regressor),
             fit: None,
+            further: Default::default(),
         };
         let exported = ExportedModel::of(1, &served, &domain, 0.05, 2.0)
             .ok_or_else(|| anyhow::anyhow!("a fitted model exports"))?;

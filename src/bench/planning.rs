@@ -293,6 +293,7 @@ pub fn fit_mde(
         version: 1,
         estimator: Estimator::Fitted(Box::new(gp)),
         fit: None,
+        further: Default::default(),
     })
 }
 

@@ -295,6 +295,7 @@ impl ApiClient {
                     })
                     .collect(),
                 beta: None,
+                model: None,
             };
             let j: PreconditionResponse = self
                 .expect(

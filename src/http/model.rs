@@ -66,7 +66,7 @@ pub async fn query_precondition(
 ) -> ApiResult<Json<PreconditionResponse>> {
     let judged = state
         .service
-        .judge(id, &request.points, request.beta)
+        .judge(id, &request.points, request.beta, request.model.as_deref())
         .await?;
     Ok(Json(render::judged(judged)))
 }
@@ -101,7 +101,12 @@ pub async fn get_precondition(
     };
     let judged = state
         .service
-        .judge(id, std::slice::from_ref(&point), query.beta)
+        .judge(
+            id,
+            std::slice::from_ref(&point),
+            query.beta,
+            query.model.as_deref(),
+        )
         .await
         .map_err(|e| match e {
             // The query names its fields `s` and `a`, not `points[0].s`.

@@ -217,6 +217,7 @@ pub fn judged(j: Judged) -> PreconditionResponse {
         beta: j.beta,
         d_max: j.d_max,
         results: j.judgements,
+        model: j.further,
         s: None,
         a: None,
     }

@@ -107,6 +107,60 @@ pub struct ServedModel {
     pub estimator: Estimator,
     /// Absent for the prior.
     pub fit: Option<FitRecord>,
+    /// The estimators of the experiment's further models of its robot, fitted with this
+    /// version from their own labels (none for the prior, nor for a model without labels);
+    /// shared by the versions an online update makes, which do not update them.
+    pub further: std::sync::Arc<Vec<FurtherEstimator>>,
+}
+
+/// The deviation estimator of one of an experiment's further models: fitted with a version of
+/// the domain model's, on the same training transitions that model labelled, with the domain
+/// model's kernel and label cap.
+#[derive(Debug)]
+pub struct FurtherEstimator {
+    /// The further model's name.
+    pub model: String,
+    /// Its estimator.
+    pub estimator: Estimator,
+    /// The label cap its labels were clipped at (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+}
+
+impl Estimator {
+    /// μ and σ for `n = features.len() / dim` row-major feature vectors (see
+    /// [`ServedModel::answer`]).
+    pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
+        if dim == 0 {
+            return Vec::new();
+        }
+        let n = features.len() / dim;
+        match self {
+            Estimator::Prior(h) => vec![
+                Answer {
+                    mu: h.prior_mean,
+                    sigma: h.prior_std(),
+                };
+                n
+            ],
+            Estimator::Fitted(gp) => {
+                let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
+                let p = gp.predict(&x);
+                p.mean
+                    .iter()
+                    .zip(p.std())
+                    .map(|(mu, sigma)| Answer { mu: *mu, sigma })
+                    .collect()
+            }
+        }
+    }
+
+    /// Floats it keeps in memory.
+    pub fn floats(&self) -> usize {
+        match self {
+            Estimator::Prior(_) => 0,
+            Estimator::Fitted(gp) => gp.floats(),
+        }
+    }
 }
 
 /// The MDE's answer at one point.
@@ -157,7 +211,13 @@ impl ServedModel {
                 ..Hyperparameters::prior(dim, prior_mean)
             }),
             fit: None,
+            further: Default::default(),
         }
+    }
+
+    /// The estimator of the further model `model` in this version, if it has one.
+    pub fn further(&self, model: &str) -> Option<&FurtherEstimator> {
+        self.further.iter().find(|f| f.model == model)
     }
 
     /// Which regressor answers (`None` for the prior).
@@ -168,12 +228,14 @@ impl ServedModel {
         }
     }
 
-    /// Floats the version keeps in memory.
+    /// Floats the version keeps in memory (its further models' estimators too).
     pub fn floats(&self) -> usize {
-        match &self.estimator {
-            Estimator::Prior(_) => 0,
-            Estimator::Fitted(gp) => gp.floats(),
-        }
+        self.estimator.floats()
+            + self
+                .further
+                .iter()
+                .map(|f| f.estimator.floats())
+                .sum::<usize>()
     }
 
     /// Training-set size (0 for the prior).
@@ -221,28 +283,7 @@ impl ServedModel {
     /// answer (which the service's validation should make impossible) answers NaN, which
     /// every caller checks before it leaves the process.
     pub fn answer(&self, features: &[f64], dim: usize) -> Vec<Answer> {
-        if dim == 0 {
-            return Vec::new();
-        }
-        let n = features.len() / dim;
-        match &self.estimator {
-            Estimator::Prior(h) => vec![
-                Answer {
-                    mu: h.prior_mean,
-                    sigma: h.prior_std(),
-                };
-                n
-            ],
-            Estimator::Fitted(gp) => {
-                let x = DMatrix::from_row_slice(n, dim, &features[..n * dim]);
-                let p = gp.predict(&x);
-                p.mean
-                    .iter()
-                    .zip(p.std())
-                    .map(|(mu, sigma)| Answer { mu: *mu, sigma })
-                    .collect()
-            }
-        }
+        self.estimator.answer(features, dim)
     }
 }
 

@@ -215,6 +215,21 @@ pub async fn predict_pairs(
     .await
 }
 
+/// The further model `named`'s predictions of `pairs`, in order (see [`predict_pairs`]).
+pub async fn predict_named(
+    named: &crate::domain::NamedModel,
+    pairs: &[(&[f64], &[f64])],
+) -> Result<Vec<Vec<f64>>> {
+    let model = named.model.clone();
+    predict_through(
+        named.model.as_ref(),
+        &named.name,
+        pairs,
+        move |states, actions| model.predict_batch(states, actions),
+    )
+    .await
+}
+
 /// `model`'s predictions of `pairs` (see [`predict_pairs`]); `blocking` is the same model's
 /// batch call, run on the blocking pool when the model has no awaitable answer. `name` names
 /// the model in an error.

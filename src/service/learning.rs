@@ -9,6 +9,7 @@ use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, Margined, ServedModel};
 use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory, Verdict};
 use crate::seed;
+use crate::settings::DOMAIN_MODEL;
 use crate::store::{FitRefusal, ListOrder};
 use std::sync::Arc;
 use std::time::Instant;
@@ -36,6 +37,8 @@ pub struct ModelView {
 pub struct Judged {
     /// The version that answered.
     pub model: Arc<ServedModel>,
+    /// The further model whose precondition was judged (`None`: the domain's own model's).
+    pub further: Option<String>,
     /// β used.
     pub beta: f64,
     /// The experiment's tolerance.
@@ -323,7 +326,17 @@ impl Service {
     /// (`points[i].s`). More than a few hundred points are evaluated off the async workers, in
     /// an evaluation slot of the work gate
     /// ([`WorkGate::evaluation_slot`](super::WorkGate::evaluation_slot)).
-    pub async fn judge(&self, id: i64, points: &[Point], beta: Option<f64>) -> Result<Judged> {
+    ///
+    /// With `further`, the precondition of that one of the experiment's further models (its
+    /// estimator in the current version, at β the request's or `learning.test_beta`); `domain`
+    /// names the domain's own model.
+    pub async fn judge(
+        &self,
+        id: i64,
+        points: &[Point],
+        beta: Option<f64>,
+        further: Option<&str>,
+    ) -> Result<Judged> {
         let arrived = Instant::now();
         let live = self.live(id).await?;
         if points.is_empty() {
@@ -334,6 +347,9 @@ impl Service {
                 "points",
                 format!("at most {MAX_POINTS} points"),
             ));
+        }
+        if let Some(name) = further.filter(|n| *n != DOMAIN_MODEL) {
+            return self.judge_further(&live, name, points, beta, arrived).await;
         }
         let model = live.model();
         let precondition = live.precondition_for(&model, beta)?;
@@ -403,28 +419,94 @@ impl Service {
         } else {
             evaluate()
         };
-        let judgements = answers
-            .iter()
-            .enumerate()
-            .map(|(i, a)| {
-                let at = match &betas {
-                    Some(b) => precondition.at_beta(b[i])?,
-                    None => precondition,
-                };
-                Judgement::of(a, at).ok_or_else(|| {
-                    Error::Internal(anyhow::anyhow!(
-                        "the model answered a non-finite deviation (μ = {}, σ = {})",
-                        a.mu,
-                        a.sigma
-                    ))
-                })
-            })
-            .collect::<Result<_>>()?;
         Ok(Judged {
             model,
+            further: None,
             beta: precondition.beta(),
             d_max: precondition.d_max(),
-            judgements,
+            judgements: judgements_of(&answers, precondition, betas.as_deref())?,
+        })
+    }
+
+    /// [`Service::judge`] for the further model `name`: its prediction read by the features
+    /// (the service asks the model, in one call), its estimator in the current version.
+    async fn judge_further(
+        &self,
+        live: &Arc<LiveExperiment>,
+        name: &str,
+        points: &[Point],
+        beta: Option<f64>,
+        arrived: Instant,
+    ) -> Result<Judged> {
+        let Some(named) = live.models.iter().find(|m| m.name == name) else {
+            let mut names = vec![DOMAIN_MODEL.to_string()];
+            names.extend(live.models.iter().map(|m| m.name.clone()));
+            return Err(Error::validation(
+                "model",
+                format!(
+                    "the experiment has no model named {name:?}; it has {}",
+                    names.join(", ")
+                ),
+            ));
+        };
+        let model = live.model();
+        if model.further(name).is_none() {
+            return Err(Error::Conflict(format!(
+                "model version {} holds no estimator of {name:?}: one is fitted by the first \
+                 fit after it labelled a transition",
+                model.version
+            )));
+        }
+        let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
+        let domain = live.domain.as_ref();
+        let dim = domain.feature_dim();
+        for (i, p) in points.iter().enumerate() {
+            live.check_step(&format!("points[{i}]"), &p.s, &p.a)?;
+            if p.s_pred.is_some() {
+                return Err(Error::validation(
+                    format!("points[{i}].s_pred"),
+                    format!("the service predicts with {name:?} itself"),
+                ));
+            }
+        }
+        let predicted: Vec<Vec<f64>> = if domain.features_use_prediction() {
+            let pairs: Vec<(&[f64], &[f64])> = points
+                .iter()
+                .map(|p| (p.s.as_slice(), p.a.as_slice()))
+                .collect();
+            super::ingest::predict_named(named, &pairs).await?
+        } else {
+            vec![Vec::new(); points.len()]
+        };
+        let mut features = Vec::with_capacity(points.len() * dim);
+        for (p, next) in points.iter().zip(&predicted) {
+            features.extend(domain.features(&p.s, &p.a, next));
+        }
+        let evaluate = {
+            let (model, name) = (model.clone(), name.to_string());
+            move || {
+                model
+                    .further(&name)
+                    .map(|f| f.estimator.answer(&features, dim))
+                    .unwrap_or_default()
+            }
+        };
+        let answers = if points.len() > INLINE_POINTS {
+            let slot = self.work.evaluation_slot(arrived).await?;
+            Self::blocking(move || {
+                let _slot = slot;
+                evaluate()
+            })
+            .await?
+        } else {
+            evaluate()
+        };
+        Ok(Judged {
+            model,
+            further: Some(name.to_string()),
+            beta: precondition.beta(),
+            d_max: precondition.d_max(),
+            judgements: judgements_of(&answers, precondition, None)?,
         })
     }
 
@@ -532,4 +614,30 @@ impl Service {
             model_version,
         })
     }
+}
+
+/// The judgement of each answer under `precondition` — at its own β where `betas` gives one —
+/// or an internal error for a non-finite answer.
+fn judgements_of(
+    answers: &[crate::mde::Answer],
+    precondition: Precondition,
+    betas: Option<&[f64]>,
+) -> Result<Vec<Judgement>> {
+    answers
+        .iter()
+        .enumerate()
+        .map(|(i, a)| {
+            let at = match betas {
+                Some(b) => precondition.at_beta(b[i])?,
+                None => precondition,
+            };
+            Judgement::of(a, at).ok_or_else(|| {
+                Error::Internal(anyhow::anyhow!(
+                    "the model answered a non-finite deviation (μ = {}, σ = {})",
+                    a.mu,
+                    a.sigma
+                ))
+            })
+        })
+        .collect()
 }

@@ -39,7 +39,7 @@ pub use exclusions::{Exclusion, ExclusionOutcome, ExclusionScope, ExclusionSet, 
 pub use experiments::{Experiment, ListOrder};
 pub use fits::{FitClaim, FitJob};
 pub use health::{Failure, classify};
-pub use models::{FitRefusal, StoredModel};
+pub use models::{FitRefusal, StoredFurther, StoredModel};
 pub use proposals::{
     Inserted, NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
 };

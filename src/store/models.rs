@@ -37,6 +37,23 @@ pub struct StoredModel {
     /// How its kernel and label cap were chosen and what its fit spent time on (`None` for
     /// versions fitted before it was recorded).
     pub selection: Option<SelectionRecord>,
+    /// The estimators of the experiment's further models fitted with it.
+    pub further: Vec<StoredFurther>,
+}
+
+/// A further model's estimator as a version stores it.
+#[derive(Debug, Clone)]
+pub struct StoredFurther {
+    /// The further model's name.
+    pub model: String,
+    /// Training transitions: those among the version's that the model labelled, in id order.
+    pub n_train: i64,
+    /// The label cap its labels were clipped at (units of `d_max`; 0 = raw labels).
+    pub label_cap: f64,
+    /// Its fit's objective.
+    pub log_marginal_likelihood: f64,
+    /// Everything needed to rebuild it (with its training data, for the exact GP).
+    pub state: EstimatorState,
 }
 
 fn json_err(e: serde_json::Error) -> sqlx::Error {
@@ -86,8 +103,24 @@ pub(super) async fn insert_model_on(
     .bind(beta_choice)
     .bind(selection)
     .bind(model.exclusions.encode())
-    .execute(conn)
+    .execute(&mut *conn)
     .await?;
+    for f in &model.further {
+        sqlx::query(
+            "INSERT INTO further_fits (experiment_id, version, model, n_train, label_cap,
+                                       log_marginal_likelihood, state)
+             VALUES ($1, $2, $3, $4, $5, $6, $7)",
+        )
+        .bind(experiment_id)
+        .bind(model.version)
+        .bind(f.model.as_str())
+        .bind(f.n_train)
+        .bind(f.label_cap)
+        .bind(f.log_marginal_likelihood)
+        .bind(serde_json::to_string(&f.state).map_err(json_err)?)
+        .execute(&mut *conn)
+        .await?;
+    }
     Ok(())
 }
 
@@ -162,7 +195,27 @@ impl Store {
             selection,
             exclusions,
         ) = row;
+        let further = sqlx::query_as::<_, (String, i64, f64, f64, String)>(
+            "SELECT model, n_train, label_cap, log_marginal_likelihood, state FROM further_fits
+             WHERE experiment_id = $1 AND version = $2 ORDER BY model",
+        )
+        .bind(experiment_id)
+        .bind(version)
+        .fetch_all(&self.read)
+        .await?
+        .into_iter()
+        .map(|(model, n_train, label_cap, lml, state)| {
+            Ok(StoredFurther {
+                model,
+                n_train,
+                label_cap,
+                log_marginal_likelihood: lml,
+                state: serde_json::from_str(&state).map_err(json_err)?,
+            })
+        })
+        .collect::<Result<Vec<_>, sqlx::Error>>()?;
         Ok(Some(StoredModel {
+            further,
             version,
             n_train,
             exclusions: ExclusionSet::decode(exclusions.as_deref())?,

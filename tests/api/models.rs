@@ -358,3 +358,142 @@ async fn the_labels_summary_says_how_often_each_model_was_right() {
     let (status, _) = app.get("/v1/experiments/999/labels").await;
     assert_eq!(status, 404);
 }
+
+/// The robot moves as its action says left of `x = 0.5` and not at all right of it: the
+/// domain's model (`s + a`) is right on the left, `still` on the right.
+fn half_and_half(seed: u64) -> Vec<Value> {
+    let mut trajectories = Vec::new();
+    let mut x = seed as f64 * 0.013;
+    for k in 0..8 {
+        let mut transitions = Vec::new();
+        for j in 0..8 {
+            x = (x + 0.137 + 0.01 * j as f64).fract();
+            let s = [0.1 + 0.8 * x, 0.1 + 0.1 * k as f64];
+            let a = [if j % 2 == 0 { 0.1 } else { -0.1 }, 0.0];
+            let s_next = if s[0] < 0.5 { [s[0] + a[0], s[1]] } else { s };
+            transitions.push(json!({"s": s, "a": a, "s_next": s_next}));
+        }
+        trajectories.push(json!({ "transitions": transitions }));
+    }
+    trajectories
+}
+
+async fn judged(app: &TestApp, id: i64, model: &str) -> Value {
+    let points = json!([{"s": [0.2, 0.5], "a": [0.1, 0]}, {"s": [0.8, 0.5], "a": [0.1, 0]}]);
+    let (status, body) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": points, "beta": 0, "model": model}),
+        )
+        .await;
+    assert_eq!(status, 200, "{body}");
+    body
+}
+
+fn inside(body: &Value) -> Vec<bool> {
+    body["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["inside"].as_bool().unwrap())
+        .collect()
+}
+
+/// Each further model's precondition is learnt from its own labels in the same fit, queried by
+/// name, and rebuilt after a restart with the same answers.
+#[tokio::test]
+async fn each_models_precondition_is_learnt_from_its_own_labels() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(plane(json!([{"name": "still", "model": still()}])))
+        .await;
+    let (status, body) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": [{"s": [0.2, 0.5], "a": [0.1, 0]}], "model": "still"}),
+        )
+        .await;
+    assert_eq!(
+        (status, code(&body)),
+        (409, "conflict"),
+        "before a fit: {body}"
+    );
+    for t in half_and_half(1) {
+        app.store_trajectory(id, &t).await;
+    }
+    let model = app.refit(id).await;
+    assert!(model["version"].as_i64() >= Some(1), "{model}");
+
+    let domain = judged(&app, id, "domain").await;
+    assert!(domain.get("model").is_none(), "the domain's own: {domain}");
+    assert_eq!(inside(&domain), [true, false], "{domain}");
+    let still = judged(&app, id, "still").await;
+    assert_eq!(still["model"], "still", "{still}");
+    assert_eq!(inside(&still), [false, true], "{still}");
+    let (_, unnamed) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": [{"s": [0.2, 0.5], "a": [0.1, 0]}], "beta": 0}),
+        )
+        .await;
+    assert_eq!(
+        unnamed["results"][0], domain["results"][0],
+        "domain is the default"
+    );
+    let (_, one) = app
+        .get_at(id, "precondition?s=0.8,0.5&a=0.1,0&beta=0&model=still")
+        .await;
+    assert_eq!(one["results"][0], still["results"][1], "{one}");
+
+    let (status, body) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": [{"s": [0.2, 0.5], "a": [0.1, 0]}], "model": "sim"}),
+        )
+        .await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+    assert_eq!(body["error"]["details"]["field"], "model", "{body}");
+    assert!(reason(&body).contains("domain, still"), "{body}");
+
+    let app = app.restart().await;
+    let rebuilt = judged(&app, id, "still").await;
+    assert_eq!(
+        rebuilt["results"], still["results"],
+        "rebuilt as it was fitted"
+    );
+    assert_eq!(
+        judged(&app, id, "domain").await["results"],
+        domain["results"]
+    );
+}
+
+/// A further model without a single label has no estimator: asking for its precondition is a
+/// conflict, and the fit of the domain's model is not held up by it.
+#[tokio::test]
+async fn a_model_without_labels_has_no_precondition_yet() {
+    let server = model_server::start().await;
+    let (_dir, db) = temp_db();
+    let app = spawn_app_allowing_models(&db, &[server.prefix()]).await;
+    let id = app
+        .create_experiment(plane(json!([
+            {"name": "broken", "model": {"kind": "remote", "url": server.url("error")}}])))
+        .await;
+    for t in half_and_half(2).into_iter().take(3) {
+        app.store_trajectory(id, &t).await;
+    }
+    let model = app.refit(id).await;
+    assert!(model["version"].as_i64() >= Some(1), "{model}");
+    let (status, body) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": [{"s": [0.2, 0.5], "a": [0.1, 0]}], "model": "broken"}),
+        )
+        .await;
+    assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
+    assert!(message(&body).contains("no estimator"), "{body}");
+}

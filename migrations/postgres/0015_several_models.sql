@@ -15,3 +15,18 @@ CREATE TABLE model_labels (
     CHECK ((deviation IS NULL) = (missing IS NOT NULL))
 );
 CREATE INDEX model_labels_by_experiment ON model_labels (experiment_id, transition_id);
+
+-- Each fitted version holds one deviation estimator per further model with labels, fitted in
+-- the same fit job on the labelled ones among the version's training transitions; stored in
+-- the transaction that stores the version (`models`), rebuilt with it.
+CREATE TABLE further_fits (
+    experiment_id            BIGINT NOT NULL,
+    version                  BIGINT NOT NULL,
+    model                    TEXT   NOT NULL,
+    n_train                  BIGINT NOT NULL CHECK (n_train > 0),
+    label_cap                DOUBLE PRECISION NOT NULL,
+    log_marginal_likelihood  DOUBLE PRECISION NOT NULL,
+    state                    TEXT   NOT NULL,
+    PRIMARY KEY (experiment_id, version, model),
+    FOREIGN KEY (experiment_id, version) REFERENCES models (experiment_id, version)
+);
