@@ -261,6 +261,27 @@ def test_every_further_model_labels_every_posted_transition(make_server: MakeSer
         assert summary.of("still").share_within_d_max == 0.0
         assert summary.of("gone").n_missing == 3 and summary.of("gone").mean_deviation is None
 
+        # One fit learns the domain model's precondition and `still`'s, each from its labels;
+        # `gone` has none, so there is no precondition of it to ask for.
+        rng = np.random.default_rng(2)
+        for _ in range(6):
+            begin = rng.uniform(0.1, 0.9, size=2)
+            acts = rng.uniform(-0.1, 0.1, size=(8, 2))
+            client.post_trajectory(transitions_from_states(execute(begin, acts), acts))
+        fitted = client.refit()
+        probe = (np.array([[0.2, 0.5], [0.2, 0.5]]), np.array([[0.0, 0.0], [0.1, 0.0]]))
+        own = client.precondition(probe, beta=0.0)
+        assert own.model is None and own.model_version == fitted.version
+        by_still = client.precondition(probe, beta=0.0, model="still")
+        assert by_still.model == "still"
+        # Standing still is what `still` predicts; a 0.1 move it misses by 0.1 > d_max.
+        assert by_still.mu[1] > by_still.mu[0]
+        assert not by_still.inside[1]
+        with pytest.raises(Conflict):
+            client.precondition(probe, model="gone")
+        with pytest.raises(ValidationFailed):
+            client.precondition(probe, model="sim")
+
 
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:
     with serve_model(model, "127.0.0.1", 0) as served:

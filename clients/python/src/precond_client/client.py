@@ -878,9 +878,14 @@ class Client:
         points: ArrayLike | tuple[ArrayLike, ArrayLike],
         beta: float | None = None,
         predicted: ArrayLike | None = None,
+        model: str | None = None,
     ) -> Precondition:
         """Judges state-actions: ``μ``, ``σ``, ``μ + βσ`` and whether each is inside the
         precondition, at ``beta`` (default the experiment's test β).
+
+        ``model`` names one of the experiment's further models (its ``models``) whose own
+        precondition to judge (the service asks that model for its predictions); default the
+        domain's own model (``"domain"``).
 
         ``points`` is either a pair ``(states, actions)`` of arrays ``(N, n)`` and ``(N, m)``,
         or one array ``(N, n + m)`` whose first ``n`` columns are the state. ``predicted``
@@ -917,6 +922,8 @@ class Client:
             body: dict[str, Any] = {"points": chunk}
             if beta is not None:
                 body["beta"] = float(beta)
+            if model is not None:
+                body["model"] = model
             r = self._request("POST", self._path("/precondition"), json=body)
             parts.append(Precondition.from_json(r.json()))
         return parts[0] if len(parts) == 1 else Precondition.concat(parts)

@@ -814,6 +814,8 @@ class Precondition:
     """``μ + βσ`` per point."""
     inside: NDArray[np.bool_]
     """``upper < d_max`` per point."""
+    model: str | None = None
+    """The further model whose precondition this is; ``None`` for the domain's own model's."""
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> Precondition:
@@ -828,6 +830,7 @@ class Precondition:
             sigma=np.array([r["sigma"] for r in rs], dtype=np.float64),
             upper=np.array([r["upper"] for r in rs], dtype=np.float64),
             inside=np.array([bool(r["inside"]) for r in rs], dtype=np.bool_),
+            model=None if d.get("model") is None else str(d["model"]),
         )
 
     @staticmethod
@@ -843,4 +846,5 @@ class Precondition:
             sigma=np.concatenate([p.sigma for p in parts]),
             upper=np.concatenate([p.upper for p in parts]),
             inside=np.concatenate([p.inside for p in parts]),
+            model=first.model,
         )
