@@ -479,6 +479,42 @@ function exclusionsTable(page) {
   ];
 }
 
+/** Each of the robot's models with what its labels say, when the experiment has several. */
+function robotModelsTable(e, labels) {
+  if (!labels) return [];
+  const pct = x => (x == null ? '–' : `${fmt(100 * x, 3)} %`);
+  return [
+    h('h2', { id: 'robot-models-title' }, "The robot's models and their labels"),
+    table(
+      [
+        ['model'],
+        ['kind'],
+        ['cost per call', 1],
+        ['labelled', 1],
+        ['missing', 1],
+        ['mean deviation', 1],
+        ['largest', 1],
+        [`within d_max = ${fmt(e.d_max)}`, 1],
+      ],
+      labels.items.map(m =>
+        h(
+          'tr',
+          {},
+          td(m.model),
+          td(m.kind),
+          td(fmt(m.cost), true),
+          td(m.n_labelled, true),
+          td(m.n_missing ? h('span', { class: 'bad' }, String(m.n_missing)) : '0', true),
+          td(m.mean_deviation == null ? '–' : fmt(m.mean_deviation), true),
+          td(m.max_deviation == null ? '–' : fmt(m.max_deviation), true),
+          td(pct(m.share_within_d_max), true),
+        ),
+      ),
+      { id: 'robot-models' },
+    ),
+  ];
+}
+
 export async function experimentPage(root, params, id) {
   const offset = Math.max(0, parseInt(params.get('offset') ?? '0', 10) || 0);
   const [e, t, runs, exclusions] = await Promise.all([
@@ -487,6 +523,7 @@ export async function experimentPage(root, params, id) {
     api(`/v1/experiments/${id}/runs?offset=${offset}&limit=${PAGE}`),
     api(`/v1/experiments/${id}/exclusions?limit=${PAGE}`),
   ]);
+  const labels = e.models ? await api(`/v1/experiments/${id}/labels`) : null;
   const name = e.name || `experiment ${id}`;
   crumbs([['Experiments', '/ui/experiments'], [name]]);
   root.replaceChildren(
@@ -504,6 +541,7 @@ export async function experimentPage(root, params, id) {
     h('h2', {}, 'Learning timeline'),
     timelineCharts(e, t),
     modelTable(t),
+    ...robotModelsTable(e, labels),
     h('h2', { id: 'runs-title' }, 'Proposals, trajectories and refusals'),
     ...runsTable(e, runs, offset),
     ...exclusionsTable(exclusions),

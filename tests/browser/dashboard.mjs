@@ -200,6 +200,11 @@ test('the kinematic experiment says which estimator fits it', async () => {
     await page.locator('#settings').innerText(),
     /local experts: an exact GP per region of about 50 transitions, each with its own hyperparameters/,
   );
+  // Its two models of the arm, each with what its labels of the 60 transitions say.
+  const rows = await page.locator('#robot-models tbody tr').allInnerTexts();
+  assert.equal(rows.length, 2, rows.join(' | '));
+  assert.match(rows[0], /^domain\s+built_in\s+1\s+60\s+0\s/);
+  assert.match(rows[1], /^still\s+linear\s+0\.1\s+60\s+0\s/);
 });
 
 test('the kinematic map has two continuous axes and sliders for the rest', async () => {

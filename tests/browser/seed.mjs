@@ -183,6 +183,24 @@ export async function seedKinematic(base, { name = 'kinematic arm', seed = 3 } =
     domain: unitSquare(0.1),
     mde: { restarts: 0, noise: 'homoscedastic', estimator: 'local_experts', expert_size: 50 },
     learning: { batch_size: 100 },
+    // A second model of the arm, which ignores the action: it labels every transition too.
+    models: [
+      {
+        name: 'still',
+        cost: 0.1,
+        model: {
+          kind: 'linear',
+          A: [
+            [1, 0],
+            [0, 1],
+          ],
+          B: [
+            [0, 0],
+            [0, 0],
+          ],
+        },
+      },
+    ],
   });
   for (let k = 0; k < 4; k++) {
     const transitions = randomWalk(rand, 15, 0.2, s => (s[0] > 0.5 ? 0.5 : 0.95));
