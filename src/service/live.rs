@@ -7,11 +7,12 @@
 //! so no request ever waits on a fit.
 
 use super::Error;
+use super::further::{fit_further, further_cost, kept_fits};
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, NamedModel, Problem, Transition};
 use crate::mde::{
-    Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, FurtherEstimator,
-    LIKELIHOOD_DROP, LocalMargin, RefitPlan, SelectionRecord, ServedModel, Training, capped_labels,
+    Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FitRecord, LIKELIHOOD_DROP,
+    LocalMargin, RefitPlan, SelectionRecord, ServedModel, Training, capped_labels,
     fit_choosing_label_cap, gp_params, held_out_margins, refit_plan, refit_warm, selection_cost,
     training_data,
 };
@@ -20,9 +21,7 @@ use crate::remote_model::ModelCalls;
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
 use crate::store::fits::FitFinish;
-use crate::store::{
-    ExclusionSet, FitClaim, FitRefusal, Store, StoredFurther, StoredModel, StoredTransition,
-};
+use crate::store::{ExclusionSet, FitClaim, FitRefusal, Store, StoredModel, StoredTransition};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
@@ -250,51 +249,6 @@ impl LiveExperiment {
         (features, deviations)
     }
 
-    /// Each further model's training set among `transitions` (a version's, in id order): the
-    /// ones it labelled, with features of its own prediction; models without a label are left
-    /// out.
-    pub(super) async fn further_training(
-        &self,
-        store: &Store,
-        transitions: &[StoredTransition],
-    ) -> Result<Vec<FurtherSet>, Error> {
-        let (Some(first), Some(last)) = (transitions.first(), transitions.last()) else {
-            return Ok(Vec::new());
-        };
-        if self.models.is_empty() {
-            return Ok(Vec::new());
-        }
-        let mut labels: HashMap<(i64, String), (Vec<f64>, f64)> = HashMap::new();
-        for (id, label) in store.model_labels(self.id, first.id, last.id).await? {
-            if let (Some(s_pred), Some(deviation)) = (label.s_pred, label.deviation) {
-                labels.insert((id, label.model), (s_pred, deviation));
-            }
-        }
-        let dim = self.domain.feature_dim();
-        let mut sets = Vec::new();
-        for m in &self.models {
-            let mut set = FurtherSet {
-                model: m.name.clone(),
-                features: Vec::new(),
-                deviations: Vec::new(),
-                trajectories: Vec::new(),
-            };
-            for t in transitions {
-                if let Some((s_pred, deviation)) = labels.get(&(t.id, m.name.clone())) {
-                    set.features.reserve(dim);
-                    set.features
-                        .extend(self.domain.features(&t.s, &t.a, s_pred));
-                    set.deviations.push(*deviation);
-                    set.trajectories.push(t.trajectory_id);
-                }
-            }
-            if !set.deviations.is_empty() {
-                sets.push(set);
-            }
-        }
-        Ok(sets)
-    }
-
     /// Fits version `claim.version` on every stored transition under `claim` (this replica's
     /// right to fit the experiment, which the caller heartbeats meanwhile: see
     /// [`FitQueue::fit`](super::FitQueue::fit); `lease` is its lease), on the fit slot `slot`;
@@ -434,21 +388,13 @@ impl LiveExperiment {
             }
             RefitPlan::Select { .. } => (cost(kind).peak_bytes, cost(kind).seconds),
         };
-        // Each further model's estimator is fitted after it, one at a time, with its kernel
-        // and label cap: its peak adds to none, its time to all.
-        let further_kinds: Vec<EstimatorKind> = further_sets
-            .iter()
-            .map(|f| {
-                mde.estimator
-                    .kind_for(f.deviations.len(), dim, &params, budget)
-            })
-            .collect();
-        let (needed, seconds) = further_sets.iter().zip(&further_kinds).fold(
+        let (further_kinds, (needed, seconds)) = further_cost(
+            &further_sets,
+            mde.estimator,
+            dim,
+            &params,
+            budget,
             (needed, seconds),
-            |(bytes, secs), (f, &k)| {
-                let c = selection_cost(k, f.deviations.len(), dim, 1, 1, &params);
-                (bytes.max(c.peak_bytes), secs + c.seconds)
-            },
         );
         let refusal = if needed > budget as f64 {
             Some(FitRefusal::now(
@@ -568,16 +514,7 @@ impl LiveExperiment {
         metrics::histogram!("precond_fit_seconds").record(started.elapsed().as_secs_f64());
         let (choice, selection, further) =
             gp.map_err(|e| Error::Internal(anyhow::anyhow!("fitting the MDE: {e}")))?;
-        for (model, e) in further
-            .iter()
-            .filter_map(|(m, r)| Some(m).zip(r.as_ref().err()))
-        {
-            tracing::warn!(experiment = self.id, model = %model, error = %e, "a further model's estimator could not be fitted; the version has none for it");
-        }
-        let further: Vec<(String, usize, Box<dyn crate::mde::Regressor>)> = further
-            .into_iter()
-            .filter_map(|(model, r)| r.ok().map(|(n, gp)| (model, n, gp)))
-            .collect();
+        let (stored_further, further) = kept_fits(self.id, further, choice.label_cap);
         let gp = choice.gp;
         let fit = FitRecord {
             fit_seconds: started.elapsed().as_secs_f64(),
@@ -606,34 +543,15 @@ impl LiveExperiment {
             kernel_trials: fit.kernel_trials.clone(),
             beta_choice: fit.beta_choice,
             selection: fit.selection.clone(),
-            further: further
-                .iter()
-                .map(|(model, n, gp)| StoredFurther {
-                    model: model.clone(),
-                    n_train: *n as i64,
-                    label_cap: choice.label_cap,
-                    log_marginal_likelihood: gp.log_marginal_likelihood(),
-                    state: gp.state(),
-                })
-                .collect(),
+            further: stored_further,
         };
-        let label_cap = choice.label_cap;
         Ok(Some((
             stored,
             ServedModel {
                 version,
                 estimator: Estimator::Fitted(gp),
                 fit: Some(fit),
-                further: Arc::new(
-                    further
-                        .into_iter()
-                        .map(|(model, _, gp)| FurtherEstimator {
-                            model,
-                            estimator: Estimator::Fitted(gp),
-                            label_cap,
-                        })
-                        .collect(),
-                ),
+                further: Arc::new(further),
             },
         )))
     }
@@ -766,120 +684,6 @@ impl LiveExperiment {
             further: Arc::new(further),
         })
     }
-
-    /// Rebuilds the further models' estimators of a stored version, each from its own
-    /// labelled training transitions where its state needs them.
-    async fn restore_further(
-        &self,
-        store: &Store,
-        stored: &StoredModel,
-    ) -> Result<Vec<FurtherEstimator>, Error> {
-        if stored.further.is_empty() {
-            return Ok(Vec::new());
-        }
-        let mut sets = if stored.further.iter().any(|f| f.state.needs_training_data()) {
-            let transitions = store
-                .transitions_outside(self.id, &stored.exclusions, 0, Some(stored.n_train))
-                .await?;
-            self.further_training(store, &transitions).await?
-        } else {
-            Vec::new()
-        };
-        let dim = self.domain.feature_dim();
-        let d_max = self.settings.d_max;
-        let mut rebuilt = Vec::with_capacity(stored.further.len());
-        for f in &stored.further {
-            let (features, deviations) = if f.state.needs_training_data() {
-                let set = sets
-                    .iter_mut()
-                    .find(|s| s.model == f.model)
-                    .filter(|s| s.deviations.len() as i64 == f.n_train)
-                    .ok_or_else(|| {
-                        Error::Internal(anyhow::anyhow!(
-                            "model {} of experiment {}: the estimator of {} was fitted on {} \
-                             labelled transitions, which are no longer stored as they were",
-                            stored.version,
-                            self.id,
-                            f.model,
-                            f.n_train
-                        ))
-                    })?;
-                (
-                    std::mem::take(&mut set.features),
-                    std::mem::take(&mut set.deviations),
-                )
-            } else {
-                (Vec::new(), Vec::new())
-            };
-            let labels = capped_labels(&deviations, f.label_cap, d_max);
-            let state = f.state.clone();
-            let gp = tokio::task::spawn_blocking(move || {
-                let (x, y) = training_data(features, labels, dim);
-                let gp = state.restore(&x, &y)?;
-                gp.prepare();
-                Ok::<_, crate::gp::GpError>(gp)
-            })
-            .await
-            .context("restore task")?
-            .map_err(|e| Error::Internal(anyhow::anyhow!("rebuilding a stored MDE: {e}")))?;
-            rebuilt.push(FurtherEstimator {
-                model: f.model.clone(),
-                estimator: Estimator::Fitted(gp),
-                label_cap: f.label_cap,
-            });
-        }
-        Ok(rebuilt)
-    }
-}
-
-/// A further model's training set among a version's training transitions (see
-/// [`LiveExperiment::further_training`]).
-pub(super) struct FurtherSet {
-    model: String,
-    features: Vec<f64>,
-    deviations: Vec<f64>,
-    trajectories: Vec<i64>,
-}
-
-/// A further model's fitted estimator and its training-set size.
-type FurtherFit = (usize, Box<dyn crate::mde::Regressor>);
-
-/// Fits each further model's estimator on its set, of the kind given for it, with the domain
-/// model's `(kernel, label cap)`: per model, the training-set size and the prepared estimator,
-/// or why it could not be fitted. Runs on the fit's thread.
-fn fit_further(
-    sets: Vec<FurtherSet>,
-    kinds: &[EstimatorKind],
-    (kernel, label_cap): (crate::gp::Kernel, f64),
-    precondition: Precondition,
-    dim: usize,
-    params: &EstimatorParams,
-) -> Vec<(String, Result<FurtherFit, crate::gp::GpError>)> {
-    sets.into_iter()
-        .zip(kinds)
-        .map(|(set, &kind)| {
-            let n = set.deviations.len();
-            let x = DMatrix::from_row_slice(n, dim, &set.features);
-            let training = Training {
-                x: &x,
-                deviations: &set.deviations,
-                trajectories: &set.trajectories,
-            };
-            let fitted = fit_choosing_label_cap(
-                training,
-                precondition,
-                &[kernel],
-                &[label_cap],
-                kind,
-                params,
-            )
-            .map(|c| {
-                c.gp.prepare();
-                (n, c.gp)
-            });
-            (set.model, fitted)
-        })
-        .collect()
 }
 
 /// Every experiment this process has touched.

@@ -4,17 +4,21 @@
 //! only parses requests and renders these values.
 //!
 //! - [`live`](mod@live): experiments in memory (built domain, current model), their fits.
+//! - `further`: the estimators of an experiment's further models of its robot — their
+//!   training sets, their fits beside the domain model's, their rebuild.
 //! - [`fitting`](mod@fitting): fits as jobs claimed through the store, so that replicas over
 //!   one database take turns and share the work; the watcher that loads others' versions.
 //! - [`experiments`](mod@experiments): create, list and show experiments.
-//! - [`ingest`](mod@ingest): label executed transitions with the experiment's own model and
-//!   store a trajectory atomically and idempotently.
-//! - [`learning`](mod@learning): the model, refits, precondition judgements and test-time plans.
+//! - [`ingest`](mod@ingest): label executed transitions with the experiment's own model (and
+//!   each further model) and store a trajectory atomically and idempotently.
+//! - [`learning`](mod@learning): the model, refits, precondition judgements (any of the
+//!   robot's models') and test-time plans.
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
 //! - [`work`](mod@work): bounded work — the operator's [`Limits`] and the gate every search,
 //!   fit and large evaluation (maps, diagnostics, large precondition queries) passes through
 //!   (concurrency, queue, deadlines, cancellation).
-//! - [`activity`](mod@activity): an experiment's runs and learning timeline, for the dashboard.
+//! - [`activity`](mod@activity): an experiment's runs, learning timeline and each model's
+//!   labels summed up, for the dashboard.
 //! - [`inspection`](mod@inspection): a model version on a grid (the precondition map) and its
 //!   leave-one-out calibration.
 //! - [`exports`](mod@exports): large answers (a model's export, every transition as CSV)
@@ -33,6 +37,7 @@ pub mod exclusions;
 pub mod experiments;
 pub mod exports;
 pub mod fitting;
+mod further;
 pub mod ingest;
 pub mod inspection;
 pub mod learning;
