@@ -307,6 +307,9 @@ pub struct DiagnosticsQuery {
 pub struct ExportQuery {
     /// The model version to export (1 or more); default the one answering now.
     pub version: Option<i64>,
+    /// Whose estimator: one of the experiment's further models by name, or `domain` (the
+    /// default) for the domain's own model's.
+    pub model: Option<String>,
 }
 
 /// `GET /v1/experiments/{id}/model/export`: a fitted version as a self-contained, versioned

@@ -33,7 +33,7 @@ pub async fn export_model(
 ) -> ApiResult<Response> {
     let export = state
         .service
-        .prepare_model_export(id, query.version)
+        .prepare_model_export(id, query.version, query.model.as_deref())
         .await?;
     let body = stream::produced_body(export, "model export", |export, w| {
         let document = export.build().map_err(std::io::Error::other)?;

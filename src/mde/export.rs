@@ -58,6 +58,10 @@ pub struct ExportedModel {
     /// or local experts (`centres`, `experts`: each a GP; the expert of the nearest centre
     /// answers).
     pub predictor: EstimatorPredictor,
+    /// The further model of the experiment's robot whose precondition this is (its feature
+    /// map reads *that* model's prediction); absent for the domain's own model's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
 }
 
 /// Reusable buffers for [`ExportedModel::evaluate_with`].
@@ -77,7 +81,43 @@ impl ExportedModel {
         d_max: f64,
         test_beta: f64,
     ) -> Option<Self> {
-        let Estimator::Fitted(gp) = &model.estimator else {
+        Self::of_estimator(
+            experiment_id,
+            (model.version, &model.estimator, None),
+            domain,
+            d_max,
+            test_beta,
+        )
+    }
+
+    /// The export of the further model `further`'s estimator in `model`, or `None` when the
+    /// version holds none of it; `test_beta` is the β it is judged at by default.
+    pub fn of_further(
+        experiment_id: i64,
+        model: &ServedModel,
+        further: &str,
+        domain: &dyn Domain,
+        d_max: f64,
+        test_beta: f64,
+    ) -> Option<Self> {
+        let estimator = &model.further(further)?.estimator;
+        Self::of_estimator(
+            experiment_id,
+            (model.version, estimator, Some(further)),
+            domain,
+            d_max,
+            test_beta,
+        )
+    }
+
+    fn of_estimator(
+        experiment_id: i64,
+        (version, estimator, further): (i64, &Estimator, Option<&str>),
+        domain: &dyn Domain,
+        d_max: f64,
+        test_beta: f64,
+    ) -> Option<Self> {
+        let Estimator::Fitted(gp) = estimator else {
             return None;
         };
         let predictor = gp.predictor();
@@ -85,7 +125,7 @@ impl ExportedModel {
             format: EXPORT_FORMAT.to_string(),
             format_version: format_version(&predictor),
             experiment_id,
-            model_version: model.version,
+            model_version: version,
             estimator: gp.kind(),
             n_train: gp.n_train(),
             d_max,
@@ -95,6 +135,7 @@ impl ExportedModel {
             feature_names: domain.feature_names(),
             feature_map: domain.feature_map(),
             predictor,
+            model: further.map(str::to_string),
         })
     }
 

@@ -9,6 +9,7 @@ use super::{Error, Result, Service};
 use crate::domain::Domain;
 use crate::mde::{Estimator, ExportedModel, ServedModel};
 use crate::service::ExportSlot;
+use crate::settings::DOMAIN_MODEL;
 use crate::store::{Store, StoredTransition};
 use std::sync::Arc;
 use std::time::Instant;
@@ -23,6 +24,8 @@ pub struct ModelExport {
     pub slot: ExportSlot,
     id: i64,
     model: Arc<ServedModel>,
+    /// The further model whose estimator to export (`None`: the domain model's).
+    further: Option<String>,
     domain: Arc<dyn Domain>,
     d_max: f64,
     test_beta: f64,
@@ -32,20 +35,32 @@ impl ModelExport {
     /// The exported document (its size is the model's: the training inputs, and for the exact
     /// GP the packed `L⁻¹`). Blocking: call it on the writer's thread.
     pub fn build(&self) -> Result<ExportedModel> {
-        ExportedModel::of(
-            self.id,
-            &self.model,
-            self.domain.as_ref(),
-            self.d_max,
-            self.test_beta,
-        )
+        let domain = self.domain.as_ref();
+        match &self.further {
+            None => ExportedModel::of(self.id, &self.model, domain, self.d_max, self.test_beta),
+            Some(name) => ExportedModel::of_further(
+                self.id,
+                &self.model,
+                name,
+                domain,
+                self.d_max,
+                self.test_beta,
+            ),
+        }
         .ok_or_else(|| Error::Internal(anyhow::anyhow!("a fitted version exported as the prior")))
     }
 
     /// Numbers the document holds, about: what its size (some 20 bytes a number as JSON) and
     /// the memory of [`ModelExport::build`] (8 bytes a number) follow.
     pub fn numbers(&self) -> usize {
-        match &self.model.estimator {
+        let estimator = match &self.further {
+            None => &self.model.estimator,
+            Some(name) => match self.model.further(name) {
+                Some(f) => &f.estimator,
+                None => return 0,
+            },
+        };
+        match estimator {
             Estimator::Fitted(gp) => {
                 let (n, d) = (gp.n_train(), self.domain.feature_map().dim());
                 n * d + n * (n + 1) / 2
@@ -96,8 +111,15 @@ impl TransitionsExport {
 
 impl Service {
     /// A fitted version (default: the current one) ready to export in an export slot;
-    /// `Conflict` for the prior, which has nothing fitted to export.
-    pub async fn prepare_model_export(&self, id: i64, version: Option<i64>) -> Result<ModelExport> {
+    /// `Conflict` for the prior, which has nothing fitted to export. With `further`, the
+    /// estimator of that one of the experiment's further models in the version (`domain`: the
+    /// domain model's); `Conflict` when the version holds none of it.
+    pub async fn prepare_model_export(
+        &self,
+        id: i64,
+        version: Option<i64>,
+        further: Option<&str>,
+    ) -> Result<ModelExport> {
         let arrived = Instant::now();
         if let Some(v) = version.filter(|v| *v < 0) {
             return Err(Error::validation(
@@ -114,13 +136,34 @@ impl Service {
                 model.version
             )));
         }
+        let further = further.filter(|n| *n != DOMAIN_MODEL);
+        let test_beta = match further {
+            None => live.test_beta(&model),
+            Some(name) => {
+                if !live.models.iter().any(|m| m.name == name) {
+                    return Err(Error::validation(
+                        "model",
+                        format!("the experiment has no further model named {name:?}"),
+                    ));
+                }
+                if model.further(name).is_none() {
+                    return Err(Error::Conflict(format!(
+                        "model version {} holds no estimator of {name:?}: one is fitted by the \
+                         first fit after it labelled a transition",
+                        model.version
+                    )));
+                }
+                live.settings.learning.test_beta
+            }
+        };
         let slot = self.work.export_slot().await?;
         Ok(ModelExport {
             slot,
             id,
+            further: further.map(str::to_string),
             domain: live.domain.clone(),
             d_max: live.settings.d_max,
-            test_beta: live.test_beta(&model),
+            test_beta,
             model,
         })
     }

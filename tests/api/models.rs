@@ -459,6 +459,28 @@ async fn each_models_precondition_is_learnt_from_its_own_labels() {
     assert_eq!(body["error"]["details"]["field"], "model", "{body}");
     assert!(reason(&body).contains("domain, still"), "{body}");
 
+    // The export of `still`'s estimator evaluates to what the server judged, given what
+    // `still` predicts (`s`: it ignores the action).
+    let (status, doc) = app.get_at(id, "model/export?model=still").await;
+    assert_eq!(status, 200, "{doc}");
+    assert_eq!(doc["model"], "still", "{doc}");
+    let exported = precond::mde::ExportedModel::from_json(&doc.to_string()).unwrap();
+    for (k, s) in [[0.2, 0.5], [0.8, 0.5]].iter().enumerate() {
+        let (mu, _) = exported.evaluate_predicted(s, &[0.1, 0.0], s);
+        let served = still["results"][k]["mu"].as_f64().unwrap();
+        assert!(
+            (mu - served).abs() < 1e-9 * served.abs().max(1.0),
+            "{mu} against {served}"
+        );
+    }
+    let (_, own) = app.get_at(id, "model/export").await;
+    assert!(
+        own.get("model").is_none(),
+        "the domain model's export names none"
+    );
+    let (status, body) = app.get_at(id, "model/export?model=sim").await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+
     let app = app.restart().await;
     let rebuilt = judged(&app, id, "still").await;
     assert_eq!(
