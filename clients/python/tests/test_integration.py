@@ -277,6 +277,11 @@ def test_every_further_model_labels_every_posted_transition(make_server: MakeSer
         # Standing still is what `still` predicts; a 0.1 move it misses by 0.1 > d_max.
         assert by_still.mu[1] > by_still.mu[0]
         assert not by_still.inside[1]
+        exported = client.export_model(model="still")
+        assert exported.model == "still" and client.export_model().model is None
+        # `still` predicts the state itself: its features read that prediction.
+        mu, _ = exported.evaluate(probe[0], probe[1], probe[0])
+        np.testing.assert_allclose(mu, by_still.mu, rtol=1e-9, atol=1e-12)
         with pytest.raises(Conflict):
             client.precondition(probe, model="gone")
         with pytest.raises(ValidationFailed):

@@ -820,13 +820,19 @@ class Client:
         """The MDE version answering queries."""
         return Model.from_json(self._request("GET", self._path("/model")).json())
 
-    def export_model(self, version: int | None = None) -> ExportedModel:
+    def export_model(self, version: int | None = None, model: str | None = None) -> ExportedModel:
         """The answering model version (or ``version``) exported as a self-contained document,
         read into an :class:`~precond_client.export.ExportedModel` that evaluates ``μ``, ``σ``
         and the precondition with numpy alone (and saves to a JSON file for the robot).
-        Raises :class:`~precond_client.errors.Conflict` while the prior answers."""
-        params = None if version is None else {"version": int(version)}
-        r = self._request("GET", self._path("/model/export"), params=params)
+        ``model`` names one of the experiment's further models whose estimator to export
+        (default the domain's own model's). Raises :class:`~precond_client.errors.Conflict`
+        while the prior answers, or when the version holds no estimator of ``model``."""
+        params: dict[str, Any] = {}
+        if version is not None:
+            params["version"] = int(version)
+        if model is not None:
+            params["model"] = model
+        r = self._request("GET", self._path("/model/export"), params=params or None)
         return ExportedModel.from_json(r.json())
 
     def refit(self) -> Model:

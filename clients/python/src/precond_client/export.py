@@ -349,6 +349,9 @@ class ExportedModel:
         self.state_dim = int(d["state_dim"])
         self.action_dim = int(d["action_dim"])
         self.feature_names = [str(n) for n in d["feature_names"]]
+        self.model: str | None = None if d.get("model") is None else str(d["model"])
+        """The further model whose precondition this is (pass *its* predictions where the
+        features read one); ``None`` for the domain's own model's."""
         self._map = _FeatureMap(d["feature_map"], self.state_dim, self.action_dim)
         if "experts" in predictor:
             self._experts = [
