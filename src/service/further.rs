@@ -5,7 +5,7 @@
 //! a stored version's.
 
 use super::Error;
-use super::live::LiveExperiment;
+use crate::domain::{Domain, NamedModel};
 use crate::mde::{
     Estimator, EstimatorChoice, EstimatorKind, EstimatorParams, FurtherEstimator, Training,
     capped_labels, fit_choosing_label_cap, selection_cost, training_data,
@@ -16,11 +16,23 @@ use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
 
-impl LiveExperiment {
+/// What the further models' training sets and rebuilds read of a live experiment.
+pub(super) struct Further<'a> {
+    /// The experiment.
+    pub id: i64,
+    /// Its domain (features, distances).
+    pub domain: &'a dyn Domain,
+    /// Its further models, in their order.
+    pub models: &'a [NamedModel],
+    /// Its tolerance.
+    pub d_max: f64,
+}
+
+impl Further<'_> {
     /// Each further model's training set among `transitions` (a version's, in id order): the
     /// ones it labelled, with features of its own prediction; models without a label are left
     /// out.
-    pub(super) async fn further_training(
+    pub(super) async fn training(
         &self,
         store: &Store,
         transitions: &[StoredTransition],
@@ -39,7 +51,7 @@ impl LiveExperiment {
         }
         let dim = self.domain.feature_dim();
         let mut sets = Vec::new();
-        for m in &self.models {
+        for m in self.models {
             let mut set = FurtherSet {
                 model: m.name.clone(),
                 features: Vec::new(),
@@ -64,7 +76,7 @@ impl LiveExperiment {
 
     /// Rebuilds the further models' estimators of a stored version, each from its own
     /// labelled training transitions where its state needs them.
-    pub(super) async fn restore_further(
+    pub(super) async fn restore(
         &self,
         store: &Store,
         stored: &StoredModel,
@@ -76,12 +88,12 @@ impl LiveExperiment {
             let transitions = store
                 .transitions_outside(self.id, &stored.exclusions, 0, Some(stored.n_train))
                 .await?;
-            self.further_training(store, &transitions).await?
+            self.training(store, &transitions).await?
         } else {
             Vec::new()
         };
         let dim = self.domain.feature_dim();
-        let d_max = self.settings.d_max;
+        let d_max = self.d_max;
         let mut rebuilt = Vec::with_capacity(stored.further.len());
         for f in &stored.further {
             let (features, deviations) = if f.state.needs_training_data() {
@@ -128,7 +140,7 @@ impl LiveExperiment {
 }
 
 /// A further model's training set among a version's training transitions (see
-/// [`LiveExperiment::further_training`]).
+/// [`Further::training`]).
 pub(super) struct FurtherSet {
     model: String,
     features: Vec<f64>,

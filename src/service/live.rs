@@ -7,7 +7,7 @@
 //! so no request ever waits on a fit.
 
 use super::Error;
-use super::further::{fit_further, further_cost, kept_fits};
+use super::further::{Further, fit_further, further_cost, kept_fits};
 use super::work::{Slot, WorkGate};
 use crate::domain::{Domain, LabelledTransition, NamedModel, Problem, Transition};
 use crate::mde::{
@@ -238,6 +238,16 @@ impl LiveExperiment {
         )
     }
 
+    /// What the further models' training sets and rebuilds read of this experiment.
+    fn further(&self) -> Further<'_> {
+        Further {
+            id: self.id,
+            domain: self.domain.as_ref(),
+            models: &self.models,
+            d_max: self.settings.d_max,
+        }
+    }
+
     /// Row-major features and deviations of `transitions`.
     pub(super) fn training_set(&self, transitions: &[StoredTransition]) -> (Vec<f64>, Vec<f64>) {
         let mut features = Vec::with_capacity(transitions.len() * self.domain.feature_dim());
@@ -338,7 +348,7 @@ impl LiveExperiment {
         }
         let version = claim.version;
         let (features, deviations) = self.training_set(&transitions);
-        let further_sets = self.further_training(store, &transitions).await?;
+        let further_sets = self.further().training(store, &transitions).await?;
         let trajectories: Vec<i64> = transitions.iter().map(|t| t.trajectory_id).collect();
         let dim = self.domain.feature_dim();
         let mde = &self.settings.mde;
@@ -615,7 +625,7 @@ impl LiveExperiment {
     /// Rebuilds a stored version without re-optimising: the exact GP from its hyperparameters
     /// and training data, the sparse GP from its stored factors.
     async fn restore(&self, store: &Store, stored: StoredModel) -> Result<ServedModel, Error> {
-        let further = self.restore_further(store, &stored).await?;
+        let further = self.further().restore(store, &stored).await?;
         let dim = self.domain.feature_dim();
         let (features, labels, deviations, trajectories) = if stored.state.needs_training_data() {
             let transitions = store
