@@ -409,16 +409,9 @@ impl Service {
                 (model.answer(&features, dim), betas)
             }
         };
-        let (answers, betas) = if points.len() > INLINE_POINTS {
-            let slot = self.work.evaluation_slot(arrived).await?;
-            Self::blocking(move || {
-                let _slot = slot;
-                evaluate()
-            })
-            .await?
-        } else {
-            evaluate()
-        };
+        let (answers, betas) = self
+            .evaluate_points(points.len(), arrived, evaluate)
+            .await?;
         Ok(Judged {
             model,
             further: None,
@@ -426,6 +419,25 @@ impl Service {
             d_max: precondition.d_max(),
             judgements: judgements_of(&answers, precondition, betas.as_deref())?,
         })
+    }
+
+    /// `evaluate`, the answers about `points` state-actions: inline on the async worker for at
+    /// most [`INLINE_POINTS`], else on the blocking pool in an evaluation slot of the work gate.
+    async fn evaluate_points<T: Send + 'static>(
+        &self,
+        points: usize,
+        arrived: Instant,
+        evaluate: impl FnOnce() -> T + Send + 'static,
+    ) -> Result<T> {
+        if points <= INLINE_POINTS {
+            return Ok(evaluate());
+        }
+        let slot = self.work.evaluation_slot(arrived).await?;
+        Self::blocking(move || {
+            let _slot = slot;
+            evaluate()
+        })
+        .await
     }
 
     /// [`Service::judge`] for the further model `name`: its prediction read by the features
@@ -491,16 +503,9 @@ impl Service {
                     .unwrap_or_default()
             }
         };
-        let answers = if points.len() > INLINE_POINTS {
-            let slot = self.work.evaluation_slot(arrived).await?;
-            Self::blocking(move || {
-                let _slot = slot;
-                evaluate()
-            })
-            .await?
-        } else {
-            evaluate()
-        };
+        let answers = self
+            .evaluate_points(points.len(), arrived, evaluate)
+            .await?;
         Ok(Judged {
             model,
             further: Some(name.to_string()),
