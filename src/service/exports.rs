@@ -184,13 +184,7 @@ impl Service {
             store: self.store.clone(),
             id,
             domain: experiment.domain,
-            models: experiment
-                .experiment
-                .settings
-                .further_models()
-                .iter()
-                .map(|m| m.name.clone())
-                .collect(),
+            models: experiment.experiment.settings.further_model_names(),
             cursor: after,
             upto,
             next,

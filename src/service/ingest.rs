@@ -466,7 +466,7 @@ impl Service {
         after: i64,
         limit: Option<i64>,
     ) -> Result<(Vec<StoredTransition>, Option<i64>)> {
-        self.experiment(id).await?;
+        let experiment = self.experiment(id).await?.experiment;
         let mut items = self
             .store
             .transitions(id, after, limit.map(|l| l + 1))
@@ -478,13 +478,14 @@ impl Service {
             }
             _ => None,
         };
-        self.attach_labels(id, &mut items).await?;
+        let models = experiment.settings.further_model_names();
+        attach_labels(&self.store, id, &models, &mut items).await?;
         Ok((items, next))
     }
 
     /// One stored trajectory with its transitions.
     pub async fn trajectory(&self, id: i64, trajectory_id: i64) -> Result<StoredTrajectory> {
-        self.experiment(id).await?;
+        let experiment = self.experiment(id).await?.experiment;
         let mut trajectory = self
             .store
             .trajectory(id, trajectory_id)
@@ -492,23 +493,9 @@ impl Service {
             .ok_or_else(|| {
                 Error::NotFound(format!("no trajectory {trajectory_id} in experiment {id}"))
             })?;
-        self.attach_labels(id, &mut trajectory.transitions).await?;
+        let models = experiment.settings.further_model_names();
+        attach_labels(&self.store, id, &models, &mut trajectory.transitions).await?;
         Ok(trajectory)
-    }
-
-    /// Fills in the further models' labels of `items` (see [`attach_labels`]).
-    async fn attach_labels(&self, id: i64, items: &mut [StoredTransition]) -> Result<()> {
-        if items.is_empty() {
-            return Ok(());
-        }
-        let experiment = self.experiment(id).await?.experiment;
-        let models: Vec<String> = experiment
-            .settings
-            .further_models()
-            .iter()
-            .map(|m| m.name.clone())
-            .collect();
-        attach_labels(&self.store, id, &models, items).await
     }
 }
 

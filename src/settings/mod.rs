@@ -823,6 +823,14 @@ impl ExperimentSettings {
         self.models.as_deref().unwrap_or_default()
     }
 
+    /// The further models' names, in their order.
+    pub fn further_model_names(&self) -> Vec<String> {
+        self.further_models()
+            .iter()
+            .map(|m| m.name.clone())
+            .collect()
+    }
+
     /// Builds the further models over `domain` (no network: a remote model is first called
     /// when used, under `calls`' policy and limits).
     pub fn build_models(
