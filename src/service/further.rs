@@ -43,15 +43,22 @@ impl Further<'_> {
         if self.models.is_empty() {
             return Ok(Vec::new());
         }
-        let mut labels: HashMap<(i64, String), (Vec<f64>, f64)> = HashMap::new();
+        // model → transition → (prediction, deviation)
+        let mut labels: HashMap<String, HashMap<i64, (Vec<f64>, f64)>> = HashMap::new();
         for (id, label) in store.model_labels(self.id, first.id, last.id).await? {
             if let (Some(s_pred), Some(deviation)) = (label.s_pred, label.deviation) {
-                labels.insert((id, label.model), (s_pred, deviation));
+                labels
+                    .entry(label.model)
+                    .or_default()
+                    .insert(id, (s_pred, deviation));
             }
         }
         let dim = self.domain.feature_dim();
         let mut sets = Vec::new();
         for m in self.models {
+            let Some(labelled) = labels.get(&m.name) else {
+                continue;
+            };
             let mut set = FurtherSet {
                 model: m.name.clone(),
                 features: Vec::new(),
@@ -59,7 +66,7 @@ impl Further<'_> {
                 trajectories: Vec::new(),
             };
             for t in transitions {
-                if let Some((s_pred, deviation)) = labels.get(&(t.id, m.name.clone())) {
+                if let Some((s_pred, deviation)) = labelled.get(&t.id) {
                     set.features.reserve(dim);
                     set.features
                         .extend(self.domain.features(&t.s, &t.a, s_pred));
