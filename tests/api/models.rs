@@ -29,6 +29,19 @@ fn two_steps() -> Value {
         {"s": [0.3, 0.2], "a": [0.1, 0], "s_next": [0.43, 0.2]}]})
 }
 
+/// Every transition of experiment `id` as CSV.
+async fn transitions_csv(app: &TestApp, id: i64) -> String {
+    app.client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .header("accept", "text/csv")
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap()
+}
+
 fn close(a: &Value, b: f64) -> bool {
     a.as_f64().is_some_and(|a| (a - b).abs() < 1e-9)
 }
@@ -79,16 +92,7 @@ async fn every_posted_transition_is_labelled_by_every_further_model() {
         .await;
     assert_eq!(trajectory["transitions"][1]["labels"], items[1]["labels"]);
 
-    let text = app
-        .client
-        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
-        .header("accept", "text/csv")
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let text = transitions_csv(&app, id).await;
     let lines: Vec<&str> = text.lines().collect();
     assert!(
         lines[0].ends_with(",deviation,deviation.still,deviation.sim"),
@@ -136,16 +140,7 @@ async fn a_further_model_that_fails_leaves_its_label_missing_never_the_transitio
     }
     let broken = items[0]["labels"][0]["missing"].as_str().unwrap();
     assert!(broken.contains("unavailable"), "{broken}");
-    let text = app
-        .client
-        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
-        .header("accept", "text/csv")
-        .send()
-        .await
-        .unwrap()
-        .text()
-        .await
-        .unwrap();
+    let text = transitions_csv(&app, id).await;
     let row: Vec<&str> = text.lines().nth(1).unwrap().rsplit(',').take(3).collect();
     assert_eq!(
         row[1..],
