@@ -113,7 +113,7 @@ pub use acquisition::{
 pub use cache::ModelCache;
 pub use error::PlanningError;
 pub use given::{Path, Verdict, choose};
-pub use model::{DeviationModel, Fantasy};
+pub use model::{DeviationModel, Fantasy, PlanModel};
 pub use planner::{GivenChoice, Planner};
 pub use precondition::{Agreement, Precondition};
 pub use rrt::{Rejections, RrtOutcome};

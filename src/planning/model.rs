@@ -41,3 +41,18 @@ pub trait DeviationModel: Sync {
 /// What [`DeviationModel::fantasy`] answers: `(μ, σ)` at its features after each of several
 /// alternative pending sets (row-major, the features' dimension each), in order.
 pub type Fantasy<'a> = Box<dyn Fn(&[&[f64]]) -> Vec<Vec<(f64, f64)>> + 'a>;
+
+/// One of the models a test-time plan may step with ([`Planner::plan_across`]): a dynamics
+/// model of the robot, the deviation model of its own precondition (features read *its*
+/// prediction), and what one of its calls costs (in any unit, the same for all).
+///
+/// [`Planner::plan_across`]: super::Planner::plan_across
+#[derive(Clone, Copy)]
+pub struct PlanModel<'a> {
+    /// The dynamics model `f̂_m(s, a)`.
+    pub dynamics: &'a dyn crate::domain::DynamicsModel,
+    /// The deviation model of `f̂_m`'s precondition.
+    pub deviation: &'a dyn DeviationModel,
+    /// What one call of `f̂_m` costs.
+    pub cost: f64,
+}

@@ -22,9 +22,9 @@ use super::acquisition::AcquisitionKind;
 use super::cache::ModelCache;
 use super::error::PlanningError;
 use super::given::{self, Path, Verdict};
-use super::model::DeviationModel;
+use super::model::{DeviationModel, PlanModel};
 use super::precondition::Precondition;
-use super::rrt::{self, RrtOutcome, Task};
+use super::rrt::{self, RrtOutcome, Stage, Task};
 pub use super::settings::PlanningSettings;
 use super::strategy::{self, Proposal, Strategy};
 use super::trajectory::Trajectory;
@@ -122,6 +122,66 @@ impl<'a> Planner<'a> {
         seed: u64,
     ) -> Result<RrtOutcome, PlanningError> {
         self.rrt(problem, precondition, &mut rrt::seeded_rng(seed, 0))
+    }
+
+    /// The test-time plan stepping with several models: one RRT run in which each step may
+    /// rely on a different model of `models` — the cheapest whose own precondition (its
+    /// deviation model, `precondition`) trusts the step, each asked only about the actions
+    /// no cheaper model trusted — seeded by `seed`. The outcome's `step_models` name the
+    /// model of each step and `model_calls` the calls to each (indexes into `models`, given in
+    /// any order; equal costs are tried in the given order). With the domain's model and
+    /// the planner's deviation model alone, it is [`plan`](Self::plan).
+    pub fn plan_across(
+        &self,
+        problem: &Problem,
+        precondition: Precondition,
+        models: &[PlanModel<'_>],
+        seed: u64,
+    ) -> Result<RrtOutcome, PlanningError> {
+        if models.is_empty() {
+            return Err(PlanningError::settings("models", "no model to plan with"));
+        }
+        if let Some(m) = models
+            .iter()
+            .find(|m| !(m.cost.is_finite() && m.cost > 0.0))
+        {
+            return Err(PlanningError::settings(
+                "models",
+                format!("a model's cost must be a positive number, not {}", m.cost),
+            ));
+        }
+        let mut order: Vec<usize> = (0..models.len()).collect();
+        order.sort_by(|&a, &b| models[a].cost.total_cmp(&models[b].cost));
+        let dim = self.domain.feature_dim();
+        let mut caches: Vec<ModelCache<'_>> = order
+            .iter()
+            .map(|&i| ModelCache::new(models[i].deviation, dim))
+            .collect();
+        let mut stages: Vec<Stage<'_, '_>> = order
+            .iter()
+            .zip(caches.iter_mut())
+            .map(|(&i, cache)| Stage {
+                dynamics: models[i].dynamics,
+                cache,
+            })
+            .collect();
+        let mut outcome = rrt::grow_across(
+            self.task(problem, precondition),
+            &mut stages,
+            vec![rrt::seeded_rng(seed, 0)],
+            &self.budget,
+        )?
+        .pop()
+        .expect("one search, one outcome");
+        for m in &mut outcome.step_models {
+            *m = order[*m];
+        }
+        let mut calls = vec![0; models.len()];
+        for (k, &i) in order.iter().enumerate() {
+            calls[i] = outcome.model_calls[k];
+        }
+        outcome.model_calls = calls;
+        Ok(outcome)
     }
 
     /// The trajectory `strategy` chooses for the robot to execute next for `problem` inside

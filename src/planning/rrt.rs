@@ -33,6 +33,14 @@
 //! would grow alone, so this changes the number of model calls (and the size of the batches
 //! the GP sees), never the outcome.
 //!
+//! **Several models.** A search may step with several models of the robot, cheapest first
+//! (`grow_across`, behind [`Planner::plan_across`](super::Planner::plan_across)): each round,
+//! the first model predicts every steered action and its own deviation model judges the
+//! predictions; each later model predicts only the actions no cheaper one trusted, judged by
+//! its own deviation model under the same precondition. An edge goes the trusted way nearest
+//! its target, each action by the cheapest model that trusts it, and the tree notes which model
+//! each edge relied on. With one model every round is exactly the one-model round above.
+//!
 //! **Prefetching.** In a discrete action space (the gridworld), when the model must be asked
 //! about `(s, a)`, it is asked in the same call about the node's other allowed actions too.
 
@@ -43,7 +51,7 @@ pub use super::settings::PlannerSettings;
 use super::settings::PlanningSettings;
 pub use super::trajectory::Trajectory;
 use crate::budget::Budget;
-use crate::domain::{Domain, DynamicsError, Predicted, Problem};
+use crate::domain::{Domain, DynamicsError, DynamicsModel, Predicted, Problem};
 use rand::{Rng, RngCore, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::HashSet;
@@ -57,10 +65,16 @@ pub struct RrtOutcome {
     pub extensions: usize,
     /// Number of nodes in the tree at the end, the start included.
     pub tree_size: usize,
-    /// Calls made to the dynamics model (each with a batch of points).
+    /// Calls made to the dynamics models (each with a batch of points), all models together.
     pub dynamics_calls: usize,
     /// Why the extensions that added no node failed.
     pub rejections: Rejections,
+    /// Which model each step of `trajectory` relied on: an index into the models the search
+    /// stepped with (always 0 for a search with the domain's model alone); empty without a
+    /// trajectory.
+    pub step_models: Vec<usize>,
+    /// Calls made to each model the search stepped with, in their order.
+    pub model_calls: Vec<usize>,
 }
 
 /// Why extensions added no node to a tree.
@@ -87,6 +101,8 @@ struct Tree {
     action: Vec<Vec<f64>>,
     mu: Vec<f64>,
     sigma: Vec<f64>,
+    /// The model the edge into node `i` was predicted and trusted by.
+    model: Vec<usize>,
     known: HashSet<Vec<u64>>,
 }
 
@@ -100,6 +116,7 @@ impl Tree {
             action: vec![Vec::new()],
             mu: vec![0.0],
             sigma: vec![0.0],
+            model: vec![0],
             known,
         }
     }
@@ -119,13 +136,26 @@ impl Tree {
         self.known.contains(&state_key(s))
     }
 
-    fn add(&mut self, parent: usize, action: Vec<f64>, state: Vec<f64>, mu: f64, sigma: f64) {
-        self.known.insert(state_key(&state));
-        self.states.push(state);
+    fn add(&mut self, parent: usize, c: Candidate) {
+        let (mu, sigma) = c.answer.unwrap_or((f64::NAN, f64::NAN));
+        self.known.insert(state_key(&c.next));
+        self.states.push(c.next);
         self.parent.push(parent);
-        self.action.push(action);
+        self.action.push(c.action);
         self.mu.push(mu);
         self.sigma.push(sigma);
+        self.model.push(c.model);
+    }
+
+    /// The models the steps of [`path_to`](Self::path_to)`(node)` relied on.
+    fn models_to(&self, mut node: usize) -> Vec<usize> {
+        let mut models = Vec::new();
+        while node != 0 {
+            models.push(self.model[node]);
+            node = self.parent[node];
+        }
+        models.reverse();
+        models
     }
 
     fn path_to(&self, mut node: usize) -> Trajectory {
@@ -164,19 +194,29 @@ pub(crate) fn check_predictions(
     Ok(())
 }
 
-/// An edge proposed in a round: the steered actions the domain allows from its node whose
-/// predictions are new to the tree, nearest the target first, with those predictions. The
-/// model is asked about each; the first inside the precondition becomes the edge.
-struct Proposed {
-    parent: usize,
-    candidates: Vec<(Vec<f64>, Vec<f64>)>,
+/// One way an edge may go: a steered action, a model's prediction of it that the domain allows
+/// and the tree does not hold yet, and that model's deviation answer once asked.
+struct Candidate {
+    /// Index of the action among the edge's steered ones.
+    j: usize,
+    action: Vec<f64>,
+    next: Vec<f64>,
+    /// The model (an index into the search's stages) that predicted `next`.
+    model: usize,
+    /// Distance of `next` to the edge's target (0 when only one action was steered).
+    distance: f64,
+    /// `(μ, σ)` of the model's deviation estimator.
+    answer: Option<(f64, f64)>,
 }
 
-/// A node and the actions the domain steers with from it towards a target.
-struct Steered {
+/// An edge proposed in a round: the ways it may go, the cheapest model's first (each model
+/// asked only about the actions no cheaper one trusted), nearest the target first within a
+/// model. The trusted way nearest the target becomes the edge.
+struct Proposed {
     parent: usize,
     target: Vec<f64>,
     actions: Vec<Vec<f64>>,
+    candidates: Vec<Candidate>,
 }
 
 /// The most edges proposed in one round, whatever the model asks for.
@@ -193,11 +233,20 @@ pub(crate) struct Task<'a> {
     pub settings: &'a PlanningSettings,
 }
 
+/// One model a search steps with: its dynamics and, behind a cache, the deviation model of its
+/// precondition. A search asks its stages in order, so the cheapest comes first.
+pub(crate) struct Stage<'c, 'm> {
+    pub dynamics: &'c dyn DynamicsModel,
+    pub cache: &'c mut ModelCache<'m>,
+}
+
 /// One RRT search in progress: its tree, its own random stream, what it has spent, and the
-/// scratch of the round it is in. A round has four steps, so that several searches can share
-/// each step's call to a model ([`grow_together`]): [`steer`](Self::steer) (the pairs to
-/// predict with `f̂`), [`choose`](Self::choose) (the edges and the pairs to prefetch),
-/// [`prefetched`](Self::prefetched) (the features to ask the deviation model about) and
+/// scratch of the round it is in. A round has these steps, so that several searches can share
+/// each step's call to a model ([`grow_across`]): [`steer`](Self::steer) (targets, nodes,
+/// actions), then per stage — per model, cheapest first — [`pairs`](Self::pairs) (what to
+/// predict with that model: the actions no cheaper model trusted), [`choose`](Self::choose)
+/// (the ways the domain allows, and the pairs to prefetch), [`prefetched`](Self::prefetched)
+/// (the features to ask the deviation model about) and [`judged`](Self::judged); and last
 /// [`accept`](Self::accept).
 struct Search<'a, R> {
     task: Task<'a>,
@@ -211,16 +260,22 @@ struct Search<'a, R> {
     /// grows one edge at a time (edges are proposed against the tree as it stood at the start
     /// of the round), while a tree that cannot grow does not make one model call per edge.
     allowance: usize,
-    steered: Vec<Steered>,
+    /// The largest round size any of its models asks for.
+    round_size: usize,
     round: Vec<Proposed>,
+    /// `(edge, action)` of this round that the stage in progress predicts: those no cheaper
+    /// model trusted.
+    pending: Vec<(usize, usize)>,
+    /// `(edge, candidate)` whose features the stage in progress asks about, in row order.
+    asked: Vec<(usize, usize)>,
     /// `(node, index into the discrete action values)` to predict after the edges.
     to_prefetch: Vec<(usize, usize)>,
-    /// Feature rows of the asked edges, then of the allowed prefetched pairs.
+    /// Feature rows of the asked candidates, then of the allowed prefetched pairs.
     features: Vec<f64>,
 }
 
 impl<'a, R: RngCore> Search<'a, R> {
-    fn new(task: Task<'a>, rng: R) -> Self {
+    fn new(task: Task<'a>, rng: R, stages: &[Stage<'_, '_>]) -> Self {
         let tree = Tree::new(task.problem.start());
         let done = task
             .domain
@@ -231,7 +286,14 @@ impl<'a, R: RngCore> Search<'a, R> {
             tree_size: 1,
             dynamics_calls: 0,
             rejections: Rejections::default(),
+            step_models: Vec::new(),
+            model_calls: vec![0; stages.len()],
         };
+        let round_size = stages
+            .iter()
+            .map(|s| s.dynamics.round_size())
+            .max()
+            .unwrap_or(1);
         Self {
             task,
             rng,
@@ -239,14 +301,17 @@ impl<'a, R: RngCore> Search<'a, R> {
             outcome,
             done,
             allowance: 1,
-            steered: Vec::new(),
+            round_size,
             round: Vec::new(),
+            pending: Vec::new(),
+            asked: Vec::new(),
             to_prefetch: Vec::new(),
             features: Vec::new(),
         }
     }
 
-    /// Samples this round's targets, their nearest nodes and the actions to steer with.
+    /// Samples this round's targets, their nearest nodes and the actions to steer with; every
+    /// action is pending for the first model.
     fn steer(&mut self) {
         let Task {
             domain,
@@ -256,15 +321,13 @@ impl<'a, R: RngCore> Search<'a, R> {
         } = self.task;
         let settings = settings.planner();
         let goal = problem.goal();
-        let round_size = settings
-            .extension_batch
-            .max(domain.dynamics().round_size())
-            .min(MAX_ROUND);
+        let round_size = settings.extension_batch.max(self.round_size).min(MAX_ROUND);
         let size = round_size
             .min(self.allowance)
             .min(settings.max_extensions - self.outcome.extensions);
-        self.steered.clear();
-        for _ in 0..size {
+        self.round.clear();
+        self.pending.clear();
+        for i in 0..size {
             let target = if self.rng.random::<f64>() < settings.goal_bias {
                 domain.goal_target(goal, &mut self.rng)
             } else {
@@ -272,60 +335,70 @@ impl<'a, R: RngCore> Search<'a, R> {
             };
             let parent = self.tree.nearest(domain, &target);
             let actions = domain.steer(&self.tree.states[parent], &target, &mut self.rng);
-            self.steered.push(Steered {
+            self.pending.extend((0..actions.len()).map(|j| (i, j)));
+            self.round.push(Proposed {
                 parent,
                 target,
                 actions,
+                candidates: Vec::new(),
             });
         }
     }
 
-    /// The `(state, action)` pairs this round needs predicted, in order.
+    /// The `(state, action)` pairs the stage in progress needs predicted, in order.
     fn pairs(&self) -> impl Iterator<Item = (&[f64], &[f64])> {
-        self.steered.iter().flat_map(|e| {
-            let s = self.tree.states[e.parent].as_slice();
-            e.actions.iter().map(move |a| (s, a.as_slice()))
+        self.pending.iter().map(|&(i, j)| {
+            let e = &self.round[i];
+            (
+                self.tree.states[e.parent].as_slice(),
+                e.actions[j].as_slice(),
+            )
         })
     }
 
-    fn pair_count(&self) -> usize {
-        self.steered.iter().map(|e| e.actions.len()).sum()
-    }
-
-    /// Keeps, for each steered edge, the allowed and new prediction nearest its target, and
-    /// notes the pairs to prefetch. `predicted` answers [`pairs`](Self::pairs) in order.
-    fn choose(&mut self, predicted: Vec<Predicted>, cache: &ModelCache<'_>) {
+    /// Keeps, of the pending pairs, the predictions of model `stage` the domain allows and the
+    /// tree does not hold, nearest the target first per edge, and notes their features (and,
+    /// for the first model, the pairs to prefetch). `predicted` answers
+    /// [`pairs`](Self::pairs) in order.
+    fn choose(&mut self, stage: usize, predicted: Vec<Predicted>, cache: &ModelCache<'_>) {
         let domain = self.task.domain;
         let discrete_actions = domain.action_space().values.as_ref();
-        let mut predicted = predicted.into_iter();
-        self.round.clear();
+        self.asked.clear();
         self.to_prefetch.clear();
         self.features.clear();
-        for edge in &self.steered {
+        let mut fresh: Vec<Vec<Candidate>> = (0..self.round.len()).map(|_| Vec::new()).collect();
+        for (&(i, j), p) in self.pending.iter().zip(predicted) {
+            let edge = &self.round[i];
             let s = &self.tree.states[edge.parent];
-            let mut allowed: Vec<(f64, usize, Vec<f64>)> = Vec::new();
-            for (j, action) in edge.actions.iter().enumerate() {
-                let Some(p) = predicted.next() else { break };
-                if !(p.valid
-                    && domain.edge_allowed(s, action, &p.next)
-                    && !self.tree.contains(&p.next))
-                {
-                    continue;
-                }
-                let d = if edge.actions.len() == 1 {
-                    0.0
-                } else {
-                    domain.state_metric(&p.next, &edge.target)
-                };
-                allowed.push((d, j, p.next));
-            }
-            // Nearest the target first; the first steered on ties.
-            allowed.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            if edge.actions.len() == 1
-                && let Some((_, j, next)) = allowed.first()
+            let action = &edge.actions[j];
+            if !(p.valid && domain.edge_allowed(s, action, &p.next) && !self.tree.contains(&p.next))
             {
-                let action = &edge.actions[*j];
-                let phi = domain.features(s, action, next);
+                continue;
+            }
+            let distance = if edge.actions.len() == 1 {
+                0.0
+            } else {
+                domain.state_metric(&p.next, &edge.target)
+            };
+            fresh[i].push(Candidate {
+                j,
+                action: action.clone(),
+                next: p.next,
+                model: stage,
+                distance,
+                answer: None,
+            });
+        }
+        for (i, mut ways) in fresh.into_iter().enumerate() {
+            // Nearest the target first; the first steered on ties.
+            ways.sort_by(|a, b| a.distance.total_cmp(&b.distance).then(a.j.cmp(&b.j)));
+            let edge = &mut self.round[i];
+            let s = &self.tree.states[edge.parent];
+            if stage == 0
+                && edge.actions.len() == 1
+                && let Some(first) = ways.first()
+            {
+                let phi = domain.features(s, &first.action, &first.next);
                 if let Some(values) = discrete_actions.filter(|_| !cache.contains(&phi)) {
                     // A miss in a discrete action space: ask about the node's other moves in
                     // the same call, since the tree is likely to try them later.
@@ -333,22 +406,17 @@ impl<'a, R: RngCore> Search<'a, R> {
                         values
                             .iter()
                             .enumerate()
-                            .filter(|(_, v)| *v != action)
+                            .filter(|(_, v)| **v != first.action)
                             .map(|(k, _)| (edge.parent, k)),
                     );
                 }
             }
-            let candidates: Vec<(Vec<f64>, Vec<f64>)> = allowed
-                .into_iter()
-                .map(|(_, j, next)| (edge.actions[j].clone(), next))
-                .collect();
-            for (action, next) in &candidates {
-                self.features.extend(domain.features(s, action, next));
+            for way in ways {
+                self.features
+                    .extend(domain.features(s, &way.action, &way.next));
+                self.asked.push((i, edge.candidates.len()));
+                edge.candidates.push(way);
             }
-            self.round.push(Proposed {
-                parent: edge.parent,
-                candidates,
-            });
         }
     }
 
@@ -376,9 +444,27 @@ impl<'a, R: RngCore> Search<'a, R> {
         }
     }
 
-    /// Adds the accepted edges in order; `answers` are the deviation model's `(μ, σ)` for
-    /// [`features`](Self::features), row by row.
-    fn accept(&mut self, answers: &[(f64, f64)]) {
+    /// Takes the deviation model's `(μ, σ)` of the asked candidates (the first rows of
+    /// `answers`, row by row of [`features`](Self::features)) and leaves pending, for the next
+    /// model, the actions none of this round's models so far trusted.
+    fn judged(&mut self, answers: &[(f64, f64)]) {
+        let precondition = self.task.precondition;
+        for (&(i, c), &answer) in self.asked.iter().zip(answers) {
+            self.round[i].candidates[c].answer = Some(answer);
+        }
+        let round = &self.round;
+        self.pending.retain(|&(i, j)| {
+            !round[i].candidates.iter().any(|c| {
+                c.j == j
+                    && c.answer
+                        .is_some_and(|(mu, sigma)| precondition.inside(mu, sigma))
+            })
+        });
+    }
+
+    /// Adds the accepted edges in order: of each edge's ways, per action the cheapest trusted
+    /// one the tree does not hold yet, and of those the one nearest the target.
+    fn accept(&mut self) {
         let Task {
             domain,
             problem,
@@ -388,29 +474,33 @@ impl<'a, R: RngCore> Search<'a, R> {
         let max_extensions = settings.planner().max_extensions;
         let goal = problem.goal();
         let before = self.tree.states.len();
-        let mut answers = answers.iter();
-        for edge in self.round.drain(..) {
+        let trusted = |c: &Candidate| {
+            c.answer
+                .is_some_and(|(mu, sigma)| precondition.inside(mu, sigma))
+        };
+        for edge in std::mem::take(&mut self.round) {
             self.outcome.extensions += 1;
             if edge.candidates.is_empty() {
                 self.outcome.rejections.constraints += 1;
                 continue;
             }
-            let judged: Vec<(f64, f64)> = answers
-                .by_ref()
-                .take(edge.candidates.len())
-                .copied()
-                .collect();
-            let any_inside = judged
-                .iter()
-                .any(|(mu, sigma)| precondition.inside(*mu, *sigma));
-            let chosen =
-                edge.candidates
-                    .into_iter()
-                    .zip(judged)
-                    .find(|((_, next), (mu, sigma))| {
-                        precondition.inside(*mu, *sigma) && !self.tree.contains(next)
-                    });
-            let Some(((action, next), (mu, sigma))) = chosen else {
+            let any_inside = edge.candidates.iter().any(trusted);
+            // Candidates come cheapest model first, so the first trusted way of an action is
+            // its cheapest.
+            let mut best: Option<Candidate> = None;
+            let mut seen = HashSet::new();
+            for c in edge.candidates {
+                if !trusted(&c) || self.tree.contains(&c.next) || !seen.insert(c.j) {
+                    continue;
+                }
+                let nearer = best
+                    .as_ref()
+                    .is_none_or(|b| (c.distance, c.j) < (b.distance, b.j));
+                if nearer {
+                    best = Some(c);
+                }
+            }
+            let Some(chosen) = best else {
                 if any_inside {
                     // Inside, but an earlier edge of this round reached the same state.
                     self.outcome.rejections.constraints += 1;
@@ -419,11 +509,12 @@ impl<'a, R: RngCore> Search<'a, R> {
                 }
                 continue;
             };
-            let reached = domain.is_goal(&next, goal);
-            self.tree.add(edge.parent, action, next, mu, sigma);
+            let reached = domain.is_goal(&chosen.next, goal);
+            self.tree.add(edge.parent, chosen);
             if reached {
                 let node = self.tree.states.len() - 1;
                 self.outcome.trajectory = Some(self.tree.path_to(node));
+                self.outcome.step_models = self.tree.models_to(node);
                 self.done = true;
                 break;
             }
@@ -466,10 +557,31 @@ pub(crate) fn grow_together<R: RngCore>(
     rngs: Vec<R>,
     budget: &Budget,
 ) -> Result<Vec<RrtOutcome>, PlanningError> {
+    let mut stages = [Stage {
+        dynamics: task.domain.dynamics(),
+        cache,
+    }];
+    grow_across(task, &mut stages, rngs, budget)
+}
+
+/// [`grow_together`] stepping with several models: each round, the first stage's model
+/// predicts every steered action and its deviation model judges them; each later stage's model
+/// predicts only the actions no earlier one trusted, and is judged by its own deviation model
+/// under the same precondition. An edge goes the trusted way nearest its target, each action
+/// by the cheapest (earliest) model that trusts it; the tree notes which model each edge
+/// relied on. With one stage it is [`grow_together`].
+pub(crate) fn grow_across<R: RngCore>(
+    task: Task<'_>,
+    stages: &mut [Stage<'_, '_>],
+    rngs: Vec<R>,
+    budget: &Budget,
+) -> Result<Vec<RrtOutcome>, PlanningError> {
     let domain = task.domain;
-    let mut searches: Vec<Search<'_, R>> =
-        rngs.into_iter().map(|rng| Search::new(task, rng)).collect();
-    let mut calls = 0;
+    let mut searches: Vec<Search<'_, R>> = rngs
+        .into_iter()
+        .map(|rng| Search::new(task, rng, stages))
+        .collect();
+    let mut calls = vec![0; stages.len()];
     loop {
         let spent: usize = searches.iter().map(|s| s.outcome.extensions).sum();
         let mut active: Vec<&mut Search<'_, R>> = searches.iter_mut().filter(|s| !s.done).collect();
@@ -485,38 +597,60 @@ pub(crate) fn grow_together<R: RngCore>(
         for s in active.iter_mut() {
             s.steer();
         }
-        let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
-            active.iter().flat_map(|s| s.pairs()).unzip();
-        let predicted = predict_pairs(domain, &states, &actions, &mut calls, budget, spent)?;
-        let counts: Vec<usize> = active.iter().map(|s| s.pair_count()).collect();
-        for (s, p) in active.iter_mut().zip(split_by(predicted, &counts)) {
-            s.choose(p, cache);
+        for (k, stage) in stages.iter_mut().enumerate() {
+            if k > 0 && active.iter().all(|s| s.pending.is_empty()) {
+                break;
+            }
+            let predict = |states: &[&[f64]], actions: &[&[f64]], calls: &mut usize| {
+                predict_with(
+                    domain,
+                    stage.dynamics,
+                    states,
+                    actions,
+                    calls,
+                    budget,
+                    spent,
+                )
+            };
+            let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
+                active.iter().flat_map(|s| s.pairs()).unzip();
+            let predicted = predict(&states, &actions, &mut calls[k])?;
+            let counts: Vec<usize> = active.iter().map(|s| s.pending.len()).collect();
+            for (s, p) in active.iter_mut().zip(split_by(predicted, &counts)) {
+                s.choose(k, p, stage.cache);
+            }
+            let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
+                active.iter().flat_map(|s| s.prefetch_pairs()).unzip();
+            let prefetched = predict(&states, &actions, &mut calls[k])?;
+            let counts: Vec<usize> = active.iter().map(|s| s.to_prefetch.len()).collect();
+            for (s, p) in active.iter_mut().zip(split_by(prefetched, &counts)) {
+                s.prefetched(p);
+            }
+            // The answers to the prefetched rows come after those of the edges; they are
+            // cached.
+            let features: Vec<f64> = active
+                .iter()
+                .flat_map(|s| s.features.iter().copied())
+                .collect();
+            let answers = stage.cache.predict(&features)?;
+            let dim = domain.feature_dim().max(1);
+            let mut from = 0;
+            for s in active.iter_mut() {
+                let rows = s.features.len() / dim;
+                s.judged(&answers[from..from + rows]);
+                from += rows;
+            }
         }
-        let (states, actions): (Vec<&[f64]>, Vec<&[f64]>) =
-            active.iter().flat_map(|s| s.prefetch_pairs()).unzip();
-        let prefetched = predict_pairs(domain, &states, &actions, &mut calls, budget, spent)?;
-        let counts: Vec<usize> = active.iter().map(|s| s.to_prefetch.len()).collect();
-        for (s, p) in active.iter_mut().zip(split_by(prefetched, &counts)) {
-            s.prefetched(p);
-        }
-        // The answers to the prefetched rows come after those of the edges; they are cached.
-        let features: Vec<f64> = active
-            .iter()
-            .flat_map(|s| s.features.iter().copied())
-            .collect();
-        let answers = cache.predict(&features)?;
-        let dim = domain.feature_dim().max(1);
-        let mut from = 0;
         for s in active.iter_mut() {
-            let rows = s.features.len() / dim;
-            s.accept(&answers[from..from + rows]);
-            from += rows;
+            s.accept();
         }
     }
+    let total: usize = calls.iter().sum();
     Ok(searches
         .into_iter()
         .map(|s| RrtOutcome {
-            dynamics_calls: calls,
+            dynamics_calls: total,
+            model_calls: calls.clone(),
             ..s.outcome
         })
         .collect())
@@ -531,13 +665,35 @@ fn split_by<T>(items: Vec<T>, counts: &[usize]) -> Vec<Vec<T>> {
         .collect()
 }
 
-/// Predicts `f̂(states[i], actions[i])` in one call within the search's `budget`, counting it
-/// and checking that the model answered one prediction per pair. A call that failed because
-/// the budget ran out (a remote model's call ends by the search's deadline and is abandoned
-/// when the search is cancelled) stops the search like a round would, after `spent`
-/// extensions.
+/// Predicts `f̂(states[i], actions[i])` with the domain's model in one call within the
+/// search's `budget` (see [`predict_with`]).
 pub(crate) fn predict_pairs(
     domain: &dyn Domain,
+    states: &[&[f64]],
+    actions: &[&[f64]],
+    calls: &mut usize,
+    budget: &Budget,
+    spent: usize,
+) -> Result<Vec<Predicted>, PlanningError> {
+    predict_with(
+        domain,
+        domain.dynamics(),
+        states,
+        actions,
+        calls,
+        budget,
+        spent,
+    )
+}
+
+/// Predicts `dynamics(states[i], actions[i])` in one call within the search's `budget`,
+/// counting it and checking that the model answered one prediction per pair. A call that
+/// failed because the budget ran out (a remote model's call ends by the search's deadline and
+/// is abandoned when the search is cancelled) stops the search like a round would, after
+/// `spent` extensions.
+pub(crate) fn predict_with(
+    domain: &dyn Domain,
+    dynamics: &dyn DynamicsModel,
     states: &[&[f64]],
     actions: &[&[f64]],
     calls: &mut usize,
@@ -548,8 +704,7 @@ pub(crate) fn predict_pairs(
         return Ok(Vec::new());
     }
     *calls += 1;
-    let predicted = domain
-        .dynamics()
+    let predicted = dynamics
         .predict_batch_within(states, actions, budget)
         .map_err(|e| match budget.stop() {
             Some(reason) => PlanningError::Stopped {

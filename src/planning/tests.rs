@@ -949,3 +949,162 @@ fn a_bottleneck_probe_executes_the_gap_that_the_asked_problem_does_not_need() {
     // The same seed, the same probe.
     assert_eq!(ask(AcquisitionKind::Bottleneck), probing);
 }
+
+/// Trusted (μ 0) where the state's x feature lies on its side of the middle, else μ 1.
+struct HalfModel {
+    left: bool,
+}
+
+impl DeviationModel for HalfModel {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim)
+            .map(|f| {
+                let trusted = (f[0] < 0.5) == self.left;
+                (if trusted { 0.0 } else { 1.0 }, 0.001)
+            })
+            .collect()
+    }
+}
+
+/// Plans from the left of the open kinematic domain to its right at β 2, d_max 0.1, stepping
+/// with `models` (each with the domain's own dynamics and the given deviation model and cost).
+fn plan_left_to_right(models: &[(&dyn DeviationModel, f64)], seed: u64) -> RrtOutcome {
+    let domain = Kinematic::new(KinematicParams::default()).unwrap();
+    let problem = Problem::new(&domain, vec![0.1, 0.5], vec![0.9, 0.5]).unwrap();
+    let settings = PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
+    let models: Vec<PlanModel<'_>> = models
+        .iter()
+        .map(|&(deviation, cost)| PlanModel {
+            dynamics: domain.dynamics(),
+            deviation,
+            cost,
+        })
+        .collect();
+    let precondition = Precondition::new(2.0, 0.1).unwrap();
+    Planner::new(&domain, models[0].deviation, &settings)
+        .plan_across(&problem, precondition, &models, seed)
+        .unwrap()
+}
+
+/// Neither half's model trusts a way across; together they do, each step relying on the
+/// model whose half it starts in.
+#[test]
+fn a_plan_across_models_crosses_where_neither_model_alone_does() {
+    let (left, right) = (HalfModel { left: true }, HalfModel { left: false });
+    for seed in 0..5 {
+        assert!(
+            plan_left_to_right(&[(&left, 1.0)], seed)
+                .trajectory
+                .is_none()
+        );
+        assert!(
+            plan_left_to_right(&[(&right, 1.0)], seed)
+                .trajectory
+                .is_none()
+        );
+        let both = plan_left_to_right(&[(&left, 1.0), (&right, 3.0)], seed);
+        let t = both.trajectory.as_ref().expect("a plan across both models");
+        assert_eq!(both.step_models.len(), t.len());
+        for ((s, _, _), &m) in t.steps().zip(&both.step_models) {
+            assert_eq!(m, if s[0] < 0.5 { 0 } else { 1 }, "step from {s:?}");
+        }
+        assert!(both.model_calls.iter().all(|&c| c > 0));
+        assert_eq!(both.model_calls.iter().sum::<usize>(), both.dynamics_calls);
+    }
+}
+
+/// Where a cheap model and a dear one both trust a step, the step relies on the cheap one,
+/// whatever order the models are given in; the dear one is asked only about the rest.
+#[test]
+fn each_step_relies_on_the_cheapest_model_that_trusts_it() {
+    let (left, everywhere) = (
+        HalfModel { left: true },
+        ConstantModel {
+            mu: 0.0,
+            sigma: 0.001,
+        },
+    );
+    for seed in 0..5 {
+        let out = plan_left_to_right(&[(&everywhere, 10.0), (&left, 1.0)], seed);
+        let t = out.trajectory.as_ref().expect("a plan");
+        for ((s, _, _), &m) in t.steps().zip(&out.step_models) {
+            assert_eq!(m, if s[0] < 0.5 { 1 } else { 0 }, "step from {s:?}");
+        }
+        // Alone, the dear model is asked about every action; after the cheap one, only
+        // about those on the right.
+        let alone = plan_left_to_right(&[(&everywhere, 10.0)], seed);
+        assert!(alone.trajectory.is_some());
+        assert!(
+            out.model_calls[0] < out.model_calls[1],
+            "{:?}",
+            out.model_calls
+        );
+    }
+}
+
+/// With the domain's model and the planner's deviation model alone, a plan across models is
+/// the plan, to the last extension and model call — on a continuous domain and on the
+/// gridworld, whose first model also prefetches.
+#[test]
+fn a_plan_across_one_model_is_the_plan() {
+    let walled = walled_kinematic();
+    let bump = BumpModel {
+        centre: [0.3, 0.5],
+        height: 1.0,
+        sigma: 0.01,
+    };
+    let grid = IcyGridworld::default_layout();
+    let ice = IceModel::new(&grid, 0.02);
+    /// A domain, its deviation model, a start and a goal.
+    type Case<'a> = (&'a dyn Domain, &'a dyn DeviationModel, [[f64; 2]; 2]);
+    let cases: [Case<'_>; 2] = [
+        (&walled, &bump, [[0.1, 0.2], [0.9, 0.8]]),
+        (&grid, &ice, [[0.0, 0.0], [6.0, 4.0]]),
+    ];
+    for (domain, mde, [start, goal]) in cases {
+        let settings =
+            PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
+        let problem = Problem::new(domain, start.to_vec(), goal.to_vec()).unwrap();
+        let precondition = Precondition::new(2.0, 0.1).unwrap();
+        let planner = Planner::new(domain, mde, &settings);
+        let one = [PlanModel {
+            dynamics: domain.dynamics(),
+            deviation: mde,
+            cost: 1.0,
+        }];
+        for seed in 0..5 {
+            let plan = planner.plan(&problem, precondition, seed).unwrap();
+            let across = planner
+                .plan_across(&problem, precondition, &one, seed)
+                .unwrap();
+            assert_eq!(across, plan);
+            if let Some(t) = &plan.trajectory {
+                assert_eq!(plan.step_models, vec![0; t.len()]);
+            }
+        }
+    }
+}
+
+/// A model without a positive cost, or no model at all, is the caller's mistake.
+#[test]
+fn a_plan_across_models_needs_models_with_costs() {
+    let domain = Kinematic::new(KinematicParams::default()).unwrap();
+    let problem = Problem::new(&domain, vec![0.1, 0.5], vec![0.9, 0.5]).unwrap();
+    let settings = PlanningSettings::default();
+    let model = ConstantModel {
+        mu: 0.0,
+        sigma: 0.01,
+    };
+    let planner = Planner::new(&domain, &model, &settings);
+    let pre = Precondition::new(2.0, 0.1).unwrap();
+    let err = planner.plan_across(&problem, pre, &[], 0).unwrap_err();
+    assert!(err.to_string().contains("models"), "{err}");
+    let free = PlanModel {
+        dynamics: domain.dynamics(),
+        deviation: &model,
+        cost: 0.0,
+    };
+    let err = planner.plan_across(&problem, pre, &[free], 0).unwrap_err();
+    assert!(err.to_string().contains("cost"), "{err}");
+}

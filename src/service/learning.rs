@@ -554,13 +554,17 @@ impl Service {
             let verdicts =
                 judge_given(&live, model, problem.goal().to_vec(), checked, precondition).await?;
             let chosen = planning::choose(Strategy::Active, &verdicts, 0);
+            let trajectory = chosen.map(|i| verdicts[i].trajectory.clone());
             return Ok(Planned {
                 outcome: RrtOutcome {
-                    trajectory: chosen.map(|i| verdicts[i].trajectory.clone()),
+                    // Every step of a client's candidate is judged by the domain's model.
+                    step_models: vec![0; trajectory.as_ref().map_or(0, |t| t.len())],
+                    trajectory,
                     extensions: 0,
                     tree_size: 0,
                     dynamics_calls: 0,
                     rejections: Default::default(),
+                    model_calls: Vec::new(),
                 },
                 candidates: Some(verdicts),
                 beta,
