@@ -908,6 +908,22 @@ pub struct PlanRequest {
     /// "none found in time"; it still ends at the planning deadline. Not with `candidates`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub max_extensions: Option<u32>,
+    /// The models the search may step with, by name (`domain` for the domain's own), each step
+    /// relying on the cheapest whose precondition trusts it; default every model of the
+    /// experiment with an estimator in the answering version. Not with `candidates`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub models: Option<Vec<String>>,
+}
+
+/// What a plan's search spent on one model: its calls and their cost.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+pub struct ModelCalls {
+    /// The model's name (`domain` for the domain's own).
+    pub model: String,
+    /// Calls the search made to it (each with a batch of state-actions).
+    pub calls: usize,
+    /// What one call costs, in calls of the domain's own model.
+    pub cost: f64,
 }
 
 /// A test-time plan.
@@ -930,6 +946,14 @@ pub struct PlanResponse {
     /// The client's candidates with their verdicts, when it posted some.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<CandidateView>>,
+    /// Which model each step of the plan relied on (predicted by it, trusted by its
+    /// precondition), when the experiment has several models; empty without a plan.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_models: Option<Vec<String>>,
+    /// What the search spent on each model it could step with, when the experiment has
+    /// several models.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model_calls: Option<Vec<ModelCalls>>,
 }
 
 /// Why a search's extensions added nothing to its tree.

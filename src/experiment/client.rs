@@ -236,6 +236,7 @@ impl ApiClient {
             beta: None,
             candidates: None,
             max_extensions,
+            models: None,
         };
         let what = "POST /plans";
         let (status, body) = self
@@ -257,6 +258,8 @@ impl ApiClient {
                 model_version: -1,
                 trajectory: None,
                 candidates: None,
+                step_models: None,
+                model_calls: None,
             });
         }
         if !(200..300).contains(&status) {

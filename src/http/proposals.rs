@@ -79,16 +79,6 @@ pub async fn create_plan(
     ApiPath(id): ApiPath<i64>,
     ApiJson(request): ApiJson<PlanRequest>,
 ) -> ApiResult<Json<PlanResponse>> {
-    let planned = state
-        .service
-        .plan(
-            id,
-            request.start,
-            request.goal,
-            request.beta,
-            request.candidates,
-            request.max_extensions,
-        )
-        .await?;
+    let planned = state.service.plan(id, request).await?;
     Ok(Json(render::plan(planned)))
 }

@@ -3,10 +3,10 @@
 
 use crate::api::{
     CandidateView, Diagnostics, ExclusionPage, ExclusionStatus, ExclusionView, ExperimentResponse,
-    LaterRates, MapAxis, MapPoint, ModelLabelStats, ModelLabels, ModelResponse, ModelSource,
-    PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse, RejectionCounts,
-    RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated, TrajectoryHeader,
-    TrajectoryResponse,
+    LaterRates, MapAxis, MapPoint, ModelCalls, ModelLabelStats, ModelLabels, ModelResponse,
+    ModelSource, PlanResponse, PreconditionMap, PreconditionResponse, ProposalResponse,
+    RejectionCounts, RunPage, Timeline, TimelineIteration, TimelineModel, TrajectoryCreated,
+    TrajectoryHeader, TrajectoryResponse,
 };
 use crate::mde::ServedModel;
 use crate::service::exclusions::{ExclusionRecord, Exclusions};
@@ -261,6 +261,24 @@ pub fn plan(p: Planned) -> PlanResponse {
         candidates: p
             .candidates
             .map(|verdicts| verdicts.iter().map(CandidateView::judged).collect()),
+        step_models: p.models.as_ref().map(|models| {
+            p.outcome
+                .step_models
+                .iter()
+                .map(|&m| models[m].0.clone())
+                .collect()
+        }),
+        model_calls: p.models.as_ref().map(|models| {
+            models
+                .iter()
+                .zip(&p.outcome.model_calls)
+                .map(|((model, cost), &calls)| ModelCalls {
+                    model: model.clone(),
+                    calls,
+                    cost: *cost,
+                })
+                .collect()
+        }),
     }
 }
 

@@ -287,6 +287,16 @@ impl ServedModel {
     }
 }
 
+/// A further model's estimator as the planner asks it (its `μ` and `σ`, no fantasies).
+impl DeviationModel for Estimator {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.answer(features, dim)
+            .into_iter()
+            .map(|a| (a.mu, a.sigma))
+            .collect()
+    }
+}
+
 impl DeviationModel for ServedModel {
     fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
         self.answer(features, dim)

@@ -60,6 +60,9 @@ pub struct Planned {
     pub d_max: f64,
     /// The model version that answered.
     pub model_version: i64,
+    /// The name and cost of each model the plan could step with (the outcome's model indexes
+    /// point here), when the experiment has several models.
+    pub models: Option<Vec<(String, f64)>>,
 }
 
 /// Checks that a planned trajectory carries only finite μ and σ (a model that answered NaN is a
@@ -516,17 +519,19 @@ impl Service {
     }
 
     /// A test-time plan from `start` to `goal` inside the precondition at β (default: the test
-    /// β): planned by the service, or the best of the client's `candidates` (the eligible one
-    /// with the smallest `α`). Nothing is stored.
-    pub async fn plan(
-        &self,
-        id: i64,
-        start: Vec<f64>,
-        goal: Vec<f64>,
-        beta: Option<f64>,
-        candidates: Option<Vec<CandidateTrajectory>>,
-        max_extensions: Option<u32>,
-    ) -> Result<Planned> {
+    /// β): planned by the service — stepping with every model the request allows (default
+    /// all with an estimator), each step the cheapest whose precondition trusts it — or the
+    /// best of the client's `candidates` (the eligible one with the smallest `α`). Nothing is
+    /// stored.
+    pub async fn plan(&self, id: i64, request: crate::api::PlanRequest) -> Result<Planned> {
+        let crate::api::PlanRequest {
+            start,
+            goal,
+            beta,
+            candidates,
+            max_extensions,
+            models,
+        } = request;
         let arrived = std::time::Instant::now();
         if let Some(n) = max_extensions {
             if !(1..=crate::limits::MAX_EXTENSIONS).contains(&n) {
@@ -542,13 +547,29 @@ impl Service {
                 ));
             }
         }
+        if models.is_some() && candidates.is_some() {
+            return Err(Error::validation(
+                "models",
+                "applies to the service's search, not to the client's candidates",
+            ));
+        }
         let live = self.live(id).await?;
         let problem = live.problem(start, goal)?;
         let model = live.model();
+        let steppers = plan_models(&live, &model, models.as_deref())?;
         let precondition = live.precondition_for(&model, beta)?;
         let own_beta = beta.is_some();
         let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model_version = model.version;
+        let several = (!live.models.is_empty()).then(|| {
+            steppers
+                .iter()
+                .map(|&i| match i {
+                    None => (DOMAIN_MODEL.to_string(), 1.0),
+                    Some(k) => (live.models[k].name.clone(), live.models[k].cost),
+                })
+                .collect::<Vec<_>>()
+        });
         if let Some(candidates) = candidates {
             let checked = check_candidates(&live, problem.start(), candidates)?;
             let verdicts =
@@ -564,12 +585,13 @@ impl Service {
                     tree_size: 0,
                     dynamics_calls: 0,
                     rejections: Default::default(),
-                    model_calls: Vec::new(),
+                    model_calls: vec![0],
                 },
                 candidates: Some(verdicts),
                 beta,
                 d_max,
                 model_version,
+                models: several.map(|_| vec![(DOMAIN_MODEL.to_string(), 1.0)]),
             });
         }
         needs_candidates(&live)?;
@@ -582,10 +604,10 @@ impl Service {
             model.version,
             problem.start().iter().chain(problem.goal()).copied(),
         );
-        let searched = (live.clone(), model.clone());
+        let searched = (live.clone(), model.clone(), steppers.clone());
         let mut outcome = self
             .search(id, arrived, super::SearchKind::Plan, move |budget| {
-                let (live, model) = searched;
+                let (live, model, steppers) = searched;
                 // The experiment's planner settings, unless this plan asked for its own budget.
                 let asked = max_extensions.map(|n| live.planning.with_max_extensions(n as usize));
                 let settings = asked.as_ref().unwrap_or(&live.planning);
@@ -596,21 +618,53 @@ impl Service {
                     Some(margined) => margined,
                     None => model.as_ref(),
                 };
-                planning::Planner::new(live.domain.as_ref(), deviation, settings)
-                    .within(budget.clone())
-                    .plan(&problem, precondition, seed)
+                let domain = live.domain.as_ref();
+                let planner =
+                    planning::Planner::new(domain, deviation, settings).within(budget.clone());
+                if steppers == [None] {
+                    return planner.plan(&problem, precondition, seed);
+                }
+                let stepping: Vec<planning::PlanModel<'_>> = steppers
+                    .iter()
+                    .map(|&i| match i {
+                        None => planning::PlanModel {
+                            dynamics: domain.dynamics(),
+                            deviation,
+                            cost: 1.0,
+                        },
+                        Some(k) => {
+                            let named = &live.models[k];
+                            let further = model
+                                .further(&named.name)
+                                .expect("plan_models chose models with an estimator");
+                            planning::PlanModel {
+                                dynamics: named.model.as_ref(),
+                                deviation: &further.estimator,
+                                cost: named.cost,
+                            }
+                        }
+                    })
+                    .collect();
+                planner.plan_across(&problem, precondition, &stepping, seed)
             })
             .await?;
         if let (Some(t), true) = (&mut outcome.trajectory, margined) {
-            // The plan reports the model's own μ and σ, not the search's scaled σ.
+            // The plan reports the model's own μ and σ, not the search's scaled σ — of the
+            // steps that relied on the domain's model (the others were never scaled).
             let dim = live.domain.feature_dim();
-            let mut features = Vec::with_capacity(t.len() * dim);
-            for (k, a) in t.actions.iter().enumerate() {
+            let domain_steps: Vec<usize> = (0..t.len())
+                .filter(|&k| steppers[outcome.step_models[k]].is_none())
+                .collect();
+            let mut features = Vec::with_capacity(domain_steps.len() * dim);
+            for &k in &domain_steps {
+                let a = &t.actions[k];
                 features.extend(live.domain.features(&t.states[k], a, &t.states[k + 1]));
             }
             let answers = model.answer(&features, dim);
-            t.mu = answers.iter().map(|a| a.mu).collect();
-            t.sigma = answers.iter().map(|a| a.sigma).collect();
+            for (&k, a) in domain_steps.iter().zip(answers) {
+                t.mu[k] = a.mu;
+                t.sigma[k] = a.sigma;
+            }
         }
         if let Some(t) = &outcome.trajectory {
             check_finite(t)?;
@@ -621,8 +675,68 @@ impl Service {
             beta,
             d_max,
             model_version,
+            models: several,
         })
     }
+}
+
+/// The models a test-time plan steps with, as indexes into the experiment's further models
+/// (`None` the domain's own), in the order asked: those `asked` by name, or by default the
+/// domain's and every further model with an estimator in `model`. An unknown or repeated
+/// name is a 422 naming `models`; a further model without an estimator in this version a 409.
+fn plan_models(
+    live: &LiveExperiment,
+    model: &ServedModel,
+    asked: Option<&[String]>,
+) -> Result<Vec<Option<usize>>> {
+    let Some(asked) = asked else {
+        let mut all = vec![None];
+        all.extend(
+            live.models
+                .iter()
+                .enumerate()
+                .filter(|(_, m)| model.further(&m.name).is_some())
+                .map(|(k, _)| Some(k)),
+        );
+        return Ok(all);
+    };
+    if asked.is_empty() {
+        return Err(Error::validation(
+            "models",
+            "names no model: leave it out to plan with every model",
+        ));
+    }
+    let mut chosen = Vec::with_capacity(asked.len());
+    for (i, name) in asked.iter().enumerate() {
+        let field = format!("models[{i}]");
+        if asked[..i].contains(name) {
+            return Err(Error::validation(field, format!("{name:?} is named twice")));
+        }
+        if name == DOMAIN_MODEL {
+            chosen.push(None);
+            continue;
+        }
+        let Some(k) = live.models.iter().position(|m| &m.name == name) else {
+            let mut names = vec![DOMAIN_MODEL.to_string()];
+            names.extend(live.models.iter().map(|m| m.name.clone()));
+            return Err(Error::validation(
+                field,
+                format!(
+                    "the experiment has no model named {name:?}; it has {}",
+                    names.join(", ")
+                ),
+            ));
+        };
+        if model.further(name).is_none() {
+            return Err(Error::Conflict(format!(
+                "model version {} holds no estimator of {name:?}: one is fitted by the first \
+                 fit after it labelled a transition",
+                model.version
+            )));
+        }
+        chosen.push(Some(k));
+    }
+    Ok(chosen)
 }
 
 /// The judgement of each answer under `precondition` — at its own β where `betas` gives one —

@@ -514,3 +514,146 @@ async fn a_model_without_labels_has_no_precondition_yet() {
     assert_eq!((status, code(&body)), (409, "conflict"), "{body}");
     assert!(message(&body).contains("no estimator"), "{body}");
 }
+
+/// A point in the unit square moved by one of four moves of 0.1; the domain's model (`s + a`)
+/// is right left of `x = 0.5`, and `slow` (`s + a / 2`) right of it, where the robot wades
+/// through sand. Tolerance 0.02: each model is 0.05 off on the other half.
+fn sand(models: Value) -> Value {
+    json!({"d_max": 0.02, "learning": {"batch_size": 1000},
+           "domain": {"kind": "custom",
+                      "state": {"low": [0, 0], "high": [1, 1]},
+                      "action": {"values": [[0.1, 0], [-0.1, 0], [0, 0.1], [0, -0.1]]},
+                      "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]}},
+           "models": models})
+}
+
+fn slow() -> Value {
+    json!({"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[0.5, 0], [0, 0.5]]})
+}
+
+/// Every move from a grid of states over the square, as the sand world answers it.
+fn through_sand() -> Vec<Value> {
+    let moves = [[0.1, 0.0], [-0.1, 0.0], [0.0, 0.1], [0.0, -0.1]];
+    (0..9)
+        .map(|i| {
+            let x = 0.1 + 0.1 * i as f64;
+            let transitions: Vec<Value> = (0..9)
+                .flat_map(|j| {
+                    let s = [x, 0.1 + 0.1 * j as f64];
+                    moves.iter().map(move |a| {
+                        let k = if s[0] < 0.5 { 1.0 } else { 0.5 };
+                        let s_next = [s[0] + k * a[0], s[1] + k * a[1]];
+                        json!({"s": s, "a": a, "s_next": s_next})
+                    })
+                })
+                .collect();
+            json!({ "transitions": transitions })
+        })
+        .collect()
+}
+
+async fn plan(app: &TestApp, id: i64, models: Option<&[&str]>) -> (u16, Value) {
+    let mut body = json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "beta": 0});
+    if let Some(models) = models {
+        body["models"] = json!(models);
+    }
+    app.post_at(id, "plans", &body).await
+}
+
+/// A plan steps with whichever model is trusted where it is: across the sand neither model
+/// alone finds one, together they do, each step relying on the cheapest model trusted there;
+/// the plan names each step's model and the calls the search made to each.
+#[tokio::test]
+async fn a_plan_steps_with_the_cheapest_trusted_model_and_says_which() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(sand(json!([{"name": "slow", "cost": 4, "model": slow()}])))
+        .await;
+    for t in through_sand() {
+        app.store_trajectory(id, &t).await;
+    }
+    app.refit(id).await;
+
+    for alone in ["domain", "slow"] {
+        let (status, body) = plan(&app, id, Some(&[alone])).await;
+        assert_eq!(status, 200, "{body}");
+        assert_eq!(body["found"], false, "{alone} alone: {body}");
+        let calls = body["model_calls"].as_array().unwrap();
+        assert_eq!(calls.len(), 1, "{body}");
+        assert_eq!(calls[0]["model"], alone, "{body}");
+    }
+    let (status, body) = plan(&app, id, None).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["found"], true, "{body}");
+    let states = body["trajectory"]["states"].as_array().unwrap();
+    let steps: Vec<&str> = body["step_models"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m.as_str().unwrap())
+        .collect();
+    assert_eq!(steps.len() + 1, states.len(), "{body}");
+    for (s, m) in states.iter().zip(&steps) {
+        let x = s[0].as_f64().unwrap();
+        assert_eq!(*m, if x < 0.5 { "domain" } else { "slow" }, "{body}");
+    }
+    let calls = &body["model_calls"];
+    assert_eq!(calls[0]["model"], "domain", "{body}");
+    assert_eq!(calls[1]["model"], "slow", "{body}");
+    assert_eq!(calls[1]["cost"], 4.0, "{body}");
+    assert!(calls[1]["calls"].as_u64() > Some(0), "{body}");
+    // In the given order, dear first: the same plan, the models still tried cheapest first.
+    let (_, reordered) = plan(&app, id, Some(&["slow", "domain"])).await;
+    assert_eq!(reordered["trajectory"], body["trajectory"], "{reordered}");
+    assert_eq!(reordered["step_models"], body["step_models"], "{reordered}");
+
+    // What the request may name.
+    for (models, field) in [
+        (json!(["sim"]), "models[0]"),
+        (json!(["domain", "domain"]), "models[1]"),
+        (json!([]), "models"),
+    ] {
+        let (status, body) = app
+            .post_at(
+                id,
+                "plans",
+                &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "models": models}),
+            )
+            .await;
+        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+    }
+    let candidate = json!({"states": [[0.2, 0.5], [0.3, 0.5]], "actions": [[0.1, 0]]});
+    let (status, body) = app
+        .post_at(
+            id,
+            "plans",
+            &json!({"start": [0.2, 0.5], "goal": [0.3, 0.5],
+                    "candidates": [candidate], "models": ["domain"]}),
+        )
+        .await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+    assert_eq!(body["error"]["details"]["field"], "models", "{body}");
+}
+
+/// A single-model experiment's plan answers as before several models existed: no
+/// `step_models`, no `model_calls`; naming `domain` is the same plan.
+#[tokio::test]
+async fn a_single_model_experiments_plan_is_unchanged() {
+    let (_dir, app) = fresh_app().await;
+    let id = app.create_experiment(sand(Value::Null)).await;
+    for t in through_sand() {
+        app.store_trajectory(id, &t).await;
+    }
+    app.refit(id).await;
+    let body = json!({"start": [0.1, 0.5], "goal": [0.4, 0.5]});
+    let (status, plain) = app.post_at(id, "plans", &body).await;
+    assert_eq!(status, 200, "{plain}");
+    assert_eq!(plain["found"], true, "{plain}");
+    assert!(plain.get("step_models").is_none(), "{plain}");
+    assert!(plain.get("model_calls").is_none(), "{plain}");
+    let mut named = body.clone();
+    named["models"] = json!(["domain"]);
+    let (_, again) = app.post_at(id, "plans", &named).await;
+    assert_eq!(again, plain);
+}

@@ -255,6 +255,8 @@ const REACHED: &[&str] = &[
     "ModelLabel",
     // a model's labels summed up (api::ModelLabelStats, in ModelLabels)
     "ModelLabelStats",
+    // what a plan's search spent on each model (api::ModelCalls, in Plan)
+    "ModelCalls",
     // the variants of FeatureMap and NoisePredictor (a model export's)
     "UnitBoxFeatureMap",
     "KinematicPredictionFeatureMap",
