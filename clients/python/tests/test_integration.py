@@ -288,6 +288,63 @@ def test_every_further_model_labels_every_posted_transition(make_server: MakeSer
             client.precondition(probe, model="sim")
 
 
+def sand_step(s: Array, a: Array) -> Array:
+    """The sand world: right of ``x = 0.5`` the point moves half as far as its action says."""
+    return s + (1.0 if s[0] < 0.5 else 0.5) * a
+
+
+def test_a_plan_steps_with_whichever_model_is_trusted_there(make_server: MakeServer) -> None:
+    """Two linear models of one robot, each right on one half of the table: a plan across
+    the sand needs both, and says which model each step relied on."""
+    server = make_server([])
+    client = Client(server.url, timeout=60)
+    moves = [[0.1, 0.0], [-0.1, 0.0], [0.0, 0.1], [0.0, -0.1]]
+    exp = client.create_experiment(
+        {
+            "name": "sand",
+            "d_max": 0.02,
+            "learning": {"batch_size": 1000},
+            "domain": {
+                "kind": "custom",
+                "state": {"low": [0, 0], "high": [1, 1]},
+                "action": {"values": moves},
+                "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]},
+            },
+        },
+        models=[
+            {
+                "name": "slow",
+                "cost": 4,
+                "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[0.5, 0], [0, 0.5]]},
+            }
+        ],
+    )
+    assert exp.models is not None
+    for x in np.arange(0.1, 0.95, 0.1):
+        transitions = []
+        for y in np.arange(0.1, 0.95, 0.1):
+            for a in moves:
+                s, act = np.array([x, y]), np.array(a)
+                transitions.append({"s": s.tolist(), "a": a, "s_next": sand_step(s, act).tolist()})
+        client.post_trajectory(transitions)
+    client.refit()
+    start, goal = [0.2, 0.5], [0.8, 0.5]
+    for alone in ["domain", "slow"]:
+        plan = client.plan(start, goal, beta=0.0, models=[alone])
+        assert not plan.found
+        assert plan.model_calls is not None and [m.model for m in plan.model_calls] == [alone]
+    plan = client.plan(start, goal, beta=0.0)
+    assert plan.found and plan.trajectory is not None and plan.step_models is not None
+    for s, m in zip(plan.trajectory.states, plan.step_models, strict=False):
+        assert m == ("domain" if s[0] < 0.5 else "slow")
+    assert plan.model_calls is not None
+    assert [(m.model, m.cost) for m in plan.model_calls] == [("domain", 1.0), ("slow", 4.0)]
+    cost = plan.cost()
+    assert cost is not None and cost > plan.model_calls[0].calls
+    with pytest.raises(ValidationFailed):
+        client.plan(start, goal, models=["sim"])
+
+
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:
     with serve_model(model, "127.0.0.1", 0) as served:
         server = make_server([f"http://127.0.0.1:{served.port}/"])

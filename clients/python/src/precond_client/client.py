@@ -544,16 +544,22 @@ class Client:
         candidates: Sequence[Candidate] | None = None,
         max_extensions: int | None = None,
         *,
+        models: Sequence[str] | None = None,
         deadline_retries: int | None = None,
     ) -> Plan:
         """A test-time plan inside the precondition at ``beta`` (default the experiment's test
         β); ``found`` is false when there is none. Nothing is stored. ``max_extensions``: this
         search's budget (default the experiment's ``learning.max_extensions``), e.g. ten times
-        it to tell "no plan inside the precondition" from "none found in time". A search past
-        the server's deadline is repeated ``deadline_retries`` times (default
-        :attr:`deadline_retries`), then raises :class:`~precond_client.errors.DeadlineExceeded`.
-        :meth:`execute_plan` executes plans closed loop."""
+        it to tell "no plan inside the precondition" from "none found in time". ``models``: the
+        models the search may step with, by name (``"domain"`` for the domain's own; default
+        every model with a precondition), each step relying on the cheapest whose precondition
+        trusts it; the plan's ``step_models`` say which. A search past the server's deadline
+        is repeated ``deadline_retries`` times (default :attr:`deadline_retries`), then raises
+        :class:`~precond_client.errors.DeadlineExceeded`. :meth:`execute_plan` executes plans
+        closed loop."""
         body: dict[str, Any] = {"start": as_list(start), "goal": as_list(goal)}
+        if models is not None:
+            body["models"] = [str(m) for m in models]
         if beta is not None:
             body["beta"] = float(beta)
         if candidates is not None:

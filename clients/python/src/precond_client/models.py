@@ -591,6 +591,19 @@ class RejectionCounts(Wire):
 
 
 @dataclass(frozen=True)
+class ModelCalls(Wire):
+    """What a plan's search spent on one model (schema ``ModelCalls``)."""
+
+    SCHEMA: ClassVar[str] = "ModelCalls"
+
+    model: str
+    """The model's name; ``"domain"`` for the domain's own."""
+    calls: int
+    cost: float
+    """What one call costs, in calls of the domain's own model."""
+
+
+@dataclass(frozen=True)
 class Plan(Wire):
     """A test-time plan (schema ``Plan``)."""
 
@@ -606,6 +619,19 @@ class Plan(Wire):
     model_version: int
     trajectory: PlannedTrajectory | None
     candidates: list[CandidateScore] | None = None
+    step_models: list[str] | None = None
+    """Which model each step relied on (predicted by it, trusted by its precondition), when the
+    experiment has several models."""
+    model_calls: list[ModelCalls] | None = None
+    """What the search spent on each model it could step with, when the experiment has several
+    models."""
+
+    def cost(self) -> float | None:
+        """The search's model calls weighted by their cost, in calls of the domain's own model
+        (``None`` for a single-model experiment, whose plans do not count them)."""
+        if self.model_calls is None:
+            return None
+        return sum(m.calls * m.cost for m in self.model_calls)
 
 
 @dataclass(frozen=True)
