@@ -236,6 +236,9 @@ pub struct MapQuery {
     pub ny: Option<usize>,
     /// The model version to evaluate; default the one answering now.
     pub version: Option<i64>,
+    /// Whose precondition: a further model's name (see the experiment's `models`); default
+    /// (or `domain`) the domain's own model's.
+    pub model: Option<String>,
 }
 
 /// One axis of a precondition map.
@@ -287,8 +290,12 @@ pub struct PreconditionMap {
     pub mu: Vec<f64>,
     /// `σ` (noise included), laid out as `mu`.
     pub sigma: Vec<f64>,
-    /// The version's training transitions, at most 2000 evenly spread over them.
+    /// The version's training transitions, at most 2000 evenly spread over them (with a
+    /// further model's map, those it labelled, with its labels).
     pub training: Vec<MapPoint>,
+    /// The further model whose precondition this is; absent for the domain's own.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub model: Option<String>,
 }
 
 /// Query of `GET /v1/experiments/{id}/model/diagnostics`.

@@ -366,6 +366,16 @@ pub fn predictions_for_features(
     domain: &dyn Domain,
     pairs: &[(Vec<f64>, Vec<f64>)],
 ) -> Result<Vec<Vec<f64>>, DynamicsError> {
+    predictions_of(domain, domain.dynamics(), pairs)
+}
+
+/// [`predictions_for_features`] by `dynamics`, one of the robot's models (the domain's own or
+/// a further one): what [`Domain::features`] reads of that model's prediction.
+pub fn predictions_of(
+    domain: &dyn Domain,
+    dynamics: &dyn DynamicsModel,
+    pairs: &[(Vec<f64>, Vec<f64>)],
+) -> Result<Vec<Vec<f64>>, DynamicsError> {
     if !domain.features_use_prediction() {
         return Ok(vec![Vec::new(); pairs.len()]);
     }
@@ -373,7 +383,7 @@ pub fn predictions_for_features(
     for chunk in pairs.chunks(4096) {
         let states: Vec<&[f64]> = chunk.iter().map(|(s, _)| s.as_slice()).collect();
         let actions: Vec<&[f64]> = chunk.iter().map(|(_, a)| a.as_slice()).collect();
-        let predicted = domain.dynamics().predict_batch(&states, &actions)?;
+        let predicted = dynamics.predict_batch(&states, &actions)?;
         if predicted.len() != chunk.len() {
             return Err(DynamicsError::Unavailable {
                 model: format!("of the {} domain", domain.kind()),

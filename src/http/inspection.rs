@@ -33,6 +33,7 @@ pub async fn get_precondition_map(
         nx: query.nx,
         ny: query.ny,
         version: query.version,
+        model: query.model,
     };
     let grid = state.service.precondition_map(id, request).await?;
     Ok(Json(render::map(grid)))

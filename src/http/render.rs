@@ -128,6 +128,7 @@ pub fn map(g: PreconditionGrid) -> PreconditionMap {
                 deviation: t.deviation,
             })
             .collect(),
+        model: g.further,
     }
 }
 

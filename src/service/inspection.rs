@@ -32,6 +32,8 @@ pub struct MapRequest {
     pub ny: Option<usize>,
     /// Model version (default: the current one).
     pub version: Option<i64>,
+    /// A further model's name: its precondition (default, or `domain`: the domain model's).
+    pub model: Option<String>,
 }
 
 /// A model version evaluated on a grid.
@@ -55,8 +57,11 @@ pub struct PreconditionGrid {
     pub mu: Vec<f64>,
     /// `σ`, laid out as `mu`.
     pub sigma: Vec<f64>,
-    /// Training transitions of the version, evenly thinned.
+    /// Training transitions of the version, evenly thinned (with a further model's map, those
+    /// it labelled, each with its label as `deviation`).
     pub training: Vec<StoredTransition>,
+    /// The further model whose precondition this is (`None`: the domain model's).
+    pub further: Option<String>,
 }
 
 /// `(z, P(|N(0,1)| ≤ z))` for the coverage table.
@@ -268,6 +273,16 @@ impl Service {
         });
         check_vector("a", &a, action)?;
         let model = self.model_version(&live, request.version, arrived).await?;
+        let further = request
+            .model
+            .filter(|name| name != crate::settings::DOMAIN_MODEL)
+            .map(|name| {
+                let k = live.further_with_estimator(&model, "model", &name)?;
+                Ok::<_, Error>((name, live.models[k].model.clone()))
+            })
+            .transpose()?;
+        let further_model = further.as_ref().map(|(_, m)| m.clone());
+        let further_name = further.map(|(name, _)| name);
         let bounds = |(is_action, i): (bool, usize)| {
             let space = if is_action { action } else { state };
             (space.low[i], space.high[i])
@@ -278,6 +293,7 @@ impl Service {
         let dim = domain.feature_dim();
         let (grid_s, grid_a, grid_xs, grid_ys) = (s.clone(), a.clone(), xs.clone(), ys.clone());
         let evaluated = model.clone();
+        let evaluated_name = further_name.clone();
         let slot = self.work.evaluation_slot(arrived).await?;
         let answers = Self::blocking(move || {
             // Held by the evaluation, not the request: freed when the evaluation ends.
@@ -294,12 +310,22 @@ impl Service {
                     points.push((ps.clone(), pa.clone()));
                 }
             }
-            let predicted = crate::domain::predictions_for_features(domain.as_ref(), &points)?;
+            let dynamics = match &further_model {
+                Some(m) => m.as_ref(),
+                None => domain.dynamics(),
+            };
+            let predicted = crate::domain::predictions_of(domain.as_ref(), dynamics, &points)?;
             let mut features = Vec::with_capacity(nx * ny * dim);
             for ((s, a), next) in points.iter().zip(&predicted) {
                 features.extend(domain.features(s, a, next));
             }
-            Ok::<_, Error>(evaluated.answer(&features, dim))
+            Ok::<_, Error>(match &evaluated_name {
+                Some(name) => evaluated
+                    .further(name)
+                    .map(|f| f.estimator.answer(&features, dim))
+                    .unwrap_or_default(),
+                None => evaluated.answer(&features, dim),
+            })
         })
         .await??;
         if answers
@@ -311,21 +337,39 @@ impl Service {
             )));
         }
         let n_train = model.n_train() as i64;
-        let training = if n_train > 0 {
-            thin(
-                self.store
-                    .transitions_outside(
-                        id,
-                        &LiveExperiment::trained_outside(&model),
-                        0,
-                        Some(n_train),
-                    )
-                    .await?,
-                MAX_MAP_TRAINING_POINTS,
-            )
+        let mut training = if n_train > 0 {
+            self.store
+                .transitions_outside(
+                    id,
+                    &LiveExperiment::trained_outside(&model),
+                    0,
+                    Some(n_train),
+                )
+                .await?
         } else {
             Vec::new()
         };
+        if let (Some(name), Some(first), Some(last)) =
+            (&further_name, training.first(), training.last())
+        {
+            // The further model's own labels of the version's training transitions.
+            let labels: std::collections::HashMap<i64, f64> = self
+                .store
+                .model_labels(id, first.id, last.id)
+                .await?
+                .into_iter()
+                .filter(|(_, l)| &l.model == name)
+                .filter_map(|(t, l)| Some((t, l.deviation?)))
+                .collect();
+            training.retain_mut(|t| match labels.get(&t.id) {
+                Some(&d) => {
+                    t.deviation = d;
+                    true
+                }
+                None => false,
+            });
+        }
+        let training = thin(training, MAX_MAP_TRAINING_POINTS);
         Ok(PreconditionGrid {
             d_max: live.settings.d_max,
             test_beta: live.test_beta(&model),
@@ -337,6 +381,7 @@ impl Service {
             sigma: answers.iter().map(|p| p.sigma).collect(),
             training,
             model,
+            further: further_name,
         })
     }
 

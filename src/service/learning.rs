@@ -453,25 +453,8 @@ impl Service {
         beta: Option<f64>,
         arrived: Instant,
     ) -> Result<Judged> {
-        let Some(named) = live.models.iter().find(|m| m.name == name) else {
-            let mut names = vec![DOMAIN_MODEL.to_string()];
-            names.extend(live.models.iter().map(|m| m.name.clone()));
-            return Err(Error::validation(
-                "model",
-                format!(
-                    "the experiment has no model named {name:?}; it has {}",
-                    names.join(", ")
-                ),
-            ));
-        };
         let model = live.model();
-        if model.further(name).is_none() {
-            return Err(Error::Conflict(format!(
-                "model version {} holds no estimator of {name:?}: one is fitted by the first \
-                 fit after it labelled a transition",
-                model.version
-            )));
-        }
+        let named = &live.models[live.further_with_estimator(&model, "model", name)?];
         let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
@@ -716,25 +699,7 @@ fn plan_models(
             chosen.push(None);
             continue;
         }
-        let Some(k) = live.models.iter().position(|m| &m.name == name) else {
-            let mut names = vec![DOMAIN_MODEL.to_string()];
-            names.extend(live.models.iter().map(|m| m.name.clone()));
-            return Err(Error::validation(
-                field,
-                format!(
-                    "the experiment has no model named {name:?}; it has {}",
-                    names.join(", ")
-                ),
-            ));
-        };
-        if model.further(name).is_none() {
-            return Err(Error::Conflict(format!(
-                "model version {} holds no estimator of {name:?}: one is fitted by the first \
-                 fit after it labelled a transition",
-                model.version
-            )));
-        }
-        chosen.push(Some(k));
+        chosen.push(Some(live.further_with_estimator(model, &field, name)?));
     }
     Ok(chosen)
 }

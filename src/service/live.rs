@@ -177,6 +177,36 @@ impl LiveExperiment {
             .map_or(l.test_beta, |c| c.beta.min(l.test_beta))
     }
 
+    /// The index among the further models of the one called `name` that `model` holds an
+    /// estimator of: a 422 naming `field` for a name the experiment has no model of (listing
+    /// them), a 409 for a version without that model's estimator yet.
+    pub(crate) fn further_with_estimator(
+        &self,
+        model: &ServedModel,
+        field: &str,
+        name: &str,
+    ) -> Result<usize, Error> {
+        let Some(k) = self.models.iter().position(|m| m.name == name) else {
+            let mut names = vec![crate::settings::DOMAIN_MODEL.to_string()];
+            names.extend(self.models.iter().map(|m| m.name.clone()));
+            return Err(Error::validation(
+                field,
+                format!(
+                    "the experiment has no model named {name:?}; it has {}",
+                    names.join(", ")
+                ),
+            ));
+        };
+        if model.further(name).is_none() {
+            return Err(Error::Conflict(format!(
+                "model version {} holds no estimator of {name:?}: one is fitted by the first \
+                 fit after it labelled a transition",
+                model.version
+            )));
+        }
+        Ok(k)
+    }
+
     /// The locally calibrated margin test plans and default judgements use with `model`, with
     /// the test β it never exceeds ([`LiveExperiment::test_beta`]): with
     /// `learning.local_test_margin`, a version that has one, and a positive test β; else

@@ -657,3 +657,66 @@ async fn a_single_model_experiments_plan_is_unchanged() {
     let (_, again) = app.post_at(id, "plans", &named).await;
     assert_eq!(again, plain);
 }
+
+/// Each model's precondition has its own map: the domain's trusts the left of the sand, `slow`
+/// the right; `slow`'s training points carry its own labels.
+#[tokio::test]
+async fn each_model_has_its_own_precondition_map() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(sand(json!([{"name": "slow", "cost": 4, "model": slow()}])))
+        .await;
+    for t in through_sand() {
+        app.store_trajectory(id, &t).await;
+    }
+    app.refit(id).await;
+    let query = "precondition/map?x=s.s0&y=s.s1&a=0.1,0&nx=11&ny=3";
+    let trusted_left = |map: &Value| -> (Vec<bool>, f64) {
+        let (mu, sigma) = (
+            map["mu"].as_array().unwrap(),
+            map["sigma"].as_array().unwrap(),
+        );
+        let beta = map["test_beta"].as_f64().unwrap();
+        // The middle row, from x = 0 to 1 in steps of 0.1.
+        let inside: Vec<bool> = (11..22)
+            .map(|k| mu[k].as_f64().unwrap() + beta * sigma[k].as_f64().unwrap() < 0.02)
+            .collect();
+        let worst = map["training"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|p| p["deviation"].as_f64().unwrap())
+            .fold(0.0, f64::max);
+        (inside, worst)
+    };
+    let (status, domain) = app.get_at(id, query).await;
+    assert_eq!(status, 200, "{domain}");
+    assert!(domain.get("model").is_none(), "{domain}");
+    let (status, slow_map) = app.get_at(id, &format!("{query}&model=slow")).await;
+    assert_eq!(status, 200, "{slow_map}");
+    assert_eq!(slow_map["model"], "slow", "{slow_map}");
+    let (d_inside, d_worst) = trusted_left(&domain);
+    let (s_inside, s_worst) = trusted_left(&slow_map);
+    // Away from the border (x = 0.1…0.3 and 0.7…0.9).
+    for k in [1, 2, 3] {
+        assert!(
+            d_inside[k] && !s_inside[k],
+            "x = 0.{k}: {d_inside:?} {s_inside:?}"
+        );
+    }
+    for k in [7, 8, 9] {
+        assert!(
+            !d_inside[k] && s_inside[k],
+            "x = 0.{k}: {d_inside:?} {s_inside:?}"
+        );
+    }
+    // Both models miss by 0.05 on their wrong half: each map's points carry its own labels.
+    assert!((d_worst - 0.05).abs() < 1e-9 && (s_worst - 0.05).abs() < 1e-9);
+    assert_eq!(
+        slow_map["training"].as_array().unwrap().len(),
+        domain["training"].as_array().unwrap().len()
+    );
+    let (status, body) = app.get_at(id, &format!("{query}&model=sim")).await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+    assert_eq!(body["error"]["details"]["field"], "model", "{body}");
+}
