@@ -707,12 +707,14 @@ export async function mapPage(root, params, id) {
     typical: !discrete && !params.get('a'),
     beta: e.learning.test_beta,
     version: e.model_version,
+    // Whose precondition: the domain's own model's, or one of the experiment's further models.
+    model: params.get('model') ?? 'domain',
     res: 41,
     maps: [],
     span: null,
   };
   const panels = h('div', { class: 'panels', id: 'map-panels' });
-  const status = h('span', { class: 'muted' });
+  const status = h('span', { class: 'muted', id: 'map-status' });
   const legend = h('div');
   const fixed = h('div', { class: 'controls' });
   const opt = (v, sel) => h('option', { value: v, selected: v === sel }, v);
@@ -731,6 +733,21 @@ export async function mapPage(root, params, id) {
     );
   const xSel = axisSel('x');
   const ySel = axisSel('y');
+  const modelNames = ['domain', ...(e.models ?? []).map(m => m.name)];
+  const modelSel =
+    modelNames.length > 1
+      ? h(
+          'select',
+          {
+            id: 'map-model',
+            onchange: ev => {
+              state.model = ev.target.value;
+              load();
+            },
+          },
+          modelNames.map(n => opt(n, state.model)),
+        )
+      : null;
   const betaOut = h('output', {}, fmt(state.beta));
   const betaIn = h('input', {
     type: 'range',
@@ -897,6 +914,7 @@ export async function mapPage(root, params, id) {
         nx: side(state.x),
         ny: side(state.y),
         version: state.version,
+        ...(state.model !== 'domain' && { model: state.model }),
       });
     const maps = await Promise.all(actions.map(a => api(`/v1/experiments/${id}/precondition/map?${query(a)}`)));
     state.maps = maps.map((m, k) => {
@@ -931,7 +949,9 @@ export async function mapPage(root, params, id) {
         return load();
       }
     }
-    status.textContent = `model version ${m0.model_version} (${m0.source}, ${m0.n_train} training transitions)`;
+    const whose = m0.model ? `, the precondition of ${m0.model}` : '';
+    status.textContent = `model version ${m0.model_version} (${m0.source}, ${m0.n_train} training transitions${whose})`;
+    panels.dataset.model = m0.model ?? 'domain';
     state.span = null;
     paint();
     document.body.dataset.mapReady = String(m0.model_version);
@@ -959,6 +979,7 @@ export async function mapPage(root, params, id) {
         h('label', { for: 'map-y' }, 'y axis'),
         ySel,
         h('span'),
+        ...(modelSel ? [h('label', { for: 'map-model' }, 'model'), modelSel, h('span')] : []),
         h('label', { for: 'map-beta' }, 'β'),
         betaIn,
         betaOut,

@@ -229,6 +229,12 @@ test('the kinematic map has two continuous axes and sliders for the rest', async
   const got = [+(await slider('a.dx0').inputValue()), +(await slider('a.dx1').inputValue())];
   for (let i = 0; i < 2; i++)
     assert.ok(Math.abs(got[i] - want[i]) <= 0.002 + 1e-9, `a[${i}]: ${got[i]} against ${want[i]}`);
+  // One map per model of the robot: the further model `still` has its own.
+  assert.deepEqual(await page.locator('#map-model option').allInnerTexts(), ['domain', 'still']);
+  assert.equal(await page.locator('#map-panels').getAttribute('data-model'), 'domain');
+  await page.locator('#map-model').selectOption('still');
+  await page.waitForSelector('#map-panels[data-model="still"]');
+  assert.match(await page.locator('#map-status').innerText(), /precondition of still/);
 });
 
 test('diagnostics show leave-one-out calibration and the precondition rates', async () => {
