@@ -2,14 +2,14 @@
 """Runs the examples on one seed and fails when their figures drift from the committed ones.
 
 The examples' READMEs quote the summaries committed under `docs/` (`docs/mujoco_pusher/`,
-`docs/gymnasium/`): seed 0, the date and commit they were measured on. This script runs each
+`docs/gymnasium/`, `docs/several_models/`): seed 0, the date and commit they were measured on. This script runs each
 example again, seed 0, against BINARY, into a temporary directory, and compares the figures the
 READMEs quote with the committed summary, each within the tolerance below (the spread a README
 states: a run on the same seed is deterministic on one machine; the tolerances absorb one test
 problem of ten, or a few hundredths of a rate, between machines). Exit status 1 when a figure
 is outside its tolerance, with a table of every figure either way.
 
-usage: scripts/check_example_figures.py BINARY [--python PYTHON] [--only pusher|gymnasium]
+usage: scripts/check_example_figures.py BINARY [--python PYTHON] [--only pusher|gymnasium|several]
 
 The examples' own dependencies must be installed in PYTHON (scripts/ci-examples.sh does it).
 When a default changes a figure on purpose, refresh the committed outputs (`--out docs/...`,
@@ -58,6 +58,23 @@ EXAMPLES = [
             ("evaluation.tpr", 0.03),
             ("evaluation.tnr", 0.02),
             ("coverage.trusted", 0.02),
+        ],
+    ),
+    (
+        "several",
+        "examples/several_models/several_models.py",
+        "docs/several_models/several_models_summary.json",
+        [],
+        [
+            # Each model alone finds no plan across the sand; together they find every one.
+            ("worlds.sand.mean.domain alone.found", 0),
+            ("worlds.sand.mean.slow alone.found", 0),
+            ("worlds.sand.mean.all models.found", 0.1),
+            ("worlds.sand.mean.all models.success", 0.1),
+            ("worlds.bands.mean.sim alone.success", 0.1),
+            ("worlds.bands.mean.all models.success", 0.1),
+            # The plans' step cost across models, against the simulator's alone (228).
+            ("worlds.bands.mean.all models.step_cost", 15),
         ],
     ),
 ]

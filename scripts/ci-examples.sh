@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The examples' figures: install their dependencies into a venv under target/, run the MuJoCo
-# pusher and the Gymnasium cart-pole on seed 0 against ${PRECOND_BIN:-target/debug/precond}
+# pusher, the Gymnasium cart-pole and the several-models example on seed 0 against ${PRECOND_BIN:-target/debug/precond}
 # (built here if missing), and fail when a figure their READMEs quote has drifted from the
 # committed summary (scripts/check_example_figures.py).
 set -euo pipefail
