@@ -341,6 +341,12 @@ def test_a_plan_steps_with_whichever_model_is_trusted_there(make_server: MakeSer
     assert [(m.model, m.cost) for m in plan.model_calls] == [("domain", 1.0), ("slow", 4.0)]
     cost = plan.cost()
     assert cost is not None and cost > plan.model_calls[0].calls
+    # Closed loop, re-planning across the models from every state the robot reaches.
+    run = client.execute_plan(start, goal, sand_step, beta=0.0)
+    assert run.success, run.status
+    assert (
+        client.execute_plan(start, goal, sand_step, beta=0.0, models=["slow"]).status == "no_plan"
+    )
     with pytest.raises(ValidationFailed):
         client.plan(start, goal, models=["sim"])
 

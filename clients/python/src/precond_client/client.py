@@ -1069,9 +1069,11 @@ class Client:
         max_replans: int = 50,
         beta: float | None = None,
         max_extensions: int | None = None,
+        models: Sequence[str] | None = None,
     ) -> Execution:
         """Test time, closed loop: plans from ``start`` to ``goal`` inside the precondition
-        (:meth:`plan`, at ``beta``, default the test β), executes it one action at a time with
+        (:meth:`plan`, at ``beta``, default the test β, with ``models``, default every model of
+        the experiment with a precondition), executes it one action at a time with
         ``step_fn(state, action) -> observed state`` (``None``: the robot stopped), and plans
         again from the observed state whenever it is further than ``tolerance`` (default the
         experiment's ``d_max``, in its distance) from the plan's prediction or the plan is
@@ -1085,7 +1087,7 @@ class Client:
 
         def plan(s: Any, g: Any) -> Plan:
             with _status.activity(f"planning from {np.round(s, 4).tolist()}"):
-                return self.plan(s, g, beta=beta, max_extensions=max_extensions)
+                return self.plan(s, g, beta=beta, max_extensions=max_extensions, models=models)
 
         return execute_plan(
             plan,
