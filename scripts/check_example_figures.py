@@ -73,6 +73,7 @@ EXAMPLES = [
             ("worlds.sand.mean.all models.success", 0.1),
             ("worlds.bands.mean.sim alone.success", 0.1),
             ("worlds.bands.mean.all models.success", 0.1),
+            ("worlds.bands.mean.all models.closed_loop", 0.1),
             # The plans' step cost across models, against the simulator's alone (228).
             ("worlds.bands.mean.all models.step_cost", 15),
         ],
