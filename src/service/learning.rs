@@ -607,47 +607,12 @@ impl Service {
                 if steppers == [None] {
                     return planner.plan(&problem, precondition, seed);
                 }
-                let stepping: Vec<planning::PlanModel<'_>> = steppers
-                    .iter()
-                    .map(|&i| match i {
-                        None => planning::PlanModel {
-                            dynamics: domain.dynamics(),
-                            deviation,
-                            cost: 1.0,
-                        },
-                        Some(k) => {
-                            let named = &live.models[k];
-                            let further = model
-                                .further(&named.name)
-                                .expect("plan_models chose models with an estimator");
-                            planning::PlanModel {
-                                dynamics: named.model.as_ref(),
-                                deviation: &further.estimator,
-                                cost: named.cost,
-                            }
-                        }
-                    })
-                    .collect();
+                let stepping = plan_models_of(&live, &model, &steppers, deviation);
                 planner.plan_across(&problem, precondition, &stepping, seed)
             })
             .await?;
-        if let (Some(t), true) = (&mut outcome.trajectory, margined) {
-            // The plan reports the model's own μ and σ, not the search's scaled σ — of the
-            // steps that relied on the domain's model (the others were never scaled).
-            let dim = live.domain.feature_dim();
-            let domain_steps: Vec<usize> = (0..t.len())
-                .filter(|&k| steppers[outcome.step_models[k]].is_none())
-                .collect();
-            let mut features = Vec::with_capacity(domain_steps.len() * dim);
-            for &k in &domain_steps {
-                let a = &t.actions[k];
-                features.extend(live.domain.features(&t.states[k], a, &t.states[k + 1]));
-            }
-            let answers = model.answer(&features, dim);
-            for (&k, a) in domain_steps.iter().zip(answers) {
-                t.mu[k] = a.mu;
-                t.sigma[k] = a.sigma;
-            }
+        if margined {
+            report_own_answers(&live, &model, &steppers, &mut outcome);
         }
         if let Some(t) = &outcome.trajectory {
             check_finite(t)?;
@@ -660,6 +625,65 @@ impl Service {
             model_version,
             models: several,
         })
+    }
+}
+
+/// The models a search steps with: `steppers` (see [`plan_models`]) with their dynamics, their
+/// deviation models — `deviation` the domain's, each further model's estimator in `model` —
+/// and their costs.
+fn plan_models_of<'a>(
+    live: &'a LiveExperiment,
+    model: &'a ServedModel,
+    steppers: &[Option<usize>],
+    deviation: &'a dyn planning::DeviationModel,
+) -> Vec<planning::PlanModel<'a>> {
+    steppers
+        .iter()
+        .map(|&i| match i {
+            None => planning::PlanModel {
+                dynamics: live.domain.dynamics(),
+                deviation,
+                cost: 1.0,
+            },
+            Some(k) => {
+                let named = &live.models[k];
+                let further = model
+                    .further(&named.name)
+                    .expect("plan_models chose models with an estimator");
+                planning::PlanModel {
+                    dynamics: named.model.as_ref(),
+                    deviation: &further.estimator,
+                    cost: named.cost,
+                }
+            }
+        })
+        .collect()
+}
+
+/// A plan searched at the local margin reports `model`'s own μ and σ, not the search's scaled
+/// σ, of the steps that relied on the domain's model (the others were never scaled).
+fn report_own_answers(
+    live: &LiveExperiment,
+    model: &ServedModel,
+    steppers: &[Option<usize>],
+    outcome: &mut RrtOutcome,
+) {
+    let Some(t) = &mut outcome.trajectory else {
+        return;
+    };
+    let dim = live.domain.feature_dim();
+    let domain_steps: Vec<usize> = (0..t.len())
+        .filter(|&k| steppers[outcome.step_models[k]].is_none())
+        .collect();
+    let mut features = Vec::with_capacity(domain_steps.len() * dim);
+    for &k in &domain_steps {
+        let a = &t.actions[k];
+        features.extend(live.domain.features(&t.states[k], a, &t.states[k + 1]));
+    }
+    let answers = model.answer(&features, dim);
+    for (&k, a) in domain_steps.iter().zip(answers) {
+        t.mu[k] = a.mu;
+        t.sigma[k] = a.sigma;
     }
 }
 
