@@ -299,10 +299,7 @@ impl DeviationModel for Estimator {
 
 impl DeviationModel for ServedModel {
     fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
-        self.answer(features, dim)
-            .into_iter()
-            .map(|a| (a.mu, a.sigma))
-            .collect()
+        self.estimator.predict(features, dim)
     }
 
     /// A fitted regressor's [`Regressor::predict_fantasised`]; the prior does not fantasise

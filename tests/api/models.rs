@@ -552,6 +552,20 @@ fn through_sand() -> Vec<Value> {
         .collect()
 }
 
+/// A fresh server with the sand experiment (`domain` and `slow`) fitted on every move over the
+/// square.
+async fn learnt_sand() -> (tempfile::TempDir, TestApp, i64) {
+    let (dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(sand(json!([{"name": "slow", "cost": 4, "model": slow()}])))
+        .await;
+    for t in through_sand() {
+        app.store_trajectory(id, &t).await;
+    }
+    app.refit(id).await;
+    (dir, app, id)
+}
+
 async fn plan(app: &TestApp, id: i64, models: Option<&[&str]>) -> (u16, Value) {
     let mut body = json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "beta": 0});
     if let Some(models) = models {
@@ -565,14 +579,7 @@ async fn plan(app: &TestApp, id: i64, models: Option<&[&str]>) -> (u16, Value) {
 /// the plan names each step's model and the calls the search made to each.
 #[tokio::test]
 async fn a_plan_steps_with_the_cheapest_trusted_model_and_says_which() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(sand(json!([{"name": "slow", "cost": 4, "model": slow()}])))
-        .await;
-    for t in through_sand() {
-        app.store_trajectory(id, &t).await;
-    }
-    app.refit(id).await;
+    let (_dir, app, id) = learnt_sand().await;
 
     for alone in ["domain", "slow"] {
         let (status, body) = plan(&app, id, Some(&[alone])).await;
@@ -662,14 +669,7 @@ async fn a_single_model_experiments_plan_is_unchanged() {
 /// the right; `slow`'s training points carry its own labels.
 #[tokio::test]
 async fn each_model_has_its_own_precondition_map() {
-    let (_dir, app) = fresh_app().await;
-    let id = app
-        .create_experiment(sand(json!([{"name": "slow", "cost": 4, "model": slow()}])))
-        .await;
-    for t in through_sand() {
-        app.store_trajectory(id, &t).await;
-    }
-    app.refit(id).await;
+    let (_dir, app, id) = learnt_sand().await;
     let query = "precondition/map?x=s.s0&y=s.s1&a=0.1,0&nx=11&ny=3";
     let trusted_left = |map: &Value| -> (Vec<bool>, f64) {
         let (mu, sigma) = (
