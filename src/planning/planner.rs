@@ -138,20 +138,7 @@ impl<'a> Planner<'a> {
         models: &[PlanModel<'_>],
         seed: u64,
     ) -> Result<RrtOutcome, PlanningError> {
-        if models.is_empty() {
-            return Err(PlanningError::settings("models", "no model to plan with"));
-        }
-        if let Some(m) = models
-            .iter()
-            .find(|m| !(m.cost.is_finite() && m.cost > 0.0))
-        {
-            return Err(PlanningError::settings(
-                "models",
-                format!("a model's cost must be a positive number, not {}", m.cost),
-            ));
-        }
-        let mut order: Vec<usize> = (0..models.len()).collect();
-        order.sort_by(|&a, &b| models[a].cost.total_cmp(&models[b].cost));
+        let order = cost_order(models)?;
         let dim = self.domain.feature_dim();
         let mut caches: Vec<ModelCache<'_>> = order
             .iter()
@@ -182,6 +169,57 @@ impl<'a> Planner<'a> {
         }
         outcome.model_calls = calls;
         Ok(outcome)
+    }
+
+    /// The proposal of `strategy` (`active` or `goal_conditioned`) when an execution labels
+    /// every model of `models` (given in any order, as for [`plan_across`](Self::plan_across)):
+    /// candidates that step, each step, with the cheapest model whose precondition trusts it,
+    /// valued under `spread` by what their execution would teach every model's precondition
+    /// (`in_flight[m]`: the features, with model `m`'s predictions, of its state-actions in
+    /// flight). Tried inside each precondition of `ladder` in turn, as
+    /// [`propose_relaxing`](Self::propose_relaxing). The proposal's `step_models` index into
+    /// `models`. The planner's own deviation model and state-actions in flight are not used.
+    pub fn propose_across(
+        &self,
+        strategy: Strategy,
+        problem: &Problem,
+        ladder: &[Precondition],
+        models: &[PlanModel<'_>],
+        in_flight: &[&[f64]],
+        seed: u64,
+    ) -> Result<Proposal, PlanningError> {
+        let order = cost_order(models)?;
+        let sorted: Vec<PlanModel<'_>> = order.iter().map(|&i| models[i]).collect();
+        if in_flight.len() != models.len() {
+            return Err(PlanningError::input(
+                "in_flight",
+                format!("{} sets for {} models", in_flight.len(), models.len()),
+            ));
+        }
+        let flights: Vec<&[f64]> = order.iter().map(|&i| in_flight[i]).collect();
+        let mut proposal = relax(
+            ladder,
+            |p: &mut Proposal, spent| p.extensions += spent,
+            |precondition| match strategy::propose_across(
+                self.task(problem, precondition),
+                &sorted,
+                &flights,
+                &self.budget,
+                strategy,
+                seed,
+            ) {
+                Ok(p) => Ok(Rung::Taken(p)),
+                Err(PlanningError::NoPlan { extensions }) => Ok(Rung::Passed {
+                    extensions,
+                    answer: None,
+                }),
+                Err(e) => Err(e),
+            },
+        )?;
+        for m in &mut proposal.step_models {
+            *m = order[*m];
+        }
+        Ok(proposal)
     }
 
     /// The trajectory `strategy` chooses for the robot to execute next for `problem` inside
@@ -357,6 +395,26 @@ enum Rung<T> {
 /// [`PlanningError::Stopped`] that ends the search; when no rung takes, the last rung's
 /// `answer`, else [`PlanningError::NoPlan`] with every rung's extensions. Any other error
 /// ends the search at once.
+/// The models' indexes, cheapest first (equal costs in the given order); an error naming
+/// `models` when there is none or a cost is not a positive number.
+fn cost_order(models: &[PlanModel<'_>]) -> Result<Vec<usize>, PlanningError> {
+    if models.is_empty() {
+        return Err(PlanningError::settings("models", "no model to plan with"));
+    }
+    if let Some(m) = models
+        .iter()
+        .find(|m| !(m.cost.is_finite() && m.cost > 0.0))
+    {
+        return Err(PlanningError::settings(
+            "models",
+            format!("a model's cost must be a positive number, not {}", m.cost),
+        ));
+    }
+    let mut order: Vec<usize> = (0..models.len()).collect();
+    order.sort_by(|&a, &b| models[a].cost.total_cmp(&models[b].cost));
+    Ok(order)
+}
+
 fn relax<T>(
     ladder: &[Precondition],
     credit: impl Fn(&mut T, usize),

@@ -725,6 +725,16 @@ pub(crate) fn predictions_for_features(
     pairs: &[(Vec<f64>, Vec<f64>)],
     budget: &Budget,
 ) -> Result<Vec<Vec<f64>>, PlanningError> {
+    predictions_with(domain, domain.dynamics(), pairs, budget)
+}
+
+/// [`predictions_for_features`] by `dynamics`, one of the models a search may step with.
+pub(crate) fn predictions_with(
+    domain: &dyn Domain,
+    dynamics: &dyn DynamicsModel,
+    pairs: &[(Vec<f64>, Vec<f64>)],
+    budget: &Budget,
+) -> Result<Vec<Vec<f64>>, PlanningError> {
     if !domain.features_use_prediction() {
         return Ok(vec![Vec::new(); pairs.len()]);
     }
@@ -732,7 +742,7 @@ pub(crate) fn predictions_for_features(
     let actions: Vec<&[f64]> = pairs.iter().map(|(_, a)| a.as_slice()).collect();
     let mut calls = 0;
     Ok(
-        predict_pairs(domain, &states, &actions, &mut calls, budget, 0)?
+        predict_with(domain, dynamics, &states, &actions, &mut calls, budget, 0)?
             .into_iter()
             .map(|p| p.next)
             .collect(),

@@ -24,7 +24,8 @@ use super::model::DeviationModel;
 use super::rrt::Task;
 use super::trajectory::Trajectory;
 use crate::budget::Budget;
-use crate::planning::rrt::{predictions_for_features, seeded_rng};
+use crate::domain::DynamicsModel;
+use crate::planning::rrt::{predict_with, predictions_with, seeded_rng};
 
 /// State-actions the value is integrated over.
 pub const REFERENCES: usize = 256;
@@ -47,8 +48,41 @@ pub(crate) fn values(
     seed: u64,
     budget: &Budget,
 ) -> Result<Option<Vec<f64>>, PlanningError> {
-    let (domain, d_max) = (task.domain, task.precondition.d_max());
-    let dim = domain.feature_dim();
+    let own = SpreadModel {
+        dynamics: task.domain.dynamics(),
+        deviation: model,
+        in_flight,
+    };
+    values_across(task, &[own], trajectories, &[], seed, budget)
+}
+
+/// One model whose precondition an execution teaches: its dynamics (what its features read),
+/// its deviation model and the features of its state-actions in flight.
+#[derive(Clone, Copy)]
+pub(crate) struct SpreadModel<'a> {
+    /// The dynamics model `f̂_m`.
+    pub dynamics: &'a dyn DynamicsModel,
+    /// The deviation model of `f̂_m`'s precondition.
+    pub deviation: &'a dyn DeviationModel,
+    /// Features (with `f̂_m`'s predictions) of the state-actions in flight.
+    pub in_flight: &'a [f64],
+}
+
+/// [`values`] for an execution that labels every model of `models` at once: each candidate's
+/// value is the sum over the models of the boundary uncertainty its steps would remove from
+/// that model's precondition, each model's references and each candidate's steps featured
+/// with that model's predictions. `step_models[i][k]` is the model (an index into `models`)
+/// whose prediction step `k` of candidate `i` carries; empty: every step carries the first
+/// model's. `None` when the budget ends before every model valued every candidate.
+pub(crate) fn values_across(
+    task: Task<'_>,
+    models: &[SpreadModel<'_>],
+    trajectories: &[Trajectory],
+    step_models: &[Vec<usize>],
+    seed: u64,
+    budget: &Budget,
+) -> Result<Option<Vec<f64>>, PlanningError> {
+    let domain = task.domain;
     let mut rng = seeded_rng(seed, REFERENCE_STREAM);
     let sampled: Vec<(Vec<f64>, Vec<f64>)> = (0..REFERENCES)
         .map(|_| {
@@ -57,12 +91,81 @@ pub(crate) fn values(
             (s, a)
         })
         .collect();
-    let predicted = predictions_for_features(domain, &sampled, budget)?;
+    let mut total = vec![0.0; trajectories.len()];
+    for (m, model) in models.iter().enumerate() {
+        let pendings = pendings_of(task, m, model.dynamics, trajectories, step_models, budget)?;
+        let Some(values) = values_of(task, *model, &sampled, &pendings, budget)? else {
+            return Ok(None);
+        };
+        for (t, v) in total.iter_mut().zip(values) {
+            *t += v;
+        }
+    }
+    Ok(Some(total))
+}
+
+/// Each candidate's steps featured with model `m`'s predictions: the trajectory's own where
+/// its step carries `m`'s, else `m`'s asked in one call (only when the domain's features read
+/// the prediction).
+fn pendings_of(
+    task: Task<'_>,
+    m: usize,
+    dynamics: &dyn DynamicsModel,
+    trajectories: &[Trajectory],
+    step_models: &[Vec<usize>],
+    budget: &Budget,
+) -> Result<Vec<Vec<f64>>, PlanningError> {
+    let domain = task.domain;
+    let carries = |i: usize, k: usize| step_models.get(i).is_none_or(|sm| sm[k] == m);
+    let mut asked: (Vec<&[f64]>, Vec<&[f64]>) = (Vec::new(), Vec::new());
+    if domain.features_use_prediction() {
+        for (i, t) in trajectories.iter().enumerate() {
+            for (k, (s, a, _)) in t.steps().enumerate() {
+                if !carries(i, k) {
+                    asked.0.push(s);
+                    asked.1.push(a);
+                }
+            }
+        }
+    }
+    let mut calls = 0;
+    let mut predicted =
+        predict_with(domain, dynamics, &asked.0, &asked.1, &mut calls, budget, 0)?.into_iter();
+    Ok(trajectories
+        .iter()
+        .enumerate()
+        .map(|(i, t)| {
+            let mut pending = Vec::new();
+            for (k, (s, a, next)) in t.steps().enumerate() {
+                if carries(i, k) || !domain.features_use_prediction() {
+                    pending.extend(domain.features(s, a, next));
+                } else {
+                    let p = predicted.next().expect("one prediction per step asked");
+                    pending.extend(domain.features(s, a, &p.next));
+                }
+            }
+            pending
+        })
+        .collect())
+}
+
+/// One model's value of each candidate (its steps' features `pendings`), over the reference
+/// state-actions `sampled` featured with its predictions.
+fn values_of(
+    task: Task<'_>,
+    model: SpreadModel<'_>,
+    sampled: &[(Vec<f64>, Vec<f64>)],
+    pendings: &[Vec<f64>],
+    budget: &Budget,
+) -> Result<Option<Vec<f64>>, PlanningError> {
+    let (domain, d_max) = (task.domain, task.precondition.d_max());
+    let dim = domain.feature_dim();
+    let predicted = predictions_with(domain, model.dynamics, sampled, budget)?;
     let mut references = Vec::with_capacity(REFERENCES * dim);
     for ((s, a), next) in sampled.iter().zip(&predicted) {
         references.extend(domain.features(s, a, next));
     }
-    let fantasy = model.fantasy(&references, dim);
+    let fantasy = model.deviation.fantasy(&references, dim);
     let predict = |pendings: &[&[f64]]| {
         let answers = fantasy(pendings);
         let wrong = (answers.len() != pendings.len())
@@ -76,27 +179,21 @@ pub(crate) fn values(
             }),
         }
     };
-    let now = predict(&[in_flight])?.swap_remove(0);
+    let now = predict(&[model.in_flight])?.swap_remove(0);
     let weights: Vec<f64> = now
         .iter()
         .map(|&(mu, sigma)| level_density(mu, sigma, d_max))
         .collect();
-    let mut values = Vec::with_capacity(trajectories.len());
-    for chunk in trajectories.chunks(CANDIDATES_PER_CALL) {
+    let mut values = Vec::with_capacity(pendings.len());
+    for chunk in pendings.chunks(CANDIDATES_PER_CALL) {
         if budget.stop().is_some() {
             return Ok(None);
         }
-        let pendings: Vec<Vec<f64>> = chunk
+        let with_flight: Vec<Vec<f64>> = chunk
             .iter()
-            .map(|t| {
-                let mut pending = in_flight.to_vec();
-                for (s, a, next) in t.steps() {
-                    pending.extend(domain.features(s, a, next));
-                }
-                pending
-            })
+            .map(|steps| [model.in_flight, steps].concat())
             .collect();
-        let sets: Vec<&[f64]> = pendings.iter().map(Vec::as_slice).collect();
+        let sets: Vec<&[f64]> = with_flight.iter().map(Vec::as_slice).collect();
         for after in predict(&sets)? {
             let value: f64 = weights
                 .iter()
@@ -246,6 +343,97 @@ mod tests {
             })
             .collect();
         assert_eq!(all, alone);
+    }
+
+    /// `Boundary` turned a quarter: its boundary runs along y = 0.5.
+    struct Across;
+
+    impl DeviationModel for Across {
+        fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+            self.predict_fantasised(features, &[], dim)
+        }
+
+        fn predict_fantasised(
+            &self,
+            features: &[f64],
+            pending: &[f64],
+            dim: usize,
+        ) -> Vec<(f64, f64)> {
+            let turn = |x: &[f64]| {
+                let mut t = x.to_vec();
+                t.swap(0, 1);
+                t
+            };
+            let pending: Vec<f64> = pending.chunks(dim).flat_map(turn).collect();
+            features
+                .chunks(dim)
+                .map(|x| Boundary::answer(&turn(x), &pending, dim))
+                .collect()
+        }
+    }
+
+    #[test]
+    fn an_execution_that_labels_two_models_is_worth_what_it_teaches_each() {
+        let domain = Kinematic::new(KinematicParams::default()).unwrap();
+        let problem = Problem::new(&domain, vec![0.5, 0.1], vec![0.5, 0.9]).unwrap();
+        let settings = PlanningSettings::default();
+        let task = Task {
+            domain: &domain,
+            problem: &problem,
+            precondition: Precondition::new(2.0, 0.1).unwrap(),
+            settings: &settings,
+        };
+        let walks = [walk(0.05), walk(0.5), walk(0.95)];
+        let unlimited = Budget::unlimited();
+        let alone = |model: &dyn DeviationModel| {
+            values(task, model, &[], &walks, 3, &unlimited)
+                .unwrap()
+                .unwrap()
+        };
+        let model = |deviation: &'static dyn DeviationModel| SpreadModel {
+            dynamics: domain.dynamics(),
+            deviation,
+            in_flight: &[],
+        };
+        let both = values_across(
+            task,
+            &[model(&Boundary), model(&Across)],
+            &walks,
+            &[],
+            3,
+            &unlimited,
+        )
+        .unwrap()
+        .unwrap();
+        let (b, a) = (alone(&Boundary), alone(&Across));
+        assert_eq!(both, vec![b[0] + a[0], b[1] + a[1], b[2] + a[2]]);
+        // Each vertical walk crosses `Across`'s boundary alike, so it adds to each walk
+        // without deciding between them; `Boundary`'s still does.
+        assert!(a.iter().all(|v| *v > 0.0), "{a:?}");
+        assert!(both[1] > both[0] && both[1] > both[2], "{both:?}");
+        // A model with nothing to fantasise adds nothing.
+        let flat = crate::planning::synthetic::ConstantModel {
+            mu: 0.05,
+            sigma: 0.05,
+        };
+        let with_flat = values_across(
+            task,
+            &[
+                model(&Boundary),
+                SpreadModel {
+                    dynamics: domain.dynamics(),
+                    deviation: &flat,
+                    in_flight: &[],
+                },
+            ],
+            &walks,
+            &[],
+            3,
+            &unlimited,
+        )
+        .unwrap()
+        .unwrap();
+        assert_eq!(with_flat, b);
     }
 
     #[test]

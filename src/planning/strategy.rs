@@ -36,8 +36,9 @@
 use super::acquisition::AcquisitionKind;
 use super::cache::ModelCache;
 use super::error::PlanningError;
-use super::model::DeviationModel;
-use super::rrt::{RrtOutcome, Task, grow, grow_together, predict_pairs, seeded_rng};
+use super::model::{DeviationModel, PlanModel};
+use super::rrt::{RrtOutcome, Stage, Task, grow, grow_across, predict_pairs, seeded_rng};
+use super::spread;
 use super::trajectory::Trajectory;
 use super::valuation;
 use crate::budget::Budget;
@@ -122,8 +123,13 @@ pub struct Proposal {
     pub model_points: usize,
     /// Calls made to the deviation model (each with a batch of points).
     pub model_calls: usize,
-    /// Calls made to the dynamics model `f̂` (each with a batch of points).
+    /// Calls made to the dynamics model `f̂` (each with a batch of points); across several
+    /// models, to all of them.
     pub dynamics_calls: usize,
+    /// Which model each step of the trajectory relied on, an index into the models of
+    /// [`Planner::propose_across`](super::Planner::propose_across); empty for a proposal
+    /// with the domain's model alone.
+    pub step_models: Vec<usize>,
 }
 
 /// The proposal of `strategy` for the task's problem inside its precondition, asking `model`
@@ -187,6 +193,7 @@ pub(crate) fn propose(
             model_points: cache.points(),
             model_calls: cache.calls(),
             dynamics_calls,
+            step_models: Vec::new(),
         });
     }
     if domain.is_goal(problem.start(), problem.goal()) {
@@ -195,7 +202,13 @@ pub(crate) fn propose(
             "the start already satisfies the goal: there is nothing to plan",
         ));
     }
-    let mut found = candidates(task, &mut cache, seed, budget)?;
+    let mut found = {
+        let mut stages = [Stage {
+            dynamics: domain.dynamics(),
+            cache: &mut cache,
+        }];
+        candidates(task, &mut stages, seed, budget)?
+    };
     let valuation::Valuation {
         scored,
         alphas,
@@ -243,6 +256,126 @@ pub(crate) fn propose(
         model_points: cache.points(),
         model_calls: cache.calls(),
         dynamics_calls: found.dynamics_calls,
+        step_models: Vec::new(),
+    })
+}
+
+/// The proposal of `strategy` (`active` or `goal_conditioned`) for the task's problem when an
+/// execution labels every model of `models` (given cheapest first; each step of a candidate
+/// relies on the cheapest model whose precondition trusts it, as in
+/// [`Planner::plan_across`](super::Planner::plan_across)). Under `active` with the `spread`
+/// acquisition a candidate is valued by the boundary uncertainty its execution would remove
+/// summed over every model's precondition ([`spread::values_across`]), each model's with
+/// the features of its own state-actions in flight (`in_flight[m]`); every other acquisition
+/// compares the candidates' scores, each step's μ and σ the model's it relied on (no
+/// fantasised σ: `bottleneck` and `lcb` alike score by `lcb`). `step_models` of the answer
+/// index into `models`.
+pub(crate) fn propose_across(
+    task: Task<'_>,
+    models: &[PlanModel<'_>],
+    in_flight: &[&[f64]],
+    budget: &Budget,
+    strategy: Strategy,
+    seed: u64,
+) -> Result<Proposal, PlanningError> {
+    let (domain, problem, precondition) = (task.domain, task.problem, task.precondition);
+    if strategy == Strategy::Random {
+        return Err(PlanningError::settings(
+            "strategy",
+            "a random rollout steps with the domain's model alone",
+        ));
+    }
+    if in_flight.len() != models.len() {
+        return Err(PlanningError::input(
+            "in_flight",
+            format!("{} sets for {} models", in_flight.len(), models.len()),
+        ));
+    }
+    if domain.is_goal(problem.start(), problem.goal()) {
+        return Err(PlanningError::input(
+            "goal",
+            "the start already satisfies the goal: there is nothing to plan",
+        ));
+    }
+    let dim = domain.feature_dim();
+    let mut caches: Vec<ModelCache<'_>> = models
+        .iter()
+        .map(|m| ModelCache::new(m.deviation, dim))
+        .collect();
+    let found = {
+        let mut stages: Vec<Stage<'_, '_>> = models
+            .iter()
+            .zip(caches.iter_mut())
+            .map(|(m, cache)| Stage {
+                dynamics: m.dynamics,
+                cache,
+            })
+            .collect();
+        candidates(task, &mut stages, seed, budget)?
+    };
+    let acquisition = task.settings.acquisition();
+    let scored: Vec<(Vec<f64>, f64)> = found
+        .trajectories
+        .iter()
+        .map(|t| acquisition.score(t, precondition.d_max()))
+        .collect();
+    let values = if strategy == Strategy::Active && acquisition.kind == AcquisitionKind::Spread {
+        let spread_models: Vec<spread::SpreadModel<'_>> = models
+            .iter()
+            .zip(in_flight)
+            .map(|(m, in_flight)| spread::SpreadModel {
+                dynamics: m.dynamics,
+                deviation: m.deviation,
+                in_flight,
+            })
+            .collect();
+        spread::values_across(
+            task,
+            &spread_models,
+            &found.trajectories,
+            &found.step_models,
+            seed,
+            budget,
+        )?
+    } else {
+        None
+    };
+    let kind = match acquisition.kind {
+        AcquisitionKind::Bottleneck => AcquisitionKind::Lcb,
+        kind => kind,
+    };
+    let valuation::Valuation {
+        scored,
+        alphas,
+        valued_by,
+    } = valuation::compare(kind, scored, values);
+    let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
+    let candidates = found
+        .trajectories
+        .iter()
+        .zip(&alphas)
+        .map(|(t, alpha)| CandidateScore {
+            alpha: *alpha,
+            length: t.len(),
+        })
+        .collect();
+    let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
+    let (mut trajectories, mut step_models) = (found.trajectories, found.step_models);
+    Ok(Proposal {
+        strategy,
+        beta: precondition.beta(),
+        trajectory: trajectories.swap_remove(chosen_index),
+        alpha_step,
+        alpha,
+        candidates,
+        chosen_index,
+        valued_by,
+        extensions: found.extensions,
+        runs: found.runs,
+        model_points: caches.iter().map(ModelCache::points).sum(),
+        model_calls: caches.iter().map(ModelCache::calls).sum(),
+        dynamics_calls: found.dynamics_calls,
+        step_models: step_models.swap_remove(chosen_index),
     })
 }
 
@@ -260,20 +393,25 @@ fn argmin(values: impl Iterator<Item = f64>) -> usize {
 /// The distinct goal-reaching trajectories of one proposal's runs.
 struct Candidates {
     trajectories: Vec<Trajectory>,
+    /// The stage each step of each trajectory relied on.
+    step_models: Vec<Vec<usize>>,
     extensions: usize,
     runs: usize,
     dynamics_calls: usize,
 }
 
+/// The candidates of one proposal (see the module docs), stepping with `stages` (the domain's
+/// model alone, or several models cheapest first).
 fn candidates(
     task: Task<'_>,
-    cache: &mut ModelCache<'_>,
+    stages: &mut [Stage<'_, '_>],
     seed: u64,
     budget: &Budget,
 ) -> Result<Candidates, PlanningError> {
     let planner = task.settings.planner();
     let mut found = Candidates {
         trajectories: Vec::new(),
+        step_models: Vec::new(),
         extensions: 0,
         runs: 0,
         dynamics_calls: 0,
@@ -291,8 +429,11 @@ fn candidates(
     let mut outcomes: Vec<RrtOutcome> = Vec::new();
     let mut failed = 0;
     while outcomes.len() < planner.n_candidates {
-        let mut rng = seeded_rng(seed, outcomes.len() as u64 + 1);
-        let outcome = grow(task, cache, &mut rng, budget).map_err(stopped(found.extensions))?;
+        let rng = seeded_rng(seed, outcomes.len() as u64 + 1);
+        let outcome = grow_across(task, stages, vec![rng], budget)
+            .map_err(stopped(found.extensions))?
+            .pop()
+            .expect("one search, one outcome");
         found.extensions += outcome.extensions;
         found.dynamics_calls += outcome.dynamics_calls;
         let reached = outcome.trajectory.is_some();
@@ -312,7 +453,7 @@ fn candidates(
             .collect::<Vec<_>>();
         if !rngs.is_empty() {
             let rest =
-                grow_together(task, cache, rngs, budget).map_err(stopped(found.extensions))?;
+                grow_across(task, stages, rngs, budget).map_err(stopped(found.extensions))?;
             found.dynamics_calls += rest.first().map_or(0, |o| o.dynamics_calls);
             found.extensions += rest.iter().map(|o| o.extensions).sum::<usize>();
             outcomes.extend(rest);
@@ -320,10 +461,12 @@ fn candidates(
     }
     found.runs = outcomes.len();
     let mut seen: HashSet<Vec<u64>> = HashSet::new();
-    for t in outcomes.into_iter().filter_map(|o| o.trajectory) {
+    for o in outcomes {
+        let Some(t) = o.trajectory else { continue };
         let key = t.actions.iter().flatten().map(|x| (x + 0.0).to_bits());
         if seen.insert(key.collect()) {
             found.trajectories.push(t);
+            found.step_models.push(o.step_models);
         }
     }
     if found.trajectories.is_empty() {

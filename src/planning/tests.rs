@@ -1108,3 +1108,109 @@ fn a_plan_across_models_needs_models_with_costs() {
     let err = planner.plan_across(&problem, pre, &[free], 0).unwrap_err();
     assert!(err.to_string().contains("cost"), "{err}");
 }
+
+/// μ rises across the first state feature and reaches `d_max` = 0.1 at 0.5; σ is 0.05, or
+/// 0.005 within 0.1 (in the state features) of a pending state-action: a model `spread` can
+/// fantasise with.
+struct Doubtful;
+
+impl DeviationModel for Doubtful {
+    fn predict(&self, features: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        self.predict_fantasised(features, &[], dim)
+    }
+
+    fn predict_fantasised(&self, features: &[f64], pending: &[f64], dim: usize) -> Vec<(f64, f64)> {
+        features
+            .chunks(dim)
+            .map(|x| {
+                let near = pending
+                    .chunks(dim)
+                    .any(|p| (p[0] - x[0]).hypot(p[1] - x[1]) < 0.1);
+                (0.2 * x[0], if near { 0.005 } else { 0.05 })
+            })
+            .collect()
+    }
+}
+
+/// With the domain's model alone, a proposal across models is the proposal — the same
+/// candidates, values (by `spread`, which this model can fantasise with), choice and calls —
+/// its steps all relying on that model.
+#[test]
+fn a_proposal_across_one_model_is_the_proposal() {
+    let domain = Kinematic::new(KinematicParams::default()).unwrap();
+    // Trusted left of x = 0.375 at β 0.5.
+    let problem = Problem::new(&domain, vec![0.1, 0.1], vec![0.3, 0.9]).unwrap();
+    let spread = AcquisitionSettings {
+        kind: AcquisitionKind::Spread,
+        ..AcquisitionSettings::default()
+    };
+    let settings = PlanningSettings::new(small_settings(), spread).unwrap();
+    let planner = Planner::new(&domain, &Doubtful, &settings);
+    let ladder = [Precondition::new(0.5, 0.1).unwrap()];
+    let one = [PlanModel {
+        dynamics: domain.dynamics(),
+        deviation: &Doubtful,
+        cost: 1.0,
+    }];
+    for seed in 0..5 {
+        let single = planner
+            .propose_relaxing(Strategy::Active, &problem, &ladder, seed)
+            .unwrap();
+        assert_eq!(single.valued_by, AcquisitionKind::Spread);
+        let mut across = planner
+            .propose_across(Strategy::Active, &problem, &ladder, &one, &[&[]], seed)
+            .unwrap();
+        assert_eq!(across.step_models, vec![0; across.trajectory.len()]);
+        across.step_models.clear();
+        assert_eq!(across, single);
+    }
+}
+
+/// Neither half's model trusts a way across; a proposal across both does cross, each step
+/// relying on the model whose half it starts in; a random rollout is the domain model's alone.
+#[test]
+fn a_proposal_across_models_crosses_where_neither_model_alone_does() {
+    let domain = Kinematic::new(KinematicParams::default()).unwrap();
+    let problem = Problem::new(&domain, vec![0.1, 0.5], vec![0.9, 0.5]).unwrap();
+    let settings = PlanningSettings::new(small_settings(), AcquisitionSettings::default()).unwrap();
+    let (left, right) = (HalfModel { left: true }, HalfModel { left: false });
+    let ladder = [Precondition::new(2.0, 0.1).unwrap()];
+    let planner = Planner::new(&domain, &left, &settings);
+    let models = [
+        PlanModel {
+            dynamics: domain.dynamics(),
+            deviation: &right,
+            cost: 3.0,
+        },
+        PlanModel {
+            dynamics: domain.dynamics(),
+            deviation: &left,
+            cost: 1.0,
+        },
+    ];
+    for seed in 0..5 {
+        assert!(matches!(
+            planner.propose_relaxing(Strategy::Active, &problem, &ladder, seed),
+            Err(PlanningError::NoPlan { .. })
+        ));
+        for strategy in [Strategy::Active, Strategy::GoalConditioned] {
+            let p = planner
+                .propose_across(strategy, &problem, &ladder, &models, &[&[], &[]], seed)
+                .unwrap();
+            let end = p.trajectory.states.last().unwrap();
+            assert!(domain.is_goal(end, problem.goal()), "{end:?}");
+            assert_eq!(p.step_models.len(), p.trajectory.len());
+            for ((s, _, _), &m) in p.trajectory.steps().zip(&p.step_models) {
+                assert_eq!(m, if s[0] < 0.5 { 1 } else { 0 }, "step from {s:?}");
+            }
+        }
+    }
+    let err = planner
+        .propose_across(Strategy::Random, &problem, &ladder, &models, &[&[], &[]], 0)
+        .unwrap_err();
+    assert!(err.to_string().contains("strategy"), "{err}");
+    let err = planner
+        .propose_across(Strategy::Active, &problem, &ladder, &models, &[&[]], 0)
+        .unwrap_err();
+    assert!(err.to_string().contains("in_flight"), "{err}");
+}

@@ -191,26 +191,35 @@ pub(crate) fn value_candidates(
             .map(|t| acquisition.score(t, task.precondition.d_max()))
             .collect()
     };
+    Ok(compare(acquisition.kind, scored, values))
+}
+
+/// The comparison of candidates scored `scored` and valued `values` by an acquisition of
+/// `kind`: by value where any is above 0 (the score then only breaks exact ties), else by
+/// the score (`bottleneck` and `spread` score by `lcb`).
+pub(crate) fn compare(
+    kind: AcquisitionKind,
+    scored: Vec<(Vec<f64>, f64)>,
+    values: Option<Vec<f64>>,
+) -> Valuation {
     let mut alphas: Vec<f64> = scored.iter().map(|(_, alpha)| *alpha).collect();
-    // `bottleneck` and `spread` score (and break ties) by `lcb`.
-    let mut valued_by = match acquisition.kind {
+    let mut valued_by = match kind {
         AcquisitionKind::Bottleneck | AcquisitionKind::Spread => AcquisitionKind::Lcb,
         kind => kind,
     };
     if let Some(values) = values
         && values.iter().any(|v| *v > 0.0)
     {
-        // The most valuable candidate; the score only breaks exact ties.
         for (alpha, v) in alphas.iter_mut().zip(&values) {
             *alpha = -v + 1e-9 * alpha.tanh();
         }
-        valued_by = acquisition.kind;
+        valued_by = kind;
     }
-    Ok(Valuation {
+    Valuation {
         scored,
         alphas,
         valued_by,
-    })
+    }
 }
 
 /// The acquisition of each candidate (`α_step` per step and `α`) with each step's σ as if the
