@@ -734,6 +734,14 @@ pub struct ProposalRequest {
     /// (required when the experiment's model is the client's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub candidates: Option<Vec<CandidateTrajectory>>,
+    /// The models the service's candidates may step with, by name (`"domain"` for the
+    /// domain's own), each step relying on the cheapest whose precondition trusts it, as in a
+    /// plan. Omitted: every model with an estimator in the served version, and the candidates
+    /// are valued by what their execution teaches every model's precondition (every posted
+    /// transition labels them all). Not with `candidates`, nor with the `random` strategy
+    /// (a rollout steps with the domain's model alone).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub models: Option<Vec<String>>,
 }
 
 /// `POST /v1/experiments/{id}/proposals/{pid}/continue` body: the part of an open proposal
@@ -868,6 +876,13 @@ pub struct ProposalContent {
     /// proposals stored before it was recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub valued_by: Option<crate::planning::AcquisitionKind>,
+    /// The models the candidates stepped with (cheapest first), present when the proposal
+    /// stepped with more than the domain's model; a continuation of it steps with the same.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub models: Option<Vec<String>>,
+    /// The model each step of the trajectory relied on, present with `models`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_models: Option<Vec<String>>,
 }
 
 /// A proposal (`POST /proposals`, `GET /proposals/{pid}`, `POST .../abandon`): its lease,

@@ -123,6 +123,7 @@ impl ApiClient {
             client_id: client_id.map(str::to_string),
             strategy,
             candidates: None,
+            models: None,
         };
         let what = "POST /proposals";
         let (status, body) = self

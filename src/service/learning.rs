@@ -544,15 +544,7 @@ impl Service {
         let own_beta = beta.is_some();
         let (beta, d_max) = (precondition.beta(), precondition.d_max());
         let model_version = model.version;
-        let several = (!live.models.is_empty()).then(|| {
-            steppers
-                .iter()
-                .map(|&i| match i {
-                    None => (DOMAIN_MODEL.to_string(), 1.0),
-                    Some(k) => (live.models[k].name.clone(), live.models[k].cost),
-                })
-                .collect::<Vec<_>>()
-        });
+        let several = (!live.models.is_empty()).then(|| model_names(&live, &steppers));
         if let Some(candidates) = candidates {
             let checked = check_candidates(&live, problem.start(), candidates)?;
             let verdicts =
@@ -631,7 +623,7 @@ impl Service {
 /// The models a search steps with: `steppers` (see [`plan_models`]) with their dynamics, their
 /// deviation models — `deviation` the domain's, each further model's estimator in `model` —
 /// and their costs.
-fn plan_models_of<'a>(
+pub(super) fn plan_models_of<'a>(
     live: &'a LiveExperiment,
     model: &'a ServedModel,
     steppers: &[Option<usize>],
@@ -656,6 +648,17 @@ fn plan_models_of<'a>(
                     cost: named.cost,
                 }
             }
+        })
+        .collect()
+}
+
+/// The name and cost of each model of `steppers` (see [`plan_models`]).
+pub(super) fn model_names(live: &LiveExperiment, steppers: &[Option<usize>]) -> Vec<(String, f64)> {
+    steppers
+        .iter()
+        .map(|&i| match i {
+            None => (DOMAIN_MODEL.to_string(), 1.0),
+            Some(k) => (live.models[k].name.clone(), live.models[k].cost),
         })
         .collect()
 }
@@ -691,7 +694,7 @@ fn report_own_answers(
 /// (`None` the domain's own), in the order asked: those `asked` by name, or by default the
 /// domain's and every further model with an estimator in `model`. An unknown or repeated
 /// name is a 422 naming `models`; a further model without an estimator in this version a 409.
-fn plan_models(
+pub(super) fn plan_models(
     live: &LiveExperiment,
     model: &ServedModel,
     asked: Option<&[String]>,

@@ -13,7 +13,9 @@
 use super::Ingested;
 use super::LiveExperiment;
 use super::ingest::check_idempotency_key;
-use super::learning::{check_candidates, check_finite, needs_candidates};
+use super::learning::{
+    check_candidates, check_finite, model_names, needs_candidates, plan_models, plan_models_of,
+};
 use super::{Error, Result, Service};
 use crate::api::{
     CandidateView, ContinueRequest, PlannedTrajectory, ProposalContent, ProposalRequest,
@@ -96,7 +98,46 @@ fn content(p: &Proposal, schedule_beta: f64) -> Result<ProposalContent> {
         extensions: p.extensions,
         relaxed_from_beta: relaxed_from(p.beta, schedule_beta),
         valued_by: Some(p.valued_by),
+        models: None,
+        step_models: None,
     })
+}
+
+/// [`content`] of a proposal across the models named `names` (in the order the planner was
+/// given them): which models it stepped with, cheapest first, and which each step relied on.
+fn content_across(
+    p: &Proposal,
+    schedule_beta: f64,
+    names: &[(String, f64)],
+) -> Result<ProposalContent> {
+    let mut by_cost: Vec<&(String, f64)> = names.iter().collect();
+    by_cost.sort_by(|a, b| a.1.total_cmp(&b.1));
+    Ok(ProposalContent {
+        models: Some(by_cost.into_iter().map(|(n, _)| n.clone()).collect()),
+        step_models: Some(p.step_models.iter().map(|&m| names[m].0.clone()).collect()),
+        ..content(p, schedule_beta)?
+    })
+}
+
+/// The models a proposal's own candidates step with (see [`plan_models`]): the domain's alone
+/// for a `random` rollout (an error naming `models` when the request named others).
+fn proposal_models(
+    live: &LiveExperiment,
+    model: &ServedModel,
+    strategy: Strategy,
+    request: &ProposalRequest,
+) -> Result<Vec<Option<usize>>> {
+    let steppers = plan_models(live, model, request.models.as_deref())?;
+    if strategy != Strategy::Random {
+        return Ok(steppers);
+    }
+    if request.models.is_some() && steppers != [None] {
+        return Err(Error::validation(
+            "models",
+            "a random rollout steps with the domain's model alone",
+        ));
+    }
+    Ok(vec![None])
 }
 
 /// `Some(β_j)` when the proposal was made at a β other than the schedule's.
@@ -127,6 +168,8 @@ fn given_content(given: &GivenChoice, beta: f64, schedule_beta: f64) -> Result<P
         extensions: 0,
         relaxed_from_beta: relaxed_from(beta, schedule_beta),
         valued_by: Some(given.valued_by),
+        models: None,
+        step_models: None,
     })
 }
 
@@ -316,6 +359,12 @@ impl Service {
         problem: Problem,
         request: &ProposalRequest,
     ) -> Result<(ProposalContent, f64)> {
+        if request.models.is_some() && request.candidates.is_some() {
+            return Err(Error::validation(
+                "models",
+                "applies to the service's search, not to the client's candidates",
+            ));
+        }
         let checked = match request.candidates.clone() {
             Some(candidates) => Some(check_candidates(live, problem.start(), candidates)?),
             None => {
@@ -358,15 +407,41 @@ impl Service {
                 Ok((given_content(&given, beta, schedule_beta)?, beta))
             }
             None => {
+                let steppers = proposal_models(&live, &model, strategy, request)?;
+                if steppers == [None] {
+                    let proposal = self
+                        .search(id, arrived, kind, move |budget| {
+                            live.planner(&model)
+                                .with_in_flight(&in_flight)
+                                .within(budget.clone())
+                                .propose_relaxing(strategy, &problem, &ladder, seed)
+                        })
+                        .await?;
+                    return Ok((content(&proposal, schedule_beta)?, proposal.beta));
+                }
+                let names = model_names(&live, &steppers);
                 let proposal = self
                     .search(id, arrived, kind, move |budget| {
+                        let stepping = plan_models_of(&live, &model, &steppers, &*model);
+                        // A further model's features read its own prediction where the
+                        // domain's read one: the batch's are the domain's, so it has none.
+                        let shared = !live.domain.features_use_prediction();
+                        let flights: Vec<&[f64]> = steppers
+                            .iter()
+                            .map(|s| match s {
+                                Some(_) if !shared => &[][..],
+                                _ => in_flight.as_slice(),
+                            })
+                            .collect();
                         live.planner(&model)
-                            .with_in_flight(&in_flight)
                             .within(budget.clone())
-                            .propose_relaxing(strategy, &problem, &ladder, seed)
+                            .propose_across(strategy, &problem, &ladder, &stepping, &flights, seed)
                     })
                     .await?;
-                Ok((content(&proposal, schedule_beta)?, proposal.beta))
+                Ok((
+                    content_across(&proposal, schedule_beta, &names)?,
+                    proposal.beta,
+                ))
             }
         }
     }
@@ -534,6 +609,7 @@ impl Service {
                     client_id: terms.client_id,
                     strategy: Some(terms.strategy),
                     candidates,
+                    models: ProposalRecord::from_stored(stored)?.content.models,
                 },
                 key,
             )

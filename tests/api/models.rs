@@ -720,3 +720,77 @@ async fn each_model_has_its_own_precondition_map() {
     assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
     assert_eq!(body["error"]["details"]["field"], "model", "{body}");
 }
+
+/// A proposal in an experiment with several models steps, like a plan, with whichever model
+/// is trusted where it is — the one trajectory that crosses the sand takes both — says which
+/// model each step relied on, and a continuation of it steps with the same models; a
+/// proposal may name its models, as a plan may.
+#[tokio::test]
+async fn a_proposal_steps_with_every_model_and_says_which() {
+    let (_dir, app, id) = learnt_sand().await;
+    let problem = json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "client_id": "arm"});
+    let (status, body) = app.post_at(id, "proposals", &problem).await;
+    assert_eq!(status, 201, "{body}");
+    assert_eq!(body["models"], json!(["domain", "slow"]), "{body}");
+    let states = body["trajectory"]["states"].as_array().unwrap();
+    let steps = body["step_models"].as_array().unwrap();
+    assert_eq!(steps.len() + 1, states.len(), "{body}");
+    assert!(steps.contains(&json!("domain")), "{body}");
+    assert!(steps.contains(&json!("slow")), "{body}");
+    for (s, m) in states.iter().zip(steps) {
+        let x = s[0].as_f64().unwrap();
+        // Each model is trusted on its side of the sand, away from the border.
+        if (x - 0.5).abs() > 0.15 {
+            assert_eq!(*m, if x < 0.5 { "domain" } else { "slow" }, "{body}");
+        }
+    }
+    // The robot takes the first move and re-plans from where it is: the same models.
+    let pid = body["id"].as_i64().unwrap();
+    let first = json!({"transitions": [{"s": [0.2, 0.5], "a": body["trajectory"]["actions"][0],
+        "s_next": states[1]}]});
+    let (status, next) = app
+        .post_at(id, &format!("proposals/{pid}/continue"), &first)
+        .await;
+    assert_eq!(status, 201, "{next}");
+    assert_eq!(next["proposal"]["models"], body["models"], "{next}");
+    assert!(next["proposal"]["step_models"].is_array(), "{next}");
+
+    // Named: the domain's model alone answers as a single-model proposal does.
+    let (_, app2_body) = app
+        .post_at(
+            id,
+            "proposals",
+            &json!({"start": [0.1, 0.2], "goal": [0.4, 0.2], "client_id": "base",
+                    "models": ["domain"]}),
+        )
+        .await;
+    assert!(app2_body.get("models").is_none(), "{app2_body}");
+    assert!(app2_body.get("step_models").is_none(), "{app2_body}");
+
+    // What a proposal may not name.
+    let candidate = json!({"states": [[0.1, 0.3], [0.2, 0.3]], "actions": [[0.1, 0]]});
+    for (body, field) in [
+        (
+            json!({"start": [0.1, 0.3], "goal": [0.2, 0.3], "models": ["sim"]}),
+            "models[0]",
+        ),
+        (
+            json!({"start": [0.1, 0.3], "goal": [0.2, 0.3], "models": ["slow"],
+                   "strategy": "random"}),
+            "models",
+        ),
+        (
+            json!({"start": [0.1, 0.3], "goal": [0.2, 0.3], "models": ["slow"],
+                   "candidates": [candidate]}),
+            "models",
+        ),
+    ] {
+        let (status, answer) = app.post_at(id, "proposals", &body).await;
+        assert_eq!(
+            (status, code(&answer)),
+            (422, "validation_failed"),
+            "{answer}"
+        );
+        assert_eq!(answer["error"]["details"]["field"], field, "{answer}");
+    }
+}
