@@ -349,6 +349,15 @@ def test_a_plan_steps_with_whichever_model_is_trusted_there(make_server: MakeSer
     )
     with pytest.raises(ValidationFailed):
         client.plan(start, goal, models=["sim"])
+    # A proposal steps with the models the same way, and says so; the learner may name them.
+    proposal = client.propose(start, goal, client_id="sand")
+    assert proposal.models == ["domain", "slow"] and proposal.step_models is not None
+    assert {"domain", "slow"} <= set(proposal.step_models)
+    client.abandon(proposal.id)
+    learner = client.learn([(start, [0.4, 0.5])], models=lambda _: ["domain"], verbose=False)
+    for episode in learner:
+        assert episode.proposal.models is None and episode.proposal.step_models is None
+        episode.abandon()
 
 
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:

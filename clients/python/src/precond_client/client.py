@@ -70,7 +70,7 @@ from .models import (
     as_list,
     mat,
 )
-from .robot import CandidateFn, Learner, Problem, ProgressFn
+from .robot import CandidateFn, Learner, ModelsFn, Problem, ProgressFn
 
 log = logging.getLogger("precond_client")
 
@@ -462,10 +462,17 @@ class Client:
         candidates: Sequence[Candidate] | None = None,
         strategy: str | None = None,
         *,
+        models: Sequence[str] | None = None,
         deadline_retries: int | None = None,
     ) -> Proposal:
         """Asks for the trajectory to execute from ``start`` to ``goal``, leased to
         ``client_id`` (default :attr:`client_id`).
+
+        In an experiment with several models the service's candidates step, each step, with
+        the cheapest model whose precondition trusts it, and are valued by what their
+        execution teaches every model (``Proposal.step_models`` says which model each step
+        relied on); ``models`` names the models they may step with instead (``"domain"`` for
+        the domain's own).
 
         Asking again while the lease is open returns the same proposal; asking for another
         problem raises :class:`~precond_client.errors.Conflict` whose ``lease`` names the
@@ -484,6 +491,8 @@ class Client:
             body["strategy"] = strategy
         if candidates is not None:
             body["candidates"] = [c.to_json() for c in candidates]
+        if models is not None:
+            body["models"] = list(models)
         r = self._request(
             "POST", self._path("/proposals"), json=body, deadline_retries=deadline_retries
         )
@@ -948,6 +957,7 @@ class Client:
         *,
         client_id: str | None = None,
         candidates: CandidateFn | None = None,
+        models: Sequence[str] | ModelsFn | None = None,
         resume: bool = True,
         skip_no_plan: bool = True,
         wait_for_model: bool = True,
@@ -968,7 +978,9 @@ class Client:
         no plan unless ``skip_no_plan=False``. With ``wait_for_model`` (default) the loop waits
         up to ``model_timeout`` seconds, after each completed batch, for the background refit
         before the next proposal. ``progress`` receives a
-        :class:`~precond_client.robot.Progress` after each event.
+        :class:`~precond_client.robot.Progress` after each event. ``models`` names the models
+        each proposal may step with (see :meth:`propose`), or is a function of the number of
+        episodes so far giving them (``None``: every model).
 
         A busy server does not stop the loop: a problem whose search passes the server's
         deadline ``deadline_attempts`` times (default 2), or whose proposal fails with another
@@ -984,6 +996,7 @@ class Client:
             problems,
             client_id=client_id or self.client_id,
             candidates=candidates,
+            models=models,
             resume=resume,
             skip_no_plan=skip_no_plan,
             wait_for_model=wait_for_model,

@@ -51,6 +51,7 @@ class LearningClient(TrajectoryPoster, Protocol):
         candidates: Sequence[Candidate] | None = None,
         strategy: str | None = None,
         *,
+        models: Sequence[str] | None = None,
         deadline_retries: int | None = None,
     ) -> Proposal: ...
 

@@ -71,6 +71,10 @@ Problem = tuple[ArrayLike, ArrayLike]
 CandidateFn = Callable[[Array, Array], Sequence[Candidate]]
 """The client's own planner for a problem ``(start, goal)`` (client-side models)."""
 
+ModelsFn = Callable[[int], Sequence[str] | None]
+"""The models a proposal may step with, given the number of episodes so far (``None``: every
+model of the experiment)."""
+
 SleepFn = Callable[[float], None]
 
 _T = TypeVar("_T")
@@ -547,6 +551,7 @@ class Learner:
         *,
         client_id: str,
         candidates: CandidateFn | None = None,
+        models: Sequence[str] | ModelsFn | None = None,
         resume: bool = True,
         skip_no_plan: bool = True,
         wait_for_model: bool = True,
@@ -564,6 +569,7 @@ class Learner:
         self.problems = problems
         self.client_id = client_id
         self.candidates = candidates
+        self.models = models
         self.resume = resume
         self.skip_no_plan = skip_no_plan
         self.wait_for_model = wait_for_model
@@ -727,8 +733,14 @@ class Learner:
             cands = self.candidates(s, g)
         # A search past the deadline is counted here (deadline_attempts), not repeated by the
         # client as well.
+        models = self.models(self.episodes) if callable(self.models) else self.models
         return self.client.propose(
-            start, goal, client_id=self.client_id, candidates=cands, deadline_retries=0
+            start,
+            goal,
+            client_id=self.client_id,
+            candidates=cands,
+            models=models,
+            deadline_retries=0,
         )
 
     def _skip(
