@@ -163,6 +163,11 @@ pub struct Transition {
     /// client's, refused otherwise (a label always comes from one model).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub s_pred: Option<Vec<f64>>,
+    /// The predictions of the experiment's further models that are the client's own, by
+    /// name: each labels this transition for its model; a model left out leaves its label
+    /// missing. Refused for a name that is not such a model.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub predictions: Option<std::collections::BTreeMap<String, Vec<f64>>>,
 }
 
 /// An executed transition with the model's prediction and its deviation label
@@ -185,6 +190,7 @@ impl Transition {
             a,
             s_next,
             s_pred: None,
+            predictions: None,
         }
     }
 }

@@ -265,12 +265,14 @@ impl Assembler<'_> {
                 a: row.a.clone(),
                 s_next: next.clone(),
                 s_pred: row.s_pred.clone(),
+                predictions: None,
             }),
             (None, Some(prev)) => Some(Transition {
                 s: prev.s,
                 a: prev.a,
                 s_next: row.s.clone(),
                 s_pred: prev.s_pred,
+                predictions: None,
             }),
             (None, None) => None,
         };

@@ -163,6 +163,9 @@ pub async fn label(
             }
             (None, false) => {}
         }
+        for (name, s_pred) in t.predictions.iter().flatten() {
+            check_client_prediction(live, i, name, s_pred)?;
+        }
     }
     let predicted: Vec<Vec<f64>> = if client_side {
         transitions
@@ -275,6 +278,52 @@ async fn predict_through(
     Ok(predicted.into_iter().map(|p| p.next).collect())
 }
 
+/// Checks transition `i`'s prediction by the further model `name`: it must be one of the
+/// client's own and the prediction a state of the domain.
+fn check_client_prediction(
+    live: &LiveExperiment,
+    i: usize,
+    name: &str,
+    s_pred: &[f64],
+) -> Result<()> {
+    let field = format!("transitions[{i}].predictions");
+    match live.models.iter().find(|m| m.name == name) {
+        Some(m) if m.model.client_side() => live
+            .domain
+            .validate_observed_state(s_pred)
+            .map_err(|e| Error::invalid_at(&format!("{field}.{name}"), e)),
+        Some(_) => Err(Error::validation(
+            format!("{field}.{name}"),
+            format!(
+                "the service predicts with {name:?} itself, so that every label of it comes from the model"
+            ),
+        )),
+        None => {
+            let shown: String = name
+                .chars()
+                .take(crate::settings::models::MAX_MODEL_NAME_LEN)
+                .collect();
+            let own: Vec<&str> = live
+                .models
+                .iter()
+                .filter(|m| m.model.client_side())
+                .map(|m| m.name.as_str())
+                .collect();
+            Err(Error::validation(
+                field,
+                format!(
+                    "{shown:?} is not a further model of the experiment's that is the client's own (those are: {})",
+                    if own.is_empty() {
+                        "none".to_string()
+                    } else {
+                        own.join(", ")
+                    }
+                ),
+            ))
+        }
+    }
+}
+
 /// The labels of `transitions` by each of the experiment's further models, one list per
 /// transition in the models' order (empty lists when there are none). The models are asked
 /// at once, each with one batched call; a model that fails, or whose prediction is not a
@@ -290,12 +339,31 @@ pub async fn label_by_models(
         .collect();
     let answers = futures_util::future::join_all(live.models.iter().map(|named| {
         let model = named.model.clone();
-        predict_through(
-            named.model.as_ref(),
-            &named.name,
-            &pairs,
-            move |states, actions| model.predict_batch(states, actions),
-        )
+        let pairs = &pairs;
+        async move {
+            if model.client_side() {
+                // The client's own model: its predictions came with the transitions.
+                return Ok::<_, Error>(
+                    transitions
+                        .iter()
+                        .map(|t| {
+                            t.observed
+                                .predictions
+                                .as_ref()
+                                .and_then(|p| p.get(&named.name).cloned())
+                        })
+                        .collect::<Vec<_>>(),
+                );
+            }
+            let predicted = predict_through(
+                named.model.as_ref(),
+                &named.name,
+                pairs,
+                move |states, actions| model.predict_batch(states, actions),
+            )
+            .await?;
+            Ok(predicted.into_iter().map(Some).collect())
+        }
     }))
     .await;
     let mut labels: Vec<Vec<ModelLabel>> = transitions
@@ -307,7 +375,13 @@ pub async fn label_by_models(
         match answer {
             Ok(predicted) => {
                 for ((of, t), s_pred) in labels.iter_mut().zip(transitions).zip(predicted) {
-                    of.push(model_label(live, name, t, s_pred));
+                    of.push(match s_pred {
+                        Some(s_pred) => model_label(live, name, t, s_pred),
+                        None => ModelLabel::missing(
+                            name,
+                            "the client posted no prediction of it with the transition",
+                        ),
+                    });
                 }
             }
             Err(e) => {

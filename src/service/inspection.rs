@@ -278,7 +278,18 @@ impl Service {
             .filter(|name| name != crate::settings::DOMAIN_MODEL)
             .map(|name| {
                 let k = live.further_with_estimator(&model, "model", &name)?;
-                Ok::<_, Error>((name, live.models[k].model.clone()))
+                let m = live.models[k].model.clone();
+                if m.client_side() && domain.features_use_prediction() {
+                    return Err(Error::validation(
+                        "model",
+                        format!(
+                            "{name:?} is the client's own model and the features read its \
+                             prediction, which only the client has: ask POST …/precondition \
+                             with its predictions instead"
+                        ),
+                    ));
+                }
+                Ok::<_, Error>((name, m))
             })
             .transpose()?;
         let further_model = further.as_ref().map(|(_, m)| m.clone());

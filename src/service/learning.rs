@@ -458,16 +458,43 @@ impl Service {
         let precondition = live.precondition(beta.unwrap_or(live.settings.learning.test_beta))?;
         let domain = live.domain.as_ref();
         let dim = domain.feature_dim();
+        // The client's own model: where the features read its prediction, the client sends it.
+        let posted = named.model.client_side() && domain.features_use_prediction();
         for (i, p) in points.iter().enumerate() {
             live.check_step(&format!("points[{i}]"), &p.s, &p.a)?;
-            if p.s_pred.is_some() {
-                return Err(Error::validation(
-                    format!("points[{i}].s_pred"),
-                    format!("the service predicts with {name:?} itself"),
-                ));
+            let field = format!("points[{i}].s_pred");
+            match (&p.s_pred, posted) {
+                (Some(s_pred), true) => domain
+                    .validate_observed_state(s_pred)
+                    .map_err(|e| Error::invalid_at(&field, e))?,
+                (None, true) => {
+                    return Err(Error::validation(
+                        field,
+                        format!(
+                            "the experiment's features read the model's prediction and {name:?} is the client's: send its prediction with every point"
+                        ),
+                    ));
+                }
+                (Some(_), false) => {
+                    return Err(Error::validation(
+                        field,
+                        if named.model.client_side() {
+                            "the experiment's features do not read the model's prediction"
+                                .to_string()
+                        } else {
+                            format!("the service predicts with {name:?} itself")
+                        },
+                    ));
+                }
+                (None, false) => {}
             }
         }
-        let predicted: Vec<Vec<f64>> = if domain.features_use_prediction() {
+        let predicted: Vec<Vec<f64>> = if posted {
+            points
+                .iter()
+                .map(|p| p.s_pred.clone().unwrap_or_default())
+                .collect()
+        } else if domain.features_use_prediction() {
             let pairs: Vec<(&[f64], &[f64])> = points
                 .iter()
                 .map(|p| (p.s.as_slice(), p.a.as_slice()))
@@ -705,7 +732,7 @@ pub(super) fn plan_models(
             live.models
                 .iter()
                 .enumerate()
-                .filter(|(_, m)| model.further(&m.name).is_some())
+                .filter(|(_, m)| !m.model.client_side() && model.further(&m.name).is_some())
                 .map(|(k, _)| Some(k)),
         );
         return Ok(all);
@@ -725,6 +752,16 @@ pub(super) fn plan_models(
         if name == DOMAIN_MODEL {
             chosen.push(None);
             continue;
+        }
+        if live
+            .models
+            .iter()
+            .any(|m| &m.name == name && m.model.client_side())
+        {
+            return Err(Error::validation(
+                field,
+                format!("{name:?} is the client's own model: the service cannot step with it"),
+            ));
         }
         chosen.push(Some(live.further_with_estimator(model, &field, name)?));
     }

@@ -49,8 +49,9 @@ pub struct NamedModelSpec {
     pub model: FurtherModelSpec,
 }
 
-/// Where a further model lives: one the service can call itself, since it labels every posted
-/// transition (a [`ModelSpec`] but the client's own). The tag is `kind`.
+/// Where a further model lives: one the service calls itself to label every posted transition,
+/// or the client's own, whose prediction the client posts with each transition. The tag is
+/// `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 #[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
 pub enum FurtherModelSpec {
@@ -75,6 +76,10 @@ pub enum FurtherModelSpec {
         #[serde(default)]
         c: Option<Vec<f64>>,
     },
+    /// The client's own, as [`ModelSpec::Client`]: the client posts its prediction of each
+    /// transition (`predictions.<name>` beside `s_next`) and the service labels with it, but
+    /// cannot step with it — plans, proposals and maps use the models it can call.
+    Client {},
 }
 
 impl From<FurtherModelSpec> for ModelSpec {
@@ -82,16 +87,18 @@ impl From<FurtherModelSpec> for ModelSpec {
         match spec {
             FurtherModelSpec::Remote { url, timeout_ms } => ModelSpec::Remote { url, timeout_ms },
             FurtherModelSpec::Linear { a, b, c } => ModelSpec::Linear { a, b, c },
+            FurtherModelSpec::Client {} => ModelSpec::Client {},
         }
     }
 }
 
 impl FurtherModelSpec {
-    /// The kind's name as posted (`remote`, `linear`).
+    /// The kind's name as posted (`remote`, `linear`, `client`).
     pub fn kind(&self) -> &'static str {
         match self {
             Self::Remote { .. } => "remote",
             Self::Linear { .. } => "linear",
+            Self::Client {} => "client",
         }
     }
 
@@ -105,7 +112,7 @@ impl FurtherModelSpec {
         match spec {
             ModelSpec::Remote { url, timeout_ms } => Self::Remote { url, timeout_ms },
             ModelSpec::Linear { a, b, c } => Self::Linear { a, b, c },
-            ModelSpec::Client {} => unreachable!("a further model is never the client's"),
+            ModelSpec::Client {} => Self::Client {},
         }
     }
 }

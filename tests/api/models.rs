@@ -191,9 +191,9 @@ async fn further_models_are_checked_field_by_field() {
             "at most",
         ),
         (
-            json!([{"name": "x", "model": {"kind": "client"}}]),
+            json!([{"name": "x", "model": {"kind": "oracle"}}]),
             "models[0].model",
-            "unknown variant `client`",
+            "unknown variant `oracle`",
         ),
         (
             json!([{"name": "x", "model": {"kind": "linear", "A": [[1, 0]], "B": [[1, 0], [0, 1]]}}]),
@@ -793,4 +793,122 @@ async fn a_proposal_steps_with_every_model_and_says_which() {
         );
         assert_eq!(answer["error"]["details"]["field"], field, "{answer}");
     }
+}
+
+/// A further model that is the client's own labels each transition from the prediction the
+/// client posts with it (`predictions.<name>`; one left out leaves that label missing), has a
+/// precondition of its own, and is never stepped with: the service cannot call it.
+#[tokio::test]
+async fn a_client_model_labels_from_the_predictions_posted_with_each_transition() {
+    let (_dir, app) = fresh_app().await;
+    let id = app
+        .create_experiment(sand(json!([
+            {"name": "mine", "cost": 2, "model": {"kind": "client"}},
+            {"name": "slow", "cost": 4, "model": slow()}])))
+        .await;
+    let (_, e) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(e["models"][0]["model"], json!({"kind": "client"}), "{e}");
+    // The client's model is `slow`'s (s + a/2), sent with every transition but the first
+    // trajectory's (9 × 4 = 36 transitions).
+    let mut omitted = 0;
+    for (k, mut t) in through_sand().into_iter().enumerate() {
+        for tr in t["transitions"].as_array_mut().unwrap() {
+            if k == 0 {
+                omitted += 1;
+                continue;
+            }
+            let (s, a) = (&tr["s"], &tr["a"]);
+            let pred: Vec<f64> = (0..2)
+                .map(|i| s[i].as_f64().unwrap() + 0.5 * a[i].as_f64().unwrap())
+                .collect();
+            tr["predictions"] = json!({ "mine": pred });
+        }
+        app.store_trajectory(id, &t).await;
+    }
+    let (_, summary) = app.get_at(id, "labels").await;
+    let mine = &summary["items"][1];
+    assert_eq!(mine["model"], "mine", "{summary}");
+    assert_eq!(mine["kind"], "client", "{summary}");
+    assert_eq!(mine["n_missing"], omitted, "{summary}");
+    assert_eq!(mine["n_labelled"], 9 * 36 - omitted, "{summary}");
+    // Its labels are `slow`'s where it has them: 0.05 at worst, off the sand.
+    assert!(close(&mine["max_deviation"], 0.05), "{summary}");
+    assert_eq!(mine["max_deviation"], summary["items"][2]["max_deviation"]);
+
+    app.refit(id).await;
+    // Right on the sand, as `slow` is; the features read its prediction, which the client
+    // sends.
+    let points = json!([{"s": [0.2, 0.5], "a": [0.1, 0], "s_pred": [0.25, 0.5]},
+                        {"s": [0.8, 0.5], "a": [0.1, 0], "s_pred": [0.85, 0.5]}]);
+    let (status, mine) = app
+        .post_at(
+            id,
+            "precondition",
+            &json!({"points": points, "beta": 0, "model": "mine"}),
+        )
+        .await;
+    assert_eq!(status, 200, "{mine}");
+    assert_eq!(inside(&mine), [false, true]);
+    assert_eq!(inside(&judged(&app, id, "slow").await), [false, true]);
+    let (status, body) = app
+        .get_at(
+            id,
+            "precondition/map?x=s.s0&y=s.s1&a=0.1,0&nx=3&ny=3&model=mine",
+        )
+        .await;
+    assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+    assert_eq!(body["error"]["details"]["field"], "model", "{body}");
+    // Never stepped with: not among a plan's models, and not to be named.
+    let (status, plan) = app
+        .post_at(
+            id,
+            "plans",
+            &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "beta": 0}),
+        )
+        .await;
+    assert_eq!(status, 200, "{plan}");
+    let stepped: Vec<&str> = plan["model_calls"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|m| m["model"].as_str().unwrap())
+        .collect();
+    assert_eq!(stepped, ["domain", "slow"], "{plan}");
+    for path in ["plans", "proposals"] {
+        let (status, body) = app
+            .post_at(
+                id,
+                path,
+                &json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "models": ["mine"]}),
+            )
+            .await;
+        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+        assert_eq!(body["error"]["details"]["field"], "models[0]", "{body}");
+    }
+
+    // What a posted prediction may not be: of a model the service calls, of no model, not a
+    // state. Nothing is stored.
+    let (_, before) = app.get(&format!("/v1/experiments/{id}")).await;
+    let step = |predictions: Value| {
+        json!({"transitions": [{"s": [0.2, 0.5], "a": [0.1, 0], "s_next": [0.3, 0.5],
+                                "predictions": predictions}]})
+    };
+    for (predictions, field) in [
+        (
+            json!({"slow": [0.25, 0.5]}),
+            "transitions[0].predictions.slow",
+        ),
+        (json!({"sim": [0.25, 0.5]}), "transitions[0].predictions"),
+        (json!({"mine": [0.25]}), "transitions[0].predictions.mine"),
+        (
+            json!({"mine": [0.25, 0.5, 0.1]}),
+            "transitions[0].predictions.mine",
+        ),
+    ] {
+        let (status, body) = app.post_at(id, "trajectories", &step(predictions)).await;
+        assert_eq!((status, code(&body)), (422, "validation_failed"), "{body}");
+        assert_eq!(body["error"]["details"]["field"], field, "{body}");
+    }
+    let (_, after) = app.get(&format!("/v1/experiments/{id}")).await;
+    assert_eq!(after["n_transitions"], before["n_transitions"]);
 }

@@ -26,7 +26,7 @@ from precond_client import (
     serve_model,
     transitions_from_states,
 )
-from precond_client.models import Array, Proposal
+from precond_client.models import Array, Proposal, Transition
 
 pytestmark = pytest.mark.integration
 
@@ -358,6 +358,42 @@ def test_a_plan_steps_with_whichever_model_is_trusted_there(make_server: MakeSer
     for episode in learner:
         assert episode.proposal.models is None and episode.proposal.step_models is None
         episode.abandon()
+
+
+def test_a_client_side_further_model_labels_from_the_posted_predictions(
+    make_server: MakeServer,
+) -> None:
+    """A further model that is the client's own: its prediction rides with each transition,
+    and one left out leaves its label missing, never the transition."""
+    server = make_server([])
+    client = Client(server.url, timeout=60)
+    moves = [[0.1, 0.0], [-0.1, 0.0], [0.0, 0.1], [0.0, -0.1]]
+    client.create_experiment(
+        {
+            "name": "mine",
+            "d_max": 0.02,
+            "domain": {
+                "kind": "custom",
+                "state": {"low": [0, 0], "high": [1, 1]},
+                "action": {"values": moves},
+                "model": {"kind": "linear", "A": [[1, 0], [0, 1]], "B": [[1, 0], [0, 1]]},
+            },
+        },
+        models=[{"name": "mine", "cost": 2, "model": {"kind": "client"}}],
+    )
+    s, a = np.array([0.7, 0.5]), np.array([0.1, 0.0])
+    s_next = sand_step(s, a)
+    client.post_trajectory(
+        [
+            Transition(s, a, s_next, predictions={"mine": s + 0.5 * a}),
+            Transition(s_next, a, sand_step(s_next, a)),
+        ]
+    )
+    mine = client.labels().of("mine")
+    assert (mine.n_labelled, mine.n_missing) == (1, 1)
+    assert mine.max_deviation is not None and mine.max_deviation < 1e-9
+    with pytest.raises(ValidationFailed):
+        client.post_trajectory([Transition(s, a, s_next, predictions={"sim": s})])
 
 
 def test_a_bad_run_is_excluded_from_the_model_and_restored(make_server: MakeServer) -> None:

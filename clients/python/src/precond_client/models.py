@@ -194,7 +194,9 @@ class Transition:
     """One executed transition to post (schema ``TransitionRequest``).
 
     ``s_pred`` is the client's own prediction ``f̂(s, a)``: required when the experiment's model
-    is the client's (``model.kind`` ``client``), refused otherwise.
+    is the client's (``model.kind`` ``client``), refused otherwise. ``predictions`` are the
+    predictions of the experiment's further models that are the client's own, by name (one
+    left out leaves that model's label missing).
     """
 
     SCHEMA: ClassVar[str] = "TransitionRequest"
@@ -203,6 +205,7 @@ class Transition:
     a: ArrayLike
     s_next: ArrayLike
     s_pred: ArrayLike | None = None
+    predictions: Mapping[str, ArrayLike] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """The JSON form."""
@@ -213,6 +216,8 @@ class Transition:
         }
         if self.s_pred is not None:
             d["s_pred"] = as_list(self.s_pred)
+        if self.predictions is not None:
+            d["predictions"] = {name: as_list(p) for name, p in self.predictions.items()}
         return d
 
 
