@@ -558,6 +558,8 @@ export async function trajectoryPage(root, params, id, tid) {
   crumbs([['Experiments', '/ui/experiments'], [name, expUrl(id)], [`trajectory ${tid}`]]);
   const planned = proposal?.trajectory;
   const steps = t.transitions;
+  // A proposal that stepped with several models says which model each step relied on.
+  const stepModels = proposal?.step_models ?? null;
   const pm = i => (planned && i < planned.mu.length ? `${fmt(planned.mu[i])} ± ${fmt(planned.sigma[i])}` : '–');
   // The planned action at a step, when the executed one is not it (a deviating execution).
   const close = (x, p) =>
@@ -581,6 +583,7 @@ export async function trajectoryPage(root, params, id, tid) {
       td(vec(x.s_next)),
       td(h('span', { class: x.deviation >= e.d_max ? 'bad' : 'ok' }, fmt(x.deviation)), true),
       td(pm(i), true),
+      ...(stepModels ? [td(stepModels[i] ?? '–')] : []),
       td(`${fmt(now.results[i].mu)} ± ${fmt(now.results[i].sigma)}`, true),
       td(now.results[i].inside ? 'inside' : 'outside'),
     ),
@@ -625,6 +628,11 @@ export async function trajectoryPage(root, params, id, tid) {
             h('b', {}, `#${proposal.id}`),
             ` (iteration ${proposal.iteration}, β = ${fmt(proposal.beta)}${proposal.relaxed_from_beta != null ? ` relaxed from β_j = ${fmt(proposal.relaxed_from_beta)}` : ''}, ${proposal.strategy}${proposal.valued_by ? ` by ${proposal.valued_by}` : ''}, client ${proposal.client_id ?? '–'}); `,
             `μ ± σ "at the time" are the proposal's, from model version ${proposal.model_version}; "now" from version ${now.model_version}.`,
+            ...(stepModels
+              ? [
+                  ` It stepped with ${proposal.models.join(', ')} (cheapest first): each step relied on the cheapest model whose precondition trusted it, and its μ ± σ at the time are that model's.`,
+                ]
+              : []),
           ]
         : `Posted without a proposal; μ ± σ are the current model's (version ${now.model_version}) — the version answering at ingest is not kept per trajectory.`,
     ),
@@ -659,6 +667,7 @@ export async function trajectoryPage(root, params, id, tid) {
         ['observed s′'],
         ['deviation', 1],
         ['μ ± σ at the time', 1],
+        ...(stepModels ? [['model']] : []),
         ['μ ± σ now', 1],
         [`now (β=${fmt(now.beta)})`],
       ],

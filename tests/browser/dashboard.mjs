@@ -237,6 +237,28 @@ test('the kinematic map has two continuous axes and sliders for the rest', async
   assert.match(await page.locator('#map-status').innerText(), /precondition of still/);
 });
 
+test('a trajectory of a proposal across models says which model each step relied on', async () => {
+  const proposal = await call(base, 'POST', `/v1/experiments/${kin}/proposals`, {
+    start: [0.2, 0.2],
+    goal: [0.5, 0.5],
+    client_id: 'two-models',
+  });
+  assert.deepEqual(proposal.models, ['still', 'domain']);
+  const { states, actions } = proposal.trajectory;
+  const executed = await call(base, 'POST', `/v1/experiments/${kin}/trajectories`, {
+    proposal_id: proposal.id,
+    transitions: actions.map((a, i) => ({ s: states[i], a, s_next: states[i + 1] })),
+  });
+  await open(`/ui/experiments/${kin}/trajectories/${executed.id}`);
+  await page.waitForSelector('body[data-ready="true"]');
+  assert.match(await page.locator('main').innerText(), /It stepped with still, domain \(cheapest first\)/);
+  const heads = await page.locator('#steps thead th').allInnerTexts();
+  const column = heads.indexOf('model');
+  assert.ok(column > 0, heads.join(' | '));
+  const cells = await page.locator(`#steps tbody tr td:nth-child(${column + 1})`).allInnerTexts();
+  assert.deepEqual(cells, proposal.step_models);
+});
+
 test('diagnostics show leave-one-out calibration and the precondition rates', async () => {
   await open(`/ui/experiments/${grid}/diagnostics`);
   await page.waitForSelector('#diagnostics .kpi');
