@@ -736,10 +736,11 @@ pub struct ProposalRequest {
     pub candidates: Option<Vec<CandidateTrajectory>>,
     /// The models the service's candidates may step with, by name (`"domain"` for the
     /// domain's own), each step relying on the cheapest whose precondition trusts it, as in a
-    /// plan. Omitted: every model with an estimator in the served version, and the candidates
-    /// are valued by what their execution teaches every model's precondition (every posted
-    /// transition labels them all). Not with `candidates`, nor with the `random` strategy
-    /// (a rollout steps with the domain's model alone).
+    /// plan; under `spread` the candidates are then valued by what their execution teaches
+    /// every named model's precondition (every posted transition labels them all). Omitted:
+    /// the domain's model alone, as in a single-model experiment (the other models learn from
+    /// the same executions). Not with `candidates`, nor with the `random` strategy (a rollout
+    /// steps with the domain's model alone).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub models: Option<Vec<String>>,
 }
@@ -876,8 +877,8 @@ pub struct ProposalContent {
     /// proposals stored before it was recorded.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub valued_by: Option<crate::planning::AcquisitionKind>,
-    /// The models the candidates stepped with (cheapest first), present when the proposal
-    /// stepped with more than the domain's model; a continuation of it steps with the same.
+    /// The models the candidates stepped with (cheapest first), present when the request named
+    /// more than the domain's model; a continuation of it steps with the same.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub models: Option<Vec<String>>,
     /// The model each step of the trajectory relied on, present with `models`.

@@ -119,19 +119,26 @@ fn content_across(
     })
 }
 
-/// The models a proposal's own candidates step with (see [`plan_models`]): the domain's alone
-/// for a `random` rollout (an error naming `models` when the request named others).
+/// The models a proposal's own candidates step with: the domain's alone unless the request
+/// names others (see [`plan_models`]) — proposals across every model taught the preconditions
+/// no more than the domain model's own on the worlds measured, and cost the dearer models'
+/// calls on every proposal (docs/research/several-models.md, "Step 3"). A `random` rollout
+/// steps with the domain's model alone (an error naming `models` when the request named
+/// others).
 fn proposal_models(
     live: &LiveExperiment,
     model: &ServedModel,
     strategy: Strategy,
     request: &ProposalRequest,
 ) -> Result<Vec<Option<usize>>> {
-    let steppers = plan_models(live, model, request.models.as_deref())?;
+    let Some(named) = request.models.as_deref() else {
+        return Ok(vec![None]);
+    };
+    let steppers = plan_models(live, model, Some(named))?;
     if strategy != Strategy::Random {
         return Ok(steppers);
     }
-    if request.models.is_some() && steppers != [None] {
+    if steppers != [None] {
         return Err(Error::validation(
             "models",
             "a random rollout steps with the domain's model alone",

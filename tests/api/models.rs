@@ -721,14 +721,15 @@ async fn each_model_has_its_own_precondition_map() {
     assert_eq!(body["error"]["details"]["field"], "model", "{body}");
 }
 
-/// A proposal in an experiment with several models steps, like a plan, with whichever model
-/// is trusted where it is — the one trajectory that crosses the sand takes both — says which
-/// model each step relied on, and a continuation of it steps with the same models; a
-/// proposal may name its models, as a plan may.
+/// A proposal that names several models steps, like a plan, with whichever is trusted where
+/// it is — the one trajectory that crosses the sand takes both — says which model each step
+/// relied on, and a continuation of it steps with the same models. Without `models` a
+/// proposal steps with the domain's model alone, as in a single-model experiment.
 #[tokio::test]
-async fn a_proposal_steps_with_every_model_and_says_which() {
+async fn a_proposal_that_names_its_models_steps_with_each_and_says_which() {
     let (_dir, app, id) = learnt_sand().await;
-    let problem = json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "client_id": "arm"});
+    let problem = json!({"start": [0.2, 0.5], "goal": [0.8, 0.5], "client_id": "arm",
+                         "models": ["slow", "domain"]});
     let (status, body) = app.post_at(id, "proposals", &problem).await;
     assert_eq!(status, 201, "{body}");
     assert_eq!(body["models"], json!(["domain", "slow"]), "{body}");
@@ -755,17 +756,17 @@ async fn a_proposal_steps_with_every_model_and_says_which() {
     assert_eq!(next["proposal"]["models"], body["models"], "{next}");
     assert!(next["proposal"]["step_models"].is_array(), "{next}");
 
-    // Named: the domain's model alone answers as a single-model proposal does.
-    let (_, app2_body) = app
-        .post_at(
-            id,
-            "proposals",
-            &json!({"start": [0.1, 0.2], "goal": [0.4, 0.2], "client_id": "base",
-                    "models": ["domain"]}),
-        )
-        .await;
-    assert!(app2_body.get("models").is_none(), "{app2_body}");
-    assert!(app2_body.get("step_models").is_none(), "{app2_body}");
+    // Unnamed, or the domain's model alone: answered as a single-model proposal is.
+    for (client, models) in [("base", None), ("cart", Some(json!(["domain"])))] {
+        let mut body = json!({"start": [0.1, 0.2], "goal": [0.4, 0.2], "client_id": client});
+        if let Some(models) = models {
+            body["models"] = models;
+        }
+        let (status, answer) = app.post_at(id, "proposals", &body).await;
+        assert_eq!(status, 201, "{answer}");
+        assert!(answer.get("models").is_none(), "{answer}");
+        assert!(answer.get("step_models").is_none(), "{answer}");
+    }
 
     // What a proposal may not name.
     let candidate = json!({"states": [[0.1, 0.3], [0.2, 0.3]], "actions": [[0.1, 0]]});

@@ -242,6 +242,7 @@ test('a trajectory of a proposal across models says which model each step relied
     start: [0.2, 0.2],
     goal: [0.5, 0.5],
     client_id: 'two-models',
+    models: ['domain', 'still'],
   });
   assert.deepEqual(proposal.models, ['still', 'domain']);
   const { states, actions } = proposal.trajectory;

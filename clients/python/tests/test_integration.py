@@ -350,7 +350,7 @@ def test_a_plan_steps_with_whichever_model_is_trusted_there(make_server: MakeSer
     with pytest.raises(ValidationFailed):
         client.plan(start, goal, models=["sim"])
     # A proposal steps with the models the same way, and says so; the learner may name them.
-    proposal = client.propose(start, goal, client_id="sand")
+    proposal = client.propose(start, goal, client_id="sand", models=["slow", "domain"])
     assert proposal.models == ["domain", "slow"] and proposal.step_models is not None
     assert {"domain", "slow"} <= set(proposal.step_models)
     client.abandon(proposal.id)

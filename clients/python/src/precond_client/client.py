@@ -468,11 +468,11 @@ class Client:
         """Asks for the trajectory to execute from ``start`` to ``goal``, leased to
         ``client_id`` (default :attr:`client_id`).
 
-        In an experiment with several models the service's candidates step, each step, with
-        the cheapest model whose precondition trusts it, and are valued by what their
-        execution teaches every model (``Proposal.step_models`` says which model each step
-        relied on); ``models`` names the models they may step with instead (``"domain"`` for
-        the domain's own).
+        In an experiment with several models, ``models`` names the models the service's
+        candidates may step with (``"domain"`` for the domain's own): each step relies on the
+        cheapest model whose precondition trusts it, and the candidates are valued by what
+        their execution teaches each of them (``Proposal.step_models`` says which model each
+        step relied on). Default: the domain's model alone.
 
         Asking again while the lease is open returns the same proposal; asking for another
         problem raises :class:`~precond_client.errors.Conflict` whose ``lease`` names the
@@ -980,7 +980,7 @@ class Client:
         before the next proposal. ``progress`` receives a
         :class:`~precond_client.robot.Progress` after each event. ``models`` names the models
         each proposal may step with (see :meth:`propose`), or is a function of the number of
-        episodes so far giving them (``None``: every model).
+        episodes so far giving them (``None``: the domain's model alone).
 
         A busy server does not stop the loop: a problem whose search passes the server's
         deadline ``deadline_attempts`` times (default 2), or whose proposal fails with another

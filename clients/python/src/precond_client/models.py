@@ -553,8 +553,8 @@ class Proposal(Wire):
     the experiment's ``learning.acquisition``, or ``lcb`` where a value-based one valued no
     candidate above 0 (``None`` for proposals stored before it was recorded)."""
     models: list[str] | None = None
-    """The models the candidates stepped with, cheapest first, when the proposal stepped with
-    more than the domain's model; a continuation steps with the same."""
+    """The models the candidates stepped with, cheapest first, when the request named more than
+    the domain's model; a continuation steps with the same."""
     step_models: list[str] | None = None
     """The model each step of the trajectory relied on, with :attr:`models`."""
 

@@ -72,8 +72,8 @@ CandidateFn = Callable[[Array, Array], Sequence[Candidate]]
 """The client's own planner for a problem ``(start, goal)`` (client-side models)."""
 
 ModelsFn = Callable[[int], Sequence[str] | None]
-"""The models a proposal may step with, given the number of episodes so far (``None``: every
-model of the experiment)."""
+"""The models a proposal may step with, given the number of episodes so far (``None``: the
+domain's model alone)."""
 
 SleepFn = Callable[[float], None]
 
