@@ -150,7 +150,7 @@ def several_run(name: str, seed: int, args: argparse.Namespace, dbdir: Path) -> 
     out: dict[str, Any] = {"robot": name, "seed": seed,
                            "coarse_sim": {"timestep_factor": COARSE_TIMESTEP_FACTOR[name],
                                           "timestep": float(sim.model.opt.timestep)},  # type: ignore[attr-defined]
-                           "costs": COSTS}
+                           "costs": COSTS, "learn": args.learn}
     t_start = time.monotonic()
     out["shares"] = shares(robot, sim, ts)
     log.info("%s seed %d: within d_max: domain %.3f sim %.3f either %.3f", name, seed,
@@ -190,11 +190,22 @@ def several_run(name: str, seed: int, args: argparse.Namespace, dbdir: Path) -> 
 
             total = args.iterations * args.batch
             posted, requests_guard = 0, 0
+
+            # What the proposals step with after the first batch (when `sim` has an
+            # estimator): `domain`, the service's default, the lab model alone; `all`, both,
+            # each proposal valued by what it teaches each; `separate`, one at a time in turn.
+            def separately(_episodes: int) -> list[str] | None:
+                if args.learn == "domain" or posted < args.batch:
+                    return None
+                if args.learn == "all":
+                    return ["domain", "sim"]
+                return [["domain", "sim"][posted % 2]]
+
             failures: dict[str, int] = {}
             no_plan = 0
             while posted < total and requests_guard < 4 * total:
                 learner = client.learn(problems(), client_id=f"several-{name}",
-                                       model_timeout=600)
+                                       model_timeout=600, models=separately)
                 try:
                     for ep in learner:
                         ep.post(robot.execute(ep.start, ep.actions))
@@ -382,6 +393,9 @@ def main() -> None:
     ap.add_argument("--plan-seconds", type=float, default=45.0,
                     help="wall-clock limit of one plan's search (the server's --plan-timeout-ms)")
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--learn", choices=["domain", "all", "separate"], default="domain",
+                    help="proposals with the lab model alone (the service's default), across "
+                    "both models, or one model at a time in turn")
     ap.add_argument("--summary-only", action="store_true")
     args = ap.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)

@@ -208,9 +208,23 @@ def run_world(
         while True:
             yield rng.uniform(0.05, 0.95, size=2), rng.uniform(0.05, 0.95, size=2)
 
-    learner = client.learn(problems(), verbose=False)
+    # What the proposals step with (the further models have estimators after the first
+    # batch): `domain`, the service's default, the domain's model alone; `all`, every model,
+    # each proposal valued by what it teaches each; `separate`, one model at a time in turn.
+    names = list(world.models)
+
+    def across(episodes: int) -> list[str] | None:
+        return None if episodes < args.batch else names
+
+    def separately(episodes: int) -> list[str] | None:
+        return None if episodes < args.batch else [names[episodes % len(names)]]
+
+    chosen = {"domain": None, "all": across, "separate": separately}[args.learn]
+    learner = client.learn(problems(), models=chosen, verbose=False)
+    transitions = 0
     for ep in learner:
         created = ep.post(execute(world, ep.start, ep.actions))
+        transitions += len(ep.actions)
         if created.n_trajectories >= args.trajectories:
             break
     client.wait_for_model(args.trajectories, timeout=600)
@@ -256,6 +270,10 @@ def run_world(
         "search_cost": float("nan"),
         "step_cost": float(np.mean(costs)) if costs else float("nan"),
     }
+    rows["learning"] = {
+        "transitions": float(transitions),
+        "no_plan": float(learner.no_plan),
+    }
     return rows
 
 
@@ -277,6 +295,13 @@ def main() -> None:
     ap.add_argument("--batch", type=int, default=10, help="trajectories per refit")
     ap.add_argument("--test-problems", type=int, default=20)
     ap.add_argument("--world", choices=["sand", "bands"], action="append")
+    ap.add_argument(
+        "--learn",
+        choices=["domain", "all", "separate"],
+        default="domain",
+        help="proposals with the domain's model alone (the service's default), across every "
+        "model, or one model at a time in turn",
+    )
     ap.add_argument(
         "--out", type=Path, help="directory for the summary (default: a new temp dir)"
     )
@@ -323,13 +348,17 @@ def main() -> None:
                 summary["worlds"][world.name] = {"mean": table, "per_seed": per_seed}
                 print(
                     f"\n{world.name}: seeds {seeds} × {args.test_problems} problems, "
-                    f"{args.trajectories} learning trajectories each"
+                    f"{args.trajectories} learning trajectories each ({args.learn}: "
+                    f"{table['learning']['transitions']:.0f} transitions, "
+                    f"{table['learning']['no_plan']:.1f} problems without a proposal)"
                 )
                 print(
                     f"{'':22s} {'found':>6s} {'success':>8s} {'closed loop':>12s} "
                     f"{'search cost':>12s} {'step cost':>10s}"
                 )
                 for arm, r in table.items():
+                    if arm == "learning":
+                        continue
                     print(
                         f"{arm:22s} {r['found']:6.2f} {r['success']:8.2f} {r['closed_loop']:12.2f} "
                         f"{r['search_cost']:12.0f} {r['step_cost']:10.1f}"
