@@ -239,6 +239,36 @@ pub(super) fn provenance_from_row(row: &AnyRow) -> Result<Option<Provenance>, sq
 /// PostgreSQL's limits on parameters per statement).
 const INSERT_ROWS: usize = 256;
 
+/// `INSERT INTO model_labels` of `rows` rows, each `($e, $t, $m, <tail>)` with `tail` (whose
+/// `${}` are numbered on) completing `s_pred, deviation, missing`; `per_row` parameters a row.
+fn label_insert(rows: usize, tail: &str, per_row: usize) -> String {
+    let values: Vec<String> = (0..rows)
+        .map(|r| {
+            let mut n = per_row * r;
+            let mut next = || {
+                n += 1;
+                format!("${n}")
+            };
+            let head = format!("({}, {}, {}, ", next(), next(), next());
+            let mut row = head;
+            for (k, part) in tail.split("${}").enumerate() {
+                if k > 0 {
+                    row.push_str(&next());
+                }
+                row.push_str(part);
+            }
+            row.push(')');
+            row
+        })
+        .collect();
+    format!(
+        "INSERT INTO model_labels
+           (experiment_id, transition_id, model, s_pred, deviation, missing)
+         VALUES {}",
+        values.join(", ")
+    )
+}
+
 const TRANSITION_COLUMNS: &str = "id, trajectory_id, step, s, a, s_next, s_pred, deviation";
 
 impl Store {
@@ -386,36 +416,33 @@ impl Store {
                     .zip(labels)
                     .flat_map(|(&id, of)| of.iter().map(move |l| (id, l)))
                     .collect();
-                for chunk in rows.chunks(INSERT_ROWS) {
-                    let values: Vec<String> = (0..chunk.len())
-                        .map(|r| {
-                            let p = 6 * r;
-                            format!(
-                                "(${}, ${}, ${}, ${}, ${}, ${})",
-                                p + 1,
-                                p + 2,
-                                p + 3,
-                                p + 4,
-                                p + 5,
-                                p + 6
-                            )
-                        })
-                        .collect();
-                    let sql = format!(
-                        "INSERT INTO model_labels
-                           (experiment_id, transition_id, model, s_pred, deviation, missing)
-                         VALUES {}",
-                        values.join(", ")
-                    );
+                // A missing label writes NULL literals rather than binding NULLs: through the
+                // `Any` driver a NULL bound first fixes its parameter's type in PostgreSQL's
+                // cached statement, and a number bound there later is refused.
+                let (labelled, missing): (Vec<_>, Vec<_>) =
+                    rows.into_iter().partition(|(_, l)| l.deviation.is_some());
+                for chunk in labelled.chunks(INSERT_ROWS) {
+                    let sql = label_insert(chunk.len(), "${}, ${}, NULL", 5);
                     let mut insert = sqlx::query(&sql);
                     for (id, l) in chunk {
                         insert = insert
                             .bind(experiment_id)
                             .bind(*id)
                             .bind(l.model.as_str())
-                            .bind(l.s_pred.as_deref().map(encode_vec))
-                            .bind(l.deviation)
-                            .bind(l.missing.as_deref());
+                            .bind(encode_vec(l.s_pred.as_deref().unwrap_or_default()))
+                            .bind(l.deviation.unwrap_or_default());
+                    }
+                    insert.execute(&mut *tx).await?;
+                }
+                for chunk in missing.chunks(INSERT_ROWS) {
+                    let sql = label_insert(chunk.len(), "NULL, NULL, ${}", 4);
+                    let mut insert = sqlx::query(&sql);
+                    for (id, l) in chunk {
+                        insert = insert
+                            .bind(experiment_id)
+                            .bind(*id)
+                            .bind(l.model.as_str())
+                            .bind(l.missing.as_deref().unwrap_or("missing"));
                     }
                     insert.execute(&mut *tx).await?;
                 }
