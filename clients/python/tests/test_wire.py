@@ -412,7 +412,9 @@ def test_the_start_at_the_goal_is_recognised_from_the_spec_example() -> None:
 
 
 def test_request_models_send_the_schema_properties() -> None:
-    full = models.Transition([0.0, 0.0], [0.1, 0.0], [0.1, 0.0], s_pred=[0.1, 0.0]).to_json()
+    full = models.Transition(
+        [0.0, 0.0], [0.1, 0.0], [0.1, 0.0], s_pred=[0.1, 0.0], predictions={"mine": [0.1, 0.0]}
+    ).to_json()
     assert set(full) == set(expected_fields(models.Transition))
     bare = models.Transition([0.0, 0.0], [0.1, 0.0], [0.1, 0.0]).to_json()
     _, required = merged("TransitionRequest")
