@@ -209,11 +209,7 @@ pub(crate) fn propose(
         }];
         candidates(task, &mut stages, seed, budget)?
     };
-    let valuation::Valuation {
-        scored,
-        alphas,
-        valued_by,
-    } = valuation::value_candidates(
+    let valuation = valuation::value_candidates(
         valuation::Context {
             task,
             model,
@@ -226,38 +222,8 @@ pub(crate) fn propose(
         strategy == Strategy::Active,
         valuation::Probe::Allowed,
     )?;
-    // `candidates` answers NoPlan rather than an empty set, so there is one to choose.
-    let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
-    let candidates = found
-        .trajectories
-        .iter()
-        .zip(&alphas)
-        .map(|(t, alpha)| CandidateScore {
-            alpha: *alpha,
-            length: t.len(),
-        })
-        .collect();
-    // The chosen candidate's `α` as it was compared (for `bottleneck` and `spread`, the value
-    // negated).
-    let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
-    let mut trajectories = found.trajectories;
-    let trajectory = trajectories.swap_remove(chosen_index);
-    Ok(Proposal {
-        strategy,
-        beta: precondition.beta(),
-        trajectory,
-        alpha_step,
-        alpha,
-        candidates,
-        chosen_index,
-        valued_by,
-        extensions: found.extensions,
-        runs: found.runs,
-        model_points: cache.points(),
-        model_calls: cache.calls(),
-        dynamics_calls: found.dynamics_calls,
-        step_models: Vec::new(),
-    })
+    let calls = (cache.points(), cache.calls());
+    Ok(found.choose(strategy, precondition.beta(), valuation, seed, calls, false))
 }
 
 /// The proposal of `strategy` (`active` or `goal_conditioned`) for the task's problem when an
@@ -344,39 +310,12 @@ pub(crate) fn propose_across(
         AcquisitionKind::Bottleneck => AcquisitionKind::Lcb,
         kind => kind,
     };
-    let valuation::Valuation {
-        scored,
-        alphas,
-        valued_by,
-    } = valuation::compare(kind, scored, values);
-    let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
-    let candidates = found
-        .trajectories
-        .iter()
-        .zip(&alphas)
-        .map(|(t, alpha)| CandidateScore {
-            alpha: *alpha,
-            length: t.len(),
-        })
-        .collect();
-    let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
-    let (mut trajectories, mut step_models) = (found.trajectories, found.step_models);
-    Ok(Proposal {
-        strategy,
-        beta: precondition.beta(),
-        trajectory: trajectories.swap_remove(chosen_index),
-        alpha_step,
-        alpha,
-        candidates,
-        chosen_index,
-        valued_by,
-        extensions: found.extensions,
-        runs: found.runs,
-        model_points: caches.iter().map(ModelCache::points).sum(),
-        model_calls: caches.iter().map(ModelCache::calls).sum(),
-        dynamics_calls: found.dynamics_calls,
-        step_models: step_models.swap_remove(chosen_index),
-    })
+    let valuation = valuation::compare(kind, scored, values);
+    let calls = (
+        caches.iter().map(ModelCache::points).sum(),
+        caches.iter().map(ModelCache::calls).sum(),
+    );
+    Ok(found.choose(strategy, precondition.beta(), valuation, seed, calls, true))
 }
 
 /// Index of the smallest value, the first on ties (`total_cmp` order). 0 when empty.
@@ -398,6 +337,61 @@ struct Candidates {
     extensions: usize,
     runs: usize,
     dynamics_calls: usize,
+}
+
+impl Candidates {
+    /// The proposal `strategy` makes of these candidates valued `valuation` (planned at
+    /// `beta`): the one it chooses — `candidates` answers NoPlan rather than an empty set, so
+    /// there is one — with its `α` as it was compared (for `bottleneck` and `spread`, the
+    /// value negated). `calls`: distinct points and calls the deviation models answered;
+    /// `across`: whether the steps' models are reported (a proposal across models).
+    fn choose(
+        self,
+        strategy: Strategy,
+        beta: f64,
+        valuation: valuation::Valuation,
+        seed: u64,
+        (model_points, model_calls): (usize, usize),
+        across: bool,
+    ) -> Proposal {
+        let valuation::Valuation {
+            scored,
+            alphas,
+            valued_by,
+        } = valuation;
+        let chosen_index = strategy.choose(&alphas, seed).unwrap_or(0);
+        let candidates = self
+            .trajectories
+            .iter()
+            .zip(&alphas)
+            .map(|(t, alpha)| CandidateScore {
+                alpha: *alpha,
+                length: t.len(),
+            })
+            .collect();
+        let (alpha_step, alpha) = (scored[chosen_index].0.clone(), alphas[chosen_index]);
+        let (mut trajectories, mut step_models) = (self.trajectories, self.step_models);
+        Proposal {
+            strategy,
+            beta,
+            trajectory: trajectories.swap_remove(chosen_index),
+            alpha_step,
+            alpha,
+            candidates,
+            chosen_index,
+            valued_by,
+            extensions: self.extensions,
+            runs: self.runs,
+            model_points,
+            model_calls,
+            dynamics_calls: self.dynamics_calls,
+            step_models: if across {
+                step_models.swap_remove(chosen_index)
+            } else {
+                Vec::new()
+            },
+        }
+    }
 }
 
 /// The candidates of one proposal (see the module docs), stepping with `stages` (the domain's
