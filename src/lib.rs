@@ -72,19 +72,14 @@
 
 pub mod api;
 pub mod bench;
-pub mod budget;
 pub mod cli;
-pub mod domain;
 pub mod experiment;
-pub mod gp;
 pub mod http;
 pub mod import;
-pub mod limits;
-pub mod mde;
-pub mod planning;
 pub mod remote_model;
-pub mod seed;
 pub mod service;
 pub mod settings;
-pub mod sim;
 pub mod store;
+
+// The numeric core, under the paths the server and its users always named it by.
+pub use precond_core::{budget, domain, gp, limits, mde, planning, seed, sim};

@@ -51,7 +51,8 @@ pub fn run(exact_sizes: &[usize], sparse_sizes: &[usize], inducing: usize) -> an
         let exported = ExportedModel::of(1, &served, &domain, 0.05, 2.0)
             .ok_or_else(|| anyhow::anyhow!("a fitted model exports"))?;
         let doc = serde_json::to_string(&exported)?;
-        let exported = ExportedModel::from_json(&doc).map_err(|e| anyhow::anyhow!(e))?;
+        let exported: ExportedModel = serde_json::from_str(&doc)?;
+        exported.check().map_err(|e| anyhow::anyhow!(e))?;
         let points: Vec<(Vec<f64>, Vec<f64>)> = (0..1000)
             .map(|_| {
                 let s = domain.sample_state(&mut rng);

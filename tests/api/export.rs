@@ -117,7 +117,8 @@ async fn parity_predicted(
         1
     };
     assert_eq!(doc["format_version"], version);
-    let model = ExportedModel::from_json(&doc.to_string()).expect("the document checks");
+    let model: ExportedModel = serde_json::from_value(doc.clone()).expect("the document reads");
+    model.check().expect("the document checks");
     let (_, experiment) = app.get_at(id, "").await;
     assert_eq!(doc["model_version"], experiment["model_version"]);
     assert_eq!(doc["feature_names"], experiment["feature_names"]);

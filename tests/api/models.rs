@@ -459,7 +459,8 @@ async fn each_models_precondition_is_learnt_from_its_own_labels() {
     let (status, doc) = app.get_at(id, "model/export?model=still").await;
     assert_eq!(status, 200, "{doc}");
     assert_eq!(doc["model"], "still", "{doc}");
-    let exported = precond::mde::ExportedModel::from_json(&doc.to_string()).unwrap();
+    let exported: precond::mde::ExportedModel = serde_json::from_value(doc.clone()).unwrap();
+    exported.check().unwrap();
     for (k, s) in [[0.2, 0.5], [0.8, 0.5]].iter().enumerate() {
         let (mu, _) = exported.evaluate_predicted(s, &[0.1, 0.0], s);
         let served = still["results"][k]["mu"].as_f64().unwrap();

@@ -139,13 +139,6 @@ impl ExportedModel {
         })
     }
 
-    /// Reads and [checks](Self::check) a document.
-    pub fn from_json(text: &str) -> Result<Self, String> {
-        let model: Self = serde_json::from_str(text).map_err(|e| e.to_string())?;
-        model.check()?;
-        Ok(model)
-    }
-
     /// Checks the format and that the parts fit together (the feature map reads states and
     /// actions of the stated dimensions and yields the predictor's features), so that
     /// [`evaluate`](Self::evaluate) cannot index out of bounds.

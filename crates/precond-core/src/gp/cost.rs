@@ -341,7 +341,7 @@ mod tests {
         };
         let parts: Vec<&str> = spec.split(',').collect();
         let n: usize = parts[1].parse().unwrap();
-        let (x, y) = crate::bench::gp::bench_data(n, 6, 0);
+        let (x, y) = crate::gp::synthetic::bench_data(n, 6, 0);
         let gp = GpParams {
             noise: if parts.get(2) == Some(&"hetero") {
                 NoiseMode::Heteroscedastic

@@ -45,6 +45,7 @@ mod lml;
 pub mod model;
 pub mod params;
 pub mod sparse;
+pub mod synthetic;
 #[cfg(test)]
 mod tests;
 
