@@ -3,7 +3,7 @@
 //! and sanity.
 
 use clap::Parser;
-use precond::cli::{Cli, Command};
+use precond_tools::cli::{Cli, Command};
 use serde_json::Value;
 use std::collections::HashSet;
 use std::path::Path;
@@ -39,7 +39,7 @@ async fn run_quick(args: &[&str], out: &Path) -> std::path::PathBuf {
     let Command::Experiment(args) = cli.command else {
         panic!("not the experiment command");
     };
-    precond::experiment::run(args).await.unwrap()
+    precond_tools::experiment::run(args).await.unwrap()
 }
 
 fn is_rate(x: f64) -> bool {
@@ -54,7 +54,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
 
     // iterations.csv: one row per strategy × seed × iteration, the documented columns.
     let (header, rows) = parse_csv(&out.join("iterations.csv"));
-    assert_eq!(header, precond::experiment::report::ITERATION_COLUMNS);
+    assert_eq!(header, precond_tools::experiment::report::ITERATION_COLUMNS);
     let col = |name: &str| header.iter().position(|h| h == name).unwrap();
     assert_eq!(rows.len(), 3 * 2 * 3);
     let keys: HashSet<(String, String, String)> = rows
@@ -130,7 +130,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
         serde_json::from_str(&std::fs::read_to_string(out.join("summary.json")).unwrap()).unwrap();
     assert_eq!(summary["domain"], "icy_gridworld");
     for s in STRATEGIES {
-        for m in precond::experiment::report::METRICS {
+        for m in precond_tools::experiment::report::METRICS {
             let series = summary["strategies"][s][m].as_array().unwrap();
             assert_eq!(series.len(), 3, "{s} {m}");
             for (j, point) in series.iter().enumerate() {
@@ -146,7 +146,7 @@ async fn a_quick_gridworld_experiment_writes_well_formed_results_and_plots() {
         assert_eq!(summary["strategies"][s]["plan_found_rate"][0]["n"], 2);
     }
     // The closing table the command prints: one row per strategy with the final figures.
-    let table = precond::experiment::report::summary_table_of(&out).unwrap();
+    let table = precond_tools::experiment::report::summary_table_of(&out).unwrap();
     let table_rows: Vec<&str> = table.lines().skip(2).collect();
     assert_eq!(table_rows.len(), STRATEGIES.len(), "{table}");
     for (row, s) in table_rows.iter().zip(STRATEGIES) {

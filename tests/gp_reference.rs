@@ -2,7 +2,7 @@
 //! heteroscedastic fit against known noise levels.
 
 use nalgebra::{DMatrix, DVector};
-use precond::gp::{GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode};
+use precond_core::gp::{GpModel, GpParams, Hyperparameters, Kernel, ModelState, NoiseMode};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;

@@ -12,8 +12,8 @@
 //! residuals. It runs in a binary of its own because it installs a counting global allocator.
 
 use nalgebra::{DMatrix, DVector};
-use precond::gp::cost::PRODUCT_WORKSPACE_BYTES;
-use precond::gp::{GpModel, ModelState};
+use precond_core::gp::cost::PRODUCT_WORKSPACE_BYTES;
+use precond_core::gp::{GpModel, ModelState};
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 

@@ -96,7 +96,7 @@ pub enum DomainSpec {
         features: KinematicFeatures,
     },
     /// The plant-watering world with its documented default scene (see
-    /// `src/domain/water_plant/mod.rs`): pour one unit into the target without spilling more
+    /// `crates/precond-core/src/domain/water_plant/mod.rs`): pour one unit into the target without spilling more
     /// than 2 %, with leaves hanging over the target's opening.
     WaterPlant {},
     /// Any robot's own: its spaces, distance, goal test, obstacles and model (remote, linear or

@@ -4,9 +4,9 @@
 
 use super::helpers::{TestApp, count_true, fresh_experiment, pushed_lattice};
 use precond::domain::{Kinematic, KinematicParams, Problem};
-use precond::experiment::reference::ClosedLoop;
 use precond::planning::Trajectory;
 use precond::sim::World;
+use precond_tools::experiment::reference::ClosedLoop;
 use serde_json::{Value, json};
 
 /// The body that asks for a proposal or a plan for `problem`.

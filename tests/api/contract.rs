@@ -10,8 +10,11 @@ use precond::service::Error;
 use std::collections::BTreeSet;
 
 fn spec() -> serde_yaml::Value {
-    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/api/openapi.yaml"))
-        .expect("api/openapi.yaml exists");
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../api/openapi.yaml"
+    ))
+    .expect("api/openapi.yaml exists");
     serde_yaml::from_str(&text).expect("api/openapi.yaml is YAML")
 }
 

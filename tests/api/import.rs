@@ -9,8 +9,8 @@ use parquet::column::writer::ColumnWriter;
 use parquet::file::properties::WriterProperties;
 use parquet::file::writer::SerializedFileWriter;
 use parquet::schema::types::Type;
-use precond::cli::{Cli, Command};
-use precond::import::ImportReport;
+use precond_tools::cli::{Cli, Command};
+use precond_tools::import::ImportReport;
 use serde_json::{Value, json};
 use std::path::Path;
 use std::sync::Arc;
@@ -67,7 +67,7 @@ async fn import(
     let Command::Import(args) = Cli::try_parse_from(argv).unwrap().command else {
         panic!("not the import command");
     };
-    precond::import::run(args).await
+    precond_tools::import::run(args).await
 }
 
 fn vec2(v: &Value) -> [f64; 2] {
@@ -92,8 +92,8 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
     write_csv(&csv, &steps);
 
     // An earlier run was interrupted after the first episode: it is recognised, not repeated.
-    let dataset = precond::import::default_dataset_name(&csv);
-    let dataset_id = precond::import::dataset_identity(&dataset);
+    let dataset = precond_tools::import::default_dataset_name(&csv);
+    let dataset_id = precond_tools::import::dataset_identity(&dataset);
     let first: Vec<Value> = steps[..4]
         .iter()
         .map(|(_, s, a, n)| json!({"s": s, "a": a, "s_next": n}))

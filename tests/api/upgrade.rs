@@ -25,7 +25,7 @@ async fn migrated_up_to(db: &Path, version: i64) -> SqliteConnection {
     )
     .await
     .unwrap();
-    let mut old = sqlx::migrate!("./migrations/sqlite");
+    let mut old = sqlx::migrate!("../../migrations/sqlite");
     old.migrations = Cow::Owned(
         old.migrations
             .iter()

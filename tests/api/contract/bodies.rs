@@ -337,8 +337,11 @@ fn rust_schema<T: JsonSchema>(side: Side) -> Value {
 }
 
 fn spec() -> Value {
-    let text = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/api/openapi.yaml"))
-        .expect("api/openapi.yaml exists");
+    let text = std::fs::read_to_string(concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../../api/openapi.yaml"
+    ))
+    .expect("api/openapi.yaml exists");
     let yaml: serde_yaml::Value = serde_yaml::from_str(&text).expect("api/openapi.yaml is YAML");
     serde_json::to_value(yaml).expect("the spec is JSON-compatible")
 }
@@ -1189,13 +1192,13 @@ fn the_wire_types_skip_only_absent_options() {
         "src/api.rs",
         "src/settings/mod.rs",
         "src/settings/custom.rs",
-        "src/gp/mod.rs",
-        "src/mde/mod.rs",
-        "src/mde/estimator.rs",
-        "src/mde/selection.rs",
-        "src/domain/mod.rs",
+        "crates/precond-core/src/gp/mod.rs",
+        "crates/precond-core/src/mde/mod.rs",
+        "crates/precond-core/src/mde/estimator.rs",
+        "crates/precond-core/src/mde/selection.rs",
+        "crates/precond-core/src/domain/mod.rs",
     ] {
-        let text = std::fs::read_to_string(format!("{}/{file}", env!("CARGO_MANIFEST_DIR")))
+        let text = std::fs::read_to_string(format!("{}/../../{file}", env!("CARGO_MANIFEST_DIR")))
             .expect("source file");
         for (i, line) in text.lines().enumerate() {
             if let Some(rest) = line.split("skip_serializing_if").nth(1) {

@@ -18,4 +18,3 @@ pub fn bench_data(n: usize, d: usize, seed: u64) -> (DMatrix<f64>, DVector<f64>)
     });
     (x, y)
 }
-

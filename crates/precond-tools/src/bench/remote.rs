@@ -6,17 +6,17 @@
 //! the points they carried.
 
 use super::planning::fit_mde;
-use crate::domain::Problem;
-use crate::domain::{
-    CustomDomain, CustomParams, Domain, DynamicsModel, LabelledTransition, LinearModel, Space,
-    Transition,
-};
-use crate::planning::{Planner, PlanningSettings, Precondition, Strategy};
-use crate::remote_model::RemoteModel;
 use axum::Json;
 use axum::Router;
 use axum::extract::State;
 use axum::routing::post;
+use precond::remote_model::RemoteModel;
+use precond_core::domain::Problem;
+use precond_core::domain::{
+    CustomDomain, CustomParams, Domain, DynamicsModel, LabelledTransition, LinearModel, Space,
+    Transition,
+};
+use precond_core::planning::{Planner, PlanningSettings, Precondition, Strategy};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
@@ -110,9 +110,9 @@ pub async fn run(repeats: usize) -> anyhow::Result<()> {
 }
 
 fn bench(url: &str, served: &Served, repeats: usize) -> anyhow::Result<()> {
-    let calls = crate::remote_model::ModelCalls::new(
-        crate::remote_model::ModelUrlPolicy::new(&[url]).map_err(anyhow::Error::msg)?,
-        crate::remote_model::ModelCallLimits::default(),
+    let calls = precond::remote_model::ModelCalls::new(
+        precond::remote_model::ModelUrlPolicy::new(&[url]).map_err(anyhow::Error::msg)?,
+        precond::remote_model::ModelCallLimits::default(),
     );
     let model = Arc::new(RemoteModel::new(url, 10_000, 2, Arc::new(calls)));
     let domain = plane(model);

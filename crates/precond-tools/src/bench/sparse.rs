@@ -29,7 +29,7 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::gp::bench_data;
-use crate::gp::{GpModel, GpParams, Kernel, NoiseMode, SparseGp, SparseParams};
+use precond_core::gp::{GpModel, GpParams, Kernel, NoiseMode, SparseGp, SparseParams};
 
 /// What to benchmark.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -120,7 +120,7 @@ pub struct SparseBenchRow {
 }
 
 fn vm_hwm() -> f64 {
-    crate::gp::cost::peak_rss_bytes().unwrap_or(f64::NAN)
+    precond_core::gp::cost::peak_rss_bytes().unwrap_or(f64::NAN)
 }
 
 fn median(mut v: Vec<f64>) -> f64 {
@@ -152,15 +152,15 @@ struct ChildSpec {
 
 /// Anything that predicts.
 trait Predictor {
-    fn predict(&self, x: &DMatrix<f64>) -> crate::gp::Prediction;
+    fn predict(&self, x: &DMatrix<f64>) -> precond_core::gp::Prediction;
 }
 impl Predictor for SparseGp {
-    fn predict(&self, x: &DMatrix<f64>) -> crate::gp::Prediction {
+    fn predict(&self, x: &DMatrix<f64>) -> precond_core::gp::Prediction {
         SparseGp::predict(self, x)
     }
 }
 impl Predictor for GpModel {
-    fn predict(&self, x: &DMatrix<f64>) -> crate::gp::Prediction {
+    fn predict(&self, x: &DMatrix<f64>) -> precond_core::gp::Prediction {
         GpModel::predict(self, x)
     }
 }

@@ -13,11 +13,11 @@
 use super::Results;
 use super::protocol::{IterationRecord, MapKind, PreconditionMap};
 use super::report::{by_iteration, mean_se, metric};
-use crate::domain::WaterPlant;
-use crate::domain::water_plant::{Rect, Scene};
-use crate::planning::Strategy;
 use plotters::coord::Shift;
 use plotters::prelude::*;
+use precond_core::domain::WaterPlant;
+use precond_core::domain::water_plant::{Rect, Scene};
+use precond_core::planning::Strategy;
 use std::path::Path;
 
 type Area<'a> = DrawingArea<SVGBackend<'a>, Shift>;
@@ -379,15 +379,15 @@ fn draw_scene(chart: &mut MapChart, scene: &Scene) -> anyhow::Result<()> {
     let walls = [
         Rect {
             low: t.low,
-            high: crate::domain::water_plant::Vec2::new(t.low.x + w, t.high.y),
+            high: precond_core::domain::water_plant::Vec2::new(t.low.x + w, t.high.y),
         },
         Rect {
-            low: crate::domain::water_plant::Vec2::new(t.high.x - w, t.low.y),
+            low: precond_core::domain::water_plant::Vec2::new(t.high.x - w, t.low.y),
             high: t.high,
         },
         Rect {
             low: t.low,
-            high: crate::domain::water_plant::Vec2::new(t.high.x, t.low.y + w),
+            high: precond_core::domain::water_plant::Vec2::new(t.high.x, t.low.y + w),
         },
     ];
     chart.draw_series(walls.into_iter().map(|r| rect(r, wall)))?;

@@ -6,8 +6,8 @@
 
 use super::Results;
 use super::protocol::{IterationRecord, PourType, TestRecord, TrainingRecord};
-use crate::planning::Strategy;
 use anyhow::Context;
+use precond_core::planning::Strategy;
 use serde_json::{Map, Value, json};
 use std::fmt::Write as _;
 use std::path::Path;

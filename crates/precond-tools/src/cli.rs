@@ -1,17 +1,23 @@
 //! The command line: `precond serve` and friends. `main` only parses and calls [`run`].
 
-use crate::http::auth::TokenTable;
-use crate::http::{AppState, HttpConfig, serve};
-use crate::remote_model::{ModelCallLimits, ModelUrlPolicy};
-use crate::service::{Limits, Service};
-use crate::store::Store;
 use anyhow::Context;
 use clap::{Parser, Subcommand, ValueEnum};
+use precond::http::auth::TokenTable;
+use precond::http::{AppState, HttpConfig, serve};
+use precond::remote_model::{ModelCallLimits, ModelUrlPolicy};
+use precond::service::{Limits, Service};
+use precond::store::Store;
 use tracing_subscriber::EnvFilter;
 
 /// precond: learns where an inaccurate dynamics model can be trusted.
 #[derive(Debug, Parser)]
-#[command(version, about, long_about = None)]
+// The name and the about line are the server's (`precond`), not this package's.
+#[command(
+    name = "precond",
+    version,
+    about = "A service that actively learns where an inaccurate dynamics model can be trusted (its model precondition).",
+    long_about = None
+)]
 pub struct Cli {
     /// What to do.
     #[command(subcommand)]
@@ -138,13 +144,13 @@ pub struct MdeArgs {
     pub held_out: usize,
     /// The estimators to fit each setting with, comma-separated: `exact`, `sparse`.
     #[arg(long, value_delimiter = ',', default_value = "exact,sparse", value_parser = parse_estimator_kind)]
-    pub estimators: Vec<crate::mde::EstimatorKind>,
+    pub estimators: Vec<precond_core::mde::EstimatorKind>,
     /// Inducing points of the sparse GP.
-    #[arg(long, default_value_t = crate::gp::DEFAULT_INDUCING_POINTS)]
+    #[arg(long, default_value_t = precond_core::gp::DEFAULT_INDUCING_POINTS)]
     pub inducing_points: usize,
     /// The noise models to fit, comma-separated: `homoscedastic`, `heteroscedastic`.
     #[arg(long, value_delimiter = ',', default_value = "heteroscedastic", value_parser = parse_noise_mode)]
-    pub noise: Vec<crate::gp::NoiseMode>,
+    pub noise: Vec<precond_core::gp::NoiseMode>,
     /// The label caps to fit, comma-separated, in units of `d_max` (0 = raw labels, else 1 to
     /// 1000, as `mde.label_cap`): one row each.
     #[arg(long, value_delimiter = ',', default_value = "2", value_parser = parse_label_cap)]
@@ -156,22 +162,22 @@ pub struct MdeArgs {
     pub calibration: bool,
 }
 
-/// A fixed label cap, as `mde.label_cap` accepts one ([`crate::settings::LabelCap::check_fixed`]).
+/// A fixed label cap, as `mde.label_cap` accepts one ([`precond::settings::LabelCap::check_fixed`]).
 fn parse_label_cap(s: &str) -> Result<f64, String> {
     let cap: f64 = s
         .trim()
         .parse()
         .map_err(|_| format!("{s:?} is not a label cap: a number, in units of d_max"))?;
-    crate::settings::LabelCap::check_fixed(cap)
+    precond::settings::LabelCap::check_fixed(cap)
         .map(|()| cap)
         .map_err(|accepted| format!("must be {accepted}"))
 }
 
 /// `homoscedastic` or `heteroscedastic`.
-fn parse_noise_mode(s: &str) -> Result<crate::gp::NoiseMode, String> {
+fn parse_noise_mode(s: &str) -> Result<precond_core::gp::NoiseMode, String> {
     match s {
-        "homoscedastic" => Ok(crate::gp::NoiseMode::Homoscedastic),
-        "heteroscedastic" => Ok(crate::gp::NoiseMode::Heteroscedastic),
+        "homoscedastic" => Ok(precond_core::gp::NoiseMode::Homoscedastic),
+        "heteroscedastic" => Ok(precond_core::gp::NoiseMode::Heteroscedastic),
         other => Err(format!(
             "{other:?} is not a noise model; use homoscedastic or heteroscedastic"
         )),
@@ -179,8 +185,8 @@ fn parse_noise_mode(s: &str) -> Result<crate::gp::NoiseMode, String> {
 }
 
 /// `exact`, `sparse` or `local_experts`.
-fn parse_estimator_kind(s: &str) -> Result<crate::mde::EstimatorKind, String> {
-    crate::mde::EstimatorKind::from_name(s)
+fn parse_estimator_kind(s: &str) -> Result<precond_core::mde::EstimatorKind, String> {
+    precond_core::mde::EstimatorKind::from_name(s)
         .ok_or_else(|| format!("{s:?} is not an estimator; use exact, sparse or local_experts"))
 }
 
@@ -274,7 +280,7 @@ pub struct GpBenchArgs {
     pub sklearn_max_n: usize,
     /// The kernel (`matern12`, `matern32` or `matern52`), for both libraries.
     #[arg(long, default_value = "matern52")]
-    pub kernel: crate::gp::Kernel,
+    pub kernel: precond_core::gp::Kernel,
     /// Benchmark the sparse GP instead (`--sparse-sizes`, `--dims`, `--inducing`, `--noise`),
     /// beside the exact GP up to `--exact-max-n` and GPyTorch's SGPR (installed into
     /// target/venv-sgpr-reference on first use; `--no-reference` skips it). Each fit runs in
@@ -402,7 +408,7 @@ pub struct ServeArgs {
     #[arg(long, env = "PRECOND_MAX_EXPERIMENTS", default_value_t = 1000)]
     pub max_experiments: usize,
     /// Transitions in one posted trajectory (1 ..= 10 000).
-    #[arg(long, env = "PRECOND_MAX_TRANSITIONS", default_value_t = crate::limits::MAX_TRANSITIONS)]
+    #[arg(long, env = "PRECOND_MAX_TRANSITIONS", default_value_t = precond_core::limits::MAX_TRANSITIONS)]
     pub max_transitions: usize,
     /// Memory one MDE fit may use at its peak, in MiB (64 ..= 1 048 576; default a quarter of
     /// the machine's memory): a fit estimated beyond it is not attempted but recorded as
@@ -604,7 +610,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                 None => tracing::info!("no token file: every request is let through"),
             }
             // One server per SQLite file: held until this process ends.
-            let serving = crate::store::lock_for_serving(&args.database_url)?;
+            let serving = precond::store::lock_for_serving(&args.database_url)?;
             if let Some(lock) = &serving {
                 tracing::info!(lock = %lock.path().display(), "holding the database's serving lock");
             }
@@ -619,7 +625,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             )
             .await?;
             tracing::info!(
-                database = %crate::store::redact(&args.database_url),
+                database = %precond::store::redact(&args.database_url),
                 backend = store.backend().as_str(),
                 "database opened"
             );
@@ -654,8 +660,8 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(BenchCommand::Gp(args)) if args.sparse => {
             let noise = match args.noise.as_str() {
-                "homoscedastic" => crate::gp::NoiseMode::Homoscedastic,
-                "heteroscedastic" => crate::gp::NoiseMode::Heteroscedastic,
+                "homoscedastic" => precond_core::gp::NoiseMode::Homoscedastic,
+                "heteroscedastic" => precond_core::gp::NoiseMode::Heteroscedastic,
                 other => anyhow::bail!("--noise {other}: use homoscedastic or heteroscedastic"),
             };
             crate::bench::sparse::run(&crate::bench::sparse::SparseBenchOptions {
@@ -697,9 +703,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(BenchCommand::Refit(args)) => {
             let world = match args.world.as_str() {
-                "arm" => crate::sim::ContinuousWorld::arm(),
-                "base" => crate::sim::ContinuousWorld::base(),
-                "pusher" => crate::sim::ContinuousWorld::pusher(),
+                "arm" => precond_core::sim::ContinuousWorld::arm(),
+                "base" => precond_core::sim::ContinuousWorld::base(),
+                "pusher" => precond_core::sim::ContinuousWorld::pusher(),
                 other => anyhow::bail!(
                     "{other:?} is not a world of this benchmark; use arm, base or pusher"
                 ),
@@ -715,9 +721,9 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
         }
         Command::Bench(BenchCommand::Mde(args)) => {
             let world = match args.world.as_str() {
-                "arm" => Some(crate::sim::ContinuousWorld::arm()),
-                "base" => Some(crate::sim::ContinuousWorld::base()),
-                "pusher" => Some(crate::sim::ContinuousWorld::pusher()),
+                "arm" => Some(precond_core::sim::ContinuousWorld::arm()),
+                "base" => Some(precond_core::sim::ContinuousWorld::base()),
+                "pusher" => Some(precond_core::sim::ContinuousWorld::pusher()),
                 "icy_gridworld" => None,
                 other => anyhow::bail!(
                     "{other:?} is not a world of this benchmark; use arm, base, pusher or \
@@ -776,7 +782,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             .await
         }
         Command::Backup(args) => {
-            let size = crate::store::backup(&args.database_url, &args.to).await?;
+            let size = precond::store::backup(&args.database_url, &args.to).await?;
             println!(
                 "backed up {} experiments, {} trajectories, {} transitions ({} bytes) to {}",
                 size.experiments,

@@ -2,15 +2,15 @@
 //! the icy gridworld with the real MDE (the service's default GP) fitted on 1000 transitions of
 //! the true world, and a test-time plan, each timed (median over several runs) and printed.
 
-use crate::domain::Problem;
-use crate::domain::{Domain, IcyGridworld, LabelledTransition, LocalModel, Transition};
-use crate::gp::{GpModel, GpParams};
-use crate::mde::{Estimator, ServedModel, training_data};
-use crate::planning::{
+use precond_core::domain::Problem;
+use precond_core::domain::{Domain, IcyGridworld, LabelledTransition, LocalModel, Transition};
+use precond_core::gp::{GpModel, GpParams};
+use precond_core::mde::{Estimator, ServedModel, training_data};
+use precond_core::planning::{
     AcquisitionKind, AcquisitionSettings, DeviationModel, Planner, PlannerSettings,
     PlanningSettings, Precondition, Strategy,
 };
-use crate::sim::Simulated;
+use precond_core::sim::Simulated;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::{Duration, Instant};
@@ -267,7 +267,7 @@ pub fn fitted_model(
     grid: &IcyGridworld,
     n: usize,
     seed: u64,
-) -> Result<ServedModel, crate::gp::GpError> {
+) -> Result<ServedModel, precond_core::gp::GpError> {
     fit_mde(grid, &icy_transitions(grid, n, seed), seed)
 }
 
@@ -276,7 +276,7 @@ pub fn fit_mde(
     domain: &dyn Domain,
     data: &[LabelledTransition],
     seed: u64,
-) -> Result<ServedModel, crate::gp::GpError> {
+) -> Result<ServedModel, precond_core::gp::GpError> {
     let features: Vec<f64> = data
         .iter()
         .flat_map(|t| domain.features(&t.observed.s, &t.observed.a, &t.s_pred))

@@ -3,11 +3,11 @@
 //! point of `ExportedModel::evaluate_with` and of the server's one-point `answer`, the largest
 //! relative differences of `μ` and `σ` on random state-actions, and the document's size.
 
-use crate::domain::{Domain, Kinematic, KinematicParams};
-use crate::gp::{GpModel, GpParams, NoiseMode, SparseGp, SparseParams};
-use crate::mde::export::Scratch;
-use crate::mde::{Estimator, ExportedModel, Regressor, ServedModel};
 use nalgebra::{DMatrix, DVector};
+use precond_core::domain::{Domain, Kinematic, KinematicParams};
+use precond_core::gp::{GpModel, GpParams, NoiseMode, SparseGp, SparseParams};
+use precond_core::mde::export::Scratch;
+use precond_core::mde::{Estimator, ExportedModel, Regressor, ServedModel};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;

@@ -12,17 +12,17 @@
 //! side of `d_max` each held-out state-action truly fell on (0 is perfect), which needs no
 //! closed-form leave-out and so scores the sparse GP too.
 
-use crate::domain::{Domain, IcyGridworld, LocalModel, MOVES};
-use crate::gp::{Fold, Kernel, NoiseMode, Prediction};
-use crate::mde::{
+use nalgebra::DMatrix;
+use precond::store::Store;
+use precond_core::domain::{Domain, IcyGridworld, LocalModel, MOVES};
+use precond_core::gp::{Fold, Kernel, NoiseMode, Prediction};
+use precond_core::mde::{
     BetaChoice, EstimatorKind, EstimatorParams, HeldOutTrust, Training, blocks, capped_labels,
     fit_choosing_label_cap, gp_params, identical_rows, normal_tail, trajectory_folds,
 };
-use crate::planning::{Agreement, Precondition};
-use crate::sim::ContinuousWorld;
-use crate::sim::Simulated;
-use crate::store::Store;
-use nalgebra::DMatrix;
+use precond_core::planning::{Agreement, Precondition};
+use precond_core::sim::ContinuousWorld;
+use precond_core::sim::Simulated;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
@@ -281,9 +281,9 @@ async fn calibration(
     let precondition = Precondition::new(2.0, d_max)?;
     let params = EstimatorParams::new(
         gp_params(NoiseMode::Heteroscedastic, Kernel::Matern12, 0.0, 2, 7),
-        crate::gp::DEFAULT_INDUCING_POINTS,
+        precond_core::gp::DEFAULT_INDUCING_POINTS,
     )?;
-    let mut caps = crate::settings::AUTO_LABEL_CAPS.to_vec();
+    let mut caps = precond::settings::AUTO_LABEL_CAPS.to_vec();
     caps.push(0.0);
     let (xf, df, tf) = (x.clone(), deviations.clone(), trajectories.clone());
     let choice = tokio::task::spawn_blocking(move || {

@@ -129,7 +129,7 @@ async fn new_database(admin: &str) -> anyhow::Result<String> {
     let name = format!("precond_bench_{}", uuid::Uuid::new_v4().simple());
     let mut conn = sqlx::PgConnection::connect(admin)
         .await
-        .with_context(|| format!("connecting to {}", crate::store::redact(admin)))?;
+        .with_context(|| format!("connecting to {}", precond::store::redact(admin)))?;
     sqlx::query(&format!("CREATE DATABASE {name}"))
         .execute(&mut conn)
         .await
@@ -319,7 +319,7 @@ async fn measure(o: &ReplicasOptions, n: usize) -> anyhow::Result<Row> {
 /// Runs the benchmark and prints its table.
 pub async fn run(o: &ReplicasOptions) -> anyhow::Result<()> {
     anyhow::ensure!(
-        crate::store::Backend::of_url(&o.database_url) == crate::store::Backend::Postgres,
+        precond::store::Backend::of_url(&o.database_url) == precond::store::Backend::Postgres,
         "--database-url must name a PostgreSQL server (postgres://…)"
     );
     anyhow::ensure!(
@@ -339,7 +339,7 @@ pub async fn run(o: &ReplicasOptions) -> anyhow::Result<()> {
         o.seconds,
         o.plans_per_replica
             .map_or_else(|| format!("{cores} (default)"), |p| p.to_string()),
-        crate::store::redact(&o.database_url)
+        precond::store::redact(&o.database_url)
     );
     println!(
         "{:>8} {:>11} {:>9} {:>9} {:>9} {:>8} {:>12} {:>12}",

@@ -19,7 +19,7 @@ use std::time::Instant;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
-use crate::gp::{GpError, GpModel, GpParams, Kernel, NoiseMode};
+use precond_core::gp::{GpError, GpModel, GpParams, Kernel, NoiseMode};
 
 /// What to benchmark.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -125,7 +125,7 @@ pub struct GpBenchReport {
     pub sklearn_note: Option<String>,
 }
 
-pub use crate::gp::synthetic::bench_data;
+pub use precond_core::gp::synthetic::bench_data;
 
 fn time<T>(f: impl FnOnce() -> T) -> (T, f64) {
     let t = Instant::now();

@@ -1,22 +1,22 @@
 //! A thin HTTP client for the endpoints the harness drives: experiments, proposals,
 //! trajectories, the model, plans and precondition queries, speaking the typed bodies of
-//! [`crate::api`]. An error status becomes an `anyhow` error carrying the service's error body,
+//! [`precond::api`]. An error status becomes an `anyhow` error carrying the service's error body,
 //! except `422 no_plan`, which is an answer ([`Proposed::NoPlan`]).
 
-use crate::api::{
+use anyhow::{Context, bail};
+use precond::api::{
     ErrorBody, ExperimentRequest, ExperimentResponse, HealthResponse, Judgement, ModelResponse,
     PlanRequest, PlanResponse, Point, PreconditionRequest, PreconditionResponse, ProposalRequest,
     ProposalResponse, TrajectoryCreated, TrajectoryRequest,
 };
-use crate::domain::Transition;
-use crate::planning::Strategy;
-use anyhow::{Context, bail};
+use precond_core::domain::Transition;
+use precond_core::planning::Strategy;
 use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::time::{Duration, Instant};
 
 /// Most points sent in one precondition query (the service's limit).
-pub const MAX_POINTS_PER_QUERY: usize = crate::limits::MAX_POINTS;
+pub const MAX_POINTS_PER_QUERY: usize = precond_core::limits::MAX_POINTS;
 
 /// A client of one `precond` service.
 #[derive(Debug, Clone)]
@@ -250,7 +250,7 @@ impl ApiClient {
             return Ok(PlanResponse {
                 found: false,
                 extensions: e.error.details["extensions"].as_u64().unwrap_or(0) as usize,
-                rejections: crate::api::RejectionCounts {
+                rejections: precond::api::RejectionCounts {
                     constraints: 0,
                     precondition: 0,
                 },

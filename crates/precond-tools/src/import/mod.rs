@@ -25,13 +25,13 @@
 pub mod mapping;
 pub mod table;
 
-use crate::api::{
-    ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest, TrajectorySource,
-};
-use crate::domain::Transition;
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use mapping::{Given, RowValues, Spaces};
+use precond::api::{
+    ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest, TrajectorySource,
+};
+use precond_core::domain::Transition;
 use sha2::{Digest, Sha256};
 use std::collections::HashSet;
 use std::io::Read;
@@ -90,7 +90,7 @@ pub struct ImportArgs {
     pub dataset_id: Option<String>,
     /// Transitions per posted trajectory: longer episodes are split. Set it to the server's
     /// `--max-transitions` when that is lower than the default.
-    #[arg(long, default_value_t = crate::limits::MAX_TRANSITIONS)]
+    #[arg(long, default_value_t = precond_core::limits::MAX_TRANSITIONS)]
     pub max_transitions: usize,
     /// Largest request body: an episode whose JSON would be larger is split. Set it to the
     /// server's `--max-body-bytes` when that is lower than the default.

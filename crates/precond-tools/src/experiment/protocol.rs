@@ -28,17 +28,17 @@ use super::client::{ApiClient, Proposed};
 use super::layouts::Layout;
 use super::reference::{self, ClosedLoop, References};
 use super::{Config, DomainKind};
-use crate::api::{ExperimentRequest, PlannedTrajectory};
-use crate::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
-use crate::domain::{
+use indicatif::ProgressBar;
+use precond::api::{ExperimentRequest, PlannedTrajectory};
+use precond::settings::{DomainSpec, LearningRequest, MdeRequest};
+use precond_core::domain::water_plant::{Motion, Pose, SRC_VOLUME, TGT_VOLUME};
+use precond_core::domain::{
     DEFAULT_MAP, Domain, GridFeatures, IcyGridworld, Kinematic, LocalModel, MOVES, Problem,
     Transition, WaterPlant,
 };
-use crate::planning::bottleneck::TrustedGraph;
-use crate::planning::{Agreement, Strategy, Trajectory};
-use crate::settings::{DomainSpec, LearningRequest, MdeRequest};
-use crate::sim::{ContinuousWorld, Simulated, World};
-use indicatif::ProgressBar;
+use precond_core::planning::bottleneck::TrustedGraph;
+use precond_core::planning::{Agreement, Strategy, Trajectory};
+use precond_core::sim::{ContinuousWorld, Simulated, World};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -395,7 +395,7 @@ mod purpose {
 
 /// The random stream of `(seed, purpose, i, j)`.
 pub fn stream(seed: u64, purpose: u64, i: u64, j: u64) -> ChaCha8Rng {
-    use crate::seed::splitmix64 as mix;
+    use precond_core::seed::splitmix64 as mix;
     let key = mix(mix(mix(mix(seed) ^ purpose) ^ i) ^ j);
     ChaCha8Rng::seed_from_u64(key)
 }
@@ -767,7 +767,7 @@ async fn references(
     if let Some(r) = spec.references.lock().await.get(&key) {
         return Ok(*r);
     }
-    let seed = crate::seed::mix(spec.seed, (j * 1_000_003 + k as u64) as i64);
+    let seed = precond_core::seed::mix(spec.seed, (j * 1_000_003 + k as u64) as i64);
     let r = bench
         .references(problem, d_max, cfg.max_extensions, seed)
         .await?;
@@ -1056,7 +1056,7 @@ impl Run<'_> {
                             .cfg
                             .max_extensions
                             .saturating_mul(factor)
-                            .min(crate::limits::MAX_EXTENSIONS);
+                            .min(precond_core::limits::MAX_EXTENSIONS);
                         self.client
                             .plan_within(self.id, problem.start(), problem.goal(), Some(budget))
                             .await?

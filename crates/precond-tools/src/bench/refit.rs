@@ -10,17 +10,17 @@
 //! β = 2: TPR, TNR and the held-out log score (the mean `log Φ(±(d_max − μ)/σ)` of the side of
 //! `d_max` each fell on; 0 is perfect).
 
-use crate::domain::{Domain, LocalModel};
-use crate::gp::Prediction;
-use crate::gp::{NoiseMode, WarmStart};
-use crate::mde::{
+use nalgebra::DMatrix;
+use precond::settings::{AUTO_LABEL_CAPS, KernelChoice};
+use precond_core::domain::{Domain, LocalModel};
+use precond_core::gp::Prediction;
+use precond_core::gp::{NoiseMode, WarmStart};
+use precond_core::mde::{
     Carry, EstimatorKind, EstimatorParams, Training, fit_choosing_label_cap, gp_params,
     normal_tail, refit_warm,
 };
-use crate::planning::{Agreement, Precondition};
-use crate::settings::{AUTO_LABEL_CAPS, KernelChoice};
-use crate::sim::ContinuousWorld;
-use nalgebra::DMatrix;
+use precond_core::planning::{Agreement, Precondition};
+use precond_core::sim::ContinuousWorld;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;
@@ -120,7 +120,7 @@ pub fn run(o: &RefitBenchOptions) -> anyhow::Result<(RefitFigures, RefitFigures)
     let caps: Vec<f64> = AUTO_LABEL_CAPS.iter().copied().chain([0.0]).collect();
     let params = EstimatorParams::new(
         gp_params(NoiseMode::Heteroscedastic, kernels[0], 0.0, 2, o.seed),
-        crate::gp::DEFAULT_INDUCING_POINTS,
+        precond_core::gp::DEFAULT_INDUCING_POINTS,
     )?;
     let training = |n: usize, x: &DMatrix<f64>| {
         (
@@ -146,7 +146,9 @@ pub fn run(o: &RefitBenchOptions) -> anyhow::Result<(RefitFigures, RefitFigures)
     let h = first
         .gp
         .hyperparameters()
-        .ok_or_else(|| crate::gp::GpError::InvalidState("an exact GP has hyperparameters".into()))?
+        .ok_or_else(|| {
+            precond_core::gp::GpError::InvalidState("an exact GP has hyperparameters".into())
+        })?
         .clone();
     let noise = first.gp.noise_summary().map(|s| s.noise_model);
     let carry = Carry {
@@ -160,7 +162,7 @@ pub fn run(o: &RefitBenchOptions) -> anyhow::Result<(RefitFigures, RefitFigures)
         deviations: &d2,
         trajectories: &t2,
     };
-    let figures = |started: Instant, c: crate::mde::CapChoice| {
+    let figures = |started: Instant, c: precond_core::mde::CapChoice| {
         let seconds = started.elapsed().as_secs_f64();
         let (tpr, tnr, log_score) = judge(&c.gp.predict(&held), &held_truth, precondition);
         RefitFigures {

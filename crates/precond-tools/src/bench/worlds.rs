@@ -6,9 +6,9 @@
 //! — how many problems need steps close to `d_max`, which a learner that must be confident
 //! cannot trust.
 
-use crate::domain::{Domain, LocalModel};
 use crate::experiment::reference;
-use crate::sim::ContinuousWorld;
+use precond_core::domain::{Domain, LocalModel};
+use precond_core::sim::ContinuousWorld;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use std::time::Instant;

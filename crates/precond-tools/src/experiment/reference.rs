@@ -11,11 +11,11 @@
 //! paper's protocol) or closed loop: after each step, if the robot is farther than `d_max` from
 //! where the plan said it would be, or the plan has run out, it plans again from where it is.
 
-use crate::domain::{Domain, Kinematic, Problem};
-use crate::planning::{
+use precond_core::domain::{Domain, Kinematic, Problem};
+use precond_core::planning::{
     DeviationModel, Planner, PlannerSettings, PlanningSettings, Precondition, Trajectory,
 };
-use crate::sim::{ContinuousWorld, World};
+use precond_core::sim::{ContinuousWorld, World};
 
 /// The true deviation of each state-action, `σ = 0`: a planner over the true precondition.
 pub struct TrueDeviation<'a> {

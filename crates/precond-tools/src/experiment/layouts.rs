@@ -2,9 +2,9 @@
 //! maps (sizes 10–20 with a wall with gaps, ice bands and obstacle blocks), so the method is
 //! measured on many worlds and not on one.
 
-use crate::domain::DEFAULT_MAP;
-use crate::domain::IcyGridworld;
 use anyhow::Context;
+use precond_core::domain::DEFAULT_MAP;
+use precond_core::domain::IcyGridworld;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
@@ -53,7 +53,8 @@ impl Layout {
     /// 1–2 rows spanning at least half the width, and up to three obstacle blocks. Cells cut
     /// off from the largest open region become obstacles, so every open cell is reachable.
     pub fn random(k: u64) -> Self {
-        let mut rng = ChaCha8Rng::seed_from_u64(crate::seed::mix(0x6c61_796f_7574, k as i64));
+        let mut rng =
+            ChaCha8Rng::seed_from_u64(precond_core::seed::mix(0x6c61_796f_7574, k as i64));
         let w = rng.random_range(10..=20usize);
         let h = rng.random_range(10..=20usize);
         let mut g = vec![vec!['.'; w]; h];

@@ -8,9 +8,9 @@
 //! and `GET /v1/experiments/{id}` twice: idle, and while `clients` concurrent clients keep
 //! asking for proposals. Prints the percentiles and the proposals' outcomes.
 
-use crate::http::{AppState, HttpConfig, serve};
-use crate::service::{Limits, Service};
-use crate::store::Store;
+use precond::http::{AppState, HttpConfig, serve};
+use precond::service::{Limits, Service};
+use precond::store::Store;
 use serde_json::json;
 use std::collections::BTreeMap;
 use std::sync::Arc;

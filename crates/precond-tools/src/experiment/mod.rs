@@ -22,18 +22,18 @@ pub mod protocol;
 pub mod reference;
 pub mod report;
 
-use crate::domain::{GridFeatures, KinematicFeatures};
-use crate::gp::NoiseMode;
-use crate::http::{AppState, HttpConfig, serve};
-use crate::mde::EstimatorChoice;
-use crate::planning::{AcquisitionKind, Aggregation, Strategy};
-use crate::settings::{KernelChoice, LabelCap, Preset};
-use crate::store::Store;
 use anyhow::Context;
 use clap::ValueEnum;
 use client::ApiClient;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use layouts::Layout;
+use precond::http::{AppState, HttpConfig, serve};
+use precond::settings::{KernelChoice, LabelCap, Preset};
+use precond::store::Store;
+use precond_core::domain::{GridFeatures, KinematicFeatures};
+use precond_core::gp::NoiseMode;
+use precond_core::mde::EstimatorChoice;
+use precond_core::planning::{AcquisitionKind, Aggregation, Strategy};
 use protocol::{Bench, Labelled, RunResult, RunSpec};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -77,7 +77,7 @@ impl DomainKind {
 
 fn parse_strategy(s: &str) -> Result<Strategy, String> {
     s.parse()
-        .map_err(|e: crate::planning::PlanningError| e.to_string())
+        .map_err(|e: precond_core::planning::PlanningError| e.to_string())
 }
 
 /// A setting spelled as the API spells it (its serde name), or an error naming the choices.
@@ -572,12 +572,12 @@ impl InProcess {
         let (tx, rx) = tokio::sync::oneshot::channel::<()>();
         // The harness measures learning, not latency: searches may take up to
         // two minutes (a search past them counts as no plan found).
-        let limits = crate::service::Limits {
+        let limits = precond::service::Limits {
             plan_timeout: std::time::Duration::from_secs(120),
-            ..crate::service::Limits::default()
+            ..precond::service::Limits::default()
         };
         let state = AppState::with_service(
-            crate::service::Service::new(store).with_limits(limits),
+            precond::service::Service::new(store).with_limits(limits),
             HttpConfig {
                 // Precondition maps and held-out sets are sent in one request each.
                 max_body_bytes: 64 * 1024 * 1024,
