@@ -12,7 +12,8 @@ use serde::{Deserialize, Serialize};
 ///
 /// "Scaled to the unit box" means `(v − low) / (high − low)`, or `0` for a component whose
 /// bounds coincide (`high = low`); it is not clamped unless said.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum FeatureMap {
     /// The listed state components, then the listed action components, each scaled to the unit

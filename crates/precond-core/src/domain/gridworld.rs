@@ -7,7 +7,6 @@ use super::{
     euclidean,
 };
 use rand::{Rng, RngCore};
-use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// The default layout: 12×12, an obstacle wall across row 6 with a two-cell gap at x = 5..6,
@@ -42,7 +41,8 @@ pub enum Cell {
 }
 
 /// How a gridworld state-action is fed to the MDE.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum GridFeatures {
     /// `(x, y, dx, dy)` scaled to the unit box: one set of length scales for every move (the

@@ -49,7 +49,8 @@ impl BoxObstacle {
 }
 
 /// How a kinematic state-action is fed to the MDE.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, serde::Serialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum KinematicFeatures {
     /// `(s, a)`, each scaled to the unit box by its bounds.

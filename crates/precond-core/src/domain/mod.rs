@@ -150,7 +150,8 @@ impl DomainError {
 
 /// An executed transition as the robot observed it: the state, the action taken, and the state
 /// that followed — and, when the robot's model lives on the client, what that model predicted.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(deny_unknown_fields)]
 pub struct Transition {
     /// State before the action.

@@ -23,7 +23,8 @@ use super::kernel::{Inputs, Kernel};
 
 /// One GP's mean (and optionally latent variance) as plain numbers; see the module
 /// documentation for the formulas.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct GpPredictor {
     /// The Matérn kernel.
     pub kernel: Kernel,
@@ -46,7 +47,8 @@ pub struct GpPredictor {
 }
 
 /// The observation noise.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(tag = "kind", rename_all = "snake_case")]
 pub enum NoisePredictor {
     /// One noise variance everywhere.
@@ -84,7 +86,8 @@ impl NoisePredictor {
 }
 
 /// A fitted GP's predictions as plain numbers: the main GP and its noise.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct Predictor {
     /// The GP on deviations.
     pub main: GpPredictor,

@@ -26,9 +26,8 @@ pub(crate) const SQRT5: f64 = 2.236_067_977_499_79;
 const SQRT3: f64 = 1.732_050_807_568_877_2;
 
 /// The Matérn kernel's smoothness `ν`: how rough the deviation function may be.
-#[derive(
-    Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize, schemars::JsonSchema,
-)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "lowercase")]
 pub enum Kernel {
     /// ν = 1/2, the exponential kernel `s² exp(−r)`: continuous but rough sample paths. A

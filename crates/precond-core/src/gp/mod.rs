@@ -21,7 +21,7 @@
 //!
 //! ```
 //! use nalgebra::{DMatrix, DVector};
-//! use precond::gp::{GpModel, GpParams, NoiseMode};
+//! use precond_core::gp::{GpModel, GpParams, NoiseMode};
 //!
 //! let x = DMatrix::from_fn(30, 2, |i, j| ((i * 7 + j * 3) % 30) as f64 / 30.0);
 //! let y = DVector::from_fn(30, |i, _| (3.0 * x[(i, 0)]).sin() + 0.5 * x[(i, 1)]);
@@ -29,7 +29,7 @@
 //! let model = GpModel::fit(&x, &y, &params)?;
 //! let pred = model.predict(&DMatrix::from_row_slice(1, 2, &[0.5, 0.5]));
 //! assert!(pred.std()[0] > 0.0);
-//! # Ok::<(), precond::gp::GpError>(())
+//! # Ok::<(), precond_core::gp::GpError>(())
 //! ```
 
 mod core;
@@ -75,7 +75,8 @@ pub const DEFAULT_PRIOR_LENGTH_SCALE: f64 = 0.5;
 /// Covariance: the Matérn [`Kernel`] of smoothness `ν` at `r² = Σ_k ((x_k − x'_k)/ℓ_k)²` times `s²`
 /// (for ν = 5/2, `s² (1 + √5 r + 5/3 r²) exp(−√5 r)`), plus noise on the diagonal; prior mean
 /// constant `m`.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct Hyperparameters {
     /// ARD length scales `ℓ_k`, one per input dimension, in unit-box units (> 0).
     pub length_scales: Vec<f64>,
@@ -183,7 +184,8 @@ pub struct ModelState {
 }
 
 /// A heteroscedastic model's noise, summarised.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct NoiseSummary {
     /// Smallest per-point noise variance over the training inputs.
     pub min_noise_variance: f64,

@@ -5,7 +5,8 @@ use serde::{Deserialize, Serialize};
 use super::{GpError, Hyperparameters, Kernel};
 
 /// How the observation noise is modelled.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "lowercase")]
 pub enum NoiseMode {
     /// One noise variance for the whole input space (optimised with the other hyperparameters).

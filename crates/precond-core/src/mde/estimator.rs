@@ -34,9 +34,8 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 /// Which regressor a fitted version is.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema, Default,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum EstimatorKind {
     /// The exact GP.
@@ -95,9 +94,8 @@ impl EstimatorKind {
 }
 
 /// The `mde.estimator` setting: which regressor fits use.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema, Default,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum EstimatorChoice {
     /// The exact GP while it is cheap and fits the memory budget, the sparse GP beyond.
@@ -406,7 +404,8 @@ pub fn fit(
 /// A fitted estimator as plain numbers, for evaluation outside the server (the exported
 /// model's `predictor`): one GP (the exact and the sparse GP), or local experts. Serialised
 /// untagged, so a GP's document is the same as before local experts existed.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(untagged)]
 pub enum EstimatorPredictor {
     /// One GP.

@@ -57,7 +57,8 @@ pub struct ExpertsState {
 /// [`LocalExperts`] as plain numbers (the exported model's `predictor` for this estimator): a
 /// point is answered by the expert whose centre is nearest (squared Euclidean distance in
 /// feature space, ties to the first).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct ExpertsPredictor {
     /// The regions' centres, one row of features each.
     pub centres: Vec<Vec<f64>>,

@@ -26,7 +26,8 @@ pub const EXPORT_FORMAT_VERSION_EXPERTS: u32 = 2;
 
 /// One fitted MDE version, exported: everything `μ(s, a)`, `σ(s, a)` and the precondition
 /// `μ + βσ < d_max` need.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct ExportedModel {
     /// Always `precond-model`.
     pub format: String,

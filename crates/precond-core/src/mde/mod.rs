@@ -173,9 +173,8 @@ pub struct Answer {
 }
 
 /// Whether one state-action lies in the model precondition `μ + βσ < d_max`.
-#[derive(
-    Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct Judgement {
     /// Mean deviation μ.
     pub mu: f64,

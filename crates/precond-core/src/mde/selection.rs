@@ -28,7 +28,8 @@ pub fn capped_labels(deviations: &[f64], label_cap: f64, d_max: f64) -> Vec<f64>
 /// state-action is left out in turn, with all its copies: the held-out precondition
 /// `μ₋ᵢ + β σ₋ᵢ < d_max` against the truth `deviation_i < d_max`, and the log probability it
 /// gives to the truth.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct HeldOutTrust {
     /// The label cap the model was fitted with (units of `d_max`; 0 = raw labels).
     pub label_cap: f64,
@@ -112,7 +113,8 @@ impl HeldOutTrust {
 /// `+ 1` keeps β at `max_beta` until enough unsafe transitions were seen to certify anything
 /// (49 for a 2 % rate). The rate is estimated where the learner executed; on moves far from
 /// every executed trajectory it can be higher (measured in docs/research/continuous-worlds.md).
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct BetaChoice {
     /// The certified β (at most the experiment's `learning.test_beta`).
     pub beta: f64,
@@ -393,7 +395,8 @@ pub fn held_out_margins(
 }
 
 /// One phase of a fit and its wall time.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct FitPhase {
     /// What it did, e.g. `kernels: 3 fits`, `label caps: 2 more fits`, `warm fit`,
     /// `certified β`.
@@ -414,7 +417,8 @@ fn timed<T>(phases: &mut Vec<FitPhase>, phase: impl Into<String>, f: impl FnOnce
 }
 
 /// How a version's kernel and label cap were chosen, and what its fit spent its time on.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct SelectionRecord {
     /// The version whose fit chose the kernel and the label cap this one answers with (itself
     /// when it chose them).
@@ -604,7 +608,8 @@ pub fn refit_warm(
 }
 
 /// How one candidate kernel's fit did on the first candidate cap's labels.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 pub struct KernelTrial {
     /// The kernel.
     pub kernel: Kernel,

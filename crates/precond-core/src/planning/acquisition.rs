@@ -21,11 +21,11 @@
 
 use super::error::PlanningError;
 use super::trajectory::Trajectory;
-use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 
 /// How per-step utilities combine into a trajectory utility.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum Aggregation {
     /// `h_max = max_t γ^t α_step(t)`: a trajectory scores its (discounted) step whose lower
@@ -40,7 +40,8 @@ pub enum Aggregation {
 setting_names!(Aggregation, "aggregation", { Max => "max", Sum => "sum" });
 
 /// Which acquisition function scores a trajectory (see the [module docs](self)).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[cfg_attr(feature = "schema", derive(schemars::JsonSchema))]
 #[serde(rename_all = "snake_case")]
 pub enum AcquisitionKind {
     /// The paper's: `α = h(μ − c σ)`, discounted over the steps.

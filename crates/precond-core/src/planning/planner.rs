@@ -3,9 +3,9 @@
 //! [`Budget`] — and answers for checked values: a [`Problem`] and a [`Precondition`].
 //!
 //! ```
-//! use precond::domain::{Domain, IcyGridworld, Problem};
-//! use precond::planning::{Planner, PlanningSettings, Precondition, Strategy};
-//! use precond::planning::synthetic::ConstantModel;
+//! use precond_core::domain::{Domain, IcyGridworld, Problem};
+//! use precond_core::planning::{Planner, PlanningSettings, Precondition, Strategy};
+//! use precond_core::planning::synthetic::ConstantModel;
 //!
 //! let grid = IcyGridworld::default_layout();
 //! let model = ConstantModel { mu: 0.0, sigma: 0.01 };
