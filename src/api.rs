@@ -10,23 +10,23 @@ use crate::domain::{Space, Transition};
 use crate::gp::{Hyperparameters, NoiseMode, NoiseSummary};
 use crate::mde::{BetaChoice, EstimatorKind, HeldOutTrust, KernelTrial, SelectionRecord};
 use crate::planning::Strategy;
+use crate::records::{IterationStats, ListOrder, ModelSummary, ProposalStatus, ProposalTerms};
 use crate::settings::ExperimentSettings;
-use crate::store::{IterationStats, ListOrder, ModelSummary, ProposalStatus, ProposalTerms};
 use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 pub use crate::mde::Judgement;
-pub use crate::settings::ExperimentRequest;
 /// A fit the server did not attempt because its estimated peak memory exceeded the budget, as
 /// stored.
-pub use crate::store::FitRefusal as FitRefusalView;
+pub use crate::records::FitRefusal as FitRefusalView;
 /// Where a posted trajectory comes from, as posted, stored and shown.
-pub use crate::store::Provenance as TrajectorySource;
+pub use crate::records::Provenance as TrajectorySource;
 /// A stored transition with its prediction and label.
-pub use crate::store::StoredTransition as TransitionView;
-/// A run as the store lists it.
-pub use crate::store::{Run as RunView, RunStatus};
+pub use crate::records::StoredTransition as TransitionView;
+/// A run as listed.
+pub use crate::records::{Run as RunView, RunStatus};
+pub use crate::settings::ExperimentRequest;
 
 /// `GET /healthz` and `GET /readyz`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]

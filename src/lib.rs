@@ -20,6 +20,9 @@
 //! - [`settings`]: an experiment's settings, their defaults and their validation.
 //! - [`remote_model`]: a dynamics model served by a robot over HTTP, and the operator's list of
 //!   allowed model URLs.
+//! - [`records`]: what precond keeps and shows as it is — executed transitions with their
+//!   labels, where a trajectory comes from, runs, refusals, a proposal's terms — plain values
+//!   the store reads and writes and the API shows; the store's rows and queries stay its own.
 //! - [`store`]: SQLite or PostgreSQL (sqlx): every query, rows ↔ values, atomic idempotent
 //!   ingest, and what replicas over one database agree on (locks, fit claims, versions).
 //! - [`service`]: what precond does, whoever asks: experiments in memory, labelling and ingest,
@@ -57,6 +60,7 @@
 
 pub mod api;
 pub mod http;
+pub mod records;
 pub mod remote_model;
 pub mod service;
 pub mod settings;

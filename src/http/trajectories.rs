@@ -9,7 +9,7 @@ use super::stream;
 use crate::api::{TrajectoryRequest, TrajectoryResponse, TransitionPage, TransitionsQuery};
 use crate::domain::Domain;
 use crate::limits::{DEFAULT_PAGE, MAX_CSV_ROWS, MAX_PAGE};
-use crate::store::StoredTransition;
+use crate::records::StoredTransition;
 use axum::Json;
 use axum::extract::State;
 use axum::http::{HeaderMap, HeaderValue, header};

@@ -4,8 +4,9 @@
 use super::experiments::{check_page, next_offset};
 use super::{Result, Service};
 use crate::limits::{DEFAULT_PAGE, MAX_TIMELINE_ROWS};
+use crate::records::{FitRefusal, IterationStats, ModelSummary, Run};
 use crate::settings::DOMAIN_MODEL;
-use crate::store::{FitRefusal, IterationStats, LabelStats, ModelSummary, Run};
+use crate::store::LabelStats;
 
 /// One of an experiment's models of its robot (the domain's own, or a further one) with what
 /// its labels of the executed transitions say.

@@ -4,8 +4,9 @@ use super::live::{LiveExperiment, build_stored_domain};
 use super::{Error, Result, Service};
 use crate::domain::Domain;
 use crate::limits::MAX_PAGE;
+use crate::records::ListOrder;
 use crate::settings::ExperimentRequest;
-use crate::store::{Experiment, ListOrder};
+use crate::store::Experiment;
 use std::sync::Arc;
 
 /// A stored experiment with its built domain.

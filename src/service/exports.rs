@@ -8,9 +8,10 @@
 use super::{Error, Result, Service};
 use crate::domain::Domain;
 use crate::mde::{Estimator, ExportedModel, ServedModel};
+use crate::records::StoredTransition;
 use crate::service::ExportSlot;
 use crate::settings::DOMAIN_MODEL;
-use crate::store::{Store, StoredTransition};
+use crate::store::Store;
 use std::sync::Arc;
 use std::time::Instant;
 

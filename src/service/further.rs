@@ -11,7 +11,8 @@ use crate::mde::{
     capped_labels, fit_choosing_label_cap, selection_cost, training_data,
 };
 use crate::planning::Precondition;
-use crate::store::{Store, StoredFurther, StoredModel, StoredTransition};
+use crate::records::StoredTransition;
+use crate::store::{Store, StoredFurther, StoredModel};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;

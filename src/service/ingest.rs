@@ -14,9 +14,9 @@ use super::{Error, Result, Service};
 use crate::api::{TrajectoryRequest, TrajectorySource};
 use crate::domain::{DynamicsError, DynamicsModel, LabelledTransition, Predicted, Transition};
 use crate::limits::{MAX_IDEMPOTENCY_KEY_LEN, MAX_SOURCE_TEXT_LEN, MAX_TRANSITIONS};
+use crate::records::{ModelLabel, Provenance, StoredTransition};
 use crate::store::{
-    IdempotencyKey, IngestOutcome, IngestRecord, ModelLabel, ProposalPlan, Provenance,
-    StoredTrajectory, StoredTransition, TrajectoryMeta,
+    IdempotencyKey, IngestOutcome, IngestRecord, ProposalPlan, StoredTrajectory, TrajectoryMeta,
 };
 use std::sync::Arc;
 

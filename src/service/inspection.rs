@@ -10,7 +10,7 @@ use crate::limits::{
 };
 use crate::mde::{Estimator, ServedModel};
 use crate::planning::{Agreement, Precondition};
-use crate::store::StoredTransition;
+use crate::records::StoredTransition;
 use std::sync::Arc;
 use std::time::Instant;
 

@@ -8,9 +8,9 @@ use crate::api::{CandidateTrajectory, Point};
 use crate::limits::{MAX_CLIENT_CANDIDATES, MAX_POINTS};
 use crate::mde::{Judgement, Margined, ServedModel};
 use crate::planning::{self, Path, Precondition, RrtOutcome, Strategy, Trajectory, Verdict};
+use crate::records::{FitRefusal, ListOrder};
 use crate::seed;
 use crate::settings::DOMAIN_MODEL;
-use crate::store::{FitRefusal, ListOrder};
 use std::sync::Arc;
 use std::time::Instant;
 
@@ -26,7 +26,7 @@ pub struct ModelView {
     pub feature_names: Vec<String>,
     /// The version.
     pub model: Arc<ServedModel>,
-    /// The latest fit refused since the version (see [`crate::store::FitRefusal`]).
+    /// The latest fit refused since the version (see [`crate::records::FitRefusal`]).
     pub last_refusal: Option<FitRefusal>,
     /// The β test plans use with this version ([`LiveExperiment::test_beta`]).
     pub test_beta: f64,

@@ -17,11 +17,12 @@ use crate::mde::{
     training_data,
 };
 use crate::planning::{Planner, PlanningSettings, Precondition};
+use crate::records::{FitRefusal, StoredTransition};
 use crate::remote_model::ModelCalls;
 use crate::seed;
 use crate::settings::{ExperimentSettings, InvalidSetting};
 use crate::store::fits::FitFinish;
-use crate::store::{ExclusionSet, FitClaim, FitRefusal, Store, StoredModel, StoredTransition};
+use crate::store::{ExclusionSet, FitClaim, Store, StoredModel};
 use anyhow::Context;
 use nalgebra::DMatrix;
 use std::collections::HashMap;

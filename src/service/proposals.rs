@@ -25,10 +25,9 @@ use crate::domain::Problem;
 use crate::limits::{MAX_CLIENT_ID_LEN, text_problem};
 use crate::mde::ServedModel;
 use crate::planning::{GivenChoice, Precondition, Proposal, Strategy};
+use crate::records::{ProposalStatus, ProposalTerms, RefusalReason};
 use crate::seed;
-use crate::store::{
-    Inserted, NewProposal, NewRefusal, ProposalStatus, ProposalTerms, RefusalReason, StoredProposal,
-};
+use crate::store::{Inserted, NewProposal, NewRefusal, StoredProposal};
 use std::sync::Arc;
 use std::time::Instant;
 

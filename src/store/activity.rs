@@ -2,133 +2,10 @@
 //! one list of runs, per-iteration statistics and the list of model versions.
 
 use super::trajectories::provenance_from_row;
-use super::{Backend, ExclusionSet, Provenance, RefusalReason, Store, decode_vec, flag};
-use schemars::JsonSchema;
-use serde::{Deserialize, Serialize};
+use super::{Backend, ExclusionSet, Store, decode_vec, flag};
+use crate::records::{IterationStats, ModelSummary, RefusalReason, Run, RunStatus};
+use sqlx::Row;
 use sqlx::any::AnyRow;
-use sqlx::{FromRow, Row};
-
-/// Where a run stands: a proposal's lease status, or what its trajectory was.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum RunStatus {
-    /// A proposal leased to its client, waiting for the executed trajectory.
-    Open,
-    /// A proposal whose trajectory was posted in full.
-    Executed,
-    /// A proposal its client gave up.
-    Abandoned,
-    /// A proposal whose lease ran out before a trajectory was posted.
-    Expired,
-    /// A proposal whose robot stopped early (`partial` trajectory).
-    Partial,
-    /// A trajectory posted without a proposal (teleoperation, logs, another planner).
-    Unsolicited,
-    /// A proposal request answered `no_plan`: no trajectory reached the goal inside the
-    /// precondition at any β tried.
-    Refused,
-}
-
-/// A proposal and the trajectory that executed it, a trajectory posted without a proposal, or a
-/// refused proposal request: a row of the runs list, shown as listed (`Run` of the API).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
-pub struct Run {
-    /// The proposal, if there was one.
-    pub proposal_id: Option<i64>,
-    /// The executed trajectory, if one was posted.
-    pub trajectory_id: Option<i64>,
-    /// The refusal, for a refused proposal request (`status` `refused`).
-    #[serde(default)]
-    pub refusal_id: Option<i64>,
-    /// Where it stands.
-    pub status: RunStatus,
-    /// The client the proposal was leased to (or that was refused).
-    pub client_id: Option<String>,
-    /// The learning iteration the proposal was made (or refused) in (`null` without a
-    /// proposal).
-    pub iteration: Option<i64>,
-    /// β the proposal was planned with; for a refusal, the first β tried (the iteration's
-    /// `β_j`) (`null` without a proposal).
-    pub beta: Option<f64>,
-    /// Every β a refused request tried, in order (`null` unless refused).
-    #[serde(default)]
-    pub betas_tried: Option<Vec<f64>>,
-    /// Why a refused request was refused: `no_plan` or `deadline_exceeded` (`null` unless
-    /// refused).
-    #[serde(default)]
-    pub refusal_reason: Option<RefusalReason>,
-    /// RRT extensions the proposal's or the refusal's search spent (`null` without a proposal).
-    #[serde(default)]
-    pub extensions: Option<i64>,
-    /// The MDE version that scored the proposal (`null` without a proposal).
-    pub model_version: Option<i64>,
-    /// When the proposal was made, or the trajectory posted if there was no proposal (RFC 3339).
-    pub created_at: String,
-    /// Actions: executed transitions when a trajectory was posted, else the proposal's planned
-    /// actions.
-    pub length: i64,
-    /// Whether the posted trajectory stopped early.
-    pub partial: bool,
-    /// Whether the posted trajectory departs from its proposal (other actions, longer, or
-    /// another start; a prefix does not).
-    #[serde(default)]
-    pub deviating: bool,
-    /// Where the posted trajectory comes from, when its client said.
-    #[serde(default)]
-    pub source: Option<Provenance>,
-    /// The largest deviation label of the executed trajectory (`null` before one was posted).
-    pub max_deviation: Option<f64>,
-    /// The exclusion (the oldest in effect) that keeps the posted trajectory out of the
-    /// experiment's model (`null` when none does).
-    #[serde(default)]
-    pub excluded_by: Option<i64>,
-}
-
-/// Executed trajectories and transitions of one learning iteration, and its refused proposal
-/// requests (shown in the API's timeline).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema, FromRow)]
-pub struct IterationStats {
-    /// The iteration (its trajectories are the experiment's `iteration × batch_size`-th to the
-    /// next batch's first, in ingest order).
-    pub iteration: i64,
-    /// Trajectories posted in it (0 when it only refused proposal requests so far).
-    pub n_trajectories: i64,
-    /// Their transitions.
-    pub n_transitions: i64,
-    /// Mean deviation label of those transitions (`null` without any).
-    pub mean_deviation: Option<f64>,
-    /// Largest deviation label (`null` without any).
-    pub max_deviation: Option<f64>,
-    /// Share of the transitions with a deviation below `d_max` (the model was right there;
-    /// `null` without any).
-    pub share_within_d_max: Option<f64>,
-    /// Proposal requests refused in it (`no_plan`, or past the planning deadline).
-    #[serde(default)]
-    pub n_refused: i64,
-}
-
-/// A stored model version's summary (no training data, no noise model; shown in the API's
-/// timeline).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema, FromRow)]
-pub struct ModelSummary {
-    /// Version (1, 2, …).
-    pub version: i64,
-    /// Training transitions (the experiment's first `n_train`).
-    pub n_train: i64,
-    /// Trajectories stored when the fit started.
-    pub n_trajectories: i64,
-    /// Noise mode of the fit.
-    pub noise: String,
-    /// Log marginal likelihood of the fit.
-    pub log_marginal_likelihood: f64,
-    /// Seconds the fit took.
-    pub fit_seconds: f64,
-    /// When it finished (RFC 3339).
-    pub fitted_at: String,
-    /// The label cap it was fitted with (units of `d_max`; 0 = raw labels; migration 0007
-    /// recorded one for every version fitted before caps were).
-    pub label_cap: f64,
-}
 
 /// Proposals (with the trajectory that executed each), trajectories without a proposal and
 /// refused proposal requests, as one relation (the first branch's NULLs typed: PostgreSQL
@@ -277,7 +154,7 @@ impl Store {
         d_max: f64,
         limit: i64,
     ) -> Result<Vec<IterationStats>, sqlx::Error> {
-        sqlx::query_as(
+        let rows = sqlx::query(
             "WITH t AS (
                  SELECT id, (ROW_NUMBER() OVER (ORDER BY id) - 1) / $2 AS iteration
                  FROM trajectories WHERE experiment_id = $1
@@ -311,7 +188,20 @@ impl Store {
         .bind(d_max)
         .bind(limit)
         .fetch_all(&self.read)
-        .await
+        .await?;
+        rows.iter()
+            .map(|row| {
+                Ok(IterationStats {
+                    iteration: row.try_get("iteration")?,
+                    n_trajectories: row.try_get("n_trajectories")?,
+                    n_transitions: row.try_get("n_transitions")?,
+                    mean_deviation: row.try_get("mean_deviation")?,
+                    max_deviation: row.try_get("max_deviation")?,
+                    share_within_d_max: row.try_get("share_within_d_max")?,
+                    n_refused: row.try_get("n_refused")?,
+                })
+            })
+            .collect()
     }
 
     /// The first `limit` model versions of an experiment, oldest first.
@@ -321,7 +211,7 @@ impl Store {
         experiment_id: i64,
         limit: i64,
     ) -> Result<Vec<ModelSummary>, sqlx::Error> {
-        sqlx::query_as(
+        let rows = sqlx::query(
             "SELECT version, n_train, n_trajectories, noise, log_marginal_likelihood,
                     fit_seconds, fitted_at, label_cap
              FROM models WHERE experiment_id = $1 ORDER BY version LIMIT $2",
@@ -329,7 +219,21 @@ impl Store {
         .bind(experiment_id)
         .bind(limit)
         .fetch_all(&self.read)
-        .await
+        .await?;
+        rows.iter()
+            .map(|row| {
+                Ok(ModelSummary {
+                    version: row.try_get("version")?,
+                    n_train: row.try_get("n_train")?,
+                    n_trajectories: row.try_get("n_trajectories")?,
+                    noise: row.try_get("noise")?,
+                    log_marginal_likelihood: row.try_get("log_marginal_likelihood")?,
+                    fit_seconds: row.try_get("fit_seconds")?,
+                    fitted_at: row.try_get("fitted_at")?,
+                    label_cap: row.try_get("label_cap")?,
+                })
+            })
+            .collect()
     }
 
     /// The first `n` deviation labels of an experiment outside the trajectories `outside`
@@ -361,7 +265,7 @@ impl Store {
         outside: &ExclusionSet,
         skip: i64,
         limit: i64,
-    ) -> Result<Vec<super::StoredTransition>, sqlx::Error> {
+    ) -> Result<Vec<crate::records::StoredTransition>, sqlx::Error> {
         let first_unseen: Option<i64> = sqlx::query_scalar(&format!(
             "SELECT id FROM transitions WHERE experiment_id = $1{} ORDER BY id LIMIT 1 OFFSET $2",
             outside.sql("trajectory_id")

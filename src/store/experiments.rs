@@ -1,9 +1,8 @@
 //! Experiment rows.
 
 use super::{Store, lock_experiment_list, now};
+use crate::records::ListOrder;
 use crate::settings::ExperimentSettings;
-use schemars::JsonSchema;
-use serde::{Deserialize, Serialize};
 use sqlx::Row;
 use sqlx::any::AnyRow;
 
@@ -27,17 +26,6 @@ pub struct Experiment {
     /// The latest of its creation, its last trajectory, its last proposal and its last refused
     /// proposal request (RFC 3339).
     pub last_activity: String,
-}
-
-/// Which end of the experiment list comes first.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, JsonSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum ListOrder {
-    /// Ascending id (creation order).
-    #[default]
-    Oldest,
-    /// Descending id: the newest experiment first.
-    Newest,
 }
 
 const SELECT: &str = "SELECT e.id, e.settings, e.created_at,

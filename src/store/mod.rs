@@ -34,21 +34,19 @@ mod serving;
 mod trajectories;
 mod transaction;
 
-pub use activity::{IterationStats, ModelSummary, Run, RunStatus};
 pub use exclusions::{Exclusion, ExclusionOutcome, ExclusionScope, ExclusionSet, RestoreOutcome};
-pub use experiments::{Experiment, ListOrder};
+pub use experiments::Experiment;
 pub use fits::{FitClaim, FitJob};
 pub use health::{Failure, classify};
-pub use models::{FitRefusal, StoredFurther, StoredModel};
-pub use proposals::{
-    Inserted, NewProposal, OpenPlan, ProposalPlan, ProposalStatus, ProposalTerms, StoredProposal,
-};
-pub use refusals::{NewRefusal, RefusalReason};
+pub use models::{StoredFurther, StoredModel};
+pub use proposals::{Inserted, NewProposal, OpenPlan, ProposalPlan, StoredProposal};
+pub use refusals::NewRefusal;
 pub use serving::{ServingLock, lock_for_serving};
 pub use trajectories::{
-    IdempotencyKey, IngestOutcome, IngestRecord, LabelStats, ModelLabel, Provenance,
-    StoredTrajectory, StoredTransition, TrajectoryMeta,
+    IdempotencyKey, IngestOutcome, IngestRecord, LabelStats, StoredTrajectory, TrajectoryMeta,
 };
+
+pub use crate::records::{now, timestamp};
 
 use anyhow::Context;
 use health::WriteHealth;
@@ -634,23 +632,6 @@ pub struct StoreSize {
     pub trajectories: i64,
     /// Transitions, over all experiments.
     pub transitions: i64,
-}
-
-/// The current time as an RFC 3339 UTC string, the store's time format.
-pub fn now() -> String {
-    timestamp(time::OffsetDateTime::now_utc())
-}
-
-/// `t` as the store writes times: RFC 3339 in UTC with exactly nine fractional digits, so that
-/// comparing two as text compares them in time (SQLite's date functions keep milliseconds only,
-/// and rows stored within one millisecond must still sort in the order they were made).
-pub fn timestamp(t: time::OffsetDateTime) -> String {
-    const FORMAT: &[time::format_description::BorrowedFormatItem<'_>] = time::macros::format_description!(
-        "[year]-[month]-[day]T[hour]:[minute]:[second].[subsecond digits:9]Z"
-    );
-    t.to_offset(time::UtcOffset::UTC)
-        .format(FORMAT)
-        .unwrap_or_default()
 }
 
 /// Encodes a vector as a JSON array for a TEXT column.

@@ -1,9 +1,10 @@
 //! Fitted model versions.
 
-use super::{ExclusionSet, Store, now};
+use super::{ExclusionSet, Store};
 use crate::mde::{
     BetaChoice, EstimatorKind, EstimatorState, HeldOutTrust, KernelTrial, SelectionRecord,
 };
+use crate::records::FitRefusal;
 use sqlx::AnyConnection;
 
 /// A stored model version.
@@ -344,88 +345,5 @@ impl Store {
                 },
             )
             .collect()
-    }
-}
-
-/// A fit the server did not attempt because its estimated peak memory or time exceeded the
-/// budget; the version before it kept answering. Shown as stored (`FitRefusal` of the API).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct FitRefusal {
-    /// Transitions the fit would have been trained on.
-    pub n_train: i64,
-    /// Trajectories stored then.
-    pub n_trajectories: i64,
-    /// The regressor it would have fitted: `exact` or `sparse`.
-    pub estimator: EstimatorKind,
-    /// Its estimated peak memory (bytes).
-    pub needed_bytes: f64,
-    /// The server's budget (bytes, `--max-fit-memory-mib`).
-    pub budget_bytes: f64,
-    /// Why, in words.
-    pub reason: String,
-    /// When (RFC 3339).
-    pub refused_at: String,
-    /// For a refusal over time: its estimated seconds (model selection included, at the cost
-    /// model's assumed rate); `null` for one over memory.
-    pub needed_seconds: Option<f64>,
-    /// For a refusal over time: the server's budget (seconds, `--max-fit-seconds`).
-    pub budget_seconds: Option<f64>,
-}
-
-impl FitRefusal {
-    /// A refusal now over time: the fit (within the memory budget: `(needed, budget)` bytes)
-    /// would take about `needed_seconds`, beyond `budget_seconds`.
-    pub fn over_time(
-        n_train: i64,
-        n_trajectories: i64,
-        estimator: EstimatorKind,
-        (needed_bytes, budget_bytes): (f64, f64),
-        (needed_seconds, budget_seconds): (f64, f64),
-    ) -> Self {
-        Self {
-            n_train,
-            n_trajectories,
-            estimator,
-            needed_bytes,
-            budget_bytes,
-            reason: format!(
-                "the {} GP's fit on {n_train} transitions would take about {needed_seconds:.0} s \
-                 (model selection included), beyond the server's fit time budget of \
-                 {budget_seconds:.0} s (--max-fit-seconds); the previous version keeps answering",
-                estimator.as_str(),
-            ),
-            refused_at: now(),
-            needed_seconds: Some(needed_seconds),
-            budget_seconds: Some(budget_seconds),
-        }
-    }
-
-    /// A refusal now over memory.
-    pub fn now(
-        n_train: i64,
-        n_trajectories: i64,
-        estimator: EstimatorKind,
-        needed_bytes: f64,
-        budget_bytes: f64,
-    ) -> Self {
-        let gib = |b: f64| b / (1u64 << 30) as f64;
-        Self {
-            n_train,
-            n_trajectories,
-            estimator,
-            needed_bytes,
-            budget_bytes,
-            reason: format!(
-                "the {} GP's fit on {n_train} transitions needs about {:.2} GiB, beyond the \
-                 server's fit memory budget of {:.2} GiB (--max-fit-memory-mib); the previous \
-                 version keeps answering",
-                estimator.as_str(),
-                gib(needed_bytes),
-                gib(budget_bytes)
-            ),
-            refused_at: now(),
-            needed_seconds: None,
-            budget_seconds: None,
-        }
     }
 }

@@ -3,74 +3,13 @@
 use super::transaction::WriteTx;
 use super::{Store, decode_vec, encode_vec, flag, lock_experiment};
 use crate::planning::Strategy;
+use crate::records::{ProposalStatus, ProposalTerms};
 use sqlx::any::AnyRow;
 use sqlx::{AnyConnection, Row};
-
-/// Where a proposal's lease stands.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum ProposalStatus {
-    /// Leased to its client, waiting for the executed trajectory.
-    Open,
-    /// Its trajectory was posted.
-    Executed,
-    /// The client gave it up.
-    Abandoned,
-    /// The lease ran out before a trajectory was posted.
-    Expired,
-}
-
-impl ProposalStatus {
-    /// The stored name.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::Open => "open",
-            Self::Executed => "executed",
-            Self::Abandoned => "abandoned",
-            Self::Expired => "expired",
-        }
-    }
-
-    fn parse(s: &str) -> Result<Self, sqlx::Error> {
-        Ok(match s {
-            "open" => Self::Open,
-            "executed" => Self::Executed,
-            "abandoned" => Self::Abandoned,
-            "expired" => Self::Expired,
-            other => {
-                return Err(sqlx::Error::Decode(
-                    format!("unknown proposal status {other:?}").into(),
-                ));
-            }
-        })
-    }
-}
 
 fn parse_strategy(s: &str) -> Result<Strategy, sqlx::Error> {
     s.parse()
         .map_err(|e: crate::planning::PlanningError| sqlx::Error::Decode(Box::new(e)))
-}
-
-/// What a proposal answered and under which conditions: the problem, the client it is leased
-/// to, and the learning state that shaped it. Shown as stored, in the API's proposal.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct ProposalTerms {
-    /// The client it is leased to.
-    pub client_id: Option<String>,
-    /// The learning iteration it was made in.
-    pub iteration: i64,
-    /// β it was planned with.
-    pub beta: f64,
-    /// The strategy that chose it.
-    pub strategy: Strategy,
-    /// The MDE version that scored it.
-    pub model_version: i64,
-    /// Start state.
-    pub start: Vec<f64>,
-    /// Goal.
-    pub goal: Vec<f64>,
 }
 
 /// A proposal to store.
@@ -177,7 +116,7 @@ fn unix_now() -> f64 {
 fn from_row(row: &AnyRow) -> Result<StoredProposal, sqlx::Error> {
     Ok(StoredProposal {
         id: row.try_get("id")?,
-        status: ProposalStatus::parse(row.try_get("status")?)?,
+        status: parse_status(row.try_get("status")?)?,
         terms: ProposalTerms {
             client_id: row.try_get("client_id")?,
             iteration: row.try_get("iteration")?,
@@ -478,4 +417,10 @@ pub(super) async fn link_trajectory(
             Ok(LinkOutcome::Linked)
         }
     }
+}
+
+/// A stored proposal status.
+fn parse_status(s: &str) -> Result<ProposalStatus, sqlx::Error> {
+    ProposalStatus::from_name(s)
+        .ok_or_else(|| sqlx::Error::Decode(format!("unknown proposal status {s:?}").into()))
 }

@@ -3,6 +3,7 @@
 
 use super::{Store, encode_vec, now};
 use crate::planning::Strategy;
+use crate::records::RefusalReason;
 
 /// A proposal request that no trajectory answered, to store.
 #[derive(Debug, Clone, PartialEq)]
@@ -28,28 +29,6 @@ pub struct NewRefusal {
     pub candidates: Option<i64>,
     /// Why it was refused.
     pub reason: RefusalReason,
-}
-
-/// Why a proposal request was refused.
-#[derive(
-    Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
-#[serde(rename_all = "snake_case")]
-pub enum RefusalReason {
-    /// No trajectory reached the goal inside the precondition, at every β tried.
-    NoPlan,
-    /// The search did not finish within the planning deadline (`--plan-timeout-ms`).
-    DeadlineExceeded,
-}
-
-impl RefusalReason {
-    /// The stored (and shown) name.
-    pub fn as_str(self) -> &'static str {
-        match self {
-            Self::NoPlan => "no_plan",
-            Self::DeadlineExceeded => "deadline_exceeded",
-        }
-    }
 }
 
 impl Store {

@@ -3,33 +3,9 @@
 use super::proposals::{LinkOutcome, link_trajectory};
 use super::{ExclusionSet, Store, decode_vec, encode_vec, flag, lock_experiment, now};
 use crate::domain::LabelledTransition;
+use crate::records::{ModelLabel, Provenance, StoredTransition};
 use sqlx::Row;
 use sqlx::any::AnyRow;
-
-/// A stored transition with its prediction and label (`Transition` of the API, as stored).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct StoredTransition {
-    /// Identifier; ascending in ingest order.
-    pub id: i64,
-    /// The trajectory it belongs to.
-    pub trajectory_id: i64,
-    /// Position in the trajectory, from 0.
-    pub step: i64,
-    /// State.
-    pub s: Vec<f64>,
-    /// Action.
-    pub a: Vec<f64>,
-    /// Observed next state.
-    pub s_next: Vec<f64>,
-    /// Predicted next state.
-    pub s_pred: Vec<f64>,
-    /// Deviation label.
-    pub deviation: f64,
-    /// The further models' labels (`settings.models`), in their order; left out when the
-    /// experiment has none.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub labels: Option<Vec<ModelLabel>>,
-}
 
 /// What one model's labels of an experiment's executed transitions say.
 #[derive(Debug, Clone, PartialEq, sqlx::FromRow)]
@@ -46,65 +22,6 @@ pub struct LabelStats {
     pub max_deviation: Option<f64>,
     /// Share of its labels below `d_max` (`None` without labels).
     pub share_within_d_max: Option<f64>,
-}
-
-/// One further model's label of an executed transition: its prediction `f̂_m(s, a)` and
-/// deviation `d(f̂_m(s, a), s_next)`, or — when the model could not answer — neither, and why.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
-pub struct ModelLabel {
-    /// The model's name.
-    pub model: String,
-    /// Its prediction; `null` when missing.
-    pub s_pred: Option<Vec<f64>>,
-    /// Its deviation label; `null` when missing.
-    pub deviation: Option<f64>,
-    /// Why the label is missing (the model's error); `null` when labelled.
-    pub missing: Option<String>,
-}
-
-impl ModelLabel {
-    /// `model`'s label: its prediction and deviation.
-    pub fn labelled(model: &str, s_pred: Vec<f64>, deviation: f64) -> Self {
-        Self {
-            model: model.to_string(),
-            s_pred: Some(s_pred),
-            deviation: Some(deviation),
-            missing: None,
-        }
-    }
-
-    /// `model` left the transition unlabelled because of `why`.
-    pub fn missing(model: &str, why: impl Into<String>) -> Self {
-        Self {
-            model: model.to_string(),
-            s_pred: None,
-            deviation: None,
-            missing: Some(why.into()),
-        }
-    }
-}
-
-/// Where a posted trajectory comes from: a logged dataset or file, a simulated environment.
-/// Posted with the trajectory (`TrajectorySource` of the API, checked by
-/// `service::ingest::check_source`), stored with it and shown with it and in the runs list.
-#[derive(
-    Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize, schemars::JsonSchema,
-)]
-#[serde(deny_unknown_fields)]
-pub struct Provenance {
-    /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
-    /// (1 to 1000 characters).
-    pub dataset: String,
-    /// The episode of the dataset (≥ 0).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub episode: Option<i64>,
-    /// The step of the episode the trajectory's first transition was (≥ 0): an episode longer
-    /// than one post allows is posted as several trajectories.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub first_step: Option<i64>,
-    /// A free-form label (at most 1000 characters).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub label: Option<String>,
 }
 
 /// What a trajectory is besides its transitions, as stored with them.

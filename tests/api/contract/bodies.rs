@@ -249,7 +249,7 @@ const REACHED: &[&str] = &[
     "ResolvedRemoteModelSpec",
     "ResolvedLinearModelSpec",
     // an experiment's further models (settings::NamedModelSpec) and their labels of a
-    // transition (store::ModelLabel)
+    // transition (records::ModelLabel)
     "NamedModelSpec",
     "ResolvedNamedModelSpec",
     "ModelLabel",
