@@ -2,7 +2,6 @@
 FROM rust:1-bookworm AS build
 WORKDIR /src
 COPY Cargo.toml Cargo.lock ./
-COPY src src
 COPY crates crates
 COPY migrations migrations
 COPY api api

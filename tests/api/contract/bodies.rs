@@ -1,4 +1,4 @@
-//! The bodies `src/api.rs` sends and reads (with the types they embed) and the component schemas
+//! The bodies `crates/precond/src/api.rs` sends and reads (with the types they embed) and the component schemas
 //! of `api/openapi.yaml` describe the same JSON.
 //!
 //! Each wire type derives `schemars::JsonSchema` (schemars 1.x: JSON Schema generated from the
@@ -107,7 +107,7 @@ use Side::{Request, Response};
 
 /// Every spec schema with a Rust type of its own, and that type.
 const ENTRIES: &[Entry] = &[
-    // errors (`details` is a JSON value built per code in src/http/error.rs)
+    // errors (`details` is a JSON value built per code in crates/precond/src/http/error.rs)
     entry::<api::ErrorBody>("Error", Response),
     entry::<api::ErrorDetail>("ErrorBody", Response),
     // health
@@ -272,7 +272,7 @@ const REACHED: &[&str] = &[
 /// Spec schemas no Rust type describes, each with the reason.
 const NOT_TYPED: &[(&str, &str)] = &[
     // An error's `details`: a JSON value each error builds in `ApiError::details`
-    // (src/http/error.rs); the codes are checked against the spec in contract.rs.
+    // (crates/precond/src/http/error.rs); the codes are checked against the spec in contract.rs.
     ("RetryDetails", "a JSON value"),
     ("DeadlineDetails", "a JSON value"),
     ("LeaseDetails", "a JSON value"),
@@ -1133,7 +1133,7 @@ fn every_body_is_the_spec_schema_of_the_same_name() {
         .collect();
     assert!(
         problems.is_empty(),
-        "src/api.rs and api/openapi.yaml disagree ({}):\n{}",
+        "crates/precond/src/api.rs and api/openapi.yaml disagree ({}):\n{}",
         problems.len(),
         problems.join("\n")
     );
@@ -1189,9 +1189,9 @@ fn every_spec_schema_is_checked_or_listed_with_a_reason() {
 #[test]
 fn the_wire_types_skip_only_absent_options() {
     for file in [
-        "src/api.rs",
-        "src/settings/mod.rs",
-        "src/settings/custom.rs",
+        "crates/precond/src/api.rs",
+        "crates/precond/src/settings/mod.rs",
+        "crates/precond/src/settings/custom.rs",
         "crates/precond-core/src/gp/mod.rs",
         "crates/precond-core/src/mde/mod.rs",
         "crates/precond-core/src/mde/estimator.rs",
@@ -1259,7 +1259,7 @@ fn every_query_string_is_the_specs_query_parameters() {
     }
     assert!(
         problems.is_empty(),
-        "src/api.rs and api/openapi.yaml disagree on query strings ({}):\n{}",
+        "crates/precond/src/api.rs and api/openapi.yaml disagree on query strings ({}):\n{}",
         problems.len(),
         problems.join("\n")
     );

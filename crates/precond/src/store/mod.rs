@@ -169,7 +169,7 @@ impl Store {
         let write = sqlite_pool(&options, 1)
             .await
             .with_context(|| format!("opening {shown}"))?;
-        sqlx::migrate!("./migrations/sqlite")
+        sqlx::migrate!("../../migrations/sqlite")
             .run(&write)
             .await
             .context("applying migrations")?;
@@ -209,7 +209,7 @@ impl Store {
             }
         }
         // sqlx holds an advisory lock while it migrates: replicas starting together take turns.
-        sqlx::migrate!("./migrations/postgres")
+        sqlx::migrate!("../../migrations/postgres")
             .run(&pool)
             .await
             .context("applying migrations")?;

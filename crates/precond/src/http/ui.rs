@@ -11,44 +11,44 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 
 /// The app's page: every dashboard path answers it, and the script routes on the path.
-const INDEX: &str = include_str!("../../ui/index.html");
+const INDEX: &str = include_str!("../../../../ui/index.html");
 
 /// `(file name, content type, content)` of each asset under `/ui/assets/`.
 const ASSETS: &[(&str, &str, &str)] = &[
     (
         "api.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/api.js"),
+        include_str!("../../../../ui/api.js"),
     ),
     (
         "app.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/app.js"),
+        include_str!("../../../../ui/app.js"),
     ),
     (
         "charts.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/charts.js"),
+        include_str!("../../../../ui/charts.js"),
     ),
     (
         "dom.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/dom.js"),
+        include_str!("../../../../ui/dom.js"),
     ),
     (
         "format.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/format.js"),
+        include_str!("../../../../ui/format.js"),
     ),
     (
         "pages.js",
         "text/javascript; charset=utf-8",
-        include_str!("../../ui/pages.js"),
+        include_str!("../../../../ui/pages.js"),
     ),
     (
         "style.css",
         "text/css; charset=utf-8",
-        include_str!("../../ui/style.css"),
+        include_str!("../../../../ui/style.css"),
     ),
 ];
 
