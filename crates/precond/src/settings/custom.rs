@@ -105,7 +105,7 @@ pub struct GoalSpec {
 
 /// A goal's radius: one for every component (a ball), or one per component (an ellipsoid:
 /// `Σ ((s_i − g_i) / r_i)² ≤ 1`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(
     untagged,
     expecting = "must be a number, or an array of one number per goal component"
@@ -115,6 +115,26 @@ pub enum GoalRadius {
     One(f64),
     /// One radius per goal component, in its units.
     Each(Vec<f64>),
+}
+
+/// Written by hand to say what validation requires: every radius positive, at least one.
+impl JsonSchema for GoalRadius {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "GoalRadius".into()
+    }
+
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({
+            "anyOf": [
+                {"type": "number", "exclusiveMinimum": 0},
+                {
+                    "type": "array",
+                    "minItems": 1,
+                    "items": {"type": "number", "exclusiveMinimum": 0}
+                }
+            ]
+        })
+    }
 }
 
 fn default_goal_radius() -> GoalRadius {
