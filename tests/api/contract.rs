@@ -1,7 +1,8 @@
 //! The router and `api/openapi.yaml` describe the same routes and the same error codes, and
-//! (`bodies`) the same request and response bodies.
+//! (`bodies`) the same request and response bodies, the schemas generated from them (`generated`).
 
 mod bodies;
+mod generated;
 
 use precond::domain::DynamicsError;
 use precond::http::error::ApiError;

@@ -42,6 +42,9 @@ pub enum Command {
     /// server: one trajectory per episode, labelled by the experiment's model, with its source;
     /// safe to run again (nothing is stored twice).
     Import(crate::import::ImportArgs),
+    /// Regenerate the schemas of `api/openapi.yaml` from the wire types and
+    /// `api/schemas.yaml` (run in the repository; `--check`: only say whether they differ).
+    Openapi(crate::openapi::OpenapiArgs),
 }
 
 /// Options of `precond backup`.
@@ -781,6 +784,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
             })
             .await
         }
+        Command::Openapi(args) => crate::openapi::run(&args),
         Command::Backup(args) => {
             let size = precond::store::backup(&args.database_url, &args.to).await?;
             println!(

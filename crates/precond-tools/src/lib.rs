@@ -14,11 +14,13 @@
 //!   client of the service (simulators, CSV/JSON results, SVG plots).
 //! - [`import`](mod@import): `precond import`, logged transitions (CSV, Parquet) into an
 //!   experiment as an HTTP client, one trajectory per episode, resumable and idempotent.
+//! - [`openapi`]: `precond openapi`, the schemas of `api/openapi.yaml` generated from the wire
+//!   types of the `precond` crate and the annotations of `api/schemas.yaml`.
 //!
 //! ## Layers
 //!
 //! ```text
-//! precond-tools (cli, experiment, bench, import)
+//! precond-tools (cli, experiment, bench, import, openapi)
 //!     │
 //!     ▼
 //! precond (api, http, service, store, settings, remote_model)
@@ -31,3 +33,4 @@ pub mod bench;
 pub mod cli;
 pub mod experiment;
 pub mod import;
+pub mod openapi;

@@ -3,8 +3,9 @@
 //!
 //! Each wire type derives `schemars::JsonSchema` (schemars 1.x: JSON Schema generated from the
 //! serde attributes, so it knows `rename`, `flatten`, `tag`, `default`, `deny_unknown_fields`
-//! and `skip_serializing_if` as serde applies them). [`ENTRIES`] maps every spec schema to the
-//! Rust type of the same body, with the side of the wire it describes:
+//! and `skip_serializing_if` as serde applies them). `ENTRIES` (`precond_tools::openapi::
+//! registry`, the table `precond openapi` generates the document's schemas from) maps every
+//! spec schema to the Rust type of the same body, with the side of the wire it describes:
 //! - a **response** is generated for serialisation: a property is required when the server
 //!   always emits it (an `Option` included, unless it is skipped when `None`);
 //! - a **request** is generated for deserialisation: a property is required when the server
@@ -29,211 +30,43 @@
 //!    enums (strategy, aggregation, kernel, noise, preset, statuses, …) with the same values. A
 //!    Rust `String` may be documented as an enum or a `const` (`Health.status`, `Diagnostics.
 //!    method`): the spec says which strings the server puts there.
-//! 5. **Nothing unchecked.** Every schema of `components/schemas` is in [`ENTRIES`], checked as
+//! 5. **Nothing unchecked.** Every schema of `components/schemas` is in `ENTRIES`, checked as
 //!    part of one ([`REACHED`]) or in the commented [`NOT_TYPED`] list.
 //!
 //! A serde `serde_json::Value` (an error's `details`) is unconstrained on the Rust side and is not
 //! compared further.
+//!
+//! The schemas are generated from these types (`generated.rs` checks the document is what they
+//! generate); this comparison reads both independently of the generator, so a generator that
+//! got a rule wrong — a nullable property, a required one, a variant — fails here.
 
 use schemars::JsonSchema;
-use schemars::generate::SchemaSettings;
 use serde_json::{Map, Value};
 use std::cell::RefCell;
 use std::collections::{BTreeMap, BTreeSet};
 
 use precond::api;
-use precond::domain::Transition;
-use precond::gp::{Hyperparameters, NoiseSummary};
-use precond::mde::{HeldOutTrust, Judgement};
-use precond::settings::{
-    DomainSpec, ExperimentRequest, FeaturesSpec, GoalSpec, LearningRequest, LearningSettings,
-    MdeRequest, MdeSettings, ModelSpec, ObstacleSpec, SpaceSpec,
-};
+use precond_tools::openapi::registry::{Adjust, ENTRIES, Entry, Side, rust_schema};
 
 // ---------------------------------------------------------------- the table
 
-/// Which side of the wire a schema describes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-enum Side {
-    /// The server writes it: compared with the type's serialisation schema.
-    Response,
-    /// The server reads it: compared with the type's deserialisation schema.
-    Request,
-}
-
-/// One Rust type shared by two routes whose bodies differ by properties the server sets on one
-/// route only (a property skipped when `None`, always `Some` on one route, always `None` on the
-/// other): what the spec schema of this route says of them, at a property path (`""`: the
-/// body).
-#[derive(Clone, Copy, Debug)]
-enum Adjust {
-    /// Always emitted (never `null`) on this route.
-    Require(&'static str, &'static [&'static str]),
-    /// Never emitted on this route.
-    Omit(&'static str, &'static [&'static str]),
-}
-
-/// A spec schema and the Rust type of the same body.
-struct Entry {
-    schema: &'static str,
-    side: Side,
-    rust: fn() -> &'static str,
-    generate: fn(Side) -> Value,
-    adjust: &'static [Adjust],
-}
-
-const fn entry<T: JsonSchema>(schema: &'static str, side: Side) -> Entry {
-    Entry {
-        schema,
-        side,
-        rust: std::any::type_name::<T>,
-        generate: rust_schema::<T>,
-        adjust: &[],
-    }
-}
-
-const fn adjusted<T: JsonSchema>(
-    schema: &'static str,
-    side: Side,
-    adjust: &'static [Adjust],
-) -> Entry {
-    Entry {
-        adjust,
-        ..entry::<T>(schema, side)
-    }
-}
-
-use Side::{Request, Response};
-
-/// Every spec schema with a Rust type of its own, and that type.
-const ENTRIES: &[Entry] = &[
-    // errors (`details` is a JSON value built per code in crates/precond/src/http/error.rs)
-    entry::<api::ErrorBody>("Error", Response),
-    entry::<api::ErrorDetail>("ErrorBody", Response),
-    // health
-    entry::<api::HealthResponse>("Health", Response),
-    entry::<api::HealthResponse>("Readiness", Response),
-    // spaces and domains
-    entry::<api::SpaceView>("Space", Response),
-    entry::<DomainSpec>("DomainSpec", Request),
-    entry::<DomainSpec>("ResolvedDomainSpec", Response),
-    entry::<ObstacleSpec>("Obstacle", Request),
-    entry::<ObstacleSpec>("Obstacle", Response),
-    entry::<SpaceSpec>("SpaceSpec", Request),
-    entry::<SpaceSpec>("ResolvedSpaceSpec", Response),
-    entry::<FeaturesSpec>("FeaturesSpec", Request),
-    entry::<FeaturesSpec>("ResolvedFeaturesSpec", Response),
-    entry::<GoalSpec>("GoalSpec", Request),
-    entry::<GoalSpec>("ResolvedGoalSpec", Response),
-    entry::<ModelSpec>("ModelSpec", Request),
-    entry::<ModelSpec>("ResolvedModelSpec", Response),
-    // settings
-    entry::<MdeRequest>("MdeSettings", Request),
-    entry::<LearningRequest>("LearningSettings", Request),
-    entry::<MdeSettings>("ResolvedMdeSettings", Response),
-    entry::<LearningSettings>("ResolvedLearningSettings", Response),
-    // experiments
-    entry::<ExperimentRequest>("ExperimentRequest", Request),
-    entry::<api::ExperimentResponse>("Experiment", Response),
-    entry::<api::ExperimentList>("ExperimentList", Response),
-    // trajectories
-    entry::<Transition>("TransitionRequest", Request),
-    entry::<api::TrajectoryRequest>("TrajectoryRequest", Request),
-    entry::<api::TrajectorySource>("TrajectorySource", Request),
-    entry::<api::TrajectorySource>("ResolvedTrajectorySource", Response),
-    entry::<api::TrajectoryCreated>("TrajectoryCreated", Response),
-    entry::<api::TransitionView>("Transition", Response),
-    entry::<api::TrajectoryResponse>("Trajectory", Response),
-    entry::<api::TransitionPage>("TransitionPage", Response),
-    // dashboard reads
-    entry::<api::RunView>("Run", Response),
-    entry::<api::ExclusionRequest>("ExclusionRequest", Request),
-    entry::<api::ExclusionView>("Exclusion", Response),
-    entry::<api::ExclusionPage>("ExclusionPage", Response),
-    entry::<api::RunPage>("RunPage", Response),
-    entry::<api::TimelineIteration>("TimelineIteration", Response),
-    entry::<api::TimelineModel>("TimelineModel", Response),
-    entry::<api::Timeline>("Timeline", Response),
-    entry::<api::ModelLabels>("ModelLabels", Response),
-    entry::<api::MapAxis>("MapAxis", Response),
-    entry::<api::MapPoint>("MapPoint", Response),
-    entry::<api::PreconditionMap>("PreconditionMap", Response),
-    entry::<api::Coverage>("Coverage", Response),
-    entry::<api::PreconditionRates>("PreconditionRates", Response),
-    entry::<api::Diagnostics>("Diagnostics", Response),
-    // model
-    entry::<Hyperparameters>("Hyperparameters", Response),
-    entry::<NoiseSummary>("NoiseSummary", Response),
-    entry::<api::ModelResponse>("Model", Response),
-    entry::<HeldOutTrust>("HeldOutTrust", Response),
-    entry::<api::FitRefusalView>("FitRefusal", Response),
-    entry::<precond::mde::KernelTrial>("KernelTrial", Response),
-    entry::<precond::mde::BetaChoice>("BetaChoice", Response),
-    entry::<api::ModelExport>("ModelExport", Response),
-    entry::<precond::domain::FeatureMap>("FeatureMap", Response),
-    entry::<precond::gp::Predictor>("Predictor", Response),
-    entry::<precond::mde::ExpertsPredictor>("ExpertsPredictor", Response),
-    entry::<precond::gp::GpPredictor>("GpPredictor", Response),
-    entry::<precond::gp::NoisePredictor>("NoisePredictor", Response),
-    entry::<api::RejectionCounts>("RejectionCounts", Response),
-    // precondition
-    entry::<api::Point>("PointRequest", Request),
-    entry::<api::PreconditionRequest>("PreconditionRequest", Request),
-    entry::<Judgement>("PreconditionResult", Response),
-    // `POST …/precondition` answers without the point, `GET …/precondition` with it.
-    adjusted::<api::PreconditionResponse>(
-        "PreconditionAnswer",
-        Response,
-        &[Adjust::Omit("", &["s", "a"])],
-    ),
-    adjusted::<api::PreconditionResponse>(
-        "PointPreconditionAnswer",
-        Response,
-        &[Adjust::Require("", &["s", "a"])],
-    ),
-    // planning
-    entry::<api::ProposalRequest>("ProposalRequest", Request),
-    entry::<api::CandidateTrajectory>("CandidateTrajectory", Request),
-    entry::<api::ContinueRequest>("ContinueRequest", Request),
-    adjusted::<api::ContinueResponse>(
+/// The adjustments [`CONTEXTS`] implies for the bodies that embed a schema it names: a
+/// proposal's trajectory always has its acquisition values, a plan's never.
+const NESTED: &[(&str, Adjust)] = &[
+    (
         "ContinueResponse",
-        Response,
-        &[Adjust::Require(
-            "proposal.trajectory",
-            &["alpha_step", "alpha"],
-        )],
+        Adjust::Require("proposal.trajectory", &["alpha_step", "alpha"]),
     ),
-    // A plan's trajectory has no acquisition values; a proposal's always has them.
-    adjusted::<api::PlannedTrajectory>(
-        "PlannedTrajectory",
-        Response,
-        &[Adjust::Omit("", &["alpha_step", "alpha"])],
-    ),
-    adjusted::<api::PlannedTrajectory>(
-        "ProposedTrajectory",
-        Response,
-        &[Adjust::Require("", &["alpha_step", "alpha"])],
-    ),
-    entry::<api::CandidateView>("CandidateScore", Response),
-    adjusted::<api::ProposalResponse>(
+    (
         "Proposal",
-        Response,
-        &[Adjust::Require("trajectory", &["alpha_step", "alpha"])],
+        Adjust::Require("trajectory", &["alpha_step", "alpha"]),
     ),
-    entry::<api::PlanRequest>("PlanRequest", Request),
-    adjusted::<api::PlanResponse>(
-        "Plan",
-        Response,
-        &[Adjust::Omit("trajectory", &["alpha_step", "alpha"])],
-    ),
+    ("Plan", Adjust::Omit("trajectory", &["alpha_step", "alpha"])),
 ];
 
 /// Spec schemas without a Rust type of their own, compared as parts of [`ENTRIES`] bodies (the
 /// test checks that each is reached from one).
 const REACHED: &[&str] = &[
-    // property types: every state, action and bound; a goal vector
-    "Vector",
-    "Goal",
     // the variants of DomainSpec and ResolvedDomainSpec (settings::DomainSpec)
     "IcyGridworldSpec",
     "KinematicSpec",
@@ -248,15 +81,6 @@ const REACHED: &[&str] = &[
     "ClientModelSpec",
     "ResolvedRemoteModelSpec",
     "ResolvedLinearModelSpec",
-    // an experiment's further models (settings::NamedModelSpec) and their labels of a
-    // transition (records::ModelLabel)
-    "NamedModelSpec",
-    "ResolvedNamedModelSpec",
-    "ModelLabel",
-    // a model's labels summed up (api::ModelLabelStats, in ModelLabels)
-    "ModelLabelStats",
-    // what a plan's search spent on each model (api::ModelCalls, in Plan)
-    "ModelCalls",
     // the variants of FeatureMap and NoisePredictor (a model export's)
     "UnitBoxFeatureMap",
     "KinematicPredictionFeatureMap",
@@ -264,13 +88,12 @@ const REACHED: &[&str] = &[
     "ActionAndRotationFeatureMap",
     "HomoscedasticNoise",
     "HeteroscedasticNoise",
-    // a model's `selection` (mde::SelectionRecord) and its phases
-    "SelectionRecord",
-    "FitPhase",
 ];
 
 /// Spec schemas no Rust type describes, each with the reason.
 const NOT_TYPED: &[(&str, &str)] = &[
+    // What the error details below hold for a state or a goal.
+    ("Vector", "a JSON value"),
     // An error's `details`: a JSON value each error builds in `ApiError::details`
     // (crates/precond/src/http/error.rs); the codes are checked against the spec in contract.rs.
     ("RetryDetails", "a JSON value"),
@@ -322,18 +145,6 @@ const QUERIES: &[Query] = &[
 /// A type's name without the crate: `api::ExperimentResponse`.
 fn short(type_name: &str) -> &str {
     type_name.strip_prefix("precond::").unwrap_or(type_name)
-}
-
-fn rust_schema<T: JsonSchema>(side: Side) -> Value {
-    let settings = SchemaSettings::draft2020_12();
-    let settings = match side {
-        Side::Response => settings.for_serialize(),
-        Side::Request => settings.for_deserialize(),
-    };
-    settings
-        .into_generator()
-        .into_root_schema_for::<T>()
-        .to_value()
 }
 
 fn spec() -> Value {
@@ -1063,7 +874,8 @@ fn disagreements(entry: &Entry, spec_doc: &Doc) -> Vec<String> {
         .unwrap_or(&empty);
     let rust_doc = Doc::new(rust_defs, "#/$defs/");
     let mut rust = rust_doc.node(&rust_value);
-    for adjust in entry.adjust {
+    let nested = NESTED.iter().filter(|(s, _)| *s == entry.schema);
+    for adjust in entry.adjust.iter().chain(nested.map(|(_, a)| a)) {
         apply(&mut rust, adjust, &what);
     }
     let spec = spec_doc.node(&serde_json::json!({
