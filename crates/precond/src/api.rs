@@ -1,6 +1,8 @@
 //! The HTTP API's bodies, typed: every request the server accepts and every response it sends,
 //! as the server renders them and as a Rust client (the `precond experiment` harness) reads
-//! them. `api/openapi.yaml` is the contract; the field names here are its field names.
+//! them. These types define the wire: the schemas of `api/openapi.yaml` are generated from them
+//! (`precond openapi`, with the prose and bounds of `api/schemas.yaml`), and a test fails when
+//! the document and the types differ.
 //!
 //! Requests refuse unknown fields (a misspelt option is an error, not a silent default);
 //! responses ignore unknown fields when read, so a client keeps working when the server adds
