@@ -4,7 +4,12 @@
 //!
 //! Queries go through sqlx's `Any` driver and are written once, in SQL both engines accept:
 //! `$1` parameters, `CAST(… AS DOUBLE PRECISION)` where PostgreSQL would answer `NUMERIC`,
-//! `FALSE`/`TRUE` for flags (SQLite stores them as 0/1, read back by `flag`). Where the
+//! `FALSE`/`TRUE` for flags (SQLite stores them as 0/1, read back by `flag`). **No `Option<f64>`
+//! is bound**: sqlx 0.8.6's `Any` driver sends a NULL `f64` to PostgreSQL as a `float4` (its
+//! `f32` and `f64` NULLs are swapped, transact-rs/sqlx#4284), which fixes that parameter's type
+//! in the cached statement, and an `f64` bound there later is refused ("incorrect binary data
+//! format"); a missing number is written as a `NULL` literal in a statement of its own. Other
+//! `Option`s (`i64`, strings, flags) are sent with their own types and bind safely. Where the
 //! engines differ (the file's size, ordering old timestamps, claiming a fit), [`Backend`] says
 //! which text runs. Each engine has its own migrations (`migrations/sqlite`,
 //! `migrations/postgres`), both applied at start-up.

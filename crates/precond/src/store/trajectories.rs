@@ -333,9 +333,8 @@ impl Store {
                     .zip(labels)
                     .flat_map(|(&id, of)| of.iter().map(move |l| (id, l)))
                     .collect();
-                // A missing label writes NULL literals rather than binding NULLs: through the
-                // `Any` driver a NULL bound first fixes its parameter's type in PostgreSQL's
-                // cached statement, and a number bound there later is refused.
+                // A missing label writes NULL literals rather than binding `None::<f64>`: the
+                // store's rule against NULL floats (see the module map of `store`).
                 let (labelled, missing): (Vec<_>, Vec<_>) =
                     rows.into_iter().partition(|(_, l)| l.deviation.is_some());
                 for chunk in labelled.chunks(INSERT_ROWS) {
