@@ -412,6 +412,7 @@ pub struct TrajectoryRequest {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub source: Option<TrajectorySource>,
     /// The executed transitions, in order.
+    #[schemars(length(min = 1, max = crate::limits::MAX_TRANSITIONS))]
     pub transitions: Vec<Transition>,
 }
 
@@ -588,6 +589,7 @@ pub struct ExclusionRequest {
     #[serde(default)]
     pub until: Option<String>,
     /// Why (1 to 1000 characters), kept with the exclusion and shown with it.
+    #[schemars(length(min = 1, max = crate::limits::MAX_SOURCE_TEXT_LEN))]
     pub reason: String,
 }
 
@@ -667,6 +669,7 @@ pub struct Point {
 #[serde(deny_unknown_fields)]
 pub struct PreconditionRequest {
     /// The state-actions to judge.
+    #[schemars(length(min = 1, max = crate::limits::MAX_POINTS))]
     pub points: Vec<Point>,
     /// Confidence multiplier β; default: the version's test β (`learning.test_beta`, or its
     /// certified β; for a further model, `learning.test_beta`).
@@ -728,6 +731,7 @@ pub struct ProposalRequest {
     pub goal: Vec<f64>,
     /// The client the proposal is leased to; asking again while it is open returns it.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::limits::MAX_CLIENT_ID_LEN))]
     pub client_id: Option<String>,
     /// Overrides the experiment's strategy for this proposal.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -735,6 +739,7 @@ pub struct ProposalRequest {
     /// The client's own candidate trajectories: the service scores them instead of planning
     /// (required when the experiment's model is the client's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::limits::MAX_CLIENT_CANDIDATES))]
     pub candidates: Option<Vec<CandidateTrajectory>>,
     /// The models the service's candidates may step with, by name (`"domain"` for the
     /// domain's own), each step relying on the cheapest whose precondition trusts it, as in a
@@ -754,10 +759,12 @@ pub struct ProposalRequest {
 pub struct ContinueRequest {
     /// The executed transitions, from the proposal's start; the last `s_next` is where the
     /// robot is now, the start of the proposal that continues it.
+    #[schemars(length(min = 1, max = crate::limits::MAX_TRANSITIONS))]
     pub transitions: Vec<Transition>,
     /// With a client-side model: the trajectories the client planned from where the robot is
     /// (see [`ProposalRequest::candidates`]).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::limits::MAX_CLIENT_CANDIDATES))]
     pub candidates: Option<Vec<CandidateTrajectory>>,
 }
 
@@ -927,11 +934,13 @@ pub struct PlanRequest {
     /// those inside the precondition that reach the goal (required when the experiment's model
     /// is the client's).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::limits::MAX_CLIENT_CANDIDATES))]
     pub candidates: Option<Vec<CandidateTrajectory>>,
     /// The search's extension budget for this plan, 1 to 200 000; default
     /// `learning.max_extensions`. A longer search tells "no plan inside the precondition" from
     /// "none found in time"; it still ends at the planning deadline. Not with `candidates`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = crate::limits::MAX_EXTENSIONS))]
     pub max_extensions: Option<u32>,
     /// The models the search may step with, by name (`domain` for the domain's own), each step
     /// relying on the cheapest whose precondition trusts it; default every model of the

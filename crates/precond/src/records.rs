@@ -78,6 +78,7 @@ impl ModelLabel {
 pub struct Provenance {
     /// The dataset, file or environment, e.g. `lerobot:user/pusht` or `logs/run3.csv`
     /// (1 to 1000 characters).
+    #[schemars(length(min = 1, max = crate::limits::MAX_SOURCE_TEXT_LEN))]
     pub dataset: String,
     /// The episode of the dataset (≥ 0).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -88,6 +89,7 @@ pub struct Provenance {
     pub first_step: Option<i64>,
     /// A free-form label (at most 1000 characters).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = crate::limits::MAX_SOURCE_TEXT_LEN))]
     pub label: Option<String>,
 }
 

@@ -8,10 +8,15 @@
 //!   derives it from the serde attributes, for the side of the wire the schema describes
 //!   (a response as the server writes it, a request as it reads it);
 //! - **`api/schemas.yaml`**: what a type does not say — the wire's prose (`description`),
-//!   defaults, examples, formats and bounds, keyed by schema and property, which may not add or
-//!   change a property, a `required`, a kind or a `$ref` (a key naming no property of the type
-//!   is refused); and the few schemas no Rust type describes (an error's `details`, built as a
-//!   JSON value per code), written whole.
+//!   defaults, examples, formats and the bounds no type states, keyed by schema and property,
+//!   which may not add or change a property, a `required`, a kind or a `$ref` (a key naming no
+//!   property of the type is refused); and the few schemas no Rust type describes (an error's
+//!   `details`, built as a JSON value per code), written whole.
+//!
+//! A bound that validation takes from `precond::limits` is stated on the field,
+//! `#[schemars(range(max = MAX_BATCH_SIZE))]`, so the document and the check share one
+//! constant; a note may tighten a type's bound (an unsigned type says `minimum: 0`) but not
+//! restate or loosen it.
 //!
 //! A test regenerates the section and fails on any difference, so the document cannot drift
 //! from the types; clients are checked against the document (the Python models by
@@ -97,6 +102,21 @@ const ANNOTATIONS: &[&str] = &[
     "pattern",
     "uniqueItems",
     "discriminator",
+];
+
+/// The annotations a type may state itself (`#[schemars(range(..), length(..))]` tied to the
+/// constants validation uses, `precond::limits`): a note may not state them again.
+const BOUNDS: &[&str] = &[
+    "minimum",
+    "maximum",
+    "exclusiveMinimum",
+    "exclusiveMaximum",
+    "minItems",
+    "maxItems",
+    "minLength",
+    "maxLength",
+    "pattern",
+    "uniqueItems",
 ];
 
 /// Keywords of schemars' output the document does not carry: its own prose and formats (the
@@ -578,6 +598,29 @@ fn annotate(schema: &mut Value, note: &Value, path: &str, problems: &mut Vec<Str
                     },
                 }
             }
+            k if BOUNDS.contains(&k) && schema.get(k).is_some() => {
+                // The type's bound stands; a note may only tighten it (an unsigned type says
+                // `minimum: 0`, a note `minimum: 1`).
+                let (theirs, mine) = (value.as_f64(), schema[k].as_f64());
+                let tighter = match (theirs, mine) {
+                    (Some(t), Some(m)) if k.starts_with("min") || k.starts_with("exclusiveMin") => {
+                        t > m
+                    }
+                    (Some(t), Some(m)) if k.starts_with("max") || k.starts_with("exclusiveMax") => {
+                        t < m
+                    }
+                    _ => false,
+                };
+                if tighter {
+                    schema[k] = value.clone();
+                } else {
+                    problems.push(format!(
+                        "api/schemas.yaml: {here}: restates or loosens the Rust type's {k} ({}); \
+                         a bound is said once, by the type",
+                        schema[k]
+                    ));
+                }
+            }
             k if ANNOTATIONS.contains(&k) => {
                 schema[k] = value.clone();
             }
@@ -759,6 +802,32 @@ mod tests {
                 "{note:?}: expected a problem saying {says:?}, got {found:?}"
             );
         }
+    }
+
+    #[test]
+    fn a_bound_is_said_once_by_the_type() {
+        // `batch_size` is bounded by the type (`precond::limits::MAX_BATCH_SIZE`).
+        let found = problems(
+            "annotations:\n  LearningSettings:\n    properties:\n      batch_size:\n        maximum: 10000\n",
+        );
+        assert!(
+            found.iter().any(|p| p.contains("restates or loosens")),
+            "{found:?}"
+        );
+        let found = problems(
+            "annotations:\n  LearningSettings:\n    properties:\n      batch_size:\n        maximum: 1000000\n",
+        );
+        assert!(
+            found.iter().any(|p| p.contains("restates or loosens")),
+            "{found:?}"
+        );
+        // An unsigned type says `minimum: 0`; a note may tighten it.
+        let out = schemas(&notes(
+            "annotations:\n  CustomSpec:\n    properties:\n      steer_samples:\n        minimum: 1\n",
+        ))
+        .expect("a tighter bound is taken");
+        let custom = serde_json::to_value(&out["CustomSpec"]).expect("json");
+        assert_eq!(custom["properties"]["steer_samples"]["minimum"], 1);
     }
 
     #[test]

@@ -249,8 +249,10 @@ pub struct MdeRequest {
     /// [`MdeSettings::noise`]. Default `heteroscedastic`.
     pub noise: NoiseMode,
     /// [`MdeSettings::prior_mean`]. Default 0.
+    #[schemars(range(min = -MAX_PRIOR_MEAN, max = MAX_PRIOR_MEAN))]
     pub prior_mean: f64,
     /// [`MdeSettings::restarts`]. Default 2.
+    #[schemars(range(max = MAX_RESTARTS))]
     pub restarts: usize,
     /// [`MdeSettings::label_cap`]. Absent: the preset's (`default`: auto, `paper`: 0).
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -262,13 +264,17 @@ pub struct MdeRequest {
     /// [`MdeSettings::estimator`]. Default `auto`.
     pub estimator: EstimatorChoice,
     /// [`MdeSettings::inducing_points`]. Default 256.
+    #[schemars(range(min = MIN_INDUCING_POINTS, max = MAX_INDUCING_POINTS))]
     pub inducing_points: usize,
     /// [`MdeSettings::expert_size`]. Default 300.
+    #[schemars(range(min = MIN_EXPERT_SIZE, max = MAX_EXPERT_SIZE))]
     pub expert_size: usize,
     /// [`MdeSettings::selection_subset`]. Default 1000.
+    #[schemars(range(min = MIN_SELECTION_SUBSET, max = MAX_SELECTION_SUBSET))]
     pub selection_subset: usize,
     /// [`MdeSettings::reselect_every`]. Absent: the preset's (`default`: 5, `paper`: 1).
     #[serde(skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = MAX_RESELECT_EVERY))]
     pub reselect_every: Option<usize>,
 }
 
@@ -624,14 +630,19 @@ pub struct LearningRequest {
     /// [`LearningSettings::strategy`]. Default `active`.
     pub strategy: Strategy,
     /// [`LearningSettings::batch_size`]. Default 5.
+    #[schemars(range(min = 1, max = MAX_BATCH_SIZE))]
     pub batch_size: u32,
     /// [`LearningSettings::iterations`]. Default 20.
+    #[schemars(range(min = 1, max = MAX_ITERATIONS))]
     pub iterations: u32,
     /// [`LearningSettings::n_candidates`]. Default 20.
+    #[schemars(range(min = 1, max = MAX_CANDIDATES))]
     pub n_candidates: u32,
     /// [`LearningSettings::max_extensions`]. Default 5000.
+    #[schemars(range(min = 1, max = MAX_EXTENSIONS))]
     pub max_extensions: u32,
     /// [`LearningSettings::c`]. Default 1.
+    #[schemars(range(min = 0, max = MAX_LEARNING_SCALE))]
     pub c: f64,
     /// [`LearningSettings::gamma`]. Default 0.9.
     pub gamma: f64,
@@ -642,12 +653,16 @@ pub struct LearningRequest {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub acquisition: Option<AcquisitionKind>,
     /// [`LearningSettings::k1`]. Default 2.
+    #[schemars(range(min = 0, max = MAX_LEARNING_SCALE))]
     pub k1: f64,
     /// [`LearningSettings::k2`]. Default 0.5.
+    #[schemars(range(max = MAX_LEARNING_SCALE))]
     pub k2: f64,
     /// [`LearningSettings::test_beta`]. Default 2.
+    #[schemars(range(min = -MAX_LEARNING_SCALE, max = MAX_LEARNING_SCALE))]
     pub test_beta: f64,
     /// [`LearningSettings::proposal_ttl_seconds`]. Default 600.
+    #[schemars(range(min = 1, max = MAX_PROPOSAL_TTL_SECONDS))]
     pub proposal_ttl_seconds: u32,
     /// [`LearningSettings::relax_beta`]. Absent: the preset's (`default`: true, `paper`:
     /// false).
@@ -773,6 +788,7 @@ pub struct LearningSettings {
 pub struct ExperimentRequest {
     /// Free-form name. Default `""`.
     #[serde(default)]
+    #[schemars(length(max = MAX_NAME_LEN))]
     pub name: String,
     /// The domain. Default: the icy gridworld with its default map.
     #[serde(default)]
