@@ -560,66 +560,14 @@ fn annotate(schema: &mut Value, note: &Value, path: &str, problems: &mut Vec<Str
     for (key, value) in note {
         let here = format!("{path}.{key}");
         match key.as_str() {
-            "properties" => {
-                let Some(props) = value.as_object() else {
-                    problems.push(format!("api/schemas.yaml: {here}: not a mapping"));
-                    continue;
-                };
-                for (name, note) in props {
-                    let at = format!("{path}.{name}");
-                    match find_mut(schema, &|n| {
-                        n.get("properties").and_then(|p| p.get(name)).is_some()
-                    }) {
-                        Some(node) => annotate(&mut node["properties"][name], note, &at, problems),
-                        None => problems.push(format!(
-                            "api/schemas.yaml: {at}: the Rust type has no such property"
-                        )),
-                    }
-                }
-            }
+            "properties" => annotate_properties(schema, value, path, problems),
             "items" => match find_mut(schema, &|n| n.get("items").is_some()) {
                 Some(node) => annotate(&mut node["items"], value, &here, problems),
                 None => problems.push(format!("api/schemas.yaml: {here}: not an array")),
             },
-            "enum" | "const" => {
-                // The strings the server puts in a Rust `String`: a refinement the type
-                // cannot state; where the type has values, they must be these.
-                let wanted = strings(value);
-                match values_of(schema) {
-                    Some(mine) if mine == wanted => {}
-                    Some(mine) => problems.push(format!(
-                        "api/schemas.yaml: {here}: the type's values are {mine:?}"
-                    )),
-                    None => match find_mut(schema, &is_string) {
-                        Some(node) => node[key.as_str()] = value.clone(),
-                        None => problems.push(format!(
-                            "api/schemas.yaml: {here}: values for what is not a string"
-                        )),
-                    },
-                }
-            }
+            "enum" | "const" => annotate_values(schema, key, value, &here, problems),
             k if BOUNDS.contains(&k) && schema.get(k).is_some() => {
-                // The type's bound stands; a note may only tighten it (an unsigned type says
-                // `minimum: 0`, a note `minimum: 1`).
-                let (theirs, mine) = (value.as_f64(), schema[k].as_f64());
-                let tighter = match (theirs, mine) {
-                    (Some(t), Some(m)) if k.starts_with("min") || k.starts_with("exclusiveMin") => {
-                        t > m
-                    }
-                    (Some(t), Some(m)) if k.starts_with("max") || k.starts_with("exclusiveMax") => {
-                        t < m
-                    }
-                    _ => false,
-                };
-                if tighter {
-                    schema[k] = value.clone();
-                } else {
-                    problems.push(format!(
-                        "api/schemas.yaml: {here}: restates or loosens the Rust type's {k} ({}); \
-                         a bound is said once, by the type",
-                        schema[k]
-                    ));
-                }
+                annotate_bound(schema, k, value, &here, problems);
             }
             k if ANNOTATIONS.contains(&k) => {
                 schema[k] = value.clone();
@@ -630,6 +578,77 @@ fn annotate(schema: &mut Value, note: &Value, path: &str, problems: &mut Vec<Str
                 ANNOTATIONS.join(", ")
             )),
         }
+    }
+}
+
+/// Each property's note onto the property of that name (through a nullable wrapper or an
+/// inlined definition); a note for a property the type lacks is refused.
+fn annotate_properties(schema: &mut Value, notes: &Value, path: &str, problems: &mut Vec<String>) {
+    let Some(props) = notes.as_object() else {
+        problems.push(format!(
+            "api/schemas.yaml: {path}.properties: not a mapping"
+        ));
+        return;
+    };
+    for (name, note) in props {
+        let at = format!("{path}.{name}");
+        match find_mut(schema, &|n| {
+            n.get("properties").and_then(|p| p.get(name)).is_some()
+        }) {
+            Some(node) => annotate(&mut node["properties"][name], note, &at, problems),
+            None => problems.push(format!(
+                "api/schemas.yaml: {at}: the Rust type has no such property"
+            )),
+        }
+    }
+}
+
+/// The strings the server puts in a Rust `String` (`enum`, `const`): a refinement the type
+/// cannot state; where the type lists values, they must be these.
+fn annotate_values(
+    schema: &mut Value,
+    key: &str,
+    value: &Value,
+    here: &str,
+    problems: &mut Vec<String>,
+) {
+    let wanted = strings(value);
+    match values_of(schema) {
+        Some(mine) if mine == wanted => {}
+        Some(mine) => problems.push(format!(
+            "api/schemas.yaml: {here}: the type's values are {mine:?}"
+        )),
+        None => match find_mut(schema, &is_string) {
+            Some(node) => node[key] = value.clone(),
+            None => problems.push(format!(
+                "api/schemas.yaml: {here}: values for what is not a string"
+            )),
+        },
+    }
+}
+
+/// A note's bound where the type states one: the type's stands, and a note may only tighten
+/// it (an unsigned type says `minimum: 0`, a note `minimum: 1`).
+fn annotate_bound(
+    schema: &mut Value,
+    key: &str,
+    value: &Value,
+    here: &str,
+    problems: &mut Vec<String>,
+) {
+    let tighter = match (value.as_f64(), schema[key].as_f64()) {
+        (Some(t), Some(m)) if key.starts_with("min") || key.starts_with("exclusiveMin") => t > m,
+        (Some(t), Some(m)) if key.starts_with("max") || key.starts_with("exclusiveMax") => t < m,
+        _ => false,
+    };
+    if tighter {
+        schema[key] = value.clone();
+    } else {
+        problems.push(format!(
+            "api/schemas.yaml: {here}: restates or loosens the Rust type's {key} ({}); a bound \
+             is said once, by the type",
+            schema[key]
+        ));
     }
 }
 
