@@ -749,6 +749,7 @@ pub struct ProposalRequest {
     /// the same executions). Not with `candidates`, nor with the `random` strategy (a rollout
     /// steps with the domain's model alone).
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::settings::models::MAX_MODELS + 1), inner(length(min = 1, max = crate::settings::models::MAX_MODEL_NAME_LEN)))]
     pub models: Option<Vec<String>>,
 }
 
@@ -946,6 +947,7 @@ pub struct PlanRequest {
     /// relying on the cheapest whose precondition trusts it; default every model of the
     /// experiment with an estimator in the answering version. Not with `candidates`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = crate::settings::models::MAX_MODELS + 1), inner(length(min = 1, max = crate::settings::models::MAX_MODEL_NAME_LEN)))]
     pub models: Option<Vec<String>>,
 }
 

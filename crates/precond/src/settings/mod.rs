@@ -808,6 +808,7 @@ pub struct ExperimentRequest {
     /// Further models of the robot besides the domain's own (see [`models`]): each labels
     /// every posted transition with its own deviation. Default none.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(max = models::MAX_MODELS))]
     pub models: Option<Vec<NamedModelSpec>>,
 }
 

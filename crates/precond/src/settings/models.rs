@@ -40,10 +40,12 @@ fn one() -> f64 {
 pub struct NamedModelSpec {
     /// The model's name: 1 to 32 letters, digits, `_` or `-`; unique in the experiment and not
     /// `domain` (the domain's own model).
+    #[schemars(length(min = 1, max = MAX_MODEL_NAME_LEN))]
     pub name: String,
     /// What one call of the model costs, in calls of the domain's own model (which costs 1):
     /// positive, at most 1e6. Default 1.
     #[serde(default = "one")]
+    #[schemars(range(max = MAX_MODEL_COST))]
     pub cost: f64,
     /// Where the model lives. The service calls it for every posted transition.
     pub model: FurtherModelSpec,
