@@ -41,6 +41,7 @@ pub struct SpaceSpec {
     pub high: Vec<f64>,
     /// The allowed actions of a discrete action space.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(length(min = 1, max = MAX_ACTION_VALUES))]
     pub values: Option<Vec<Vec<f64>>>,
     /// Components that are angles (a heading, a continuous joint), by index, their period
     /// `high − low` (e.g. bounds `[−π, π]`): distances, the goal test, steering and the MDE's
@@ -158,10 +159,12 @@ pub enum ModelSpec {
     /// "valid"?}` (only under URL prefixes the operator allows).
     Remote {
         /// The model's URL (`http://…`), stored as normalised when checked (what is called).
+        #[schemars(length(max = crate::remote_model::policy::MAX_URL_LEN))]
         url: String,
         /// Time limit of one call, in milliseconds. Default 2000; the operator's
         /// `--max-model-timeout-ms` caps it.
         #[serde(default = "default_timeout_ms")]
+        #[schemars(range(min = 1, max = MAX_TIMEOUT_MS))]
         timeout_ms: u64,
     },
     /// `ŝ' = clip(A s + B a + c)` to the state bounds.
@@ -267,16 +270,19 @@ pub struct CustomSpec {
     pub goal: GoalSpec,
     /// Boxes in the state space that planned edges may not pass through. Default none.
     #[serde(default)]
+    #[schemars(length(max = crate::domain::custom::MAX_OBSTACLES))]
     pub obstacles: Vec<ObstacleSpec>,
     /// Where the model lives.
     pub model: ModelSpec,
     /// Actions the planner samples per steering step (continuous actions). Default 8.
     #[serde(default = "default_steer_samples")]
+    #[schemars(range(min = 1, max = crate::domain::custom::MAX_STEER_SAMPLES))]
     pub steer_samples: usize,
     /// Steps of a `random`-strategy rollout. Absent: as long as a goal-reaching plan for the
     /// same problem (one RRT run at the proposal's β), or 20 when the planner finds none — so
     /// that `random` executes about as much per trajectory as the goal-conditioned strategies.
     #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schemars(range(min = 1, max = crate::domain::custom::MAX_ROLLOUT_LENGTH))]
     pub rollout_length: Option<usize>,
 }
 
