@@ -60,6 +60,7 @@
 
 pub mod api;
 pub mod http;
+pub mod import;
 pub mod records;
 pub mod remote_model;
 pub mod service;

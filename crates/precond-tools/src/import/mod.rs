@@ -3,7 +3,7 @@
 //! Each episode of a file becomes one posted trajectory, labelled by the experiment's own model
 //! on ingest like any other, with its provenance (`source`: the file, the episode, the step of
 //! the episode it starts at, a label). Columns are found by convention or named by the user
-//! ([`mapping`]); without a next-state column, a transition's next state is the next row's
+//! (`precond::import::mapping`); without a next-state column, a transition's next state is the next row's
 //! state within the episode (LeRobot's frames).
 //!
 //! **Resumable and idempotent, per episode.** Each trajectory is posted under the
@@ -22,22 +22,40 @@
 //! `--max-body-bytes`, is split into consecutive trajectories, each saying its first step, and
 //! the import says so.
 
-pub mod mapping;
-pub mod table;
-
 use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
-use mapping::{Given, RowValues, Spaces};
-use precond::api::{
-    ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest, TrajectorySource,
+use precond::api::{ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest};
+use precond::import::{
+    Assembly, Message, Part, key_part,
+    mapping::{self, Given, Spaces},
+    read_parts,
+    table::{self, Format},
 };
-use precond_core::domain::Transition;
-use sha2::{Digest, Sha256};
-use std::collections::HashSet;
+pub use precond::import::{ImportReport, dataset_identity};
 use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
-use table::{Cell, Format};
+
+/// The formats `precond import` reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FormatArg {
+    /// From the file's extension (`.parquet`/`.pq` is Parquet, anything else CSV).
+    Auto,
+    /// Comma-separated values with a header row.
+    Csv,
+    /// Apache Parquet.
+    Parquet,
+}
+
+impl From<FormatArg> for Format {
+    fn from(f: FormatArg) -> Self {
+        match f {
+            FormatArg::Auto => Self::Auto,
+            FormatArg::Csv => Self::Csv,
+            FormatArg::Parquet => Self::Parquet,
+        }
+    }
+}
 
 /// Options of `precond import`.
 #[derive(Debug, Clone, clap::Args)]
@@ -55,8 +73,8 @@ pub struct ImportArgs {
     #[arg(long, env = "PRECOND_TOKEN", hide_env_values = true)]
     pub token: Option<String>,
     /// The files' format; `auto` decides by extension (`.parquet`, `.pq`: Parquet).
-    #[arg(long, value_enum, default_value_t = Format::Auto)]
-    pub format: Format,
+    #[arg(long, value_enum, default_value_t = FormatArg::Auto)]
+    pub format: FormatArg,
     /// The state's columns, comma-separated in the state's order, or one list column.
     /// Default: found by convention (`s.<name>`, `s_<name>`, `observation.state`).
     #[arg(long, value_delimiter = ',')]
@@ -101,67 +119,6 @@ pub struct ImportArgs {
     pub no_progress: bool,
 }
 
-/// What an import did, per file and in all.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct ImportReport {
-    /// Episodes read (with at least one transition).
-    pub episodes: usize,
-    /// Trajectories posted (an episode split in parts posts several).
-    pub trajectories: usize,
-    /// Of those, stored by this run.
-    pub created: usize,
-    /// Of those, already stored by an earlier run (replayed; nothing stored).
-    pub replayed: usize,
-    /// Transitions in the posted trajectories.
-    pub transitions: usize,
-    /// Episodes split into several trajectories.
-    pub split_episodes: usize,
-    /// Episodes skipped: a single frame, no transition (frames without a next-state column).
-    pub skipped_episodes: usize,
-}
-
-impl ImportReport {
-    fn add(&mut self, o: &Self) {
-        self.episodes += o.episodes;
-        self.trajectories += o.trajectories;
-        self.created += o.created;
-        self.replayed += o.replayed;
-        self.transitions += o.transitions;
-        self.split_episodes += o.split_episodes;
-        self.skipped_episodes += o.skipped_episodes;
-    }
-}
-
-/// One trajectory to post: a whole episode or a part of it.
-#[derive(Debug)]
-struct Part {
-    key: String,
-    source: TrajectorySource,
-    transitions: Vec<Transition>,
-    /// Rows of the file this part consumed (for the progress bar).
-    rows: u64,
-}
-
-/// What the reader thread sends the poster.
-#[derive(Debug)]
-enum Message {
-    Part(Part),
-    /// An episode was split (its value, its transitions, its parts).
-    Split(String, usize, usize),
-    /// An episode had no transition.
-    Skipped,
-}
-
-/// The dataset's identity in the idempotency keys: the first 16 hex digits of the SHA-256 of
-/// its name (the Python client's `import_file` computes the same, so either tool recognises
-/// the other's imports).
-pub fn dataset_identity(name: &str) -> String {
-    Sha256::digest(name.as_bytes())[..8]
-        .iter()
-        .map(|b| format!("{b:02x}"))
-        .collect()
-}
-
 /// The default dataset name of a file: its absolute path, links resolved when it exists.
 pub fn default_dataset_name(path: &Path) -> String {
     std::fs::canonicalize(path)
@@ -185,163 +142,6 @@ fn count_lines(path: &Path) -> anyhow::Result<u64> {
             return Ok(lines);
         }
         lines += buf[..n].iter().filter(|&&b| b == b'\n').count() as u64;
-    }
-}
-
-/// The episode's part of an idempotency key: its value when short and plain, else a hash.
-fn key_part(value: &str) -> String {
-    let plain = !value.is_empty()
-        && value.len() <= 64
-        && value
-            .bytes()
-            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
-    if plain {
-        value.to_string()
-    } else {
-        let d = Sha256::digest(value.as_bytes());
-        format!(
-            "h{}",
-            d[..8]
-                .iter()
-                .map(|b| format!("{b:02x}"))
-                .collect::<String>()
-        )
-    }
-}
-
-/// An episode's value as text (integral numbers without a fraction) and as `source.episode`:
-/// the value when it is a whole number ≥ 0, else the episode's position in the file.
-fn episode_of(cell: Option<&Cell>, ordinal: usize) -> (String, i64) {
-    match cell {
-        Some(Cell::Number(x)) if x.fract() == 0.0 && *x >= 0.0 && *x < 9.0e15 => {
-            (format!("{}", *x as i64), *x as i64)
-        }
-        Some(Cell::Number(x)) => (x.to_string(), ordinal as i64),
-        Some(Cell::Text(t)) => (t.clone(), ordinal as i64),
-        _ => ("0".into(), ordinal as i64),
-    }
-}
-
-/// Builds an episode's trajectories from its rows, splitting at the limits.
-struct Assembler<'a> {
-    dataset: &'a str,
-    dataset_id: &'a str,
-    label: Option<&'a str>,
-    max_transitions: usize,
-    max_body: usize,
-    send: &'a mut dyn FnMut(Message) -> anyhow::Result<()>,
-    seen: HashSet<String>,
-    /// The current episode: its text, `source.episode`.
-    episode: Option<(String, i64)>,
-    ordinal: usize,
-    previous: Option<RowValues>,
-    buffer: Vec<Transition>,
-    bytes: usize,
-    rows: u64,
-    first_step: usize,
-    parts: usize,
-    length: usize,
-}
-
-impl Assembler<'_> {
-    fn row(&mut self, row: RowValues) -> anyhow::Result<()> {
-        let value = episode_of(row.episode.as_ref(), self.ordinal);
-        if self.episode.as_ref().map(|e| &e.0) != Some(&value.0) {
-            self.end_episode()?;
-            if !self.seen.insert(value.0.clone()) {
-                bail!(
-                    "episode {} appears again after another episode: sort the file by episode \
-                     (an episode's rows must be consecutive)",
-                    value.0
-                );
-            }
-            self.ordinal += 1;
-            self.episode = Some(value);
-        }
-        self.rows += 1;
-        let transition = match (&row.s_next, self.previous.take()) {
-            (Some(next), _) => Some(Transition {
-                s: row.s.clone(),
-                a: row.a.clone(),
-                s_next: next.clone(),
-                s_pred: row.s_pred.clone(),
-                predictions: None,
-            }),
-            (None, Some(prev)) => Some(Transition {
-                s: prev.s,
-                a: prev.a,
-                s_next: row.s.clone(),
-                s_pred: prev.s_pred,
-                predictions: None,
-            }),
-            (None, None) => None,
-        };
-        if row.s_next.is_none() {
-            self.previous = Some(row);
-        }
-        if let Some(t) = transition {
-            let size = serde_json::to_string(&t).map_or(0, |j| j.len() + 1);
-            if !self.buffer.is_empty()
-                && (self.buffer.len() >= self.max_transitions || self.bytes + size > self.max_body)
-            {
-                self.flush()?;
-            }
-            self.bytes += size;
-            self.buffer.push(t);
-        }
-        Ok(())
-    }
-
-    fn flush(&mut self) -> anyhow::Result<()> {
-        let Some((text, episode)) = self.episode.clone() else {
-            return Ok(());
-        };
-        let transitions = std::mem::take(&mut self.buffer);
-        let n = transitions.len();
-        let part = Part {
-            key: format!(
-                "import-{}-{}-{}",
-                self.dataset_id,
-                key_part(&text),
-                self.parts
-            ),
-            source: TrajectorySource {
-                dataset: self.dataset.to_string(),
-                episode: Some(episode),
-                first_step: Some(self.first_step as i64),
-                label: self.label.map(str::to_string),
-            },
-            transitions,
-            rows: std::mem::take(&mut self.rows),
-        };
-        (self.send)(Message::Part(part))?;
-        self.first_step += n;
-        self.length += n;
-        self.parts += 1;
-        self.bytes = 0;
-        Ok(())
-    }
-
-    fn end_episode(&mut self) -> anyhow::Result<()> {
-        if self.episode.is_none() {
-            return Ok(());
-        }
-        if !self.buffer.is_empty() {
-            self.flush()?;
-        }
-        let text = self.episode.take().map(|e| e.0).unwrap_or_default();
-        if self.parts == 0 {
-            (self.send)(Message::Skipped)?;
-        } else if self.parts > 1 {
-            (self.send)(Message::Split(text, self.length, self.parts))?;
-        }
-        self.previous = None;
-        self.first_step = 0;
-        self.parts = 0;
-        self.length = 0;
-        self.bytes = 0;
-        self.rows = 0;
-        Ok(())
     }
 }
 
@@ -465,8 +265,10 @@ async fn import_file(
     path: &Path,
     progress: &ProgressBar,
 ) -> anyhow::Result<ImportReport> {
-    let (columns, n_rows) = table::columns(path, args.format)?;
+    let format = Format::from(args.format);
+    let (columns, n_rows) = table::columns(path, format)?;
     let given = Given {
+        as_query: false,
         state: args.state.clone(),
         action: args.action.clone(),
         next_state: args.next_state.clone(),
@@ -508,48 +310,24 @@ async fn import_file(
 
     let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
     let reader = {
-        let (path, format, mapping, columns) = (
-            path.to_path_buf(),
-            args.format,
-            mapping.clone(),
-            columns.clone(),
-        );
-        let dataset = dataset.clone();
-        let label = args.label.clone();
+        let (path, mapping, columns) = (path.to_path_buf(), mapping.clone(), columns.clone());
+        let assembly = Assembly {
+            dataset: dataset.clone(),
+            dataset_id,
+            label: args.label.clone(),
+            max_transitions: args.max_transitions,
+            max_body_bytes: args.max_body_bytes,
+        };
         let dims = (spaces.state.len(), spaces.action.len());
-        let (max_transitions, max_body) = (
-            args.max_transitions.max(1),
-            args.max_body_bytes.saturating_sub(16 * 1024).max(1024),
-        );
         tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
             let mut send = |m: Message| {
                 tx.blocking_send(m)
                     .map_err(|_| anyhow::anyhow!("the poster stopped"))
             };
-            let mut assembler = Assembler {
-                dataset: &dataset,
-                dataset_id: &dataset_id,
-                label: label.as_deref(),
-                max_transitions,
-                max_body,
-                send: &mut send,
-                seen: HashSet::new(),
-                episode: None,
-                ordinal: 0,
-                previous: None,
-                buffer: Vec::new(),
-                bytes: 0,
-                rows: 0,
-                first_step: 0,
-                parts: 0,
-                length: 0,
-            };
-            table::for_each_row(&path, format, &mapping.wanted(), |cells| {
-                let row = mapping.read(&columns, cells, dims)?;
-                assembler.row(row)
-            })
-            .with_context(|| path.display().to_string())?;
-            assembler.end_episode()
+            read_parts(
+                &path, format, &mapping, &columns, dims, &assembly, &mut send,
+            )
+            .with_context(|| path.display().to_string())
         })
     };
 
@@ -712,21 +490,5 @@ mod tests {
         std::fs::write(&file, "x\n1\n").unwrap();
         assert_eq!(before, dataset_identity(&default_dataset_name(&file)));
         assert_eq!(dataset_identity("logs/run3.csv").len(), 16);
-    }
-
-    #[test]
-    fn keys_keep_plain_episode_values_and_hash_the_others() {
-        assert_eq!(key_part("12"), "12");
-        assert_eq!(key_part("run_3.b-x"), "run_3.b-x");
-        let hashed = key_part("episode 3/with spaces");
-        assert!(hashed.starts_with('h') && hashed.len() == 17, "{hashed}");
-        assert_ne!(hashed, key_part("episode 3/with spaces "));
-        assert_eq!(episode_of(Some(&Cell::Number(7.0)), 2), ("7".into(), 7));
-        assert_eq!(episode_of(Some(&Cell::Number(-1.0)), 2), ("-1".into(), 2));
-        assert_eq!(
-            episode_of(Some(&Cell::Text("a".into())), 4),
-            ("a".into(), 4)
-        );
-        assert_eq!(episode_of(None, 0), ("0".into(), 0));
     }
 }

@@ -98,6 +98,9 @@ impl Mapping {
 /// What the user said about the columns (`None`: find it).
 #[derive(Debug, Clone, Default)]
 pub struct Given {
+    /// How mistakes name what was given: the command line's flags (`--next-state`, `false`)
+    /// or the import route's query parameters (`next_state`, `true`).
+    pub as_query: bool,
     /// `--state`.
     pub state: Option<Vec<String>>,
     /// `--action`.
@@ -119,6 +122,18 @@ pub struct Spaces {
     pub action: Vec<String>,
     /// Whether every transition needs the client's prediction (`model.kind` `client`).
     pub client_side: bool,
+}
+
+impl Given {
+    /// What the user calls the option named `name` (`next-state`): `--next-state` on the
+    /// command line, `next_state` in a query string.
+    pub fn flag(&self, name: &str) -> String {
+        if self.as_query {
+            name.replace('-', "_")
+        } else {
+            format!("--{name}")
+        }
+    }
 }
 
 const EPISODE_COLUMNS: [&str; 4] = ["episode_index", "episode", "episode_id", "trajectory_id"];
@@ -234,7 +249,7 @@ pub fn resolve(columns: &[Column], spaces: &Spaces, given: &Given) -> anyhow::Re
         Ok(v)
     };
     let state = match &given.state {
-        Some(g) => given_vector(columns, g, n, "--state")?,
+        Some(g) => given_vector(columns, g, n, &given.flag("state"))?,
         None => own(
             by_prefix(columns, &["s.", "s_"], &["s_next", "s_pred"], &spaces.state).or_else(|| {
                 by_prefix(
@@ -250,13 +265,14 @@ pub fn resolve(columns: &[Column], spaces: &Spaces, given: &Given) -> anyhow::Re
         .with_context(|| {
             format!(
                 "no state columns found (s.<name>, s_<name> or observation.state; the file has {}): \
-                 name them with --state",
-                names(columns)
+                 name them with {}",
+                names(columns),
+                given.flag("state")
             )
         })?,
     };
     let action = match &given.action {
-        Some(g) => given_vector(columns, g, m, "--action")?,
+        Some(g) => given_vector(columns, g, m, &given.flag("action"))?,
         None => own(
             by_prefix(columns, &["a.", "a_"], &[], &spaces.action)
                 .or_else(|| by_prefix(columns, &["action.", "action_"], &[], &spaces.action)),
@@ -266,13 +282,14 @@ pub fn resolve(columns: &[Column], spaces: &Spaces, given: &Given) -> anyhow::Re
         .with_context(|| {
             format!(
                 "no action columns found (a.<name>, a_<name> or action; the file has {}): name \
-                 them with --action",
-                names(columns)
+                 them with {}",
+                names(columns),
+                given.flag("action")
             )
         })?,
     };
     let next_state = match &given.next_state {
-        Some(g) => Some(given_vector(columns, g, n, "--next-state")?),
+        Some(g) => Some(given_vector(columns, g, n, &given.flag("next-state"))?),
         None => own(
             by_prefix(columns, &["s_next.", "s_next_"], &[], &spaces.state)
                 .or_else(|| by_prefix(columns, &["next.observation.state."], &[], &spaces.state)),
@@ -281,10 +298,10 @@ pub fn resolve(columns: &[Column], spaces: &Spaces, given: &Given) -> anyhow::Re
         )?,
     };
     let predicted = match (&given.predicted, spaces.client_side) {
-        (Some(g), true) => Some(given_vector(columns, g, n, "--predicted-state")?),
+        (Some(g), true) => Some(given_vector(columns, g, n, &given.flag("predicted-state"))?),
         (Some(_), false) => bail!(
-            "--predicted-state: the experiment's model is not the client's; the service \
-             predicts with it"
+            "{}: the experiment's model is not the client's; the service predicts with it",
+            given.flag("predicted-state")
         ),
         (None, true) => Some(
             own(
@@ -292,16 +309,19 @@ pub fn resolve(columns: &[Column], spaces: &Spaces, given: &Given) -> anyhow::Re
                 n,
                 "the predicted-state columns",
             )?
-            .context(
-                "the experiment's model is the client's: every transition needs its prediction \
-                 (s_pred.<name> columns, or --predicted-state)",
-            )?,
+            .with_context(|| {
+                format!(
+                    "the experiment's model is the client's: every transition needs its \
+                     prediction (s_pred.<name> columns, or {})",
+                    given.flag("predicted-state")
+                )
+            })?,
         ),
         (None, false) => None,
     };
     let episode = match given.episode.as_deref() {
         Some("none") => None,
-        Some(name) => Some(index(columns, name, "--episode")?),
+        Some(name) => Some(index(columns, name, &given.flag("episode"))?),
         None => EPISODE_COLUMNS
             .iter()
             .find_map(|e| columns.iter().position(|c| c.name == *e)),

@@ -45,8 +45,9 @@ pub struct Column {
     pub list: bool,
 }
 
-/// The formats `precond import` reads.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+/// The formats an import reads.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
 pub enum Format {
     /// From the file's extension (`.parquet`/`.pq` is Parquet, anything else CSV).
     Auto,

@@ -1,0 +1,331 @@
+//! Logged transitions (CSV or Parquet) into trajectories: the one implementation of an import,
+//! used by the import route (`POST /v1/experiments/{id}/imports`, the file as the body) and by
+//! `precond import` (which reads files where it runs and posts the trajectories).
+//!
+//! Each episode of a file becomes one trajectory (or several: see below), with its provenance
+//! (`source`: the dataset, the episode, the step of the episode it starts at, a label). Columns
+//! are found by convention or named ([`mapping`]); without a next-state column, a transition's
+//! next state is the next row's state within the episode (LeRobot's frames). Files are read as
+//! a stream ([`table`]): CSV row by row, Parquet row group by row group.
+//!
+//! **Idempotent, per episode.** Each trajectory is stored under the key
+//! `import-<dataset id>-<episode>-<part>`, where the dataset id is the first 16 hex digits of
+//! the SHA-256 of the dataset's name ([`dataset_identity`]). The key does not depend on the
+//! file's bytes: importing again — after an interruption, after the log grew, after a bad line
+//! was fixed — stores only the episodes not stored yet, and an episode whose content, mapping
+//! or label changed since it was stored is refused by name rather than stored twice.
+//!
+//! **Limits.** An episode longer than the server's transitions per trajectory, or whose body
+//! would pass the body limit, is split into consecutive trajectories, each saying its first
+//! step.
+
+pub mod mapping;
+pub mod table;
+
+use crate::api::TrajectorySource;
+use crate::domain::Transition;
+use anyhow::bail;
+use mapping::{Mapping, RowValues};
+use schemars::JsonSchema;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use std::collections::HashSet;
+use std::path::Path;
+use table::{Cell, Column, Format};
+
+/// What an import did, per file and in all.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct ImportReport {
+    /// Episodes read (with at least one transition).
+    pub episodes: usize,
+    /// Trajectories posted (an episode split in parts posts several).
+    pub trajectories: usize,
+    /// Of those, stored by this run.
+    pub created: usize,
+    /// Of those, already stored by an earlier run (replayed; nothing stored).
+    pub replayed: usize,
+    /// Transitions in the posted trajectories.
+    pub transitions: usize,
+    /// Episodes split into several trajectories.
+    pub split_episodes: usize,
+    /// Episodes skipped: a single frame, no transition (frames without a next-state column).
+    pub skipped_episodes: usize,
+}
+
+impl ImportReport {
+    /// Adds another file's report to this one.
+    pub fn add(&mut self, o: &Self) {
+        self.episodes += o.episodes;
+        self.trajectories += o.trajectories;
+        self.created += o.created;
+        self.replayed += o.replayed;
+        self.transitions += o.transitions;
+        self.split_episodes += o.split_episodes;
+        self.skipped_episodes += o.skipped_episodes;
+    }
+}
+
+/// One trajectory to store: a whole episode or a part of it.
+#[derive(Debug)]
+pub struct Part {
+    /// Its idempotency key, `import-<dataset id>-<episode>-<part>`.
+    pub key: String,
+    /// Where it comes from.
+    pub source: TrajectorySource,
+    /// Its transitions, in order.
+    pub transitions: Vec<Transition>,
+    /// Rows of the file this part consumed (for progress).
+    pub rows: u64,
+}
+
+/// What the reader hands on, in the file's order.
+#[derive(Debug)]
+pub enum Message {
+    /// A trajectory to store.
+    Part(Part),
+    /// An episode was split (its value, its transitions, its parts).
+    Split(String, usize, usize),
+    /// An episode had no transition.
+    Skipped,
+}
+
+/// The dataset's identity in the idempotency keys: the first 16 hex digits of the SHA-256 of
+/// its name (the Python client's `import_file` computes the same, so either tool recognises
+/// the other's imports).
+pub fn dataset_identity(name: &str) -> String {
+    Sha256::digest(name.as_bytes())[..8]
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// The episode's part of an idempotency key: its value when short and plain, else a hash.
+pub fn key_part(value: &str) -> String {
+    let plain = !value.is_empty()
+        && value.len() <= 64
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    if plain {
+        value.to_string()
+    } else {
+        let d = Sha256::digest(value.as_bytes());
+        format!(
+            "h{}",
+            d[..8]
+                .iter()
+                .map(|b| format!("{b:02x}"))
+                .collect::<String>()
+        )
+    }
+}
+
+/// An episode's value as text (integral numbers without a fraction) and as `source.episode`:
+/// the value when it is a whole number ≥ 0, else the episode's position in the file.
+fn episode_of(cell: Option<&Cell>, ordinal: usize) -> (String, i64) {
+    match cell {
+        Some(Cell::Number(x)) if x.fract() == 0.0 && *x >= 0.0 && *x < 9.0e15 => {
+            (format!("{}", *x as i64), *x as i64)
+        }
+        Some(Cell::Number(x)) => (x.to_string(), ordinal as i64),
+        Some(Cell::Text(t)) => (t.clone(), ordinal as i64),
+        _ => ("0".into(), ordinal as i64),
+    }
+}
+
+/// Builds an episode's trajectories from its rows, splitting at the limits.
+struct Assembler<'a> {
+    dataset: &'a str,
+    dataset_id: &'a str,
+    label: Option<&'a str>,
+    max_transitions: usize,
+    max_body: usize,
+    send: &'a mut dyn FnMut(Message) -> anyhow::Result<()>,
+    seen: HashSet<String>,
+    /// The current episode: its text, `source.episode`.
+    episode: Option<(String, i64)>,
+    ordinal: usize,
+    previous: Option<RowValues>,
+    buffer: Vec<Transition>,
+    bytes: usize,
+    rows: u64,
+    first_step: usize,
+    parts: usize,
+    length: usize,
+}
+
+impl Assembler<'_> {
+    fn row(&mut self, row: RowValues) -> anyhow::Result<()> {
+        let value = episode_of(row.episode.as_ref(), self.ordinal);
+        if self.episode.as_ref().map(|e| &e.0) != Some(&value.0) {
+            self.end_episode()?;
+            if !self.seen.insert(value.0.clone()) {
+                bail!(
+                    "episode {} appears again after another episode: sort the file by episode \
+                     (an episode's rows must be consecutive)",
+                    value.0
+                );
+            }
+            self.ordinal += 1;
+            self.episode = Some(value);
+        }
+        self.rows += 1;
+        let transition = match (&row.s_next, self.previous.take()) {
+            (Some(next), _) => Some(Transition {
+                s: row.s.clone(),
+                a: row.a.clone(),
+                s_next: next.clone(),
+                s_pred: row.s_pred.clone(),
+                predictions: None,
+            }),
+            (None, Some(prev)) => Some(Transition {
+                s: prev.s,
+                a: prev.a,
+                s_next: row.s.clone(),
+                s_pred: prev.s_pred,
+                predictions: None,
+            }),
+            (None, None) => None,
+        };
+        if row.s_next.is_none() {
+            self.previous = Some(row);
+        }
+        if let Some(t) = transition {
+            let size = serde_json::to_string(&t).map_or(0, |j| j.len() + 1);
+            if !self.buffer.is_empty()
+                && (self.buffer.len() >= self.max_transitions || self.bytes + size > self.max_body)
+            {
+                self.flush()?;
+            }
+            self.bytes += size;
+            self.buffer.push(t);
+        }
+        Ok(())
+    }
+
+    fn flush(&mut self) -> anyhow::Result<()> {
+        let Some((text, episode)) = self.episode.clone() else {
+            return Ok(());
+        };
+        let transitions = std::mem::take(&mut self.buffer);
+        let n = transitions.len();
+        let part = Part {
+            key: format!(
+                "import-{}-{}-{}",
+                self.dataset_id,
+                key_part(&text),
+                self.parts
+            ),
+            source: TrajectorySource {
+                dataset: self.dataset.to_string(),
+                episode: Some(episode),
+                first_step: Some(self.first_step as i64),
+                label: self.label.map(str::to_string),
+            },
+            transitions,
+            rows: std::mem::take(&mut self.rows),
+        };
+        (self.send)(Message::Part(part))?;
+        self.first_step += n;
+        self.length += n;
+        self.parts += 1;
+        self.bytes = 0;
+        Ok(())
+    }
+
+    fn end_episode(&mut self) -> anyhow::Result<()> {
+        if self.episode.is_none() {
+            return Ok(());
+        }
+        if !self.buffer.is_empty() {
+            self.flush()?;
+        }
+        let text = self.episode.take().map(|e| e.0).unwrap_or_default();
+        if self.parts == 0 {
+            (self.send)(Message::Skipped)?;
+        } else if self.parts > 1 {
+            (self.send)(Message::Split(text, self.length, self.parts))?;
+        }
+        self.previous = None;
+        self.first_step = 0;
+        self.parts = 0;
+        self.length = 0;
+        self.bytes = 0;
+        self.rows = 0;
+        Ok(())
+    }
+}
+
+/// How the rows of a file become trajectories: the dataset they belong to and the limits of
+/// one trajectory.
+#[derive(Debug, Clone)]
+pub struct Assembly {
+    /// The dataset's name, stored in every trajectory's `source.dataset`.
+    pub dataset: String,
+    /// The dataset's identity in the keys ([`dataset_identity`] of the name by default).
+    pub dataset_id: String,
+    /// A free-form label stored with every trajectory's source.
+    pub label: Option<String>,
+    /// Transitions per trajectory: longer episodes are split.
+    pub max_transitions: usize,
+    /// Bytes of one trajectory's JSON body: larger episodes are split.
+    pub max_body_bytes: usize,
+}
+
+/// Reads the file's rows through the mapping and hands each finished trajectory (and what
+/// happened to each episode) to `send`, in order; stops at the first error, which names the
+/// line or row. Blocking: run it on a blocking thread.
+pub fn read_parts(
+    path: &Path,
+    format: Format,
+    mapping: &Mapping,
+    columns: &[Column],
+    dims: (usize, usize),
+    assembly: &Assembly,
+    send: &mut dyn FnMut(Message) -> anyhow::Result<()>,
+) -> anyhow::Result<()> {
+    let mut assembler = Assembler {
+        dataset: &assembly.dataset,
+        dataset_id: &assembly.dataset_id,
+        label: assembly.label.as_deref(),
+        max_transitions: assembly.max_transitions.max(1),
+        max_body: assembly.max_body_bytes.saturating_sub(16 * 1024).max(1024),
+        send,
+        seen: HashSet::new(),
+        episode: None,
+        ordinal: 0,
+        previous: None,
+        buffer: Vec::new(),
+        bytes: 0,
+        rows: 0,
+        first_step: 0,
+        parts: 0,
+        length: 0,
+    };
+    table::for_each_row(path, format, &mapping.wanted(), |cells| {
+        let row = mapping.read(columns, cells, dims)?;
+        assembler.row(row)
+    })?;
+    assembler.end_episode()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn keys_keep_plain_episode_values_and_hash_the_others() {
+        assert_eq!(key_part("12"), "12");
+        assert_eq!(key_part("run_3.b-x"), "run_3.b-x");
+        let hashed = key_part("episode 3/with spaces");
+        assert!(hashed.starts_with('h') && hashed.len() == 17, "{hashed}");
+        assert_ne!(hashed, key_part("episode 3/with spaces "));
+        assert_eq!(episode_of(Some(&Cell::Number(7.0)), 2), ("7".into(), 7));
+        assert_eq!(episode_of(Some(&Cell::Number(-1.0)), 2), ("-1".into(), 2));
+        assert_eq!(
+            episode_of(Some(&Cell::Text("a".into())), 4),
+            ("a".into(), 4)
+        );
+        assert_eq!(episode_of(None, 0), ("0".into(), 0));
+    }
+}
