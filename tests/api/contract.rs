@@ -142,6 +142,14 @@ fn one_of_every_error() -> Vec<ApiError> {
                 candidates: Vec::new(),
             }),
         }),
+        ApiError::Service(Error::ImportStopped {
+            at: "episode 3 from step 0".into(),
+            report: Box::default(),
+            error: Box::new(Error::KeyReused {
+                field: "transitions[0].a[0]".into(),
+                difference: "transitions[0].a[0] was 1 and is now 2".into(),
+            }),
+        }),
         ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
     ];
     for e in &errors {
@@ -169,6 +177,7 @@ fn one_of_every_error() -> Vec<ApiError> {
                 | Error::StorageFull(_)
                 | Error::DatabaseUnavailable(_)
                 | Error::PrefixStored { .. }
+                | Error::ImportStopped { .. }
                 | Error::Internal(_) => {}
                 Error::Dynamics(d) => match d {
                     DynamicsError::Timeout { .. }

@@ -453,3 +453,163 @@ async fn bad_input_is_named_and_stops_the_import() {
     let text = format!("{:#}", import(&app, 99, &[], &[&bad]).await.unwrap_err());
     assert!(text.contains("404 not_found"), "{text}");
 }
+
+/// `POST …/imports` with `body` (a file) under `content_type` and the query `query`.
+async fn upload(
+    app: &TestApp,
+    id: i64,
+    query: &[(&str, &str)],
+    content_type: &str,
+    body: Vec<u8>,
+) -> (u16, Value) {
+    let r = app
+        .client
+        .post(app.url(&format!("/v1/experiments/{id}/imports")))
+        .query(query)
+        .header("content-type", content_type)
+        .body(body)
+        .send()
+        .await
+        .unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap())
+}
+
+#[tokio::test]
+async fn the_import_route_stores_what_the_command_line_would_and_either_finds_the_others() {
+    let (dir, db) = temp_db();
+    let app = spawn_app(&db).await;
+    let id = kinematic(&app).await;
+    let steps = logged(&[4, 3, 9]);
+    let csv = dir.path().join("pushes.csv");
+    write_csv(&csv, &steps);
+    let dataset = precond_tools::import::default_dataset_name(&csv);
+    let query = [("dataset", dataset.as_str()), ("label", "bench")];
+
+    let (status, report) = upload(&app, id, &query, "text/csv", std::fs::read(&csv).unwrap()).await;
+    assert_eq!(status, 200, "{report}");
+    let report: ImportReport = serde_json::from_value(report).unwrap();
+    assert_eq!(
+        report,
+        ImportReport {
+            episodes: 3,
+            trajectories: 3,
+            created: 3,
+            replayed: 0,
+            transitions: 16,
+            split_episodes: 0,
+            skipped_episodes: 0,
+        }
+    );
+    // The command line, on the same file with the same label, finds every episode stored.
+    let again = import(&app, id, &["--label", "bench"], &[&csv])
+        .await
+        .unwrap();
+    assert_eq!((again.created, again.replayed), (0, 3));
+    // The stored trajectories carry their source, and the labels the experiment's model gave.
+    let t: Value = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(t["items"].as_array().unwrap().len(), 16);
+    let run: Value = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/runs")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(
+        run["items"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|r| r["source"]["dataset"] == dataset.as_str() && r["source"]["label"] == "bench"),
+        "{run}"
+    );
+
+    // A changed episode is refused by name, saying what was stored before it.
+    let mut changed = steps.clone();
+    changed[5].3[0] += 0.01; // episode 10's second step
+    let other = dir.path().join("changed.csv");
+    write_csv(&other, &changed);
+    let (status, e) = upload(&app, id, &query, "text/csv", std::fs::read(&other).unwrap()).await;
+    assert_eq!(status, 409, "{e}");
+    let message = e["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("the import stopped at episode 10 from step 0")
+            && message.contains("1 of its trajectories were stored before"),
+        "{message}"
+    );
+}
+
+#[tokio::test]
+async fn the_import_route_names_bad_files_and_bad_requests() {
+    let (_dir, db) = temp_db();
+    let app = spawn_app_with(
+        &db,
+        precond::http::HttpConfig {
+            max_import_bytes: 200,
+            ..precond::http::HttpConfig::default()
+        },
+    )
+    .await;
+    let id = kinematic(&app).await;
+    let q = [("dataset", "logs")];
+    // A missing column, named with what the file has and the query parameter to name it with.
+    let (status, e) = upload(&app, id, &q, "text/csv", b"px,py\n1,2\n".to_vec()).await;
+    assert_eq!(status, 422, "{e}");
+    assert_eq!(e["error"]["details"]["field"], "body");
+    let reason = e["error"]["details"]["reason"].as_str().unwrap();
+    assert!(
+        reason.contains("no state columns")
+            && reason.contains("px, py")
+            && reason.contains("with state"),
+        "{reason}"
+    );
+    // A bad value, by line and column.
+    let bad = b"s_x,s_y,a_dx,a_dy,s_next_x,s_next_y\n0.1,0.2,0.05,0,0.15,0.2\n0.1,oops,0,0,0,0\n";
+    let (status, e) = upload(&app, id, &q, "text/csv", bad.to_vec()).await;
+    assert_eq!(status, 422, "{e}");
+    let message = e["error"]["message"].as_str().unwrap();
+    assert!(
+        message.contains("line 3") && message.contains("0 of its trajectories were stored before"),
+        "{message}"
+    );
+    // Not a file type: 415; octet-stream without `format`: 422 naming it; too large: 413.
+    let (status, _) = upload(&app, id, &q, "text/plain", b"x\n".to_vec()).await;
+    assert_eq!(status, 415);
+    let (status, e) = upload(&app, id, &q, "application/octet-stream", b"x\n".to_vec()).await;
+    assert_eq!(
+        (status, e["error"]["details"]["field"].as_str()),
+        (422, Some("format"))
+    );
+    let (status, e) = upload(&app, id, &q, "text/csv", vec![b'1'; 1000]).await;
+    assert_eq!(
+        (status, e["error"]["code"].as_str()),
+        (413, Some("payload_too_large"))
+    );
+    // No experiment: 404 before anything is read; no dataset: 422.
+    let (status, _) = upload(&app, 999, &q, "text/csv", b"x\n".to_vec()).await;
+    assert_eq!(status, 404);
+    let (status, _) = upload(&app, id, &[], "text/csv", b"x\n".to_vec()).await;
+    assert_eq!(status, 422);
+    // Nothing of these was stored.
+    let t: Value = app
+        .client
+        .get(app.url(&format!("/v1/experiments/{id}/transitions")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(t["items"].as_array().unwrap().len(), 0);
+}

@@ -360,6 +360,10 @@ pub struct ServeArgs {
     /// Largest accepted request body, in bytes.
     #[arg(long, env = "PRECOND_MAX_BODY_BYTES", default_value_t = 4 * 1024 * 1024)]
     pub max_body_bytes: usize,
+    /// Largest file `POST /v1/experiments/{id}/imports` accepts, in bytes (written to a
+    /// temporary file while it arrives; larger logs: `precond import`, which streams).
+    #[arg(long, env = "PRECOND_MAX_IMPORT_BYTES", default_value_t = 256 * 1024 * 1024)]
+    pub max_import_bytes: usize,
     /// Allow experiments whose dynamics model is served at URLs under this prefix (e.g.
     /// `http://robot-pc:9000/`); repeatable. Without one, remote models are refused.
     #[arg(
@@ -643,6 +647,7 @@ pub async fn run(cli: Cli) -> anyhow::Result<()> {
                     ),
                 HttpConfig {
                     max_body_bytes: args.max_body_bytes,
+                    max_import_bytes: args.max_import_bytes,
                     tokens,
                     shutdown_grace: std::time::Duration::from_secs(args.shutdown_grace_secs),
                     header_read_timeout: std::time::Duration::from_secs(

@@ -483,6 +483,45 @@ pub struct TransitionsQuery {
     pub limit: Option<i64>,
 }
 
+/// The format of an imported file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum ImportFormat {
+    /// Comma-separated values with a header row.
+    Csv,
+    /// Apache Parquet.
+    Parquet,
+}
+
+/// Query of `POST /v1/experiments/{id}/imports` (the file is the body).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct ImportQuery {
+    /// The dataset's name, stored in every trajectory's `source.dataset`; with the episode it
+    /// keys each trajectory, so importing the same dataset again stores nothing twice.
+    #[schemars(length(min = 1, max = crate::limits::MAX_SOURCE_TEXT_LEN))]
+    pub dataset: String,
+    /// The dataset's identity in the keys instead of the SHA-256 of its name (letters, digits,
+    /// `.`, `_`, `-`; at most 64).
+    pub dataset_id: Option<String>,
+    /// The file's format; default from `Content-Type` (`text/csv`,
+    /// `application/vnd.apache.parquet`).
+    pub format: Option<ImportFormat>,
+    /// A label stored with every trajectory's source.
+    #[schemars(length(max = crate::limits::MAX_SOURCE_TEXT_LEN))]
+    pub label: Option<String>,
+    /// The state's columns, comma-separated in the state's order, or one list column.
+    pub state: Option<String>,
+    /// The action's columns, likewise.
+    pub action: Option<String>,
+    /// The next state's columns; without them the next row's state within the episode.
+    pub next_state: Option<String>,
+    /// The client's predicted next state (an experiment whose model is the client's).
+    pub predicted_state: Option<String>,
+    /// The episode column (`none`: the whole file is one episode).
+    pub episode: Option<String>,
+}
+
 /// A page of `GET /v1/experiments/{id}/transitions`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, JsonSchema)]
 pub struct TransitionPage {

@@ -132,6 +132,7 @@ const fn query<T: JsonSchema>(method: &'static str, path: &'static str) -> Query
 const QUERIES: &[Query] = &[
     query::<api::ExperimentsQuery>("get", "/v1/experiments"),
     query::<api::TransitionsQuery>("get", "/v1/experiments/{id}/transitions"),
+    query::<api::ImportQuery>("post", "/v1/experiments/{id}/imports"),
     query::<api::PageQuery>("get", "/v1/experiments/{id}/runs"),
     query::<api::PageQuery>("get", "/v1/experiments/{id}/exclusions"),
     query::<api::DiagnosticsQuery>("get", "/v1/experiments/{id}/model/diagnostics"),

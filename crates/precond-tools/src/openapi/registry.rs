@@ -131,6 +131,7 @@ pub const ENTRIES: &[Entry] = &[
     entry::<api::TransitionView>("Transition", Response),
     entry::<api::TrajectoryResponse>("Trajectory", Response),
     entry::<api::TransitionPage>("TransitionPage", Response),
+    entry::<precond::import::ImportReport>("ImportReport", Response),
     // dashboard reads
     entry::<api::RunView>("Run", Response),
     entry::<api::ExclusionRequest>("ExclusionRequest", Request),

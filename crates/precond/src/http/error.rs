@@ -159,7 +159,9 @@ impl IntoResponse for ApiError {
 /// The status of a service answer.
 fn service_status(e: &Error) -> StatusCode {
     match e {
-        Error::PrefixStored { error, .. } => service_status(error),
+        Error::PrefixStored { error, .. } | Error::ImportStopped { error, .. } => {
+            service_status(error)
+        }
         Error::Validation { .. } | Error::NoPlan { .. } => StatusCode::UNPROCESSABLE_ENTITY,
         Error::NotFound(_) => StatusCode::NOT_FOUND,
         Error::Conflict(_) | Error::LeaseHeld { .. } | Error::KeyReused { .. } => {
@@ -182,7 +184,9 @@ fn service_status(e: &Error) -> StatusCode {
 /// The code of a service answer.
 fn service_code(e: &Error) -> &'static str {
     match e {
-        Error::PrefixStored { error, .. } => service_code(error),
+        Error::PrefixStored { error, .. } | Error::ImportStopped { error, .. } => {
+            service_code(error)
+        }
         Error::Validation { .. } | Error::Dynamics(DynamicsError::ClientSide) => {
             "validation_failed"
         }
@@ -217,6 +221,7 @@ fn service_details(e: &Error) -> Value {
             details.insert("stored_trajectory_id".into(), json!(trajectory_id));
             Value::Object(details)
         }
+        Error::ImportStopped { error, .. } => service_details(error),
         Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
         Error::KeyReused { field, difference } => {
             json!({"field": field, "reason": difference})
@@ -303,6 +308,12 @@ fn service_message(e: &Error) -> String {
         } => format!(
             "{} (the executed prefix is stored as trajectory {trajectory_id})",
             service_message(error)
+        ),
+        Error::ImportStopped { at, report, error } => format!(
+            "{} (the import stopped at {at}; {} of its trajectories were stored before: \
+             importing again skips them)",
+            service_message(error),
+            report.trajectories
         ),
         other => other.to_string(),
     }

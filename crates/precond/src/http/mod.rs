@@ -12,6 +12,7 @@ mod experiments;
 pub mod extract;
 pub mod guard;
 mod health;
+mod imports;
 mod inspection;
 pub mod metrics;
 mod model;
@@ -48,6 +49,8 @@ use tower_http::trace::TraceLayer;
 pub struct HttpConfig {
     /// Largest accepted request body in bytes.
     pub max_body_bytes: usize,
+    /// Largest file an import route accepts, in bytes (spooled to a temporary file).
+    pub max_import_bytes: usize,
     /// Access tokens; `None` lets every request through (loopback or `--insecure-no-auth`).
     pub tokens: Option<Arc<auth::TokenTable>>,
     /// How long in-flight requests may run on after shutdown is requested before they are
@@ -71,6 +74,7 @@ impl Default for HttpConfig {
     fn default() -> Self {
         Self {
             max_body_bytes: 4 * 1024 * 1024,
+            max_import_bytes: 256 * 1024 * 1024,
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
             header_read_timeout: Duration::from_secs(30),
@@ -181,6 +185,11 @@ pub fn routes() -> Vec<Route> {
             M::POST,
             "/v1/experiments/{id}/trajectories",
             post(trajectories::create_trajectory),
+        ),
+        route(
+            M::POST,
+            "/v1/experiments/{id}/imports",
+            post(imports::create_import),
         ),
         route(
             M::GET,

@@ -70,7 +70,7 @@ pub enum Error {
     },
     /// Every export slot has been busy for a while: retry after `retry_after_secs`.
     #[error(
-        "{limit} large answers (model exports, CSV exports) are being written, the server's limit; retry in {retry_after_secs} s"
+        "{limit} large transfers (model exports, CSV exports, imports) are under way, the server's limit; retry in {retry_after_secs} s"
     )]
     ExportsBusy {
         /// `max_concurrent_exports`.
@@ -119,6 +119,20 @@ pub enum Error {
         /// Why no proposal followed.
         error: Box<Error>,
     },
+    /// An import stopped at `at` (an episode, or reading the file) on `error`: answered as
+    /// `error`, saying what of the import was stored before it (importing again skips that).
+    #[error(
+        "{error} (the import stopped at {at}; {} of its trajectories were stored before: importing again skips them)",
+        report.trajectories
+    )]
+    ImportStopped {
+        /// Where: `episode 3 from step 0`, or `reading the file`.
+        at: String,
+        /// What the import did before it stopped.
+        report: Box<crate::import::ImportReport>,
+        /// Why it stopped.
+        error: Box<Error>,
+    },
     /// A bug or a broken dependency: logged with its cause, never shown.
     #[error(transparent)]
     Internal(#[from] anyhow::Error),
@@ -138,12 +152,24 @@ impl Error {
         Self::NotFound(format!("no experiment {id}"))
     }
 
-    /// The answer itself, looking through [`Error::PrefixStored`] (which says what was stored
-    /// beside it).
+    /// The answer itself, looking through [`Error::PrefixStored`] and [`Error::ImportStopped`]
+    /// (which say what was stored beside it).
     pub fn answered(&self) -> &Error {
         match self {
-            Self::PrefixStored { error, .. } => error.answered(),
+            Self::PrefixStored { error, .. } | Self::ImportStopped { error, .. } => {
+                error.answered()
+            }
             other => other,
+        }
+    }
+
+    /// A file-system failure while `what`: a full disk is [`Error::StorageFull`] (retry once
+    /// space is freed), anything else internal.
+    pub fn from_io(e: std::io::Error, what: &str) -> Self {
+        if e.kind() == std::io::ErrorKind::StorageFull || e.raw_os_error() == Some(libc::ENOSPC) {
+            Self::StorageFull(format!("{what}: {e}"))
+        } else {
+            Self::Internal(anyhow::Error::new(e).context(what.to_string()))
         }
     }
 

@@ -11,6 +11,8 @@
 //! - [`experiments`](mod@experiments): create, list and show experiments.
 //! - [`ingest`](mod@ingest): label executed transitions with the experiment's own model (and
 //!   each further model) and store a trajectory atomically and idempotently.
+//! - [`imports`](mod@imports): a file of logged transitions into an experiment through
+//!   [`crate::import`], each trajectory stored as a posted one.
 //! - [`learning`](mod@learning): the model, refits, precondition judgements (any of the
 //!   robot's models') and test-time plans.
 //! - [`proposals`](mod@proposals): proposals (ask) and their leases.
@@ -38,6 +40,7 @@ pub mod experiments;
 pub mod exports;
 pub mod fitting;
 mod further;
+pub mod imports;
 pub mod ingest;
 pub mod inspection;
 pub mod learning;

@@ -1,0 +1,159 @@
+//! [`Service::import`]: a file of logged transitions into an experiment through
+//! [`crate::import`] — the implementation `precond import` uses — each trajectory stored as a
+//! posted one is (labelled by the experiment's models, under its idempotency key).
+
+use super::work::ExportSlot;
+use super::{Error, Result, Service};
+use crate::api::TrajectoryRequest;
+use crate::import::mapping::{self, Given, Spaces};
+use crate::import::table::{self, Format};
+use crate::import::{Assembly, ImportReport, Message, dataset_identity, key_part, read_parts};
+use crate::limits::MAX_TRANSITIONS;
+use std::path::PathBuf;
+
+/// A file to import, as the import route received it.
+#[derive(Debug, Clone)]
+pub struct ImportFile {
+    /// Where the file is (the route spools the body to a temporary file).
+    pub path: PathBuf,
+    /// Its format: CSV or Parquet (not `Auto`: a body has no extension).
+    pub format: Format,
+    /// The columns the client named (`None`: found by convention).
+    pub given: Given,
+    /// The dataset's name, stored in every trajectory's `source.dataset`.
+    pub dataset: String,
+    /// The dataset's identity in the keys; default [`dataset_identity`] of the name.
+    pub dataset_id: Option<String>,
+    /// A label stored with every trajectory's source.
+    pub label: Option<String>,
+    /// Bytes of one trajectory's JSON body past which an episode is split: the server's body
+    /// limit, as `precond import` splits for it, so that both store the same parts.
+    pub max_body_bytes: usize,
+}
+
+impl Service {
+    /// One of the slots for large transfers (model and CSV exports, imports), waiting a few
+    /// seconds for one; `429 overloaded` when all stay busy.
+    pub async fn transfer_slot(&self) -> Result<ExportSlot> {
+        self.work.export_slot().await
+    }
+
+    /// Imports a file into experiment `id`: reads it through the mapping on a blocking thread
+    /// (at most two trajectories in memory) and stores each trajectory as
+    /// [`Service::ingest`] does, under its key (an episode stored before is replayed; one that
+    /// changed since is refused). Stops at the first refusal, saying where and what was stored
+    /// before it ([`Error::ImportStopped`]). The caller holds a slot for large transfers
+    /// ([`Service::transfer_slot`]) from before it received the file.
+    pub async fn import(
+        &self,
+        id: i64,
+        file: ImportFile,
+        _slot: ExportSlot,
+    ) -> Result<ImportReport> {
+        let live = self.live(id).await?;
+        let spaces = Spaces {
+            state: live.domain.state_space().names.clone(),
+            action: live.domain.action_space().names.clone(),
+            client_side: live.domain.dynamics().client_side(),
+        };
+        let dataset_id = match &file.dataset_id {
+            Some(given) if key_part(given) == *given => given.clone(),
+            Some(_) => {
+                return Err(Error::validation(
+                    "dataset_id",
+                    "letters, digits, '.', '_' and '-' only, 1 to 64 characters",
+                ));
+            }
+            None => dataset_identity(&file.dataset),
+        };
+        let (path, format, given) = (file.path.clone(), file.format, file.given.clone());
+        let found = tokio::task::spawn_blocking(move || -> anyhow::Result<_> {
+            let (columns, _) = table::columns(&path, format)?;
+            let mapping = mapping::resolve(&columns, &spaces, &given)?;
+            Ok((columns, mapping, spaces))
+        })
+        .await
+        .map_err(|e| Error::Internal(anyhow::anyhow!("the import's reader failed: {e}")))?;
+        let (columns, mapping, spaces) =
+            found.map_err(|e| Error::validation("body", format!("{e:#}")))?;
+        let assembly = Assembly {
+            dataset: file.dataset.clone(),
+            dataset_id,
+            label: file.label.clone(),
+            max_transitions: self.work.limits().max_transitions.min(MAX_TRANSITIONS),
+            max_body_bytes: file.max_body_bytes,
+        };
+        let dims = (spaces.state.len(), spaces.action.len());
+        let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
+        let (path, format) = (file.path.clone(), file.format);
+        let reader = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+            let mut send = |m: Message| {
+                tx.blocking_send(m)
+                    .map_err(|_| anyhow::anyhow!("the import stopped"))
+            };
+            read_parts(
+                &path, format, &mapping, &columns, dims, &assembly, &mut send,
+            )
+        });
+        let mut report = ImportReport::default();
+        let mut failure = None;
+        while let Some(message) = rx.recv().await {
+            match message {
+                Message::Part(part) => {
+                    let at = format!(
+                        "episode {} from step {}",
+                        part.source.episode.unwrap_or_default(),
+                        part.source.first_step.unwrap_or_default()
+                    );
+                    let (first, n) = (part.source.first_step, part.transitions.len());
+                    let request = TrajectoryRequest {
+                        proposal_id: None,
+                        partial: false,
+                        source: Some(part.source),
+                        transitions: part.transitions,
+                    };
+                    match self.ingest(id, request, Some(part.key.as_bytes())).await {
+                        Ok(ingested) => {
+                            report.trajectories += 1;
+                            report.transitions += n;
+                            if first == Some(0) {
+                                report.episodes += 1;
+                            }
+                            if ingested.replayed {
+                                report.replayed += 1;
+                            } else {
+                                report.created += 1;
+                            }
+                        }
+                        Err(error) => {
+                            failure = Some(Error::ImportStopped {
+                                at,
+                                report: Box::new(report.clone()),
+                                error: Box::new(error),
+                            });
+                            break;
+                        }
+                    }
+                }
+                Message::Split(..) => report.split_episodes += 1,
+                Message::Skipped => report.skipped_episodes += 1,
+            }
+        }
+        drop(rx);
+        let read = reader.await;
+        if let Some(e) = failure {
+            return Err(e);
+        }
+        match read {
+            Ok(Ok(())) => Ok(report),
+            Ok(Err(e)) => Err(Error::ImportStopped {
+                at: "reading the file".into(),
+                report: Box::new(report),
+                error: Box::new(Error::validation("body", format!("{e:#}"))),
+            }),
+            Err(e) => Err(Error::Internal(anyhow::anyhow!(
+                "the import's reader failed: {e}"
+            ))),
+        }
+    }
+}
