@@ -10,6 +10,7 @@ import subprocess
 from collections.abc import Callable
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 from conftest import PrecondServer
@@ -373,3 +374,30 @@ def test_bad_data_is_named_and_refusals_say_which_episode(
         with pytest.raises(ValueError, match="dataset_id"):
             import_episodes(client, outside, dataset="logs", dataset_id="no spaces")
     assert len(dataset_identity(str(bad))) == 16
+
+
+@pytest.mark.integration
+def test_the_servers_import_route_and_the_client_key_a_file_alike(
+    make_server: MakeServer, tmp_path: Path
+) -> None:
+    """``POST /v1/experiments/{id}/imports`` runs ``precond import``'s code on the server; the
+    client's own import finds every episode it stored (the same keys)."""
+    server = make_server()
+    rows = logged([3, 4])
+    path = tmp_path / "route.csv"
+    write_csv(path, rows)
+    with Client(server.url) as client:
+        kinematic(client, "route")
+        answer = httpx.post(
+            f"{server.url}/v1/experiments/{client.experiment_id}/imports",
+            params={"dataset": str(path.resolve()), "label": "teleop"},
+            headers={"content-type": "text/csv"},
+            content=path.read_bytes(),
+            timeout=60,
+        )
+        assert answer.status_code == 200, answer.text
+        report = answer.json()
+        assert (report["episodes"], report["created"], report["transitions"]) == (2, 2, 7)
+        again = client.import_file(path, label="teleop", progress=False)
+        assert (again.created, again.replayed) == (0, 2)
+        assert client.get_experiment().n_trajectories == 2
