@@ -27,6 +27,9 @@
 //!   ingest, and what replicas over one database agree on (locks, fit claims, versions).
 //! - [`service`]: what precond does, whoever asks: experiments in memory, labelling and ingest,
 //!   refits, judgements, proposals with leases, plans. Returns domain values and its own error.
+//! - [`import`]: logged transitions (CSV, Parquet) into keyed trajectories — the one
+//!   implementation of an import, run by `POST /v1/experiments/{id}/imports` and by
+//!   `precond import`.
 //! - [`api`]: the typed request and response bodies of the HTTP API, shared by the server and
 //!   the Rust client in `precond-tools`; the OpenAPI document's schemas are generated from them.
 //! - [`http`]: the axum router; handlers parse, call the service and render; the one HTTP error
