@@ -427,8 +427,8 @@ pub struct ServeArgs {
     /// to the sparse GP first), so that one experiment's fit cannot hold a fit slot for hours.
     #[arg(long, env = "PRECOND_MAX_FIT_SECONDS", default_value_t = 900)]
     pub max_fit_seconds: u64,
-    /// Large answers (model exports, CSV exports of every transition) written at once
-    /// (1 ..= 256); one beyond waits 2 s for a slot, then gets `429`.
+    /// Large transfers at once — model exports and CSV exports of every transition written,
+    /// imports received (1 ..= 256); one beyond waits 2 s for a slot, then gets `429`.
     #[arg(long, env = "PRECOND_MAX_CONCURRENT_EXPORTS", default_value_t = 4)]
     pub max_concurrent_exports: usize,
     /// Seconds a client has to send a request's headers; also how long a kept-alive connection

@@ -4,7 +4,7 @@
 //!
 //! The body is spooled to a temporary file (Parquet is read from its end) while it arrives,
 //! under its own limit (`--max-import-bytes`, not the JSON body limit) and with
-//! `--body-read-timeout` as the longest wait for the next chunk; the import holds one of the
+//! `--body-read-timeout-secs` as the longest wait for the next chunk; the import holds one of the
 //! server's slots for large transfers (`--max-concurrent-exports`) from before the first byte
 //! is read until the answer. The body must be declared as CSV (`text/csv`) or Parquet
 //! (`application/vnd.apache.parquet`), or as `application/octet-stream` with `format`: no

@@ -77,9 +77,10 @@ pub struct Limits {
     /// takes over first. So one experiment's fit cannot hold a fit slot for hours while every
     /// other experiment's refits wait. `10 ..= 86 400`; default 900.
     pub max_fit_seconds: u64,
-    /// Large answers (a model export, a CSV of every transition) being written at once:
-    /// `1 ..= 256`; default 4. Each holds at most a few chunks beyond its source (see
-    /// `http::stream`); one beyond waits [`EXPORT_WAIT`] for a slot, then gets `429`.
+    /// Large transfers at once — answers (a model export, a CSV of every transition) being
+    /// written, imports being received: `1 ..= 256`; default 4. An answer holds at most a few
+    /// chunks beyond its source (see `http::stream`); one beyond waits [`EXPORT_WAIT`] for a
+    /// slot, then gets `429`.
     pub max_concurrent_exports: usize,
 }
 
