@@ -842,11 +842,14 @@ mod tests {
         );
         // An unsigned type says `minimum: 0`; a note may tighten it.
         let out = schemas(&notes(
-            "annotations:\n  CustomSpec:\n    properties:\n      steer_samples:\n        minimum: 1\n",
+            "annotations:\n  ModelExport:\n    properties:\n      state_dim:\n        minimum: 1\n",
         ))
         .expect("a tighter bound is taken");
-        let custom = serde_json::to_value(&out["CustomSpec"]).expect("json");
-        assert_eq!(custom["properties"]["steer_samples"]["minimum"], 1);
+        let export = serde_json::to_value(&out["ModelExport"]).expect("json");
+        assert_eq!(export["properties"]["state_dim"]["minimum"], 1);
+        let unannotated = schemas(&Annotations::default()).expect("generated");
+        let export = serde_json::to_value(&unannotated["ModelExport"]).expect("json");
+        assert_eq!(export["properties"]["state_dim"]["minimum"], 0);
     }
 
     #[test]
