@@ -337,16 +337,7 @@ async fn import_file(
         match message {
             Message::Part(part) => match poster.post(args.experiment, &part).await {
                 Ok((created, replayed)) => {
-                    report.trajectories += 1;
-                    report.transitions += created.n_transitions;
-                    if part.source.first_step == Some(0) {
-                        report.episodes += 1;
-                    }
-                    if replayed {
-                        report.replayed += 1;
-                    } else {
-                        report.created += 1;
-                    }
+                    report.stored(part.source.first_step, created.n_transitions, replayed);
                     progress.inc(part.rows);
                     progress.set_message(format!(
                         "{} trajectories stored, {} already there",

@@ -53,6 +53,21 @@ pub struct ImportReport {
 }
 
 impl ImportReport {
+    /// Counts one stored trajectory of `transitions` transitions starting at `first_step` of
+    /// its episode (0: a new episode), stored now or found stored (`replayed`).
+    pub fn stored(&mut self, first_step: Option<i64>, transitions: usize, replayed: bool) {
+        self.trajectories += 1;
+        self.transitions += transitions;
+        if first_step == Some(0) {
+            self.episodes += 1;
+        }
+        if replayed {
+            self.replayed += 1;
+        } else {
+            self.created += 1;
+        }
+    }
+
     /// Adds another file's report to this one.
     pub fn add(&mut self, o: &Self) {
         self.episodes += o.episodes;

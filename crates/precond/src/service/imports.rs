@@ -113,18 +113,7 @@ impl Service {
                         transitions: part.transitions,
                     };
                     match self.ingest(id, request, Some(part.key.as_bytes())).await {
-                        Ok(ingested) => {
-                            report.trajectories += 1;
-                            report.transitions += n;
-                            if first == Some(0) {
-                                report.episodes += 1;
-                            }
-                            if ingested.replayed {
-                                report.replayed += 1;
-                            } else {
-                                report.created += 1;
-                            }
-                        }
+                        Ok(ingested) => report.stored(first, n, ingested.replayed),
                         Err(error) => {
                             failure = Some(Error::ImportStopped {
                                 at,
