@@ -150,12 +150,20 @@ fn index(columns: &[Column], name: &str, flag: &str) -> anyhow::Result<usize> {
         })
 }
 
+/// The file's column names for a message: the first 20, and how many more (a header of
+/// 10^5 columns must not make a 600 KB answer).
 fn names(columns: &[Column]) -> String {
-    columns
+    const SHOWN: usize = 20;
+    let mut out = columns
         .iter()
+        .take(SHOWN)
         .map(|c| c.name.as_str())
         .collect::<Vec<_>>()
-        .join(", ")
+        .join(", ");
+    if columns.len() > SHOWN {
+        out += &format!(" and {} more", columns.len() - SHOWN);
+    }
+    out
 }
 
 /// The vector the user named: one list column, or scalar columns.
@@ -514,6 +522,20 @@ mod tests {
         assert_eq!(m.state, Vector::Columns(vec![3, 2]));
         assert_eq!(m.action, Vector::Columns(vec![1, 0]));
         assert_eq!(m.episode, None);
+    }
+
+    #[test]
+    fn a_wide_header_is_named_in_part() {
+        let wide: Vec<String> = (0..100_000).map(|i| format!("c{i}")).collect();
+        let refs: Vec<&str> = wide.iter().map(String::as_str).collect();
+        let e = resolve(&cols(&refs), &spaces(), &Given::default())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("c0, c1") && e.contains("c19 and 99980 more"),
+            "{e}"
+        );
+        assert!(e.len() < 1000, "{} bytes", e.len());
     }
 
     #[test]
