@@ -5,6 +5,7 @@
 # following request still answered, an idempotent retry replayed.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+. scripts/common.sh
 started=$SECONDS
 
 target="${CARGO_TARGET_DIR:-target}"
@@ -16,7 +17,7 @@ cleanup() {
     rm -rf "$dir"
 }
 trap cleanup EXIT
-port="$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')"
+port="$(free_port)"
 scripts/cluster.sh start "$dir" 2 "$port"
 b="http://127.0.0.1:$port"
 

@@ -7,9 +7,28 @@ usage() {
     exit 2
 }
 
-# free_port: a TCP port on 127.0.0.1 that nothing listens on.
+# free_port: a TCP port on 127.0.0.1 that nothing is bound to, drawn below the kernel's
+# ephemeral range. A port the kernel hands out for bind(0) is one it also hands to outgoing
+# connections, so between choosing it and listening on it a replica's connection to PostgreSQL
+# could take it (CI saw nginx fail with "Address already in use" that way); a port below
+# ip_local_port_range is never given to a connection, only to a listener that asks for it.
 free_port() {
-    python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'
+    python3 - <<'PY'
+import random, socket
+with open("/proc/sys/net/ipv4/ip_local_port_range") as f:
+    low = int(f.read().split()[0])
+for _ in range(1000):
+    port = random.randrange(max(1024, low - 12000), low)
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            continue
+    print(port)
+    break
+else:
+    raise SystemExit("no free port below the ephemeral range")
+PY
 }
 
 # apt_install PACKAGE: installs a Debian package missing on this machine (with sudo unless
