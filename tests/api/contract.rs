@@ -143,12 +143,24 @@ fn one_of_every_error() -> Vec<ApiError> {
             }),
         }),
         ApiError::Service(Error::ImportStopped {
-            at: "episode 3 from step 0".into(),
-            report: Box::default(),
+            stop: Box::new(precond::import::ImportStop {
+                episode: Some(3),
+                first_step: Some(0),
+                stored_before: precond::import::ImportReport::default(),
+            }),
             error: Box::new(Error::KeyReused {
                 field: "transitions[0].a[0]".into(),
                 difference: "transitions[0].a[0] was 1 and is now 2".into(),
             }),
+        }),
+        // An error with no details of its own: the import's alone.
+        ApiError::Service(Error::ImportStopped {
+            stop: Box::new(precond::import::ImportStop {
+                episode: None,
+                first_step: None,
+                stored_before: precond::import::ImportReport::default(),
+            }),
+            error: Box::new(Error::LimitReached("transitions".into())),
         }),
         ApiError::Service(Error::Internal(anyhow::anyhow!("bug"))),
     ];

@@ -124,6 +124,8 @@ async fn a_csv_import_round_trips_with_labels_and_provenance_and_runs_once() {
             transitions: 16,
             split_episodes: 1,
             skipped_episodes: 0,
+            // The interrupted run's trajectory first, found stored.
+            trajectory_ids: vec![1, 2, 3, 4, 5],
         }
     );
     let stored = app.all_transitions(id).await;
@@ -499,6 +501,7 @@ async fn the_import_route_stores_what_the_command_line_would_and_either_finds_th
             transitions: 16,
             split_episodes: 0,
             skipped_episodes: 0,
+            trajectory_ids: vec![1, 2, 3],
         }
     );
     // The command line, on the same file with the same label, finds every episode stored.
@@ -506,6 +509,7 @@ async fn the_import_route_stores_what_the_command_line_would_and_either_finds_th
         .await
         .unwrap();
     assert_eq!((again.created, again.replayed), (0, 3));
+    assert_eq!(again.trajectory_ids, report.trajectory_ids);
     // The stored trajectories carry their source, and the labels the experiment's model gave.
     let t: Value = app
         .client
@@ -548,6 +552,34 @@ async fn the_import_route_stores_what_the_command_line_would_and_either_finds_th
             && message.contains("1 of its trajectories were stored before"),
         "{message}"
     );
+    // The same as data, beside the refusal's own details.
+    let details = &e["error"]["details"];
+    assert_eq!(details["field"], "transitions[1].s_next[0]", "{e}");
+    assert_eq!(
+        (
+            &details["import"]["episode"],
+            &details["import"]["first_step"]
+        ),
+        (&json!(10), &json!(0)),
+        "{e}"
+    );
+    let before: ImportReport =
+        serde_json::from_value(details["import"]["stored_before"].clone()).unwrap();
+    assert_eq!(
+        (before.trajectories, before.replayed, before.trajectory_ids),
+        (1, 1, vec![1])
+    );
+
+    // Fewer transitions per trajectory than the server's limit, as the command line's
+    // --max-transitions: the 9-step episode becomes 4 + 4 + 1.
+    let split = [("dataset", "split"), ("max_transitions", "4")];
+    let (status, report) = upload(&app, id, &split, "text/csv", std::fs::read(&csv).unwrap()).await;
+    assert_eq!(status, 200, "{report}");
+    let report: ImportReport = serde_json::from_value(report).unwrap();
+    assert_eq!(
+        (report.episodes, report.trajectories, report.split_episodes),
+        (3, 5, 1)
+    );
 }
 
 #[tokio::test]
@@ -582,6 +614,19 @@ async fn the_import_route_names_bad_files_and_bad_requests() {
     assert!(
         message.contains("line 3") && message.contains("0 of its trajectories were stored before"),
         "{message}"
+    );
+    let stop = &e["error"]["details"]["import"];
+    assert_eq!(
+        (&stop["episode"], &stop["stored_before"]["trajectories"]),
+        (&Value::Null, &json!(0)),
+        "{e}"
+    );
+    // Transitions per trajectory within 1 and the server's limit, named.
+    let zero = [("dataset", "logs"), ("max_transitions", "0")];
+    let (status, e) = upload(&app, id, &zero, "text/csv", bad.to_vec()).await;
+    assert_eq!(
+        (status, e["error"]["details"]["field"].as_str()),
+        (422, Some("max_transitions"))
     );
     // Not a file type: 415; octet-stream without `format`: 422 naming it; too large: 413.
     let (status, _) = upload(&app, id, &q, "text/plain", b"x\n".to_vec()).await;

@@ -520,6 +520,11 @@ pub struct ImportQuery {
     pub predicted_state: Option<String>,
     /// The episode column (`none`: the whole file is one episode).
     pub episode: Option<String>,
+    /// Transitions per stored trajectory, when fewer than the server's `--max-transitions`:
+    /// a longer episode is stored as several trajectories (as `precond import
+    /// --max-transitions`).
+    #[schemars(range(min = 1, max = crate::limits::MAX_TRANSITIONS))]
+    pub max_transitions: Option<usize>,
 }
 
 /// A page of `GET /v1/experiments/{id}/transitions`.

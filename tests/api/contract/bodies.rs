@@ -104,6 +104,7 @@ const NOT_TYPED: &[(&str, &str)] = &[
     ("PayloadTooLargeDetails", "a JSON value"),
     ("NoPlanDetails", "a JSON value"),
     ("StoredPrefixDetails", "a JSON value"),
+    ("ImportStoppedDetails", "a JSON value"),
     // `Error` narrowed to one code, for the responses that answer only that code.
     ("ValidationError", "Error with one code"),
     ("NoPlanError", "Error with one code"),

@@ -266,7 +266,8 @@ async fn import_file(
     progress: &ProgressBar,
 ) -> anyhow::Result<ImportReport> {
     let format = Format::from(args.format);
-    let (columns, n_rows) = table::columns(path, format)?;
+    let (columns, n_rows) =
+        table::columns(path, format).with_context(|| path.display().to_string())?;
     let given = Given {
         as_query: false,
         state: args.state.clone(),
@@ -337,7 +338,12 @@ async fn import_file(
         match message {
             Message::Part(part) => match poster.post(args.experiment, &part).await {
                 Ok((created, replayed)) => {
-                    report.stored(part.source.first_step, created.n_transitions, replayed);
+                    report.stored(
+                        created.trajectory.id,
+                        part.source.first_step,
+                        created.n_transitions,
+                        replayed,
+                    );
                     progress.inc(part.rows);
                     progress.set_message(format!(
                         "{} trajectories stored, {} already there",

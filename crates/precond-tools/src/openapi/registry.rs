@@ -132,6 +132,7 @@ pub const ENTRIES: &[Entry] = &[
     entry::<api::TrajectoryResponse>("Trajectory", Response),
     entry::<api::TransitionPage>("TransitionPage", Response),
     entry::<precond::import::ImportReport>("ImportReport", Response),
+    entry::<precond::import::ImportStop>("ImportStop", Response),
     // dashboard reads
     entry::<api::RunView>("Run", Response),
     entry::<api::ExclusionRequest>("ExclusionRequest", Request),

@@ -221,7 +221,14 @@ fn service_details(e: &Error) -> Value {
             details.insert("stored_trajectory_id".into(), json!(trajectory_id));
             Value::Object(details)
         }
-        Error::ImportStopped { error, .. } => service_details(error),
+        Error::ImportStopped { stop, error } => {
+            let mut details = match service_details(error) {
+                Value::Object(map) => map,
+                _ => serde_json::Map::new(),
+            };
+            details.insert("import".into(), json!(stop));
+            Value::Object(details)
+        }
         Error::Validation { field, reason } => json!({"field": field, "reason": reason}),
         Error::KeyReused { field, difference } => {
             json!({"field": field, "reason": difference})
@@ -309,11 +316,11 @@ fn service_message(e: &Error) -> String {
             "{} (the executed prefix is stored as trajectory {trajectory_id})",
             service_message(error)
         ),
-        Error::ImportStopped { at, report, error } => format!(
-            "{} (the import stopped at {at}; {} of its trajectories were stored before: \
+        Error::ImportStopped { stop, error } => format!(
+            "{} (the import stopped at {stop}; {} of its trajectories were stored before: \
              importing again skips them)",
             service_message(error),
-            report.trajectories
+            stop.stored_before.trajectories
         ),
         other => other.to_string(),
     }

@@ -17,7 +17,7 @@ use crate::api::{ImportFormat, ImportQuery};
 use crate::import::ImportReport;
 use crate::import::mapping::Given;
 use crate::import::table::Format;
-use crate::limits::MAX_SOURCE_TEXT_LEN;
+use crate::limits::{MAX_SOURCE_TEXT_LEN, MAX_TRANSITIONS};
 use crate::service::imports::ImportFile;
 use axum::Json;
 use axum::extract::{Request, State};
@@ -78,6 +78,14 @@ pub async fn create_import(
         .and_then(|v| v.to_str().ok())
         .map(str::to_string);
     let format = format_of(query.format, content_type.as_deref())?;
+    if let Some(n) = query.max_transitions
+        && !(1..=MAX_TRANSITIONS).contains(&n)
+    {
+        return Err(ApiError::validation(
+            "max_transitions",
+            format!("must be 1 to {MAX_TRANSITIONS}, got {n}"),
+        ));
+    }
     let n = query.dataset.chars().count();
     if n == 0 || n > MAX_SOURCE_TEXT_LEN {
         return Err(ApiError::validation(
@@ -114,6 +122,7 @@ pub async fn create_import(
                 dataset_id: query.dataset_id,
                 label: query.label,
                 max_body_bytes: state.config.max_body_bytes,
+                max_transitions: query.max_transitions,
             },
             slot,
         )

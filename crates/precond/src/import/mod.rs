@@ -50,12 +50,16 @@ pub struct ImportReport {
     pub split_episodes: usize,
     /// Episodes skipped: a single frame, no transition (frames without a next-state column).
     pub skipped_episodes: usize,
+    /// The trajectories posted (stored now or found stored), in the file's order.
+    pub trajectory_ids: Vec<i64>,
 }
 
 impl ImportReport {
-    /// Counts one stored trajectory of `transitions` transitions starting at `first_step` of
-    /// its episode (0: a new episode), stored now or found stored (`replayed`).
-    pub fn stored(&mut self, first_step: Option<i64>, transitions: usize, replayed: bool) {
+    /// Counts one stored trajectory `id` of `transitions` transitions starting at
+    /// `first_step` of its episode (0: a new episode), stored now or found stored
+    /// (`replayed`).
+    pub fn stored(&mut self, id: i64, first_step: Option<i64>, transitions: usize, replayed: bool) {
+        self.trajectory_ids.push(id);
         self.trajectories += 1;
         self.transitions += transitions;
         if first_step == Some(0) {
@@ -77,6 +81,29 @@ impl ImportReport {
         self.transitions += o.transitions;
         self.split_episodes += o.split_episodes;
         self.skipped_episodes += o.skipped_episodes;
+        self.trajectory_ids.extend_from_slice(&o.trajectory_ids);
+    }
+}
+
+/// Where an import stopped part-way, and what it stored before: the `import` of the error's
+/// `details` (beside the error's own), so that a client can say which episode was refused.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, JsonSchema)]
+pub struct ImportStop {
+    /// The episode (`source.episode`) of the trajectory that was refused; `null` when the
+    /// file could not be read further.
+    pub episode: Option<i64>,
+    /// The step of that episode the refused trajectory started at; `null` likewise.
+    pub first_step: Option<i64>,
+    /// What the import stored before it stopped (importing again skips it).
+    pub stored_before: ImportReport,
+}
+
+impl std::fmt::Display for ImportStop {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match (self.episode, self.first_step) {
+            (Some(e), Some(k)) => write!(f, "episode {e} from step {k}"),
+            _ => f.write_str("reading the file"),
+        }
     }
 }
 

@@ -94,7 +94,7 @@ pub fn columns(path: &Path, format: Format) -> anyhow::Result<(Vec<Column>, Opti
             let mut reader = csv_reader(path)?;
             let columns = reader
                 .headers()
-                .with_context(|| format!("{}: reading the header row", path.display()))?
+                .context("reading the header row")?
                 .iter()
                 .map(|name| Column {
                     name: name.to_string(),
@@ -186,7 +186,7 @@ pub fn for_each_row(
 }
 
 fn csv_reader(path: &Path) -> anyhow::Result<csv::Reader<BufReader<File>>> {
-    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
+    let file = File::open(path).context("opening the file")?;
     Ok(csv::ReaderBuilder::new()
         .has_headers(true)
         .flexible(true)
@@ -195,9 +195,8 @@ fn csv_reader(path: &Path) -> anyhow::Result<csv::Reader<BufReader<File>>> {
 }
 
 fn parquet_reader(path: &Path) -> anyhow::Result<SerializedFileReader<File>> {
-    let file = File::open(path).with_context(|| format!("opening {}", path.display()))?;
-    SerializedFileReader::new(file)
-        .with_context(|| format!("{}: not a readable Parquet file", path.display()))
+    let file = File::open(path).context("opening the file")?;
+    SerializedFileReader::new(file).context("not a readable Parquet file")
 }
 
 fn csv_cell(field: &str) -> Cell {

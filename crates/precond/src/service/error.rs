@@ -119,17 +119,15 @@ pub enum Error {
         /// Why no proposal followed.
         error: Box<Error>,
     },
-    /// An import stopped at `at` (an episode, or reading the file) on `error`: answered as
-    /// `error`, saying what of the import was stored before it (importing again skips that).
+    /// An import stopped at an episode, or reading the file, on `error`: answered as `error`,
+    /// saying where and what of the import was stored before it (importing again skips that).
     #[error(
-        "{error} (the import stopped at {at}; {} of its trajectories were stored before: importing again skips them)",
-        report.trajectories
+        "{error} (the import stopped at {stop}; {} of its trajectories were stored before: importing again skips them)",
+        stop.stored_before.trajectories
     )]
     ImportStopped {
-        /// Where: `episode 3 from step 0`, or `reading the file`.
-        at: String,
-        /// What the import did before it stopped.
-        report: Box<crate::import::ImportReport>,
+        /// Where, and what the import did before it stopped.
+        stop: Box<crate::import::ImportStop>,
         /// Why it stopped.
         error: Box<Error>,
     },

@@ -7,7 +7,9 @@ use super::{Error, Result, Service};
 use crate::api::TrajectoryRequest;
 use crate::import::mapping::{self, Given, Spaces};
 use crate::import::table::{self, Format};
-use crate::import::{Assembly, ImportReport, Message, dataset_identity, key_part, read_parts};
+use crate::import::{
+    Assembly, ImportReport, ImportStop, Message, dataset_identity, key_part, read_parts,
+};
 use crate::limits::MAX_TRANSITIONS;
 use std::path::PathBuf;
 
@@ -29,6 +31,9 @@ pub struct ImportFile {
     /// Bytes of one trajectory's JSON body past which an episode is split: the server's body
     /// limit, as `precond import` splits for it, so that both store the same parts.
     pub max_body_bytes: usize,
+    /// Transitions per trajectory past which an episode is split, when the client asked for
+    /// fewer than the server's `--max-transitions` (`precond import --max-transitions`).
+    pub max_transitions: Option<usize>,
 }
 
 impl Service {
@@ -80,7 +85,13 @@ impl Service {
             dataset: file.dataset.clone(),
             dataset_id,
             label: file.label.clone(),
-            max_transitions: self.work.limits().max_transitions.min(MAX_TRANSITIONS),
+            max_transitions: self
+                .work
+                .limits()
+                .max_transitions
+                .min(MAX_TRANSITIONS)
+                .min(file.max_transitions.unwrap_or(usize::MAX))
+                .max(1),
             max_body_bytes: file.max_body_bytes,
         };
         let dims = (spaces.state.len(), spaces.action.len());
@@ -100,12 +111,8 @@ impl Service {
         while let Some(message) = rx.recv().await {
             match message {
                 Message::Part(part) => {
-                    let at = format!(
-                        "episode {} from step {}",
-                        part.source.episode.unwrap_or_default(),
-                        part.source.first_step.unwrap_or_default()
-                    );
-                    let (first, n) = (part.source.first_step, part.transitions.len());
+                    let (episode, first) = (part.source.episode, part.source.first_step);
+                    let n = part.transitions.len();
                     let request = TrajectoryRequest {
                         proposal_id: None,
                         partial: false,
@@ -113,11 +120,19 @@ impl Service {
                         transitions: part.transitions,
                     };
                     match self.ingest(id, request, Some(part.key.as_bytes())).await {
-                        Ok(ingested) => report.stored(first, n, ingested.replayed),
+                        Ok(ingested) => report.stored(
+                            ingested.record.trajectory_id,
+                            first,
+                            n,
+                            ingested.replayed,
+                        ),
                         Err(error) => {
                             failure = Some(Error::ImportStopped {
-                                at,
-                                report: Box::new(report.clone()),
+                                stop: Box::new(ImportStop {
+                                    episode: Some(episode.unwrap_or_default()),
+                                    first_step: Some(first.unwrap_or_default()),
+                                    stored_before: std::mem::take(&mut report),
+                                }),
                                 error: Box::new(error),
                             });
                             break;
@@ -136,8 +151,11 @@ impl Service {
         match read {
             Ok(Ok(())) => Ok(report),
             Ok(Err(e)) => Err(Error::ImportStopped {
-                at: "reading the file".into(),
-                report: Box::new(report),
+                stop: Box::new(ImportStop {
+                    episode: None,
+                    first_step: None,
+                    stored_before: report,
+                }),
                 error: Box::new(Error::validation("body", format!("{e:#}"))),
             }),
             Err(e) => Err(Error::Internal(anyhow::anyhow!(
