@@ -1,7 +1,8 @@
-"""Logged data into an experiment (``precond_client.imports``): the column conventions, and
+"""Logged data into an experiment (``precond_client.imports``), imported by the server's route:
 round trips against the real server — CSV, Parquet, LeRobot v3 and Minari (HDF5) data in,
 transitions read back equal with their labels and provenance, a second import storing nothing,
-long episodes split, bad data named."""
+long episodes split, bad data named. The column conventions themselves are the server's
+(``crates/precond/src/import``, tested there)."""
 
 from __future__ import annotations
 
@@ -21,9 +22,8 @@ from precond_client.imports import (
     ImportFailed,
     LoggedEpisode,
     dataset_identity,
-    episodes_from_rows,
     import_episodes,
-    resolve_columns,
+    write_episodes_csv,
 )
 
 MakeServer = Callable[..., PrecondServer]
@@ -67,47 +67,26 @@ def expected_deviation(a: list[float]) -> float:
     return float(np.hypot((1 - GAIN) * a[0], (1 - GAIN) * a[1]))
 
 
-# ---------------------------------------------------------------- conventions (no server)
+# ---------------------------------------------------------------- episodes in memory (no server)
 
 
-def test_columns_are_found_by_convention_or_named() -> None:
-    names, actions = ["x", "y"], ["dx", "dy"]
-    export = ["id", "trajectory_id", "step", "s.y", "s.x", "a.dx", "a.dy", "s_next.x",
-              "s_next.y", "s_pred.x", "s_pred.y", "deviation"]  # fmt: skip
-    m = resolve_columns(export, set(), names, actions)
-    assert m.state.columns == ("s.x", "s.y")
-    assert m.next_state is not None and m.next_state.columns == ("s_next.x", "s_next.y")
-    assert (m.predicted, m.episode) == (None, "trajectory_id")
-    lerobot = ["observation.state", "action", "frame_index", "episode_index"]
-    m = resolve_columns(lerobot, {"observation.state", "action"}, names, actions)
-    assert m.state.is_list and m.action.is_list and m.next_state is None
-    assert m.episode == "episode_index"
-    with pytest.raises(DatasetError, match=r"3 columns \(s_x, s_y, s_z\).*2 components"):
-        resolve_columns(["s_x", "s_y", "s_z", "a_dx", "a_dy"], set(), names, actions)
-    with pytest.raises(DatasetError, match=r"no state columns.*px, py"):
-        resolve_columns(["px", "py", "a_dx", "a_dy"], set(), names, actions)
-    m = resolve_columns(["px", "py", "a_dx", "a_dy"], set(), names, actions, state=["px", "py"])
-    assert m.state.columns == ("px", "py") and m.episode is None
-    with pytest.raises(DatasetError, match="needs its prediction"):
-        resolve_columns(["s_x", "s_y", "a_dx", "a_dy"], set(), names, actions, client_side=True)
-
-
-def test_a_long_episode_is_read_in_pieces_of_at_most_one_part() -> None:
-    rows = [
-        {"episode": 0, "s_x": k, "s_y": 0, "a_dx": 1, "a_dy": 0, "s_next_x": k + 1, "s_next_y": 0}
-        for k in range(25)
-    ]
-    m = resolve_columns(list(rows[0]), set(), ["x", "y"], ["dx", "dy"])
-    pieces = list(episodes_from_rows(rows, m, (2, 2), "rows", chunk=10))
-    assert [(p.first_step, len(p)) for p in pieces] == [(0, 10), (10, 10), (20, 5)]
-    np.testing.assert_array_equal(np.concatenate([p.s for p in pieces])[:, 0], np.arange(25))
-    # Frames (no next-state column): a piece ends where the next begins.
-    frames = [{"episode": 0, "s_x": k, "s_y": 0, "a_dx": 1, "a_dy": 0} for k in range(25)]
-    m = resolve_columns(list(frames[0]), set(), ["x", "y"], ["dx", "dy"])
-    pieces = list(episodes_from_rows(frames, m, (2, 2), "frames", chunk=10))
-    assert [(p.first_step, len(p)) for p in pieces] == [(0, 10), (10, 10), (20, 4)]
-    for p in pieces:
-        np.testing.assert_array_equal(p.s_next[:, 0], p.s[:, 0] + 1)
+def test_episodes_are_written_in_preconds_own_columns_exactly(tmp_path: Path) -> None:
+    # What the server's import reads for Minari's and any in-memory episodes: its own columns,
+    # every number as the text that parses back to the same float.
+    rng = np.random.default_rng(4)
+    s = rng.uniform(0, 1, (3, 2))
+    eps = [LoggedEpisode(5, "5", s, rng.uniform(-1, 1, (3, 1)), s + 1e-17 + 0.1)]
+    path = tmp_path / "e.csv"
+    write_episodes_csv(path, eps, ["x", "y"], ["u"])
+    lines = path.read_text().splitlines()
+    assert lines[0] == "episode,s.x,s.y,a.u,s_next.x,s_next.y"
+    back = np.array([[float(v) for v in line.split(",")] for line in lines[1:]])
+    np.testing.assert_array_equal(back[:, 0], 5)
+    np.testing.assert_array_equal(back[:, 1:], np.c_[eps[0].s, eps[0].a, eps[0].s_next])
+    with pytest.raises(DatasetError, match=r"episode 5: a has shape \(3, 1\).*\(3, 2\)"):
+        write_episodes_csv(path, eps, ["x", "y"], ["u", "v"])
+    with pytest.raises(DatasetError, match=r"episode 5: .*no predictions"):
+        write_episodes_csv(path, eps, ["x", "y"], ["u"], predicted=True)
 
 
 def test_an_episode_from_observations_needs_one_more_observation() -> None:
@@ -360,12 +339,15 @@ def test_bad_data_is_named_and_refusals_say_which_episode(
         kinematic(client, "bad")
         bad = tmp_path / "bad.csv"
         bad.write_text("episode,s_x,s_y,a_dx,a_dy\n0,0.1,0.1,0.05,0\n0,0.2,nan,0.05,0\n")
-        with pytest.raises(DatasetError, match=r"bad.csv row 2, s_y: nan is not a finite number"):
+        with pytest.raises(DatasetError, match=r"bad.csv: line 3: s_y: NaN is not a finite number"):
             client.import_file(bad, progress=False)
         unsorted = tmp_path / "unsorted.csv"
         write_csv(unsorted, logged([2, 2]) + logged([1]))
-        with pytest.raises(DatasetError, match="row 5: episode 0 appears again"):
+        with pytest.raises(DatasetError, match="line 6: episode 0 appears again") as bad_row:
             client.import_file(unsorted, progress=False)
+        # The episodes before the bad row were stored, and the error says so.
+        assert bad_row.value.stored_before is not None
+        assert bad_row.value.stored_before.created == 2
         outside = [LoggedEpisode(7, "7", np.array([[5.0, 0.1]]), np.zeros((1, 2)),
                                  np.array([[5.0, 0.1]]))]  # fmt: skip
         with pytest.raises(ImportFailed, match=r"logs episode 7 from step 0: 422") as e:
@@ -380,8 +362,8 @@ def test_bad_data_is_named_and_refusals_say_which_episode(
 def test_the_servers_import_route_and_the_client_key_a_file_alike(
     make_server: MakeServer, tmp_path: Path
 ) -> None:
-    """``POST /v1/experiments/{id}/imports`` runs ``precond import``'s code on the server; the
-    client's own import finds every episode it stored (the same keys)."""
+    """``POST /v1/experiments/{id}/imports``, posted by hand as curl would, and
+    ``Client.import_file`` key a file alike: the client finds every episode stored."""
     server = make_server()
     rows = logged([3, 4])
     path = tmp_path / "route.csv"

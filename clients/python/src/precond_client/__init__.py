@@ -50,7 +50,7 @@ from .errors import (
 )
 from .execution import Execution, Metric, Monitor
 from .export import ExportedModel
-from .imports import DatasetError, ImportFailed, ImportReport, LoggedEpisode
+from .imports import DatasetError, ImportFailed, LoggedEpisode
 from .model_server import ModelServer, serve_model
 from .models import (
     BetaChoice,
@@ -62,6 +62,8 @@ from .models import (
     FitRefusal,
     HeldOutTrust,
     Hyperparameters,
+    ImportReport,
+    ImportStop,
     KernelTrial,
     Model,
     ModelCalls,
@@ -111,6 +113,7 @@ __all__ = [
     "Hyperparameters",
     "ImportFailed",
     "ImportReport",
+    "ImportStop",
     "InternalError",
     "KernelTrial",
     "Learner",

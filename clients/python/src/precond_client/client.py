@@ -21,12 +21,12 @@ wait is logged at ``INFO`` on the ``precond_client`` logger, with what it is for
 from __future__ import annotations
 
 import datetime
-import json
 import logging
 import math
 import random
 import re
 import socket
+import tempfile
 import time
 import uuid
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
@@ -41,20 +41,22 @@ from . import _status, errors
 from .execution import Execution, Metric, Monitor, StepFn, client_side, execute_plan
 from .export import ExportedModel
 from .imports import (
-    ImportReport,
+    DatasetError,
+    check_dataset_id,
     dataset_identity,
     default_dataset_name,
     import_episodes,
+    import_error,
     lerobot_files,
-    read_lerobot,
+    lerobot_table,
     read_minari,
-    read_table,
 )
 from .models import (
     Candidate,
     Continued,
     Exclusion,
     Experiment,
+    ImportReport,
     Model,
     ModelLabels,
     Plan,
@@ -121,6 +123,17 @@ def settings_differences(asked: Any, stored: Any, path: str = "") -> list[tuple[
     else:
         same = asked == stored
     return [] if same else [(path, asked, stored)]
+
+
+def _upload_progress(size: int, desc: str, show: bool | None) -> Any:
+    """A tqdm bar of an upload's bytes, when tqdm is installed and ``show`` is not ``False``."""
+    if show is False:
+        return None
+    try:
+        from tqdm.auto import tqdm
+    except ImportError:
+        return None
+    return tqdm(total=size, desc=desc, unit="B", unit_scale=True, unit_divisor=1024)
 
 
 def _body(r: httpx.Response) -> Any:
@@ -289,17 +302,28 @@ class Client:
         headers: Mapping[str, str] | None = None,
         idempotent: bool = True,
         deadline_retries: int | None = None,
+        content: Callable[[], Iterator[bytes]] | None = None,
+        timeout: httpx.Timeout | None = None,
     ) -> httpx.Response:
         """Sends a request with retries; returns a 2xx answer or raises.
 
         ``deadline_retries`` (default :attr:`deadline_retries`) bounds the repeats of a search
-        that ran until the server's deadline (see the class)."""
+        that ran until the server's deadline (see the class). ``content`` gives the body's
+        bytes afresh for each attempt (a file read again); ``timeout`` replaces the client's."""
         searches = self.deadline_retries if deadline_retries is None else deadline_retries
         attempt = 0
         deadlines = 0
         while True:
             try:
-                r = self._http.request(method, path, json=json, params=params, headers=headers)
+                r = self._http.request(
+                    method,
+                    path,
+                    json=json,
+                    params=params,
+                    headers=headers,
+                    content=None if content is None else content(),
+                    timeout=self._http.timeout if timeout is None else timeout,
+                )
             except httpx.TransportError as e:
                 # A request that never reached the server is always safe to send again.
                 unsent = isinstance(e, (httpx.ConnectError, httpx.ConnectTimeout))
@@ -655,72 +679,123 @@ class Client:
 
     # ------------------------------------------------------------------ logged data
 
-    def _import_context(self) -> tuple[Experiment, bool]:
-        exp = self.get_experiment()
-        model = exp.domain.get("model") or {}
-        return exp, exp.domain.get("kind") == "custom" and model.get("kind") == "client"
-
     def import_file(
         self,
         path: str | Path,
         *,
         format: str | None = None,
-        state: Sequence[str] | None = None,
-        action: Sequence[str] | None = None,
-        next_state: Sequence[str] | None = None,
-        predicted: Sequence[str] | None = None,
+        state: Sequence[str] | str | None = None,
+        action: Sequence[str] | str | None = None,
+        next_state: Sequence[str] | str | None = None,
+        predicted: Sequence[str] | str | None = None,
         episode: str | None = None,
         label: str | None = None,
         dataset_name: str | None = None,
         dataset_id: str | None = None,
-        max_transitions: int = 10_000,
-        max_body_bytes: int = 4 * 1024 * 1024,
+        max_transitions: int | None = None,
         progress: bool | None = None,
+        timeout: float | None = 3600.0,
     ) -> ImportReport:
         """Imports a CSV or Parquet file of logged transitions into the current experiment,
-        one trajectory per episode, as ``precond import`` does (same columns by convention,
-        same idempotency keys: importing again stores nothing twice).
+        one trajectory per episode: the file is sent as it is to the server, which runs
+        ``precond import``'s code on it (``POST /v1/experiments/{id}/imports``: same columns
+        by convention, same idempotency keys, so importing again stores nothing twice and
+        either tool finds the other's imports).
 
         ``state``, ``action``, ``next_state`` (and ``predicted`` for a client-side model)
         name the columns — several scalar columns in order, or one list column — when the
         conventions (``s_*``/``a_*``/``s_next_*``, ``observation.state``/``action``) do not
         find them; without a next state a transition ends at the next row's state.
         ``episode`` names the episode column (``"none"``: the file is one episode).
-        Parquet needs ``pyarrow``. The dataset's name is ``dataset_name`` or the file's
-        absolute path, its id in the keys the hash of that name (``dataset_id`` to pin it):
-        importing the file again stores only the episodes not stored yet, from any working
-        directory. Memory holds at most ``max_transitions`` transitions at a time. Returns an
-        :class:`~precond_client.imports.ImportReport`; bad data raises
-        :class:`~precond_client.imports.DatasetError` naming the row and column, a refused
-        trajectory (an episode that changed since it was stored, say)
-        :class:`~precond_client.imports.ImportFailed`."""
-        exp, client_side = self._import_context()
-        mapping, episodes = read_table(
-            path,
-            exp.state_space.names,
-            exp.action_space.names,
-            format=format,
-            client_side=client_side,
-            chunk=max(1, max_transitions),
-            state=state,
-            action=action,
-            next_state=next_state,
-            predicted=predicted,
-            episode=episode,
-        )
+        ``format`` is ``csv`` or ``parquet`` (default by extension). The dataset's name is
+        ``dataset_name`` or the file's absolute path, its id in the keys the hash of that name
+        (``dataset_id`` to pin it): importing the file again stores only the episodes not
+        stored yet, from any working directory. An episode longer than ``max_transitions``
+        (at most the server's ``--max-transitions``) is stored as several trajectories. The
+        file may be up to the server's ``--max-import-bytes`` (256 MiB by default); the answer
+        is awaited for up to ``timeout`` seconds (``None``: without limit). ``progress``: a
+        tqdm bar of the upload when tqdm is installed (``False``: never).
+
+        Returns an :class:`~precond_client.models.ImportReport`; data the server cannot read
+        raises :class:`~precond_client.imports.DatasetError` naming the line and column, a
+        refused trajectory (an episode that changed since it was stored, say)
+        :class:`~precond_client.imports.ImportFailed` saying which episode and what was
+        stored before it."""
         p = Path(path)
-        log.info("%s: %s", p, mapping.describe())
+        fmt = format or ("parquet" if p.suffix.lower() in (".parquet", ".pq") else "csv")
+        if fmt not in ("csv", "parquet"):
+            raise ValueError(f"format {format!r}: use 'csv' or 'parquet'")
         dataset = dataset_name or default_dataset_name(p)
-        return import_episodes(
-            self,
-            episodes,
-            dataset=dataset,
-            dataset_id=dataset_id or dataset_identity(dataset),
-            label=label,
-            max_transitions=max_transitions,
-            max_body_bytes=max_body_bytes,
-            progress=progress,
+        if dataset_id is not None:
+            check_dataset_id(dataset_id)
+        if max_transitions is not None and max_transitions < 1:
+            raise ValueError(f"max_transitions {max_transitions}: at least 1")
+        try:
+            size = p.stat().st_size
+        except OSError as e:
+            raise DatasetError(f"{p}: {e.strerror or e}") from e
+
+        def listed(columns: Sequence[str] | str | None) -> str | None:
+            return columns if columns is None or isinstance(columns, str) else ",".join(columns)
+
+        query = {
+            "dataset": dataset,
+            "dataset_id": dataset_id,
+            "format": fmt,
+            "label": label,
+            "state": listed(state),
+            "action": listed(action),
+            "next_state": listed(next_state),
+            "predicted_state": listed(predicted),
+            "episode": episode,
+            "max_transitions": max_transitions,
+        }
+        content_type = "text/csv" if fmt == "csv" else "application/vnd.apache.parquet"
+        bar = _upload_progress(size, p.name, progress)
+
+        def chunks() -> Iterator[bytes]:
+            if bar is not None:
+                bar.reset(total=size)
+            with p.open("rb") as f:
+                while chunk := f.read(1 << 16):
+                    if bar is not None:
+                        bar.update(len(chunk))
+                    yield chunk
+
+        log.info("%s: %d bytes to the server's import (dataset %s)", p, size, dataset)
+        try:
+            r = self._request(
+                "POST",
+                self._path("/imports"),
+                params={k: v for k, v in query.items() if v is not None},
+                headers={"Content-Type": content_type, "Content-Length": str(size)},
+                content=chunks,
+                timeout=httpx.Timeout(self._http.timeout.connect, read=timeout, write=timeout),
+            )
+        except errors.ApiError as e:
+            raise import_error(dataset, e) from e
+        finally:
+            if bar is not None:
+                bar.close()
+        report = ImportReport.from_json(r.json())
+        if report.split_episodes:
+            log.warning(
+                "%s: %d episodes were stored as several trajectories (longer than %s "
+                "transitions or the server's body limit)",
+                dataset,
+                report.split_episodes,
+                max_transitions or "the server's",
+            )
+        log.info(
+            "%s: %d episodes as %d trajectories (%d transitions): %d stored, %d already there",
+            dataset,
+            report.episodes,
+            report.trajectories,
+            report.transitions,
+            report.created,
+            report.replayed,
         )
+        return report
 
     def import_lerobot(
         self,
@@ -731,39 +806,37 @@ class Client:
         label: str | None = None,
         dataset_name: str | None = None,
         dataset_id: str | None = None,
-        max_transitions: int = 10_000,
-        max_body_bytes: int = 4 * 1024 * 1024,
+        max_transitions: int | None = None,
         progress: bool | None = None,
+        timeout: float | None = 3600.0,
     ) -> ImportReport:
         """Imports a LeRobot v3 dataset (a local directory with ``meta/info.json`` and
         ``data/**/*.parquet``) into the current experiment: one trajectory per
         ``episode_index``, each transition from a frame's ``observation.state`` with its
-        ``action`` to the next frame's state. Source ``lerobot:<directory name>`` (or
-        ``dataset_name``); the dataset id hashes the directory's absolute path (or
-        ``dataset_name``), so a dataset that grows imports only its new episodes. Needs
-        ``pyarrow``. The experiment's state and action must be the dataset's (their dimensions
-        are checked)."""
-        exp, _ = self._import_context()
-        lerobot_files(root)
-        info = json.loads((Path(root) / "meta" / "info.json").read_text(encoding="utf-8"))
-        return import_episodes(
-            self,
-            read_lerobot(
-                root,
-                exp.state_space.dim,
-                exp.action_space.dim,
+        ``action`` to the next frame's state. Its data files' three columns are written to
+        one temporary Parquet file (an episode may span two files) and imported as
+        :meth:`import_file` does. Source ``lerobot:<directory name>`` (or ``dataset_name``);
+        the dataset id hashes the directory's absolute path (or ``dataset_name``), so a
+        dataset that grows imports only its new episodes. Needs ``pyarrow``. The experiment's
+        state and action must be the dataset's (their dimensions are checked)."""
+        r = Path(root)
+        lerobot_files(r)
+        with tempfile.TemporaryDirectory(prefix="precond-lerobot-") as tmp:
+            table = Path(tmp) / "frames.parquet"
+            lerobot_table(r, table, [state, action, "episode_index"])
+            return self.import_file(
+                table,
+                format="parquet",
                 state=state,
                 action=action,
-                chunk=max(1, max_transitions),
-            ),
-            dataset=dataset_name or f"lerobot:{Path(root).resolve().name}",
-            dataset_id=dataset_id or dataset_identity(dataset_name or str(Path(root).resolve())),
-            label=label,
-            max_transitions=max_transitions,
-            max_body_bytes=max_body_bytes,
-            progress=progress,
-            total=info.get("total_episodes"),
-        )
+                episode="episode_index",
+                label=label,
+                dataset_name=dataset_name or f"lerobot:{r.resolve().name}",
+                dataset_id=dataset_id or dataset_identity(dataset_name or str(r.resolve())),
+                max_transitions=max_transitions,
+                progress=progress,
+                timeout=timeout,
+            )
 
     def import_minari(
         self,
@@ -772,15 +845,15 @@ class Client:
         observation_key: str | None = None,
         label: str | None = None,
         dataset_id: str | None = None,
-        max_transitions: int = 10_000,
-        max_body_bytes: int = 4 * 1024 * 1024,
+        max_transitions: int | None = None,
         progress: bool | None = None,
     ) -> ImportReport:
         """Imports a Minari dataset into the current experiment: by id with ``minari``
         installed, or from its HDF5 file with ``h5py``; one trajectory per episode, ``s``
         each observation but the last, ``s_next`` the one after it (a dict observation is read
-        at ``observation_key``). Source ``minari:<dataset>``."""
-        self._import_context()
+        at ``observation_key``). Source ``minari:<dataset>``. The episodes are written to a
+        temporary CSV file and imported by the server
+        (:func:`~precond_client.imports.import_episodes`)."""
         name, ident, episodes = read_minari(dataset, observation_key=observation_key)
         return import_episodes(
             self,
@@ -789,7 +862,6 @@ class Client:
             dataset_id=dataset_id or ident,
             label=label,
             max_transitions=max_transitions,
-            max_body_bytes=max_body_bytes,
             progress=progress,
         )
 

@@ -349,6 +349,47 @@ class Source(Wire):
 
 
 @dataclass(frozen=True)
+class ImportReport(Wire):
+    """What an import did (schema ``ImportReport``): the answer of ``POST …/imports``, read by
+    :meth:`~precond_client.Client.import_file` and the other ``import_*`` calls."""
+
+    SCHEMA: ClassVar[str] = "ImportReport"
+
+    episodes: int
+    """Episodes read with at least one transition."""
+    trajectories: int
+    """Trajectories stored or found stored (an episode split in parts counts each)."""
+    created: int
+    """Of those, stored by this import."""
+    replayed: int
+    """Of those, already stored by an earlier one (nothing stored)."""
+    transitions: int
+    """Transitions in those trajectories."""
+    split_episodes: int
+    """Episodes stored as several trajectories."""
+    skipped_episodes: int
+    """Episodes without a transition (a single frame)."""
+    trajectory_ids: list[int]
+    """The trajectories stored or found stored, in the data's order."""
+
+
+@dataclass(frozen=True)
+class ImportStop(Wire):
+    """Where an import stopped part-way and what it stored before (schema ``ImportStop``, an
+    import error's ``details["import"]``)."""
+
+    SCHEMA: ClassVar[str] = "ImportStop"
+
+    episode: int | None
+    """The episode of the refused trajectory; ``None`` when the data could not be read
+    further."""
+    first_step: int | None
+    """The step of that episode the refused trajectory started at."""
+    stored_before: ImportReport
+    """What the import stored before it stopped (importing again skips it)."""
+
+
+@dataclass(frozen=True)
 class TrajectoryCreated(Wire):
     """The answer to a posted trajectory (schema ``TrajectoryCreated``)."""
 

@@ -10,6 +10,7 @@ run one way.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, Protocol
 
 from numpy.typing import ArrayLike
@@ -18,6 +19,7 @@ from .models import (
     Candidate,
     Continued,
     Experiment,
+    ImportReport,
     Model,
     Proposal,
     Source,
@@ -37,6 +39,25 @@ class TrajectoryPoster(Protocol):
         idempotency_key: str | None = None,
         source: Source | Mapping[str, Any] | None = None,
     ) -> TrajectoryCreated: ...
+
+
+class FileImporter(Protocol):
+    """Imports a file of logged transitions on the server
+    (:meth:`~precond_client.Client.import_file`), into the experiment it describes."""
+
+    def get_experiment(self, experiment_id: int | None = None) -> Experiment: ...
+
+    def import_file(
+        self,
+        path: str | Path,
+        *,
+        format: str | None = None,
+        label: str | None = None,
+        dataset_name: str | None = None,
+        dataset_id: str | None = None,
+        max_transitions: int | None = None,
+        progress: bool | None = None,
+    ) -> ImportReport: ...
 
 
 class LearningClient(TrajectoryPoster, Protocol):
