@@ -370,7 +370,8 @@ class ImportReport(Wire):
     skipped_episodes: int
     """Episodes without a transition (a single frame)."""
     trajectory_ids: list[int]
-    """The trajectories stored or found stored, in the data's order."""
+    """The trajectories stored or found stored, in the data's order: the first 100 000 of
+    them (``trajectories`` counts all)."""
 
 
 @dataclass(frozen=True)

@@ -50,16 +50,24 @@ pub struct ImportReport {
     pub split_episodes: usize,
     /// Episodes skipped: a single frame, no transition (frames without a next-state column).
     pub skipped_episodes: usize,
-    /// The trajectories posted (stored now or found stored), in the file's order.
+    /// The trajectories posted (stored now or found stored), in the file's order: the first
+    /// [`MAX_REPORTED_IDS`] of them (`trajectories` counts all), so that a report's size is
+    /// bounded whatever the file holds.
+    #[schemars(length(max = MAX_REPORTED_IDS))]
     pub trajectory_ids: Vec<i64>,
 }
+
+/// Trajectory ids an [`ImportReport`] lists at most (800 KB of them).
+pub const MAX_REPORTED_IDS: usize = 100_000;
 
 impl ImportReport {
     /// Counts one stored trajectory `id` of `transitions` transitions starting at
     /// `first_step` of its episode (0: a new episode), stored now or found stored
     /// (`replayed`).
     pub fn stored(&mut self, id: i64, first_step: Option<i64>, transitions: usize, replayed: bool) {
-        self.trajectory_ids.push(id);
+        if self.trajectory_ids.len() < MAX_REPORTED_IDS {
+            self.trajectory_ids.push(id);
+        }
         self.trajectories += 1;
         self.transitions += transitions;
         if first_step == Some(0) {
@@ -81,7 +89,9 @@ impl ImportReport {
         self.transitions += o.transitions;
         self.split_episodes += o.split_episodes;
         self.skipped_episodes += o.skipped_episodes;
-        self.trajectory_ids.extend_from_slice(&o.trajectory_ids);
+        let room = MAX_REPORTED_IDS.saturating_sub(self.trajectory_ids.len());
+        self.trajectory_ids
+            .extend(o.trajectory_ids.iter().take(room).copied());
     }
 }
 
@@ -369,5 +379,24 @@ mod tests {
             ("a".into(), 4)
         );
         assert_eq!(episode_of(None, 0), ("0".into(), 0));
+    }
+
+    #[test]
+    fn a_report_counts_every_trajectory_and_lists_a_bounded_number() {
+        let mut report = ImportReport::default();
+        for id in 0..MAX_REPORTED_IDS as i64 + 5 {
+            report.stored(id, Some(0), 2, id % 2 == 0);
+        }
+        assert_eq!(report.trajectories, MAX_REPORTED_IDS + 5);
+        assert_eq!(report.transitions, 2 * (MAX_REPORTED_IDS + 5));
+        assert_eq!(report.trajectory_ids.len(), MAX_REPORTED_IDS);
+        assert_eq!(report.trajectory_ids[..3], [0, 1, 2]);
+        // Another file's report adds its counts, and its ids while there is room.
+        let mut first = ImportReport::default();
+        first.stored(7, Some(0), 1, false);
+        first.add(&report);
+        assert_eq!(first.trajectories, MAX_REPORTED_IDS + 6);
+        assert_eq!(first.trajectory_ids.len(), MAX_REPORTED_IDS);
+        assert_eq!(first.trajectory_ids[..2], [7, 0]);
     }
 }
