@@ -356,6 +356,15 @@ def test_bad_data_is_named_and_refusals_say_which_episode(
         with pytest.raises(ValueError, match="dataset_id"):
             import_episodes(client, outside, dataset="logs", dataset_id="no spaces")
     assert len(dataset_identity(str(bad))) == 16
+    # A file larger than the server takes: what to do instead, and nothing stored.
+    small = make_server(extra_args=["--max-import-bytes", "1000"])
+    with Client(small.url) as client:
+        kinematic(client, "small")
+        big = tmp_path / "big.csv"
+        write_csv(big, logged([200]))
+        with pytest.raises(DatasetError, match=r"larger than the server takes \(1000 bytes"):
+            client.import_file(big, progress=False)
+        assert client.get_experiment().n_trajectories == 0
 
 
 @pytest.mark.integration

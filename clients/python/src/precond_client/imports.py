@@ -177,8 +177,16 @@ def check_dataset_id(dataset_id: str) -> None:
 
 def import_error(dataset: str, e: errors.ApiError) -> errors.PrecondError:
     """The error of a refused import: :class:`ImportFailed` when the server stopped at a
-    refused episode, :class:`DatasetError` when it could not read the data, else ``e``."""
+    refused episode, :class:`DatasetError` when it could not read the data or the file is
+    larger than it takes, else ``e``."""
     details = e.details if isinstance(e.details, dict) else {}
+    if isinstance(e, errors.PayloadTooLarge):
+        limit = details.get("limit_bytes", "its")
+        return DatasetError(
+            f"{dataset}: larger than the server takes ({limit} bytes, --max-import-bytes): "
+            "import it with `precond import`, which streams files of any size, or ask the "
+            "operator for a higher limit"
+        )
     stop = ImportStop.from_json(details["import"]) if "import" in details else None
     before = stop.stored_before if stop else None
     if stop and stop.episode is not None:
