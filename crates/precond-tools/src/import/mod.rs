@@ -26,9 +26,8 @@ use anyhow::{Context, bail};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use precond::api::{ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest};
 use precond::import::{
-    Assembly, Message, Part, key_part,
+    Assembly, Part, Progress, Reading, Stopped, Stored, drive, key_part,
     mapping::{self, Given, Spaces},
-    read_parts,
     table::{self, Format},
 };
 pub use precond::import::{ImportReport, dataset_identity};
@@ -309,86 +308,65 @@ async fn import_file(
         ),
     );
 
-    let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
-    let reader = {
-        let (path, mapping, columns) = (path.to_path_buf(), mapping.clone(), columns.clone());
-        let assembly = Assembly {
+    let reading = Reading {
+        path: path.to_path_buf(),
+        format,
+        columns,
+        mapping,
+        dims: (spaces.state.len(), spaces.action.len()),
+        assembly: Assembly {
             dataset: dataset.clone(),
             dataset_id,
             label: args.label.clone(),
             max_transitions: args.max_transitions,
             max_body_bytes: args.max_body_bytes,
-        };
-        let dims = (spaces.state.len(), spaces.action.len());
-        tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-            let mut send = |m: Message| {
-                tx.blocking_send(m)
-                    .map_err(|_| anyhow::anyhow!("the poster stopped"))
-            };
-            read_parts(
-                &path, format, &mapping, &columns, dims, &assembly, &mut send,
+        },
+    };
+    let store = |part: Part| async move {
+        let stored = poster.post(args.experiment, &part).await;
+        let (created, replayed) = stored.with_context(|| {
+            format!(
+                "{} episode {} (from step {})",
+                path.display(),
+                part.source.episode.unwrap_or_default(),
+                part.source.first_step.unwrap_or_default()
             )
-            .with_context(|| path.display().to_string())
+        })?;
+        anyhow::Ok(Stored {
+            id: created.trajectory.id,
+            transitions: created.n_transitions,
+            replayed,
         })
     };
-
-    let mut report = ImportReport::default();
-    let mut failure = None;
-    while let Some(message) = rx.recv().await {
-        match message {
-            Message::Part(part) => match poster.post(args.experiment, &part).await {
-                Ok((created, replayed)) => {
-                    report.stored(
-                        created.trajectory.id,
-                        part.source.first_step,
-                        created.n_transitions,
-                        replayed,
-                    );
-                    progress.inc(part.rows);
-                    progress.set_message(format!(
-                        "{} trajectories stored, {} already there",
-                        report.created, report.replayed
-                    ));
-                }
-                Err(e) => {
-                    failure = Some(e.context(format!(
-                        "{} episode {} (from step {})",
-                        path.display(),
-                        part.source.episode.unwrap_or_default(),
-                        part.source.first_step.unwrap_or_default()
-                    )));
-                    break;
-                }
-            },
-            Message::Split(episode, length, parts) => {
-                report.split_episodes += 1;
-                say(
-                    progress,
-                    format!(
-                        "{}: episode {episode} has {length} transitions, posted as {parts} \
-                     trajectories (at most {} transitions or {} bytes each)",
-                        path.display(),
-                        args.max_transitions,
-                        args.max_body_bytes
-                    ),
-                );
-            }
-            Message::Skipped => report.skipped_episodes += 1,
+    let shown = |event: Progress<'_>| match event {
+        Progress::Stored { rows, report } => {
+            progress.inc(rows);
+            progress.set_message(format!(
+                "{} trajectories stored, {} already there",
+                report.created, report.replayed
+            ));
         }
-    }
-    drop(rx);
-    let read = reader.await;
-    if let Some(e) = failure {
-        return Err(e);
-    }
-    match read {
-        Ok(r) => r?,
-        Err(e) => bail!(
-            "reading {}: the reader failed ({e}); the file may be damaged",
-            path.display()
+        Progress::Split(episode, length, parts) => say(
+            progress,
+            format!(
+                "{}: episode {episode} has {length} transitions, posted as {parts} \
+                 trajectories (at most {} transitions or {} bytes each)",
+                path.display(),
+                args.max_transitions,
+                args.max_body_bytes
+            ),
         ),
-    }
-    Ok(report)
+    };
+    drive(reading, store, shown)
+        .await
+        .map_err(|stopped| match stopped {
+            Stopped::Storing { error, .. } => error,
+            Stopped::Reading { error, .. } => error.context(path.display().to_string()),
+            Stopped::Reader(e) => anyhow::anyhow!(
+                "reading {}: the reader failed ({e}); the file may be damaged",
+                path.display()
+            ),
+        })
 }
 
 /// Runs `precond import`: every file in turn into the experiment; returns what was done in

@@ -30,7 +30,7 @@ use schemars::JsonSchema;
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use std::collections::HashSet;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use table::{Cell, Column, Format};
 
 /// What an import did, per file and in all.
@@ -359,6 +359,156 @@ pub fn read_parts(
         assembler.row(row)
     })?;
     assembler.end_episode()
+}
+
+/// A file to read and how its rows become trajectories: what [`drive`] reads.
+#[derive(Debug, Clone)]
+pub struct Reading {
+    /// The file.
+    pub path: PathBuf,
+    /// Its format.
+    pub format: Format,
+    /// Its columns ([`table::columns`]).
+    pub columns: Vec<Column>,
+    /// Which of them the state, action, … are ([`mapping::resolve`]).
+    pub mapping: Mapping,
+    /// The state's and the action's dimensions.
+    pub dims: (usize, usize),
+    /// The dataset and the limits of one trajectory.
+    pub assembly: Assembly,
+}
+
+/// What storing one trajectory gave: its id, its transitions, and whether it was stored before
+/// (replayed, nothing stored now).
+#[derive(Debug, Clone, Copy)]
+pub struct Stored {
+    /// The trajectory.
+    pub id: i64,
+    /// Its transitions.
+    pub transitions: usize,
+    /// Whether it was found stored.
+    pub replayed: bool,
+}
+
+/// What [`drive`] says as it goes, for a progress bar.
+#[derive(Debug)]
+pub enum Progress<'a> {
+    /// A trajectory was stored, from `rows` rows of the file; the report so far.
+    Stored {
+        /// Rows of the file it consumed.
+        rows: u64,
+        /// The import so far.
+        report: &'a ImportReport,
+    },
+    /// An episode was split (its value, its transitions, its parts).
+    Split(&'a str, usize, usize),
+}
+
+/// Why [`drive`] stopped before the end of the file.
+#[derive(Debug)]
+pub enum Stopped<E> {
+    /// Storing a trajectory failed with `error`: `stop` says which, and what was stored before.
+    Storing {
+        /// Where, and what was stored before.
+        stop: ImportStop,
+        /// The store's error.
+        error: E,
+    },
+    /// A row could not be read (`error` names its line or row); `stop` says what was stored
+    /// before.
+    Reading {
+        /// What was stored before (`episode` and `first_step` are `None`).
+        stop: ImportStop,
+        /// What is wrong with the file.
+        error: anyhow::Error,
+    },
+    /// The reader itself failed (it panicked): the file may be damaged.
+    Reader(String),
+}
+
+/// Runs an import: reads the file on a blocking thread (at most two trajectories ahead of the
+/// store) and hands each trajectory to `store`, in the file's order, counting what was stored
+/// into the report and telling `progress`; stops at the first failure, saying where.
+pub async fn drive<E, F, Fut>(
+    reading: Reading,
+    mut store: F,
+    mut progress: impl FnMut(Progress<'_>),
+) -> Result<ImportReport, Stopped<E>>
+where
+    F: FnMut(Part) -> Fut,
+    Fut: Future<Output = Result<Stored, E>>,
+{
+    let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
+    let reader = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
+        let Reading {
+            path,
+            format,
+            columns,
+            mapping,
+            dims,
+            assembly,
+        } = reading;
+        let mut send = |m: Message| {
+            tx.blocking_send(m)
+                .map_err(|_| anyhow::anyhow!("the import stopped"))
+        };
+        read_parts(
+            &path, format, &mapping, &columns, dims, &assembly, &mut send,
+        )
+    });
+    let mut report = ImportReport::default();
+    let mut failure = None;
+    while let Some(message) = rx.recv().await {
+        match message {
+            Message::Part(part) => {
+                let (episode, first_step, rows) =
+                    (part.source.episode, part.source.first_step, part.rows);
+                match store(part).await {
+                    Ok(stored) => {
+                        report.stored(stored.id, first_step, stored.transitions, stored.replayed);
+                        progress(Progress::Stored {
+                            rows,
+                            report: &report,
+                        });
+                    }
+                    Err(error) => {
+                        failure = Some(Stopped::Storing {
+                            stop: ImportStop {
+                                episode: Some(episode.unwrap_or_default()),
+                                first_step: Some(first_step.unwrap_or_default()),
+                                stored_before: std::mem::take(&mut report),
+                            },
+                            error,
+                        });
+                        break;
+                    }
+                }
+            }
+            Message::Split(episode, length, parts) => {
+                report.split_episodes += 1;
+                progress(Progress::Split(&episode, length, parts));
+            }
+            Message::Skipped => report.skipped_episodes += 1,
+        }
+    }
+    // The reader stops at its next part when nobody receives it any more.
+    drop(rx);
+    let read = reader.await;
+    if let Some(stopped) = failure {
+        return Err(stopped);
+    }
+    match read {
+        Ok(Ok(())) => Ok(report),
+        Ok(Err(error)) => Err(Stopped::Reading {
+            stop: ImportStop {
+                episode: None,
+                first_step: None,
+                stored_before: report,
+            },
+            error,
+        }),
+        Err(panicked) => Err(Stopped::Reader(panicked.to_string())),
+    }
 }
 
 #[cfg(test)]

@@ -8,7 +8,7 @@ use crate::api::TrajectoryRequest;
 use crate::import::mapping::{self, Given, Spaces};
 use crate::import::table::{self, Format};
 use crate::import::{
-    Assembly, ImportReport, ImportStop, Message, dataset_identity, key_part, read_parts,
+    Assembly, ImportReport, Part, Reading, Stopped, Stored, dataset_identity, drive, key_part,
 };
 use crate::limits::MAX_TRANSITIONS;
 use std::path::PathBuf;
@@ -94,73 +94,50 @@ impl Service {
                 .max(1),
             max_body_bytes: file.max_body_bytes,
         };
-        let dims = (spaces.state.len(), spaces.action.len());
-        let (tx, mut rx) = tokio::sync::mpsc::channel::<Message>(2);
-        let (path, format) = (file.path.clone(), file.format);
-        let reader = tokio::task::spawn_blocking(move || -> anyhow::Result<()> {
-            let mut send = |m: Message| {
-                tx.blocking_send(m)
-                    .map_err(|_| anyhow::anyhow!("the import stopped"))
+        let reading = Reading {
+            path: file.path.clone(),
+            format: file.format,
+            columns,
+            mapping,
+            dims: (spaces.state.len(), spaces.action.len()),
+            assembly,
+        };
+        let service = self;
+        let store = move |part: Part| async move {
+            let Part {
+                key,
+                source,
+                transitions,
+                ..
+            } = part;
+            let n = transitions.len();
+            let request = TrajectoryRequest {
+                proposal_id: None,
+                partial: false,
+                source: Some(source),
+                transitions,
             };
-            read_parts(
-                &path, format, &mapping, &columns, dims, &assembly, &mut send,
-            )
-        });
-        let mut report = ImportReport::default();
-        let mut failure = None;
-        while let Some(message) = rx.recv().await {
-            match message {
-                Message::Part(part) => {
-                    let (episode, first) = (part.source.episode, part.source.first_step);
-                    let n = part.transitions.len();
-                    let request = TrajectoryRequest {
-                        proposal_id: None,
-                        partial: false,
-                        source: Some(part.source),
-                        transitions: part.transitions,
-                    };
-                    match self.ingest(id, request, Some(part.key.as_bytes())).await {
-                        Ok(ingested) => report.stored(
-                            ingested.record.trajectory_id,
-                            first,
-                            n,
-                            ingested.replayed,
-                        ),
-                        Err(error) => {
-                            failure = Some(Error::ImportStopped {
-                                stop: Box::new(ImportStop {
-                                    episode: Some(episode.unwrap_or_default()),
-                                    first_step: Some(first.unwrap_or_default()),
-                                    stored_before: std::mem::take(&mut report),
-                                }),
-                                error: Box::new(error),
-                            });
-                            break;
-                        }
-                    }
+            let ingested = service.ingest(id, request, Some(key.as_bytes())).await?;
+            Ok(Stored {
+                id: ingested.record.trajectory_id,
+                transitions: n,
+                replayed: ingested.replayed,
+            })
+        };
+        drive(reading, store, |_| {})
+            .await
+            .map_err(|stopped| match stopped {
+                Stopped::Storing { stop, error } => Error::ImportStopped {
+                    stop: Box::new(stop),
+                    error: Box::new(error),
+                },
+                Stopped::Reading { stop, error } => Error::ImportStopped {
+                    stop: Box::new(stop),
+                    error: Box::new(Error::validation("body", format!("{error:#}"))),
+                },
+                Stopped::Reader(e) => {
+                    Error::Internal(anyhow::anyhow!("the import's reader failed: {e}"))
                 }
-                Message::Split(..) => report.split_episodes += 1,
-                Message::Skipped => report.skipped_episodes += 1,
-            }
-        }
-        drop(rx);
-        let read = reader.await;
-        if let Some(e) = failure {
-            return Err(e);
-        }
-        match read {
-            Ok(Ok(())) => Ok(report),
-            Ok(Err(e)) => Err(Error::ImportStopped {
-                stop: Box::new(ImportStop {
-                    episode: None,
-                    first_step: None,
-                    stored_before: report,
-                }),
-                error: Box::new(Error::validation("body", format!("{e:#}"))),
-            }),
-            Err(e) => Err(Error::Internal(anyhow::anyhow!(
-                "the import's reader failed: {e}"
-            ))),
-        }
+            })
     }
 }
