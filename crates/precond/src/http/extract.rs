@@ -91,8 +91,9 @@ pub fn check_json_content_type(headers: &HeaderMap) -> Result<(), ApiError> {
 #[derive(Debug, Clone, Copy)]
 pub struct BodyReadTimeout(pub std::time::Duration);
 
-/// The body deadline when the app did not set one.
-const DEFAULT_BODY_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
+/// The body deadline when the app did not set one (and [`super::HttpConfig`]'s default).
+pub(crate) const DEFAULT_BODY_READ_TIMEOUT: std::time::Duration =
+    std::time::Duration::from_secs(60);
 
 /// The configured body limit, put in the request extensions so errors can state it.
 #[derive(Debug, Clone, Copy)]

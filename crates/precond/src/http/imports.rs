@@ -12,7 +12,7 @@
 
 use super::AppState;
 use super::error::{ApiError, ApiResult};
-use super::extract::{ApiPath, ApiQuery, BodyReadTimeout};
+use super::extract::{ApiPath, ApiQuery, BodyReadTimeout, DEFAULT_BODY_READ_TIMEOUT};
 use crate::api::{ImportFormat, ImportQuery};
 use crate::import::ImportReport;
 use crate::import::mapping::Given;
@@ -99,7 +99,7 @@ pub async fn create_import(
     let within = request
         .extensions()
         .get::<BodyReadTimeout>()
-        .map_or(std::time::Duration::from_secs(60), |t| t.0);
+        .map_or(DEFAULT_BODY_READ_TIMEOUT, |t| t.0);
     let limit = state.config.max_import_bytes;
     let file = spool(request, limit, within).await?;
     let given = Given {

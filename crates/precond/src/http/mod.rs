@@ -78,7 +78,7 @@ impl Default for HttpConfig {
             tokens: None,
             shutdown_grace: Duration::from_secs(20),
             header_read_timeout: Duration::from_secs(30),
-            body_read_timeout: Duration::from_secs(60),
+            body_read_timeout: extract::DEFAULT_BODY_READ_TIMEOUT,
             cors_allow_origins: Vec::new(),
             bound: None,
         }
