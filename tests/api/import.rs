@@ -621,6 +621,23 @@ async fn the_import_route_names_bad_files_and_bad_requests() {
         (&Value::Null, &json!(0)),
         "{e}"
     );
+    // The names every trajectory's source needs, checked before the file is read: a label
+    // too long, a dataset id that cannot be part of a key — named as the query calls them.
+    let long = "x".repeat(1001);
+    for (query, field) in [
+        ([("dataset", "logs"), ("label", long.as_str())], "label"),
+        (
+            [("dataset", "logs"), ("dataset_id", "no spaces")],
+            "dataset_id",
+        ),
+    ] {
+        let (status, e) = upload(&app, id, &query, "text/csv", vec![b'1'; 1000]).await;
+        assert_eq!(
+            (status, e["error"]["details"]["field"].as_str()),
+            (422, Some(field)),
+            "{e}"
+        );
+    }
     // Transitions per trajectory within 1 and the server's limit, named.
     let zero = [("dataset", "logs"), ("max_transitions", "0")];
     let (status, e) = upload(&app, id, &zero, "text/csv", bad.to_vec()).await;

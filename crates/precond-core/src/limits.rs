@@ -46,6 +46,10 @@ pub const MAX_IDEMPOTENCY_KEY_LEN: usize = 200;
 pub const MAX_SOURCE_TEXT_LEN: usize = 1000;
 /// Transitions in one posted trajectory: `1 ..= 10 000`.
 pub const MAX_TRANSITIONS: usize = 10_000;
+/// The server's request body limit by default (`--max-body-bytes`), 4 MiB: `precond import`
+/// splits episodes for it by default, as the import route does for the server's own limit, so
+/// that both store the same parts under the same keys.
+pub const DEFAULT_MAX_BODY_BYTES: usize = 4 * 1024 * 1024;
 /// Points in one precondition query: `1 ..= 100 000`.
 pub const MAX_POINTS: usize = 100_000;
 /// Transitions in one JSON page: `1 ..= 1000`, default [`DEFAULT_PAGE`].

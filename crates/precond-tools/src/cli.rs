@@ -358,7 +358,7 @@ pub struct ServeArgs {
     #[arg(long, env = "PRECOND_LOG_FORMAT", value_enum, default_value_t = LogFormat::Text)]
     pub log_format: LogFormat,
     /// Largest accepted request body, in bytes.
-    #[arg(long, env = "PRECOND_MAX_BODY_BYTES", default_value_t = 4 * 1024 * 1024)]
+    #[arg(long, env = "PRECOND_MAX_BODY_BYTES", default_value_t = precond::limits::DEFAULT_MAX_BODY_BYTES)]
     pub max_body_bytes: usize,
     /// Largest file `POST /v1/experiments/{id}/imports` accepts, in bytes (written to a
     /// temporary file while it arrives; larger logs: `precond import`, which streams).

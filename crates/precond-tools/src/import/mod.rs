@@ -22,11 +22,11 @@
 //! `--max-body-bytes`, is split into consecutive trajectories, each saying its first step, and
 //! the import says so.
 
-use anyhow::{Context, bail};
+use anyhow::Context;
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use precond::api::{ErrorBody, ExperimentResponse, TrajectoryCreated, TrajectoryRequest};
 use precond::import::{
-    Assembly, Part, Progress, Reading, Stopped, Stored, drive, key_part,
+    Assembly, Part, Progress, Reading, Stopped, Stored, drive,
     mapping::{self, Given, Spaces},
     table::{self, Format},
 };
@@ -111,7 +111,7 @@ pub struct ImportArgs {
     pub max_transitions: usize,
     /// Largest request body: an episode whose JSON would be larger is split. Set it to the
     /// server's `--max-body-bytes` when that is lower than the default.
-    #[arg(long, default_value_t = 4 * 1024 * 1024)]
+    #[arg(long, default_value_t = precond::limits::DEFAULT_MAX_BODY_BYTES)]
     pub max_body_bytes: usize,
     /// No progress bar.
     #[arg(long)]
@@ -191,19 +191,25 @@ impl Poster {
     }
 
     /// Posts one part; `Ok((answer, replayed))`.
-    async fn post(&self, id: i64, part: &Part) -> anyhow::Result<(TrajectoryCreated, bool)> {
+    async fn post(&self, id: i64, part: Part) -> anyhow::Result<(TrajectoryCreated, bool)> {
+        let (episode, first_step) = (
+            part.source.episode.unwrap_or_default(),
+            part.source.first_step.unwrap_or_default(),
+        );
+        let dataset = part.source.dataset.clone();
+        let key = part.key;
         let body = TrajectoryRequest {
             proposal_id: None,
             partial: false,
-            source: Some(part.source.clone()),
-            transitions: part.transitions.clone(),
+            source: Some(part.source),
+            transitions: part.transitions,
         };
         let path = format!("/v1/experiments/{id}/trajectories");
         let mut delay = Duration::from_millis(200);
         for attempt in 0.. {
             let sent = self
                 .request(reqwest::Method::POST, &path)
-                .header("idempotency-key", &part.key)
+                .header("idempotency-key", &key)
                 .json(&body)
                 .send()
                 .await;
@@ -216,7 +222,7 @@ impl Poster {
             };
             match (retry, sent) {
                 (Some(why), _) if attempt < 8 => {
-                    tracing::warn!(key = %part.key, %why, "retrying in {delay:?}");
+                    tracing::warn!(key = %key, %why, "retrying in {delay:?}");
                     tokio::time::sleep(delay).await;
                     delay = (delay * 2).min(Duration::from_secs(10));
                 }
@@ -235,9 +241,7 @@ impl Poster {
                              differs now (its rows, the column mapping or the label changed); \
                              nothing was stored for it — import it under another --dataset-name \
                              to keep both",
-                            part.source.episode.unwrap_or_default(),
-                            part.source.first_step.unwrap_or_default(),
-                            part.source.dataset
+                            episode, first_step, dataset
                         )),
                         413 => err.context(
                             "lower --max-body-bytes (or --max-transitions) to the server's limit",
@@ -281,13 +285,8 @@ async fn import_file(
         .dataset_name
         .clone()
         .unwrap_or_else(|| default_dataset_name(path));
-    let dataset_id = match &args.dataset_id {
-        Some(id) if key_part(id) == *id => id.clone(),
-        Some(id) => bail!(
-            "--dataset-id {id:?}: letters, digits, '.', '_' and '-' only, at most 64 characters"
-        ),
-        None => dataset_identity(&dataset),
-    };
+    let dataset_id = precond::import::dataset_id(args.dataset_id.as_deref(), &dataset)
+        .map_err(|reason| anyhow::anyhow!("--dataset-id: {reason}"))?;
     let total = match n_rows {
         Some(n) => n,
         None => {
@@ -323,13 +322,14 @@ async fn import_file(
         },
     };
     let store = |part: Part| async move {
-        let stored = poster.post(args.experiment, &part).await;
+        let (episode, first_step) = (part.source.episode, part.source.first_step);
+        let stored = poster.post(args.experiment, part).await;
         let (created, replayed) = stored.with_context(|| {
             format!(
                 "{} episode {} (from step {})",
                 path.display(),
-                part.source.episode.unwrap_or_default(),
-                part.source.first_step.unwrap_or_default()
+                episode.unwrap_or_default(),
+                first_step.unwrap_or_default()
             )
         })?;
         anyhow::Ok(Stored {

@@ -17,8 +17,8 @@ use crate::api::{ImportFormat, ImportQuery};
 use crate::import::ImportReport;
 use crate::import::mapping::Given;
 use crate::import::table::Format;
-use crate::limits::{MAX_SOURCE_TEXT_LEN, MAX_TRANSITIONS};
-use crate::service::imports::ImportFile;
+use crate::limits::MAX_TRANSITIONS;
+use crate::service::imports::{ImportFile, check_import};
 use axum::Json;
 use axum::extract::{Request, State};
 use axum::http::header;
@@ -86,13 +86,11 @@ pub async fn create_import(
             format!("must be 1 to {MAX_TRANSITIONS}, got {n}"),
         ));
     }
-    let n = query.dataset.chars().count();
-    if n == 0 || n > MAX_SOURCE_TEXT_LEN {
-        return Err(ApiError::validation(
-            "dataset",
-            format!("must be 1 to {MAX_SOURCE_TEXT_LEN} characters, got {n}"),
-        ));
-    }
+    let dataset_id = check_import(
+        &query.dataset,
+        query.label.as_deref(),
+        query.dataset_id.as_deref(),
+    )?;
     // The experiment first: nothing is read for one that does not exist.
     state.service.live(id).await?;
     let slot = state.service.transfer_slot().await?;
@@ -119,7 +117,7 @@ pub async fn create_import(
                 format,
                 given,
                 dataset: query.dataset,
-                dataset_id: query.dataset_id,
+                dataset_id,
                 label: query.label,
                 max_body_bytes: state.config.max_body_bytes,
                 max_transitions: query.max_transitions,

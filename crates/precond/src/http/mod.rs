@@ -73,7 +73,7 @@ pub struct HttpConfig {
 impl Default for HttpConfig {
     fn default() -> Self {
         Self {
-            max_body_bytes: 4 * 1024 * 1024,
+            max_body_bytes: crate::limits::DEFAULT_MAX_BODY_BYTES,
             max_import_bytes: 256 * 1024 * 1024,
             tokens: None,
             shutdown_grace: Duration::from_secs(20),

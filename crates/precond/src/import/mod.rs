@@ -132,7 +132,7 @@ pub struct Part {
 
 /// What the reader hands on, in the file's order.
 #[derive(Debug)]
-pub enum Message {
+enum Message {
     /// A trajectory to store.
     Part(Part),
     /// An episode was split (its value, its transitions, its parts).
@@ -149,6 +149,19 @@ pub fn dataset_identity(name: &str) -> String {
         .iter()
         .map(|b| format!("{b:02x}"))
         .collect()
+}
+
+/// The dataset's identity in the keys: `given` when it is plain (letters, digits, `.`, `_`,
+/// `-`; 1 to 64 characters), else the reason it is refused; without one, [`dataset_identity`]
+/// of the dataset's `name`.
+pub fn dataset_id(given: Option<&str>, name: &str) -> Result<String, String> {
+    match given {
+        Some(id) if key_part(id) == id => Ok(id.to_string()),
+        Some(id) => Err(format!(
+            "letters, digits, '.', '_' and '-' only, 1 to 64 characters, got {id:?}"
+        )),
+        None => Ok(dataset_identity(name)),
+    }
 }
 
 /// The episode's part of an idempotency key: its value when short and plain, else a hash.
@@ -327,7 +340,7 @@ pub struct Assembly {
 /// Reads the file's rows through the mapping and hands each finished trajectory (and what
 /// happened to each episode) to `send`, in order; stops at the first error, which names the
 /// line or row. Blocking: run it on a blocking thread.
-pub fn read_parts(
+fn read_parts(
     path: &Path,
     format: Format,
     mapping: &Mapping,

@@ -46,8 +46,7 @@ pub struct Column {
 }
 
 /// The formats an import reads.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Deserialize, schemars::JsonSchema)]
-#[serde(rename_all = "snake_case")]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Format {
     /// From the file's extension (`.parquet`/`.pq` is Parquet, anything else CSV).
     Auto,
