@@ -47,7 +47,6 @@ from .imports import (
     default_dataset_name,
     import_episodes,
     import_error,
-    lerobot_files,
     lerobot_table,
     read_minari,
 )
@@ -820,7 +819,6 @@ class Client:
         dataset that grows imports only its new episodes. Needs ``pyarrow``. The experiment's
         state and action must be the dataset's (their dimensions are checked)."""
         r = Path(root)
-        lerobot_files(r)
         with tempfile.TemporaryDirectory(prefix="precond-lerobot-") as tmp:
             table = Path(tmp) / "frames.parquet"
             lerobot_table(r, table, [state, action, "episode_index"])

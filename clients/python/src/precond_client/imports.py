@@ -54,6 +54,7 @@ from typing import Any
 import numpy as np
 
 from . import errors
+from .execution import client_side
 from .models import Array, ImportReport, ImportStop, mat
 from .protocols import FileImporter
 
@@ -399,12 +400,14 @@ def import_episodes(
     trajectory (those stored before it stay stored)."""
     check_dataset_id(dataset_id)
     exp = client.get_experiment()
-    model = exp.domain.get("model") or {}
-    client_side = exp.domain.get("kind") == "custom" and model.get("kind") == "client"
     with tempfile.TemporaryDirectory(prefix="precond-import-") as tmp:
         path = Path(tmp) / "episodes.csv"
         write_episodes_csv(
-            path, episodes, exp.state_space.names, exp.action_space.names, predicted=client_side
+            path,
+            episodes,
+            exp.state_space.names,
+            exp.action_space.names,
+            predicted=client_side(exp),
         )
         return client.import_file(
             path,
